@@ -1,0 +1,1 @@
+"""colonyd package."""

@@ -1,0 +1,132 @@
+"""`colonyd bench colony`: N daemons on loopback; propagation, 1M-voxel catch-up, idle cost."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from colonyd.launcher import LocalColony
+
+log = logging.getLogger(__name__)
+
+_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def _cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / _TICKS  # utime + stime
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return 0.0
+
+
+def propagation_ms(reports: list[dict[str, Any]], agents: list[str]) -> list[float]:
+    """Per (origin, seq) delta: ms from creation to its application on the last other peer."""
+    applied: dict[tuple[str, int], list[float]] = {}
+    for r in reports:
+        for origin, seq, created, at in r["metrics"].get("samples", []):
+            if origin != r["agent"]:
+                applied.setdefault((origin, int(seq)), []).append(float(at) - float(created))
+    need = len(agents) - 1
+    return [max(v) * 1000 for v in applied.values() if len(v) >= need]
+
+
+def run_colony_bench(out_json: Path | str, *, daemons: int = 4, duration: float = 10.0,
+                     catchup_voxels: int = 1_000_000) -> dict[str, Any]:
+    """Run the three phases and write the result JSON; returns it."""
+    work = Path(tempfile.mkdtemp(prefix="colonyd-bench-"))
+    result: dict[str, Any] = {"daemons": daemons}
+    try:
+        result.update(_propagation_and_idle(work / "gossip", daemons, duration))
+        result.update(_catchup(work / "catchup", catchup_voxels))
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    out = Path(out_json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1) + "\n")
+    return result
+
+
+def _propagation_and_idle(base: Path, daemons: int, duration: float) -> dict[str, Any]:
+    scans = max(2, int(duration * 2))
+    colony = LocalColony(base, colony="bench", heartbeat_s=1.0)
+    try:
+        agents = [f"d{i}" for i in range(daemons)]
+        for i, agent in enumerate(agents):
+            colony.add(agent, [f"synthetic:scans={scans},rate=2,points=120,seed={i + 1}"],
+                       start=False)
+        # The hub first, so the others have someone to connect to.
+        for i, agent in enumerate(agents):
+            colony.daemons[agent].start()
+            if i == 0:
+                time.sleep(0.3)
+        colony.wait_members(daemons, timeout=30)
+        colony.wait_converged(duration + 60, agents)
+        reports = colony.status(samples=True)
+        lat = propagation_ms(reports, agents)
+        # Idle: sources are done; measure CPU over a quiet window.
+        pids = [d.proc.pid for d in colony.daemons.values() if d.proc is not None]
+        c0 = {p: _cpu_seconds(p) for p in pids}
+        t0 = time.monotonic()
+        time.sleep(5.0)
+        dt = time.monotonic() - t0
+        cpu = [100 * (_cpu_seconds(p) - c0[p]) / dt for p in pids]
+        rss = [_rss_mb(p) for p in pids]
+        bytes_out = sum(int(r["metrics"]["counts"].get("bytes_published", 0)) for r in reports)
+    except Exception:
+        log.error("colony benchmark failed; daemon logs:\n%s", colony.logs())
+        raise
+    else:
+        return {
+            "propagation_p50_ms": round(float(np.percentile(lat, 50)), 2) if lat else None,
+            "propagation_p99_ms": round(float(np.percentile(lat, 99)), 2) if lat else None,
+            "propagation_samples": len(lat),
+            "deltas_per_s_per_daemon": 2.0,
+            "idle_cpu_percent": round(max(cpu), 2),
+            "idle_cpu_percent_mean": round(float(np.mean(cpu)), 2),
+            "rss_mb": round(max(rss), 1),
+            "bytes_published": bytes_out,
+        }
+    finally:
+        colony.close()
+
+
+def _catchup(base: Path, voxels: int) -> dict[str, Any]:
+    colony = LocalColony(base, colony="catchup", heartbeat_s=1.0)
+    try:
+        colony.add("big", [f"bulk:voxels={voxels}"])
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            reports = colony.status(timeout=1.0)
+            big = next((r for r in reports if r["agent"] == "big"), None)
+            if big and big["layers"].get("big", {}).get("seq", 0) >= 1 and not big["unpublished"]:
+                break
+            time.sleep(0.3)
+        else:
+            raise TimeoutError("the bulk daemon did not publish its layer")
+        t0 = time.monotonic()
+        colony.add("newcomer")
+        colony.wait_converged(120, ["big", "newcomer"])
+        wall = time.monotonic() - t0
+        rep = next(r for r in colony.status() if r["agent"] == "newcomer")
+        catchups = [c for c in rep["metrics"]["catchups"] if c[0] == "big"]
+        got, seconds = (int(catchups[-1][1]), float(catchups[-1][2])) if catchups else (0, wall)
+        return {"catchup_voxels": got, "catchup_s": round(seconds, 3),
+                "catchup_wall_s_incl_process_start": round(wall, 2)}
+    except Exception:
+        log.error("catch-up benchmark failed; daemon logs:\n%s", colony.logs())
+        raise
+    finally:
+        colony.close()

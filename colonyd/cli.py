@@ -1,0 +1,214 @@
+"""Command line: `colonyd run|status|map|bench|demo|dump-config`; the one place errors become exit codes."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+from colonyd.config import PRECEDENCE, load_config
+from colonyd.errors import ColonydError, ConfigError
+
+log = logging.getLogger("colonyd")
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+EXIT_CONFIG = 3
+EXIT_DATA = 4  # voxel / protocol / plugin input errors
+EXIT_INTERRUPTED = 130
+
+
+def _config_flags(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group(f"configuration (precedence: {' > '.join(PRECEDENCE)})")
+    g.add_argument("--config", type=Path, help="TOML config file (also COLONYD_CONFIG)")
+    g.add_argument("--colony", help="colony name")
+    g.add_argument("--namespace", help="key-expression namespace (default: the colony name)")
+    g.add_argument("--agent-id", dest="agent_id", help="this agent's unique id")
+    g.add_argument("--kind", help="agent kind shown in status")
+    g.add_argument("--state-dir", dest="state_dir", type=Path, help="state directory")
+    g.add_argument("--mode", choices=["peer", "client"], help="Zenoh mode")
+    g.add_argument("--listen", action="append", metavar="ENDPOINT", help="listen endpoint")
+    g.add_argument("--connect", action="append", metavar="ENDPOINT", help="connect endpoint")
+    g.add_argument("--no-multicast", dest="multicast", action="store_const", const=False,
+                   help="disable multicast scouting")
+    g.add_argument("--source", dest="sources", action="append", metavar="SPEC",
+                   help="data source (synthetic:..., bulk:..., sim:..., replay:...)")
+    g.add_argument("--resolution", type=float, help="voxel size in metres")
+    g.add_argument("--publish-hz", dest="publish_hz", type=float, help="own-delta publish rate")
+    g.add_argument("--heartbeat-s", dest="heartbeat_s", type=float, help="heartbeat period")
+    g.add_argument("--lease-ms", dest="lease_ms", type=int, help="Zenoh transport lease")
+    g.add_argument("--colony-key", dest="colony_key", help="shared secret for authentication")
+    g.add_argument("--export-dir", dest="export_dir", type=Path,
+                   help="write the fused map (.ply, .bt) here on shutdown")
+    g.add_argument("--log-level", dest="log_level", choices=["debug", "info", "warning", "error"])
+
+
+_FLAG_NAMES = ("colony", "namespace", "agent_id", "kind", "state_dir", "mode", "listen", "connect",
+               "multicast", "sources", "resolution", "publish_hz", "heartbeat_s", "lease_ms",
+               "colony_key", "export_dir", "log_level")
+
+
+def _flags(args: argparse.Namespace) -> dict[str, Any]:
+    return {k: getattr(args, k, None) for k in _FLAG_NAMES if getattr(args, k, None) is not None}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="colonyd", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("run", help="run the daemon until SIGTERM")
+    _config_flags(p)
+
+    p = sub.add_parser("status", help="print the members of a running colony")
+    _config_flags(p)
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--digest", action="store_true", help="include layer digests")
+    p.add_argument("--wait", type=float, default=3.0, help="seconds to wait for all members")
+
+    p = sub.add_parser("dump-config", help="print the effective configuration as TOML")
+    _config_flags(p)
+
+    p = sub.add_parser("map", help="map a source offline into a directory of map files")
+    p.add_argument("source", help="source spec (sim:..., replay:...)")
+    p.add_argument("--resolution", type=float, default=0.1)
+    p.add_argument("--out", type=Path, required=True, help="output directory")
+
+    p = sub.add_parser("bench", help="benchmarks")
+    bsub = p.add_subparsers(dest="bench", required=True)
+    b = bsub.add_parser("integrate", help="voxel integration benchmark")
+    b.add_argument("--json", type=Path, required=True)
+    b.add_argument("--shared-data", type=Path, default=None)
+    b.add_argument("--repeats", type=int, default=3)
+    b = bsub.add_parser("wire", help="wire-format benchmark")
+    b.add_argument("--json", type=Path, required=True)
+    b.add_argument("--shared-data", type=Path, default=None)
+    b = bsub.add_parser("colony", help="N daemons on loopback: propagation, catch-up, idle cost")
+    b.add_argument("--json", type=Path, required=True)
+    b.add_argument("--daemons", type=int, default=4)
+    b.add_argument("--duration", type=float, default=10.0, help="seconds of 2 Hz gossip")
+    b.add_argument("--catchup-voxels", type=int, default=1_000_000)
+
+    p = sub.add_parser("demo", help="a 3-daemon colony on loopback with simulated sources")
+    p.add_argument("--out", type=Path, default=Path("demo-out"))
+    p.add_argument("--daemons", type=int, default=3)
+    p.add_argument("--timeout", type=float, default=45.0)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse and dispatch; raises the package errors that `launch` maps to exit codes."""
+    args = build_parser().parse_args(argv)
+    cmd = args.command
+    if cmd in ("run", "status", "dump-config"):
+        flags = _flags(args)
+        config = load_config(args.config, **flags)
+        if cmd == "dump-config":
+            from colonyd.config import dump_config
+
+            sys.stdout.write(dump_config(config))
+            return EXIT_OK
+        if cmd == "status":
+            from colonyd.logs import setup_logging
+            from colonyd.status import collect_status, format_status
+
+            setup_logging("warning")
+            reports = collect_status(config, digest=args.digest, wait_s=args.wait)
+            if args.json:
+                from colonyd.status import behind
+
+                lags = behind(reports)
+                for r in reports:
+                    r["behind"] = lags.get(r["agent"], 0)
+                sys.stdout.write(json.dumps(reports, indent=1) + "\n")
+            else:
+                sys.stdout.write(format_status(reports) + "\n")
+            return EXIT_OK
+        from colonyd.daemon import run_daemon
+
+        return run_daemon(config, args.config, flags)
+    from colonyd.logs import setup_logging
+
+    setup_logging("info")
+    if cmd == "map":
+        from colonyd.mapping import map_source
+
+        result = map_source(args.source, args.resolution, args.out)
+        if result is not None:
+            sys.stdout.write(f"{result}\n")
+        return EXIT_OK
+    if cmd == "bench":
+        return _bench(args)
+    if cmd == "demo":
+        from colonyd.demo import run_demo
+
+        return run_demo(args.out, daemons=args.daemons, timeout=args.timeout)
+    return EXIT_USAGE
+
+
+def _bench(args: argparse.Namespace) -> int:
+    if args.bench == "integrate":
+        from colonyd.bench_integrate import run_integrate_bench
+
+        result = run_integrate_bench(args.json, args.shared_data, args.repeats)
+    elif args.bench == "wire":
+        from colonyd.bench_wire import run_wire_bench
+
+        result = run_wire_bench(args.json, args.shared_data)
+    else:
+        from colonyd.bench_colony import run_colony_bench
+
+        result = run_colony_bench(args.json, daemons=args.daemons, duration=args.duration,
+                                  catchup_voxels=args.catchup_voxels)
+    if isinstance(result, dict):
+        sys.stdout.write(json.dumps(result, indent=1) + "\n")
+    return EXIT_OK
+
+
+def _known_errors() -> list[tuple[type[BaseException], int, str]]:
+    """(error class, exit code, label) for every package that defines errors, most specific first."""
+    known: list[tuple[type[BaseException], int, str]] = [(ConfigError, EXIT_CONFIG, "config")]
+    try:
+        from voxel.errors import VoxelError
+
+        known.append((VoxelError, EXIT_DATA, "voxel"))
+    except ImportError:
+        pass
+    try:
+        from protocol.errors import ProtocolError  # type: ignore[attr-defined]
+
+        known.append((ProtocolError, EXIT_DATA, "protocol"))
+    except ImportError:
+        pass
+    try:
+        from plugins.errors import PluginError
+
+        known.append((PluginError, EXIT_DATA, "plugin"))
+    except ImportError:
+        pass
+    known.append((ColonydError, EXIT_FAILURE, "colonyd"))
+    return known
+
+
+def launch(argv: list[str] | None = None) -> None:
+    """Console-script entry point: run `main` and map known errors to exit codes and log lines."""
+    try:
+        code = main(argv)
+    except KeyboardInterrupt:
+        code = EXIT_INTERRUPTED
+    except Exception as exc:
+        for cls, exit_code, label in _known_errors():
+            if isinstance(exc, cls):
+                if not logging.getLogger().handlers:
+                    from colonyd.logs import setup_logging
+
+                    setup_logging("info")
+                log.error("%s error: %s", label, exc)
+                code = exit_code
+                break
+        else:
+            raise
+    sys.exit(code)

@@ -1,0 +1,205 @@
+"""Daemon configuration: one pydantic-settings model from TOML, `COLONYD_` environment and flags."""
+
+from __future__ import annotations
+
+import re
+import socket
+import tomllib
+import zlib
+from contextvars import ContextVar
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic.fields import FieldInfo
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+
+from colonyd.errors import ConfigError
+
+#: Precedence, highest first: command-line flags, `COLONYD_*` environment variables, the TOML
+#: file given with `--config` (or `COLONYD_CONFIG`), built-in defaults.
+PRECEDENCE = ("flags", "environment (COLONYD_*)", "TOML file (--config)", "defaults")
+
+_NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+_ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/.+$")
+_TOML_PATH: ContextVar[Path | None] = ContextVar("colonyd_toml_path", default=None)
+
+
+def _default_agent_id() -> str:
+    name = re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname())[:64]
+    return name or "agent"
+
+
+def multicast_port(colony: str) -> int:
+    """The colony-specific multicast scouting port: 17000 + a stable hash of the colony name."""
+    return 17000 + zlib.crc32(colony.encode()) % 20000
+
+
+class _TomlSource(PydanticBaseSettingsSource):
+    """Settings from the TOML file named in the current load (lowest precedence above defaults)."""
+
+    def __init__(self, settings_cls: type[BaseSettings]) -> None:
+        super().__init__(settings_cls)
+        self._data = _read_toml(_TOML_PATH.get())
+
+    def get_field_value(self, field: FieldInfo, field_name: str) -> tuple[Any, str, bool]:
+        return self._data.get(field_name), field_name, False
+
+    def __call__(self) -> dict[str, Any]:
+        return dict(self._data)
+
+
+def _read_toml(path: Path | None) -> dict[str, Any]:
+    if path is None:
+        return {}
+    try:
+        with Path(path).open("rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        msg = f"config file {path} does not exist"
+        raise ConfigError(msg) from None
+    except tomllib.TOMLDecodeError as exc:
+        msg = f"config file {path} is not valid TOML: {exc}"
+        raise ConfigError(msg) from None
+    # Accept either a flat file or one with a [colonyd] table.
+    if isinstance(data.get("colonyd"), dict):
+        data = {**{k: v for k, v in data.items() if k != "colonyd"}, **data["colonyd"]}
+    return {k.replace("-", "_"): v for k, v in data.items()}
+
+
+class Config(BaseSettings):
+    """Everything a daemon needs; see docs/DAEMON.md for each field."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="COLONYD_", extra="forbid", validate_default=True, populate_by_name=True
+    )
+
+    colony: str = Field("default", description="colony name; peers of one colony share it")
+    namespace: str | None = Field(None, description="key-expression namespace (default: colony)")
+    agent_id: str = Field(default_factory=_default_agent_id, description="this agent's unique id")
+    kind: str = Field("robot", description="agent kind shown in status (robot, cctv, ...)")
+    state_dir: Path = Field(Path("/var/lib/colonyd"), description="WAL and snapshots")
+    mode: Literal["peer", "client"] = Field("peer", description="Zenoh mode; client for routers")
+    listen: list[str] = Field(default_factory=list, description="Zenoh listen endpoints")
+    connect: list[str] = Field(default_factory=list, description="Zenoh connect endpoints")
+    multicast: bool = Field(True, description="multicast scouting on the colony's port")
+    multicast_interface: str = Field("auto", description="interface for multicast scouting")
+    gossip_scouting: bool = Field(True, description="Zenoh gossip scouting (keeps a full mesh)")
+    shared_memory: bool = Field(False, description="Zenoh shared memory on one host")
+    lease_ms: int | None = Field(None, ge=100, description="transport lease (freeze detection)")
+    zenoh_config: Path | None = Field(None, description="extra Zenoh JSON5 file, merged first")
+    sources: list[str] = Field(default_factory=list, description="source specs")
+    resolution: float = Field(0.1, gt=0, le=10, description="voxel size in metres")
+    publish_hz: float = Field(2.0, gt=0, le=100, description="own-delta publish rate")
+    heartbeat_s: float = Field(1.0, gt=0, le=60, description="status heartbeat period")
+    snapshot_s: float = Field(30.0, gt=0, description="own-layer snapshot period")
+    inbox_size: int = Field(256, ge=8, description="bounded queue of received messages")
+    ring_size: int = Field(64, ge=1, description="recent deltas kept per layer for gap repair")
+    max_message_mb: float = Field(64.0, gt=0, description="largest accepted decoded message")
+    query_timeout_s: float = Field(5.0, gt=0, description="range/snapshot query timeout")
+    snapshot_chunk_voxels: int = Field(250_000, ge=1000, description="voxels per snapshot reply")
+    colony_key: str | None = Field(None, description="shared secret; unauthenticated dropped")
+    export_dir: Path | None = Field(None, description="write the fused map here on shutdown")
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        return (init_settings, env_settings, _TomlSource(settings_cls))
+
+    @field_validator("colony", "agent_id", "kind")
+    @classmethod
+    def _name(cls, value: str) -> str:
+        if not _NAME.match(value):
+            msg = f"expected 1-64 characters of [A-Za-z0-9_.-], found {value!r}"
+            raise ValueError(msg)
+        return value
+
+    @field_validator("namespace")
+    @classmethod
+    def _namespace(cls, value: str | None) -> str | None:
+        if value is not None and not _NAME.match(value):
+            msg = f"expected 1-64 characters of [A-Za-z0-9_.-], found {value!r}"
+            raise ValueError(msg)
+        return value
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints(cls, value: list[str]) -> list[str]:
+        for ep in value:
+            if not _ENDPOINT.match(ep):
+                msg = f"expected a Zenoh endpoint like 'tcp/127.0.0.1:7447', found {ep!r}"
+                raise ValueError(msg)
+        return value
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Config:
+        if self.mode == "client" and not self.connect and not self.multicast:
+            msg = "client mode needs --connect ENDPOINT (a router) or multicast scouting"
+            raise ValueError(msg)
+        return self
+
+    @property
+    def key_namespace(self) -> str:
+        """The key-expression namespace: `namespace` if set, else the colony name."""
+        return self.namespace or self.colony
+
+    @property
+    def multicast_port(self) -> int:
+        return multicast_port(self.colony)
+
+
+def load_config(path: Path | str | None = None, **flags: Any) -> Config:
+    """Config from defaults < TOML file < `COLONYD_*` environment < flags (None flags ignored)."""
+    import os
+
+    if path is None and os.environ.get("COLONYD_CONFIG"):
+        path = os.environ["COLONYD_CONFIG"]
+    token = _TOML_PATH.set(Path(path) if path is not None else None)
+    try:
+        return Config(**{k: v for k, v in flags.items() if v is not None})
+    except ValidationError as exc:
+        raise ConfigError(_explain(exc)) from None
+    finally:
+        _TOML_PATH.reset(token)
+
+
+def _explain(exc: ValidationError) -> str:
+    lines = ["invalid configuration:"]
+    for err in exc.errors():
+        where = ".".join(str(p) for p in err["loc"]) or "config"
+        found = err.get("input")
+        text = str(found)
+        if len(text) > 80:
+            text = text[:77] + "..."
+        lines.append(f"  {where}: {err['msg']} (found {text!r})")
+    return "\n".join(lines)
+
+
+def dump_config(config: Config) -> str:
+    """The effective configuration as TOML text (what `colonyd dump-config` prints)."""
+    lines = [f"# precedence: {' > '.join(PRECEDENCE)}"]
+    for name, value in config.model_dump(mode="json").items():
+        if value is None:
+            lines.append(f"# {name} = (unset)")
+            continue
+        lines.append(f"{name} = {_toml_value(value)}")
+    return "\n".join(lines) + "\n"
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    import json
+
+    return json.dumps(str(value))

@@ -1,0 +1,294 @@
+"""The daemon: recover, open the session, map, gossip, report, and shut down cleanly."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+import time
+import zlib
+from pathlib import Path
+from typing import Any
+
+from colonyd.config import Config, load_config
+from colonyd.errors import ColonydError
+from colonyd.gossip import Gossip
+from colonyd.layers import Layers
+from colonyd.logs import setup_logging
+from colonyd.membership import Membership
+from colonyd.metrics import Metrics
+from colonyd.notify import Notifier
+from colonyd.persistence import StateStore
+from colonyd.runtime import Keys, get_session
+from colonyd.source import Frame, Source, get_source
+from colonyd.status import StatusServer
+from colonyd.wire import Codec
+from voxel.delta import Delta
+from voxel.sensor import SensorModel
+
+log = logging.getLogger(__name__)
+
+
+def get_codec(config: Config) -> Codec:
+    return Codec(config.colony_key, int(config.max_message_mb * (1 << 20)))
+
+
+def get_store(config: Config) -> StateStore:
+    return StateStore(config.state_dir, config.agent_id, config.resolution)
+
+
+def get_sources(config: Config) -> list[Source]:
+    seed = zlib.crc32(config.agent_id.encode()) % (1 << 16)
+    return [get_source(spec, config.resolution, seed=seed + i) for i, spec in enumerate(config.sources)]
+
+
+class Daemon:
+    """One colony member. `run()` reads as the table of contents of its life."""
+
+    def __init__(self, config: Config, config_path: Path | None = None,
+                 flags: dict[str, Any] | None = None) -> None:
+        self.config = config
+        self._config_path = config_path
+        self._flags = flags or {}
+        self.stop = threading.Event()
+        self.reload = threading.Event()
+        self.notifier = Notifier()
+        self.metrics = Metrics()
+        self.pose: list[float] = [0.0, 0.0, 0.0]
+        self.started = time.time()
+        self._published_local = 0
+        self._last_snapshot = time.monotonic()
+        self._sources_done = threading.Event()
+
+    # -- table of contents ----------------------------------------------------------------
+    def run(self) -> int:
+        self._install_signals()
+        cfg = self.config
+        self.store = get_store(cfg)
+        try:
+            self._sources = get_sources(cfg)  # bad specs fail before the network is touched
+            self._recover()
+            self.session = get_session(cfg)
+            try:
+                self._declare()
+                self._start_threads()
+                self.notifier.ready(f"colony {cfg.colony} agent {cfg.agent_id} seq {self.layers.own.seq}")
+                log.info("ready: colony %s, agent %s, epoch %d, seq %d", cfg.colony, cfg.agent_id,
+                         self.epoch, self.layers.own.seq)
+                self._main_loop()
+                self.notifier.stopping()
+                log.info("stopping")
+                self._shutdown()
+            finally:
+                self.session.close()
+        finally:
+            self.store.close()
+        log.info("stopped")
+        return 0
+
+    # -- steps ----------------------------------------------------------------------------
+    def _install_signals(self) -> None:
+        signal.signal(signal.SIGTERM, lambda *_: self.stop.set())
+        signal.signal(signal.SIGINT, lambda *_: self.stop.set())
+        signal.signal(signal.SIGHUP, lambda *_: self.reload.set())
+
+    def _recover(self) -> None:
+        rec = self.store.recover()
+        self.epoch = rec.epoch
+        self.layers = Layers(self.config.agent_id, self.config.resolution,
+                             ring_size=self.config.ring_size)
+        own = self.layers.own
+        own.grid, own.epoch, own.seq = rec.grid, rec.epoch, rec.seq
+        self._published_local = int(rec.grid.version)
+        log.info("state %s: %s, epoch %d, seq %d, %d log records replayed", self.config.state_dir,
+                 "fresh" if rec.fresh else "recovered", rec.epoch, rec.seq, rec.wal_records)
+
+    def _declare(self) -> None:
+        cfg = self.config
+        keys = Keys(cfg.key_namespace)
+        self.gossip = Gossip(
+            self.session, keys, self.layers, get_codec(cfg), self.metrics, epoch=self.epoch,
+            inbox_size=cfg.inbox_size, query_timeout_s=cfg.query_timeout_s,
+            chunk_voxels=cfg.snapshot_chunk_voxels,
+        )
+        self.membership = Membership(self.session, keys, cfg.agent_id, self.gossip.on_member_event)
+        self.status_server = StatusServer(self.session, keys, cfg.agent_id, self.report)
+        self.gossip.start(self.membership)
+
+    def _start_threads(self) -> None:
+        self._threads = [
+            threading.Thread(target=self._map_loop, name="mapping", daemon=True),
+            threading.Thread(target=self._publish_loop, name="publisher", daemon=True),
+        ]
+        for t in self._threads:
+            t.start()
+
+    def _main_loop(self) -> None:
+        wd = self.notifier.watchdog_s
+        next_hb = 0.0
+        next_wd = 0.0
+        while not self.stop.is_set():
+            now = time.monotonic()
+            if self.reload.is_set():
+                self.reload.clear()
+                self._reload()
+            if now >= next_hb or self.gossip.hb_now.is_set():
+                self.gossip.hb_now.clear()
+                self.gossip.heartbeat(self.config.kind, self.pose)
+                next_hb = now + self.config.heartbeat_s
+            if wd and now >= next_wd:
+                if all(t.is_alive() for t in self._threads):
+                    self.notifier.watchdog()
+                next_wd = now + wd / 3
+            timeout = next_hb - time.monotonic()
+            if wd:
+                timeout = min(timeout, next_wd - time.monotonic())
+            self.gossip.hb_now.wait(max(0.01, min(timeout, 0.5)))
+
+    def _shutdown(self) -> None:
+        self.stop.set()
+        for t in self._threads:
+            t.join(timeout=3.0)
+        self._publish_once(final=True)
+        own = self.layers.own
+        if own.seq > 0:
+            with own.lock:
+                self.store.snapshot(own.grid, own.seq)
+        if self.config.export_dir is not None:
+            self._export(self.config.export_dir)
+        self.status_server.close()
+        self.gossip.close()
+        self.membership.close()
+
+    def _export(self, directory: Path) -> None:
+        from colonyd.layers import fused, write_fused
+
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+            keys, lo = fused(self.layers.all(), self.config.resolution)
+            write_fused(directory / self.config.agent_id, keys, lo, self.config.resolution)
+            log.info("fused map of %d layers (%d voxels) written to %s", len(self.layers.all()),
+                     len(keys), directory)
+        except OSError as exc:
+            log.error("cannot write the fused map to %s: %s", directory, exc)
+
+    def _reload(self) -> None:
+        """SIGHUP: re-read file + environment; apply rates, log level and key; report the rest."""
+        self.notifier.reloading()
+        try:
+            new = load_config(self._config_path, **self._flags)
+        except ColonydError as exc:
+            log.error("reload failed, keeping the running configuration: %s", exc)
+            self.notifier.ready()
+            return
+        live = {"publish_hz", "heartbeat_s", "snapshot_s", "log_level", "kind", "query_timeout_s"}
+        changed = [k for k in type(new).model_fields if getattr(new, k) != getattr(self.config, k)]
+        restart = [k for k in changed if k not in live]
+        self.config = self.config.model_copy(update={k: getattr(new, k) for k in changed if k in live})
+        logging.getLogger().setLevel(self.config.log_level.upper())
+        self.gossip.query_timeout_s = self.config.query_timeout_s
+        log.info("reloaded: %s%s", ", ".join(k for k in changed if k in live) or "nothing changed",
+                 f"; restart needed for {', '.join(restart)}" if restart else "")
+        self.notifier.ready()
+
+    # -- mapping (never waits on the network) ---------------------------------------------
+    def _map_loop(self) -> None:
+        sensor = SensorModel(kind="sim")
+        own = self.layers.own
+        for source in self._sources:
+            try:
+                for frame in source.frames(self.stop):
+                    self._integrate(own, frame, sensor)
+                    self.metrics.add("frames")
+            except ColonydError as exc:
+                log.error("source %s failed: %s", source.name, exc)
+            except Exception:
+                log.exception("source %s failed", source.name)
+        self._sources_done.set()
+
+    def _integrate(self, own: Any, frame: Frame, sensor: SensorModel) -> None:
+        with own.lock:
+            if frame.delta is not None:
+                v = int(own.grid.version)
+                d = frame.delta
+                own.grid.apply(Delta(d.resolution, v, v + 1, d.keys, d.logodds, d.last_time,
+                                     d.channels, d.time))
+            elif len(frame.points):
+                own.grid.integrate(frame.points, frame.origin, time=frame.time, sensor=sensor,
+                                   agent=self.config.agent_id)
+        self.pose = list(frame.pose)
+
+    # -- publishing (own deltas, write-ahead logged, coalesced) ---------------------------
+    def _publish_loop(self) -> None:
+        while not self.stop.is_set():
+            self.stop.wait(1.0 / self.config.publish_hz)
+            if self.stop.is_set():
+                break
+            try:
+                self._publish_once()
+            except ColonydError as exc:
+                log.error("publish failed: %s", exc)
+            except Exception:
+                log.exception("publish failed")
+
+    def _publish_once(self, final: bool = False) -> None:
+        own = self.layers.own
+        with own.lock:
+            version = int(own.grid.version)
+            delta = own.grid.delta_since(self._published_local) if version != self._published_local else None
+        if delta is not None and len(delta):
+            created = time.time()
+            prev, seq = own.seq, own.seq + 1
+            self.store.append(seq, delta)  # acknowledged to the log before anyone sees it
+            self.gossip.publish_own(prev, seq, delta, created)
+        if delta is not None:
+            self._published_local = version
+        due = time.monotonic() - self._last_snapshot >= self.config.snapshot_s
+        if not final and own.seq > 0 and (due or self.store.wal_bytes > (64 << 20)):
+            with own.lock:
+                self.store.snapshot(own.grid, own.seq)
+            self._last_snapshot = time.monotonic()
+
+    # -- status ---------------------------------------------------------------------------
+    def report(self, params: dict[str, str]) -> dict[str, Any]:
+        want_digest = params.get("digest") == "1"
+        layers = {}
+        for layer in self.layers.all():
+            if layer.seq == 0 and layer.origin != self.config.agent_id:
+                continue
+            entry: dict[str, Any] = {"epoch": layer.epoch, "seq": layer.seq,
+                                     "voxels": layer.voxels(), "updated": layer.updated,
+                                     "pending": len(layer.pending)}
+            if want_digest:
+                entry["digest"] = layer.digest()
+            layers[layer.origin] = entry
+        own = self.layers.own
+        with own.lock:
+            unpublished = int(own.grid.version) != self._published_local
+        return {
+            "agent": self.config.agent_id,
+            "kind": self.config.kind,
+            "colony": self.config.colony,
+            "epoch": self.epoch,
+            "pid": os.getpid(),
+            "time": time.time(),
+            "uptime": time.time() - self.started,
+            "pose": self.pose,
+            "sources_done": self._sources_done.is_set() or not self.config.sources,
+            "unpublished": unpublished,
+            "layers": layers,
+            "members": [
+                {"agent": m.agent, "alive": m.alive, "kind": m.kind, "last_seen": m.last_seen,
+                 "pose": m.pose, "layers": {o: list(v) for o, v in m.layers.items()}}
+                for m in self.membership.table()
+            ],
+            "metrics": self.metrics.snapshot(samples=params.get("samples") == "1"),
+        }
+
+
+def run_daemon(config: Config, config_path: Path | None = None,
+               flags: dict[str, Any] | None = None) -> int:
+    """Run until SIGTERM/SIGINT; returns the exit code."""
+    setup_logging(config.log_level, agent=config.agent_id)
+    return Daemon(config, config_path, flags).run()

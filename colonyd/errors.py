@@ -1,0 +1,35 @@
+"""Errors raised by the colonyd package."""
+
+from __future__ import annotations
+
+
+class ColonydError(Exception):
+    """Base class of every error raised by the daemon."""
+
+
+class ConfigError(ColonydError, ValueError):
+    """The configuration file, environment or flags are invalid."""
+
+
+class RuntimeSetupError(ColonydError):
+    """The Zenoh session could not be opened with the given configuration."""
+
+
+class PersistenceError(ColonydError):
+    """The state directory holds something the daemon cannot read or cannot write to."""
+
+
+class WireError(ColonydError, ValueError):
+    """A message from the network is malformed, oversized or of the wrong version."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+class SourceError(ColonydError, ValueError):
+    """A source spec names no known source or has invalid parameters."""
+
+
+class StatusError(ColonydError):
+    """A running colony could not be queried."""

@@ -1,0 +1,206 @@
+"""A local colony of daemon processes on loopback (demo, benchmark, tests): start, watch, stop."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from colonyd.runtime import open_session, zenoh_config
+from colonyd.status import alive_members, query_status
+
+
+_GIVEN: set[int] = set()
+
+
+def free_port() -> int:
+    """A currently free TCP port on 127.0.0.1, never the same twice in one process."""
+    while True:
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.bind(("127.0.0.1", 0))
+            port = int(s.getsockname()[1])
+        if port not in _GIVEN:
+            _GIVEN.add(port)
+            return port
+
+
+@dataclass
+class LocalDaemon:
+    """One `colonyd run` subprocess."""
+
+    agent: str
+    port: int
+    state_dir: Path
+    log_path: Path
+    args: list[str]
+    proc: subprocess.Popen | None = None
+    env: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def endpoint(self) -> str:
+        return f"tcp/127.0.0.1:{self.port}"
+
+    def start(self) -> None:
+        self.state_dir.mkdir(parents=True, exist_ok=True)
+        log = open(self.log_path, "ab")  # noqa: SIM115 - owned by the child
+        try:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "colonyd", "run", *self.args],
+                stdin=subprocess.DEVNULL, stdout=log, stderr=log,
+                env={**os.environ, **self.env},
+            )
+        finally:
+            log.close()
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def signal(self, sig: int) -> None:
+        if self.alive():
+            assert self.proc is not None
+            os.kill(self.proc.pid, sig)
+
+    def stop(self, timeout: float = 8.0) -> int | None:
+        """SIGTERM, then SIGKILL after `timeout`; returns the exit code."""
+        if self.proc is None:
+            return None
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGCONT)
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
+        return self.proc.returncode
+
+    def kill(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(5)
+
+
+class LocalColony:
+    """Daemons on 127.0.0.1 with multicast off and a fresh namespace; the first is the hub."""
+
+    def __init__(self, base: Path, *, colony: str = "local", namespace: str | None = None,
+                 lease_ms: int | None = None, heartbeat_s: float = 0.5,
+                 extra: list[str] | None = None) -> None:
+        self.base = Path(base)
+        self.base.mkdir(parents=True, exist_ok=True)
+        self.colony = colony
+        self.namespace = namespace or f"{colony}-{uuid.uuid4().hex[:10]}"
+        self.lease_ms = lease_ms
+        self.heartbeat_s = heartbeat_s
+        self.extra = list(extra or [])
+        self.daemons: dict[str, LocalDaemon] = {}
+        self._session: zenoh.Session | None = None
+
+    def add(self, agent: str, sources: list[str] | None = None, *, start: bool = True,
+            extra: list[str] | None = None) -> LocalDaemon:
+        port = free_port()
+        hub = next(iter(self.daemons.values()), None)
+        args = ["--colony", self.colony, "--namespace", self.namespace, "--agent-id", agent,
+                "--state-dir", str(self.base / agent), "--no-multicast",
+                "--listen", f"tcp/127.0.0.1:{port}", "--heartbeat-s", str(self.heartbeat_s)]
+        if hub is not None:
+            args += ["--connect", hub.endpoint]
+        if self.lease_ms:
+            args += ["--lease-ms", str(self.lease_ms)]
+        for spec in sources or []:
+            args += ["--source", spec]
+        args += self.extra + list(extra or [])
+        d = LocalDaemon(agent, port, self.base / agent, self.base / f"{agent}.log", args)
+        self.daemons[agent] = d
+        if start:
+            d.start()
+        return d
+
+    # -- observation ----------------------------------------------------------------------
+    def session(self) -> zenoh.Session:
+        if self._session is None:
+            hubs = [d.endpoint for d in self.daemons.values()][:2]
+            conf = zenoh_config(mode="peer", listen=["tcp/127.0.0.1:0"], connect=hubs,
+                                multicast=False, gossip=True)
+            self._session = open_session(conf)
+        return self._session
+
+    def status(self, *, digest: bool = False, samples: bool = False,
+               timeout: float = 2.0) -> list[dict[str, Any]]:
+        return query_status(self.session(), self.namespace, digest=digest, samples=samples,
+                            timeout=timeout)
+
+    def members(self) -> list[str]:
+        return alive_members(self.session(), self.namespace)
+
+    def converged(self, agents: list[str] | None = None) -> tuple[bool, str]:
+        """True when every listed daemon holds every listed origin's layer, identical to it."""
+        agents = agents or [a for a, d in self.daemons.items() if d.alive()]
+        reports = {r["agent"]: r for r in self.status(digest=True)}
+        missing = [a for a in agents if a not in reports]
+        if missing:
+            return False, f"no status from {missing}"
+        for origin in agents:
+            own = reports[origin]
+            if not own.get("sources_done") or own.get("unpublished"):
+                return False, f"{origin} is still mapping"
+            want = own["layers"].get(origin)
+            if want is None or want["seq"] == 0:
+                continue
+            for a in agents:
+                have = reports[a]["layers"].get(origin)
+                if have is None or have["digest"] != want["digest"] or have["seq"] != want["seq"]:
+                    return False, f"{a} lacks {origin}@{want['seq']} (has {have and have['seq']})"
+        return True, "converged"
+
+    def wait_converged(self, timeout: float, agents: list[str] | None = None) -> float:
+        """Seconds until converged; raises TimeoutError with the last reason."""
+        t0 = time.monotonic()
+        reason = "not checked"
+        while time.monotonic() - t0 < timeout:
+            ok, reason = self.converged(agents)
+            if ok:
+                return time.monotonic() - t0
+            time.sleep(0.3)
+        raise TimeoutError(f"colony did not converge in {timeout:.0f} s: {reason}")
+
+    def wait_members(self, n: int, timeout: float = 15.0) -> None:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < timeout:
+            if len(self.status(timeout=1.0)) >= n:
+                return
+            time.sleep(0.2)
+        raise TimeoutError(f"fewer than {n} daemons answered within {timeout:.0f} s")
+
+    def logs(self, tail: int = 3000) -> str:
+        """The end of every daemon's log, for error reports."""
+        out = []
+        for d in self.daemons.values():
+            if d.log_path.exists():
+                out.append(f"--- {d.agent}\n" + d.log_path.read_text(errors="replace")[-tail:])
+        return "\n".join(out)
+
+    def close(self) -> None:
+        """Stop every daemon (SIGTERM, then SIGKILL) and close the observer session."""
+        try:
+            if self._session is not None:
+                self._session.close()
+                self._session = None
+        finally:
+            for d in self.daemons.values():
+                d.stop()
+
+    def __enter__(self) -> LocalColony:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

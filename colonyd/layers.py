@@ -1,0 +1,253 @@
+"""Per-origin layers (own and replicas, single writer each) and the fused view over them."""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from colonyd.grid import VoxelGrid, new_grid
+from voxel import keys as vk
+from voxel.delta import Delta
+
+
+def relabel(delta: Delta, from_version: int, to_version: int) -> Delta:
+    """The same voxels with wire versions (layer sequence numbers) instead of grid versions."""
+    return Delta(
+        resolution=delta.resolution,
+        from_version=from_version,
+        to_version=to_version,
+        keys=delta.keys,
+        logodds=delta.logodds,
+        last_time=delta.last_time,
+        channels=delta.channels,
+        time=delta.time,
+    )
+
+
+@dataclass
+class Applied:
+    """What `Layer.offer` did with a delta."""
+
+    outcome: str  # "applied" | "duplicate" | "stale-epoch" | "gap" | "reset"
+    voxels: int = 0
+    missing: tuple[int, int] | None = None  # (have, want) sequence range to repair
+    drained: list[tuple[int, float]] = field(default_factory=list)  # (seq, created) applied
+
+
+class Layer:
+    """One origin's layer: a grid, its (epoch, seq), recent raw deltas and out-of-order ones."""
+
+    def __init__(
+        self, origin: str, resolution: float, *, ring_size: int = 64, pending_size: int = 64
+    ) -> None:
+        self.origin = origin
+        self.resolution = resolution
+        self.grid: VoxelGrid = new_grid(resolution)
+        self.epoch = 0
+        self.seq = 0
+        self.lock = threading.RLock()
+        self.ring: deque[tuple[int, int, bytes]] = deque(maxlen=ring_size)
+        self.pending: dict[int, tuple[int, float, Delta, bytes]] = {}
+        self.pending_size = pending_size
+        self.updated = 0.0
+        self.reliability = 1.0
+
+    # -- replica side ---------------------------------------------------------------------
+    def offer(
+        self, epoch: int, prev: int, seq: int, delta: Delta, raw: bytes, created: float = 0.0
+    ) -> Applied:
+        """Apply a delta covering (prev, seq] if it is next; buffer it if it comes early."""
+        with self.lock:
+            if epoch < self.epoch:
+                return Applied("stale-epoch")
+            reset = epoch > self.epoch
+            if reset:
+                self._reset(epoch)
+            if seq <= self.seq:
+                return Applied("duplicate")
+            if prev > self.seq:
+                if len(self.pending) >= self.pending_size:
+                    self.pending.clear()  # bounded: a snapshot will repair it
+                self.pending[seq] = (prev, created, delta, raw)
+                return Applied("reset" if reset else "gap", missing=(self.seq, prev))
+            n = self._apply(prev, seq, delta, raw)
+            result = Applied("applied", n, drained=[(seq, created)])
+            self._drain(result)
+            return result
+
+    def _apply(self, prev: int, seq: int, delta: Delta, raw: bytes | None) -> int:
+        if len(delta):
+            self.grid.apply(relabel(delta, prev, seq))
+        self.seq = seq
+        self.updated = time.time()
+        if raw is not None:
+            self.ring.append((prev, seq, raw))
+        return len(delta)
+
+    def _drain(self, result: Applied) -> None:
+        while self.pending:
+            ready = [s for s, (p, *_rest) in self.pending.items() if p <= self.seq]
+            if not ready:
+                break
+            for s in sorted(ready):
+                p, created, delta, raw = self.pending.pop(s)
+                if s > self.seq:
+                    result.voxels += self._apply(p, s, delta, raw)
+                    result.drained.append((s, created))
+        if self.pending:
+            result.missing = (self.seq, min(p for p, *_ in self.pending.values()))
+
+    def _reset(self, epoch: int) -> None:
+        self.grid = new_grid(self.resolution)
+        self.epoch = epoch
+        self.seq = 0
+        self.ring.clear()
+        self.pending.clear()
+
+    def install_snapshot(self, epoch: int, seq: int, chunks: list[Delta]) -> int:
+        """Replace the layer by a snapshot at (epoch, seq); later buffered deltas then apply."""
+        with self.lock:
+            if (epoch, seq) <= (self.epoch, self.seq):
+                return 0
+            pending = self.pending if epoch == self.epoch else {}
+            self._reset(epoch)
+            n = 0
+            for chunk in chunks:
+                if len(chunk):
+                    self.grid.apply(relabel(chunk, 0, seq))
+                    n += len(chunk)
+            self.seq = seq
+            self.updated = time.time()
+            self.pending = {s: v for s, v in pending.items() if s > seq}
+            self._drain(Applied("applied"))
+            return n
+
+    # -- serving side ---------------------------------------------------------------------
+    def snapshot(self, chunk_voxels: int) -> tuple[int, int, list[Delta]]:
+        """(epoch, seq, chunks) of the whole layer, wire-labelled (0, seq]."""
+        with self.lock:
+            full = self.grid.delta_since(0)
+            epoch, seq = self.epoch, self.seq
+        n = len(full)
+        if n == 0:
+            return epoch, seq, [relabel(full, 0, seq)]
+        chunks = [
+            relabel(full.select(slice(i, min(i + chunk_voxels, n))), 0, seq)
+            for i in range(0, n, chunk_voxels)
+        ]
+        return epoch, seq, chunks
+
+    def range(self, have: int, want: int) -> list[bytes] | None:
+        """Raw recent deltas that take a replica from `have` to at least `want`, else None."""
+        with self.lock:
+            out: list[bytes] = []
+            at = have
+            for prev, seq, raw in self.ring:
+                if seq <= at:
+                    continue
+                if prev > at:
+                    return None
+                out.append(raw)
+                at = seq
+                if at >= want:
+                    return out
+            return out if at >= want and out else None
+
+    # -- queries --------------------------------------------------------------------------
+    def full(self) -> Delta:
+        with self.lock:
+            return self.grid.delta_since(0)
+
+    def voxels(self) -> int:
+        with self.lock:
+            return int(self.grid.known_count())
+
+    def digest(self) -> str:
+        """Hash of keys and log-odds, order-independent; equal digests mean identical layers."""
+        full = self.full()
+        known = ~np.isnan(full.logodds)
+        packed = vk.pack(full.keys[known])
+        order = np.argsort(packed, kind="stable")
+        h = hashlib.sha256()
+        h.update(packed[order].tobytes())
+        h.update(full.logodds[known][order].tobytes())
+        return h.hexdigest()[:16]
+
+
+class Layers:
+    """All layers of a daemon by origin; the own layer is written by this daemon only."""
+
+    def __init__(self, own: str, resolution: float, *, ring_size: int = 64) -> None:
+        self.own_id = own
+        self.resolution = resolution
+        self.ring_size = ring_size
+        self._layers: dict[str, Layer] = {}
+        self._lock = threading.Lock()
+        self.own = self.get(own)
+
+    def get(self, origin: str, resolution: float | None = None) -> Layer:
+        with self._lock:
+            layer = self._layers.get(origin)
+            if layer is None:
+                layer = Layer(origin, resolution or self.resolution, ring_size=self.ring_size)
+                self._layers[origin] = layer
+            return layer
+
+    def find(self, origin: str) -> Layer | None:
+        with self._lock:
+            return self._layers.get(origin)
+
+    def all(self) -> list[Layer]:
+        with self._lock:
+            return list(self._layers.values())
+
+    def versions(self) -> dict[str, tuple[int, int]]:
+        """origin -> (epoch, seq) for every layer held."""
+        return {layer.origin: (layer.epoch, layer.seq) for layer in self.all() if layer.seq > 0}
+
+    def drop(self, origin: str) -> None:
+        """Forget a peer's layer (an untrusted or retired origin); never the own layer."""
+        if origin != self.own_id:
+            with self._lock:
+                self._layers.pop(origin, None)
+
+
+def fused(layers: list[Layer], resolution: float) -> tuple[np.ndarray, np.ndarray]:
+    """Fused view: (keys (N,3), log-odds (N,)), the reliability-weighted sum over layers.
+
+    All layers are taken as already in the local frame (identity alignment); layers at another
+    resolution are skipped.
+    """
+    packed_parts, lo_parts = [], []
+    for layer in layers:
+        if abs(layer.resolution - resolution) > 1e-9:
+            continue
+        full = layer.full()
+        known = ~np.isnan(full.logodds)
+        if not known.any():
+            continue
+        packed_parts.append(vk.pack(full.keys[known]))
+        lo_parts.append(full.logodds[known].astype(np.float64) * layer.reliability)
+    if not packed_parts:
+        return np.empty((0, 3), np.int64), np.empty(0, np.float32)
+    packed = np.concatenate(packed_parts)
+    lo = np.concatenate(lo_parts)
+    uniq, inv = np.unique(packed, return_inverse=True)
+    total = np.bincount(inv, weights=lo, minlength=uniq.shape[0])
+    return vk.unpack(uniq), total.astype(np.float32)
+
+
+def write_fused(path_stem: Path, keys: np.ndarray, logodds: np.ndarray, resolution: float) -> None:
+    """Occupied voxels of a fused view as `<stem>.ply`, occupied and free as `<stem>.bt`."""
+    from voxel.octomap_io import write_bt
+    from voxel.ply import write_ply
+
+    occ = logodds >= 0
+    write_ply(path_stem.with_suffix(".ply"), vk.keys_to_centers(keys[occ], resolution))
+    write_bt(path_stem.with_suffix(".bt"), resolution, keys, occ)

@@ -1,0 +1,193 @@
+"""Offline mapping: integrate every observation of one source into a VoxelGrid and write the map files."""
+
+from __future__ import annotations
+
+import sys
+import time as clock
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol, TextIO
+
+import cv2
+import numpy as np
+
+from plugins.checks import matrix_to_quaternion
+from plugins.observation import Observation
+from plugins.source import open_source
+from voxel.errors import InputError
+from voxel.grid import VoxelGrid
+from voxel.octomap_io import write_bt
+from voxel.ply import write_ply
+
+#: Floor-plan grey levels (map_server convention): occupied, free, unknown.
+OCCUPIED_GREY, FREE_GREY, UNKNOWN_GREY = 0, 254, 205
+
+
+@dataclass(frozen=True)
+class MapSummary:
+    """What `map_source` did and wrote."""
+
+    spec: str
+    resolution: float
+    frames: int
+    skipped: int
+    points: int
+    occupied: int
+    free: int
+    seconds: float
+    files: dict[str, Path] = field(default_factory=dict)
+    skip_reasons: dict[str, int] = field(default_factory=dict)
+
+
+class Progress(Protocol):
+    """Progress display: told the total once, then every finished frame."""
+
+    def update(self, done: int, total: int | None) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class NullProgress:
+    """Progress display that shows nothing."""
+
+    def update(self, done: int, total: int | None) -> None:
+        """Do nothing."""
+
+    def close(self) -> None:
+        """Do nothing."""
+
+
+class BarProgress:
+    """A one-line progress bar on a text stream (stderr), redrawn at most every 0.1 s."""
+
+    def __init__(self, stream: TextIO | None = None, width: int = 30) -> None:
+        self.stream, self.width = sys.stderr if stream is None else stream, width
+        self.began = clock.monotonic()
+        self.drawn = 0.0
+
+    def update(self, done: int, total: int | None) -> None:
+        """Redraw the bar after `done` of `total` frames."""
+        now = clock.monotonic()
+        if now - self.drawn < 0.1 and done != total:
+            return
+        self.drawn = now
+        rate = done / max(now - self.began, 1e-9)
+        if total:
+            filled = int(self.width * min(done / total, 1.0))
+            bar = "#" * filled + "." * (self.width - filled)
+            line = f"\r[{bar}] {done}/{total} frames {rate:.1f} fps"
+        else:
+            line = f"\r{done} frames {rate:.1f} fps"
+        self.stream.write(line)
+        self.stream.flush()
+
+    def close(self) -> None:
+        """End the bar's line."""
+        self.stream.write("\n")
+        self.stream.flush()
+
+
+def get_progress(enabled: bool) -> Progress:
+    """A stderr progress bar when enabled, else a do-nothing one."""
+    return BarProgress() if enabled else NullProgress()
+
+
+def integrate_observation(grid: VoxelGrid, obs: Observation, *, sensor: object, reliability: float,
+                          agent: str = "self") -> None:
+    """Integrate one observation, with its pose guess, into `grid`."""
+    if len(obs) == 0:
+        return
+    grid.integrate(obs.points_world(), obs.origin, time=obs.time, sensor=sensor, agent=agent,
+                   reliability=reliability, colours=obs.colours, normals=obs.normals_world(),
+                   class_ids=obs.class_ids, class_probs=obs.class_probs,
+                   scalars=obs.scalars or None, no_return=obs.no_return)
+
+
+def tum_line(time: float, pose: np.ndarray) -> str:
+    """One TUM trajectory line: timestamp tx ty tz qx qy qz qw."""
+    q = matrix_to_quaternion(pose[:3, :3])
+    t = pose[:3, 3]
+    return f"{time:.6f} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
+
+
+def floor_plan(occupied: np.ndarray, free: np.ndarray, layer: int) -> tuple[np.ndarray, np.ndarray]:
+    """Grey image of the voxel layer z = `layer` (+x right, +y up) and the key of its lower-left pixel.
+
+    occupied, free: voxel keys (N, 3). Occupied 0, free 254, unknown 205.
+    """
+    occ = occupied[occupied[:, 2] == layer, :2]
+    fre = free[free[:, 2] == layer, :2]
+    both = np.concatenate([occ, fre])
+    if both.size == 0:
+        return np.full((1, 1), UNKNOWN_GREY, np.uint8), np.zeros(2, np.int64)
+    lo, hi = both.min(axis=0), both.max(axis=0)
+    w, h = (hi - lo + 1).tolist()
+    image = np.full((h, w), UNKNOWN_GREY, np.uint8)
+    image[h - 1 - (fre[:, 1] - lo[1]), fre[:, 0] - lo[0]] = FREE_GREY
+    image[h - 1 - (occ[:, 1] - lo[1]), occ[:, 0] - lo[0]] = OCCUPIED_GREY
+    return image, lo
+
+
+def map_source(spec: str, resolution: float, out_dir: Path, *, max_frames: int | None = None,
+               progress: bool = True) -> MapSummary:
+    """Map the source `spec` at `resolution` metres and write grid.npz, map.bt, map.ply,
+    trajectory.tum (and floorplan.png for 2D scanners) into `out_dir`."""
+    began = clock.monotonic()
+    source = open_source(spec)
+    adapter = source.adapter
+    grid = VoxelGrid(resolution)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    total = len(source) if max_frames is None else min(len(source), max_frames)
+    bar = get_progress(progress)
+    trajectory: list[str] = []
+    heights: list[float] = []
+    frames = points = 0
+    try:
+        for obs in source:
+            if max_frames is not None and frames >= max_frames:
+                break
+            integrate_observation(grid, obs, sensor=adapter.sensor_model, reliability=adapter.reliability)
+            trajectory.append(tum_line(obs.time, obs.pose))
+            heights.append(float(obs.pose[2, 3]))
+            frames += 1
+            points += len(obs)
+            bar.update(frames, total)
+    finally:
+        bar.close()
+    files = write_map(grid, out_dir, trajectory)
+    if adapter.kind == "lidar2d" and heights:
+        layer = int(np.floor(np.median(heights) / resolution))
+        image, lo = floor_plan(grid.occupied_keys(), grid.free_keys(), layer)
+        files["floorplan"] = out_dir / "floorplan.png"
+        if not cv2.imwrite(str(files["floorplan"]), image):
+            msg = f"{files['floorplan']}: cannot write the floor plan PNG"
+            raise OSError(msg)
+        files["floorplan_yaml"] = out_dir / "floorplan.yaml"
+        files["floorplan_yaml"].write_text(
+            f"image: floorplan.png\nresolution: {resolution}\n"
+            f"origin: [{lo[0] * resolution}, {lo[1] * resolution}, 0.0]\n"
+            f"layer: {layer}\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n", encoding="ascii")
+    return MapSummary(spec=spec, resolution=resolution, frames=frames, skipped=source.stats.skipped,
+                      points=points, occupied=len(grid.occupied_keys()), free=len(grid.free_keys()),
+                      seconds=clock.monotonic() - began, files=files,
+                      skip_reasons=dict(source.stats.reasons))
+
+
+def write_map(grid: VoxelGrid, out_dir: Path, trajectory: list[str]) -> dict[str, Path]:
+    """Snapshot, OctoMap .bt, PLY of occupied voxel centres (with colour) and TUM trajectory."""
+    files = {"snapshot": out_dir / "grid.npz", "bt": out_dir / "map.bt", "ply": out_dir / "map.ply",
+             "trajectory": out_dir / "trajectory.tum"}
+    grid.save(files["snapshot"])
+    occupied, free = grid.occupied_keys(), grid.free_keys()
+    keys = np.concatenate([occupied, free]).astype(np.int64)
+    mask = np.zeros(len(keys), bool)
+    mask[: len(occupied)] = True
+    write_bt(files["bt"], grid.resolution, keys, mask)
+    try:
+        colours = grid.channel_at_keys("colour", occupied) if len(occupied) else None
+    except InputError:  # no colour was ever integrated
+        colours = None
+    write_ply(files["ply"], (occupied.astype(np.float64) + 0.5) * grid.resolution, colours)
+    files["trajectory"].write_text("".join(line + "\n" for line in trajectory), encoding="ascii")
+    return files

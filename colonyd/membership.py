@@ -1,0 +1,117 @@
+"""Membership: a liveliness token per daemon, join/leave events, and what each member reported."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import zenoh
+
+from colonyd.runtime import Keys
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Member:
+    """A peer as this daemon knows it."""
+
+    agent: str
+    alive: bool = True
+    kind: str = "?"
+    joined: float = field(default_factory=time.time)
+    last_seen: float = field(default_factory=time.time)
+    pose: list[float] = field(default_factory=list)
+    layers: dict[str, tuple[int, int]] = field(default_factory=dict)
+
+
+class Membership:
+    """Tracks members from liveliness (join/leave) and heartbeats (kind, pose, layers)."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: Keys,
+        own: str,
+        on_event: Callable[[str, str], None],
+    ) -> None:
+        self._keys = keys
+        self.own = own
+        self._on_event = on_event  # (agent, "join"|"leave"); must only enqueue
+        self._lock = threading.Lock()
+        self.members: dict[str, Member] = {}
+        self._token = session.liveliness().declare_token(keys.alive(own))
+        self._sub = session.liveliness().declare_subscriber(
+            keys.alive("*"), self._on_liveliness, history=True
+        )
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        agent = Keys.last(str(sample.key_expr))
+        if agent == self.own:
+            return
+        joined = sample.kind == zenoh.SampleKind.PUT
+        with self._lock:
+            m = self.members.get(agent)
+            if m is None:
+                m = self.members[agent] = Member(agent)
+            m.alive = joined
+            m.last_seen = time.time()
+            if joined:
+                m.joined = m.last_seen
+        self._on_event(agent, "join" if joined else "leave")
+
+    def heard(self, agent: str, hb: dict[str, Any]) -> Member:
+        """Record a heartbeat; returns the member."""
+        with self._lock:
+            m = self.members.get(agent)
+            if m is None:  # alive only once its liveliness token is seen
+                m = self.members[agent] = Member(agent, alive=False)
+            m.last_seen = time.time()
+            m.kind = str(hb.get("k", "?"))[:32]
+            pose = hb.get("p") or []
+            m.pose = [float(x) for x in pose[:7]] if isinstance(pose, list) else []
+            layers = hb.get("L") or {}
+            if isinstance(layers, dict):
+                m.layers = {
+                    str(o): (int(v[0]), int(v[1]))
+                    for o, v in list(layers.items())[:4096]
+                    if isinstance(v, list | tuple) and len(v) == 2
+                }
+            return m
+
+    def alive(self) -> list[str]:
+        with self._lock:
+            return [a for a, m in self.members.items() if m.alive]
+
+    def table(self) -> list[Member]:
+        with self._lock:
+            return [Member(**vars(m)) for m in self.members.values()]
+
+    def best(self, origin: str) -> tuple[int, int, list[str]]:
+        """Highest (epoch, seq) any live member reports for `origin`, and who holds it."""
+        with self._lock:
+            best = (0, 0)
+            holders: list[str] = []
+            for a, m in self.members.items():
+                if not m.alive or origin not in m.layers:
+                    continue
+                v = m.layers[origin]
+                if v > best:
+                    best, holders = v, [a]
+                elif v == best:
+                    holders.append(a)
+        if origin in holders:  # ask the origin first
+            holders.remove(origin)
+            holders.insert(0, origin)
+        return best[0], best[1], holders
+
+    def close(self) -> None:
+        for obj in (self._sub, self._token):
+            try:
+                obj.undeclare()
+            except Exception as exc:  # already closed with the session
+                log.debug("undeclare: %s", exc)

@@ -1,0 +1,45 @@
+"""Counters and bounded samples a daemon reports in its status (rejections, bytes, latency)."""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter, deque
+
+
+class Metrics:
+    """Thread-safe counters plus the most recent propagation samples."""
+
+    def __init__(self, samples: int = 4000) -> None:
+        self._lock = threading.Lock()
+        self.counts: Counter[str] = Counter()
+        self.rejected: Counter[str] = Counter()
+        self.applied: deque[tuple[str, int, float, float]] = deque(maxlen=samples)
+        self.catchups: deque[tuple[str, int, float]] = deque(maxlen=64)
+
+    def add(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self.counts[name] += n
+
+    def reject(self, reason: str) -> None:
+        with self._lock:
+            self.rejected[reason] += 1
+            self.counts["rejected"] += 1
+
+    def sample(self, origin: str, seq: int, created: float, applied: float) -> None:
+        with self._lock:
+            self.applied.append((origin, seq, created, applied))
+
+    def catchup(self, origin: str, voxels: int, seconds: float) -> None:
+        with self._lock:
+            self.catchups.append((origin, voxels, seconds))
+
+    def snapshot(self, *, samples: bool = False) -> dict[str, object]:
+        with self._lock:
+            out: dict[str, object] = {
+                "counts": dict(self.counts),
+                "rejected": dict(self.rejected),
+                "catchups": [list(c) for c in self.catchups],
+            }
+            if samples:
+                out["samples"] = [list(s) for s in self.applied]
+            return out

@@ -1,0 +1,133 @@
+"""Zenoh runtime: builds the session config from ours and opens the one session of a process."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import zenoh
+
+from colonyd.config import Config
+from colonyd.errors import RuntimeSetupError
+
+log = logging.getLogger(__name__)
+
+MULTICAST_ADDRESS = "224.0.0.224"
+
+
+def zenoh_config(
+    *,
+    mode: str = "peer",
+    listen: list[str] | None = None,
+    connect: list[str] | None = None,
+    multicast: bool = False,
+    multicast_port: int = 7446,
+    multicast_interface: str = "auto",
+    gossip: bool = True,
+    shared_memory: bool = False,
+    lease_ms: int | None = None,
+    extra_file: Path | None = None,
+) -> zenoh.Config:
+    """A Zenoh config; multicast scouting stays off unless asked for explicitly."""
+    if extra_file is not None:
+        try:
+            conf = zenoh.Config.from_file(str(extra_file))
+        except Exception as exc:  # zenoh raises its own ZError
+            msg = f"zenoh config {extra_file} is invalid: {exc}"
+            raise RuntimeSetupError(msg) from None
+    else:
+        conf = zenoh.Config()
+    entries: dict[str, object] = {
+        "mode": mode,
+        "scouting/multicast/enabled": multicast,
+        "scouting/gossip/enabled": gossip,
+        "transport/shared_memory/enabled": shared_memory,
+    }
+    if multicast:
+        entries["scouting/multicast/address"] = f"{MULTICAST_ADDRESS}:{multicast_port}"
+        entries["scouting/multicast/interface"] = multicast_interface
+    if listen:
+        entries["listen/endpoints"] = list(listen)
+    elif mode == "client":
+        entries["listen/endpoints"] = []
+    if connect:
+        entries["connect/endpoints"] = list(connect)
+    if lease_ms is not None:
+        entries["transport/link/tx/lease"] = int(lease_ms)
+        entries["transport/link/tx/keep_alive"] = 4
+    for key, value in entries.items():
+        try:
+            conf.insert_json5(key, json.dumps(value))
+        except Exception as exc:
+            msg = f"zenoh rejected {key}={value!r}: {exc}"
+            raise RuntimeSetupError(msg) from None
+    return conf
+
+
+def get_zenoh_config(config: Config) -> zenoh.Config:
+    """The Zenoh config of a daemon config."""
+    return zenoh_config(
+        mode=config.mode,
+        listen=config.listen,
+        connect=config.connect,
+        multicast=config.multicast,
+        multicast_port=config.multicast_port,
+        multicast_interface=config.multicast_interface,
+        gossip=config.gossip_scouting,
+        shared_memory=config.shared_memory,
+        lease_ms=config.lease_ms,
+        extra_file=config.zenoh_config,
+    )
+
+
+def open_session(conf: zenoh.Config) -> zenoh.Session:
+    """Open a session; the caller closes it in `finally`."""
+    try:
+        return zenoh.open(conf)
+    except Exception as exc:
+        msg = f"cannot open the Zenoh session: {exc}"
+        raise RuntimeSetupError(msg) from None
+
+
+def get_session(config: Config) -> zenoh.Session:
+    """Open the daemon's session from its config."""
+    session = open_session(get_zenoh_config(config))
+    log.info(
+        "zenoh %s session %s (listen %s, connect %s, multicast %s)",
+        config.mode,
+        session.zid(),
+        config.listen or "default",
+        config.connect or "none",
+        f"{MULTICAST_ADDRESS}:{config.multicast_port}" if config.multicast else "off",
+    )
+    return session
+
+
+class Keys:
+    """Key expressions of one colony namespace."""
+
+    def __init__(self, namespace: str) -> None:
+        self.root = f"colony/{namespace}"
+
+    def alive(self, agent: str = "*") -> str:
+        return f"{self.root}/alive/{agent}"
+
+    def delta(self, origin: str = "*") -> str:
+        return f"{self.root}/delta/{origin}"
+
+    def heartbeat(self, agent: str = "*") -> str:
+        return f"{self.root}/hb/{agent}"
+
+    def status(self, agent: str = "*") -> str:
+        return f"{self.root}/status/{agent}"
+
+    def snapshot(self, server: str = "*", origin: str = "*") -> str:
+        return f"{self.root}/snap/{server}/{origin}"
+
+    def range(self, server: str = "*", origin: str = "*") -> str:
+        return f"{self.root}/range/{server}/{origin}"
+
+    @staticmethod
+    def last(key: str) -> str:
+        return str(key).rsplit("/", 1)[-1]

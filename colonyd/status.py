@@ -1,0 +1,175 @@
+"""Status: each daemon answers status queries; `colonyd status` gathers and prints them."""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+
+from colonyd.config import Config
+from colonyd.errors import StatusError
+from colonyd.runtime import Keys, open_session, zenoh_config
+
+log = logging.getLogger(__name__)
+
+
+class StatusServer:
+    """Answers `colony/<ns>/status/<agent>` queries with `report(params)` (JSON)."""
+
+    def __init__(
+        self, session: zenoh.Session, keys: Keys, agent: str,
+        report: Callable[[dict[str, str]], dict[str, Any]],
+    ) -> None:
+        self._report = report
+        self._queue: queue.Queue[zenoh.Query] = queue.Queue(maxsize=16)
+        self._stop = threading.Event()
+        self._queryable = session.declare_queryable(keys.status(agent), self._on_query)
+        self._thread = threading.Thread(target=self._loop, name="status", daemon=True)
+        self._thread.start()
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        try:
+            self._queue.put_nowait(query)
+        except queue.Full:
+            query.drop()
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                query = self._queue.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                params = {str(k): str(v) for k, v in query.parameters}
+                body = json.dumps(self._report(params)).encode()
+                query.reply(str(query.key_expr), body)
+            except Exception:
+                log.exception("status query failed")
+            finally:
+                query.drop()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        try:
+            self._queryable.undeclare()
+        except Exception as exc:
+            log.debug("undeclare: %s", exc)
+
+
+def query_status(
+    session: zenoh.Session, namespace: str, *, digest: bool = False, samples: bool = False,
+    timeout: float = 3.0,
+) -> list[dict[str, Any]]:
+    """One status report per daemon reachable in the namespace, sorted by agent id."""
+    keys = Keys(namespace)
+    params = []
+    if digest:
+        params.append("digest=1")
+    if samples:
+        params.append("samples=1")
+    selector = keys.status("*") + ("?" + ";".join(params) if params else "")
+    replies = session.get(
+        selector,
+        consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout,
+    )
+    out = []
+    for reply in replies:
+        if reply.ok is None:
+            continue
+        try:
+            report = json.loads(reply.ok.payload.to_bytes())
+        except ValueError:
+            continue
+        if isinstance(report, dict) and "agent" in report:
+            out.append(report)
+    return sorted(out, key=lambda r: r["agent"])
+
+
+def alive_members(session: zenoh.Session, namespace: str, timeout: float = 2.0) -> list[str]:
+    """Agents whose liveliness token is visible."""
+    keys = Keys(namespace)
+    return sorted(
+        Keys.last(str(r.ok.key_expr))
+        for r in session.liveliness().get(keys.alive("*"), timeout=timeout)
+        if r.ok is not None
+    )
+
+
+def collect_status(config: Config, *, digest: bool = False, samples: bool = False,
+                   wait_s: float = 3.0) -> list[dict[str, Any]]:
+    """Open a short-lived session, wait until every live member answers, return their reports."""
+    if not config.connect and not config.multicast:
+        msg = "status needs --connect ENDPOINT (a daemon's listen endpoint) or multicast"
+        raise StatusError(msg)
+    conf = zenoh_config(
+        mode="peer", listen=config.listen or ["tcp/127.0.0.1:0"], connect=config.connect,
+        multicast=config.multicast, multicast_port=config.multicast_port,
+        multicast_interface=config.multicast_interface, gossip=True,
+    )
+    session = open_session(conf)
+    try:
+        deadline = time.monotonic() + wait_s
+        reports: list[dict[str, Any]] = []
+        while True:
+            expected = set(alive_members(session, config.key_namespace, timeout=1.0))
+            reports = query_status(session, config.key_namespace, digest=digest, samples=samples,
+                                   timeout=max(0.5, min(3.0, deadline - time.monotonic())))
+            for r in reports:
+                expected |= {m["agent"] for m in r.get("members", []) if m.get("alive")}
+            if expected and {r["agent"] for r in reports} >= expected:
+                return reports
+            if time.monotonic() >= deadline:
+                break
+            time.sleep(0.2)
+        if not reports:
+            msg = f"no daemon of colony namespace {config.key_namespace!r} answered"
+            raise StatusError(msg)
+        return reports
+    finally:
+        session.close()
+
+
+def behind(reports: list[dict[str, Any]]) -> dict[str, int]:
+    """For each agent, how many deltas it lacks summed over origins, versus the best holder."""
+    best: dict[str, tuple[int, int]] = {}
+    for r in reports:
+        for origin, layer in r.get("layers", {}).items():
+            v = (int(layer["epoch"]), int(layer["seq"]))
+            best[origin] = max(best.get(origin, (0, 0)), v)
+    out = {}
+    for r in reports:
+        lag = 0
+        layers = r.get("layers", {})
+        for origin, (epoch, seq) in best.items():
+            mine = layers.get(origin)
+            if mine is None or int(mine["epoch"]) != epoch:
+                lag += seq
+            else:
+                lag += max(0, seq - int(mine["seq"]))
+        out[r["agent"]] = lag
+    return out
+
+
+def format_status(reports: list[dict[str, Any]]) -> str:
+    """Human table: one member per line, then its layers."""
+    lags = behind(reports)
+    now = time.time()
+    lines = [f"{'agent':<16} {'kind':<8} {'last seen':>9} {'pose':<22} {'behind':>6}  layers"]
+    for r in reports:
+        pose = ",".join(f"{x:.2f}" for x in r.get("pose", [])[:3]) or "-"
+        seen = f"{max(0.0, now - float(r.get('time', now))):.1f}s"
+        layers = " ".join(
+            f"{o}@{v['seq']}({v['voxels']})" for o, v in sorted(r.get("layers", {}).items())
+        )
+        lines.append(
+            f"{r['agent']:<16} {r.get('kind', '?'):<8} {seen:>9} {pose:<22} "
+            f"{lags.get(r['agent'], 0):>6}  {layers}"
+        )
+    return "\n".join(lines)

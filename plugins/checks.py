@@ -1,0 +1,112 @@
+"""Array checks for sensor input: shape, dtype and finiteness, with expected/found messages."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from plugins.errors import SensorInputError
+
+
+def as_array(value: object, field: str, *, shape: tuple[int | None, ...], dtype: type = np.float64,
+             finite: bool = True) -> np.ndarray:
+    """`value` as an array of `shape` (None = any length); raise SensorInputError naming `field`."""
+    try:
+        array = np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError):
+        msg = f"{field}: expected an array of {np.dtype(dtype).name}, found {type(value).__name__}"
+        raise SensorInputError(msg) from None
+    if array.ndim != len(shape) or any(
+        want is not None and got != want for want, got in zip(shape, array.shape, strict=False)
+    ):
+        want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+        msg = f"{field}: expected shape {want}, found {array.shape}"
+        raise SensorInputError(msg)
+    if finite and array.dtype.kind == "f" and not np.all(np.isfinite(array)):
+        bad = int(np.count_nonzero(~np.isfinite(array)))
+        msg = f"{field}: expected finite values, found {bad} NaN or infinite"
+        raise SensorInputError(msg)
+    return array
+
+
+def as_pose(value: object, field: str) -> np.ndarray:
+    """A 4x4 rigid transform (float64) with a proper rotation; raise SensorInputError otherwise."""
+    pose = as_array(value, field, shape=(4, 4))
+    if not np.allclose(pose[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        msg = f"{field}: expected last row [0, 0, 0, 1], found {pose[3].tolist()}"
+        raise SensorInputError(msg)
+    rotation = pose[:3, :3]
+    error = float(np.abs(rotation @ rotation.T - np.eye(3)).max())
+    if error > 1e-2 or np.linalg.det(rotation) < 0:
+        msg = f"{field}: expected a rotation matrix (orthonormal, det +1), found deviation {error:.3g}"
+        raise SensorInputError(msg)
+    return pose
+
+
+def as_intrinsics(value: object, field: str = "K") -> np.ndarray:
+    """A 3x3 pinhole camera matrix with positive focal lengths."""
+    K = as_array(value, field, shape=(3, 3))
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]):
+        msg = f"{field}: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, found {K.tolist()}"
+        raise SensorInputError(msg)
+    return K
+
+
+def intrinsics_from_fov(width: int, height: int, fov: float) -> np.ndarray:
+    """Pinhole K from a horizontal field of view in radians (the paper's Algorithm 1, square pixels)."""
+    if not 0.0 < fov < np.pi:
+        msg = f"fov: expected a horizontal field of view in (0, pi) radians, found {fov!r}"
+        raise SensorInputError(msg)
+    if width <= 0 or height <= 0:
+        msg = f"image size: expected positive width and height, found {width}x{height}"
+        raise SensorInputError(msg)
+    f = 0.5 * width / np.tan(0.5 * fov)
+    return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+
+
+def pose_matrix(x: float, y: float, z: float, yaw: float, pitch: float = 0.0, roll: float = 0.0) -> np.ndarray:
+    """4x4 transform from a position and ZYX Euler angles (radians)."""
+    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    pose = np.eye(4)
+    pose[:3, :3] = [
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ]
+    pose[:3, 3] = [x, y, z]
+    return pose
+
+
+def quaternion_to_matrix(qx: float, qy: float, qz: float, qw: float) -> np.ndarray:
+    """Rotation matrix (3, 3) of a quaternion (normalised here)."""
+    q = np.array([qx, qy, qz, qw], dtype=np.float64)
+    n = np.linalg.norm(q)
+    if not np.isfinite(n) or n < 1e-9:
+        msg = f"quaternion: expected a non-zero finite quaternion, found {q.tolist()}"
+        raise SensorInputError(msg)
+    x, y, z, w = q / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
+    """Quaternion (qx, qy, qz, qw) of a rotation matrix, qw >= 0."""
+    m = np.asarray(rotation, dtype=np.float64)
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    if trace > 0:
+        s = 2.0 * np.sqrt(trace + 1.0)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q

@@ -1,0 +1,47 @@
+"""Source protocol and per-stream counters: a source yields Observations and counts what it skipped."""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+from plugins.adapter import SensorAdapter
+from plugins.observation import Observation
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class StreamStats:
+    """Frames delivered and frames skipped (by reason) by one source."""
+
+    delivered: int = 0
+    skipped: int = 0
+    reasons: Counter[str] = field(default_factory=Counter)
+    first_errors: list[str] = field(default_factory=list)
+
+    def skip(self, where: str, error: Exception) -> None:
+        """Count a bad frame at `where`; log the first few in full."""
+        self.skipped += 1
+        self.reasons[type(error).__name__] += 1
+        if len(self.first_errors) < 10:
+            self.first_errors.append(f"{where}: {error}")
+            log.warning("skipped bad frame %s: %s", where, error)
+
+
+@runtime_checkable
+class Source(Protocol):
+    """A stream of Observations from one sensor of one agent."""
+
+    spec: str
+    adapter: SensorAdapter
+    stats: StreamStats
+
+    def __iter__(self) -> Iterator[Observation]: ...
+
+    def __len__(self) -> int:
+        """Number of frames the source expects to deliver (an estimate for progress bars)."""
+        ...

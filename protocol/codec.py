@@ -1,0 +1,307 @@
+"""Frames: encode a message into bytes for Zenoh, decode hostile bytes into a validated message.
+
+A frame is an 8-byte prefix (magic, version, type, flags), a msgpack envelope
+[origin, epoch, seq, time, body] with the body zstd-compressed, and, with a colony key, a
+32-byte HMAC-SHA256 tag over everything before it. See docs/PROTOCOL.md.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import ValidationError
+
+from protocol import fields
+from protocol.auth import TAG_BYTES, ReplayWindow, compute_tag, verify_tag
+from protocol.deltacodec import decode_delta_with_summary, encode_delta, fit_delta, split_delta
+from protocol.errors import (
+    AuthError,
+    MalformedError,
+    OversizedError,
+    ProtocolError,
+    RangeError,
+    TruncatedError,
+    UnknownTypeError,
+    VersionError,
+)
+from protocol.keyexpr import NAME_PATTERN
+from protocol.limits import Limits
+from protocol.messages import HEADER_FIELDS, MESSAGE_TYPES, PROTOCOL_VERSION, Message, VoxelDelta
+from voxel.delta import Delta
+
+MAGIC = b"CLNY"
+PREFIX = struct.Struct("<4sBBBB")  # magic, version, type, flags, reserved
+PREFIX_BYTES = PREFIX.size
+FLAG_AUTH = 0x01
+COMPRESSION_SHIFT = 1
+COMPRESSION_MASK = 0x06
+COMPRESSION_NONE = 0
+COMPRESSION_ZSTD = 1
+FLAGS_RESERVED = 0xF8
+#: Bodies shorter than this are sent uncompressed (zstd would not make them smaller).
+MIN_COMPRESS_BYTES = 64
+#: Bytes a frame adds around a delta body (prefix, envelope, body fields, tag), upper bound.
+FRAME_OVERHEAD = 256
+
+_NAME_RE = __import__("re").compile(NAME_PATTERN)
+_DELTA_FIELDS = ("delta", "free_summary")
+
+
+@dataclass(frozen=True)
+class FrameInfo:
+    """What a frame says about itself before its body is decoded or its tag checked."""
+
+    version: int
+    type: int
+    kind: str
+    origin: str
+    epoch: int
+    seq: int
+    time: float
+    authenticated: bool
+    compression: int
+    size: int
+
+
+# --------------------------------------------------------------------------- encoding
+
+
+def _body(msg: Message) -> dict[str, Any]:
+    skip = set(HEADER_FIELDS) | set(_DELTA_FIELDS)
+    body = msg.model_dump(mode="python", exclude=skip)
+    if "delta" in type(msg).model_fields:
+        delta = getattr(msg, "delta")
+        summary = getattr(msg, "free_summary", None)
+        body["delta"] = None if delta is None else encode_delta(delta, summary=summary)
+    return body
+
+
+def encode(
+    msg: Message,
+    *,
+    key: bytes | None = None,
+    compression: Literal["zstd", "none"] = "zstd",
+    level: int = 3,
+) -> bytes:
+    """Frame bytes of `msg`; authenticated with HMAC-SHA256 when a colony `key` is given."""
+    if msg.version != PROTOCOL_VERSION:
+        msg_ = f"can only encode protocol version {PROTOCOL_VERSION}, found message version {msg.version}"
+        raise VersionError(msg_)
+    if type(msg).TYPE not in MESSAGE_TYPES:
+        msg_ = f"expected one of the message classes {sorted(c.__name__ for c in MESSAGE_TYPES.values())}, found {type(msg).__name__}"
+        raise UnknownTypeError(msg_)
+    body = fields.pack(_body(msg))
+    code = COMPRESSION_NONE
+    if compression == "zstd" and len(body) >= MIN_COMPRESS_BYTES:
+        body = fields.compress(body, level)
+        code = COMPRESSION_ZSTD
+    elif compression not in ("zstd", "none"):
+        msg_ = f"compression must be 'zstd' or 'none', found {compression!r}"
+        raise ValueError(msg_)
+    flags = (code << COMPRESSION_SHIFT) | (FLAG_AUTH if key is not None else 0)
+    envelope = fields.pack([msg.origin, msg.epoch, msg.seq, float(msg.time), body])
+    frame = PREFIX.pack(MAGIC, PROTOCOL_VERSION, type(msg).TYPE, flags, 0) + envelope
+    if key is not None:
+        frame += compute_tag(key, frame)
+    return frame
+
+
+# --------------------------------------------------------------------------- decoding
+
+
+def _prefix(data: bytes, limits: Limits) -> tuple[int, int, int]:
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        msg = f"frame must be bytes, found {type(data).__name__}"
+        raise MalformedError(msg)
+    if len(data) > limits.max_message_bytes:
+        msg = f"frame: expected at most {limits.max_message_bytes} bytes, found {len(data)}"
+        raise OversizedError(msg)
+    if len(data) < PREFIX_BYTES:
+        msg = f"frame: expected at least {PREFIX_BYTES} bytes of prefix, found {len(data)}"
+        raise TruncatedError(msg)
+    magic, version, mtype, flags, reserved = PREFIX.unpack_from(data)
+    if magic != MAGIC:
+        msg = f"frame: expected magic {MAGIC!r}, found {bytes(magic)!r}"
+        raise MalformedError(msg)
+    if version != PROTOCOL_VERSION:
+        msg = f"frame: expected protocol version {PROTOCOL_VERSION}, found {version}"
+        raise VersionError(msg)
+    if mtype not in MESSAGE_TYPES:
+        msg = f"frame: expected a message type in {sorted(MESSAGE_TYPES)}, found {mtype}"
+        raise UnknownTypeError(msg)
+    if flags & FLAGS_RESERVED or reserved:
+        msg = f"frame: expected reserved flag bits and byte 7 to be 0, found flags 0x{flags:02x}, byte 7 0x{reserved:02x}"
+        raise MalformedError(msg)
+    compression = (flags & COMPRESSION_MASK) >> COMPRESSION_SHIFT
+    if compression not in (COMPRESSION_NONE, COMPRESSION_ZSTD):
+        msg = f"frame: expected compression 0 (none) or 1 (zstd), found {compression}"
+        raise UnknownTypeError(msg)
+    return mtype, flags, compression
+
+
+def _envelope(data: bytes, end: int, limits: Limits) -> tuple[str, int, int, float, bytes]:
+    env = fields.unpack(bytes(data[PREFIX_BYTES:end]), "envelope", limits)
+    if not isinstance(env, list) or len(env) != 5:
+        found = f"{len(env)} items" if isinstance(env, list) else type(env).__name__
+        msg = f"envelope: expected [origin, epoch, seq, time, body], found {found}"
+        raise MalformedError(msg)
+    origin, epoch, seq, time, body = env
+    if not isinstance(origin, str) or not _NAME_RE.fullmatch(origin):
+        msg = f"envelope: expected origin matching {NAME_PATTERN}, found {str(origin)[:80]!r}"
+        raise RangeError(msg)
+    for name, value, hi in (("epoch", epoch, 0xFFFF_FFFF), ("seq", seq, (1 << 63) - 1)):
+        if isinstance(value, bool) or not isinstance(value, int):
+            msg = f"envelope: expected integer {name}, found {type(value).__name__}"
+            raise MalformedError(msg)
+        if not 0 <= value <= hi:
+            msg = f"envelope: expected {name} in [0, {hi}], found {value}"
+            raise RangeError(msg)
+    if not isinstance(time, float):
+        msg = f"envelope: expected float time, found {type(time).__name__}"
+        raise MalformedError(msg)
+    if not math.isfinite(time):
+        msg = f"envelope: expected a finite time, found {time}"
+        raise RangeError(msg)
+    if not isinstance(body, bytes):
+        msg = f"envelope: expected binary body, found {type(body).__name__}"
+        raise MalformedError(msg)
+    return origin, epoch, seq, time, body
+
+
+def peek(data: bytes, limits: Limits = Limits()) -> FrameInfo:
+    """Prefix and envelope of a frame without decoding its body or checking its tag."""
+    mtype, flags, compression = _prefix(data, limits)
+    auth = bool(flags & FLAG_AUTH)
+    end = len(data) - (TAG_BYTES if auth else 0)
+    if end <= PREFIX_BYTES:
+        msg = f"frame: expected an envelope{' and a 32-byte tag' if auth else ''} after the prefix, found {len(data) - PREFIX_BYTES} bytes"
+        raise TruncatedError(msg)
+    origin, epoch, seq, time, _ = _envelope(data, end, limits)
+    cls = MESSAGE_TYPES[mtype]
+    return FrameInfo(PROTOCOL_VERSION, mtype, cls.KIND, origin, epoch, seq, time, auth, compression, len(data))
+
+
+_RANGE_ERRORS = {
+    "greater_than", "greater_than_equal", "less_than", "less_than_equal", "finite_number",
+    "string_pattern_mismatch", "value_error", "literal_error", "enum", "too_short",
+}
+
+
+def _validation_error(cls: type[Message], exc: ValidationError) -> ProtocolError:
+    err = exc.errors(include_url=False)[0]
+    loc = ".".join(str(p) for p in err["loc"]) or "(body)"
+    found = repr(err.get("input"))[:80]
+    text = f"{cls.KIND} message field {loc}: {err['msg']}, found {found}"
+    if err["type"] == "too_long":
+        return OversizedError(text)
+    if err["type"] in _RANGE_ERRORS:
+        return RangeError(text)
+    return MalformedError(text)
+
+
+def decode(
+    data: bytes,
+    *,
+    key: bytes | None = None,
+    limits: Limits = Limits(),
+    replay: ReplayWindow | None = None,
+) -> Message:
+    """Validated message of hostile frame bytes, or a ProtocolError subclass saying why not.
+
+    With a colony `key`, frames without a valid tag are rejected (AuthError); without one,
+    authenticated frames are rejected too (the colony is closed to us). With a `replay` window,
+    a frame whose (origin, epoch, seq) was already accepted raises ReplayError.
+    """
+    mtype, flags, compression = _prefix(data, limits)
+    auth = bool(flags & FLAG_AUTH)
+    end = len(data)
+    if key is not None:
+        if not auth:
+            msg = "frame: expected an authenticated frame (colony key configured), found no tag"
+            raise AuthError(msg)
+        end -= TAG_BYTES
+        if end <= PREFIX_BYTES:
+            msg = f"frame: expected an envelope and a {TAG_BYTES}-byte tag after the prefix, found {len(data) - PREFIX_BYTES} bytes"
+            raise TruncatedError(msg)
+        view = memoryview(data)
+        verify_tag(key, view[:end], view[end:])
+    elif auth:
+        msg = "frame: expected an unauthenticated frame (no colony key configured), found a tag"
+        raise AuthError(msg)
+    origin, epoch, seq, time, body = _envelope(data, end, limits)
+    if compression == COMPRESSION_ZSTD:
+        body = fields.decompress(body, limits, "body")
+    elif len(body) > limits.max_body_bytes:
+        msg = f"body: expected at most {limits.max_body_bytes} bytes, found {len(body)}"
+        raise OversizedError(msg)
+    cls = MESSAGE_TYPES[mtype]
+    content = fields.as_map(fields.unpack(body, f"{cls.KIND} body", limits), f"{cls.KIND} body")
+    known = {k: v for k, v in content.items() if k in cls.model_fields and k not in HEADER_FIELDS}
+    if "delta" in cls.model_fields:
+        raw = known.get("delta")
+        if raw is None and cls.model_fields["delta"].is_required():
+            msg = f"{cls.KIND} body: expected field 'delta' with a delta body, found none"
+            raise MalformedError(msg)
+        if raw is not None:
+            if not isinstance(raw, bytes):
+                msg = f"{cls.KIND} body: expected binary 'delta', found {type(raw).__name__}"
+                raise MalformedError(msg)
+            delta, summary = decode_delta_with_summary(raw, limits)
+            known["delta"] = delta
+            if summary is not None:
+                if "free_summary" not in cls.model_fields:
+                    msg = f"{cls.KIND} body: expected an exact delta, found a free-space summary"
+                    raise MalformedError(msg)
+                known["free_summary"] = summary
+    try:
+        message = cls.model_validate(
+            {**known, "version": PROTOCOL_VERSION, "origin": origin, "epoch": epoch, "seq": seq, "time": time}
+        )
+    except ValidationError as exc:
+        raise _validation_error(cls, exc) from None
+    if replay is not None:
+        replay.check(origin, epoch, seq)
+    return message
+
+
+# --------------------------------------------------------------------------- delta helpers
+
+
+def delta_messages(
+    *,
+    origin: str,
+    epoch: int,
+    seq: int,
+    time: float,
+    frame_id: str,
+    delta: Delta,
+    max_bytes: int = 1 << 20,
+    budget: int | None = None,
+    prev_logodds: np.ndarray | None = None,
+) -> list[VoxelDelta]:
+    """VoxelDelta messages (seq, seq+1, …) carrying `delta`, each frame at most `max_bytes`.
+
+    With a `budget` (compressed bytes for the whole delta), free space is summarised first
+    (`fit_delta`); the result is then split (`split_delta`) into independently decodable parts,
+    surfaces first.
+    """
+    summary = None
+    if budget is not None:
+        delta, summary = fit_delta(delta, budget, prev_logodds=prev_logodds)
+        prev_logodds = None
+    limit = max_bytes - FRAME_OVERHEAD - len(frame_id) - len(origin)
+    parts = split_delta(delta, limit, prev_logodds=prev_logodds)
+    msgs = [
+        VoxelDelta(
+            origin=origin, epoch=epoch, seq=seq + i, time=time, frame_id=frame_id,
+            part=i, parts=len(parts), delta=part,
+        )
+        for i, part in enumerate(parts)
+    ]
+    if summary is not None and len(summary):
+        msgs[-1] = msgs[-1].model_copy(update={"free_summary": summary})
+    return msgs

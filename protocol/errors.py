@@ -1,0 +1,70 @@
+"""Errors raised by the protocol package; every one says what was expected and what was found."""
+
+from __future__ import annotations
+
+
+class ProtocolError(Exception):
+    """Base class of every error raised while encoding, decoding or authenticating a message."""
+
+    #: Short machine-readable reason, used by daemons to count rejected messages per cause.
+    reason = "protocol"
+
+
+class TruncatedError(ProtocolError):
+    """The input ends before a field it announces."""
+
+    reason = "truncated"
+
+
+class MalformedError(ProtocolError):
+    """The input is not laid out as the protocol requires (bad magic, wrong types, bad structure)."""
+
+    reason = "malformed"
+
+
+class OversizedError(ProtocolError):
+    """The input, or something it announces, is larger than the configured limits allow."""
+
+    reason = "oversized"
+
+
+class VersionError(ProtocolError):
+    """The input is of a protocol or codec version this implementation does not speak."""
+
+    reason = "version"
+
+
+class UnknownTypeError(ProtocolError):
+    """The input carries a message type, channel or field kind this implementation does not know."""
+
+    reason = "unknown_type"
+
+
+class RangeError(ProtocolError):
+    """A value is outside the range the protocol allows (keys, times, counts, names)."""
+
+    reason = "range"
+
+
+class DecompressionBombError(OversizedError):
+    """A compressed body would expand beyond the configured limit."""
+
+    reason = "decompression_bomb"
+
+
+class AuthError(ProtocolError):
+    """A message fails authentication: missing, wrong or unexpected tag, or a replay."""
+
+    reason = "auth"
+
+
+class ReplayError(AuthError):
+    """An authenticated message repeats or predates the (epoch, seq) already seen from its origin."""
+
+    reason = "replay"
+
+
+class KeyExprError(ProtocolError, ValueError):
+    """A key expression or one of its names is not valid."""
+
+    reason = "keyexpr"

@@ -1,0 +1,90 @@
+"""Config: precedence of flags, environment and TOML; clear errors; dump-config."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from colonyd.config import dump_config, load_config, multicast_port
+from colonyd.errors import ConfigError
+
+
+def test_precedence_flags_over_env_over_toml(tmp_path, monkeypatch):
+    toml = tmp_path / "c.toml"
+    toml.write_text('colony = "file"\nagent_id = "file-agent"\npublish_hz = 1.0\nconnect = ["tcp/127.0.0.1:1"]\n')
+    monkeypatch.setenv("COLONYD_AGENT_ID", "env-agent")
+    monkeypatch.setenv("COLONYD_PUBLISH_HZ", "3")
+    cfg = load_config(toml, publish_hz=5.0)
+    assert cfg.colony == "file"  # only in the file
+    assert cfg.agent_id == "env-agent"  # env beats file
+    assert cfg.publish_hz == 5.0  # flag beats env
+    assert cfg.connect == ["tcp/127.0.0.1:1"]
+    assert cfg.key_namespace == "file"
+
+
+def test_toml_colonyd_table_and_env_config_path(tmp_path, monkeypatch):
+    toml = tmp_path / "c.toml"
+    toml.write_text('[colonyd]\ncolony = "tabled"\n')
+    monkeypatch.setenv("COLONYD_CONFIG", str(toml))
+    assert load_config().colony == "tabled"
+
+
+@pytest.mark.parametrize(
+    ("flags", "match"),
+    [
+        ({"publish_hz": -1}, r"publish_hz: Input should be greater than 0"),
+        ({"colony": "bad name!"}, r"colony: .*expected 1-64 characters.*found 'bad name!'"),
+        ({"connect": ["localhost:7447"]}, r"expected a Zenoh endpoint like 'tcp/127.0.0.1:7447'"),
+        ({"no_such_option": 1}, r"no_such_option: Extra inputs are not permitted"),
+        ({"mode": "client", "multicast": False}, r"client mode needs --connect"),
+    ],
+)
+def test_invalid_config_says_what_was_expected(flags, match):
+    with pytest.raises(ConfigError, match=match):
+        load_config(None, **flags)
+
+
+def test_bad_toml_and_missing_file(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(tmp_path / "nope.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("colony = \n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(bad)
+
+
+def test_env_type_error(monkeypatch):
+    monkeypatch.setenv("COLONYD_RESOLUTION", "fine")
+    with pytest.raises(ConfigError, match=r"resolution: .*found 'fine'"):
+        load_config()
+
+
+def test_multicast_port_is_per_colony_and_stable():
+    assert multicast_port("a") == multicast_port("a")
+    assert multicast_port("a") != multicast_port("b")
+
+
+def test_dump_config_round_trips(tmp_path):
+    cfg = load_config(None, colony="round", connect=["tcp/127.0.0.1:9"], multicast=False)
+    text = dump_config(cfg)
+    path = tmp_path / "dumped.toml"
+    path.write_text(text)
+    again = load_config(path)
+    assert again.model_dump() == cfg.model_dump()
+
+
+def test_cli_dump_config_and_config_error_exit_code(tmp_path):
+    out = subprocess.run(
+        [sys.executable, "-m", "colonyd", "dump-config", "--colony", "cli", "--no-multicast"],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert out.returncode == 0, out.stderr
+    assert 'colony = "cli"' in out.stdout and "multicast = false" in out.stdout
+    bad = subprocess.run(
+        [sys.executable, "-m", "colonyd", "dump-config", "--resolution", "-1"],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert bad.returncode == 3
+    assert "resolution" in bad.stderr and "greater than 0" in bad.stderr

@@ -1,0 +1,114 @@
+"""Tests of offline mapping: real RGB-D and laser recordings against OctoMap, and a simulated run."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from colonyd.mapping import FREE_GREY, OCCUPIED_GREY, UNKNOWN_GREY, floor_plan, map_source, tum_line
+from plugins.source import open_source
+from voxel import keys as vk
+from voxel.grid import VoxelGrid
+from voxel.octomap_io import read_bt
+
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+KITCHEN = DATA / "redkitchen-50"
+LOG = DATA / "carmen" / "freiburg-079-corrected.log.gz"
+
+
+def octomap_occupied(spec: str, resolution: float, tmp: Path, *, max_range: float | None = None) -> np.ndarray:
+    """Occupied voxel keys of OctoMap (pyoctomap) fed the same scans and poses as map_source."""
+    pyoctomap = pytest.importorskip("pyoctomap")
+    tree = pyoctomap.OcTree(resolution)
+    source = open_source(spec)
+    for obs in source:
+        points = obs.points.copy()
+        if obs.no_return is not None and max_range is not None:
+            points[obs.no_return] *= (max_range + 1.0) / max_range  # beyond max range: cleared, not hit
+        world = points @ obs.pose[:3, :3].T + obs.pose[:3, 3]
+        tree.insertPointCloud(world, obs.origin, max_range=-1.0 if max_range is None else max_range, discretize=True)
+    path = tmp / "octomap.bt"
+    tree.writeBinary(str(path))
+    bt = read_bt(path)
+    return bt.keys[bt.occupied]
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    sa, sb = set(vk.pack(a).tolist()), set(vk.pack(b).tolist())
+    return len(sa & sb) / max(len(sa | sb), 1)
+
+
+@pytest.mark.skipif(not KITCHEN.is_dir(), reason=f"real 7-Scenes frames not found at {KITCHEN}")
+def test_redkitchen_occupied_set_agrees_with_octomap(tmp_path: Path) -> None:
+    spec = f"replay:{KITCHEN}"
+    summary = map_source(spec, 0.05, tmp_path / "map", progress=False)
+    assert summary.frames == 50 and summary.skipped == 0
+    for name in ("grid.npz", "map.bt", "map.ply", "trajectory.tum"):
+        assert (tmp_path / "map" / name).stat().st_size > 0
+    ours = VoxelGrid.load(tmp_path / "map" / "grid.npz").occupied_keys()
+    assert len(ours) == summary.occupied > 5000
+    reference = octomap_occupied(spec, 0.05, tmp_path)
+    agreement = iou(ours, reference)
+    assert agreement >= 0.95, agreement
+    # the .bt we wrote holds the same occupied set
+    bt = read_bt(tmp_path / "map" / "map.bt")
+    assert iou(bt.keys[bt.occupied], ours) == 1.0
+    # trajectory: one TUM line per frame, first one the first frame's pose
+    lines = (tmp_path / "map" / "trajectory.tum").read_text().splitlines()
+    assert len(lines) == 50
+    np.testing.assert_allclose([float(v) for v in lines[0].split()[1:4]], [-0.91287065, -0.34388667, 0.75986093])
+
+
+@pytest.mark.skipif(not LOG.is_file(), reason=f"real CARMEN log not found at {LOG}")
+def test_carmen_floor_plan_is_sharp_and_matches_octomap(tmp_path: Path) -> None:
+    spec = f"replay:{LOG},step=60,max_range=40"
+    summary = map_source(spec, 0.05, tmp_path / "map", progress=False)
+    assert summary.frames == 80
+    image = cv2.imread(str(tmp_path / "map" / "floorplan.png"), cv2.IMREAD_GRAYSCALE)
+    assert image is not None and set(np.unique(image)) <= {OCCUPIED_GREY, FREE_GREY, UNKNOWN_GREY}
+    meta = dict(line.split(": ", 1) for line in (tmp_path / "map" / "floorplan.yaml").read_text().splitlines())
+    ox, oy, _ = (float(v) for v in meta["origin"].strip("[]").split(","))
+    rows, cols = np.nonzero(image == OCCUPIED_GREY)
+    ours = np.column_stack([cols + round(ox / 0.05), image.shape[0] - 1 - rows + round(oy / 0.05), np.zeros_like(rows)])
+    reference = octomap_occupied(spec, 0.05, tmp_path, max_range=40.0)
+    reference = reference[reference[:, 2] == 0]
+    agreement = iou(ours, reference)
+    assert agreement >= 0.95, agreement
+    # sharp: walls are thin lines, so occupied cells are few compared with the free space they bound
+    free = int((image == FREE_GREY).sum())
+    assert len(ours) < 0.15 * free
+
+
+def test_sim_run_writes_every_file(tmp_path: Path) -> None:
+    summary = map_source("sim:world=room,agent=lidar-1,frames=20,start=world", 0.1, tmp_path, progress=False)
+    assert summary.frames == 20 and summary.occupied > 50
+    for name in ("grid.npz", "map.bt", "map.ply", "trajectory.tum", "floorplan.png", "floorplan.yaml"):
+        assert (tmp_path / name).is_file(), name
+    ply = (tmp_path / "map.ply").read_bytes()
+    assert ply.startswith(b"ply")
+    image = cv2.imread(str(tmp_path / "floorplan.png"), cv2.IMREAD_GRAYSCALE)
+    assert (image == OCCUPIED_GREY).sum() > 50  # the room's walls
+
+
+def test_max_frames_and_progress_bar(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    summary = map_source("sim:world=room,agent=depth-1,frames=50", 0.1, tmp_path, max_frames=3)
+    assert summary.frames == 3
+    assert "3/3 frames" in capsys.readouterr().err
+
+
+def test_floor_plan_image_orientation() -> None:
+    occupied = np.array([[0, 0, 0], [2, 1, 0], [5, 5, 1]])
+    free = np.array([[1, 0, 0], [1, 1, 0]])
+    image, lo = floor_plan(occupied, free, layer=0)
+    assert image.shape == (2, 3) and lo.tolist() == [0, 0]
+    assert image[1, 0] == OCCUPIED_GREY and image[0, 2] == OCCUPIED_GREY  # +y is up
+    assert image[1, 1] == FREE_GREY and image[0, 0] == UNKNOWN_GREY
+
+
+def test_tum_line() -> None:
+    pose = np.eye(4)
+    pose[:3, 3] = [1, 2, 3]
+    assert tum_line(1.5, pose) == "1.500000 1.000000 2.000000 3.000000 0.000000000 0.000000000 0.000000000 1.000000000"

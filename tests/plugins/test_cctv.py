@@ -1,0 +1,78 @@
+"""Tests of the CCTV adapter: ArUco detection and pose on rendered images, depth mapping."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from plugins.cctv import CctvCamera, CctvFrame, aruco_dictionary
+from plugins.checks import pose_matrix
+from plugins.errors import SensorInputError
+from plugins.sim import OPTICAL, Rig, render
+from plugins.world import CLASSES, Box, Marker, World
+
+
+def camera_rig(camera: CctvCamera, w: int = 640, h: int = 480) -> Rig:
+    v, u = np.mgrid[0:h, 0:w]
+    d = np.stack([(u - camera.K[0, 2]) / camera.K[0, 0], (v - camera.K[1, 2]) / camera.K[1, 1], np.ones((h, w))], -1)
+    return Rig(d.reshape(-1, 3), OPTICAL, (h, w), camera.K)
+
+
+def tagged_pillar(marker_id: int = 7) -> World:
+    # a pillar whose -x face is the plane x = 2.0, marker (0.2 m) centred at (2.0, 0.1, 1.05) facing -x
+    pillar = Box((2.0, -0.3, 0.0), (2.4, 0.3, 1.6), CLASSES["landmark"], 42)
+    marker = Marker(marker_id, (2.0, 0.1, 1.05), (-1.0, 0.0, 0.0), 0.2, 42)
+    return World(name="pillar", boxes=[pillar], markers=[marker])
+
+
+@pytest.mark.parametrize(("x", "y", "yaw"), [(0.0, 0.0, 0.0), (0.3, -0.8, math.radians(20))])
+def test_marker_pose_on_a_rendered_image_within_2cm_at_2m(x: float, y: float, yaw: float) -> None:
+    world = tagged_pillar()
+    body = pose_matrix(x, y, 1.0, yaw)
+    pose = body @ OPTICAL
+    camera = CctvCamera(pose=pose, fov=math.radians(60), marker_classes={7: CLASSES["landmark"]})
+    frame = render(world, "cctv", camera_rig(camera), pose, np.random.default_rng(0), 0.0)
+    obs = camera.observe(frame)
+    assert [d.object_id for d in obs.objects] == [7]
+    found = obs.objects[0]
+    truth = np.linalg.inv(pose) @ world.markers[0].frame()
+    distance = np.linalg.norm(truth[:3, 3])
+    assert 1.7 < distance < 2.3
+    assert np.linalg.norm(found.position - truth[:3, 3]) <= 0.02
+    # orientation: marker normal within 10 degrees (a fronto-parallel square is ambiguous)
+    cos = float(found.pose[:3, 2] @ truth[:3, 2])
+    assert cos > math.cos(math.radians(10))
+    assert found.class_id == CLASSES["landmark"] and 0.5 < found.probability <= 0.99
+    # in the site frame, via the camera's known pose
+    site = obs.pose @ found.pose
+    assert np.linalg.norm(site[:3, 3] - world.markers[0].centre) <= 0.02
+
+
+def test_depth_channel_maps_the_view_and_labels_marker_pixels() -> None:
+    world = tagged_pillar()
+    pose = pose_matrix(0.0, 0.0, 1.0, 0.0) @ OPTICAL
+    camera = CctvCamera(pose=pose, fov=math.radians(60), marker_classes={7: CLASSES["landmark"]})
+    frame = render(world, "cctv", camera_rig(camera), pose, np.random.default_rng(0), 0.0)
+    assert frame.depth is not None
+    obs = camera.observe(frame)
+    assert len(obs) > 10000 and obs.colours is not None
+    labelled = obs.class_ids == CLASSES["landmark"]
+    assert labelled.sum() > 100
+    pts = obs.points_world()[labelled]
+    assert np.abs(pts[:, 0] - 2.0).max() < 1e-3  # marker pixels lie on the pillar face
+    np.testing.assert_allclose(pts.mean(axis=0)[1:], [0.1, 1.05], atol=0.02)
+
+
+def test_image_without_markers_and_bad_images() -> None:
+    camera = CctvCamera(fov=1.0)
+    assert camera.observe(np.full((120, 160, 3), 128, np.uint8)).objects == ()
+    with pytest.raises(SensorInputError, match=r"image: expected \(H, W\) or \(H, W, 3\) uint8, found shape \(4, 4\) dtype float64"):
+        camera.observe(np.zeros((4, 4)))
+    with pytest.raises(SensorInputError, match=r"depth: expected the image's shape \(4, 4\), found \(3, 4\)"):
+        camera.observe(CctvFrame(image=np.zeros((4, 4), np.uint8), depth=np.ones((3, 4))))
+    with pytest.raises(SensorInputError, match="dictionary: expected an ArUco dictionary name like 'DICT_4X4_50', found 'DICT_9X9'"):
+        aruco_dictionary("DICT_9X9")
+    with pytest.raises(SensorInputError, match="marker_length: expected a positive length"):
+        CctvCamera(fov=1.0, marker_length=0.0)

@@ -1,0 +1,41 @@
+"""Tests of recording format detection."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from plugins.errors import SourceError
+from plugins.replay import detect_format
+
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason=f"real data not found at {DATA}")
+def test_real_recordings_are_recognised() -> None:
+    assert detect_format(DATA / "redkitchen-50") == "7scenes"
+    assert detect_format(DATA / "redkitchen-50" / "frames") == "7scenes"
+    assert detect_format(DATA / "carmen" / "freiburg-079-corrected.log.gz") == "carmen"
+
+
+def test_layouts_by_marker_files(tmp_path: Path) -> None:
+    (tmp_path / "tum").mkdir()
+    (tmp_path / "tum" / "depth.txt").write_text("")
+    (tmp_path / "bag2").mkdir()
+    (tmp_path / "bag2" / "metadata.yaml").write_text("")
+    (tmp_path / "run.bag").write_bytes(b"#ROSBAG V2.0\n")
+    assert detect_format(tmp_path / "tum") == "tum"
+    assert detect_format(tmp_path / "bag2") == "rosbag"
+    assert detect_format(tmp_path / "run.bag") == "rosbag"
+
+
+def test_unknown_recordings_say_what_was_expected(tmp_path: Path) -> None:
+    with pytest.raises(SourceError, match="replay: expected a recording file or folder, found nothing at"):
+        detect_format(tmp_path / "missing")
+    with pytest.raises(SourceError, match="expected a 7-Scenes folder"):
+        detect_format(tmp_path)
+    text = tmp_path / "notes.txt"
+    text.write_text("hello\n")
+    with pytest.raises(SourceError, match=r"notes\.txt: expected a CARMEN log \(FLASER lines\) or a ROS bag"):
+        detect_format(text)

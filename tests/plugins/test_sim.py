@@ -1,0 +1,82 @@
+"""Tests of the simulated source: determinism, odometry noise, ground truth, speed."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from plugins.errors import SourceSpecError
+from plugins.sim import AGENTS, SimSource
+
+
+def test_same_seed_same_stream_other_seed_other_noise() -> None:
+    a = list(SimSource(world="room", agent="lidar-1", frames=20, seed=3))
+    b = list(SimSource(world="room", agent="lidar-1", frames=20, seed=3))
+    c = list(SimSource(world="room", agent="lidar-1", frames=20, seed=4))
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x.points, y.points)
+        np.testing.assert_array_equal(x.pose, y.pose)
+    assert not np.array_equal(a[-1].points, c[-1].points)
+
+
+def test_without_noise_the_pose_guess_is_the_truth() -> None:
+    source = SimSource(world="office", agent="depth-1", frames=30, noise=0.0, range_noise=0.0, start="world")
+    for obs in source:
+        np.testing.assert_allclose(obs.pose, obs.truth, atol=1e-9)
+    assert len(source.ground_truth) == 30 and source.stats.delivered == 30
+
+
+def test_agents_start_at_their_own_origin() -> None:
+    first = next(iter(SimSource(world="office", agent="lidar-1", frames=1, noise=0.0)))
+    np.testing.assert_allclose(first.odometry, np.eye(4), atol=1e-12)
+    assert np.linalg.norm(first.truth[:2, 3]) > 1.0  # the truth is in the site frame
+
+
+def test_drift_makes_dead_reckoning_wander() -> None:
+    def final_error(drift: float) -> float:
+        source = SimSource(world="room", agent="lidar-1", frames=150, noise=0.0, drift=drift, start="world")
+        obs = list(source)[-1]
+        return float(np.linalg.norm(obs.pose[:3, 3] - obs.truth[:3, 3]))
+
+    assert final_error(0.0) < 1e-9
+    assert final_error(0.05) > 0.2
+
+
+def test_cctv_reports_landmarks_at_their_true_place() -> None:
+    source = SimSource(world="office", agent="cctv-1", frames=1)
+    obs = next(iter(source))
+    assert len(obs.objects) >= 2
+    centres = {m.marker_id: np.asarray(m.centre) for m in source.world.markers}
+    for found in obs.objects:
+        site = obs.pose @ found.pose
+        distance = np.linalg.norm(centres[found.object_id] - obs.pose[:3, 3])
+        # small far markers: pose error mostly along the view, a few percent of the distance
+        assert np.linalg.norm(site[:3, 3] - centres[found.object_id]) < 0.04 * distance
+    assert (obs.class_ids >= 0).any()
+
+
+def test_rendered_depth_agrees_with_ground_truth_geometry() -> None:
+    source = SimSource(world="room", agent="lidar3d-1", frames=3, range_noise=0.0, noise=0.0, start="world")
+    for obs in source:
+        pts = obs.points_world()
+        assert (np.abs(pts[:, 2]) < 1e-6).sum() > 300  # the floor at z = 0
+        assert pts[:, 2].min() > -1e-6
+        inside = np.abs(pts[:, :2]).max(axis=1) <= 3.0 + 1e-6
+        assert inside.all()
+
+
+def test_several_agents_run_in_real_time() -> None:
+    began = time.perf_counter()
+    for name, agent in AGENTS["room"].items():
+        for _ in SimSource(world="room", agent=name, frames=int(agent.rate)):  # one simulated second each
+            pass
+    assert time.perf_counter() - began < 2.0  # one second of four agents within two cores' time
+
+
+def test_bad_sim_options() -> None:
+    with pytest.raises(SourceSpecError, match=r"agent: expected one of \['cctv-1', 'depth-1', 'lidar-1', 'lidar3d-1'\] in world 'room', found 'x'"):
+        SimSource(world="room", agent="x")
+    with pytest.raises(SourceSpecError, match="start: expected 'origin' or 'world', found 'moon'"):
+        SimSource(start="moon")

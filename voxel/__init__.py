@@ -1,0 +1,1 @@
+"""Information-rich voxel grid: storage, integration, queries, history, deltas and file formats."""

@@ -1,0 +1,174 @@
+"""Sparse block storage: dense 8^3 blocks of voxels addressed by integer block keys, one numpy array per channel."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from voxel import keys as vk
+
+BLOCK_SHIFT = 2
+BLOCK = 1 << BLOCK_SHIFT  # voxels per block side
+BLOCK_VOXELS = BLOCK**3
+BLOCK_MASK = BLOCK - 1
+
+#: Channel name -> (dtype, trailing shape, fill value). Core channels always exist; the others are
+#: allocated the first time they are used.
+CORE_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
+    "logodds": (np.dtype(np.float32), (), np.nan),  # NaN = unknown
+    "version": (np.dtype(np.uint32), (), 0),
+    "last_time": (np.dtype(np.float64), (), 0.0),  # seconds, time of the last change
+}
+RICH_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
+    "first_time": (np.dtype(np.float64), (), 0.0),
+    "hits": (np.dtype(np.uint16), (), 0),
+    "misses": (np.dtype(np.uint16), (), 0),
+    "colour": (np.dtype(np.uint8), (3,), 0),
+    "normal": (np.dtype(np.float32), (3,), 0.0),
+    "class_ids": (np.dtype(np.int16), (-1,), -1),
+    "class_probs": (np.dtype(np.float32), (-1,), 0.0),
+}
+SCALAR_SPEC = (np.dtype(np.float32), (), np.nan)
+
+
+def split_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Packed block keys (N,) and in-block offsets (N,) of voxel keys (N, 3)."""
+    k = np.asarray(keys, dtype=np.int64)
+    blocks = vk.pack(k >> BLOCK_SHIFT)
+    o = k & BLOCK_MASK
+    offsets = (o[:, 0] << (2 * BLOCK_SHIFT)) | (o[:, 1] << BLOCK_SHIFT) | o[:, 2]
+    return blocks, offsets
+
+
+def join_keys(blocks: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Voxel keys (N, 3) from packed block keys (N,) and offsets (N,)."""
+    base = vk.unpack(blocks) << BLOCK_SHIFT
+    off = np.asarray(offsets, dtype=np.int64)
+    base[:, 0] += off >> (2 * BLOCK_SHIFT)
+    base[:, 1] += (off >> BLOCK_SHIFT) & BLOCK_MASK
+    base[:, 2] += off & BLOCK_MASK
+    return base
+
+
+def block_offsets_grid() -> np.ndarray:
+    """In-block voxel offsets (512, 3) in storage order (x-major)."""
+    r = np.arange(BLOCK)
+    return np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+class BlockStore:
+    """Slots of 8^3 voxels with per-channel arrays of shape (capacity, 512, ...)."""
+
+    def __init__(self, class_k: int = 3, capacity: int = 64) -> None:
+        self.class_k = class_k
+        self.capacity = capacity
+        self.count = 0  # slots ever used (high-water mark)
+        self.free_slots: list[int] = []
+        self.sorted_keys = np.empty(0, dtype=np.int64)  # packed block keys, sorted
+        self.sorted_slots = np.empty(0, dtype=np.int64)
+        self.slot_keys = np.full(capacity, -1, dtype=np.int64)  # slot -> packed block key (-1 free)
+        self.slot_version = np.zeros(capacity, dtype=np.uint32)  # highest voxel version in the slot
+        self.channels: dict[str, np.ndarray] = {}
+        for name, spec in CORE_CHANNELS.items():
+            self.channels[name] = self._new_array(spec, capacity)
+
+    # -- channel management -------------------------------------------------------------------
+    def _shape(self, tail: tuple[int, ...]) -> tuple[int, ...]:
+        return tuple(self.class_k if t == -1 else t for t in tail)
+
+    def _new_array(self, spec: tuple[np.dtype, tuple[int, ...], float], n: int) -> np.ndarray:
+        dtype, tail, fill = spec
+        return np.full((n, BLOCK_VOXELS, *self._shape(tail)), fill, dtype=dtype)
+
+    @staticmethod
+    def spec(name: str) -> tuple[np.dtype, tuple[int, ...], float]:
+        if name in CORE_CHANNELS:
+            return CORE_CHANNELS[name]
+        if name in RICH_CHANNELS:
+            return RICH_CHANNELS[name]
+        return SCALAR_SPEC
+
+    def channel(self, name: str) -> np.ndarray:
+        """The array of channel `name`, allocated on first use."""
+        arr = self.channels.get(name)
+        if arr is None:
+            arr = self._new_array(self.spec(name), self.capacity)
+            self.channels[name] = arr
+        return arr
+
+    def reset_slots(self, slots: np.ndarray) -> None:
+        for name, arr in self.channels.items():
+            arr[slots] = self.spec(name)[2]
+        self.slot_version[slots] = 0
+
+    def _grow(self, needed: int) -> None:
+        new_cap = max(needed, self.capacity * 2)
+        for name, arr in self.channels.items():
+            grown = self._new_array(self.spec(name), new_cap)
+            grown[: self.capacity] = arr
+            self.channels[name] = grown
+        keys = np.full(new_cap, -1, dtype=np.int64)
+        keys[: self.capacity] = self.slot_keys
+        self.slot_keys = keys
+        versions = np.zeros(new_cap, dtype=np.uint32)
+        versions[: self.capacity] = self.slot_version
+        self.slot_version = versions
+        self.capacity = new_cap
+
+    # -- lookup -------------------------------------------------------------------------------
+    def lookup(self, blocks: np.ndarray) -> np.ndarray:
+        """Slots of packed block keys; -1 where the block does not exist."""
+        blocks = np.asarray(blocks, dtype=np.int64)
+        if self.sorted_keys.size == 0:
+            return np.full(blocks.shape, -1, dtype=np.int64)
+        idx = np.searchsorted(self.sorted_keys, blocks)
+        idx = np.minimum(idx, self.sorted_keys.size - 1)
+        found = self.sorted_keys[idx] == blocks
+        return np.where(found, self.sorted_slots[idx], -1)
+
+    def ensure(self, blocks: np.ndarray) -> np.ndarray:
+        """Slots of unique packed block keys, creating missing blocks."""
+        slots = self.lookup(blocks)
+        missing = slots < 0
+        n_new = int(missing.sum())
+        if n_new:
+            new_keys = np.asarray(blocks, dtype=np.int64)[missing]
+            reuse = min(n_new, len(self.free_slots))
+            taken = [self.free_slots.pop() for _ in range(reuse)]
+            fresh = n_new - reuse
+            if self.count + fresh > self.capacity:
+                self._grow(self.count + fresh)
+            new_slots = np.concatenate(
+                [np.asarray(taken, dtype=np.int64), np.arange(self.count, self.count + fresh)]
+            )
+            self.count += fresh
+            if reuse:
+                self.reset_slots(new_slots[:reuse])
+            self.slot_keys[new_slots] = new_keys
+            slots[missing] = new_slots
+            all_keys = np.concatenate([self.sorted_keys, new_keys])
+            all_slots = np.concatenate([self.sorted_slots, new_slots])
+            order = np.argsort(all_keys, kind="stable")
+            self.sorted_keys = all_keys[order]
+            self.sorted_slots = all_slots[order]
+        return slots
+
+    def release(self, slots: np.ndarray) -> None:
+        """Free slots (their blocks become unknown)."""
+        slots = np.asarray(slots, dtype=np.int64)
+        if slots.size == 0:
+            return
+        self.reset_slots(slots)
+        gone = np.isin(self.sorted_slots, slots)
+        self.sorted_keys = self.sorted_keys[~gone]
+        self.sorted_slots = self.sorted_slots[~gone]
+        self.slot_keys[slots] = -1
+        self.free_slots.extend(int(s) for s in slots)
+
+    def used_slots(self) -> np.ndarray:
+        """Slots that hold a block, in block-key order."""
+        return self.sorted_slots
+
+    def nbytes(self) -> int:
+        """Bytes held by the channel arrays of used slots plus the index."""
+        per_slot = sum(arr[0].nbytes for arr in self.channels.values()) + 8 + 8 + 8 + 4
+        return per_slot * len(self.sorted_slots)

@@ -1,0 +1,102 @@
+"""Voxel deltas: absolute new values of the voxels that changed between two grid versions."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from voxel.errors import DeltaError
+
+#: Optional per-voxel channels a delta may carry, with dtype and trailing shape.
+#: `class_ids`/`class_probs` have a trailing dimension k (top-k object classes); a scalar channel
+#: named NAME travels as "scalar:NAME" with shape (N,) float32.
+CHANNEL_SPECS: dict[str, tuple[np.dtype, tuple[int, ...]]] = {
+    "first_time": (np.dtype(np.float64), ()),
+    "hits": (np.dtype(np.uint16), ()),
+    "misses": (np.dtype(np.uint16), ()),
+    "colour": (np.dtype(np.uint8), (3,)),
+    "normal": (np.dtype(np.float32), (3,)),
+    "class_ids": (np.dtype(np.int16), (-1,)),
+    "class_probs": (np.dtype(np.float32), (-1,)),
+}
+SCALAR_PREFIX = "scalar:"
+
+
+def channel_spec(name: str) -> tuple[np.dtype, tuple[int, ...]]:
+    """Dtype and trailing shape of a delta channel; -1 stands for any length."""
+    if name.startswith(SCALAR_PREFIX) and len(name) > len(SCALAR_PREFIX):
+        return np.dtype(np.float32), ()
+    try:
+        return CHANNEL_SPECS[name]
+    except KeyError:
+        msg = f"unknown delta channel {name!r}; expected one of {sorted(CHANNEL_SPECS)} or 'scalar:NAME'"
+        raise DeltaError(msg) from None
+
+
+@dataclass
+class Delta:
+    """The voxels of one layer that changed in (from_version, to_version], with absolute values.
+
+    `logodds` is NaN for a voxel that returned to unknown. Every voxel of a delta takes
+    `to_version` as its version when applied, so applying deltas twice or out of order gives
+    the same layer: a voxel keeps the value of the highest version that reached it.
+    """
+
+    resolution: float
+    from_version: int
+    to_version: int
+    keys: np.ndarray  # (N, 3) int64 voxel keys
+    logodds: np.ndarray  # (N,) float32, NaN = unknown
+    last_time: np.ndarray  # (N,) float64 seconds
+    channels: dict[str, np.ndarray] = field(default_factory=dict)
+    time: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.keys = np.asarray(self.keys, dtype=np.int64).reshape(-1, 3)
+        n = self.keys.shape[0]
+        self.logodds = np.asarray(self.logodds, dtype=np.float32).reshape(-1)
+        self.last_time = np.asarray(self.last_time, dtype=np.float64).reshape(-1)
+        if self.logodds.shape[0] != n or self.last_time.shape[0] != n:
+            msg = (
+                f"delta arrays must have one row per key: {n} keys, "
+                f"found {self.logodds.shape[0]} logodds and {self.last_time.shape[0]} times"
+            )
+            raise DeltaError(msg)
+        if not self.resolution > 0:
+            msg = f"delta resolution must be positive, found {self.resolution!r}"
+            raise DeltaError(msg)
+        if self.to_version < self.from_version:
+            msg = f"delta to_version must be >= from_version, found {self.from_version} -> {self.to_version}"
+            raise DeltaError(msg)
+        for name, values in list(self.channels.items()):
+            dtype, tail = channel_spec(name)
+            arr = np.asarray(values, dtype=dtype)
+            if arr.shape[:1] != (n,) or len(arr.shape) != 1 + len(tail) or any(
+                t not in (-1, s) for t, s in zip(tail, arr.shape[1:], strict=True)
+            ):
+                msg = f"delta channel {name!r} must have shape ({n}, {tail}), found {arr.shape}"
+                raise DeltaError(msg)
+            self.channels[name] = arr
+
+    def __len__(self) -> int:
+        return int(self.keys.shape[0])
+
+    @property
+    def occupied(self) -> np.ndarray:
+        """Mask of voxels that are occupied (log-odds >= 0) after this delta."""
+        with np.errstate(invalid="ignore"):
+            return self.logodds >= 0.0
+
+    def select(self, mask: np.ndarray) -> Delta:
+        """The part of this delta at `mask` (a boolean mask or index array), same versions."""
+        return Delta(
+            resolution=self.resolution,
+            from_version=self.from_version,
+            to_version=self.to_version,
+            keys=self.keys[mask],
+            logodds=self.logodds[mask],
+            last_time=self.last_time[mask],
+            channels={k: v[mask] for k, v in self.channels.items()},
+            time=self.time,
+        )

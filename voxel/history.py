@@ -1,0 +1,126 @@
+"""Bounded per-voxel observation history: who saw what, when, with what evidence."""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Columns of a history record, in storage order.
+RECORD_DTYPE = np.dtype(
+    [
+        ("key", np.int64),  # packed voxel key
+        ("time", np.float64),
+        ("agent", np.uint16),  # index into History.agents
+        ("sensor", np.uint8),  # voxel.sensor.SENSOR_KINDS code
+        ("evidence", np.float32),  # log-odds update applied
+        ("logodds", np.float32),  # log-odds after the update
+        ("state", np.int8),  # -1 unknown, 0 free, 1 occupied, after the update
+        ("flip", np.bool_),  # the state changed with this record
+        ("object_id", np.int32),  # -1 when none
+        ("object_prob", np.float32),
+        ("experience", np.float32),
+        ("reliability", np.float32),
+        ("bias", np.float32),
+    ]
+)
+
+
+class History:
+    """A columnar log of observations, bounded per voxel and in total.
+
+    Appends are vectorised; when the log is full it is compacted: each voxel keeps its newest
+    `per_voxel` records, then the oldest records overall are dropped down to 3/4 of capacity.
+    """
+
+    def __init__(self, capacity: int = 2_000_000, per_voxel: int = 16) -> None:
+        self.capacity = capacity
+        self.per_voxel = per_voxel
+        self.records = np.zeros(0, dtype=RECORD_DTYPE)
+        self._buf = np.zeros(min(capacity, 65536), dtype=RECORD_DTYPE)
+        self.size = 0
+        self.agents: list[str] = []
+        self._agent_index: dict[str, int] = {}
+        self.dropped = 0
+
+    def agent_code(self, agent: str) -> int:
+        code = self._agent_index.get(agent)
+        if code is None:
+            code = len(self.agents)
+            self.agents.append(agent)
+            self._agent_index[agent] = code
+        return code
+
+    def append(self, keys: np.ndarray, **columns: object) -> None:
+        """Append one record per packed key; columns are arrays of the same length or scalars."""
+        n = int(np.asarray(keys).shape[0])
+        if n == 0:
+            return
+        if self.size + n > self._buf.shape[0]:
+            if self.size + n > self.capacity:
+                self._compact(incoming=n)
+            if self.size + n > self._buf.shape[0]:
+                grown = np.zeros(min(max(self._buf.shape[0] * 2, self.size + n), max(self.capacity, n)), dtype=RECORD_DTYPE)
+                grown[: self.size] = self._buf[: self.size]
+                self._buf = grown
+        block = self._buf[self.size : self.size + n]
+        block["key"] = keys
+        block["object_id"] = -1
+        for name, value in columns.items():
+            block[name] = value
+        self.size += n
+
+    def _compact(self, incoming: int) -> None:
+        rec = self._buf[: self.size]
+        order = np.lexsort((-rec["time"], rec["key"]))  # by key, newest first
+        rec = rec[order]
+        starts = np.r_[0, np.flatnonzero(np.diff(rec["key"])) + 1]
+        rank = np.arange(rec.size) - np.repeat(starts, np.diff(np.r_[starts, rec.size]))
+        rec = rec[rank < self.per_voxel]
+        target = max(0, min(rec.size, (self.capacity * 3) // 4 - incoming))
+        if rec.size > target:
+            newest = np.argsort(rec["time"], kind="stable")[rec.size - target :]
+            rec = rec[np.sort(newest)]
+        self.dropped += self.size - rec.size
+        rec = rec[np.argsort(rec["time"], kind="stable")]
+        self._buf[: rec.size] = rec
+        self.size = rec.size
+
+    def view(self) -> np.ndarray:
+        """All records currently held (a view; oldest appended first)."""
+        return self._buf[: self.size]
+
+    def of_voxel(self, key: int) -> np.ndarray:
+        """Records of one packed voxel key, oldest first, at most `per_voxel`."""
+        rec = self.view()
+        mine = rec[rec["key"] == key]
+        mine = mine[np.argsort(mine["time"], kind="stable")]
+        return mine[-self.per_voxel :].copy()
+
+    def state_at(self, keys: np.ndarray, t: float) -> np.ndarray:
+        """State (-1/0/1) of packed keys after the last record at or before time t; -1 if none."""
+        keys = np.asarray(keys, dtype=np.int64)
+        rec = self.view()
+        rec = rec[rec["time"] <= t]
+        out = np.full(keys.shape[0], -1, dtype=np.int8)
+        if rec.size == 0 or keys.size == 0:
+            return out
+        order = np.lexsort((rec["time"], rec["key"]))
+        rk = rec["key"][order]
+        rs = rec["state"][order]
+        pos = np.searchsorted(rk, keys, side="right") - 1
+        ok = (pos >= 0) & (rk[np.maximum(pos, 0)] == keys)
+        out[ok] = rs[pos[ok]]
+        return out
+
+    def flips_between(self, t0: float, t1: float) -> np.ndarray:
+        """Packed keys whose state changed in (t0, t1]."""
+        rec = self.view()
+        m = rec["flip"] & (rec["time"] > t0) & (rec["time"] <= t1)
+        return np.unique(rec["key"][m])
+
+    def load(self, records: np.ndarray, agents: list[str]) -> None:
+        """Replace the content with saved records and agent table."""
+        self._buf = np.zeros(max(records.size, min(self.capacity, 65536)), dtype=RECORD_DTYPE)
+        self._buf[: records.size] = records
+        self.size = records.size
+        self.agents = list(agents)
+        self._agent_index = {a: i for i, a in enumerate(self.agents)}

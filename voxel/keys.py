@@ -1,0 +1,44 @@
+"""Integer voxel keys: points to keys, packing into int64, block and offset split."""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Bits per axis in a packed key; keys span [-2**20, 2**20) voxels on each axis.
+AXIS_BITS = 21
+AXIS_OFFSET = 1 << (AXIS_BITS - 1)
+AXIS_MASK = (1 << AXIS_BITS) - 1
+KEY_MIN = -AXIS_OFFSET
+KEY_MAX = AXIS_OFFSET - 1
+
+
+def points_to_keys(points: np.ndarray, resolution: float) -> np.ndarray:
+    """Voxel keys (N, 3) int64 of points (N, 3): floor(p / resolution), OctoMap's convention."""
+    return np.floor(np.asarray(points, dtype=np.float64) / resolution).astype(np.int64)
+
+
+def keys_to_centers(keys: np.ndarray, resolution: float) -> np.ndarray:
+    """Centres (N, 3) float64 of voxel keys (N, 3)."""
+    return (np.asarray(keys, dtype=np.float64) + 0.5) * resolution
+
+
+def pack(keys: np.ndarray) -> np.ndarray:
+    """Pack keys (N, 3) into one int64 each; the order of packed keys is x-major, then y, then z."""
+    k = np.asarray(keys, dtype=np.int64) + AXIS_OFFSET
+    return (k[:, 0] << (2 * AXIS_BITS)) | (k[:, 1] << AXIS_BITS) | k[:, 2]
+
+
+def unpack(packed: np.ndarray) -> np.ndarray:
+    """Inverse of `pack`: (N,) int64 to keys (N, 3) int64."""
+    p = np.asarray(packed, dtype=np.int64)
+    out = np.empty((p.shape[0], 3), dtype=np.int64)
+    out[:, 0] = (p >> (2 * AXIS_BITS)) & AXIS_MASK
+    out[:, 1] = (p >> AXIS_BITS) & AXIS_MASK
+    out[:, 2] = p & AXIS_MASK
+    return out - AXIS_OFFSET
+
+
+def in_range(keys: np.ndarray) -> np.ndarray:
+    """Mask of keys (N, 3) that fit the packed key space."""
+    k = np.asarray(keys)
+    return np.all((k >= KEY_MIN) & (k <= KEY_MAX), axis=1)

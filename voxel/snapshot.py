@@ -1,0 +1,103 @@
+"""Lossless grid snapshots: one .npz file with metadata, block keys, channels and history."""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from voxel.errors import FileFormatError
+from voxel.history import RECORD_DTYPE
+
+if TYPE_CHECKING:
+    from voxel.grid import VoxelGrid
+
+FORMAT = "colony-voxel-snapshot"
+FORMAT_VERSION = 1
+
+
+def save_grid(grid: VoxelGrid, path: Path) -> None:
+    """Write `grid` to `path` atomically (temporary file, fsync, rename)."""
+    st = grid.store
+    slots = st.used_slots()
+    meta = {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "resolution": grid.resolution,
+        "half_life": grid.half_life,
+        "statistics": grid.statistics,
+        "class_k": st.class_k,
+        "grid_version": grid.version,
+        "now": grid.now,
+        "channels": sorted(st.channels),
+        "agents": grid.history.agents,
+        "history_capacity": grid.history.capacity,
+        "history_per_voxel": grid.history.per_voxel,
+    }
+    arrays = {
+        "meta": np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
+        "block_keys": st.slot_keys[slots],
+        "slot_version": st.slot_version[slots],
+        "history": grid.history.view(),
+    }
+    for name, arr in st.channels.items():
+        arrays[f"ch/{name}"] = arr[slots]
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def load_grid(path: Path) -> VoxelGrid:
+    """Read a snapshot written by `save_grid`."""
+    from voxel.grid import VoxelGrid
+
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            files = set(data.files)
+            if "meta" not in files:
+                msg = f"{path}: expected a {FORMAT} file with a 'meta' entry, found entries {sorted(files)[:5]}"
+                raise FileFormatError(msg)
+            meta = json.loads(bytes(data["meta"]).decode())
+            if meta.get("format") != FORMAT or meta.get("version") != FORMAT_VERSION:
+                msg = f"{path}: expected format {FORMAT} v{FORMAT_VERSION}, found {meta.get('format')!r} v{meta.get('version')!r}"
+                raise FileFormatError(msg)
+            grid = VoxelGrid(
+                meta["resolution"],
+                half_life=meta["half_life"],
+                statistics=meta["statistics"],
+                class_k=meta["class_k"],
+                history_capacity=meta["history_capacity"],
+                history_per_voxel=meta["history_per_voxel"],
+            )
+            keys = data["block_keys"]
+            slots = grid.store.ensure(keys)
+            grid.store.slot_version[slots] = data["slot_version"]
+            for name in meta["channels"]:
+                arr = data[f"ch/{name}"]
+                target = grid.store.channel(name)
+                if arr.shape[1:] != target.shape[1:] or arr.shape[0] != keys.shape[0]:
+                    msg = f"{path}: channel {name!r} expected shape ({keys.shape[0]}, {target.shape[1:]}), found {arr.shape}"
+                    raise FileFormatError(msg)
+                target[slots] = arr
+            hist = data["history"]
+            if hist.dtype != RECORD_DTYPE:
+                msg = f"{path}: history records have dtype {hist.dtype}, expected {RECORD_DTYPE}"
+                raise FileFormatError(msg)
+            grid.history.load(hist, meta["agents"])
+            grid.version = int(meta["grid_version"])
+            grid.now = float(meta["now"])
+            return grid
+    except FileFormatError:
+        raise
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, EOFError) as exc:
+        msg = f"{path}: not a readable {FORMAT} file ({type(exc).__name__}: {exc})"
+        raise FileFormatError(msg) from None
