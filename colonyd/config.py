@@ -20,7 +20,11 @@ from colonyd.errors import ConfigError
 #: file given with `--config` (or `COLONYD_CONFIG`), built-in defaults.
 PRECEDENCE = ("flags", "environment (COLONYD_*)", "TOML file (--config)", "defaults")
 
-_NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+try:  # names must also be valid key-expression chunks of the protocol
+    from protocol.keyexpr import NAME_PATTERN
+except ImportError:  # pragma: no cover - protocol package without keyexpr
+    NAME_PATTERN = r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}"
+_NAME = re.compile(f"^{NAME_PATTERN}$")
 _ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/.+$")
 _TOML_PATH: ContextVar[Path | None] = ContextVar("colonyd_toml_path", default=None)
 
@@ -117,7 +121,7 @@ class Config(BaseSettings):
     @classmethod
     def _name(cls, value: str) -> str:
         if not _NAME.match(value):
-            msg = f"expected 1-64 characters of [A-Za-z0-9_.-], found {value!r}"
+            msg = f"expected 1-64 characters of [A-Za-z0-9_.-] starting with a letter or digit, found {value!r}"
             raise ValueError(msg)
         return value
 
@@ -125,7 +129,7 @@ class Config(BaseSettings):
     @classmethod
     def _namespace(cls, value: str | None) -> str | None:
         if value is not None and not _NAME.match(value):
-            msg = f"expected 1-64 characters of [A-Za-z0-9_.-], found {value!r}"
+            msg = f"expected 1-64 characters of [A-Za-z0-9_.-] starting with a letter or digit, found {value!r}"
             raise ValueError(msg)
         return value
 

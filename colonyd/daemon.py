@@ -201,7 +201,7 @@ class Daemon:
                 for frame in source.frames(self.stop):
                     self._integrate(own, frame, sensor)
                     self.metrics.add("frames")
-            except ColonydError as exc:
+            except (ColonydError, ValueError) as exc:  # plugin and voxel input errors
                 log.error("source %s failed: %s", source.name, exc)
             except Exception:
                 log.exception("source %s failed", source.name)
@@ -214,6 +214,13 @@ class Daemon:
                 d = frame.delta
                 own.grid.apply(Delta(d.resolution, v, v + 1, d.keys, d.logodds, d.last_time,
                                      d.channels, d.time))
+            elif "observation" in frame.extra:
+                from colonyd.mapping import integrate_observation
+
+                integrate_observation(own.grid, frame.extra["observation"],
+                                      sensor=frame.extra.get("sensor") or sensor,
+                                      reliability=frame.extra.get("reliability", 1.0),
+                                      agent=self.config.agent_id)
             elif len(frame.points):
                 own.grid.integrate(frame.points, frame.origin, time=frame.time, sensor=sensor,
                                    agent=self.config.agent_id)

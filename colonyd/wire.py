@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import hmac
 import io
 import math
 from typing import Any
@@ -13,18 +12,22 @@ import numpy as np
 import zstandard
 
 from colonyd.errors import WireError
+from protocol.auth import TAG_BYTES, compute_tag, verify_tag
+from protocol.errors import AuthError
 from voxel.delta import Delta, channel_spec
 
 MAGIC = b"CLD"
 VERSION = 1
 FLAG_AUTH = 1
-TAG_BYTES = 32
 KINDS = ("delta", "hb", "snap", "range", "none")
 _ZC = zstandard.ZstdCompressor(level=1)
 
 
 class Codec:
-    """Encodes and validates messages; with a key, signs them and rejects unsigned ones."""
+    """Encodes and validates messages; with a key, signs them and rejects unsigned ones.
+
+    Tags are protocol.auth's HMAC-SHA256 under sha256(colony key).
+    """
 
     def __init__(self, key: str | None = None, max_bytes: int = 64 << 20) -> None:
         self._key = hashlib.sha256(key.encode()).digest() if key else None
@@ -40,8 +43,7 @@ class Codec:
         flags = FLAG_AUTH if self._key else 0
         head = MAGIC + bytes([VERSION, flags])
         if self._key:
-            tag = hmac.new(self._key, head + comp, hashlib.sha256).digest()
-            return head + tag + comp
+            return head + compute_tag(self._key, head + comp) + comp
         return head + comp
 
     def decode(self, data: bytes) -> dict[str, Any]:
@@ -56,9 +58,11 @@ class Codec:
             if not flags & FLAG_AUTH or len(body) < TAG_BYTES:
                 raise WireError("unauthenticated", "expected a signed message, found none")
             tag, body = body[:TAG_BYTES], body[TAG_BYTES:]
-            want = hmac.new(self._key, data[:5] + body, hashlib.sha256).digest()
-            if not hmac.compare_digest(tag, want):
-                raise WireError("bad-signature", "message signature does not match the colony key")
+            try:
+                verify_tag(self._key, data[:5] + body, tag)
+            except AuthError:
+                raise WireError("bad-signature",
+                                "message signature does not match the colony key") from None
         elif flags & FLAG_AUTH:
             body = body[TAG_BYTES:]
         raw = self._decompress(body)

@@ -194,7 +194,9 @@ _RANGE_ERRORS = {
 def _validation_error(cls: type[Message], exc: ValidationError) -> ProtocolError:
     err = exc.errors(include_url=False)[0]
     loc = ".".join(str(p) for p in err["loc"]) or "(body)"
-    found = repr(err.get("input"))[:80]
+    value = err.get("input")
+    scalar = isinstance(value, (int, float, str, bytes, bool, type(None)))
+    found = repr(value)[:80] if scalar else f"a {type(value).__name__}"
     text = f"{cls.KIND} message field {loc}: {err['msg']}, found {found}"
     if err["type"] == "too_long":
         return OversizedError(text)

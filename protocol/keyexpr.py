@@ -126,3 +126,12 @@ def parse_key(key: str) -> ParsedKey:
         f"found {'/'.join(parts[3:])!r} in {key!r}"
     )
     raise KeyExprError(msg)
+
+
+def check_origin(key: str, origin: str) -> ParsedKey:
+    """Parse `key` and check that it belongs to `origin` (the origin in the frame's envelope)."""
+    parsed = parse_key(key)
+    if parsed.origin != origin:
+        msg = f"key {key!r} belongs to origin {parsed.origin!r}, found a frame from origin {origin!r}"
+        raise KeyExprError(msg)
+    return parsed

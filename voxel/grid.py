@@ -13,7 +13,7 @@ from voxel.blocks import BLOCK_VOXELS, BlockStore, join_keys, split_keys
 from voxel.delta import SCALAR_PREFIX, Delta
 from voxel.errors import DeltaError, InputError
 from voxel.history import History
-from voxel.raycast import FREE, HIT, Traversal, ray_keys, trace
+from voxel.raycast import FREE, HIT, Traversal, ray_keys, trace, unique_keys
 from voxel.sensor import SensorModel
 
 UNKNOWN = np.int8(-1)
@@ -155,8 +155,8 @@ class VoxelGrid:
             dropped = int(np.count_nonzero(clear_mask))
             clear_mask[:] = False
         hit_keys = vk.points_to_keys(pts[hit_mask], self.resolution)
-        ok = vk.in_range(hit_keys)
-        if not ok.all():
+        if hit_keys.size and not (hit_keys.min() >= vk.KEY_MIN and hit_keys.max() <= vk.KEY_MAX):
+            ok = vk.in_range(hit_keys)
             idx = np.flatnonzero(hit_mask)
             hit_mask[idx[~ok]] = False
             hit_keys = hit_keys[ok]
@@ -171,9 +171,9 @@ class VoxelGrid:
             clear_ends = np.empty((0, 3))
         invalid = n - int(np.count_nonzero(hit_mask)) - int(np.count_nonzero(clear_mask)) - dropped
 
-        packed = vk.pack(hit_keys)
-        uniq, inverse = np.unique(packed, return_inverse=True)
-        uniq_keys = vk.unpack(uniq)
+        want_inverse = any(x is not None for x in (colours, normals, class_ids, object_ids)) or bool(scalars)
+        uniq_keys, inverse = unique_keys(hit_keys, want_inverse)
+        uniq = vk.pack(uniq_keys)
         ends = np.concatenate([vk.keys_to_centers(uniq_keys, self.resolution), clear_ends])
         traversal = trace(org, ends, uniq_keys, self.resolution)
 
@@ -310,7 +310,7 @@ class VoxelGrid:
     def _update_rich(self, uniq: np.ndarray, inverse: np.ndarray, rich: dict, time: float, bumped: bool) -> None:
         """Fold colour, normals, classes and scalar channels of hit points into their voxels."""
         wanted = [rich["colours"], rich["normals"], rich["class_ids"]] + list(rich["scalars"].values())
-        if uniq.size == 0 or all(x is None for x in wanted):
+        if uniq.size == 0 or inverse is None or all(x is None for x in wanted):
             return
         st = self.store
         blocks, offsets = split_keys(vk.unpack(uniq))
@@ -429,7 +429,7 @@ class VoxelGrid:
         keys = vk.pack(join_keys(self.store.slot_keys[slots], o))
         obj_id = np.full(b.size, -1, dtype=np.int32)
         obj_p = np.zeros(b.size, dtype=np.float32)
-        if rich["object_ids"] is not None and uniq.size:
+        if rich["object_ids"] is not None and uniq.size and inverse is not None:
             pos = np.searchsorted(uniq, keys)
             pos = np.minimum(pos, uniq.size - 1)
             found = uniq[pos] == keys
@@ -645,6 +645,34 @@ class VoxelGrid:
         from voxel.snapshot import load_grid
 
         return load_grid(Path(path))
+
+    def write_bt(self, path: str | Path) -> None:
+        """Export known voxels as an OctoMap binary tree (.bt: maximum-likelihood occupied/free)."""
+        from voxel.octomap_io import write_bt
+
+        slots, lo, bkeys = self._all()
+        with np.errstate(invalid="ignore"):
+            b, o = np.nonzero(~np.isnan(lo))
+        write_bt(path, self.resolution, join_keys(bkeys[b], o), lo[b, o] >= 0)
+
+    def write_ply(self, path: str | Path) -> None:
+        """Export occupied voxel centres as a binary PLY point cloud, with colour when known."""
+        from voxel.ply import write_ply
+
+        keys = self.occupied_keys()
+        colours = self.channel_at_keys("colour", keys) if "colour" in self.store.channels else None
+        write_ply(path, vk.keys_to_centers(keys, self.resolution), colours)
+
+    @classmethod
+    def from_bt(cls, path: str | Path, *, time: float = 0.0) -> VoxelGrid:
+        """A grid holding an OctoMap .bt map: occupied voxels at the hit clamp, free at the miss one."""
+        from voxel.octomap_io import read_bt
+
+        bt = read_bt(path)
+        grid = cls(bt.resolution)
+        lo = np.where(bt.occupied, np.float32(DEFAULT_SENSOR.log_max), np.float32(DEFAULT_SENSOR.log_min))
+        grid.apply(Delta(bt.resolution, 0, 1, bt.keys, lo, np.full(len(lo), time)))
+        return grid
 
     def nbytes(self) -> int:
         """Bytes held by voxel storage (channels of used blocks and the block index)."""

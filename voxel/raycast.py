@@ -109,8 +109,9 @@ def trace(
     cast = n_steps > 0
 
     all_keys = np.concatenate([key_o[None, :], key_e, hit_keys]) if ends.size or hit_keys.size else key_o[None, :]
-    lo = (all_keys.min(axis=0) - 1) >> BLOCK_SHIFT << BLOCK_SHIFT
-    hi = ((all_keys.max(axis=0) + 1) >> BLOCK_SHIFT << BLOCK_SHIFT) + BLOCK
+    kmin, kmax = vk.bounds(all_keys)
+    lo = (kmin - 1) >> BLOCK_SHIFT << BLOCK_SHIFT
+    hi = ((kmax + 1) >> BLOCK_SHIFT << BLOCK_SHIFT) + BLOCK
     dims = hi - lo
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
     step_lin = step * strides
@@ -140,6 +141,28 @@ def trace(
     free_lin = np.unique(np.concatenate(visited)) if visited else np.empty(0, dtype=np.int64)
     free_keys = np.stack(np.unravel_index(free_lin, tuple(int(d) for d in dims)), axis=1) + lo
     return group_cells(free_keys, hit_keys)
+
+
+def unique_keys(keys: np.ndarray, want_inverse: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """Unique voxel keys (U, 3) in packed-key order, and each input key's index into them.
+
+    Uses a dense marker over the keys' bounding box when it is small (no sort), else np.unique.
+    """
+    keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
+    if keys.shape[0] == 0:
+        return keys, (np.empty(0, dtype=np.int64) if want_inverse else None)
+    lo, hi = vk.bounds(keys)
+    dims = hi - lo + 1
+    total = int(np.prod(dims))
+    if total > DENSE_LIMIT:
+        up, inverse = np.unique(vk.pack(keys), return_inverse=True)
+        return vk.unpack(up), (inverse if want_inverse else None)
+    lin = (keys[:, 0] - lo[0]) * (dims[1] * dims[2]) + (keys[:, 1] - lo[1]) * dims[2] + (keys[:, 2] - lo[2])
+    mark = np.zeros(total, dtype=bool)
+    mark[lin] = True
+    ulin = np.flatnonzero(mark)
+    uniq = np.stack(np.unravel_index(ulin, tuple(int(d) for d in dims)), axis=1) + lo
+    return uniq, (np.searchsorted(ulin, lin) if want_inverse else None)
 
 
 def group_cells(free_keys: np.ndarray, hit_keys: np.ndarray) -> Traversal:

@@ -59,7 +59,7 @@ def test_redkitchen_occupied_set_agrees_with_octomap(tmp_path: Path) -> None:
     # trajectory: one TUM line per frame, first one the first frame's pose
     lines = (tmp_path / "map" / "trajectory.tum").read_text().splitlines()
     assert len(lines) == 50
-    np.testing.assert_allclose([float(v) for v in lines[0].split()[1:4]], [-0.91287065, -0.34388667, 0.75986093])
+    np.testing.assert_allclose([float(v) for v in lines[0].split()[1:4]], [-0.91287065, -0.34388667, 0.75986093], atol=1e-6)
 
 
 @pytest.mark.skipif(not LOG.is_file(), reason=f"real CARMEN log not found at {LOG}")

@@ -154,7 +154,7 @@ def test_fuzz_decoder_raises_only_protocol_errors() -> None:
     ]
     outcomes: Counter[str] = Counter()
     crashes: list[tuple[bytes, BaseException]] = []
-    start = time.perf_counter()
+    start = time.process_time()  # CPU time: robust to other processes sharing the machine
     for _ in range(N_CASES):
         data, key = r.choice(generators)()
         try:
@@ -164,11 +164,11 @@ def test_fuzz_decoder_raises_only_protocol_errors() -> None:
             outcomes[type(exc).__name__] += 1
         except Exception as exc:  # noqa: BLE001 - the point of the test
             crashes.append((data, exc))
-    elapsed = time.perf_counter() - start
+    elapsed = time.process_time() - start
     assert not crashes, f"{len(crashes)} crashes, first: {crashes[0][1]!r} on {crashes[0][0][:80].hex()}"
     assert sum(outcomes.values()) == N_CASES
     assert outcomes["accepted"] > 0 and len(outcomes) >= 6, outcomes
-    assert elapsed < 60, f"fuzz run took {elapsed:.1f} s"
+    assert elapsed < 60, f"fuzz run took {elapsed:.1f} s of CPU time"
 
 
 def _plain_body(msg) -> dict:

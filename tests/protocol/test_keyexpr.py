@@ -80,3 +80,11 @@ def test_bad_topic_and_query_rejected() -> None:
         query_declaration("c", "r", "everything")  # type: ignore[arg-type]
     with pytest.raises(KeyExprError, match="key must be a string"):
         parse_key(None)  # type: ignore[arg-type]
+
+
+def test_key_origin_must_match_frame_origin() -> None:
+    from protocol.keyexpr import check_origin
+
+    assert check_origin("colony/c/r1/delta", "r1").kind == "delta"
+    with pytest.raises(KeyExprError, match="belongs to origin 'r1', found a frame from origin 'r2'"):
+        check_origin("colony/c/r1/delta", "r2")

@@ -296,3 +296,33 @@ def test_snapshot_errors(tmp_path):
     np.savez(other, x=np.zeros(3))
     with pytest.raises(FileFormatError, match="expected a colony-voxel-snapshot file"):
         VoxelGrid.load(other)
+
+
+def test_bt_export_loads_in_octomap_with_the_same_occupied_set(tmp_path):
+    pyoctomap = pytest.importorskip("pyoctomap")
+    from colonyd.bench_integrate import octomap_sets, iou
+
+    grid = VoxelGrid(RES)
+    for i, (pts, origin) in enumerate(_random_scans(7, 3)):
+        grid.integrate(pts, origin, time=float(i))
+    path = tmp_path / "map.bt"
+    grid.write_bt(path)
+    tree = pyoctomap.OcTree(RES)
+    assert tree.readBinary(str(path))
+    occ, free = octomap_sets(tree, RES)
+    assert iou(occ, grid.occupied_keys()) == 1.0
+    assert iou(free, grid.free_keys()) == 1.0
+    back = VoxelGrid.from_bt(path)
+    assert iou(back.occupied_keys(), grid.occupied_keys()) == 1.0
+
+
+def test_ply_export_has_occupied_centres_and_colours(tmp_path):
+    from voxel.ply import read_ply
+
+    grid = VoxelGrid(RES)
+    pts, origin = wall_scan(n=5)
+    grid.integrate(pts, origin, time=0.0, colours=np.full((len(pts), 3), 9, dtype=np.uint8))
+    grid.write_ply(tmp_path / "m.ply")
+    centres, colours = read_ply(tmp_path / "m.ply")
+    assert len(centres) == len(grid.occupied_keys())
+    assert colours is not None and np.all(colours == 9)

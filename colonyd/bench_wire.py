@@ -1,0 +1,204 @@
+"""Wire benchmark: bytes and speed of voxel-delta frames for camera and LiDAR sequences."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import zstandard
+
+from colonyd.bench_integrate import KINECT, camera_pose, depth_frame, lidar3d_scan
+from protocol.codec import decode, delta_messages, encode
+from protocol.deltacodec import fit_delta
+from protocol.limits import Limits
+from protocol.messages import VoxelDelta
+from voxel.delta import Delta
+from voxel.grid import VoxelGrid
+from voxel.sensor import SensorModel
+
+#: Decoder limits for the benchmark: a first LiDAR scan changes millions of voxels.
+BENCH_LIMITS = Limits(max_voxels=50_000_000, max_message_bytes=1 << 30, max_body_bytes=1 << 30)
+_RAW = zstandard.ZstdCompressor(level=3)
+
+
+@dataclass
+class Frame:
+    """One sensor frame: integrate it into `grid`; `local` are its points in the sensor frame."""
+
+    integrate: Callable[[VoxelGrid, float], object]
+    local: np.ndarray
+
+
+@dataclass
+class Scenario:
+    name: str
+    resolution: float
+    frames: Callable[[], Iterator[Frame]]
+
+
+def raw_scan_bytes(local: np.ndarray) -> int:
+    """Bytes of a scan as the sensor saw it: points in the sensor frame, 1 cm int16, zstd."""
+    q = np.clip(np.round(local / 0.01), -32768, 32767).astype("<i2")
+    return len(_RAW.compress(q.tobytes()))
+
+
+def naive_bytes(delta: Delta) -> int:
+    """Baseline: int32 keys + float32 log-odds + float64 times per voxel, zstd."""
+    cols = [delta.keys.astype("<i4").tobytes(), delta.logodds.astype("<f4").tobytes(), delta.last_time.astype("<f8").tobytes()]
+    return len(_RAW.compress(b"".join(cols)))
+
+
+def _camera_path(frames: int = 50) -> Iterator[Frame]:
+    """A camera walking an arc through the furnished room, looking at its middle, 640x480."""
+    sensor = SensorModel(max_range=5.0, kind="depth")
+    for i in range(frames):
+        a = -0.6 + 1.2 * i / max(frames - 1, 1)
+        position = np.array([-3.0 + 1.5 * math.sin(a), -2.2 + 0.8 * math.cos(a), 1.4])
+        pose = camera_pose(position, np.array([1.0 + 0.5 * math.sin(2 * a), 0.5, 0.7]))
+        depth = depth_frame(pose)
+        v, u = np.nonzero(depth > 0)
+        z = depth[v, u]
+        local = np.stack([(u - KINECT[0, 2]) * z / KINECT[0, 0], (v - KINECT[1, 2]) * z / KINECT[1, 1], z], 1)
+        world_z = (local @ pose[:3, :3].T + pose[:3, 3])[:, 2]
+        colour = np.zeros(depth.shape + (3,), dtype=np.uint8)
+        colour[v, u] = np.stack([(world_z * 80) % 256, np.full_like(z, 120), (z * 40) % 256], 1).astype(np.uint8)
+
+        def integrate(grid: VoxelGrid, t: float, depth=depth, pose=pose, colour=colour) -> object:
+            return grid.integrate_depth(depth, KINECT, pose, time=t, sensor=sensor, colour=colour)
+
+        yield Frame(integrate, local)
+
+
+def _lidar_sequence(scans: int = 8) -> Iterator[Frame]:
+    """A 32x1024 (32k-point) spinning LiDAR driving through the courtyard, 30 m range."""
+    sensor = SensorModel(max_range=30.0, kind="lidar3d")
+    for i in range(scans):
+        origin = np.array([0.5 + 0.5 * i, -0.7 + 0.1 * i, 1.8])
+        points, no_return = lidar3d_scan(origin, rings=32, cols=1024)
+
+        def integrate(grid: VoxelGrid, t: float, points=points, origin=origin, no_return=no_return) -> object:
+            return grid.integrate(points, origin, time=t, sensor=sensor, no_return=no_return)
+
+        yield Frame(integrate, (points - origin)[~no_return])
+
+
+def _redkitchen(shared_data: Path) -> Callable[[], Iterator[Frame]]:
+    def frames() -> Iterator[Frame]:
+        import cv2
+
+        sensor = SensorModel(max_range=5.0, kind="depth")
+        k = np.array([[585.0, 0, 320.0], [0, 585.0, 240.0], [0, 0, 1]])
+        for path in sorted((shared_data / "redkitchen-50" / "frames").glob("frame-*.depth.png")):
+            raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64)
+            raw[(raw == 0) | (raw == 65535)] = 0
+            depth = raw / 1000.0
+            pose = np.loadtxt(str(path).replace(".depth.png", ".pose.txt"))
+            v, u = np.nonzero(depth > 0)
+            z = depth[v, u]
+            local = np.stack([(u - k[0, 2]) * z / k[0, 0], (v - k[1, 2]) * z / k[1, 1], z], 1)
+
+            def integrate(grid: VoxelGrid, t: float, depth=depth, pose=pose) -> object:
+                return grid.integrate_depth(depth, k, pose, time=t, sensor=sensor)
+
+            yield Frame(integrate, local)
+
+    return frames
+
+
+def scenarios(shared_data: Path | None) -> list[Scenario]:
+    out = [
+        Scenario("camera_path_50_0.05", 0.05, _camera_path),
+        Scenario("lidar3d_32k_seq_0.10", 0.10, _lidar_sequence),
+    ]
+    if shared_data is not None and (shared_data / "redkitchen-50" / "frames").is_dir():
+        out.append(Scenario("redkitchen50_0.05", 0.05, _redkitchen(shared_data)))
+    return out
+
+
+def _best_of(fn: Callable[[], object], repeats: int) -> tuple[float, object]:
+    best, out = math.inf, None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+def run_scenario(sc: Scenario, repeats: int = 3, t0: float = 1_700_000_000.0) -> dict:
+    grid = VoxelGrid(sc.resolution)
+    mirror = VoxelGrid(sc.resolution)  # a peer's replica: gives each voxel's previous value
+    totals = {"changed": 0, "occupied": 0, "full": 0, "budgeted": 0, "raw": 0, "naive": 0, "frames": 0,
+              "within_raw": 0, "enc_s": 0.0, "dec_s": 0.0}
+    max_frame = 0
+    for i, frame in enumerate(sc.frames()):
+        t = t0 + i * 0.1
+        version = grid.version
+        frame.integrate(grid, t)
+        delta = grid.delta_since(version)
+        prev = mirror.logodds_at_keys(delta.keys)
+        mirror.apply(delta)
+        msg = VoxelDelta(origin="bench", epoch=1, seq=i, time=t, frame_id="map", delta=delta)
+        enc_s, data = _best_of(lambda msg=msg: encode(msg), repeats)
+        dec_s, back = _best_of(lambda data=data: decode(data, limits=BENCH_LIMITS), repeats)
+        assert isinstance(back, VoxelDelta) and len(back.delta) == len(delta)
+        raw = raw_scan_bytes(frame.local)
+        exact, summary = fit_delta(delta, raw, prev_logodds=prev)
+        budgeted = len(encode(VoxelDelta(origin="bench", epoch=1, seq=i, time=t, frame_id="map",
+                                         delta=exact, free_summary=summary)))
+        totals["changed"] += len(delta)
+        totals["occupied"] += int(delta.occupied.sum())
+        totals["full"] += len(data)
+        totals["budgeted"] += budgeted
+        totals["within_raw"] += int(budgeted <= raw)
+        totals["raw"] += raw
+        totals["naive"] += naive_bytes(delta)
+        totals["frames"] += 1
+        totals["enc_s"] += enc_s
+        totals["dec_s"] += dec_s
+        max_frame = max(max_frame, len(delta))
+    n = max(totals["changed"], 1)
+    return {
+        "scenario": sc.name,
+        "changed_voxels": totals["changed"],
+        "occupied_changed": totals["occupied"],
+        "bytes_full": totals["full"],
+        "bytes_per_changed_voxel": round(totals["full"] / n, 4),
+        "raw_scan_zstd_bytes": totals["raw"],
+        "encode_voxels_per_s": round(totals["changed"] / max(totals["enc_s"], 1e-9)),
+        "decode_voxels_per_s": round(totals["changed"] / max(totals["dec_s"], 1e-9)),
+        # extras
+        "frames": totals["frames"],
+        "resolution": sc.resolution,
+        "max_changed_voxels_per_frame": max_frame,
+        "bytes_budgeted": totals["budgeted"],
+        "frames_budgeted_within_raw_scan": totals["within_raw"],
+        "bytes_naive_keys_floats_zstd": totals["naive"],
+        "naive_bytes_per_changed_voxel": round(totals["naive"] / n, 4),
+        "note": "totals over all frames; bytes are whole frames (envelope + zstd body); budgeted = "
+                "each frame fitted to its raw scan's size by summarising free space",
+    }
+
+
+def run_wire_bench(out_json: Path, shared_data: Path | None, repeats: int = 3,
+                   only: list[str] | None = None) -> list[dict]:
+    """Run every wire scenario, write the JSON list to out_json and return it.
+
+    Without `shared_data`, the checkout's sibling `../shared/data` is used when it exists.
+    """
+    if shared_data is None:
+        candidate = Path(__file__).resolve().parents[2] / "shared" / "data"
+        shared_data = candidate if candidate.is_dir() else None
+    results = []
+    for sc in scenarios(shared_data):
+        if only and sc.name not in only:
+            continue
+        results.append(run_scenario(sc, repeats))
+    out_json = Path(out_json)
+    out_json.parent.mkdir(parents=True, exist_ok=True)
+    out_json.write_text(json.dumps(results, indent=2) + "\n")
+    return results

@@ -1,0 +1,78 @@
+"""Daemon lifecycle under real processes: sd_notify, SIGHUP reload, SIGTERM, colony key, demo."""
+
+from __future__ import annotations
+
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+from .conftest import logs
+
+
+def test_notify_watchdog_reload_and_clean_sigterm(make_colony, tmp_path):
+    colony = make_colony("life")
+    path = str(tmp_path / "notify.sock")
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(path)
+    sock.settimeout(10)
+    d = colony.add("a", ["synthetic:scans=2,rate=4,points=100"], start=False)
+    d.env = {"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "600000"}
+    try:
+        d.start()
+        got = [sock.recv(512).decode()]
+        assert got[0].startswith("READY=1"), got
+        got.append(sock.recv(512).decode())
+        assert got[-1] == "WATCHDOG=1"
+        d.signal(signal.SIGHUP)
+        deadline = time.monotonic() + 10
+        while "RELOADING=1" not in got and time.monotonic() < deadline:
+            got.append(sock.recv(512).decode())
+        assert "RELOADING=1" in got
+        t0 = time.monotonic()
+        d.signal(signal.SIGTERM)
+        while "STOPPING=1" not in got:
+            got.append(sock.recv(512).decode())
+        assert d.proc.wait(10) == 0
+        assert time.monotonic() - t0 < 5
+        text = d.log_path.read_text()
+        assert "reloaded" in text and "stopped" in text
+    except Exception:
+        print(logs(colony))
+        raise
+    finally:
+        sock.close()
+
+
+def test_colony_key_closes_the_colony(make_colony):
+    colony = make_colony("keyed", extra=["--colony-key", "correct horse battery staple"])
+    colony.add("a", ["synthetic:scans=3,rate=4,points=100,seed=1"])
+    time.sleep(0.3)
+    colony.add("b", ["synthetic:scans=3,rate=4,points=100,seed=2"])
+    intruder = colony.add("x", ["synthetic:scans=3,rate=4,points=100,seed=3"], start=False)
+    intruder.args = [a for a in intruder.args if a not in ("--colony-key", "correct horse battery staple")]
+    intruder.start()
+    try:
+        colony.wait_converged(30, ["a", "b"])
+        time.sleep(1.5)
+        reports = {r["agent"]: r for r in colony.status()}
+        for agent in ("a", "b"):
+            assert "x" not in reports[agent]["layers"]
+            assert reports[agent]["metrics"]["rejected"].get("unauthenticated", 0) > 0
+    except Exception:
+        print(logs(colony))
+        raise
+
+
+def test_demo_runs_and_writes_maps(tmp_path):
+    out = tmp_path / "demo-out"
+    t0 = time.monotonic()
+    run = subprocess.run([sys.executable, "-m", "colonyd", "demo", "--out", str(out)],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert time.monotonic() - t0 < 60
+    assert "every replica equals its origin" in run.stdout
+    for i in (1, 2, 3):
+        assert (out / f"robot-{i}.ply").stat().st_size > 0
+        assert (out / f"robot-{i}.bt").stat().st_size > 0
