@@ -270,6 +270,9 @@ def run_scenario(sc: Scenario, repeats: int) -> dict:
 def run_integrate_bench(out_json: Path, shared_data: Path | None, repeats: int = 5,
                         only: list[str] | None = None) -> list[dict]:
     """Run every scenario, write the JSON list to out_json and return it."""
+    if shared_data is None:
+        guess = Path(__file__).resolve().parents[2] / "shared" / "data"
+        shared_data = guess if guess.is_dir() else None
     results = []
     for sc in scenarios(shared_data):
         if only and sc.name not in only:

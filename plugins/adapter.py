@@ -21,8 +21,9 @@ class SensorAdapter(Protocol):
 
     name: str
     kind: str  # a voxel.sensor.SENSOR_KINDS key
-    sensor_model: SensorModel
-    reliability: float
+    sensor_model: SensorModel  # hit/miss probabilities, clamping, max range
+    noise: float  # range noise, standard deviation in metres
+    reliability: float  # default trust in (0, 1]
 
     def observe(self, reading: Any, *, pose: np.ndarray | None = None, time: float = 0.0,
                 odometry: np.ndarray | None = None, frame: str = "") -> Observation:
@@ -57,6 +58,6 @@ def load_adapter(name: str, **params: Any) -> SensorAdapter:
         msg = f"sensor adapter {name!r}: bad parameters {sorted(params)}: {exc}"
         raise PluginError(msg) from None
     if not isinstance(adapter, SensorAdapter):
-        msg = f"sensor adapter {name!r}: expected an object with name, kind, sensor_model, reliability and observe(), found {type(adapter).__name__}"
+        msg = f"sensor adapter {name!r}: expected an object with name, kind, sensor_model, noise, reliability and observe(), found {type(adapter).__name__}"
         raise PluginError(msg)
     return adapter

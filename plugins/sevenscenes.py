@@ -13,7 +13,7 @@ import numpy as np
 from plugins.adapter import SensorAdapter, load_adapter
 from plugins.checks import quaternion_to_matrix
 from plugins.depth import DepthFrame
-from plugins.errors import ParseError, PluginError, SensorInputError, SourceError, SourceSpecError
+from plugins.errors import ParseError, SensorInputError, SourceError, SourceSpecError
 from plugins.observation import Observation
 from plugins.stream import StreamStats
 
@@ -196,7 +196,5 @@ class RgbdSource:
                     raise
                 self.stats.skip(str(frame.depth), exc)
                 continue
-            except PluginError:
-                raise
             self.stats.delivered += 1
             yield obs

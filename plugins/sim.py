@@ -207,6 +207,7 @@ class SimSource:
         self.seed, self.frames, self.noise, self.drift = seed, frames, noise, drift
         self.range_noise, self.start, self.realtime = range_noise, start, realtime
         self.rig, params = make_rig(self.agent.sensor)
+        params["noise"] = range_noise
         if self.agent.sensor == "cctv":
             params["pose"] = pose_matrix(*self.agent.fixed[:3], self.agent.fixed[3], self.agent.fixed[4]) @ OPTICAL
             params["marker_classes"] = {m.marker_id: CLASSES["landmark"] for m in self.world.markers}

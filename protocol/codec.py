@@ -17,7 +17,7 @@ from pydantic import ValidationError
 
 from protocol import fields
 from protocol.auth import TAG_BYTES, ReplayWindow, compute_tag, verify_tag
-from protocol.deltacodec import decode_delta_with_summary, encode_delta, fit_delta, split_delta
+from protocol.deltacodec import decode_delta_with_summary, encode_delta, encoded_size, fit_delta, split_delta
 from protocol.errors import (
     AuthError,
     MalformedError,
@@ -31,6 +31,7 @@ from protocol.errors import (
 from protocol.keyexpr import NAME_PATTERN
 from protocol.limits import Limits
 from protocol.messages import HEADER_FIELDS, MESSAGE_TYPES, PROTOCOL_VERSION, Message, VoxelDelta
+from protocol.summary import FreeSummary
 from voxel.delta import Delta
 
 MAGIC = b"CLNY"
@@ -296,14 +297,20 @@ def delta_messages(
         delta, summary = fit_delta(delta, budget, prev_logodds=prev_logodds)
         prev_logodds = None
     limit = max_bytes - FRAME_OVERHEAD - len(frame_id) - len(origin)
-    parts = split_delta(delta, limit, prev_logodds=prev_logodds)
-    msgs = [
-        VoxelDelta(
-            origin=origin, epoch=epoch, seq=seq + i, time=time, frame_id=frame_id,
-            part=i, parts=len(parts), delta=part,
-        )
-        for i, part in enumerate(parts)
+    parts: list[tuple[Delta, FreeSummary | None]] = [
+        (part, None) for part in split_delta(delta, limit, prev_logodds=prev_logodds)
     ]
     if summary is not None and len(summary):
-        msgs[-1] = msgs[-1].model_copy(update={"free_summary": summary})
-    return msgs
+        last = parts[-1][0]
+        if encoded_size(last, summary=summary) <= limit:
+            parts[-1] = (last, summary)
+        else:  # the summary travels in a part of its own, with no exact voxels
+            empty = last.select(np.zeros(len(last), dtype=bool))
+            parts.append((empty, summary))
+    return [
+        VoxelDelta(
+            origin=origin, epoch=epoch, seq=seq + i, time=time, frame_id=frame_id,
+            part=i, parts=len(parts), delta=part, free_summary=part_summary,
+        )
+        for i, (part, part_summary) in enumerate(parts)
+    ]

@@ -11,7 +11,7 @@ from plugins.checks import pose_matrix
 from plugins.errors import SensorInputError
 from plugins.lidar import Cloud, Lidar2D, Lidar3D, Scan
 from plugins.sim import make_rig, render
-from plugins.world import CLASSES, Box, World, _walls
+from plugins.world import World, _walls
 
 
 def square_room(open_side: bool = False) -> World:

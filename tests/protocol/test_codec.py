@@ -301,3 +301,22 @@ def test_delta_messages_split_and_budget() -> None:
     assert not out.exact and out.free_summary is not None
     assert out.delta.occupied.sum() == dense.occupied.sum()
     assert len(frame) <= 40_000 + 256
+
+
+def test_summary_gets_its_own_part_when_the_last_part_is_full() -> None:
+    rng = np.random.default_rng(4)
+    dense = make_delta(rng, 30_000, spread=25, channels=False)
+    msgs = delta_messages(origin="r1", epoch=1, seq=0, time=dense.time, frame_id="map", delta=dense,
+                          budget=40_000, max_bytes=8_000)
+    assert len(msgs) > 1
+    assert all(m.free_summary is None for m in msgs[:-1])
+    last = decode(encode(msgs[-1]))
+    assert last.free_summary is not None and last.parts == len(msgs)
+    for m in msgs:
+        assert len(encode(m)) <= 8_000
+
+
+def test_peek_rejects_truncated_tagged_frame() -> None:
+    signed = _pose_frame(key=KEY)
+    with pytest.raises(TruncatedError, match="32-byte tag"):
+        peek(signed[:PREFIX.size + 10])
