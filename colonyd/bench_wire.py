@@ -13,7 +13,7 @@ import numpy as np
 import zstandard
 
 from colonyd.bench_integrate import KINECT, camera_pose, depth_frame, lidar3d_scan
-from protocol.codec import decode, delta_messages, encode
+from protocol.codec import decode, encode
 from protocol.deltacodec import fit_delta
 from protocol.limits import Limits
 from protocol.messages import VoxelDelta
@@ -49,7 +49,11 @@ def raw_scan_bytes(local: np.ndarray) -> int:
 
 def naive_bytes(delta: Delta) -> int:
     """Baseline: int32 keys + float32 log-odds + float64 times per voxel, zstd."""
-    cols = [delta.keys.astype("<i4").tobytes(), delta.logodds.astype("<f4").tobytes(), delta.last_time.astype("<f8").tobytes()]
+    cols = [
+        delta.keys.astype("<i4").tobytes(),
+        delta.logodds.astype("<f4").tobytes(),
+        delta.last_time.astype("<f8").tobytes(),
+    ]
     return len(_RAW.compress(b"".join(cols)))
 
 
@@ -63,10 +67,14 @@ def _camera_path(frames: int = 50) -> Iterator[Frame]:
         depth = depth_frame(pose)
         v, u = np.nonzero(depth > 0)
         z = depth[v, u]
-        local = np.stack([(u - KINECT[0, 2]) * z / KINECT[0, 0], (v - KINECT[1, 2]) * z / KINECT[1, 1], z], 1)
+        local = np.stack(
+            [(u - KINECT[0, 2]) * z / KINECT[0, 0], (v - KINECT[1, 2]) * z / KINECT[1, 1], z], 1
+        )
         world_z = (local @ pose[:3, :3].T + pose[:3, 3])[:, 2]
         colour = np.zeros(depth.shape + (3,), dtype=np.uint8)
-        colour[v, u] = np.stack([(world_z * 80) % 256, np.full_like(z, 120), (z * 40) % 256], 1).astype(np.uint8)
+        colour[v, u] = np.stack(
+            [(world_z * 80) % 256, np.full_like(z, 120), (z * 40) % 256], 1
+        ).astype(np.uint8)
 
         def integrate(grid: VoxelGrid, t: float, depth=depth, pose=pose, colour=colour) -> object:
             return grid.integrate_depth(depth, KINECT, pose, time=t, sensor=sensor, colour=colour)
@@ -81,7 +89,9 @@ def _lidar_sequence(scans: int = 8) -> Iterator[Frame]:
         origin = np.array([0.5 + 0.5 * i, -0.7 + 0.1 * i, 1.8])
         points, no_return = lidar3d_scan(origin, rings=32, cols=1024)
 
-        def integrate(grid: VoxelGrid, t: float, points=points, origin=origin, no_return=no_return) -> object:
+        def integrate(
+            grid: VoxelGrid, t: float, points=points, origin=origin, no_return=no_return
+        ) -> object:
             return grid.integrate(points, origin, time=t, sensor=sensor, no_return=no_return)
 
         yield Frame(integrate, (points - origin)[~no_return])
@@ -132,8 +142,18 @@ def _best_of(fn: Callable[[], object], repeats: int) -> tuple[float, object]:
 def run_scenario(sc: Scenario, repeats: int = 3, t0: float = 1_700_000_000.0) -> dict:
     grid = VoxelGrid(sc.resolution)
     mirror = VoxelGrid(sc.resolution)  # a peer's replica: gives each voxel's previous value
-    totals = {"changed": 0, "occupied": 0, "full": 0, "budgeted": 0, "raw": 0, "naive": 0, "frames": 0,
-              "within_raw": 0, "enc_s": 0.0, "dec_s": 0.0}
+    totals = {
+        "changed": 0,
+        "occupied": 0,
+        "full": 0,
+        "budgeted": 0,
+        "raw": 0,
+        "naive": 0,
+        "frames": 0,
+        "within_raw": 0,
+        "enc_s": 0.0,
+        "dec_s": 0.0,
+    }
     max_frame = 0
     for i, frame in enumerate(sc.frames()):
         t = t0 + i * 0.1
@@ -148,8 +168,19 @@ def run_scenario(sc: Scenario, repeats: int = 3, t0: float = 1_700_000_000.0) ->
         assert isinstance(back, VoxelDelta) and len(back.delta) == len(delta)
         raw = raw_scan_bytes(frame.local)
         exact, summary = fit_delta(delta, raw, prev_logodds=prev)
-        budgeted = len(encode(VoxelDelta(origin="bench", epoch=1, seq=i, time=t, frame_id="map",
-                                         delta=exact, free_summary=summary)))
+        budgeted = len(
+            encode(
+                VoxelDelta(
+                    origin="bench",
+                    epoch=1,
+                    seq=i,
+                    time=t,
+                    frame_id="map",
+                    delta=exact,
+                    free_summary=summary,
+                )
+            )
+        )
         totals["changed"] += len(delta)
         totals["occupied"] += int(delta.occupied.sum())
         totals["full"] += len(data)
@@ -180,12 +211,13 @@ def run_scenario(sc: Scenario, repeats: int = 3, t0: float = 1_700_000_000.0) ->
         "bytes_naive_keys_floats_zstd": totals["naive"],
         "naive_bytes_per_changed_voxel": round(totals["naive"] / n, 4),
         "note": "totals over all frames; bytes are whole frames (envelope + zstd body); budgeted = "
-                "each frame fitted to its raw scan's size by summarising free space",
+        "each frame fitted to its raw scan's size by summarising free space",
     }
 
 
-def run_wire_bench(out_json: Path, shared_data: Path | None, repeats: int = 3,
-                   only: list[str] | None = None) -> list[dict]:
+def run_wire_bench(
+    out_json: Path, shared_data: Path | None, repeats: int = 3, only: list[str] | None = None
+) -> list[dict]:
     """Run every wire scenario, write the JSON list to out_json and return it.
 
     Without `shared_data`, the checkout's sibling `../shared/data` is used when it exists.

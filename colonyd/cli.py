@@ -44,12 +44,14 @@ def _config_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--colony-key", dest="colony_key", help="shared secret for authentication")
     g.add_argument("--export-dir", dest="export_dir", type=Path,
                    help="write the fused map (.ply, .bt) here on shutdown")
+    g.add_argument("--drop-rate", dest="drop_rate", type=float,
+                   help="testing: drop this share of received deltas (exercises gap repair)")
     g.add_argument("--log-level", dest="log_level", choices=["debug", "info", "warning", "error"])
 
 
 _FLAG_NAMES = ("colony", "namespace", "agent_id", "kind", "state_dir", "mode", "listen", "connect",
                "multicast", "sources", "resolution", "publish_hz", "heartbeat_s", "lease_ms",
-               "colony_key", "export_dir", "log_level")
+               "colony_key", "export_dir", "drop_rate", "log_level")
 
 
 def _flags(args: argparse.Namespace) -> dict[str, Any]:

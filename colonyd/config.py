@@ -98,12 +98,16 @@ class Config(BaseSettings):
     heartbeat_s: float = Field(1.0, gt=0, le=60, description="status heartbeat period")
     snapshot_s: float = Field(30.0, gt=0, description="own-layer snapshot period")
     inbox_size: int = Field(256, ge=8, description="bounded queue of received messages")
+    inbox_mb: float = Field(128.0, gt=0, description="bytes the received-message queue may hold")
+    max_layers: int = Field(256, ge=1, description="most peer layers held (hostile origins)")
+    max_peer_blocks: int = Field(100_000, ge=1, description="voxel blocks (~8 KiB each) in peer layers")
     ring_size: int = Field(64, ge=1, description="recent deltas kept per layer for gap repair")
     max_message_mb: float = Field(64.0, gt=0, description="largest accepted decoded message")
     query_timeout_s: float = Field(5.0, gt=0, description="range/snapshot query timeout")
     snapshot_chunk_voxels: int = Field(250_000, ge=1000, description="voxels per snapshot reply")
     colony_key: str | None = Field(None, description="shared secret; unauthenticated dropped")
     export_dir: Path | None = Field(None, description="write the fused map here on shutdown")
+    drop_rate: float = Field(0.0, ge=0, lt=1, description="testing: drop this share of received deltas")
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
     @classmethod

@@ -100,7 +100,7 @@ class Daemon:
                              ring_size=self.config.ring_size)
         own = self.layers.own
         own.grid, own.epoch, own.seq = rec.grid, rec.epoch, rec.seq
-        self._published_local = int(rec.grid.version)
+        self._published_local = rec.published  # changes after it were never logged: send them
         log.info("state %s: %s, epoch %d, seq %d, %d log records replayed", self.config.state_dir,
                  "fresh" if rec.fresh else "recovered", rec.epoch, rec.seq, rec.wal_records)
 
@@ -109,7 +109,9 @@ class Daemon:
         keys = Keys(cfg.key_namespace)
         self.gossip = Gossip(
             self.session, keys, self.layers, get_codec(cfg), self.metrics, epoch=self.epoch,
-            inbox_size=cfg.inbox_size, query_timeout_s=cfg.query_timeout_s,
+            inbox_size=cfg.inbox_size, inbox_bytes=int(cfg.inbox_mb * (1 << 20)),
+            max_layers=cfg.max_layers, max_peer_blocks=cfg.max_peer_blocks, drop_rate=cfg.drop_rate,
+            query_timeout_s=cfg.query_timeout_s,
             chunk_voxels=cfg.snapshot_chunk_voxels,
         )
         self.membership = Membership(self.session, keys, cfg.agent_id, self.gossip.on_member_event)
@@ -138,7 +140,8 @@ class Daemon:
                 self.gossip.heartbeat(self.config.kind, self.pose)
                 next_hb = now + self.config.heartbeat_s
             if wd and now >= next_wd:
-                if all(t.is_alive() for t in self._threads):
+                mapping, publisher = self._threads
+                if publisher.is_alive() and (mapping.is_alive() or self._sources_done.is_set()):
                     self.notifier.watchdog()
                 next_wd = now + wd / 3
             timeout = next_hb - time.monotonic()
@@ -254,7 +257,7 @@ class Daemon:
         due = time.monotonic() - self._last_snapshot >= self.config.snapshot_s
         if not final and own.seq > 0 and (due or self.store.wal_bytes > (64 << 20)):
             with own.lock:
-                self.store.snapshot(own.grid, own.seq)
+                self.store.snapshot(own.grid, own.seq, self._published_local)
             self._last_snapshot = time.monotonic()
 
     # -- status ---------------------------------------------------------------------------

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import logging
 import queue
+import random
 import threading
 import time
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import zenoh
 
 from colonyd.errors import ColonydError, WireError
@@ -75,6 +77,10 @@ class Gossip:
         *,
         epoch: int,
         inbox_size: int = 256,
+        inbox_bytes: int = 128 << 20,
+        max_layers: int = 256,
+        max_peer_blocks: int = 100_000,
+        drop_rate: float = 0.0,
         query_timeout_s: float = 5.0,
         chunk_voxels: int = 250_000,
     ) -> None:
@@ -88,7 +94,11 @@ class Gossip:
         self.query_timeout_s = query_timeout_s
         self.chunk_voxels = chunk_voxels
         self.stop = threading.Event()
-        self.inbox = Inbox(inbox_size, 4 * codec.max_bytes, metrics)
+        self.inbox = Inbox(inbox_size, inbox_bytes, metrics)
+        self.max_layers = max_layers
+        self.max_peer_blocks = max_peer_blocks
+        self._drop_rate = drop_rate
+        self._rng = random.Random()
         self._serve: queue.Queue[zenoh.Query] = queue.Queue(maxsize=64)
         self._repairs: queue.Queue[Repair] = queue.Queue(maxsize=1024)
         self._repairing: set[str] = set()
@@ -118,6 +128,9 @@ class Gossip:
 
     # -- zenoh callbacks: enqueue only ----------------------------------------------------
     def _on_delta(self, sample: zenoh.Sample) -> None:
+        if self._drop_rate and self._rng.random() < self._drop_rate:
+            self.metrics.add("dropped_on_purpose")
+            return
         self.inbox.put("delta", str(sample.key_expr), sample.payload.to_bytes())
 
     def _on_hb(self, sample: zenoh.Sample) -> None:
@@ -156,15 +169,15 @@ class Gossip:
     # -- outgoing -------------------------------------------------------------------------
     def publish_own(self, prev: int, seq: int, delta: Any, created: float) -> bytes:
         """Encode and publish an own delta (already logged); returns the payload."""
+        own = self.layers.own
+        with own.lock:  # the number is taken (it is in the log) whatever happens next
+            own.seq = seq
+            own.epoch = self.epoch
         payload = self.codec.encode(
             {"t": "delta", "o": self.own, "e": self.epoch, "s": seq, "p": prev, "c": created,
              "delta": relabel(delta, prev, seq)}
         )
-        own = self.layers.own
-        with own.lock:
-            own.ring.append((prev, seq, payload))
-            own.seq = seq
-            own.epoch = self.epoch
+        own.remember(prev, seq, payload)
         self._publisher.put(payload)
         self.metrics.add("deltas_published")
         self.metrics.add("bytes_published", len(payload))
@@ -222,10 +235,11 @@ class Gossip:
         if not (0 <= prev < seq) or epoch <= 0:
             raise WireError("bad-header", f"delta header invalid: epoch {epoch} {prev}->{seq}")
         delta = msg["delta"]
-        layer = self.layers.get(origin, delta.resolution)
+        layer = self._layer_for(origin, delta.resolution)
         if abs(layer.resolution - delta.resolution) > 1e-12:
             raise WireError("bad-resolution",
                             f"expected resolution {layer.resolution}, found {delta.resolution}")
+        self._check_budget(layer, [delta])
         result = layer.offer(epoch, prev, seq, delta, raw, created)
         now = time.time()
         if result.outcome == "duplicate":
@@ -239,6 +253,32 @@ class Gossip:
         if result.missing is not None:
             self.metrics.add("gaps")
             self.request_repair(origin, [origin])
+
+    def _layer_for(self, origin: str, resolution: float) -> Layer:
+        """The layer of `origin`, created if there is room (a hostile peer cannot invent many)."""
+        layer = self.layers.find(origin)
+        if layer is None:
+            if len(self.layers.all()) > self.max_layers:
+                raise WireError("too-many-layers",
+                                f"expected at most {self.max_layers} peer layers, found another: {origin!r}")
+            if not (0 < resolution <= 10):
+                raise WireError("bad-resolution", f"expected a resolution in (0, 10] m, found {resolution}")
+            layer = self.layers.get(origin, resolution)
+        return layer
+
+    def _check_budget(self, layer: Layer, deltas: list[Any], replace: bool = False) -> None:
+        """Refuse what would push peer layers past `max_peer_blocks` (sparse floods)."""
+        used = sum(l.blocks() for l in self.layers.all() if l.origin != self.own)
+        if replace:
+            used -= layer.blocks()
+            keys = np.concatenate([d.keys for d in deltas]) if deltas else np.empty((0, 3))
+            new = Layer(layer.origin, layer.resolution).new_blocks(keys)
+        else:
+            new = sum(layer.new_blocks(d.keys) for d in deltas)
+        if used + new > self.max_peer_blocks:
+            raise WireError("over-budget",
+                            f"expected peer layers within {self.max_peer_blocks} blocks, "
+                            f"found {used} held + {new} new for {layer.origin!r}")
 
     def _handle_hb(self, key: str, raw: bytes) -> None:
         msg = self.codec.decode(raw)
@@ -375,7 +415,13 @@ class Gossip:
             return False
         epoch, seq, n = header
         resolution = chunks[0].resolution
-        layer = self.layers.get(origin, resolution)
+        layer = self._layer_for(origin, resolution)
+        try:
+            self._check_budget(layer, list(chunks.values()), replace=True)
+        except WireError as exc:
+            self.metrics.reject(exc.reason)
+            log.warning("snapshot of %s from %s refused: %s", origin, server, exc)
+            return False
         voxels = layer.install_snapshot(epoch, seq, [chunks[i] for i in range(n)])
         dt = time.monotonic() - t0
         self.metrics.add("snapshots_installed")

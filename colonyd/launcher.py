@@ -94,7 +94,7 @@ class LocalColony:
 
     def __init__(self, base: Path, *, colony: str = "local", namespace: str | None = None,
                  lease_ms: int | None = None, heartbeat_s: float = 0.5,
-                 extra: list[str] | None = None) -> None:
+                 extra: list[str] | None = None, multicast: bool = False) -> None:
         self.base = Path(base)
         self.base.mkdir(parents=True, exist_ok=True)
         self.colony = colony
@@ -102,17 +102,21 @@ class LocalColony:
         self.lease_ms = lease_ms
         self.heartbeat_s = heartbeat_s
         self.extra = list(extra or [])
+        self.multicast = multicast  # only ever inside a private network namespace (tests)
         self.daemons: dict[str, LocalDaemon] = {}
         self._session: zenoh.Session | None = None
 
     def add(self, agent: str, sources: list[str] | None = None, *, start: bool = True,
             extra: list[str] | None = None) -> LocalDaemon:
         port = free_port()
-        hub = next(iter(self.daemons.values()), None)
+        hub = next((d for d in self.daemons.values() if d.alive()), None)
+        hub = hub or next(iter(self.daemons.values()), None)
         args = ["--colony", self.colony, "--namespace", self.namespace, "--agent-id", agent,
-                "--state-dir", str(self.base / agent), "--no-multicast",
+                "--state-dir", str(self.base / agent),
                 "--listen", f"tcp/127.0.0.1:{port}", "--heartbeat-s", str(self.heartbeat_s)]
-        if hub is not None:
+        if not self.multicast:
+            args.append("--no-multicast")
+        if hub is not None and not self.multicast:
             args += ["--connect", hub.endpoint]
         if self.lease_ms:
             args += ["--lease-ms", str(self.lease_ms)]

@@ -53,6 +53,8 @@ class Layer:
         self.seq = 0
         self.lock = threading.RLock()
         self.ring: deque[tuple[int, int, bytes]] = deque(maxlen=ring_size)
+        self.ring_bytes = 0
+        self.ring_max_bytes = 64 << 20
         self.pending: dict[int, tuple[int, float, Delta, bytes]] = {}
         self.pending_size = pending_size
         self.updated = 0.0
@@ -72,8 +74,9 @@ class Layer:
             if seq <= self.seq:
                 return Applied("duplicate")
             if prev > self.seq:
-                if len(self.pending) >= self.pending_size:
-                    self.pending.clear()  # bounded: a snapshot will repair it
+                held = sum(len(v[3]) for v in self.pending.values())
+                if len(self.pending) >= self.pending_size or held + len(raw) > self.ring_max_bytes:
+                    self.pending.clear()  # bounded: a range query or a snapshot repairs it
                 self.pending[seq] = (prev, created, delta, raw)
                 return Applied("reset" if reset else "gap", missing=(self.seq, prev))
             n = self._apply(prev, seq, delta, raw)
@@ -87,8 +90,18 @@ class Layer:
         self.seq = seq
         self.updated = time.time()
         if raw is not None:
-            self.ring.append((prev, seq, raw))
+            self.remember(prev, seq, raw)
         return len(delta)
+
+    def remember(self, prev: int, seq: int, raw: bytes) -> None:
+        """Keep a raw delta for range repair; bounded in count and bytes (oldest go first)."""
+        with self.lock:
+            if len(self.ring) == self.ring.maxlen:
+                self.ring_bytes -= len(self.ring[0][2])
+            self.ring.append((prev, seq, raw))
+            self.ring_bytes += len(raw)
+            while self.ring_bytes > self.ring_max_bytes and len(self.ring) > 1:
+                self.ring_bytes -= len(self.ring.popleft()[2])
 
     def _drain(self, result: Applied) -> None:
         while self.pending:
@@ -108,6 +121,7 @@ class Layer:
         self.epoch = epoch
         self.seq = 0
         self.ring.clear()
+        self.ring_bytes = 0
         self.pending.clear()
 
     def install_snapshot(self, epoch: int, seq: int, chunks: list[Delta]) -> int:
@@ -160,6 +174,24 @@ class Layer:
             return out if at >= want and out else None
 
     # -- queries --------------------------------------------------------------------------
+    def blocks(self) -> int:
+        """Voxel blocks allocated by this layer's grid (its memory, ~8 KiB each)."""
+        store = getattr(self.grid, "store", None)
+        return int(store.sorted_keys.size) if store is not None else self.voxels() // 64
+
+    def new_blocks(self, keys: np.ndarray) -> int:
+        """Blocks that applying voxels at `keys` would allocate."""
+        if not len(keys):
+            return 0
+        from voxel.blocks import split_keys
+
+        blocks = np.unique(split_keys(keys)[0])
+        store = getattr(self.grid, "store", None)
+        if store is None:
+            return int(blocks.size)
+        with self.lock:
+            return int(np.count_nonzero(store.lookup(blocks) < 0))
+
     def full(self) -> Delta:
         with self.lock:
             return self.grid.delta_since(0)

@@ -110,10 +110,12 @@ def tum_line(time: float, pose: np.ndarray) -> str:
     return f"{time:.6f} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
 
 
-def floor_plan(occupied: np.ndarray, free: np.ndarray, layer: int) -> tuple[np.ndarray, np.ndarray]:
+def floor_plan(occupied: np.ndarray, free: np.ndarray, layer: int, margin: int | None = 20) -> tuple[np.ndarray, np.ndarray]:
     """Grey image of the voxel layer z = `layer` (+x right, +y up) and the key of its lower-left pixel.
 
-    occupied, free: voxel keys (N, 3). Occupied 0, free 254, unknown 205.
+    occupied, free: voxel keys (N, 3). Occupied 0, free 254, unknown 205. With a margin (cells),
+    the image is cropped to the occupied cells' extent plus the margin, so free space cleared by
+    long no-return beams does not swamp the plan.
     """
     occ = occupied[occupied[:, 2] == layer, :2]
     fre = free[free[:, 2] == layer, :2]
@@ -121,6 +123,10 @@ def floor_plan(occupied: np.ndarray, free: np.ndarray, layer: int) -> tuple[np.n
     if both.size == 0:
         return np.full((1, 1), UNKNOWN_GREY, np.uint8), np.zeros(2, np.int64)
     lo, hi = both.min(axis=0), both.max(axis=0)
+    if margin is not None and len(occ):
+        lo = np.maximum(lo, occ.min(axis=0) - margin)
+        hi = np.minimum(hi, occ.max(axis=0) + margin)
+        fre = fre[np.all((fre >= lo) & (fre <= hi), axis=1)]
     w, h = (hi - lo + 1).tolist()
     image = np.full((h, w), UNKNOWN_GREY, np.uint8)
     image[h - 1 - (fre[:, 1] - lo[1]), fre[:, 0] - lo[0]] = FREE_GREY

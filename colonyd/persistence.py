@@ -37,6 +37,7 @@ class Recovered:
     grid: VoxelGrid
     wal_records: int
     fresh: bool
+    published: int  # grid version up to which changes were logged (and so may have been sent)
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
@@ -99,7 +100,7 @@ class StateStore:
                        f"{meta.get('resolution')}, expected {self.resolution}")
                 raise PersistenceError(msg)
             epoch = int(meta["epoch"])
-        grid, seq = new_grid(self.resolution), 0
+        grid, seq, published = new_grid(self.resolution), 0, 0
         snap_path = self.dir / SNAPSHOT
         if snap_path.exists():
             snap = self._read_json(snap_path)
@@ -109,15 +110,17 @@ class StateStore:
                 msg = f"snapshot {snap['file']} in {self.dir} cannot be loaded: {exc}"
                 raise PersistenceError(msg) from None
             seq = int(snap["seq"])
+            published = int(snap.get("published", grid.version))
         records = 0
         for rec in self._read_wal():
             if rec["seq"] <= seq:
                 continue
             grid.apply(rec["delta"])
             seq = rec["seq"]
+            published = max(published, int(rec["delta"].to_version))
             records += 1
         self._open_wal()
-        return Recovered(epoch, seq, grid, records, fresh)
+        return Recovered(epoch, seq, grid, records, fresh, published)
 
     def _read_json(self, path: Path) -> dict[str, Any]:
         try:
@@ -169,8 +172,13 @@ class StateStore:
             raise PersistenceError(msg) from None
         self.wal_bytes += _HEAD.size + len(body)
 
-    def snapshot(self, grid: VoxelGrid, seq: int) -> None:
-        """Save the grid at `seq`, point snapshot.json at it, then empty the log."""
+    def snapshot(self, grid: VoxelGrid, seq: int, published: int | None = None) -> None:
+        """Save the grid at `seq`, point snapshot.json at it, then empty the log.
+
+        `published` is the grid version up to which changes went into deltas; later changes in
+        the saved grid are sent after a restart.
+        """
+        published = int(grid.version if published is None else published)
         name = f"own-{seq}.grid"
         tmp = self.dir / (name + ".tmp")
         try:
@@ -178,7 +186,7 @@ class StateStore:
             with open(tmp, "rb") as fh:
                 os.fsync(fh.fileno())
             os.replace(tmp, self.dir / name)
-            _atomic_write(self.dir / SNAPSHOT, json.dumps({"seq": int(seq), "file": name}).encode())
+            _atomic_write(self.dir / SNAPSHOT, json.dumps({"seq": int(seq), "file": name, "published": published}).encode())
             self._wal.close()
             _atomic_write(self.dir / WAL, b"")
             self._open_wal()

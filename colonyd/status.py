@@ -161,15 +161,26 @@ def format_status(reports: list[dict[str, Any]]) -> str:
     """Human table: one member per line, then its layers."""
     lags = behind(reports)
     now = time.time()
+    seen: dict[str, float] = {}
+    for r in reports:  # last seen: latest of the member's own report and what its peers heard
+        seen[r["agent"]] = max(seen.get(r["agent"], 0.0), float(r.get("time", now)))
+        for m in r.get("members", []):
+            seen[m["agent"]] = max(seen.get(m["agent"], 0.0), float(m.get("last_seen", 0.0)))
     lines = [f"{'agent':<16} {'kind':<8} {'last seen':>9} {'pose':<22} {'behind':>6}  layers"]
     for r in reports:
         pose = ",".join(f"{x:.2f}" for x in r.get("pose", [])[:3]) or "-"
-        seen = f"{max(0.0, now - float(r.get('time', now))):.1f}s"
+        ago = f"{max(0.0, now - seen.get(r['agent'], now)):.1f}s"
         layers = " ".join(
             f"{o}@{v['seq']}({v['voxels']})" for o, v in sorted(r.get("layers", {}).items())
         )
         lines.append(
-            f"{r['agent']:<16} {r.get('kind', '?'):<8} {seen:>9} {pose:<22} "
+            f"{r['agent']:<16} {r.get('kind', '?'):<8} {ago:>9} {pose:<22} "
             f"{lags.get(r['agent'], 0):>6}  {layers}"
         )
+    answered = {r["agent"] for r in reports}
+    for agent in sorted(set(seen) - answered):  # known to peers but not answering (frozen, gone)
+        kind = next((m.get("kind", "?") for r in reports for m in r.get("members", [])
+                     if m["agent"] == agent), "?")
+        ago = f"{max(0.0, now - seen[agent]):.1f}s"
+        lines.append(f"{agent:<16} {kind:<8} {ago:>9} {'-':<22} {'?':>6}  (not answering)")
     return "\n".join(lines)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import time as clock
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -157,7 +157,7 @@ def make_rig(sensor: str) -> tuple[Rig, dict]:
 
 
 def render(world: World, sensor: str, rig: Rig, pose: np.ndarray, rng: np.random.Generator,
-           range_noise: float) -> object:
+           range_noise: float) -> Scan | Cloud | DepthFrame | CctvFrame:
     """A raw reading of `sensor` at sensor pose `pose` (world frame), rendered by ray casting."""
     directions = rig.directions @ pose[:3, :3].T
     hits = world.cast(pose[:3, 3], directions)
@@ -168,7 +168,8 @@ def render(world: World, sensor: str, rig: Rig, pose: np.ndarray, rng: np.random
         return Scan(ranges=np.where(np.isfinite(t), t, np.inf))
     if sensor == "lidar3d":
         keep = np.isfinite(t)
-        return Cloud(points=rig.directions[keep] * t[keep, None], intensity=np.abs(hits.normal[keep] @ np.array([0.0, 0.0, 1.0])))
+        incidence = np.abs(np.einsum("ij,ij->i", hits.normal[keep], directions[keep]))  # Lambertian return
+        return Cloud(points=rig.directions[keep] * t[keep, None], intensity=incidence)
     h, w = rig.shape
     depth = np.where(np.isfinite(t), t, np.nan).reshape(h, w).astype(np.float32)  # z = t for z = 1 rays
     colour = world.render_colour(rig.K, pose, (h, w), directions, hits)
@@ -259,6 +260,4 @@ class SimSource:
 
 
 def _with_truth(obs: Observation, truth: np.ndarray) -> Observation:
-    from dataclasses import replace
-
     return replace(obs, truth=truth)

@@ -17,7 +17,13 @@ from pydantic import ValidationError
 
 from protocol import fields
 from protocol.auth import TAG_BYTES, ReplayWindow, compute_tag, verify_tag
-from protocol.deltacodec import decode_delta_with_summary, encode_delta, encoded_size, fit_delta, split_delta
+from protocol.deltacodec import (
+    decode_delta_with_summary,
+    encode_delta,
+    encoded_size,
+    fit_delta,
+    split_delta,
+)
 from protocol.errors import (
     AuthError,
     MalformedError,
@@ -29,7 +35,7 @@ from protocol.errors import (
     VersionError,
 )
 from protocol.keyexpr import NAME_PATTERN
-from protocol.limits import Limits
+from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.messages import HEADER_FIELDS, MESSAGE_TYPES, PROTOCOL_VERSION, Message, VoxelDelta
 from protocol.summary import FreeSummary
 from voxel.delta import Delta
@@ -75,7 +81,7 @@ def _body(msg: Message) -> dict[str, Any]:
     skip = set(HEADER_FIELDS) | set(_DELTA_FIELDS)
     body = msg.model_dump(mode="python", exclude=skip)
     if "delta" in type(msg).model_fields:
-        delta = getattr(msg, "delta")
+        delta = msg.delta
         summary = getattr(msg, "free_summary", None)
         body["delta"] = None if delta is None else encode_delta(delta, summary=summary)
     return body
@@ -173,7 +179,7 @@ def _envelope(data: bytes, end: int, limits: Limits) -> tuple[str, int, int, flo
     return origin, epoch, seq, time, body
 
 
-def peek(data: bytes, limits: Limits = Limits()) -> FrameInfo:
+def peek(data: bytes, limits: Limits = DEFAULT_LIMITS) -> FrameInfo:
     """Prefix and envelope of a frame without decoding its body or checking its tag."""
     mtype, flags, compression = _prefix(data, limits)
     auth = bool(flags & FLAG_AUTH)
@@ -183,12 +189,22 @@ def peek(data: bytes, limits: Limits = Limits()) -> FrameInfo:
         raise TruncatedError(msg)
     origin, epoch, seq, time, _ = _envelope(data, end, limits)
     cls = MESSAGE_TYPES[mtype]
-    return FrameInfo(PROTOCOL_VERSION, mtype, cls.KIND, origin, epoch, seq, time, auth, compression, len(data))
+    return FrameInfo(
+        PROTOCOL_VERSION, mtype, cls.KIND, origin, epoch, seq, time, auth, compression, len(data)
+    )
 
 
 _RANGE_ERRORS = {
-    "greater_than", "greater_than_equal", "less_than", "less_than_equal", "finite_number",
-    "string_pattern_mismatch", "value_error", "literal_error", "enum", "too_short",
+    "greater_than",
+    "greater_than_equal",
+    "less_than",
+    "less_than_equal",
+    "finite_number",
+    "string_pattern_mismatch",
+    "value_error",
+    "literal_error",
+    "enum",
+    "too_short",
 }
 
 
@@ -210,7 +226,7 @@ def decode(
     data: bytes,
     *,
     key: bytes | None = None,
-    limits: Limits = Limits(),
+    limits: Limits = DEFAULT_LIMITS,
     replay: ReplayWindow | None = None,
 ) -> Message:
     """Validated message of hostile frame bytes, or a ProtocolError subclass saying why not.
@@ -262,7 +278,14 @@ def decode(
                 known["free_summary"] = summary
     try:
         message = cls.model_validate(
-            {**known, "version": PROTOCOL_VERSION, "origin": origin, "epoch": epoch, "seq": seq, "time": time}
+            {
+                **known,
+                "version": PROTOCOL_VERSION,
+                "origin": origin,
+                "epoch": epoch,
+                "seq": seq,
+                "time": time,
+            }
         )
     except ValidationError as exc:
         raise _validation_error(cls, exc) from None
@@ -309,8 +332,15 @@ def delta_messages(
             parts.append((empty, summary))
     return [
         VoxelDelta(
-            origin=origin, epoch=epoch, seq=seq + i, time=time, frame_id=frame_id,
-            part=i, parts=len(parts), delta=part, free_summary=part_summary,
+            origin=origin,
+            epoch=epoch,
+            seq=seq + i,
+            time=time,
+            frame_id=frame_id,
+            part=i,
+            parts=len(parts),
+            delta=part,
+            free_summary=part_summary,
         )
         for i, (part, part_summary) in enumerate(parts)
     ]

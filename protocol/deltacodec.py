@@ -14,8 +14,14 @@ from typing import Any
 import numpy as np
 
 from protocol import fields
-from protocol.errors import MalformedError, OversizedError, RangeError, UnknownTypeError, VersionError
-from protocol.limits import Limits
+from protocol.errors import (
+    MalformedError,
+    OversizedError,
+    RangeError,
+    UnknownTypeError,
+    VersionError,
+)
+from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.summary import MAX_LEVEL, FreeSummary
 from voxel.delta import CHANNEL_SPECS, SCALAR_PREFIX, Delta
 from voxel.errors import DeltaError
@@ -23,10 +29,10 @@ from voxel.keys import KEY_MAX, KEY_MIN, pack
 
 #: Version of the delta body layout (field "v").
 CODEC_VERSION = 1
-#: Blocks are 2**bs voxels a side (bs = "block shift", 3 or 4 on the wire; 3 matches the grid's
-#: 8^3 blocks). A voxel's offset in its block is (x * E + y) * E + z with E = 2**bs.
-BLOCK_SHIFTS = (3, 4)
-DEFAULT_BLOCK_SHIFT = 3
+#: Blocks are 2**bs voxels a side (bs = "block shift", 2, 3 or 4 on the wire; 16^3 blocks give
+#: the smallest deltas). A voxel's offset in its block is (x * E + y) * E + z with E = 2**bs.
+BLOCK_SHIFTS = (2, 3, 4)
+DEFAULT_BLOCK_SHIFT = 4
 #: Quantised log-odds code for "unknown" (NaN).
 UNKNOWN_CODE = -128
 #: Quantum exponents: log-odds travel as int8 multiples of 2**q, q in [Q_MIN, Q_MAX].
@@ -73,7 +79,9 @@ def significance(delta: Delta, prev_logodds: np.ndarray | None = None) -> np.nda
         return tier
     prev = np.asarray(prev_logodds, dtype=np.float32).reshape(-1)
     if prev.shape[0] != lo.shape[0]:
-        msg = f"prev_logodds needs one value per voxel: expected {lo.shape[0]}, found {prev.shape[0]}"
+        msg = (
+            f"prev_logodds needs one value per voxel: expected {lo.shape[0]}, found {prev.shape[0]}"
+        )
         raise ValueError(msg)
     with np.errstate(invalid="ignore"):
         was_occ = prev >= 0
@@ -146,10 +154,15 @@ def _time_columns(times: np.ndarray, ref: float) -> tuple[bytes, bytes]:
 def _composite(keys: np.ndarray, bs: int) -> np.ndarray:
     """One int64 per key ordering keys by block (x, y, z), then by in-block offset (x-major)."""
     axis = 21 - bs  # bits per axis of a block coordinate
-    b = (keys >> bs) - ((KEY_MIN >> bs))
+    b = (keys >> bs) - (KEY_MIN >> bs)
     o = keys & ((1 << bs) - 1)
     off = (o[:, 0] << (2 * bs)) | (o[:, 1] << bs) | o[:, 2]
-    return (b[:, 0] << (2 * axis + 3 * bs)) | (b[:, 1] << (axis + 3 * bs)) | (b[:, 2] << (3 * bs)) | off
+    return (
+        (b[:, 0] << (2 * axis + 3 * bs))
+        | (b[:, 1] << (axis + 3 * bs))
+        | (b[:, 2] << (3 * bs))
+        | off
+    )
 
 
 def _block_sort(comp: np.ndarray, bs: int) -> tuple[np.ndarray | None, np.ndarray]:
@@ -168,11 +181,12 @@ def _block_sort(comp: np.ndarray, bs: int) -> tuple[np.ndarray | None, np.ndarra
         inner = np.ones(n - 1, dtype=bool)
         inner[brk - 1] = False
         if np.all(d[inner] > 0):
-            starts = np.r_[0, brk]
+            starts = np.concatenate(([0], brk))
             heads = bc[starts]
             horder = np.argsort(heads)
-            if np.all(np.diff(heads[horder]) > 0):
-                lengths = np.diff(np.r_[starts, n])[horder]
+            sheads = heads[horder]
+            if np.all(sheads[1:] > sheads[:-1]):
+                lengths = np.diff(np.concatenate((starts, [n])))[horder]
                 first = starts[horder]
                 perm = np.repeat(first - (np.cumsum(lengths) - lengths), lengths) + np.arange(n)
                 return perm, comp[perm]
@@ -191,12 +205,18 @@ def _encode_keys(comp: np.ndarray, bs: int, level: int = 0) -> list[Any]:
     axis, obits = 21 - bs, 3 * bs
     nvox = 1 << obits
     bc = comp >> obits
-    starts = np.flatnonzero(np.r_[True, bc[1:] != bc[:-1]]) if n else np.zeros(0, dtype=np.int64)
-    counts = np.diff(np.r_[starts, n]).astype(np.int64)
+    if n:
+        starts = np.concatenate(([0], np.flatnonzero(bc[1:] != bc[:-1]) + 1))
+    else:
+        starts = np.zeros(0, dtype=np.int64)
+    counts = np.diff(np.concatenate((starts, [n])))
     bkey = bc[starts]
     amask = (1 << axis) - 1
-    blocks = np.stack([bkey >> (2 * axis), (bkey >> axis) & amask, bkey & amask], axis=1) + (KEY_MIN >> bs)
-    dblocks = np.diff(blocks, axis=0, prepend=np.zeros((1, 3), dtype=np.int64))
+    blocks = np.stack([bkey >> (2 * axis), (bkey >> axis) & amask, bkey & amask], axis=1) + (
+        KEY_MIN >> bs
+    )
+    dblocks = blocks.copy()
+    dblocks[1:] -= blocks[:-1]
     off = comp & (nvox - 1)
     dense_block = counts >= nvox // 16
     nd = int(dense_block.sum())
@@ -210,7 +230,8 @@ def _encode_keys(comp: np.ndarray, bs: int, level: int = 0) -> list[Any]:
         bitmaps = np.packbits(bits, axis=1, bitorder="little").tobytes()
         soff, scounts = off[~dense_voxel], counts[~dense_block]
     # offsets of sparse blocks: first offset of a block absolute, the rest as gaps
-    gaps = np.diff(soff, prepend=0)
+    gaps = soff.copy()
+    gaps[1:] -= soff[:-1]
     if scounts.size:
         sstarts = np.cumsum(scounts) - scounts
         gaps[sstarts] = soff[sstarts]
@@ -285,7 +306,9 @@ def encode_delta(
     if identity:
         perm = slice(None)  # type: ignore[assignment]
     lo = delta.logodds[perm]
-    q = quantum_exponent(delta.logodds if summary is None else np.r_[delta.logodds, summary.logodds])
+    q = quantum_exponent(
+        delta.logodds if summary is None else np.r_[delta.logodds, summary.logodds]
+    )
     table, index = _time_columns(delta.last_time[perm], delta.time)
     body: dict[str, Any] = {
         "v": CODEC_VERSION,
@@ -300,7 +323,10 @@ def encode_delta(
         "lo": quantise(lo, q).tobytes(),
         "tt": table,
         "ti": index,
-        "ch": [_channel_column(name, values[perm], delta.time) for name, values in sorted(delta.channels.items())],
+        "ch": [
+            _channel_column(name, values[perm], delta.time)
+            for name, values in sorted(delta.channels.items())
+        ],
     }
     if summary is not None and len(summary):
         _check_delta_keys(summary.keys, summary.level)
@@ -348,7 +374,9 @@ def _summaries(delta: Delta, mask: np.ndarray, levels: tuple[int, ...]) -> list[
             raise ValueError(msg)
         keys, lo = _coarsen(keys, lo, target - level)
         level = target
-        out.append(FreeSummary(delta.resolution, level, delta.from_version, delta.to_version, keys, lo, t))
+        out.append(
+            FreeSummary(delta.resolution, level, delta.from_version, delta.to_version, keys, lo, t)
+        )
     return out
 
 
@@ -476,7 +504,9 @@ def _decode_keys(
         raise MalformedError(msg)
     edge, nvox = 1 << bs, 1 << (3 * bs)
     bitmap_bytes = nvox // 8
-    raw_blocks = np.frombuffer(_bin(sec, at + 2, f"{what} blocks", 12 * m), dtype="<i4").reshape(3, m)
+    raw_blocks = np.frombuffer(_bin(sec, at + 2, f"{what} blocks", 12 * m), dtype="<i4").reshape(
+        3, m
+    )
     blocks = np.cumsum(raw_blocks.astype(np.int64), axis=1).T
     bmin, bmax = (KEY_MIN >> level) >> bs, (KEY_MAX >> level) >> bs
     if m and (blocks.min() < bmin or blocks.max() > bmax):
@@ -484,7 +514,11 @@ def _decode_keys(
         raise RangeError(msg)
     if m > 1:
         axis = 21 - bs
-        bkey = ((blocks[:, 0] - bmin) << (2 * axis)) | ((blocks[:, 1] - bmin) << axis) | (blocks[:, 2] - bmin)
+        bkey = (
+            ((blocks[:, 0] - bmin) << (2 * axis))
+            | ((blocks[:, 1] - bmin) << axis)
+            | (blocks[:, 2] - bmin)
+        )
         if np.any(bkey[1:] <= bkey[:-1]):
             msg = f"{what}: expected blocks in strictly increasing (x, y, z) order, found a block out of order"
             raise MalformedError(msg)
@@ -499,7 +533,9 @@ def _decode_keys(
     nd = int(dense.sum())
     bitmaps = np.frombuffer(_bin(sec, at + 4, f"{what} bitmaps", bitmap_bytes * nd), dtype=np.uint8)
     nsparse = n - int(counts[dense].sum())
-    gaps = np.frombuffer(_bin(sec, at + 5, f"{what} offsets", 2 * nsparse), dtype="<u2").astype(np.int64)
+    gaps = np.frombuffer(_bin(sec, at + 5, f"{what} offsets", 2 * nsparse), dtype="<u2").astype(
+        np.int64
+    )
     start = np.cumsum(counts) - counts
     if nd == m:
         off = np.empty(n, dtype=np.int64)
@@ -591,7 +627,9 @@ def _decode_channel(entry: Any, n: int, ref: float, limits: Limits) -> tuple[str
         msg = "delta channel: expected [name, k, data...], found something else"
         raise MalformedError(msg)
     name = entry[0]
-    if name not in CHANNEL_SPECS and not (name.startswith(SCALAR_PREFIX) and len(name) > len(SCALAR_PREFIX)):
+    if name not in CHANNEL_SPECS and not (
+        name.startswith(SCALAR_PREFIX) and len(name) > len(SCALAR_PREFIX)
+    ):
         msg = f"delta channel: expected one of {sorted(CHANNEL_SPECS)} or 'scalar:NAME', found {name[:64]!r}"
         raise UnknownTypeError(msg)
     dtype, tail = CHANNEL_SPECS.get(name, (np.dtype(np.float32), ()))
@@ -615,7 +653,9 @@ def _decode_channel(entry: Any, n: int, ref: float, limits: Limits) -> tuple[str
     return name, values.reshape((n, k) if k else (n,))
 
 
-def decode_delta_with_summary(data: bytes, limits: Limits = Limits()) -> tuple[Delta, FreeSummary | None]:
+def decode_delta_with_summary(
+    data: bytes, limits: Limits = DEFAULT_LIMITS
+) -> tuple[Delta, FreeSummary | None]:
     """Delta (and free-space summary, if any) of a hostile codec body; ProtocolError if invalid."""
     if len(data) > limits.max_body_bytes:
         msg = f"delta body: expected at most {limits.max_body_bytes} bytes, found {len(data)}"
@@ -629,8 +669,12 @@ def decode_delta_with_summary(data: bytes, limits: Limits = Limits()) -> tuple[D
     if not (math.isfinite(res) and 1e-4 <= res <= 1e3):
         msg = f"delta body: expected resolution in [1e-4, 1e3] m, found {res}"
         raise RangeError(msg)
-    v_from = _int(fields.field(body, "from", int, "delta body"), "delta from_version", 0, (1 << 63) - 1)
-    v_to = _int(fields.field(body, "to", int, "delta body"), "delta to_version", v_from, (1 << 63) - 1)
+    v_from = _int(
+        fields.field(body, "from", int, "delta body"), "delta from_version", 0, (1 << 63) - 1
+    )
+    v_to = _int(
+        fields.field(body, "to", int, "delta body"), "delta to_version", v_from, (1 << 63) - 1
+    )
     ref = fields.field(body, "time", float, "delta body")
     if not math.isfinite(ref):
         msg = f"delta body: expected a finite time, found {ref}"
@@ -730,6 +774,6 @@ def _decode_summary(
     )
 
 
-def decode_delta(data: bytes, limits: Limits = Limits()) -> Delta:
+def decode_delta(data: bytes, limits: Limits = DEFAULT_LIMITS) -> Delta:
     """Delta of a hostile codec body (a free-space summary, if any, is dropped)."""
     return decode_delta_with_summary(data, limits)[0]

@@ -13,7 +13,7 @@ EXAMPLE_KEY = b"0123456789abcdef0123456789abcdef"
 
 
 def example_message() -> VoxelDelta:
-    """Robot "r1" reports three voxels of one 8^3 block: one became occupied, two became free."""
+    """Robot "r1" reports three voxels of one block: one became occupied, two are free."""
     delta = Delta(
         resolution=0.05,
         from_version=41,
@@ -24,7 +24,9 @@ def example_message() -> VoxelDelta:
         channels={"hits": np.array([1, 0, 0], dtype=np.uint16)},
         time=1_700_000_000.5,
     )
-    return VoxelDelta(origin="r1", epoch=1, seq=7, time=1_700_000_000.5, frame_id="map", delta=delta)
+    return VoxelDelta(
+        origin="r1", epoch=1, seq=7, time=1_700_000_000.5, frame_id="map", delta=delta
+    )
 
 
 def example_frame(key: bytes | None = None) -> bytes:
@@ -34,4 +36,4 @@ def example_frame(key: bytes | None = None) -> bytes:
 
 def hexdump(data: bytes, width: int = 16) -> str:
     """Offset + hex bytes, `width` per line."""
-    return "\n".join(f"{i:04x}  {data[i:i + width].hex(' ')}" for i in range(0, len(data), width))
+    return "\n".join(f"{i:04x}  {data[i : i + width].hex(' ')}" for i in range(0, len(data), width))

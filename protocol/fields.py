@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from typing import Any, TypeVar
 
 import msgpack
@@ -26,20 +27,44 @@ T = TypeVar("T")
 
 # Bytes following a msgpack head byte whose size does not depend on the data: head -> extra bytes.
 _FIXED = {
-    0xC0: 0, 0xC2: 0, 0xC3: 0,  # nil, false, true
-    0xCA: 4, 0xCB: 8,  # float32, float64
-    0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8,  # uint8..64
-    0xD0: 1, 0xD1: 2, 0xD2: 4, 0xD3: 8,  # int8..64
-    0xD4: 2, 0xD5: 3, 0xD6: 5, 0xD7: 9, 0xD8: 17,  # fixext 1..16 (type byte + data)
+    0xC0: 0,
+    0xC2: 0,
+    0xC3: 0,  # nil, false, true
+    0xCA: 4,
+    0xCB: 8,  # float32, float64
+    0xCC: 1,
+    0xCD: 2,
+    0xCE: 4,
+    0xCF: 8,  # uint8..64
+    0xD0: 1,
+    0xD1: 2,
+    0xD2: 4,
+    0xD3: 8,  # int8..64
+    0xD4: 2,
+    0xD5: 3,
+    0xD6: 5,
+    0xD7: 9,
+    0xD8: 17,  # fixext 1..16 (type byte + data)
 }
 # Heads followed by a big-endian length, then that many bytes: head -> (length bytes, extra).
-_SIZED = {0xC4: (1, 0), 0xC5: (2, 0), 0xC6: (4, 0), 0xD9: (1, 0), 0xDA: (2, 0), 0xDB: (4, 0),
-          0xC7: (1, 1), 0xC8: (2, 1), 0xC9: (4, 1)}  # bin8/16/32, str8/16/32, ext8/16/32
+_SIZED = {
+    0xC4: (1, 0),
+    0xC5: (2, 0),
+    0xC6: (4, 0),
+    0xD9: (1, 0),
+    0xDA: (2, 0),
+    0xDB: (4, 0),
+    0xC7: (1, 1),
+    0xC8: (2, 1),
+    0xC9: (4, 1),
+}  # bin8/16/32, str8/16/32, ext8/16/32
 # Container heads followed by a big-endian count: head -> (count bytes, objects per entry).
 _CONTAINER = {0xDC: (2, 1), 0xDD: (4, 1), 0xDE: (2, 2), 0xDF: (4, 2)}
 
 
-def scan_msgpack(data: bytes, what: str, max_objects: int = MAX_OBJECTS, max_depth: int = MAX_DEPTH) -> None:
+def scan_msgpack(
+    data: bytes, what: str, max_objects: int = MAX_OBJECTS, max_depth: int = MAX_DEPTH
+) -> None:
     """Check that `data` is exactly one complete msgpack object within object and depth bounds.
 
     Walks the structure without building it, so a hostile body cannot make the unpacker
@@ -162,14 +187,17 @@ def as_map(obj: Any, what: str) -> dict[str, Any]:
     return obj
 
 
-_COMPRESSORS: dict[int, zstandard.ZstdCompressor] = {}
+_LOCAL = threading.local()
 
 
 def compress(data: bytes, level: int = 3) -> bytes:
-    """One zstd frame of `data` with its content size in the frame header."""
-    cctx = _COMPRESSORS.get(level)
+    """One zstd frame of `data` with its content size in the frame header (thread-safe)."""
+    cache = getattr(_LOCAL, "compressors", None)
+    if cache is None:
+        cache = _LOCAL.compressors = {}
+    cctx = cache.get(level)
     if cctx is None:
-        cctx = _COMPRESSORS[level] = zstandard.ZstdCompressor(level=level, write_content_size=True)
+        cctx = cache[level] = zstandard.ZstdCompressor(level=level, write_content_size=True)
     return cctx.compress(data)
 
 

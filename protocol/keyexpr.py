@@ -132,6 +132,8 @@ def check_origin(key: str, origin: str) -> ParsedKey:
     """Parse `key` and check that it belongs to `origin` (the origin in the frame's envelope)."""
     parsed = parse_key(key)
     if parsed.origin != origin:
-        msg = f"key {key!r} belongs to origin {parsed.origin!r}, found a frame from origin {origin!r}"
+        msg = (
+            f"key {key!r} belongs to origin {parsed.origin!r}, found a frame from origin {origin!r}"
+        )
         raise KeyExprError(msg)
     return parsed

@@ -25,3 +25,7 @@ class Limits:
     max_list: int = 65_536
     #: Largest zstd window a compressed body may ask for.
     max_window_bytes: int = 8 << 20
+
+
+#: The limits a decoder uses unless given others.
+DEFAULT_LIMITS = Limits()

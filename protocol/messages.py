@@ -6,7 +6,14 @@ import math
 from typing import Annotated, Any, ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    field_validator,
+    model_validator,
+)
 
 from protocol.keyexpr import NAME_PATTERN
 from protocol.summary import FreeSummary
@@ -41,7 +48,9 @@ class Message(BaseModel):
     per message the origin sends within an epoch; `time` is the origin's clock, seconds (Unix).
     """
 
-    model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True, validate_assignment=False)
+    model_config = ConfigDict(
+        extra="forbid", arbitrary_types_allowed=True, validate_assignment=False
+    )
 
     TYPE: ClassVar[int] = 0
     KIND: ClassVar[str] = ""
@@ -178,7 +187,10 @@ class _Rigid(BaseModel):
         if m.shape != (4, 4):
             msg = f"transform must be a 4x4 matrix, found shape {m.shape}"
             raise ValueError(msg)
-        return {"position": tuple(float(v) for v in m[:3, 3]), "orientation": _matrix_to_quat(m[:3, :3])}
+        return {
+            "position": tuple(float(v) for v in m[:3, 3]),
+            "orientation": _matrix_to_quat(m[:3, :3]),
+        }
 
 
 class Pose(Message, _Rigid):
@@ -246,7 +258,7 @@ class Objects(Message):
     KIND: ClassVar[str] = "objects"
 
     frame_id: Name
-    objects: Annotated[list[ObjectCentroid], Field(max_length=65_536)] = []
+    objects: Annotated[list[ObjectCentroid], Field(max_length=16_384)] = []
 
 
 class AlignOffer(Message, _Rigid):

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from protocol.errors import OversizedError
+from protocol.limits import DEFAULT_LIMITS
 from voxel.delta import Delta
 from voxel.keys import pack
 
@@ -49,10 +50,18 @@ class FreeSummary:
         """Number of voxels `expand` would produce before exclusions."""
         return len(self) * 8**self.level
 
-    def expand(self, exclude: np.ndarray | None = None, max_voxels: int = 16_000_000) -> Delta:
-        """The voxels of every cell as a Delta (minus keys in `exclude` (K, 3)), one value per cell."""
-        if self.expanded_count > max_voxels:
-            msg = f"summary expands to at most {max_voxels} voxels, found {len(self)} cells of {8**self.level} voxels"
+    def expand(self, exclude: np.ndarray | None = None, max_voxels: int | None = None) -> Delta:
+        """The voxels of every cell as a Delta (minus keys in `exclude` (K, 3)), one value per cell.
+
+        Refuses (OversizedError) to produce more than `max_voxels` voxels (default: the
+        `max_expanded_voxels` of the default decoder limits).
+        """
+        limit = DEFAULT_LIMITS.max_expanded_voxels if max_voxels is None else max_voxels
+        if self.expanded_count > limit:
+            msg = (
+                f"summary expands to at most {limit} voxels, "
+                f"found {len(self)} cells of {8**self.level} voxels"
+            )
             raise OversizedError(msg)
         edge = 1 << self.level
         g = np.arange(edge, dtype=np.int64)

@@ -22,6 +22,8 @@ OCCUPIED = np.int8(1)
 
 #: |log-odds| below which a decayed voxel is forgotten (returns to unknown).
 FORGET_EPSILON = 0.05
+#: Blocks updated per chunk: keeps temporaries small enough to stay in reused memory.
+UPDATE_CHUNK = 4096
 #: Weight of a new class observation in the per-voxel class distribution.
 CLASS_RATE = 0.3
 
@@ -177,10 +179,6 @@ class VoxelGrid:
         ends = np.concatenate([vk.keys_to_centers(uniq_keys, self.resolution), clear_ends])
         traversal = trace(org, ends, uniq_keys, self.resolution)
 
-        log_hit = sensor.log_hit * reliability
-        log_miss = sensor.log_miss * reliability
-        changed = self._update(traversal, float(time), log_hit, log_miss, sensor.log_min, sensor.log_max)
-
         hit_mask_idx = np.flatnonzero(hit_mask)
         rich = {
             "colours": None if colours is None else colours[hit_mask_idx],
@@ -190,8 +188,20 @@ class VoxelGrid:
             "object_ids": None if object_ids is None else object_ids[hit_mask_idx],
             "scalars": {k: v[hit_mask_idx] for k, v in scalars.items()},
         }
-        self._update_rich(uniq, inverse, rich, float(time), bumped=changed["count"] > 0)
-        self._record(changed, float(time), agent, sensor.kind_code, reliability, experience, bias, uniq, inverse, rich)
+        log_hit = sensor.log_hit * reliability
+        log_miss = sensor.log_miss * reliability
+        objects = self._object_lookup(uniq, inverse, rich["object_ids"])
+        context = {
+            "time": float(time),
+            "agent": self.history.agent_code(agent),
+            "sensor": sensor.kind_code,
+            "reliability": reliability,
+            "experience": experience,
+            "bias": bias,
+            "objects": objects,
+        }
+        changed = self._update(traversal, float(time), log_hit, log_miss, sensor.log_min, sensor.log_max, context)
+        self._update_rich(uniq, inverse, rich, float(time), bumped=changed > 0)
         self.now = max(self.now, float(time))
         return IntegrationReport(
             points=n,
@@ -201,7 +211,7 @@ class VoxelGrid:
             dropped=dropped,
             voxels_hit=traversal.hit_count,
             voxels_free=traversal.free_count,
-            voxels_changed=int(changed["count"]),
+            voxels_changed=int(changed),
             version=self.version,
         )
 
@@ -260,24 +270,53 @@ class VoxelGrid:
         return (lo * np.exp2(-dt / self.half_life)).astype(np.float32)
 
     def _update(
-        self, tr: Traversal, time: float, log_hit: float, log_miss: float, log_min: float, log_max: float
-    ) -> dict[str, np.ndarray]:
-        """Apply one scan's hits and misses to the store; returns what changed, per block."""
-        empty = {"count": 0, "slots": np.empty(0, np.int64), "mask": np.empty((0, BLOCK_VOXELS), bool)}
+        self,
+        tr: Traversal,
+        time: float,
+        log_hit: float,
+        log_miss: float,
+        log_min: float,
+        log_max: float,
+        context: dict,
+    ) -> int:
+        """Apply one scan's hits and misses to the store, in chunks of blocks; returns voxels changed."""
         if tr.blocks.size == 0:
-            return empty
+            return 0
         st = self.store
-        slots = st.ensure(tr.blocks)
+        slots_all = st.ensure(tr.blocks)
+        v = np.uint32(self.version + 1)
+        count = 0
+        for lo_i in range(0, slots_all.size, UPDATE_CHUNK):
+            slots = slots_all[lo_i : lo_i + UPDATE_CHUNK]
+            cells = tr.cells[lo_i : lo_i + UPDATE_CHUNK]
+            count += self._update_chunk(slots, cells, v, time, log_hit, log_miss, log_min, log_max, context)
+        if count:
+            self.version = int(v)
+        return count
+
+    def _update_chunk(
+        self,
+        slots: np.ndarray,
+        cells: np.ndarray,
+        v: np.uint32,
+        time: float,
+        log_hit: float,
+        log_miss: float,
+        log_min: float,
+        log_max: float,
+        context: dict,
+    ) -> int:
+        st = self.store
         lo_arr = st.channels["logodds"]
         old = lo_arr[slots]
-        cells = tr.cells
         touched = cells != 0
+        hit = cells == HIT
         known = ~np.isnan(old)
         base = np.where(known, old, np.float32(0.0))
         if self.half_life is not None:
             base = self._decayed(base, st.channels["last_time"][slots], time)
-        upd = np.where(cells == HIT, np.float32(log_hit), np.float32(log_miss))
-        new = np.clip(base + upd, np.float32(log_min), np.float32(log_max)).astype(np.float32)
+        evidence = np.where(hit, np.float32(log_hit), np.float32(log_miss))
+        new = np.clip(base + evidence, np.float32(log_min), np.float32(log_max))
         new = np.where(touched, new, old)
         if self.half_life is not None or self.statistics:
             changed = touched
@@ -285,27 +324,22 @@ class VoxelGrid:
             changed = touched & (~known | (new != old))
         count = int(np.count_nonzero(changed))
         if count == 0:
-            return empty
-        self.version += 1
-        v = np.uint32(self.version)
+            return 0
         lo_arr[slots] = new
-        st.channels["version"][slots] = np.where(changed, v, st.channels["version"][slots])
-        st.channels["last_time"][slots] = np.where(changed, time, st.channels["last_time"][slots])
+        ver = st.channels["version"]
+        ver[slots] = np.where(changed, v, ver[slots])
+        last = st.channels["last_time"]
+        last[slots] = np.where(changed, time, last[slots])
         st.slot_version[slots[changed.any(axis=1)]] = v
         if self.statistics:
-            st.channel("first_time")[slots] = np.where(touched & ~known, time, st.channel("first_time")[slots])
+            first = st.channel("first_time")
+            first[slots] = np.where(touched & ~known, time, first[slots])
             hits = st.channel("hits")
             misses = st.channel("misses")
-            hits[slots] = np.minimum(hits[slots].astype(np.int32) + (cells == HIT), 65535).astype(np.uint16)
+            hits[slots] = np.minimum(hits[slots].astype(np.int32) + hit, 65535).astype(np.uint16)
             misses[slots] = np.minimum(misses[slots].astype(np.int32) + (cells == FREE), 65535).astype(np.uint16)
-        return {
-            "count": count,
-            "slots": slots,
-            "mask": changed,
-            "old": old,
-            "new": new,
-            "evidence": np.where(cells == HIT, np.float32(log_hit), np.float32(log_miss)),
-        }
+        self._record(slots, old, new, changed, evidence, context)
+        return count
 
     def _update_rich(self, uniq: np.ndarray, inverse: np.ndarray, rich: dict, time: float, bumped: bool) -> None:
         """Fold colour, normals, classes and scalar channels of hit points into their voxels."""
@@ -400,57 +434,53 @@ class VoxelGrid:
         st.channels["last_time"][slots, offsets] = time
         st.slot_version[slots] = v
 
+    @staticmethod
+    def _object_lookup(uniq: np.ndarray, inverse: np.ndarray | None, object_ids: np.ndarray | None):
+        """(sorted packed keys, object id per key) of hit voxels carrying an object id, or None."""
+        if object_ids is None or inverse is None or uniq.size == 0:
+            return None
+        per_voxel = np.full(uniq.size, -1, dtype=np.int64)
+        per_voxel[inverse] = object_ids  # the last point of a voxel wins
+        return uniq, per_voxel
+
     def _record(
-        self,
-        changed: dict,
-        time: float,
-        agent: str,
-        sensor_code: int,
-        reliability: float,
-        experience: float,
-        bias: float,
-        uniq: np.ndarray,
-        inverse: np.ndarray,
-        rich: dict,
+        self, slots: np.ndarray, old: np.ndarray, new: np.ndarray, mask: np.ndarray, ev: np.ndarray, context: dict
     ) -> None:
-        """History: every hit voxel and every voxel whose state flipped gets a record."""
-        if changed["count"] == 0:
-            return
-        old, new, mask = changed["old"], changed["new"], changed["mask"]
+        """History: every hit voxel and every voxel whose state flipped gets a record.
+
+        Free space seen for the first time (unknown -> free) is not recorded: it is most of every
+        scan and carries no event; `state_at` derives it from the voxel's current state.
+        """
         old_state = np.where(np.isnan(old), UNKNOWN, np.where(old >= 0, OCCUPIED, FREE_STATE))
         new_state = np.where(new >= 0, OCCUPIED, FREE_STATE)
         flip = old_state != new_state
-        ev = changed["evidence"]
-        keep = mask & (flip | (ev > 0))
+        keep = mask & ((flip & (old_state != UNKNOWN)) | (new_state == OCCUPIED) | (ev > 0))
         b, o = np.nonzero(keep)
         if b.size == 0:
             return
-        slots = changed["slots"][b]
-        keys = vk.pack(join_keys(self.store.slot_keys[slots], o))
+        keys = vk.pack(join_keys(self.store.slot_keys[slots[b]], o))
         obj_id = np.full(b.size, -1, dtype=np.int32)
         obj_p = np.zeros(b.size, dtype=np.float32)
-        if rich["object_ids"] is not None and uniq.size and inverse is not None:
-            pos = np.searchsorted(uniq, keys)
-            pos = np.minimum(pos, uniq.size - 1)
+        if context["objects"] is not None:
+            uniq, per_voxel = context["objects"]
+            pos = np.minimum(np.searchsorted(uniq, keys), uniq.size - 1)
             found = uniq[pos] == keys
-            per_voxel = np.full(uniq.size, -1, dtype=np.int64)
-            per_voxel[inverse] = rich["object_ids"]  # last point of a voxel wins
             obj_id[found] = per_voxel[pos[found]]
             obj_p[found & (obj_id >= 0)] = 1.0
         self.history.append(
             keys,
-            time=time,
-            agent=self.history.agent_code(agent),
-            sensor=sensor_code,
+            time=context["time"],
+            agent=context["agent"],
+            sensor=context["sensor"],
             evidence=ev[b, o],
             logodds=new[b, o],
             state=new_state[b, o],
             flip=flip[b, o],
             object_id=obj_id,
             object_prob=obj_p,
-            experience=experience,
-            reliability=reliability,
-            bias=bias,
+            experience=context["experience"],
+            reliability=context["reliability"],
+            bias=context["bias"],
         )
 
     # ---------------------------------------------------------------------------------- queries
@@ -533,9 +563,24 @@ class VoxelGrid:
         return self.history.of_voxel(int(vk.pack(key)[0]))
 
     def state_at(self, points: np.ndarray, t: float) -> np.ndarray:
-        """State of the voxels at `points` as it was at time t (from the history)."""
+        """State of the voxels at `points` as it was at time t.
+
+        From the history where it holds a record at or before t; a voxel without one that is
+        free now and last changed at or before t was free then (it never flipped); else unknown.
+        """
         keys = vk.points_to_keys(_as_points(points), self.resolution)
-        return self.history.state_at(vk.pack(keys), t)
+        out = self.history.state_at(vk.pack(keys), t)
+        none = out == UNKNOWN
+        if none.any():
+            slots, offsets, found = self._lookup(keys[none])
+            lo = np.full(found.size, np.nan, dtype=np.float32)
+            last = np.full(found.size, np.inf)
+            lo[found] = self.store.channels["logodds"][slots[found], offsets[found]]
+            last[found] = self.store.channels["last_time"][slots[found], offsets[found]]
+            with np.errstate(invalid="ignore"):
+                free_then = (lo < 0) & (last <= t)
+            out[np.flatnonzero(none)[free_then]] = FREE_STATE
+        return out
 
     def changed_between(self, t0: float, t1: float) -> np.ndarray:
         """Keys (M, 3) of voxels whose state changed in (t0, t1]."""

@@ -76,3 +76,30 @@ def test_demo_runs_and_writes_maps(tmp_path):
     for i in (1, 2, 3):
         assert (out / f"robot-{i}.ply").stat().st_size > 0
         assert (out / f"robot-{i}.bt").stat().st_size > 0
+
+
+def _netns_available() -> bool:
+    import shutil
+
+    if shutil.which("unshare") is None or shutil.which("ip") is None:
+        return False
+    probe = subprocess.run(["unshare", "-n", "true"], capture_output=True, timeout=10)
+    return probe.returncode == 0
+
+
+def test_multicast_discovery_in_a_private_network_namespace():
+    import pytest
+
+    if not _netns_available():
+        pytest.skip("unshare -n (a private network namespace) is not permitted here")
+    script = (
+        "ip link set lo up && ip link set lo multicast on && ip route add 224.0.0.0/4 dev lo && "
+        f"exec {sys.executable} -m tests.colonyd.multicast_check"
+    )
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    run = subprocess.run(["unshare", "-n", "sh", "-c", script], capture_output=True, text=True,
+                         timeout=90, cwd=root)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "converged by multicast discovery" in run.stdout

@@ -106,6 +106,11 @@ def test_floor_plan_image_orientation() -> None:
     assert image.shape == (2, 3) and lo.tolist() == [0, 0]
     assert image[1, 0] == OCCUPIED_GREY and image[0, 2] == OCCUPIED_GREY  # +y is up
     assert image[1, 1] == FREE_GREY and image[0, 0] == UNKNOWN_GREY
+    # free space far from any wall is cropped away
+    far = np.concatenate([free, [[500, 500, 0], [-400, 0, 0]]])
+    cropped, lo = floor_plan(occupied, far, layer=0, margin=2)
+    assert cropped.shape == (4, 7) and lo.tolist() == [-2, 0]  # clipped to the known cells, too
+    assert floor_plan(occupied, far, layer=0, margin=None)[0].shape == (501, 901)
 
 
 def test_tum_line() -> None:

@@ -75,3 +75,19 @@ def test_state_dir_guards(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(PersistenceError, match="not writable"):
         StateStore(tmp_path / "file" / "sub", "a", 0.1)
+
+
+def test_changes_after_the_last_publish_are_sent_after_a_restart(tmp_path):
+    store = StateStore(tmp_path, "a", 0.1)
+    grid = store.recover().grid
+    scan(grid, 1)
+    store.append(1, grid.delta_since(0))
+    published = grid.version
+    scan(grid, 2)  # integrated, then snapshotted before it was published
+    store.snapshot(grid, 1, published)
+    store.close()
+    store = StateStore(tmp_path, "a", 0.1)
+    rec = store.recover()
+    assert rec.seq == 1 and rec.published == published < rec.grid.version
+    assert len(rec.grid.delta_since(rec.published)) > 0
+    store.close()

@@ -62,26 +62,70 @@ def sample_messages(rng: np.random.Generator | None = None) -> list[Message]:
     delta = make_delta(rng, 60)
     return [
         Announce(
-            **common, kind="ground", frame_id="robot-1.map", resolution=0.05, software="colony 0.1.0",
+            **common,
+            kind="ground",
+            frame_id="robot-1.map",
+            resolution=0.05,
+            software="colony 0.1.0",
             sensors=[SensorInfo.from_model("front", SensorModel(kind="depth", max_range=5.0))],
             capabilities=["snapshot", "deltas"],
         ),
-        Pose(**common, frame_id="robot-1.map", position=(1.0, 2.0, 0.5), orientation=(0.0, 0.0, 0.6, 0.8),
-             covariance=[0.01 * (i % 7 == 0) for i in range(36)]),
+        Pose(
+            **common,
+            frame_id="robot-1.map",
+            position=(1.0, 2.0, 0.5),
+            orientation=(0.0, 0.0, 0.6, 0.8),
+            covariance=[0.01 * (i % 7 == 0) for i in range(36)],
+        ),
         VoxelDelta(**common, frame_id="robot-1.map", delta=delta),
-        Objects(**common, frame_id="robot-1.map", objects=[
-            ObjectCentroid(object_id=5, class_id=2, class_name="chair", position=(1.0, 0.5, 0.4),
-                           covariance=[0.01, 0, 0, 0, 0.01, 0, 0, 0, 0.02], voxel_count=120, time=1_700_000_000.0),
-        ]),
-        AlignOffer(**common, target="robot-2", source_frame="robot-1.map", target_frame="robot-2.map",
-                   position=(0.5, -1.0, 0.0), orientation=(0.0, 0.0, 0.0, 1.0), matches=4, inliers=3,
-                   rmse=0.04, pairs=[(5, 9), (6, 11)]),
+        Objects(
+            **common,
+            frame_id="robot-1.map",
+            objects=[
+                ObjectCentroid(
+                    object_id=5,
+                    class_id=2,
+                    class_name="chair",
+                    position=(1.0, 0.5, 0.4),
+                    covariance=[0.01, 0, 0, 0, 0.01, 0, 0, 0, 0.02],
+                    voxel_count=120,
+                    time=1_700_000_000.0,
+                ),
+            ],
+        ),
+        AlignOffer(
+            **common,
+            target="robot-2",
+            source_frame="robot-1.map",
+            target_frame="robot-2.map",
+            position=(0.5, -1.0, 0.0),
+            orientation=(0.0, 0.0, 0.0, 1.0),
+            matches=4,
+            inliers=3,
+            rmse=0.04,
+            pairs=[(5, 9), (6, 11)],
+        ),
         SnapshotRequest(**common, layer="robot-2", request_id=77),
-        SnapshotReply(**common, layer="robot-1", request_id=77, frame_id="robot-1.map", part=0, parts=2,
-                      delta=make_delta(rng, 40)),
+        SnapshotReply(
+            **common,
+            layer="robot-1",
+            request_id=77,
+            frame_id="robot-1.map",
+            part=0,
+            parts=2,
+            delta=make_delta(rng, 40),
+        ),
         DeltaRangeRequest(**common, layer="robot-1", request_id=78, from_version=10, to_version=12),
-        DeltaRangeReply(**common, layer="robot-1", request_id=78, frame_id="robot-1.map", complete=False),
-        DeltaRangeReply(**common, layer="robot-1", request_id=79, frame_id="robot-1.map", delta=make_delta(rng, 30)),
+        DeltaRangeReply(
+            **common, layer="robot-1", request_id=78, frame_id="robot-1.map", complete=False
+        ),
+        DeltaRangeReply(
+            **common,
+            layer="robot-1",
+            request_id=79,
+            frame_id="robot-1.map",
+            delta=make_delta(rng, 30),
+        ),
     ]
 
 
@@ -104,7 +148,12 @@ def assert_delta_close(a: Delta, b: Delta, *, q: float = 2.0**-5) -> None:
     finite = ~np.isnan(sa.logodds)
     assert np.all(np.abs(sa.logodds[finite] - sb.logodds[finite]) <= q + 1e-6)
     np.testing.assert_allclose(sa.last_time, sb.last_time, atol=5e-4, rtol=0)
-    assert (b.resolution, b.from_version, b.to_version, b.time) == (a.resolution, a.from_version, a.to_version, a.time)
+    assert (b.resolution, b.from_version, b.to_version, b.time) == (
+        a.resolution,
+        a.from_version,
+        a.to_version,
+        a.time,
+    )
     assert set(sa.channels) == set(sb.channels)
     for name, values in sa.channels.items():
         if name == "first_time":

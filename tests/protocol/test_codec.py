@@ -40,7 +40,10 @@ from tests.protocol.helpers import KEY, assert_delta_close, make_delta, sample_m
 
 def _same(a, b) -> None:
     assert type(a) is type(b)
-    da, db = a.model_dump(exclude={"delta", "free_summary"}), b.model_dump(exclude={"delta", "free_summary"})
+    da, db = (
+        a.model_dump(exclude={"delta", "free_summary"}),
+        b.model_dump(exclude={"delta", "free_summary"}),
+    )
     assert da == db
     if getattr(a, "delta", None) is not None:
         assert_delta_close(a.delta, b.delta)
@@ -59,7 +62,13 @@ def test_every_message_type_round_trips(key: bytes | None, compression: str) -> 
 def test_peek_reads_envelope_without_body() -> None:
     msg = sample_messages()[1]
     info = peek(encode(msg, key=KEY))
-    assert (info.kind, info.origin, info.epoch, info.seq, info.authenticated) == ("pose", "robot-1", 3, 41, True)
+    assert (info.kind, info.origin, info.epoch, info.seq, info.authenticated) == (
+        "pose",
+        "robot-1",
+        3,
+        41,
+        True,
+    )
 
 
 def _pose_frame(**kw) -> bytes:
@@ -67,11 +76,17 @@ def _pose_frame(**kw) -> bytes:
     return encode(msg, **kw)
 
 
-def _frame(mtype: int = 2, flags: int = 0, envelope: object = None, version: int = 1, tail: bytes = b"") -> bytes:
+def _frame(
+    mtype: int = 2, flags: int = 0, envelope: object = None, version: int = 1, tail: bytes = b""
+) -> bytes:
     if envelope is None:
         body = msgpack.packb({"frame_id": "map", "position": [0.0, 0.0, 0.0]})
         envelope = ["r1", 1, 2, 3.0, body]
-    return PREFIX.pack(MAGIC, version, mtype, flags, 0) + msgpack.packb(envelope, use_bin_type=True) + tail
+    return (
+        PREFIX.pack(MAGIC, version, mtype, flags, 0)
+        + msgpack.packb(envelope, use_bin_type=True)
+        + tail
+    )
 
 
 def test_reference_frame_decodes() -> None:
@@ -91,7 +106,11 @@ def test_reference_frame_decodes() -> None:
         (_frame(flags=0x06), UnknownTypeError, "compression 0 \\(none\\) or 1 \\(zstd\\), found 3"),
         (_frame()[:-3], TruncatedError, "msgpack"),
         (_frame(tail=b"\x00"), MalformedError, "trailing"),
-        (_frame(envelope=[1, 2]), MalformedError, "\\[origin, epoch, seq, time, body\\], found 2 items"),
+        (
+            _frame(envelope=[1, 2]),
+            MalformedError,
+            "\\[origin, epoch, seq, time, body\\], found 2 items",
+        ),
         (_frame(envelope={"a": 1}), MalformedError, "found dict"),
         (_frame(envelope=["bad/origin", 1, 2, 3.0, b""]), RangeError, "origin matching"),
         (_frame(envelope=["r1", -1, 2, 3.0, b""]), RangeError, "epoch in"),
@@ -100,23 +119,85 @@ def test_reference_frame_decodes() -> None:
         (_frame(envelope=["r1", 1, 2, float("nan"), b""]), RangeError, "finite time"),
         (_frame(envelope=["r1", 1, 2, 3.0, "text"]), MalformedError, "binary body, found str"),
         (_frame(envelope=["r1", 1, 2, 3.0, b"\xc1"]), MalformedError, "msgpack type byte"),
-        (_frame(envelope=["r1", 1, 2, 3.0, msgpack.packb([1])]), MalformedError, "pose body: expected a msgpack map"),
-        (_frame(envelope=["r1", 1, 2, 3.0, msgpack.packb({"frame_id": "map"})]), MalformedError, "position"),
-        (_frame(envelope=["r1", 1, 2, 3.0, msgpack.packb({"frame_id": "m/x", "position": [0, 0, 0]})]),
-         RangeError, "frame_id"),
-        (_frame(envelope=["r1", 1, 2, 3.0, msgpack.packb({"frame_id": "m", "position": [0, 0, 1e400]})]),
-         RangeError, "position"),
-        (_frame(envelope=["r1", 1, 2, 3.0, msgpack.packb({"frame_id": "m", "position": [0, 0, 0],
-                                                           "orientation": [0, 0, 0, 2]})]),
-         RangeError, "unit quaternion"),
-        (_frame(envelope=["r1", 1, 2, 3.0, msgpack.packb({"frame_id": "m", "position": [0, 0, 0],
-                                                           "covariance": [0.0] * 40})]),
-         OversizedError, "covariance"),
+        (
+            _frame(envelope=["r1", 1, 2, 3.0, msgpack.packb([1])]),
+            MalformedError,
+            "pose body: expected a msgpack map",
+        ),
+        (
+            _frame(envelope=["r1", 1, 2, 3.0, msgpack.packb({"frame_id": "map"})]),
+            MalformedError,
+            "position",
+        ),
+        (
+            _frame(
+                envelope=[
+                    "r1",
+                    1,
+                    2,
+                    3.0,
+                    msgpack.packb({"frame_id": "m/x", "position": [0, 0, 0]}),
+                ]
+            ),
+            RangeError,
+            "frame_id",
+        ),
+        (
+            _frame(
+                envelope=[
+                    "r1",
+                    1,
+                    2,
+                    3.0,
+                    msgpack.packb({"frame_id": "m", "position": [0, 0, 1e400]}),
+                ]
+            ),
+            RangeError,
+            "position",
+        ),
+        (
+            _frame(
+                envelope=[
+                    "r1",
+                    1,
+                    2,
+                    3.0,
+                    msgpack.packb(
+                        {"frame_id": "m", "position": [0, 0, 0], "orientation": [0, 0, 0, 2]}
+                    ),
+                ]
+            ),
+            RangeError,
+            "unit quaternion",
+        ),
+        (
+            _frame(
+                envelope=[
+                    "r1",
+                    1,
+                    2,
+                    3.0,
+                    msgpack.packb(
+                        {"frame_id": "m", "position": [0, 0, 0], "covariance": [0.0] * 40}
+                    ),
+                ]
+            ),
+            OversizedError,
+            "covariance",
+        ),
         (_frame(flags=COMPRESSION_ZSTD << 1), MalformedError, "expected a zstd frame"),
-        (_frame(mtype=3, envelope=["r1", 1, 2, 3.0, msgpack.packb({"frame_id": "m"})]), MalformedError,
-         "field 'delta'"),
-        (_frame(mtype=3, envelope=["r1", 1, 2, 3.0, msgpack.packb({"frame_id": "m", "delta": 5})]), MalformedError,
-         "binary 'delta'"),
+        (
+            _frame(mtype=3, envelope=["r1", 1, 2, 3.0, msgpack.packb({"frame_id": "m"})]),
+            MalformedError,
+            "field 'delta'",
+        ),
+        (
+            _frame(
+                mtype=3, envelope=["r1", 1, 2, 3.0, msgpack.packb({"frame_id": "m", "delta": 5})]
+            ),
+            MalformedError,
+            "binary 'delta'",
+        ),
     ],
 )
 def test_hostile_frames_rejected(data: bytes, error: type[ProtocolError], match: str) -> None:
@@ -245,13 +326,19 @@ def test_short_key_refused() -> None:
 
 def test_replays_detected() -> None:
     window = ReplayWindow(window=64)
-    frames = [encode(Pose(origin="r1", epoch=1, seq=s, time=1.0, frame_id="m", position=(0, 0, 0)), key=KEY)
-              for s in range(5)]
+    frames = [
+        encode(
+            Pose(origin="r1", epoch=1, seq=s, time=1.0, frame_id="m", position=(0, 0, 0)), key=KEY
+        )
+        for s in range(5)
+    ]
     for f in frames[::-1]:  # out of order is fine
         decode(f, key=KEY, replay=window)
     with pytest.raises(ReplayError, match="seq 2 of epoch 1 was already accepted"):
         decode(frames[2], key=KEY, replay=window)
-    old_epoch = encode(Pose(origin="r1", epoch=0, seq=99, time=1.0, frame_id="m", position=(0, 0, 0)), key=KEY)
+    old_epoch = encode(
+        Pose(origin="r1", epoch=0, seq=99, time=1.0, frame_id="m", position=(0, 0, 0)), key=KEY
+    )
     with pytest.raises(ReplayError, match="expected epoch >= 1, found epoch 0"):
         decode(old_epoch, key=KEY, replay=window)
 
@@ -279,11 +366,14 @@ def test_replay_window_edges() -> None:
 def test_delta_messages_split_and_budget() -> None:
     rng = np.random.default_rng(3)
     delta = make_delta(rng, 30_000, spread=300, channels=False)
-    msgs = delta_messages(origin="r1", epoch=1, seq=10, time=delta.time, frame_id="map", delta=delta,
-                          max_bytes=16_000)
+    msgs = delta_messages(
+        origin="r1", epoch=1, seq=10, time=delta.time, frame_id="map", delta=delta, max_bytes=16_000
+    )
     assert len(msgs) > 1
     assert [m.seq for m in msgs] == list(range(10, 10 + len(msgs)))
-    assert all(m.parts == len(msgs) for m in msgs) and [m.part for m in msgs] == list(range(len(msgs)))
+    assert all(m.parts == len(msgs) for m in msgs) and [m.part for m in msgs] == list(
+        range(len(msgs))
+    )
     total = 0
     for m in msgs:
         frame = encode(m, key=KEY)
@@ -293,8 +383,16 @@ def test_delta_messages_split_and_budget() -> None:
         total += len(out.delta)
     assert total == len(delta)
     dense = make_delta(rng, 30_000, spread=25, channels=False)
-    budgeted = delta_messages(origin="r1", epoch=1, seq=0, time=delta.time, frame_id="map", delta=dense,
-                              budget=40_000, max_bytes=1 << 20)
+    budgeted = delta_messages(
+        origin="r1",
+        epoch=1,
+        seq=0,
+        time=delta.time,
+        frame_id="map",
+        delta=dense,
+        budget=40_000,
+        max_bytes=1 << 20,
+    )
     assert len(budgeted) == 1
     frame = encode(budgeted[0])
     out = decode(frame)
@@ -306,8 +404,16 @@ def test_delta_messages_split_and_budget() -> None:
 def test_summary_gets_its_own_part_when_the_last_part_is_full() -> None:
     rng = np.random.default_rng(4)
     dense = make_delta(rng, 30_000, spread=25, channels=False)
-    msgs = delta_messages(origin="r1", epoch=1, seq=0, time=dense.time, frame_id="map", delta=dense,
-                          budget=40_000, max_bytes=8_000)
+    msgs = delta_messages(
+        origin="r1",
+        epoch=1,
+        seq=0,
+        time=dense.time,
+        frame_id="map",
+        delta=dense,
+        budget=40_000,
+        max_bytes=8_000,
+    )
     assert len(msgs) > 1
     assert all(m.free_summary is None for m in msgs[:-1])
     last = decode(encode(msgs[-1]))
@@ -319,4 +425,16 @@ def test_summary_gets_its_own_part_when_the_last_part_is_full() -> None:
 def test_peek_rejects_truncated_tagged_frame() -> None:
     signed = _pose_frame(key=KEY)
     with pytest.raises(TruncatedError, match="32-byte tag"):
-        peek(signed[:PREFIX.size + 10])
+        peek(signed[: PREFIX.size + 10])
+
+
+def test_largest_objects_list_decodes_and_one_more_is_refused() -> None:
+    from protocol.messages import ObjectCentroid, Objects
+
+    obj = ObjectCentroid(object_id=1, class_id=2, class_name="chair", position=(1.0, 2.0, 3.0),
+                         covariance=[0.1] * 9, voxel_count=100, time=1.0)
+    msg = Objects(origin="r1", time=1.0, frame_id="map", objects=[obj] * 16_384)
+    assert len(decode(encode(msg)).objects) == 16_384
+    body = msgpack.packb({"frame_id": "map", "objects": [obj.model_dump()] * 16_385})
+    with pytest.raises(OversizedError, match="objects"):
+        decode(_frame(mtype=4, envelope=["r1", 1, 2, 3.0, body]))

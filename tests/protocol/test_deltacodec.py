@@ -24,8 +24,15 @@ from protocol.deltacodec import (
     split_delta,
     summarise_free,
 )
-from protocol.errors import MalformedError, OversizedError, ProtocolError, RangeError, UnknownTypeError, VersionError
-from protocol.limits import Limits
+from protocol.errors import (
+    MalformedError,
+    OversizedError,
+    ProtocolError,
+    RangeError,
+    UnknownTypeError,
+    VersionError,
+)
+from protocol.limits import DEFAULT_LIMITS, Limits
 from tests.protocol.helpers import assert_delta_close, make_delta
 from voxel.delta import Delta
 from voxel.keys import KEY_MAX, KEY_MIN, pack
@@ -41,7 +48,7 @@ def test_round_trip_with_channels(rng: np.random.Generator) -> None:
     assert_delta_close(delta, decode_delta(encode_delta(delta)))
 
 
-@pytest.mark.parametrize("block_shift", [3, 4])
+@pytest.mark.parametrize("block_shift", [2, 3, 4])
 def test_round_trip_dense_and_sparse_blocks(rng: np.random.Generator, block_shift: int) -> None:
     dense = np.stack(np.meshgrid(*[np.arange(-20, 12)] * 3, indexing="ij"), -1).reshape(-1, 3)
     sparse = rng.integers(-5000, 5000, size=(300, 3))
@@ -53,7 +60,14 @@ def test_round_trip_dense_and_sparse_blocks(rng: np.random.Generator, block_shif
 
 
 def test_extreme_keys_round_trip() -> None:
-    keys = np.array([[KEY_MIN, KEY_MIN, KEY_MIN], [KEY_MAX, KEY_MAX, KEY_MAX], [KEY_MIN, 0, KEY_MAX], [-1, -1, -1]])
+    keys = np.array(
+        [
+            [KEY_MIN, KEY_MIN, KEY_MIN],
+            [KEY_MAX, KEY_MAX, KEY_MAX],
+            [KEY_MIN, 0, KEY_MAX],
+            [-1, -1, -1],
+        ]
+    )
     delta = Delta(0.05, 0, 1, keys, [0.5, -0.5, np.nan, 3.0], [1.0, 2.0, np.nan, 4.0], time=4.0)
     assert_delta_close(delta, decode_delta(encode_delta(delta)))
 
@@ -86,17 +100,27 @@ voxel_keys = st.lists(
     keys=voxel_keys,
     seed=st.integers(0, 2**32 - 1),
     scale=st.sampled_from([0.01, 0.5, 3.5, 40.0, 1500.0]),
-    block_shift=st.sampled_from([3, 4]),
+    block_shift=st.sampled_from([2, 3, 4]),
 )
-def test_property_round_trip(keys: list[tuple[int, int, int]], seed: int, scale: float, block_shift: int) -> None:
+def test_property_round_trip(
+    keys: list[tuple[int, int, int]], seed: int, scale: float, block_shift: int
+) -> None:
     rng = np.random.default_rng(seed)
     n = len(keys)
     lo = (rng.uniform(-1, 1, n) * scale).astype(np.float32)
     lo[rng.random(n) < 0.1] = np.nan
     lo[rng.random(n) < 0.05] = -1e-6  # tiny negatives stay free
     times = 100.0 + rng.integers(-50_000, 50_000, n) / 1000.0
-    delta = Delta(0.1, 3, 4, np.array(keys, dtype=np.int64).reshape(-1, 3), lo, times, time=100.0,
-                  channels={"hits": rng.integers(0, 60000, n)})
+    delta = Delta(
+        0.1,
+        3,
+        4,
+        np.array(keys, dtype=np.int64).reshape(-1, 3),
+        lo,
+        times,
+        time=100.0,
+        channels={"hits": rng.integers(0, 60000, n)},
+    )
     out = decode_delta(encode_delta(delta, block_shift=block_shift))
     q = 2.0 ** quantum_exponent(lo)
     assert_delta_close(delta, out, q=q)
@@ -124,8 +148,15 @@ def test_significance_tiers() -> None:
     prev = np.array([-1.0, 0.5, 0.5, 1.0, np.nan, -0.4, np.nan], dtype=np.float32)
     delta = Delta(0.1, 0, 1, np.arange(21).reshape(7, 3), lo, np.zeros(7))
     tiers = significance(delta, prev)
-    assert tiers.tolist() == [Tier.OCCUPIED_NEW, Tier.OCCUPIED, Tier.CLEARED, Tier.UNKNOWN, Tier.FREE_NEW,
-                              Tier.FREE, Tier.OCCUPIED_NEW]
+    assert tiers.tolist() == [
+        Tier.OCCUPIED_NEW,
+        Tier.OCCUPIED,
+        Tier.CLEARED,
+        Tier.UNKNOWN,
+        Tier.FREE_NEW,
+        Tier.FREE,
+        Tier.OCCUPIED_NEW,
+    ]
     assert significance(delta).tolist() == [1, 1, 5, 3, 5, 5, 1]
     with pytest.raises(ValueError, match="one value per voxel"):
         significance(delta, prev[:3])
@@ -144,7 +175,9 @@ def test_wire_order_is_surfaces_first(rng: np.random.Generator) -> None:
 
 def test_bytes_per_voxel_on_dense_free_space() -> None:
     """A free-space cone like a depth frame's: far below one byte per changed voxel."""
-    g = np.stack(np.meshgrid(np.arange(0, 64), np.arange(-32, 32), np.arange(-16, 16), indexing="ij"), -1).reshape(-1, 3)
+    g = np.stack(
+        np.meshgrid(np.arange(0, 64), np.arange(-32, 32), np.arange(-16, 16), indexing="ij"), -1
+    ).reshape(-1, 3)
     inside = np.abs(g[:, 1]) <= g[:, 0] // 2
     keys = g[inside]
     lo = np.full(len(keys), -0.405, dtype=np.float32)
@@ -199,11 +232,16 @@ def test_split_parts_fit_and_decode_independently(rng: np.random.Generator) -> N
         d = decode_delta(body)
         assert (d.from_version, d.to_version) == (delta.from_version, delta.to_version)
         decoded.append(d)
-    merged = Delta(delta.resolution, delta.from_version, delta.to_version,
-                   np.concatenate([d.keys for d in decoded]), np.concatenate([d.logodds for d in decoded]),
-                   np.concatenate([d.last_time for d in decoded]),
-                   channels={k: np.concatenate([d.channels[k] for d in decoded]) for k in delta.channels},
-                   time=delta.time)
+    merged = Delta(
+        delta.resolution,
+        delta.from_version,
+        delta.to_version,
+        np.concatenate([d.keys for d in decoded]),
+        np.concatenate([d.logodds for d in decoded]),
+        np.concatenate([d.last_time for d in decoded]),
+        channels={k: np.concatenate([d.channels[k] for d in decoded]) for k in delta.channels},
+        time=delta.time,
+    )
     assert_delta_close(delta, merged)
     # surfaces first: the first part holds occupied voxels before any free one
     assert decoded[0].occupied[: int(delta.occupied.sum()) // 2 or 1].all()
@@ -215,12 +253,20 @@ def test_split_parts_fit_and_decode_independently(rng: np.random.Generator) -> N
 
 
 def _body(delta: Delta | None = None) -> dict:
-    delta = delta or Delta(0.1, 0, 1, [[0, 0, 0], [1, 2, 3], [100, -5, 7]], [0.5, -0.5, np.nan], [1.0, 1.0, 2.0],
-                           channels={"hits": [1, 2, 3]}, time=2.0)
+    delta = delta or Delta(
+        0.1,
+        0,
+        1,
+        [[0, 0, 0], [1, 2, 3], [100, -5, 7]],
+        [0.5, -0.5, np.nan],
+        [1.0, 1.0, 2.0],
+        channels={"hits": [1, 2, 3]},
+        time=2.0,
+    )
     return msgpack.unpackb(encode_delta(delta))
 
 
-def _decode(body: dict, limits: Limits = Limits()) -> Delta:
+def _decode(body: dict, limits: Limits = DEFAULT_LIMITS) -> Delta:
     return decode_delta(msgpack.packb(body, use_bin_type=True), limits)
 
 
@@ -249,12 +295,24 @@ def test_valid_reference_body_decodes() -> None:
         (lambda b: b.update(sec=["x"]), MalformedError, "expected \\[tier"),
         (lambda b: b["sec"][0].__setitem__(0, 9), RangeError, "tier"),
         (lambda b: b["sec"][0].__setitem__(3, b"\x00" * 5), MalformedError, "blocks: expected"),
-        (lambda b: b["sec"][0].__setitem__(4, b"\x00\x00" * (len(b["sec"][0][4]) // 2)), RangeError, "voxels per block"),
-        (lambda b: b["sec"][0].__setitem__(6, b"\xff\xff" * (len(b["sec"][0][6]) // 2)), RangeError, "offsets below"),
+        (
+            lambda b: b["sec"][0].__setitem__(4, b"\x00\x00" * (len(b["sec"][0][4]) // 2)),
+            RangeError,
+            "voxels per block",
+        ),
+        (
+            lambda b: b["sec"][0].__setitem__(6, b"\xff\xff" * (len(b["sec"][0][6]) // 2)),
+            RangeError,
+            "offsets below",
+        ),
         (lambda b: b.update(tt=b"\x00" * 3), MalformedError, "8-byte entries"),
         (lambda b: b.update(ti=b"\x07\x07\x07"), RangeError, "time indices below"),
         (lambda b: b.update(ch=[["bogus", 0, b""]]), UnknownTypeError, "bogus"),
-        (lambda b: b.update(ch=[["hits", 0, b"\x00"]]), MalformedError, "expected 6 bytes, found 1"),
+        (
+            lambda b: b.update(ch=[["hits", 0, b"\x00"]]),
+            MalformedError,
+            "expected 6 bytes, found 1",
+        ),
         (lambda b: b.update(ch=[["class_ids", 99, b""]]), RangeError, "width"),
         (lambda b: b.update(ch=[["colour", 2, b"\x00" * 6]]), RangeError, "expected width 3"),
         (lambda b: b.update(ch=[["hits", 0, b"\x00" * 6]] * 2), MalformedError, "twice"),
@@ -306,3 +364,20 @@ def test_not_msgpack_rejected() -> None:
         decode_delta(b"\xc1\x00")
     with pytest.raises(MalformedError, match="msgpack map"):
         decode_delta(msgpack.packb([1, 2]))
+
+
+def test_bad_block_shift_refused(rng: np.random.Generator) -> None:
+    with pytest.raises(ValueError, match="block_shift must be one of"):
+        encode_delta(make_delta(rng, 5), block_shift=5)
+
+
+def test_summary_round_trips_in_body(rng: np.random.Generator) -> None:
+    delta = make_delta(rng, 3000, channels=False, spread=30)
+    summary = summarise_free(delta, 1)
+    exact = delta.select(~(delta.logodds < 0))
+    out, back = decode_delta_with_summary(encode_delta(exact, summary=summary))
+    assert back is not None and back.level == 1 and len(back) == len(summary)
+    np.testing.assert_array_equal(np.sort(pack(back.keys)), np.sort(pack(summary.keys)))
+    assert np.all(back.logodds < 0)
+    assert back.time == pytest.approx(summary.time, abs=1e-3)
+    assert_delta_close(exact, out)

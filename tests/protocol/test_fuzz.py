@@ -13,7 +13,7 @@ import numpy as np
 from protocol import fields
 from protocol.auth import compute_tag
 from protocol.codec import COMPRESSION_ZSTD, MAGIC, PREFIX, decode, encode
-from protocol.deltacodec import encode_delta
+from protocol.deltacodec import encode_delta, summarise_free
 from protocol.errors import ProtocolError
 from protocol.limits import Limits
 from protocol.messages import MESSAGE_TYPES
@@ -21,14 +21,20 @@ from tests.protocol.helpers import KEY, make_delta, sample_messages
 
 N_CASES = 100_000
 #: Tight limits so that a mutation that survives reaches the limit checks quickly.
-LIMITS = Limits(max_message_bytes=1 << 20, max_body_bytes=1 << 20, max_voxels=200_000, max_list=4096)
+LIMITS = Limits(
+    max_message_bytes=1 << 20, max_body_bytes=1 << 20, max_voxels=200_000, max_list=4096
+)
 
 
-def _frame(mtype: int, body: bytes, *, compress: bool, key: bytes | None, origin: str = "robot-1") -> bytes:
+def _frame(
+    mtype: int, body: bytes, *, compress: bool, key: bytes | None, origin: str = "robot-1"
+) -> bytes:
     flags = (COMPRESSION_ZSTD << 1 if compress else 0) | (1 if key else 0)
     if compress:
         body = fields.compress(body)
-    frame = PREFIX.pack(MAGIC, 1, mtype, flags, 0) + msgpack.packb([origin, 3, 41, 1.5, body], use_bin_type=True)
+    frame = PREFIX.pack(MAGIC, 1, mtype, flags, 0) + msgpack.packb(
+        [origin, 3, 41, 1.5, body], use_bin_type=True
+    )
     return frame + compute_tag(key, frame) if key else frame
 
 
@@ -114,11 +120,28 @@ def test_fuzz_decoder_raises_only_protocol_errors() -> None:
     messages = sample_messages(rng)
     frames = [encode(m, compression=c) for m in messages for c in ("zstd", "none")]
     signed = [encode(m, key=KEY) for m in messages]
-    bodies = [(type(m).TYPE, msgpack.unpackb(fields.pack(_plain_body(m)), raw=False)) for m in messages]
-    delta_blobs = [encode_delta(make_delta(rng, n, channels=bool(n % 2))) for n in (1, 7, 40, 90)]
+    bodies = [
+        (type(m).TYPE, msgpack.unpackb(fields.pack(_plain_body(m)), raw=False)) for m in messages
+    ]
+    delta_blobs = [
+        encode_delta(make_delta(rng, n, channels=bool(n % 2)), block_shift=2 + n % 3)
+        for n in (1, 7, 40, 90, 300)
+    ]
+    summarised = make_delta(rng, 200, channels=False, spread=10)
+    free = summarised.logodds < 0
+    delta_blobs.append(
+        encode_delta(summarised.select(~free), summary=summarise_free(summarised, 1))
+    )
 
     def random_bytes() -> tuple[bytes, bytes | None]:
-        head = r.choice([b"", MAGIC, MAGIC + b"\x01", PREFIX.pack(MAGIC, 1, r.randrange(1, 10), r.randrange(4), 0)])
+        head = r.choice(
+            [
+                b"",
+                MAGIC,
+                MAGIC + b"\x01",
+                PREFIX.pack(MAGIC, 1, r.randrange(1, 10), r.randrange(4), 0),
+            ]
+        )
         return head + r.randbytes(r.randrange(0, 200)), None
 
     def mutated_frame() -> tuple[bytes, bytes | None]:
@@ -145,12 +168,20 @@ def test_fuzz_decoder_raises_only_protocol_errors() -> None:
         if r.random() < 0.5:
             blob = _mutate_bytes(r, blob)
         else:
-            blob = msgpack.packb(_mutate_structure(r, msgpack.unpackb(blob, raw=False)), use_bin_type=True)
+            blob = msgpack.packb(
+                _mutate_structure(r, msgpack.unpackb(blob, raw=False)), use_bin_type=True
+            )
         body = fields.pack({"frame_id": "map", "part": 0, "parts": 1, "delta": blob})
         return _frame(3, body, compress=False, key=None), None
 
     generators: list[Callable[[], tuple[bytes, bytes | None]]] = [
-        random_bytes, mutated_frame, mutated_signed, mutated_body, mutated_fields, mutated_delta, mutated_delta,
+        random_bytes,
+        mutated_frame,
+        mutated_signed,
+        mutated_body,
+        mutated_fields,
+        mutated_delta,
+        mutated_delta,
     ]
     outcomes: Counter[str] = Counter()
     crashes: list[tuple[bytes, BaseException]] = []
@@ -165,7 +196,9 @@ def test_fuzz_decoder_raises_only_protocol_errors() -> None:
         except Exception as exc:  # noqa: BLE001 - the point of the test
             crashes.append((data, exc))
     elapsed = time.process_time() - start
-    assert not crashes, f"{len(crashes)} crashes, first: {crashes[0][1]!r} on {crashes[0][0][:80].hex()}"
+    assert not crashes, (
+        f"{len(crashes)} crashes, first: {crashes[0][1]!r} on {crashes[0][0][:80].hex()}"
+    )
     assert sum(outcomes.values()) == N_CASES
     assert outcomes["accepted"] > 0 and len(outcomes) >= 6, outcomes
     assert elapsed < 60, f"fuzz run took {elapsed:.1f} s of CPU time"

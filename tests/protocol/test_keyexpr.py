@@ -24,7 +24,9 @@ def test_keys_build_and_parse_back() -> None:
         assert key == f"colony/site-a/robot-1/{topic}"
         assert parse_key(key) == ParsedKey("site-a", "robot-1", topic)
     assert parse_key(alive_key("c", "r.2")) == ParsedKey("c", "r.2", "alive")
-    assert parse_key(query_key("c", "r1", "snapshot", "r2")) == ParsedKey("c", "r1", "snapshot", "r2")
+    assert parse_key(query_key("c", "r1", "snapshot", "r2")) == ParsedKey(
+        "c", "r1", "snapshot", "r2"
+    )
     assert parse_key(query_key("c", "r1", "deltas", "r1")) == ParsedKey("c", "r1", "deltas", "r1")
 
 
@@ -35,7 +37,9 @@ def test_wildcard_expressions() -> None:
     assert query_declaration("c", "r1", "snapshot") == "colony/c/r1/snapshot/*"
 
 
-@pytest.mark.parametrize("bad", ["", "a/b", "a*", "$x", "a#", "a?b", "@r", "-lead", "a b", "x" * 65, "é"])
+@pytest.mark.parametrize(
+    "bad", ["", "a/b", "a*", "$x", "a#", "a?b", "@r", "-lead", "a b", "x" * 65, "é"]
+)
 def test_bad_names_rejected(bad: str) -> None:
     with pytest.raises(KeyExprError, match="must match"):
         validate_name(bad, "origin")
@@ -86,5 +90,7 @@ def test_key_origin_must_match_frame_origin() -> None:
     from protocol.keyexpr import check_origin
 
     assert check_origin("colony/c/r1/delta", "r1").kind == "delta"
-    with pytest.raises(KeyExprError, match="belongs to origin 'r1', found a frame from origin 'r2'"):
+    with pytest.raises(
+        KeyExprError, match="belongs to origin 'r1', found a frame from origin 'r2'"
+    ):
         check_origin("colony/c/r1/delta", "r2")

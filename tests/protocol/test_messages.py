@@ -41,21 +41,51 @@ def test_sensor_info_round_trips_a_sensor_model() -> None:
 @pytest.mark.parametrize(
     ("factory", "match"),
     [
-        (lambda: Pose(**COMMON, frame_id="m", position=(0, 0, 0), orientation=(0, 0, 0, 2)), "unit quaternion"),
+        (
+            lambda: Pose(**COMMON, frame_id="m", position=(0, 0, 0), orientation=(0, 0, 0, 2)),
+            "unit quaternion",
+        ),
         (lambda: Pose(**COMMON, frame_id="m", position=(0, 0, float("nan"))), "finite"),
-        (lambda: Pose(**COMMON, frame_id="m", position=(0, 0, 0), covariance=[0.0] * 35), "at least 36"),
+        (
+            lambda: Pose(**COMMON, frame_id="m", position=(0, 0, 0), covariance=[0.0] * 35),
+            "at least 36",
+        ),
         (lambda: Pose(origin="bad origin", time=1.0, frame_id="m", position=(0, 0, 0)), "pattern"),
         (lambda: Pose(**COMMON, frame_id="m", position=(0, 0, 0), typo=1), "Extra inputs"),
-        (lambda: Pose(**COMMON, epoch=-1, frame_id="m", position=(0, 0, 0)), "greater than or equal"),
+        (
+            lambda: Pose(**COMMON, epoch=-1, frame_id="m", position=(0, 0, 0)),
+            "greater than or equal",
+        ),
         (lambda: Announce(**COMMON, kind="ground", frame_id="m", resolution=0.0), "greater than 0"),
         (lambda: SensorInfo(name="s", kind="sonar"), "sensor kind must be one of"),
         (lambda: SensorInfo(name="s", kind="depth", prob_hit=1.5), "less than 1"),
-        (lambda: ObjectCentroid(object_id=1, class_id=70000, position=(0, 0, 0), voxel_count=1, time=0.0), "65535"),
-        (lambda: VoxelDelta(**COMMON, frame_id="m", delta=make_delta(np.random.default_rng(0), 5), part=2, parts=2),
-         "part must be below parts"),
+        (
+            lambda: ObjectCentroid(
+                object_id=1, class_id=70000, position=(0, 0, 0), voxel_count=1, time=0.0
+            ),
+            "65535",
+        ),
+        (
+            lambda: VoxelDelta(
+                **COMMON,
+                frame_id="m",
+                delta=make_delta(np.random.default_rng(0), 5),
+                part=2,
+                parts=2,
+            ),
+            "part must be below parts",
+        ),
         (lambda: VoxelDelta(**COMMON, frame_id="m", delta="not a delta"), "instance of Delta"),
-        (lambda: DeltaRangeRequest(**COMMON, layer="r", request_id=1, from_version=5, to_version=4), "to_version"),
-        (lambda: SnapshotRequest(**COMMON, layer="r", request_id=1, max_part_bytes=10), "greater than or equal"),
+        (
+            lambda: DeltaRangeRequest(
+                **COMMON, layer="r", request_id=1, from_version=5, to_version=4
+            ),
+            "to_version",
+        ),
+        (
+            lambda: SnapshotRequest(**COMMON, layer="r", request_id=1, max_part_bytes=10),
+            "greater than or equal",
+        ),
     ],
 )
 def test_invalid_messages_rejected(factory, match: str) -> None:
@@ -66,14 +96,24 @@ def test_invalid_messages_rejected(factory, match: str) -> None:
 def test_rigid_matrix_conversions() -> None:
     angle = 0.7
     t = np.eye(4)
-    t[:3, :3] = [[math.cos(angle), -math.sin(angle), 0], [math.sin(angle), math.cos(angle), 0], [0, 0, 1]]
+    t[:3, :3] = [
+        [math.cos(angle), -math.sin(angle), 0],
+        [math.sin(angle), math.cos(angle), 0],
+        [0, 0, 1],
+    ]
     t[:3, 3] = [1.0, 2.0, 3.0]
     pose = Pose(**COMMON, frame_id="m", **Pose.split_matrix(t))
     np.testing.assert_allclose(pose.matrix(), t, atol=1e-12)
-    for r in ([[1, 0, 0], [0, -1, 0], [0, 0, -1]], [[-1, 0, 0], [0, 1, 0], [0, 0, -1]], [[-1, 0, 0], [0, -1, 0], [0, 0, 1]]):
+    for r in (
+        [[1, 0, 0], [0, -1, 0], [0, 0, -1]],
+        [[-1, 0, 0], [0, 1, 0], [0, 0, -1]],
+        [[-1, 0, 0], [0, -1, 0], [0, 0, 1]],
+    ):
         m = np.eye(4)
         m[:3, :3] = r
-        offer = AlignOffer(**COMMON, target="r2", source_frame="a", target_frame="b", **AlignOffer.split_matrix(m))
+        offer = AlignOffer(
+            **COMMON, target="r2", source_frame="a", target_frame="b", **AlignOffer.split_matrix(m)
+        )
         np.testing.assert_allclose(offer.matrix(), m, atol=1e-12)
     with pytest.raises(ValueError, match="4x4"):
         Pose.split_matrix(np.eye(3))

@@ -28,18 +28,28 @@ def _hex(marker: str) -> bytes:
 
 def test_doc_hex_is_what_the_code_encodes() -> None:
     frame = _hex("example-frame")
-    assert frame == example_frame(), "regenerate the example: hexdump(example_frame())\n" + hexdump(example_frame())
+    assert frame == example_frame(), "regenerate the example: hexdump(example_frame())\n" + hexdump(
+        example_frame()
+    )
     assert len(frame) == 230
 
 
 def test_doc_hex_decodes_to_documented_values() -> None:
     msg = decode(_hex("example-frame"))
     assert isinstance(msg, VoxelDelta)
-    assert (msg.origin, msg.epoch, msg.seq, msg.time, msg.frame_id) == ("r1", 1, 7, 1_700_000_000.5, "map")
+    assert (msg.origin, msg.epoch, msg.seq, msg.time, msg.frame_id) == (
+        "r1",
+        1,
+        7,
+        1_700_000_000.5,
+        "map",
+    )
     assert (msg.delta.from_version, msg.delta.to_version, msg.delta.resolution) == (41, 42, 0.05)
     expected = json.loads(_block("example-decoded"))
     np.testing.assert_array_equal(msg.delta.keys, expected["keys"])
-    np.testing.assert_array_equal(msg.delta.logodds, np.array(expected["logodds"], dtype=np.float32))
+    np.testing.assert_array_equal(
+        msg.delta.logodds, np.array(expected["logodds"], dtype=np.float32)
+    )
     np.testing.assert_array_equal(msg.delta.last_time, expected["last_time"])
     np.testing.assert_array_equal(msg.delta.channels["hits"], expected["hits"])
     original = example_message().delta
