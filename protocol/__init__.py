@@ -1,4 +1,4 @@
-"""Wire protocol: messages, frame codec, voxel-delta codec, key expressions, authentication, errors."""
+"""Wire protocol: messages, frames, voxel-delta codec, key expressions, authentication, errors."""
 
 from protocol.auth import ReplayWindow
 from protocol.codec import FrameInfo, decode, delta_messages, encode, peek

@@ -33,7 +33,10 @@ def verify_tag(key: bytes, data: bytes | memoryview, tag: bytes | memoryview) ->
     """Raise AuthError unless `tag` is the tag of `data` under `key` (constant-time compare)."""
     expected = compute_tag(key, data)
     if len(tag) != TAG_BYTES or not hmac.compare_digest(expected, bytes(tag)):
-        msg = f"authentication tag does not match: expected HMAC-SHA256 of the frame under the colony key, found {bytes(tag[:8]).hex()}…"
+        msg = (
+            "authentication tag does not match: expected HMAC-SHA256 of the frame under the "
+            f"colony key, found {bytes(tag[:8]).hex()}…"
+        )
         raise AuthError(msg)
 
 

@@ -96,10 +96,16 @@ def encode(
 ) -> bytes:
     """Frame bytes of `msg`; authenticated with HMAC-SHA256 when a colony `key` is given."""
     if msg.version != PROTOCOL_VERSION:
-        msg_ = f"can only encode protocol version {PROTOCOL_VERSION}, found message version {msg.version}"
+        msg_ = (
+            f"can only encode protocol version {PROTOCOL_VERSION}, found message version "
+            f"{msg.version}"
+        )
         raise VersionError(msg_)
     if type(msg).TYPE not in MESSAGE_TYPES:
-        msg_ = f"expected one of the message classes {sorted(c.__name__ for c in MESSAGE_TYPES.values())}, found {type(msg).__name__}"
+        msg_ = (
+            "expected one of the message classes "
+            f"{sorted(c.__name__ for c in MESSAGE_TYPES.values())}, found {type(msg).__name__}"
+        )
         raise UnknownTypeError(msg_)
     body = fields.pack(_body(msg))
     code = COMPRESSION_NONE
@@ -141,7 +147,10 @@ def _prefix(data: bytes, limits: Limits) -> tuple[int, int, int]:
         msg = f"frame: expected a message type in {sorted(MESSAGE_TYPES)}, found {mtype}"
         raise UnknownTypeError(msg)
     if flags & FLAGS_RESERVED or reserved:
-        msg = f"frame: expected reserved flag bits and byte 7 to be 0, found flags 0x{flags:02x}, byte 7 0x{reserved:02x}"
+        msg = (
+            f"frame: expected reserved flag bits and byte 7 to be 0, found flags 0x{flags:02x}, "
+            f"byte 7 0x{reserved:02x}"
+        )
         raise MalformedError(msg)
     compression = (flags & COMPRESSION_MASK) >> COMPRESSION_SHIFT
     if compression not in (COMPRESSION_NONE, COMPRESSION_ZSTD):
@@ -185,7 +194,10 @@ def peek(data: bytes, limits: Limits = DEFAULT_LIMITS) -> FrameInfo:
     auth = bool(flags & FLAG_AUTH)
     end = len(data) - (TAG_BYTES if auth else 0)
     if end <= PREFIX_BYTES:
-        msg = f"frame: expected an envelope{' and a 32-byte tag' if auth else ''} after the prefix, found {len(data) - PREFIX_BYTES} bytes"
+        msg = (
+            f"frame: expected an envelope{' and a 32-byte tag' if auth else ''} after the prefix, "
+            f"found {len(data) - PREFIX_BYTES} bytes"
+        )
         raise TruncatedError(msg)
     origin, epoch, seq, time, _ = _envelope(data, end, limits)
     cls = MESSAGE_TYPES[mtype]
@@ -244,7 +256,10 @@ def decode(
             raise AuthError(msg)
         end -= TAG_BYTES
         if end <= PREFIX_BYTES:
-            msg = f"frame: expected an envelope and a {TAG_BYTES}-byte tag after the prefix, found {len(data) - PREFIX_BYTES} bytes"
+            msg = (
+                f"frame: expected an envelope and a {TAG_BYTES}-byte tag after the prefix, found "
+                f"{len(data) - PREFIX_BYTES} bytes"
+            )
             raise TruncatedError(msg)
         view = memoryview(data)
         verify_tag(key, view[:end], view[end:])

@@ -67,7 +67,7 @@ _FREE_TIERS = (Tier.CLEARED, Tier.FREE_NEW, Tier.FREE)
 
 
 def significance(delta: Delta, prev_logodds: np.ndarray | None = None) -> np.ndarray:
-    """Tier (uint8, see `Tier`) of every voxel of `delta`; `prev_logodds` are the values before it."""
+    """Tier (uint8, `Tier`) of every voxel of `delta`; `prev_logodds`: the values before it."""
     lo = delta.logodds
     with np.errstate(invalid="ignore"):
         occ = lo >= 0
@@ -248,7 +248,10 @@ def _encode_keys(comp: np.ndarray, bs: int, level: int = 0) -> list[Any]:
 def _check_delta_keys(keys: np.ndarray, level: int = 0) -> None:
     lo, hi = KEY_MIN >> level, KEY_MAX >> level
     if keys.size and (keys.min() < lo or keys.max() > hi):
-        msg = f"delta keys must lie in [{lo}, {hi}] at level {level}, found [{keys.min()}, {keys.max()}]"
+        msg = (
+            f"delta keys must lie in [{lo}, {hi}] at level {level}, found [{keys.min()}, "
+            f"{keys.max()}]"
+        )
         raise RangeError(msg)
 
 
@@ -347,7 +350,7 @@ def encoded_size(delta: Delta, *, summary: FreeSummary | None = None, level: int
     return len(fields.compress(encode_delta(delta, summary=summary), level))
 
 
-# --------------------------------------------------------------------------- summaries, budgets, splits
+# ------------------------------------------------------------------ summaries, budgets, splits
 
 
 def _coarsen(keys: np.ndarray, lo: np.ndarray, shift: int) -> tuple[np.ndarray, np.ndarray]:
@@ -363,7 +366,7 @@ def _coarsen(keys: np.ndarray, lo: np.ndarray, shift: int) -> tuple[np.ndarray, 
 
 
 def _summaries(delta: Delta, mask: np.ndarray, levels: tuple[int, ...]) -> list[FreeSummary]:
-    """Summaries of the voxels of `delta` at `mask`, one per level (ascending), built coarse from fine."""
+    """Summaries of the voxels of `delta` at `mask`, one per level (ascending), coarse from fine."""
     keys, lo = delta.keys[mask], delta.logodds[mask]
     times = delta.last_time[mask]
     t = float(np.nanmax(times)) if np.isfinite(times).any() else float(delta.time)
@@ -510,7 +513,10 @@ def _decode_keys(
     blocks = np.cumsum(raw_blocks.astype(np.int64), axis=1).T
     bmin, bmax = (KEY_MIN >> level) >> bs, (KEY_MAX >> level) >> bs
     if m and (blocks.min() < bmin or blocks.max() > bmax):
-        msg = f"{what}: expected block keys in [{bmin}, {bmax}], found [{blocks.min()}, {blocks.max()}]"
+        msg = (
+            f"{what}: expected block keys in [{bmin}, {bmax}], found [{blocks.min()}, "
+            f"{blocks.max()}]"
+        )
         raise RangeError(msg)
     if m > 1:
         axis = 21 - bs
@@ -520,7 +526,10 @@ def _decode_keys(
             | (blocks[:, 2] - bmin)
         )
         if np.any(bkey[1:] <= bkey[:-1]):
-            msg = f"{what}: expected blocks in strictly increasing (x, y, z) order, found a block out of order"
+            msg = (
+                f"{what}: expected blocks in strictly increasing (x, y, z) order, found a block "
+                "out of order"
+            )
             raise MalformedError(msg)
     counts = np.frombuffer(_bin(sec, at + 3, f"{what} counts", 2 * m), dtype="<u2").astype(np.int64)
     if m and (counts.min() < 1 or counts.max() > nvox):
@@ -607,7 +616,10 @@ def _decode_times(table_raw: Any, index_raw: Any, n: int, ref: float, what: str)
     values = np.where(table == TIME_NAN, np.nan, ref + table.astype(np.float64) / 1000.0)
     if t == 1:
         if index_raw:
-            msg = f"{what}: expected no time index for a one-entry table, found {len(index_raw)} bytes"
+            msg = (
+                f"{what}: expected no time index for a one-entry table, found {len(index_raw)} "
+                "bytes"
+            )
             raise MalformedError(msg)
         return np.full(n, values[0])
     dtype = "u1" if t <= 1 << 8 else "<u2" if t <= 1 << 16 else "<u4"
@@ -630,17 +642,26 @@ def _decode_channel(entry: Any, n: int, ref: float, limits: Limits) -> tuple[str
     if name not in CHANNEL_SPECS and not (
         name.startswith(SCALAR_PREFIX) and len(name) > len(SCALAR_PREFIX)
     ):
-        msg = f"delta channel: expected one of {sorted(CHANNEL_SPECS)} or 'scalar:NAME', found {name[:64]!r}"
+        msg = (
+            f"delta channel: expected one of {sorted(CHANNEL_SPECS)} or 'scalar:NAME', found "
+            f"{name[:64]!r}"
+        )
         raise UnknownTypeError(msg)
     dtype, tail = CHANNEL_SPECS.get(name, (np.dtype(np.float32), ()))
     k = _int(entry[1], f"delta channel {name!r} width", 0, limits.max_class_k)
     expected_k = 0 if tail == () else tail[0]
     if (expected_k == -1 and k < 1) or (expected_k not in (-1, k)):
-        msg = f"delta channel {name!r}: expected width {'1..' + str(limits.max_class_k) if expected_k == -1 else expected_k}, found {k}"
+        msg = (
+            f"delta channel {name!r}: expected width "
+            f"{'1..' + str(limits.max_class_k) if expected_k == -1 else expected_k}, found {k}"
+        )
         raise RangeError(msg)
     if name == "first_time":
         if len(entry) != 4:
-            msg = f"delta channel 'first_time': expected [name, k, table, index], found {len(entry)} items"
+            msg = (
+                f"delta channel 'first_time': expected [name, k, table, index], found {len(entry)} "
+                "items"
+            )
             raise MalformedError(msg)
         return name, _decode_times(entry[2], entry[3], n, ref, "delta channel 'first_time'")
     if len(entry) != 3:
@@ -684,7 +705,12 @@ def decode_delta_with_summary(
         msg = f"delta body: expected block shift in {BLOCK_SHIFTS}, found {bs}"
         raise RangeError(msg)
     q = _int(fields.field(body, "q", int, "delta body"), "delta quantum exponent", Q_MIN, Q_MAX)
-    n = _int(fields.field(body, "n", int, "delta body"), "delta voxel count", 0, limits.max_voxels)
+    n = _int(fields.field(body, "n", int, "delta body"), "delta voxel count", 0, (1 << 63) - 1)
+    if n > limits.max_voxels:
+        msg = (
+            f"delta body: expected at most {limits.max_voxels} voxels (decoder limit), found n={n}"
+        )
+        raise OversizedError(msg)
     sections = fields.field(body, "sec", list, "delta body")
     if len(sections) > _MAX_SECTIONS:
         msg = f"delta body: expected at most {_MAX_SECTIONS} sections, found {len(sections)}"
@@ -695,7 +721,10 @@ def decode_delta_with_summary(
     for i, sec in enumerate(sections):
         what = f"delta section {i}"
         if not isinstance(sec, list) or len(sec) != 7:
-            msg = f"{what}: expected [tier, n, blocks, block keys, counts, bitmaps, offsets], found {type(sec).__name__}"
+            msg = (
+                f"{what}: expected [tier, n, blocks, block keys, counts, bitmaps, offsets], found "
+                f"{type(sec).__name__}"
+            )
             raise MalformedError(msg)
         tier = _int(sec[0], f"{what} tier", 0, len(Tier) - 1)
         if tier <= last_tier:
@@ -720,7 +749,10 @@ def decode_delta_with_summary(
     last_time = _decode_times(body.get("tt"), body.get("ti"), n, ref, "delta times")
     channel_list = fields.field(body, "ch", list, "delta body")
     if len(channel_list) > limits.max_channels:
-        msg = f"delta body: expected at most {limits.max_channels} channels, found {len(channel_list)}"
+        msg = (
+            f"delta body: expected at most {limits.max_channels} channels, found "
+            f"{len(channel_list)}"
+        )
         raise OversizedError(msg)
     channels: dict[str, np.ndarray] = {}
     for entry in channel_list:
@@ -754,7 +786,10 @@ def _decode_summary(
 ) -> FreeSummary:
     what = "delta summary"
     if not isinstance(entry, list) or len(entry) != 9:
-        msg = f"{what}: expected [level, n, blocks, block keys, counts, bitmaps, offsets, log-odds, time]"
+        msg = (
+            f"{what}: expected [level, n, blocks, block keys, counts, bitmaps, offsets, log-odds, "
+            "time]"
+        )
         raise MalformedError(msg)
     level = _int(entry[0], f"{what} level", 1, MAX_LEVEL)
     keys, n = _decode_keys(entry, 1, what, bs, level, max(max_cells, 0))

@@ -17,7 +17,7 @@ class TruncatedError(ProtocolError):
 
 
 class MalformedError(ProtocolError):
-    """The input is not laid out as the protocol requires (bad magic, wrong types, bad structure)."""
+    """The input is not laid out as the protocol requires (bad magic, types or structure)."""
 
     reason = "malformed"
 
@@ -59,7 +59,7 @@ class AuthError(ProtocolError):
 
 
 class ReplayError(AuthError):
-    """An authenticated message repeats or predates the (epoch, seq) already seen from its origin."""
+    """A message repeats or predates an (epoch, seq) already accepted from its origin."""
 
     reason = "replay"
 

@@ -1,4 +1,4 @@
-"""Bounded msgpack and zstd primitives: every byte is checked before anything is allocated for it."""
+"""Bounded msgpack and zstd primitives: bytes are checked before anything is allocated for them."""
 
 from __future__ import annotations
 
@@ -104,14 +104,20 @@ def scan_msgpack(
         elif head in _SIZED:
             width, extra = _SIZED[head]
             if pos + width > n:
-                msg = f"{what}: msgpack length field at byte {pos} needs {width} bytes, found {n - pos}"
+                msg = (
+                    f"{what}: msgpack length field at byte {pos} needs {width} bytes, found "
+                    f"{n - pos}"
+                )
                 raise TruncatedError(msg)
             pos += width + extra + int.from_bytes(data[pos : pos + width], "big")
             continue
         elif head in _CONTAINER:
             width, per = _CONTAINER[head]
             if pos + width > n:
-                msg = f"{what}: msgpack count field at byte {pos} needs {width} bytes, found {n - pos}"
+                msg = (
+                    f"{what}: msgpack count field at byte {pos} needs {width} bytes, found "
+                    f"{n - pos}"
+                )
                 raise TruncatedError(msg)
             count = per * int.from_bytes(data[pos : pos + width], "big")
             pos += width
@@ -120,7 +126,10 @@ def scan_msgpack(
             raise MalformedError(msg)
         if count:
             if count > n - pos:
-                msg = f"{what}: msgpack container at byte {pos} announces {count} objects, only {n - pos} bytes follow"
+                msg = (
+                    f"{what}: msgpack container at byte {pos} announces {count} objects, only "
+                    f"{n - pos} bytes follow"
+                )
                 raise TruncatedError(msg)
             if len(stack) > max_depth:
                 msg = f"{what}: expected msgpack nesting depth <= {max_depth}, found deeper"
@@ -202,9 +211,12 @@ def compress(data: bytes, level: int = 3) -> bytes:
 
 
 def decompress(data: bytes, limits: Limits, what: str = "body") -> bytes:
-    """Decompress one zstd frame, refusing frames without a content size or larger than the limit."""
+    """Decompress one zstd frame; refuse frames without a content size or above the limit."""
     if len(data) < 6 or data[:4] != ZSTD_MAGIC:
-        msg = f"{what}: expected a zstd frame (magic {ZSTD_MAGIC.hex()}), found {bytes(data[:4]).hex() or 'nothing'}"
+        msg = (
+            f"{what}: expected a zstd frame (magic {ZSTD_MAGIC.hex()}), found "
+            f"{bytes(data[:4]).hex() or 'nothing'}"
+        )
         raise MalformedError(msg)
     try:
         params = zstandard.get_frame_parameters(data)
@@ -216,10 +228,16 @@ def decompress(data: bytes, limits: Limits, what: str = "body") -> bytes:
         msg = f"{what}: expected a zstd frame that declares its content size, found none"
         raise MalformedError(msg)
     if size > limits.max_body_bytes:
-        msg = f"{what}: expected at most {limits.max_body_bytes} decompressed bytes, frame declares {size}"
+        msg = (
+            f"{what}: expected at most {limits.max_body_bytes} decompressed bytes, frame declares "
+            f"{size}"
+        )
         raise DecompressionBombError(msg)
     if params.window_size > limits.max_window_bytes:
-        msg = f"{what}: expected a zstd window <= {limits.max_window_bytes} bytes, found {params.window_size}"
+        msg = (
+            f"{what}: expected a zstd window <= {limits.max_window_bytes} bytes, found "
+            f"{params.window_size}"
+        )
         raise DecompressionBombError(msg)
     dctx = zstandard.ZstdDecompressor(max_window_size=max(limits.max_window_bytes, 1 << 10))
     try:

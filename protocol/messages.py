@@ -98,7 +98,7 @@ class SensorInfo(BaseModel):
         )
 
     def to_model(self) -> SensorModel:
-        """The `voxel.sensor.SensorModel` this describes (raises voxel InputError if inconsistent)."""
+        """The `voxel.sensor.SensorModel` this describes (voxel InputError if inconsistent)."""
         return SensorModel(
             prob_hit=self.prob_hit,
             prob_miss=self.prob_miss,
@@ -194,7 +194,7 @@ class _Rigid(BaseModel):
 
 
 class Pose(Message, _Rigid):
-    """The origin's pose (sensor base in its map frame) with a 6x6 covariance (x y z roll pitch yaw)."""
+    """The origin's pose in its map frame with a 6x6 covariance (x y z roll pitch yaw)."""
 
     TYPE: ClassVar[int] = 2
     KIND: ClassVar[str] = "pose"
@@ -262,7 +262,7 @@ class Objects(Message):
 
 
 class AlignOffer(Message, _Rigid):
-    """The origin's estimate of the transform taking points of `target`'s frame into its own frame."""
+    """The origin's estimate of the transform taking `target`'s frame into its own frame."""
 
     TYPE: ClassVar[int] = 5
     KIND: ClassVar[str] = "align"
@@ -324,7 +324,10 @@ class DeltaRangeRequest(Message):
     @model_validator(mode="after")
     def _ordered(self) -> DeltaRangeRequest:
         if self.to_version < self.from_version:
-            msg = f"to_version must be >= from_version, found {self.from_version} -> {self.to_version}"
+            msg = (
+                f"to_version must be >= from_version, found {self.from_version} -> "
+                f"{self.to_version}"
+            )
             raise ValueError(msg)
         return self
 

@@ -36,7 +36,10 @@ class FreeSummary:
         self.keys = np.asarray(self.keys, dtype=np.int64).reshape(-1, 3)
         self.logodds = np.asarray(self.logodds, dtype=np.float32).reshape(-1)
         if self.logodds.shape[0] != self.keys.shape[0]:
-            msg = f"summary needs one log-odds per cell: {self.keys.shape[0]} cells, found {self.logodds.shape[0]}"
+            msg = (
+                f"summary needs one log-odds per cell: {self.keys.shape[0]} cells, found "
+                f"{self.logodds.shape[0]}"
+            )
             raise ValueError(msg)
         if not 1 <= self.level <= MAX_LEVEL:
             msg = f"summary level must be in [1, {MAX_LEVEL}], found {self.level}"

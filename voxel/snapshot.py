@@ -1,7 +1,8 @@
-"""Lossless grid snapshots: one .npz file with metadata, block keys, channels and history."""
+"""Lossless grid snapshots: a zstd-compressed .npz with metadata, block keys, channels and history."""
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import zipfile
@@ -9,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+import zstandard
 
 from voxel.errors import FileFormatError
 from voxel.history import RECORD_DTYPE
@@ -18,6 +20,7 @@ if TYPE_CHECKING:
 
 FORMAT = "colony-voxel-snapshot"
 FORMAT_VERSION = 1
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 
 
 def save_grid(grid: VoxelGrid, path: Path) -> None:
@@ -48,8 +51,11 @@ def save_grid(grid: VoxelGrid, path: Path) -> None:
         arrays[f"ch/{name}"] = arr[slots]
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
     with open(tmp, "wb") as fh:
-        np.savez(fh, **arrays)
+        with zstandard.ZstdCompressor(level=3).stream_writer(fh, closefd=False) as zfh:
+            zfh.write(buf.getbuffer())
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)
@@ -61,7 +67,14 @@ def load_grid(path: Path) -> VoxelGrid:
 
     path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as data:
+        with open(path, "rb") as fh:
+            raw = fh.read(4)
+            if raw != ZSTD_MAGIC:
+                msg = f"{path}: expected a zstd-compressed {FORMAT} file, found leading bytes {raw!r}"
+                raise FileFormatError(msg)
+            fh.seek(0)
+            payload = zstandard.ZstdDecompressor().stream_reader(fh).read()
+        with np.load(io.BytesIO(payload), allow_pickle=False) as data:
             files = set(data.files)
             if "meta" not in files:
                 msg = f"{path}: expected a {FORMAT} file with a 'meta' entry, found entries {sorted(files)[:5]}"
@@ -98,6 +111,7 @@ def load_grid(path: Path) -> VoxelGrid:
             return grid
     except FileFormatError:
         raise
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, EOFError) as exc:
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, EOFError,
+            zstandard.ZstdError) as exc:
         msg = f"{path}: not a readable {FORMAT} file ({type(exc).__name__}: {exc})"
         raise FileFormatError(msg) from None

@@ -431,8 +431,15 @@ def test_peek_rejects_truncated_tagged_frame() -> None:
 def test_largest_objects_list_decodes_and_one_more_is_refused() -> None:
     from protocol.messages import ObjectCentroid, Objects
 
-    obj = ObjectCentroid(object_id=1, class_id=2, class_name="chair", position=(1.0, 2.0, 3.0),
-                         covariance=[0.1] * 9, voxel_count=100, time=1.0)
+    obj = ObjectCentroid(
+        object_id=1,
+        class_id=2,
+        class_name="chair",
+        position=(1.0, 2.0, 3.0),
+        covariance=[0.1] * 9,
+        voxel_count=100,
+        time=1.0,
+    )
     msg = Objects(origin="r1", time=1.0, frame_id="map", objects=[obj] * 16_384)
     assert len(decode(encode(msg)).objects) == 16_384
     body = msgpack.packb({"frame_id": "map", "objects": [obj.model_dump()] * 16_385})

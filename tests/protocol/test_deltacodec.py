@@ -1,4 +1,4 @@
-"""Tests of protocol.deltacodec: round trips, significance order, budgets, splits, hostile bodies."""
+"""Tests of protocol.deltacodec: round trips, significance, budgets, splits, hostile bodies."""
 
 from __future__ import annotations
 
@@ -167,7 +167,7 @@ def test_wire_order_is_surfaces_first(rng: np.random.Generator) -> None:
     prev = np.where(rng.random(len(delta)) < 0.5, np.nan, -0.3).astype(np.float32)
     out = decode_delta(encode_delta(delta, prev_logodds=prev))
     state = np.where(np.isnan(out.logodds), 1, np.where(out.logodds >= 0, 0, 2))
-    # occupied voxels, then unknown, then free: tiers 0,1 | 3 | 4,5 (no clearings: prev never occupied)
+    # occupied, then unknown, then free: tiers 0,1 | 3 | 4,5 (no clearings: prev never occupied)
     assert np.all(np.diff(state) >= 0)
     body = msgpack.unpackb(encode_delta(delta, prev_logodds=prev))
     assert [s[0] for s in body["sec"]] == sorted(s[0] for s in body["sec"])
@@ -284,7 +284,7 @@ def test_valid_reference_body_decodes() -> None:
         (lambda b: b.update(res=float("nan")), RangeError, "resolution"),
         (lambda b: b.update(bs=5), RangeError, "block shift"),
         (lambda b: b.update(q=99), RangeError, "quantum exponent"),
-        (lambda b: b.update(n=10**9), RangeError, "voxel count"),
+        (lambda b: b.update(n=10**9), OversizedError, "at most 4000000 voxels"),
         (lambda b: b.update(n=4), MalformedError, "holding n=4"),
         (lambda b: b.update(n=2), RangeError, "voxel count: expected an integer in"),
         (lambda b: b.update(to=-1), RangeError, "to_version"),
@@ -353,7 +353,9 @@ def test_voxel_limit_is_enforced_before_allocation() -> None:
     g = np.stack(np.meshgrid(*[np.arange(0, 16)] * 3, indexing="ij"), -1).reshape(-1, 3)
     delta = Delta(0.1, 0, 1, g, np.full(len(g), 0.5), np.zeros(len(g)))
     data = encode_delta(delta)
-    with pytest.raises(RangeError, match="voxel count"):
+    with pytest.raises(
+        OversizedError, match="at most 1000 voxels \\(decoder limit\\), found n=4096"
+    ):
         decode_delta(data, Limits(max_voxels=1000))
     with pytest.raises(OversizedError, match="at most 100 bytes"):
         decode_delta(data, Limits(max_body_bytes=100))

@@ -1,4 +1,4 @@
-"""Fuzz test: 100,000+ random and mutated frames; the decoder raises only ProtocolError subclasses."""
+"""Fuzz test: 100,000+ random and mutated frames; the decoder raises only ProtocolErrors."""
 
 from __future__ import annotations
 

@@ -288,12 +288,24 @@ def test_snapshot_round_trip_is_lossless(tmp_path):
 
 
 def test_snapshot_errors(tmp_path):
+    import io
+
+    import zstandard
+
     bad = tmp_path / "bad.npz"
-    bad.write_bytes(b"not a zip file at all")
-    with pytest.raises(FileFormatError, match="not a readable colony-voxel-snapshot"):
+    bad.write_bytes(b"not a snapshot at all")
+    with pytest.raises(FileFormatError, match="expected a zstd-compressed colony-voxel-snapshot"):
         VoxelGrid.load(bad)
+    truncated = tmp_path / "trunc.npz"
+    grid, _ = _grid_with_deltas(5, 1)
+    grid.save(truncated)
+    truncated.write_bytes(truncated.read_bytes()[:200])
+    with pytest.raises(FileFormatError, match="not a readable colony-voxel-snapshot"):
+        VoxelGrid.load(truncated)
     other = tmp_path / "other.npz"
-    np.savez(other, x=np.zeros(3))
+    buf = io.BytesIO()
+    np.savez(buf, x=np.zeros(3))
+    other.write_bytes(zstandard.ZstdCompressor().compress(buf.getvalue()))
     with pytest.raises(FileFormatError, match="expected a colony-voxel-snapshot file"):
         VoxelGrid.load(other)
 
