@@ -32,6 +32,7 @@ from protocol.messages import (
     SnapshotRequest,
     VoxelDelta,
 )
+from protocol.receiver import Receiver
 from protocol.summary import FreeSummary
 
 __all__ = [
@@ -54,6 +55,7 @@ __all__ = [
     "Pose",
     "ProtocolError",
     "RangeError",
+    "Receiver",
     "ReplayError",
     "ReplayWindow",
     "SensorInfo",

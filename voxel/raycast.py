@@ -14,6 +14,9 @@ HIT = np.uint8(2)
 
 _RUN_DTYPE = {2: np.uint16, 4: np.uint32, 8: np.uint64}[BLOCK]
 
+#: Below this many active rays, remaining face crossings are enumerated in one flat pass.
+FLAT_BELOW = 3000
+
 #: Largest dense scratch volume (cells) before traversal falls back to sorting visited keys.
 DENSE_LIMIT = 96_000_000
 
@@ -96,6 +99,16 @@ def _sweep(o: np.ndarray, e: np.ndarray, strides: np.ndarray, visit) -> None:
         active = n_rays - np.searchsorted(m[::-1], np.arange(int(m[0])), side="right")
         for k in range(int(m[0])):
             n = int(active[k])
+            if n < FLAT_BELOW:
+                # Few rays left: enumerate all their remaining crossings at once, no loop.
+                left = m[:n] - k
+                ray = np.repeat(np.arange(n), left)
+                j = np.arange(ray.size) - np.repeat(np.cumsum(left) - left, left)
+                lin = plane[ray] + j * step_a[ray]
+                lin += (y[ray] + j * inc_y[ray]).astype(np.int64) * sb
+                lin += (z[ray] + j * inc_z[ray]).astype(np.int64) * sc
+                visit(lin)
+                break
             lin = plane[:n] + y[:n].astype(np.int64) * sb
             lin += z[:n].astype(np.int64) * sc
             visit(lin)

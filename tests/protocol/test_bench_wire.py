@@ -1,0 +1,34 @@
+"""Smoke test of the wire benchmark (colonyd/bench_wire.py) on a two-frame camera path."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+bench_wire = pytest.importorskip("colonyd.bench_wire")
+
+KEYS = {
+    "scenario",
+    "changed_voxels",
+    "occupied_changed",
+    "bytes_full",
+    "bytes_per_changed_voxel",
+    "raw_scan_zstd_bytes",
+    "encode_voxels_per_s",
+    "decode_voxels_per_s",
+}
+
+
+def test_wire_bench_reports_every_field(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    tiny = bench_wire.Scenario("camera_2", 0.05, lambda: bench_wire._camera_path(2))
+    monkeypatch.setattr(bench_wire, "scenarios", lambda shared_data: [tiny])
+    out = tmp_path / "wire.json"
+    results = bench_wire.run_wire_bench(out, None, repeats=1)
+    assert json.loads(out.read_text()) == results
+    (row,) = results
+    assert KEYS <= set(row)
+    assert row["changed_voxels"] > 10_000 and row["occupied_changed"] > 0
+    assert row["bytes_per_changed_voxel"] < 1.0
+    assert row["bytes_full"] < row["raw_scan_zstd_bytes"]
