@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -28,6 +29,15 @@ UPDATE_CHUNK = 4096
 CLASS_RATE = 0.3
 
 DEFAULT_SENSOR = SensorModel()
+
+
+class _Evidence(NamedTuple):
+    """Log-odds of one scan's hit and miss (reliability applied) and the clamping bounds."""
+
+    hit: np.float32
+    miss: np.float32
+    low: np.float32
+    high: np.float32
 
 
 @dataclass(frozen=True)
@@ -188,8 +198,12 @@ class VoxelGrid:
             "object_ids": None if object_ids is None else object_ids[hit_mask_idx],
             "scalars": {k: v[hit_mask_idx] for k, v in scalars.items()},
         }
-        log_hit = sensor.log_hit * reliability
-        log_miss = sensor.log_miss * reliability
+        ev = _Evidence(
+            np.float32(sensor.log_hit * reliability),
+            np.float32(sensor.log_miss * reliability),
+            np.float32(sensor.log_min),
+            np.float32(sensor.log_max),
+        )
         objects = self._object_lookup(uniq, inverse, rich["object_ids"])
         context = {
             "time": float(time),
@@ -200,7 +214,7 @@ class VoxelGrid:
             "bias": bias,
             "objects": objects,
         }
-        changed = self._update(traversal, float(time), log_hit, log_miss, sensor.log_min, sensor.log_max, context)
+        changed = self._update(traversal, float(time), ev, context)
         self._update_rich(uniq, inverse, rich, float(time), bumped=changed > 0)
         self.now = max(self.now, float(time))
         return IntegrationReport(
@@ -269,16 +283,7 @@ class VoxelGrid:
         dt = np.maximum(now - last, 0.0)
         return (lo * np.exp2(-dt / self.half_life)).astype(np.float32)
 
-    def _update(
-        self,
-        tr: Traversal,
-        time: float,
-        log_hit: float,
-        log_miss: float,
-        log_min: float,
-        log_max: float,
-        context: dict,
-    ) -> int:
+    def _update(self, tr: Traversal, time: float, ev: _Evidence, context: dict) -> int:
         """Apply one scan's hits and misses to the store, in chunks of blocks; returns voxels changed."""
         if tr.blocks.size == 0:
             return 0
@@ -289,22 +294,13 @@ class VoxelGrid:
         for lo_i in range(0, slots_all.size, UPDATE_CHUNK):
             slots = slots_all[lo_i : lo_i + UPDATE_CHUNK]
             cells = tr.cells[lo_i : lo_i + UPDATE_CHUNK]
-            count += self._update_chunk(slots, cells, v, time, log_hit, log_miss, log_min, log_max, context)
+            count += self._update_chunk(slots, cells, v, time, ev, context)
         if count:
             self.version = int(v)
         return count
 
     def _update_chunk(
-        self,
-        slots: np.ndarray,
-        cells: np.ndarray,
-        v: np.uint32,
-        time: float,
-        log_hit: float,
-        log_miss: float,
-        log_min: float,
-        log_max: float,
-        context: dict,
+        self, slots: np.ndarray, cells: np.ndarray, v: np.uint32, time: float, ev: _Evidence, context: dict
     ) -> int:
         st = self.store
         lo_arr = st.channels["logodds"]
@@ -315,8 +311,8 @@ class VoxelGrid:
         base = np.where(known, old, np.float32(0.0))
         if self.half_life is not None:
             base = self._decayed(base, st.channels["last_time"][slots], time)
-        evidence = np.where(hit, np.float32(log_hit), np.float32(log_miss))
-        new = np.clip(base + evidence, np.float32(log_min), np.float32(log_max))
+        evidence = np.where(hit, ev.hit, ev.miss)
+        new = np.clip(base + evidence, ev.low, ev.high)
         new = np.where(touched, new, old)
         if self.half_life is not None or self.statistics:
             changed = touched
