@@ -15,6 +15,7 @@ import zstandard
 from colonyd.bench_integrate import KINECT, camera_pose, depth_frame, lidar3d_scan
 from protocol.codec import decode, encode
 from protocol.deltacodec import fit_delta
+from protocol.fields import DEFAULT_LEVEL
 from protocol.limits import Limits
 from protocol.messages import VoxelDelta
 from voxel.delta import Delta
@@ -23,7 +24,7 @@ from voxel.sensor import SensorModel
 
 #: Decoder limits for the benchmark: a first LiDAR scan changes millions of voxels.
 BENCH_LIMITS = Limits(max_voxels=50_000_000, max_message_bytes=1 << 30, max_body_bytes=1 << 30)
-_RAW = zstandard.ZstdCompressor(level=3)
+_RAW = zstandard.ZstdCompressor(level=DEFAULT_LEVEL)  # same level as frames: a fair baseline
 
 
 @dataclass

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import faulthandler
 import logging
 import os
 import signal
@@ -89,6 +90,8 @@ class Daemon:
 
     # -- steps ----------------------------------------------------------------------------
     def _install_signals(self) -> None:
+        faulthandler.enable()  # a crash in native code still leaves Python stacks in the log
+        faulthandler.register(signal.SIGUSR1, all_threads=True)  # stack dump for a stuck daemon
         signal.signal(signal.SIGTERM, lambda *_: self.stop.set())
         signal.signal(signal.SIGINT, lambda *_: self.stop.set())
         signal.signal(signal.SIGHUP, lambda *_: self.reload.set())

@@ -105,6 +105,7 @@ class LocalColony:
         self.multicast = multicast  # only ever inside a private network namespace (tests)
         self.daemons: dict[str, LocalDaemon] = {}
         self._session: zenoh.Session | None = None
+        self._session_endpoints: list[str] = []
 
     def add(self, agent: str, sources: list[str] | None = None, *, start: bool = True,
             extra: list[str] | None = None) -> LocalDaemon:
@@ -131,11 +132,18 @@ class LocalColony:
 
     # -- observation ----------------------------------------------------------------------
     def session(self) -> zenoh.Session:
+        """The observer's session, connected to every daemon started so far (reopened as
+        daemons are added, so the observer never depends on gossip to reach one)."""
+        endpoints = [d.endpoint for d in self.daemons.values() if d.alive()]
+        if self._session is not None and endpoints != self._session_endpoints:
+            self._session.close()
+            self._session = None
         if self._session is None:
-            hubs = [d.endpoint for d in self.daemons.values()][:2]
-            conf = zenoh_config(mode="peer", listen=["tcp/127.0.0.1:0"], connect=hubs,
+            conf = zenoh_config(mode="peer", listen=["tcp/127.0.0.1:0"], connect=endpoints,
                                 multicast=False, gossip=True)
             self._session = open_session(conf)
+            self._session_endpoints = endpoints
+            time.sleep(0.2)  # let the links come up before the first query
         return self._session
 
     def status(self, *, digest: bool = False, samples: bool = False,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import io
 import math
+import threading
 from typing import Any
 
 import msgpack
@@ -20,7 +21,14 @@ MAGIC = b"CLD"
 VERSION = 1
 FLAG_AUTH = 1
 KINDS = ("delta", "hb", "snap", "range", "none")
-_ZC = zstandard.ZstdCompressor(level=1)
+_LOCAL = threading.local()  # zstd contexts are not thread-safe: one per thread
+
+
+def _compressor() -> zstandard.ZstdCompressor:
+    zc = getattr(_LOCAL, "zc", None)
+    if zc is None:
+        zc = _LOCAL.zc = zstandard.ZstdCompressor(level=1)
+    return zc
 
 
 class Codec:
@@ -39,7 +47,7 @@ class Codec:
         if isinstance(body.get("delta"), Delta):
             body["delta"] = _pack_delta(body["delta"])
         raw = msgpack.packb(body, use_bin_type=True)
-        comp = _ZC.compress(raw)
+        comp = _compressor().compress(raw)
         flags = FLAG_AUTH if self._key else 0
         head = MAGIC + bytes([VERSION, flags])
         if self._key:

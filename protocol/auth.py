@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import threading
 
 from protocol.errors import AuthError, ReplayError
 
@@ -57,9 +58,17 @@ class ReplayWindow:
         self.max_origins = max_origins
         # origin -> (epoch, highest seq, bitmask of seen seqs below highest: bit i = highest - i)
         self._state: dict[str, tuple[int, int, int]] = {}
+        self._lock = threading.Lock()
 
     def check(self, origin: str, epoch: int, seq: int) -> None:
-        """Raise ReplayError if (origin, epoch, seq) was seen or is too old; else record it."""
+        """Raise ReplayError if (origin, epoch, seq) was seen or is too old; else record it.
+
+        Thread-safe: daemons decode on several worker threads.
+        """
+        with self._lock:
+            self._check(origin, epoch, seq)
+
+    def _check(self, origin: str, epoch: int, seq: int) -> None:
         state = self._state.get(origin)
         if state is None:
             self._record(origin, epoch, seq, 1)
@@ -96,4 +105,5 @@ class ReplayWindow:
 
     def forget(self, origin: str) -> None:
         """Stop tracking `origin`."""
-        self._state.pop(origin, None)
+        with self._lock:
+            self._state.pop(origin, None)

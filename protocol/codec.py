@@ -92,7 +92,7 @@ def encode(
     *,
     key: bytes | None = None,
     compression: Literal["zstd", "none"] = "zstd",
-    level: int = 3,
+    level: int = fields.DEFAULT_LEVEL,
 ) -> bytes:
     """Frame bytes of `msg`; authenticated with HMAC-SHA256 when a colony `key` is given."""
     if msg.version != PROTOCOL_VERSION:

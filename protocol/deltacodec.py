@@ -50,6 +50,8 @@ _WIRE_DTYPE = {
     "class_probs": "<f4",
 }
 _MAX_SECTIONS = 6
+#: A block whose section holds at least B^3 / _BITMAP_DIVISOR voxels is sent as a bitmap.
+_BITMAP_DIVISOR = 16
 
 
 class Tier(IntEnum):
@@ -218,7 +220,7 @@ def _encode_keys(comp: np.ndarray, bs: int, level: int = 0) -> list[Any]:
     dblocks = blocks.copy()
     dblocks[1:] -= blocks[:-1]
     off = comp & (nvox - 1)
-    dense_block = counts >= nvox // 16
+    dense_block = counts >= nvox // _BITMAP_DIVISOR
     nd = int(dense_block.sum())
     if nd == 0:
         bitmaps, soff, scounts = b"", off, counts
@@ -265,6 +267,44 @@ def _channel_column(name: str, values: np.ndarray, ref: float) -> list[Any]:
     return [name, k, values.astype(_WIRE_DTYPE[name]).tobytes()]
 
 
+def _sections(
+    delta: Delta, prev_logodds: np.ndarray | None, bs: int
+) -> list[tuple[int, np.ndarray | None, np.ndarray]]:
+    """(tier, voxel order or None for "as given", sorted composites) of each non-empty tier."""
+    if bs not in BLOCK_SHIFTS:
+        msg = f"block_shift must be one of {BLOCK_SHIFTS}, found {bs}"
+        raise ValueError(msg)
+    _check_delta_keys(delta.keys)
+    comp_all = _composite(delta.keys, bs)
+    tiers = significance(delta, prev_logodds)
+    present = np.bincount(tiers, minlength=len(Tier))
+    out: list[tuple[int, np.ndarray | None, np.ndarray]] = []
+    for tier in Tier:
+        if not present[tier]:
+            continue
+        if present[tier] == tiers.shape[0]:
+            order, comp = _block_sort(comp_all, bs)
+        else:
+            idx = np.flatnonzero(tiers == tier)
+            order, comp = _block_sort(comp_all[idx], bs)
+            order = idx if order is None else idx[order]
+        out.append((int(tier), order, comp))
+    return out
+
+
+def wire_order(
+    delta: Delta,
+    prev_logodds: np.ndarray | None = None,
+    block_shift: int = DEFAULT_BLOCK_SHIFT,
+) -> np.ndarray:
+    """Permutation putting the voxels of `delta` in wire order (tier, then block, then offset)."""
+    parts = [
+        np.arange(len(delta)) if order is None else order
+        for _, order, _ in _sections(delta, prev_logodds, block_shift)
+    ]
+    return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+
+
 def encode_delta(
     delta: Delta,
     *,
@@ -277,33 +317,13 @@ def encode_delta(
     Exact for keys, occupancy state, channels (times to 1 ms); log-odds to within one quantum
     (see `quantum_exponent`; 2**-5 for OctoMap's clamping range).
     """
-    if block_shift not in BLOCK_SHIFTS:
-        msg = f"block_shift must be one of {BLOCK_SHIFTS}, found {block_shift}"
-        raise ValueError(msg)
     bs = block_shift
-    keys = delta.keys
-    _check_delta_keys(keys)
-    comp_all = _composite(keys, bs)
-    tiers = significance(delta, prev_logodds)
     sections: list[list[Any]] = []
     order_parts: list[np.ndarray] = []
-    present = np.bincount(tiers, minlength=len(Tier))
     identity = True
-    for tier in Tier:
-        if not present[tier]:
-            continue
-        if present[tier] == tiers.shape[0]:
-            order, comp = _block_sort(comp_all, bs)
-            if order is None:
-                order = np.arange(tiers.shape[0])
-            else:
-                identity = False
-        else:
-            identity = False
-            idx = np.flatnonzero(tiers == tier)
-            order, comp = _block_sort(comp_all[idx], bs)
-            order = idx if order is None else idx[order]
-        order_parts.append(order)
+    for tier, order, comp in _sections(delta, prev_logodds, bs):
+        identity = identity and order is None
+        order_parts.append(np.arange(len(delta)) if order is None else order)
         sections.append([int(tier), *_encode_keys(comp, bs)])
     perm = np.concatenate(order_parts) if order_parts else np.zeros(0, dtype=np.int64)
     if identity:
@@ -345,7 +365,9 @@ def encode_delta(
     return fields.pack(body)
 
 
-def encoded_size(delta: Delta, *, summary: FreeSummary | None = None, level: int = 3) -> int:
+def encoded_size(
+    delta: Delta, *, summary: FreeSummary | None = None, level: int = fields.DEFAULT_LEVEL
+) -> int:
     """Bytes of the zstd-compressed codec body of `delta` (what a message body costs)."""
     return len(fields.compress(encode_delta(delta, summary=summary), level))
 
@@ -451,8 +473,7 @@ def split_delta(
     total = encoded_size(delta)
     if total <= max_bytes:
         return [delta]
-    tiers = significance(delta, prev_logodds)
-    order = np.argsort(tiers, kind="stable")
+    order = wire_order(delta, prev_logodds)  # parts are runs of blocks: compact, already sorted
     n = order.shape[0]
     pieces = max(2, math.ceil(total / (0.8 * max_bytes)))
     bounds = np.linspace(0, n, pieces + 1).astype(np.int64)
@@ -538,7 +559,7 @@ def _decode_keys(
     if int(counts.sum()) != n:
         msg = f"{what}: expected block counts summing to {n} voxels, found {int(counts.sum())}"
         raise MalformedError(msg)
-    dense = counts >= nvox // 16
+    dense = counts >= nvox // _BITMAP_DIVISOR
     nd = int(dense.sum())
     bitmaps = np.frombuffer(_bin(sec, at + 4, f"{what} bitmaps", bitmap_bytes * nd), dtype=np.uint8)
     nsparse = n - int(counts[dense].sum())

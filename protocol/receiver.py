@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from collections import Counter
 
 from protocol.auth import ReplayWindow
@@ -32,6 +33,7 @@ class Receiver:
         self.replay = ReplayWindow(replay_window) if key is not None else None
         self.accepted: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
+        self._lock = threading.Lock()
 
     def decode(self, data: bytes, key_expr: str | None = None) -> Message:
         """The validated message of `data`, or a ProtocolError (counted under its `reason`)."""
@@ -40,7 +42,9 @@ class Receiver:
             if key_expr is not None:
                 check_origin(key_expr, msg.origin)
         except ProtocolError as exc:
-            self.rejected[exc.reason] += 1
+            with self._lock:
+                self.rejected[exc.reason] += 1
             raise
-        self.accepted[msg.KIND] += 1
+        with self._lock:
+            self.accepted[msg.KIND] += 1
         return msg

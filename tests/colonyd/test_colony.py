@@ -104,7 +104,7 @@ def test_sigkill_restart_loses_nothing_logged(make_colony):
 
 
 def test_frozen_daemon_does_not_stall_others(make_colony):
-    colony = make_colony("freeze", lease_ms=1000)
+    colony = make_colony("freeze", lease_ms=2000)
     a = colony.add("a", src(1, 28))
     time.sleep(0.3)
     colony.add("b", src(2, 28))

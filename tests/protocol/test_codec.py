@@ -8,6 +8,8 @@ import msgpack
 import numpy as np
 import pytest
 import zstandard
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from protocol import fields
 from protocol.auth import ReplayWindow
@@ -33,8 +35,9 @@ from protocol.errors import (
     UnknownTypeError,
     VersionError,
 )
+from protocol.keyexpr import NAME_PATTERN
 from protocol.limits import Limits
-from protocol.messages import Pose, VoxelDelta
+from protocol.messages import ObjectCentroid, Objects, Pose, VoxelDelta
 from tests.protocol.helpers import KEY, assert_delta_close, make_delta, sample_messages
 
 
@@ -429,8 +432,6 @@ def test_peek_rejects_truncated_tagged_frame() -> None:
 
 
 def test_largest_objects_list_decodes_and_one_more_is_refused() -> None:
-    from protocol.messages import ObjectCentroid, Objects
-
     obj = ObjectCentroid(
         object_id=1,
         class_id=2,
@@ -445,3 +446,80 @@ def test_largest_objects_list_decodes_and_one_more_is_refused() -> None:
     body = msgpack.packb({"frame_id": "map", "objects": [obj.model_dump()] * 16_385})
     with pytest.raises(OversizedError, match="objects"):
         decode(_frame(mtype=4, envelope=["r1", 1, 2, 3.0, body]))
+
+
+# --------------------------------------------------------------------------- property tests
+
+
+names = st.from_regex(f"^{NAME_PATTERN}$", fullmatch=True).filter(lambda s: "\n" not in s)
+finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+vec3 = st.tuples(finite, finite, finite)
+headers = st.fixed_dictionaries(
+    {
+        "origin": names,
+        "epoch": st.integers(0, 2**32 - 1),
+        "seq": st.integers(0, 2**63 - 1),
+        "time": finite,
+    }
+)
+objects = st.builds(
+    ObjectCentroid,
+    object_id=st.integers(0, 2**63 - 1),
+    class_id=st.integers(0, 65535),
+    class_name=st.text(max_size=40),
+    position=vec3,
+    covariance=st.lists(finite, min_size=9, max_size=9),
+    voxel_count=st.integers(0, 2**32 - 1),
+    time=finite,
+)
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    header=headers,
+    frame_id=names,
+    position=vec3,
+    cov=st.lists(finite, min_size=36, max_size=36),
+    key=st.sampled_from([None, KEY]),
+    compression=st.sampled_from(["zstd", "none"]),
+)
+def test_property_pose_round_trip(header, frame_id, position, cov, key, compression) -> None:
+    msg = Pose(
+        **header,
+        frame_id=frame_id,
+        position=position,
+        orientation=(0.0, 0.6, 0.0, 0.8),
+        covariance=cov,
+    )
+    assert decode(encode(msg, key=key, compression=compression), key=key) == msg
+
+
+@settings(max_examples=40, deadline=None)
+@given(header=headers, frame_id=names, objs=st.lists(objects, max_size=30))
+def test_property_objects_round_trip(header, frame_id, objs) -> None:
+    msg = Objects(**header, frame_id=frame_id, objects=objs)
+    assert decode(encode(msg)) == msg
+
+
+def test_replay_window_is_thread_safe() -> None:
+    import threading
+
+    window = ReplayWindow(window=1 << 16)
+    accepted: list[int] = []
+    lock = threading.Lock()
+
+    def worker() -> None:
+        for seq in range(2000):
+            try:
+                window.check("r1", 1, seq)
+            except ReplayError:
+                continue
+            with lock:
+                accepted.append(seq)
+
+    threads = [threading.Thread(target=worker) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(accepted) == list(range(2000))  # every seq accepted exactly once
