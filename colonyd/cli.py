@@ -59,7 +59,8 @@ def _flags(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="colonyd", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="colonyd", description="colony daemon: peer-to-peer voxel mapping over Zenoh")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("run", help="run the daemon until SIGTERM")
@@ -138,9 +139,13 @@ def main(argv: list[str] | None = None) -> int:
     if cmd == "map":
         from colonyd.mapping import map_source
 
-        result = map_source(args.source, args.resolution, args.out)
-        if result is not None:
-            sys.stdout.write(f"{result}\n")
+        summary = map_source(args.source, args.resolution, args.out)
+        files = ", ".join(str(p) for p in getattr(summary, "files", {}).values())
+        sys.stdout.write(
+            f"{summary.spec}: {summary.frames} frames ({summary.skipped} skipped), "
+            f"{summary.points} points -> {summary.occupied} occupied, {summary.free} free voxels "
+            f"at {summary.resolution} m in {summary.seconds:.1f} s\nwrote {files}\n"
+        )
         return EXIT_OK
     if cmd == "bench":
         return _bench(args)
@@ -165,8 +170,8 @@ def _bench(args: argparse.Namespace) -> int:
 
         result = run_colony_bench(args.json, daemons=args.daemons, duration=args.duration,
                                   catchup_voxels=args.catchup_voxels)
-    if isinstance(result, dict):
-        sys.stdout.write(json.dumps(result, indent=1) + "\n")
+    if result is not None:
+        sys.stdout.write(json.dumps(result, indent=1, default=str) + "\n")
     return EXIT_OK
 
 

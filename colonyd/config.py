@@ -26,6 +26,7 @@ except ImportError:  # pragma: no cover - protocol package without keyexpr
     NAME_PATTERN = r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}"
 _NAME = re.compile(f"^{NAME_PATTERN}$")
 _ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/.+$")
+SECRETS = ("colony_key",)
 _TOML_PATH: ContextVar[Path | None] = ContextVar("colonyd_toml_path", default=None)
 
 
@@ -194,6 +195,9 @@ def dump_config(config: Config) -> str:
     """The effective configuration as TOML text (what `colonyd dump-config` prints)."""
     lines = [f"# precedence: {' > '.join(PRECEDENCE)}"]
     for name, value in config.model_dump(mode="json").items():
+        if name in SECRETS and value is not None:
+            lines.append(f'{name} = "********"  # set; not shown')
+            continue
         if value is None:
             lines.append(f"# {name} = (unset)")
             continue

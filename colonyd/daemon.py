@@ -205,9 +205,14 @@ class Daemon:
         for source in self._sources:
             try:
                 for frame in source.frames(self.stop):
-                    self._integrate(own, frame, sensor)
+                    try:
+                        self._integrate(own, frame, sensor)
+                    except ValueError as exc:  # one bad frame (voxel/plugin input errors)
+                        self.metrics.reject("bad-frame")
+                        log.warning("source %s: frame skipped: %s", source.name, exc)
+                        continue
                     self.metrics.add("frames")
-            except (ColonydError, ValueError) as exc:  # plugin and voxel input errors
+            except (ColonydError, ValueError) as exc:  # the source itself failed
                 log.error("source %s failed: %s", source.name, exc)
             except Exception:
                 log.exception("source %s failed", source.name)

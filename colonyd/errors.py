@@ -27,7 +27,7 @@ class WireError(ColonydError, ValueError):
         self.reason = reason
 
 
-class SourceError(ColonydError, ValueError):
+class SourceError(ConfigError):
     """A source spec names no known source or has invalid parameters."""
 
 

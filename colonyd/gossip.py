@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import re
 import random
 import threading
 import time
@@ -13,6 +14,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from colonyd.config import NAME_PATTERN
 from colonyd.errors import ColonydError, WireError
 from colonyd.layers import Layer, Layers, relabel
 from colonyd.membership import Membership
@@ -21,6 +23,16 @@ from colonyd.runtime import Keys
 from colonyd.wire import Codec
 
 log = logging.getLogger(__name__)
+
+
+_NAME = re.compile(f"^{NAME_PATTERN}$")
+
+
+def _name(name: str) -> str:
+    """An origin or agent id from a key, if it is a valid name."""
+    if not _NAME.match(name):
+        raise WireError("bad-name", f"expected an agent id matching {NAME_PATTERN}, found {name[:80]!r}")
+    return name
 
 
 @dataclass
@@ -217,8 +229,8 @@ class Gossip:
 
     def _handle_delta(self, key: str, raw: bytes) -> None:
         self.metrics.add("bytes_received", len(raw))
+        origin = _name(Keys.last(key))
         msg = self.codec.decode(raw)
-        origin = Keys.last(key)
         self._offer(origin, msg, raw, expect_origin=origin)
 
     def _offer(self, origin: str, msg: dict[str, Any], raw: bytes, *, expect_origin: str) -> None:
@@ -281,8 +293,8 @@ class Gossip:
                             f"found {used} held + {new} new for {layer.origin!r}")
 
     def _handle_hb(self, key: str, raw: bytes) -> None:
+        agent = _name(Keys.last(key))
         msg = self.codec.decode(raw)
-        agent = Keys.last(key)
         if msg.get("t") != "hb" or msg.get("a") != agent:
             raise WireError("origin-mismatch", f"expected a heartbeat of {agent!r}")
         if self.membership is None:
@@ -386,6 +398,8 @@ class Gossip:
         )
         chunks: dict[int, Any] = {}
         header: tuple[int, int, int] | None = None
+        voxel_limit = self.max_peer_blocks * 512  # a layer larger than the budget is refused
+        voxels = 0
         for reply in replies:
             if reply.ok is None:
                 continue
@@ -407,9 +421,15 @@ class Gossip:
                 continue
             if header is None:
                 header = h
-            if h != header or not 0 <= index < h[2] or "delta" not in msg:
+            if h != header or not 0 <= index < h[2] or "delta" not in msg or index in chunks:
                 self.metrics.reject("bad-snapshot")
                 continue
+            voxels += len(msg["delta"])
+            if voxels > voxel_limit:
+                self.metrics.reject("over-budget")
+                log.warning("snapshot of %s from %s exceeds %d voxels; refused", origin, server,
+                            voxel_limit)
+                return False
             chunks[index] = msg["delta"]
         if header is None or len(chunks) != header[2] or header[0] <= 0:
             return False

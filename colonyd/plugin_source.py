@@ -10,7 +10,7 @@ from colonyd.errors import SourceError
 from colonyd.source import Frame
 
 #: Demo agents in the plugins' office world: cheap sensors, a few seconds of mapping each.
-DEMO_AGENTS = (("lidar-1", 30), ("lidar3d-1", 30), ("depth-1", 15), ("lidar-1", 30))
+DEMO_AGENTS = (("lidar-1", 40), ("lidar3d-1", 40), ("depth-1", 25), ("lidar-1", 40))
 
 
 class PluginSource:
@@ -52,4 +52,4 @@ def sim_spec(agent_index: int) -> str | None:
     except ImportError:
         return None
     agent, frames = DEMO_AGENTS[agent_index % len(DEMO_AGENTS)]
-    return f"sim:world=office,agent={agent},frames={frames},seed={agent_index + 1}"
+    return f"sim:world=office,agent={agent},frames={frames},seed={agent_index + 1},realtime=1"

@@ -88,3 +88,8 @@ def test_cli_dump_config_and_config_error_exit_code(tmp_path):
     )
     assert bad.returncode == 3
     assert "resolution" in bad.stderr and "greater than 0" in bad.stderr
+
+
+def test_dump_config_hides_the_colony_key():
+    text = dump_config(load_config(None, colony_key="very secret value"))
+    assert "very secret value" not in text and "colony_key = " in text

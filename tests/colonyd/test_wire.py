@@ -79,3 +79,24 @@ def test_colony_key_authenticates():
     tampered[-1] ^= 1
     with pytest.raises(WireError, match="signature"):
         Codec("secret").decode(bytes(tampered))
+
+
+def test_encoding_from_many_threads_at_once():
+    import threading
+
+    codec, d, errors = Codec(), delta(5000), []
+
+    def work() -> None:
+        try:
+            for _ in range(30):
+                msg = codec.decode(codec.encode({"t": "delta", "o": "a", "delta": d}))
+                assert len(msg["delta"]) == 5000
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work) for _ in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
