@@ -21,6 +21,22 @@ UNKNOWN = np.int8(-1)
 FREE_STATE = np.int8(0)
 OCCUPIED = np.int8(1)
 
+#: Stored log-odds are multiples of this quantum (and times whole milliseconds), so the wire
+#: format carries exactly what the origin holds and every replica is bit-identical.
+LOGODDS_QUANTUM = 2.0**-5
+_Q_SCALE = np.float32(1.0 / LOGODDS_QUANTUM)
+
+
+def quantise_logodds(values: np.ndarray) -> np.ndarray:
+    """Nearest multiple of LOGODDS_QUANTUM (float32; NaN stays NaN)."""
+    return (np.rint(np.asarray(values, dtype=np.float32) * _Q_SCALE) / _Q_SCALE).astype(np.float32)
+
+
+def quantise_time(t: float) -> float:
+    """Time rounded to whole milliseconds, as k / 1000.0."""
+    return round(float(t) * 1000.0) / 1000.0
+
+
 #: |log-odds| below which a decayed voxel is forgotten (returns to unknown).
 FORGET_EPSILON = 0.05
 #: Blocks updated per chunk: keeps temporaries small enough to stay in reused memory.
@@ -201,9 +217,10 @@ class VoxelGrid:
         ev = _Evidence(
             np.float32(sensor.log_hit * reliability),
             np.float32(sensor.log_miss * reliability),
-            np.float32(sensor.log_min),
-            np.float32(sensor.log_max),
+            quantise_logodds(np.float32(sensor.log_min)),
+            quantise_logodds(np.float32(sensor.log_max)),
         )
+        time = quantise_time(time)
         objects = self._object_lookup(uniq, inverse, rich["object_ids"])
         context = {
             "time": float(time),
@@ -312,7 +329,7 @@ class VoxelGrid:
         if self.half_life is not None:
             base = self._decayed(base, st.channels["last_time"][slots], time)
         evidence = np.where(hit, ev.hit, ev.miss)
-        new = np.clip(base + evidence, ev.low, ev.high)
+        new = np.clip(quantise_logodds(base + evidence), ev.low, ev.high)
         new = np.where(touched, new, old)
         if self.half_life is not None or self.statistics:
             changed = touched
@@ -711,7 +728,7 @@ class VoxelGrid:
 
         bt = read_bt(path)
         grid = cls(bt.resolution)
-        lo = np.where(bt.occupied, np.float32(DEFAULT_SENSOR.log_max), np.float32(DEFAULT_SENSOR.log_min))
+        lo = np.where(bt.occupied, quantise_logodds(DEFAULT_SENSOR.log_max), quantise_logodds(DEFAULT_SENSOR.log_min))
         grid.apply(Delta(bt.resolution, 0, 1, bt.keys, lo, np.full(len(lo), time)))
         return grid
 
