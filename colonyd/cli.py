@@ -76,7 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
     _config_flags(p)
 
     p = sub.add_parser("map", help="map a source offline into a directory of map files")
-    p.add_argument("source", help="source spec (sim:..., replay:...)")
+    p.add_argument("--source", dest="map_source", required=True, metavar="SPEC",
+                   help="source spec (sim:..., replay:PATH)")
     p.add_argument("--resolution", type=float, default=0.1)
     p.add_argument("--out", type=Path, required=True, help="output directory")
 
@@ -139,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     if cmd == "map":
         from colonyd.mapping import map_source
 
-        summary = map_source(args.source, args.resolution, args.out)
+        summary = map_source(args.map_source, args.resolution, args.out)
         files = ", ".join(str(p) for p in getattr(summary, "files", {}).values())
         sys.stdout.write(
             f"{summary.spec}: {summary.frames} frames ({summary.skipped} skipped), "
