@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import statistics
 import time
@@ -12,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from colonyd.benchfiles import shared_data_dir, write_results
 from voxel import keys as vk
 from voxel.grid import VoxelGrid
 from voxel.sensor import SensorModel
@@ -270,15 +270,7 @@ def run_scenario(sc: Scenario, repeats: int) -> dict:
 def run_integrate_bench(out_json: Path, shared_data: Path | None, repeats: int = 5,
                         only: list[str] | None = None) -> list[dict]:
     """Run every scenario, write the JSON list to out_json and return it."""
-    if shared_data is None:
-        guess = Path(__file__).resolve().parents[2] / "shared" / "data"
-        shared_data = guess if guess.is_dir() else None
-    results = []
-    for sc in scenarios(shared_data):
-        if only and sc.name not in only:
-            continue
-        results.append(run_scenario(sc, repeats))
-    out_json = Path(out_json)
-    out_json.parent.mkdir(parents=True, exist_ok=True)
-    out_json.write_text(json.dumps(results, indent=2) + "\n")
+    results = [run_scenario(sc, repeats) for sc in scenarios(shared_data_dir(shared_data))
+               if not only or sc.name in only]
+    write_results(out_json, results)
     return results

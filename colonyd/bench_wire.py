@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Callable, Iterator
@@ -13,6 +12,7 @@ import numpy as np
 import zstandard
 
 from colonyd.bench_integrate import KINECT, camera_pose, depth_frame, lidar3d_scan
+from colonyd.benchfiles import shared_data_dir, write_results
 from protocol.codec import decode, encode
 from protocol.deltacodec import fit_delta
 from protocol.fields import DEFAULT_LEVEL
@@ -223,15 +223,7 @@ def run_wire_bench(
 
     Without `shared_data`, the checkout's sibling `../shared/data` is used when it exists.
     """
-    if shared_data is None:
-        candidate = Path(__file__).resolve().parents[2] / "shared" / "data"
-        shared_data = candidate if candidate.is_dir() else None
-    results = []
-    for sc in scenarios(shared_data):
-        if only and sc.name not in only:
-            continue
-        results.append(run_scenario(sc, repeats))
-    out_json = Path(out_json)
-    out_json.parent.mkdir(parents=True, exist_ok=True)
-    out_json.write_text(json.dumps(results, indent=2) + "\n")
+    results = [run_scenario(sc, repeats) for sc in scenarios(shared_data_dir(shared_data))
+               if not only or sc.name in only]
+    write_results(out_json, results)
     return results
