@@ -1,0 +1,24 @@
+"""The integration benchmark runs end to end and reports what the issue asks for."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from colonyd.bench_integrate import run_integrate_bench
+
+FIELDS = {"scenario", "resolution", "points", "ours_ms", "octomap_ms", "speedup", "occupied_agreement",
+          "free_agreement", "bytes_per_known_voxel", "octomap_bytes_per_node"}
+
+
+def test_lidar2d_scenario_agrees_with_octomap(tmp_path: Path) -> None:
+    pytest.importorskip("pyoctomap")
+    out = tmp_path / "bench.json"
+    results = run_integrate_bench(out, None, repeats=1, only=["lidar2d_1081_0.05"])
+    assert json.loads(out.read_text()) == results
+    (row,) = results
+    assert FIELDS <= set(row)
+    assert row["occupied_agreement"] >= 0.95 and row["free_agreement"] >= 0.9
+    assert row["ours_ms"] > 0 and row["octomap_ms"] > 0
