@@ -182,19 +182,22 @@ class VoxelGrid:
         if not math.isfinite(sensor.max_range):
             dropped = int(np.count_nonzero(clear_mask))
             clear_mask[:] = False
-        hit_keys = vk.points_to_keys(pts[hit_mask], self.resolution)
-        if hit_keys.size and not (hit_keys.min() >= vk.KEY_MIN and hit_keys.max() <= vk.KEY_MAX):
-            ok = vk.in_range(hit_keys)
+        hit_keys = vk.points_to_keys(pts if hit_mask.all() else pts[hit_mask], self.resolution)
+        ok = vk.in_range(hit_keys)
+        if not ok.all():
             idx = np.flatnonzero(hit_mask)
             hit_mask[idx[~ok]] = False
             hit_keys = hit_keys[ok]
         if clear_mask.any():
             dirs = d[clear_mask] / r[clear_mask, None]
             clear_ends = org + dirs * sensor.max_range
-            ok = vk.in_range(vk.points_to_keys(clear_ends, self.resolution))
+            end_keys = vk.points_to_keys(clear_ends, self.resolution)
+            ok = vk.in_range(end_keys)
             idx = np.flatnonzero(clear_mask)
             clear_mask[idx[~ok]] = False
-            clear_ends = clear_ends[ok]
+            # One ray per voxel the truncated beams end in (OctoMap's discretised update does the
+            # same): many beams beyond max range share their last voxel.
+            clear_ends = self._towards(org, unique_keys(end_keys[ok], False)[0], sensor.max_range)
         else:
             clear_ends = np.empty((0, 3))
         invalid = n - int(np.count_nonzero(hit_mask)) - int(np.count_nonzero(clear_mask)) - dropped
@@ -293,6 +296,11 @@ class VoxelGrid:
             extra["class_ids"] = lab[v, u].astype(np.int16)
             extra["class_probs"] = np.ones(z.shape[0], dtype=np.float32)
         return self.integrate(world, t[:3, 3], time=time, sensor=sensor, **extra)  # type: ignore[arg-type]
+
+    def _towards(self, origin: np.ndarray, keys: np.ndarray, distance: float) -> np.ndarray:
+        """Points at `distance` from origin in the direction of each voxel's centre."""
+        c = vk.keys_to_centers(keys, self.resolution) - origin
+        return origin + c * (distance / np.linalg.norm(c, axis=1))[:, None]
 
     def _decayed(self, lo: np.ndarray, last: np.ndarray, now: float) -> np.ndarray:
         if self.half_life is None:

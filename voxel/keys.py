@@ -13,8 +13,9 @@ KEY_MAX = AXIS_OFFSET - 1
 
 
 def points_to_keys(points: np.ndarray, resolution: float) -> np.ndarray:
-    """Voxel keys (N, 3) int64 of points (N, 3): floor(p / resolution), OctoMap's convention."""
-    return np.floor(np.asarray(points, dtype=np.float64) / resolution).astype(np.int64)
+    """Voxel keys (N, 3) int64 of points (N, 3): floor(p * (1 / resolution)), as OctoMap computes them."""
+    scaled = np.asarray(points, dtype=np.float64) * (1.0 / resolution)
+    return np.floor(scaled, out=scaled).astype(np.int64)
 
 
 def keys_to_centers(keys: np.ndarray, resolution: float) -> np.ndarray:
@@ -41,6 +42,8 @@ def unpack(packed: np.ndarray) -> np.ndarray:
 def in_range(keys: np.ndarray) -> np.ndarray:
     """Mask of keys (N, 3) that fit the packed key space."""
     k = np.asarray(keys)
+    if k.size == 0 or (k.min() >= KEY_MIN and k.max() <= KEY_MAX):
+        return np.ones(k.shape[0], dtype=bool)
     return np.all((k >= KEY_MIN) & (k <= KEY_MAX), axis=1)
 
 
