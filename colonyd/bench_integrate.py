@@ -248,6 +248,7 @@ def run_scenario(sc: Scenario, repeats: int) -> dict:
     octomap_ms = statistics.median(octo[best_disc])
     ref = trees[False]  # OctoMap's own default (every ray) is the reference map
     occ, free = octomap_sets(ref, sc.resolution)
+    occ_d, free_d = octomap_sets(trees[True], sc.resolution)
     return {
         "scenario": sc.name,
         "resolution": sc.resolution,
@@ -261,6 +262,8 @@ def run_scenario(sc: Scenario, repeats: int) -> dict:
         "speedup": round(octomap_ms / ours_ms, 2),
         "occupied_agreement": round(iou(grid.occupied_keys(), occ), 4),
         "free_agreement": round(iou(grid.free_keys(), free), 4),
+        "occupied_agreement_discretize": round(iou(grid.occupied_keys(), occ_d), 4),
+        "free_agreement_discretize": round(iou(grid.free_keys(), free_d), 4),
         "bytes_per_known_voxel": round(grid.nbytes() / max(1, grid.known_count()), 2),
         "octomap_bytes_per_node": round(ref.memoryUsage() / max(1, ref.size()), 2),
         "timing": "per-frame median" if per_frame else f"median of {repeats} runs",

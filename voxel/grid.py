@@ -37,6 +37,10 @@ def quantise_time(t: float) -> float:
     return round(float(t) * 1000.0) / 1000.0
 
 
+#: Beams without a hit are cast once per 1/CLEAR_SUBDIVISION-voxel cell of their truncated ends:
+#: close to casting every beam (OctoMap's default) at a fraction of the rays.
+CLEAR_SUBDIVISION = 3
+
 #: |log-odds| below which a decayed voxel is forgotten (returns to unknown).
 FORGET_EPSILON = 0.05
 #: Blocks updated per chunk: keeps temporaries small enough to stay in reused memory.
@@ -189,15 +193,15 @@ class VoxelGrid:
             hit_mask[idx[~ok]] = False
             hit_keys = hit_keys[ok]
         if clear_mask.any():
-            dirs = d[clear_mask] / r[clear_mask, None]
-            clear_ends = org + dirs * sensor.max_range
-            end_keys = vk.points_to_keys(clear_ends, self.resolution)
-            ok = vk.in_range(end_keys)
+            # One ray per voxel of the beams' own end points, truncated at max range (OctoMap's
+            # discretised update does the same): distant beams share voxels.
+            ends = org + d[clear_mask] * (sensor.max_range / r[clear_mask])[:, None]
+            ok = vk.in_range(vk.points_to_keys(ends, self.resolution))
             idx = np.flatnonzero(clear_mask)
             clear_mask[idx[~ok]] = False
-            # One ray per voxel the truncated beams end in (OctoMap's discretised update does the
-            # same): many beams beyond max range share their last voxel.
-            clear_ends = self._towards(org, unique_keys(end_keys[ok], False)[0], sensor.max_range)
+            fine = self.resolution / CLEAR_SUBDIVISION
+            sub = unique_keys(vk.points_to_keys(ends[ok], fine), False)[0]
+            clear_ends = org + _unit(vk.keys_to_centers(sub, fine) - org) * sensor.max_range
         else:
             clear_ends = np.empty((0, 3))
         invalid = n - int(np.count_nonzero(hit_mask)) - int(np.count_nonzero(clear_mask)) - dropped
@@ -296,11 +300,6 @@ class VoxelGrid:
             extra["class_ids"] = lab[v, u].astype(np.int16)
             extra["class_probs"] = np.ones(z.shape[0], dtype=np.float32)
         return self.integrate(world, t[:3, 3], time=time, sensor=sensor, **extra)  # type: ignore[arg-type]
-
-    def _towards(self, origin: np.ndarray, keys: np.ndarray, distance: float) -> np.ndarray:
-        """Points at `distance` from origin in the direction of each voxel's centre."""
-        c = vk.keys_to_centers(keys, self.resolution) - origin
-        return origin + c * (distance / np.linalg.norm(c, axis=1))[:, None]
 
     def _decayed(self, lo: np.ndarray, last: np.ndarray, now: float) -> np.ndarray:
         if self.half_life is None:
@@ -762,6 +761,10 @@ class VoxelGrid:
             if not np.array_equal(va, vb, equal_nan=va.dtype.kind == "f"):
                 return False
         return True
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=1)[:, None]
 
 
 def _states(lo: np.ndarray) -> np.ndarray:
