@@ -16,7 +16,7 @@ BLOCK_MASK = BLOCK - 1
 CORE_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
     "logodds": (np.dtype(np.float32), (), np.nan),  # NaN = unknown
     "version": (np.dtype(np.uint32), (), 0),
-    "last_time": (np.dtype(np.float64), (), 0.0),  # seconds, time of the last change
+    "last_time": (np.dtype(np.uint32), (), 0),  # ms since the grid's time base, last change
 }
 RICH_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
     "first_time": (np.dtype(np.float64), (), 0.0),

@@ -37,6 +37,9 @@ def quantise_time(t: float) -> float:
     return round(float(t) * 1000.0) / 1000.0
 
 
+#: Stored times span at most this many ms from the grid's time base (uint32).
+TIME_SPAN_MS = 2**32 - 1
+
 #: Beams without a hit are cast once per 1/CLEAR_SUBDIVISION-voxel cell of their truncated ends:
 #: close to casting every beam (OctoMap's default) at a fraction of the rays.
 CLEAR_SUBDIVISION = 3
@@ -127,6 +130,7 @@ class VoxelGrid:
         self.history = History(capacity=history_capacity, per_voxel=history_per_voxel)
         self.version = 0
         self.now = 0.0  # latest observation time seen
+        self.time_base_ms: int | None = None  # stored times are ms since this
 
     # ------------------------------------------------------------------------------ integration
     def integrate(
@@ -301,10 +305,39 @@ class VoxelGrid:
             extra["class_probs"] = np.ones(z.shape[0], dtype=np.float32)
         return self.integrate(world, t[:3, 3], time=time, sensor=sensor, **extra)  # type: ignore[arg-type]
 
+    def _stamp(self, t: float | np.ndarray) -> np.ndarray:
+        """Stored form of times (seconds, whole ms): uint32 ms since the grid's time base.
+
+        The base moves when a time falls outside the 49-day window; voxels older than a moved
+        base are kept at the base (their age is then only known to be at least ~24 days).
+        """
+        ms = np.rint(np.asarray(t, dtype=np.float64) * 1000.0).astype(np.int64)
+        if ms.size == 0:
+            return ms.astype(np.uint32)
+        lo, hi = int(ms.min()), int(ms.max())
+        if self.time_base_ms is None:
+            self.time_base_ms = lo - lo % 3_600_000
+        if lo < self.time_base_ms or hi - self.time_base_ms > TIME_SPAN_MS:
+            new_base = lo - lo % 3_600_000 if lo < self.time_base_ms else hi - TIME_SPAN_MS // 2
+            self._shift_times(new_base)
+        return (ms - self.time_base_ms).clip(0, TIME_SPAN_MS).astype(np.uint32)
+
+    def _shift_times(self, new_base: int) -> None:
+        st = self.store
+        slots = st.used_slots()
+        rel = st.channels["last_time"][slots].astype(np.int64) + (self.time_base_ms - new_base)
+        st.channels["last_time"][slots] = rel.clip(0, TIME_SPAN_MS).astype(np.uint32)
+        self.time_base_ms = new_base
+
+    def _times(self, stored: np.ndarray) -> np.ndarray:
+        """Seconds (float64, exactly k / 1000) of stored times."""
+        base = self.time_base_ms or 0
+        return (np.asarray(stored).astype(np.int64) + base) / 1000.0
+
     def _decayed(self, lo: np.ndarray, last: np.ndarray, now: float) -> np.ndarray:
         if self.half_life is None:
             return lo
-        dt = np.maximum(now - last, 0.0)
+        dt = np.maximum(now - self._times(last), 0.0)
         return (lo * np.exp2(-dt / self.half_life)).astype(np.float32)
 
     def _update(self, tr: Traversal, time: float, ev: _Evidence, context: dict) -> int:
@@ -349,7 +382,7 @@ class VoxelGrid:
         ver = st.channels["version"]
         ver[slots] = np.where(changed, v, ver[slots])
         last = st.channels["last_time"]
-        last[slots] = np.where(changed, time, last[slots])
+        last[slots] = np.where(changed, self._stamp(time), last[slots])
         st.slot_version[slots[changed.any(axis=1)]] = v
         if self.statistics:
             first = st.channel("first_time")
@@ -451,7 +484,7 @@ class VoxelGrid:
             self.version += 1
         v = np.uint32(self.version)
         ver[slots, offsets] = v
-        st.channels["last_time"][slots, offsets] = time
+        st.channels["last_time"][slots, offsets] = self._stamp(time)
         st.slot_version[slots] = v
 
     @staticmethod
@@ -596,7 +629,7 @@ class VoxelGrid:
             lo = np.full(found.size, np.nan, dtype=np.float32)
             last = np.full(found.size, np.inf)
             lo[found] = self.store.channels["logodds"][slots[found], offsets[found]]
-            last[found] = self.store.channels["last_time"][slots[found], offsets[found]]
+            last[found] = self._times(self.store.channels["last_time"][slots[found], offsets[found]])
             with np.errstate(invalid="ignore"):
                 free_then = (lo < 0) & (last <= t)
             out[np.flatnonzero(none)[free_then]] = FREE_STATE
@@ -615,7 +648,7 @@ class VoxelGrid:
         arr = self.store.channels[name]
         out = np.full((found.size, *arr.shape[2:]), self.store.spec(name)[2], dtype=arr.dtype)
         out[found] = arr[slots[found], offsets[found]]
-        return out
+        return self._times(out) if name == "last_time" else out
 
     # ------------------------------------------------------------------------------- forgetting
     def forget(self, now: float | None = None) -> int:
@@ -652,7 +685,7 @@ class VoxelGrid:
             to_version=self.version,
             keys=keys,
             logodds=st.channels["logodds"][s, o],
-            last_time=st.channels["last_time"][s, o],
+            last_time=self._times(st.channels["last_time"][s, o]),
             channels=channels,
             time=self.now,
         )
@@ -682,7 +715,7 @@ class VoxelGrid:
             return 0
         s, o = slots[take], offsets[take]
         st.channels["logodds"][s, o] = delta.logodds[take]
-        st.channels["last_time"][s, o] = delta.last_time[take]
+        st.channels["last_time"][s, o] = self._stamp(delta.last_time[take])
         st.channels["version"][s, o] = incoming
         for name, values in delta.channels.items():
             arr = st.channel(name)

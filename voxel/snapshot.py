@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from voxel.grid import VoxelGrid
 
 FORMAT = "colony-voxel-snapshot"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 
 
@@ -36,6 +36,7 @@ def save_grid(grid: VoxelGrid, path: Path) -> None:
         "class_k": st.class_k,
         "grid_version": grid.version,
         "now": grid.now,
+        "time_base_ms": grid.time_base_ms,
         "channels": sorted(st.channels),
         "agents": grid.history.agents,
         "history_capacity": grid.history.capacity,
@@ -108,6 +109,7 @@ def load_grid(path: Path) -> VoxelGrid:
             grid.history.load(hist, meta["agents"])
             grid.version = int(meta["grid_version"])
             grid.now = float(meta["now"])
+            grid.time_base_ms = meta["time_base_ms"]
             return grid
     except FileFormatError:
         raise

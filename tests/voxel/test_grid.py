@@ -352,3 +352,21 @@ def test_stored_values_are_on_the_wire_grid():
     assert np.all(d.last_time == 1.235)
     finite = d.logodds[~np.isnan(d.logodds)]
     np.testing.assert_array_equal(finite * 32, np.rint(finite * 32))
+
+
+def test_times_are_exact_across_a_moved_time_base():
+    grid = VoxelGrid(RES)
+    pts, origin = wall_scan(n=5)
+    grid.integrate(pts, origin, time=1_700_000_000.123)
+    far, _ = wall_scan(x=3.013, n=5)
+    later = 1_700_000_000.123 + 60 * 86400  # beyond the 49-day window of the first base
+    grid.integrate(far, origin, time=later)
+    d = grid.delta_since(0)
+    assert d.last_time.max() == round(later * 1000) / 1000
+    old = d.last_time[d.last_time < later]
+    assert old.size and np.all(old >= later - 50 * 86400)  # older voxels clamp to the moved base
+    replica = VoxelGrid(RES)
+    replica.apply(d)
+    assert replica.content_equal(grid)
+    per_voxel = sum(a.dtype.itemsize * int(np.prod(a.shape[2:])) for a in grid.store.channels.values())
+    assert per_voxel == 12  # log-odds, version, time
