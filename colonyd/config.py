@@ -130,6 +130,14 @@ class Config(BaseSettings):
             raise ValueError(msg)
         return value
 
+    @field_validator("agent_id")
+    @classmethod
+    def _not_reserved(cls, value: str) -> str:
+        if value in ("alive", "colony"):
+            msg = f"expected an agent id other than the reserved words 'alive' and 'colony', found {value!r}"
+            raise ValueError(msg)
+        return value
+
     @field_validator("namespace")
     @classmethod
     def _namespace(cls, value: str | None) -> str | None:

@@ -14,6 +14,7 @@ from typing import Any
 
 from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError
+from colonyd.frames import Sender, colony_key, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.layers import Layers
 from colonyd.logs import setup_logging
@@ -21,18 +22,13 @@ from colonyd.membership import Membership
 from colonyd.metrics import Metrics
 from colonyd.notify import Notifier
 from colonyd.persistence import StateStore
-from colonyd.runtime import Keys, get_session
+from colonyd.runtime import get_session
 from colonyd.source import Frame, Source, get_source
 from colonyd.status import StatusServer
-from colonyd.wire import Codec
 from voxel.delta import Delta
 from voxel.sensor import SensorModel
 
 log = logging.getLogger(__name__)
-
-
-def get_codec(config: Config) -> Codec:
-    return Codec(config.colony_key, int(config.max_message_mb * (1 << 20)))
 
 
 def get_store(config: Config) -> StateStore:
@@ -99,6 +95,8 @@ class Daemon:
     def _recover(self) -> None:
         rec = self.store.recover()
         self.epoch = rec.epoch
+        self.sender = Sender(self.config.agent_id, rec.epoch, key=colony_key(self.config.colony_key),
+                             first_seq=rec.frame_seq, reserve=self.store.reserve_frames)
         self.layers = Layers(self.config.agent_id, self.config.resolution,
                              ring_size=self.config.ring_size)
         own = self.layers.own
@@ -109,16 +107,17 @@ class Daemon:
 
     def _declare(self) -> None:
         cfg = self.config
-        keys = Keys(cfg.key_namespace)
+        ns = cfg.key_namespace
         self.gossip = Gossip(
-            self.session, keys, self.layers, get_codec(cfg), self.metrics, epoch=self.epoch,
+            self.session, ns, self.layers, self.sender,
+            get_receiver(cfg.colony_key, cfg.max_message_mb), self.metrics, epoch=self.epoch,
             inbox_size=cfg.inbox_size, inbox_bytes=int(cfg.inbox_mb * (1 << 20)),
             max_layers=cfg.max_layers, max_peer_blocks=cfg.max_peer_blocks, drop_rate=cfg.drop_rate,
             query_timeout_s=cfg.query_timeout_s,
             chunk_voxels=cfg.snapshot_chunk_voxels,
         )
-        self.membership = Membership(self.session, keys, cfg.agent_id, self.gossip.on_member_event)
-        self.status_server = StatusServer(self.session, keys, cfg.agent_id, self.report)
+        self.membership = Membership(self.session, ns, cfg.agent_id, self.gossip.on_member_event)
+        self.status_server = StatusServer(self.session, ns, cfg.agent_id, self.report)
         self.gossip.start(self.membership)
 
     def _start_threads(self) -> None:

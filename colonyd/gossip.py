@@ -1,10 +1,16 @@
-"""Gossip: publish own deltas, fold peers' deltas into their layers, repair gaps, serve catch-up."""
+"""Gossip: publish own deltas, fold peers' deltas into their layers, repair gaps, serve catch-up.
+
+Everything on the wire is the colony protocol (`protocol/`, docs/PROTOCOL.md): VoxelDelta on
+`<origin>/delta`, Heartbeat on `<origin>/heartbeat`, SnapshotRequest/Reply and
+DeltaRangeRequest/Reply through the `<server>/snapshot/<layer>` and `<server>/deltas/<layer>`
+queryables. Layer versions on the wire are the origin's delta sequence numbers.
+"""
 
 from __future__ import annotations
 
 import logging
+import math
 import queue
-import re
 import random
 import threading
 import time
@@ -14,25 +20,33 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from colonyd.config import NAME_PATTERN
 from colonyd.errors import ColonydError, WireError
+from colonyd.frames import FRAME_ID, Assembler, Sender, concat
 from colonyd.layers import Layer, Layers, relabel
 from colonyd.membership import Membership
 from colonyd.metrics import Metrics
-from colonyd.runtime import Keys
-from colonyd.wire import Codec
+from protocol import (
+    DeltaRangeReply,
+    DeltaRangeRequest,
+    Heartbeat,
+    LayerVersion,
+    Message,
+    ProtocolError,
+    Receiver,
+    SnapshotReply,
+    SnapshotRequest,
+    VoxelDelta,
+    delta_messages,
+    split_delta,
+)
+from protocol.codec import FRAME_OVERHEAD
+from protocol.keyexpr import parse_key, query_declaration, query_key, topic_key, topic_subscription
+from voxel.delta import Delta
 
 log = logging.getLogger(__name__)
 
-
-_NAME = re.compile(f"^{NAME_PATTERN}$")
-
-
-def _name(name: str) -> str:
-    """An origin or agent id from a key, if it is a valid name."""
-    if not _NAME.match(name):
-        raise WireError("bad-name", f"expected an agent id matching {NAME_PATTERN}, found {name[:80]!r}")
-    return name
+#: Most parts of one reply a requester accepts (a snapshot of a full budget is far fewer).
+MAX_REPLY_PARTS = 4096
 
 
 @dataclass
@@ -76,15 +90,23 @@ class Inbox:
         return item
 
 
+def _expect(msg: Message, cls: type[Message], what: str) -> Any:
+    if not isinstance(msg, cls):
+        text = f"expected a {cls.KIND} message {what}, found {msg.KIND}"
+        raise WireError("unexpected-type", text)
+    return msg
+
+
 class Gossip:
     """Own deltas out; peers' deltas, heartbeats and catch-up in; range and snapshot served."""
 
     def __init__(
         self,
         session: zenoh.Session,
-        keys: Keys,
+        namespace: str,
         layers: Layers,
-        codec: Codec,
+        sender: Sender,
+        receiver: Receiver,
         metrics: Metrics,
         *,
         epoch: int,
@@ -95,20 +117,24 @@ class Gossip:
         drop_rate: float = 0.0,
         query_timeout_s: float = 5.0,
         chunk_voxels: int = 250_000,
+        part_bytes: int = 4 << 20,
     ) -> None:
         self.session = session
-        self.keys = keys
+        self.namespace = namespace
         self.layers = layers
-        self.codec = codec
+        self.sender = sender
+        self.receiver = receiver
         self.metrics = metrics
         self.own = layers.own_id
         self.epoch = epoch
         self.query_timeout_s = query_timeout_s
         self.chunk_voxels = chunk_voxels
+        self.part_bytes = part_bytes
         self.stop = threading.Event()
         self.inbox = Inbox(inbox_size, inbox_bytes, metrics)
         self.max_layers = max_layers
         self.max_peer_blocks = max_peer_blocks
+        self.parts = Assembler()
         self._drop_rate = drop_rate
         self._rng = random.Random()
         self._serve: queue.Queue[zenoh.Query] = queue.Queue(maxsize=64)
@@ -117,20 +143,25 @@ class Gossip:
         self._repair_lock = threading.Lock()
         self.membership: Membership | None = None
         self.hb_now = threading.Event()  # set on a join: send our heartbeat without waiting
+        drop = zenoh.CongestionControl.DROP
         self._publisher = session.declare_publisher(
-            keys.delta(self.own), congestion_control=zenoh.CongestionControl.DROP
+            topic_key(namespace, self.own, "delta"), congestion_control=drop
         )
         self._hb_publisher = session.declare_publisher(
-            keys.heartbeat(self.own), congestion_control=zenoh.CongestionControl.DROP
+            topic_key(namespace, self.own, "heartbeat"), congestion_control=drop
         )
         remote = zenoh.Locality.REMOTE
         self._subs = [
-            session.declare_subscriber(keys.delta("*"), self._on_delta, allowed_origin=remote),
-            session.declare_subscriber(keys.heartbeat("*"), self._on_hb, allowed_origin=remote),
+            session.declare_subscriber(
+                topic_subscription(namespace, "delta"), self._on_delta, allowed_origin=remote
+            ),
+            session.declare_subscriber(
+                topic_subscription(namespace, "heartbeat"), self._on_hb, allowed_origin=remote
+            ),
         ]
         self._queryables = [
-            session.declare_queryable(keys.snapshot(self.own, "*"), self._on_query),
-            session.declare_queryable(keys.range(self.own, "*"), self._on_query),
+            session.declare_queryable(query_declaration(namespace, self.own, q), self._on_query)
+            for q in ("snapshot", "deltas")
         ]
         self._threads = [
             threading.Thread(target=self._inbox_loop, name="gossip-inbox", daemon=True),
@@ -179,27 +210,41 @@ class Gossip:
                 log.debug("undeclare: %s", exc)
 
     # -- outgoing -------------------------------------------------------------------------
-    def publish_own(self, prev: int, seq: int, delta: Any, created: float) -> bytes:
-        """Encode and publish an own delta (already logged); returns the payload."""
+    def publish_own(self, prev: int, seq: int, delta: Delta, created: float) -> int:
+        """Publish an own delta (already logged) as VoxelDelta parts; returns the bytes sent."""
         own = self.layers.own
         with own.lock:  # the number is taken (it is in the log) whatever happens next
             own.seq = seq
             own.epoch = self.epoch
-        payload = self.codec.encode(
-            {"t": "delta", "o": self.own, "e": self.epoch, "s": seq, "p": prev, "c": created,
-             "delta": relabel(delta, prev, seq)}
-        )
-        own.remember(prev, seq, payload)
-        self._publisher.put(payload)
+        wire = relabel(delta, prev, seq, time=created)
+        whole = VoxelDelta(origin=self.own, time=created, frame_id=FRAME_ID, delta=wire)
+        payloads = self.sender.encode_all([whole])  # one encoding in the common case
+        if len(payloads[0]) > self.part_bytes:  # too large for one frame: cut into parts
+            msgs = delta_messages(
+                origin=self.own, epoch=self.epoch, seq=0, time=created, frame_id=FRAME_ID,
+                delta=wire, max_bytes=self.part_bytes,
+            )
+            payloads = self.sender.encode_all(msgs)
+        own.remember(prev, seq, wire)
+        for payload in payloads:
+            self._publisher.put(payload)
+        sent = sum(len(p) for p in payloads)
         self.metrics.add("deltas_published")
-        self.metrics.add("bytes_published", len(payload))
-        return payload
+        self.metrics.add("bytes_published", sent)
+        return sent
 
     def heartbeat(self, kind: str, pose: list[float]) -> None:
-        layers = {o: [e, s] for o, (e, s) in self.layers.versions().items()}
-        payload = self.codec.encode(
-            {"t": "hb", "a": self.own, "k": kind, "p": pose, "L": layers, "tm": time.time()}
+        """Publish what this daemon is and holds: kind, pose, every layer's (epoch, seq)."""
+        layers = [
+            LayerVersion(origin=o, epoch=e, version=s)
+            for o, (e, s) in list(self.layers.versions().items())[:4096]
+        ]
+        position = tuple(float(x) for x in pose[:3])
+        msg = Heartbeat(
+            **self.sender.header(), kind=kind, frame_id=FRAME_ID, layers=layers,
+            position=position if len(position) == 3 and all(map(math.isfinite, position)) else None,
         )
+        payload = self.sender.encode(msg)
         self._hb_publisher.put(payload)
         self.metrics.add("bytes_published", len(payload))
 
@@ -217,42 +262,41 @@ class Gossip:
                     self._handle_hb(key, raw)
                 elif kind == "join":
                     self._handle_join(key)
-            except WireError as exc:
+            except (ProtocolError, WireError) as exc:
                 self.metrics.reject(exc.reason)
-                log.warning("rejected %s from %s: %s", kind, Keys.last(key), exc)
+                log.warning("rejected %s on %s: %s", kind, key, exc)
             except (ColonydError, ValueError) as exc:
                 self.metrics.reject("invalid")
-                log.warning("rejected %s from %s: %s", kind, Keys.last(key), exc)
+                log.warning("rejected %s on %s: %s", kind, key, exc)
             except Exception:  # never let one message kill the worker
                 self.metrics.reject("internal")
-                log.exception("failed to handle %s from %s", kind, Keys.last(key))
+                log.exception("failed to handle %s on %s", kind, key)
 
     def _handle_delta(self, key: str, raw: bytes) -> None:
         self.metrics.add("bytes_received", len(raw))
-        origin = _name(Keys.last(key))
-        msg = self.codec.decode(raw)
-        self._offer(origin, msg, raw, expect_origin=origin)
+        msg = _expect(self.receiver.decode(raw, key_expr=key), VoxelDelta, f"on {key}")
+        if not msg.exact:
+            raise WireError("inexact", "expected an exact delta, found a free-space summary")
+        d = msg.delta
+        delta = self.parts.add(
+            (msg.origin, msg.epoch, d.from_version, d.to_version), msg.part, msg.parts, d
+        )
+        if delta is not None:
+            self._offer(msg.origin, msg.epoch, delta)
 
-    def _offer(self, origin: str, msg: dict[str, Any], raw: bytes, *, expect_origin: str) -> None:
-        if msg.get("t") != "delta" or msg.get("o") != expect_origin or "delta" not in msg:
-            found = f"kind {msg.get('t')!r} from {msg.get('o')!r}" + ("" if "delta" in msg else " without a delta")
-            raise WireError("bad-delta", f"expected a delta message from {expect_origin!r}, found {found}")
+    def _offer(self, origin: str, epoch: int, delta: Delta) -> None:
+        """Fold a whole delta of `origin`'s layer (epoch `epoch`, covering (from, to]) into it."""
         if origin == self.own:
             return
-        try:
-            epoch, prev, seq = int(msg["e"]), int(msg["p"]), int(msg["s"])
-            created = float(msg.get("c", 0.0))
-        except (KeyError, TypeError, ValueError):
-            raise WireError("bad-header", "delta header needs integer e, p, s") from None
+        prev, seq = delta.from_version, delta.to_version
         if not (0 <= prev < seq) or epoch <= 0:
             raise WireError("bad-header", f"delta header invalid: epoch {epoch} {prev}->{seq}")
-        delta = msg["delta"]
         layer = self._layer_for(origin, delta.resolution)
         if abs(layer.resolution - delta.resolution) > 1e-12:
             raise WireError("bad-resolution",
                             f"expected resolution {layer.resolution}, found {delta.resolution}")
         self._check_budget(layer, [delta])
-        result = layer.offer(epoch, prev, seq, delta, raw, created)
+        result = layer.offer(epoch, prev, seq, delta, delta.time)
         now = time.time()
         if result.outcome == "duplicate":
             self.metrics.add("duplicates")
@@ -293,14 +337,11 @@ class Gossip:
                             f"found {used} held + {new} new for {layer.origin!r}")
 
     def _handle_hb(self, key: str, raw: bytes) -> None:
-        agent = _name(Keys.last(key))
-        msg = self.codec.decode(raw)
-        if msg.get("t") != "hb" or msg.get("a") != agent:
-            raise WireError("origin-mismatch", f"expected a heartbeat of {agent!r}")
+        msg = _expect(self.receiver.decode(raw, key_expr=key), Heartbeat, f"on {key}")
         if self.membership is None:
             return
-        member = self.membership.heard(agent, msg)
-        self._compare(agent, member.layers)
+        member = self.membership.heard(msg.origin, msg)
+        self._compare(msg.origin, member.layers)
 
     def _handle_join(self, agent: str) -> None:
         """A member joined (or came back): tell it what we hold right away."""
@@ -365,84 +406,124 @@ class Gossip:
             if self._fetch_snapshot(server, rep.origin):
                 return
 
-    def _fetch_range(self, server: str, origin: str, layer: Layer, want: int) -> bool:
-        want = max(want, max((p for p, *_ in layer.pending.values()), default=0), layer.seq + 1)
+    def _ask(self, server: str, query: str, layer: str, request: Message) -> list[Message]:
+        """Send a request frame to `server`'s queryable; its valid replies (others counted)."""
         replies = self.session.get(
-            f"{self.keys.range(server, origin)}?have={layer.seq};want={want}",
+            query_key(self.namespace, server, query, layer),  # type: ignore[arg-type]
+            payload=self.sender.encode(request),
             consolidation=zenoh.ConsolidationMode.NONE,
             timeout=self.query_timeout_s,
         )
-        got = 0
+        out: list[Message] = []
         for reply in replies:
             if reply.ok is None:
                 continue
             raw = reply.ok.payload.to_bytes()
             self.metrics.add("bytes_received", len(raw))
             try:
-                msg = self.codec.decode(raw)
-                if msg.get("t") == "none":
-                    continue
-                self._offer(origin, msg, raw, expect_origin=origin)
-                got += 1
-            except WireError as exc:
+                if len(out) >= MAX_REPLY_PARTS:
+                    raise WireError("oversized", f"expected at most {MAX_REPLY_PARTS} replies")
+                out.append(self.receiver.decode(raw, key_expr=str(reply.ok.key_expr)))
+            except (ProtocolError, WireError) as exc:
                 self.metrics.reject(exc.reason)
+                log.warning("rejected a %s reply from %s: %s", query, server, exc)
+        return out
+
+    @staticmethod
+    def _complete(msgs: list[Any], what: str) -> bool:
+        """True if `msgs` are every part of one reply, each once."""
+        if not msgs:
+            return False
+        parts = {m.parts for m in msgs}
+        indices = {m.part for m in msgs}
+        if len(parts) != 1 or len(indices) != len(msgs) or len(msgs) != parts.pop():
+            log.info("incomplete %s reply: %d parts received", what, len(msgs))
+            return False
+        return True
+
+    def _fetch_range(self, server: str, origin: str, layer: Layer, want: int) -> bool:
+        want = max(want, max((p for p, *_ in layer.pending.values()), default=0), layer.seq + 1)
+        rid = self._rng.getrandbits(63)
+        request = DeltaRangeRequest(
+            **self.sender.header(), layer=origin, request_id=rid,
+            from_version=layer.seq, to_version=want, max_part_bytes=self.part_bytes,
+        )
+        msgs = [
+            m for m in self._ask(server, "deltas", origin, request)
+            if self._matches(m, DeltaRangeReply, origin, rid)
+        ]
         self.metrics.add("range_repairs")
+        if not self._complete(msgs, "range") or not all(m.complete for m in msgs):
+            return False
+        groups: dict[tuple[int, int], list[tuple[int, Delta]]] = {}
+        for m in msgs:
+            if m.delta is not None:
+                d = m.delta
+                groups.setdefault((d.from_version, d.to_version), []).append((m.part, d))
+        epochs = {m.layer_epoch for m in msgs}
+        if len(epochs) != 1:
+            self.metrics.reject("bad-parts")
+            return False
+        epoch = epochs.pop()
+        got = 0
+        for versions in sorted(groups, key=lambda v: v[1]):
+            try:
+                delta = concat([d for _, d in sorted(groups[versions], key=lambda x: x[0])])
+                self._offer(origin, epoch, delta)
+                got += 1
+            except (ProtocolError, WireError) as exc:
+                self.metrics.reject(exc.reason)
+                log.warning("range reply from %s refused: %s", server, exc)
+                return False
         return got > 0
+
+    def _matches(self, msg: Message, cls: type[Message], layer: str, rid: int) -> bool:
+        ok = (
+            isinstance(msg, cls)
+            and msg.layer == layer  # type: ignore[attr-defined]
+            and msg.request_id == rid  # type: ignore[attr-defined]
+        )
+        if not ok:
+            self.metrics.reject("bad-reply")
+        return ok
 
     def _fetch_snapshot(self, server: str, origin: str) -> bool:
         t0 = time.monotonic()
-        replies = self.session.get(
-            self.keys.snapshot(server, origin),
-            consolidation=zenoh.ConsolidationMode.NONE,
-            timeout=self.query_timeout_s,
+        rid = self._rng.getrandbits(63)
+        request = SnapshotRequest(
+            **self.sender.header(), layer=origin, request_id=rid, max_part_bytes=self.part_bytes
         )
-        chunks: dict[int, Any] = {}
-        header: tuple[int, int, int] | None = None
-        voxel_limit = self.max_peer_blocks * 512  # a layer larger than the budget is refused
-        voxels = 0
-        for reply in replies:
-            if reply.ok is None:
-                continue
-            raw = reply.ok.payload.to_bytes()
-            self.metrics.add("bytes_received", len(raw))
-            try:
-                msg = self.codec.decode(raw)
-            except WireError as exc:
-                self.metrics.reject(exc.reason)
-                continue
-            if msg.get("t") != "snap" or msg.get("o") != origin:
-                self.metrics.reject("bad-snapshot")
-                continue
-            try:
-                h = (int(msg["e"]), int(msg["s"]), int(msg["n"]))
-                index = int(msg["i"])
-            except (KeyError, TypeError, ValueError):
-                self.metrics.reject("bad-snapshot")
-                continue
-            if header is None:
-                header = h
-            if h != header or not 0 <= index < h[2] or "delta" not in msg or index in chunks:
-                self.metrics.reject("bad-snapshot")
-                continue
-            voxels += len(msg["delta"])
-            if voxels > voxel_limit:
-                self.metrics.reject("over-budget")
-                log.warning("snapshot of %s from %s exceeds %d voxels; refused", origin, server,
-                            voxel_limit)
-                return False
-            chunks[index] = msg["delta"]
-        if header is None or len(chunks) != header[2] or header[0] <= 0:
+        msgs = [
+            m for m in self._ask(server, "snapshot", origin, request)
+            if self._matches(m, SnapshotReply, origin, rid)
+        ]
+        if not self._complete(msgs, "snapshot"):
             return False
-        epoch, seq, n = header
-        resolution = chunks[0].resolution
-        layer = self._layer_for(origin, resolution)
+        states = {(m.layer_epoch, m.delta.from_version, m.delta.to_version) for m in msgs}
+        if len(states) != 1:
+            self.metrics.reject("bad-snapshot")
+            return False
+        epoch, start, seq = states.pop()
+        if epoch <= 0 or start != 0:
+            self.metrics.reject("bad-snapshot")
+            return False
+        voxel_limit = self.max_peer_blocks * 512  # a layer larger than the budget is refused
+        if sum(len(m.delta) for m in msgs) > voxel_limit:
+            self.metrics.reject("over-budget")
+            log.warning("snapshot of %s from %s exceeds %d voxels; refused", origin, server,
+                        voxel_limit)
+            return False
+        chunks = [m.delta for m in sorted(msgs, key=lambda m: m.part)]
+        layer = self._layer_for(origin, chunks[0].resolution)
         try:
-            self._check_budget(layer, list(chunks.values()), replace=True)
+            if any(abs(c.resolution - layer.resolution) > 1e-12 for c in chunks):
+                raise WireError("bad-resolution", f"expected resolution {layer.resolution}")
+            self._check_budget(layer, chunks, replace=True)
         except WireError as exc:
             self.metrics.reject(exc.reason)
             log.warning("snapshot of %s from %s refused: %s", origin, server, exc)
             return False
-        voxels = layer.install_snapshot(epoch, seq, [chunks[i] for i in range(n)])
+        voxels = layer.install_snapshot(epoch, seq, chunks)
         dt = time.monotonic() - t0
         self.metrics.add("snapshots_installed")
         self.metrics.catchup(origin, voxels, dt)
@@ -459,6 +540,9 @@ class Gossip:
                 continue
             try:
                 self._answer(query)
+            except (ProtocolError, WireError) as exc:
+                self.metrics.reject(exc.reason)
+                log.warning("rejected a query on %s: %s", query.key_expr, exc)
             except Exception:
                 log.exception("failed to answer %s", query.selector)
             finally:
@@ -466,38 +550,78 @@ class Gossip:
 
     def _answer(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
-        parts = key.split("/")
-        origin, what = parts[-1], parts[-3]
-        reply_key = key
-        if "*" in origin:
+        parsed = parse_key(key)
+        if parsed.origin != self.own or parsed.layer is None:
+            raise WireError("bad-query", f"expected a query for {self.own!r}, found {key!r}")
+        if query.payload is None:
+            raise WireError("bad-query", f"expected a request frame as the payload of {key!r}")
+        raw = query.payload.to_bytes()
+        self.metrics.add("bytes_received", len(raw))
+        msg = self.receiver.decode(raw)  # the requester's frame: its origin is not the key's
+        cls = SnapshotRequest if parsed.kind == "snapshot" else DeltaRangeRequest
+        request = _expect(msg, cls, f"on {key}")
+        if request.layer != parsed.layer:
+            text = f"expected layer {parsed.layer!r}, found {request.layer!r}"
+            raise WireError("bad-query", text)
+        layer = self.layers.find(request.layer)
+        if parsed.kind == "snapshot":
+            if layer is not None and layer.seq > 0:
+                self._serve_snapshot(query, key, layer, request)
             return
-        layer = self.layers.find(origin)
-        if layer is None or layer.seq == 0:
-            query.reply(reply_key, self.codec.encode({"t": "none", "o": origin}))
-            return
-        if what == "range":
-            params = query.parameters
-            try:
-                have, want = int(params.get("have") or 0), int(params.get("want") or 0)
-            except ValueError:
-                self.metrics.reject("bad-query")
-                return
-            raws = layer.range(have, want)
-            if raws is None:
-                query.reply(reply_key, self.codec.encode({"t": "none", "o": origin}))
-                return
-            for raw in raws:
-                query.reply(reply_key, raw)
-            self.metrics.add("ranges_served")
-            return
+        self._serve_range(query, key, layer, request)
+
+    def _layer_epoch(self, layer: Layer) -> int:
+        return self.epoch if layer.origin == self.own else layer.epoch
+
+    def _part_limit(self, request: Any) -> int:
+        return max(1024, min(self.part_bytes, request.max_part_bytes) - FRAME_OVERHEAD - 128)
+
+    def _serve_snapshot(self, query: zenoh.Query, key: str, layer: Layer, request: Any) -> None:
         epoch, seq, chunks = layer.snapshot(self.chunk_voxels)
-        if origin == self.own:
+        if layer.origin == self.own:
             epoch = self.epoch
-        for i, chunk in enumerate(chunks):
-            payload = self.codec.encode(
-                {"t": "snap", "o": origin, "e": epoch, "s": seq, "i": i, "n": len(chunks),
-                 "delta": chunk}
-            )
-            query.reply(reply_key, payload)
-            self.metrics.add("bytes_served", len(payload))
+        limit = self._part_limit(request)
+        while True:  # one encoding per part unless a part is too large (then cut it, re-encode)
+            msgs = [
+                SnapshotReply(
+                    origin=self.own, time=time.time(), layer=layer.origin,
+                    request_id=request.request_id, frame_id=FRAME_ID, layer_epoch=epoch,
+                    part=i, parts=len(chunks), delta=chunk,
+                )
+                for i, chunk in enumerate(chunks)
+            ]
+            frames = self.sender.encode_all(msgs)
+            big = [i for i, f in enumerate(frames) if len(f) > request.max_part_bytes]
+            if not big:
+                break
+            for i in reversed(big):
+                chunks[i:i + 1] = split_delta(chunks[i], limit)
+        for frame in frames:
+            query.reply(key, frame)
+            self.metrics.add("bytes_served", len(frame))
         self.metrics.add("snapshots_served")
+
+    def _serve_range(self, query: zenoh.Query, key: str, layer: Layer | None, request: Any) -> None:
+        deltas = None
+        epoch = 0
+        if layer is not None and layer.seq > 0:
+            epoch = self._layer_epoch(layer)
+            deltas = layer.range(request.from_version, request.to_version)
+        common = {"layer": request.layer, "request_id": request.request_id, "frame_id": FRAME_ID,
+                  "layer_epoch": epoch}
+        if deltas is None:
+            msgs = [DeltaRangeReply(origin=self.own, time=time.time(), **common, complete=False)]
+        else:
+            limit = self._part_limit(request)
+            pieces = [p for d in deltas for p in split_delta(d, limit)]
+            msgs = [
+                DeltaRangeReply(origin=self.own, time=time.time(), **common, part=i,
+                                parts=len(pieces), delta=p)
+                for i, p in enumerate(pieces)
+            ]
+        frames = self.sender.encode_all(msgs)
+        for frame in frames:
+            query.reply(key, frame)
+            self.metrics.add("bytes_served", len(frame))
+        if deltas is not None:
+            self.metrics.add("ranges_served")

@@ -16,8 +16,12 @@ from voxel import keys as vk
 from voxel.delta import Delta
 
 
-def relabel(delta: Delta, from_version: int, to_version: int) -> Delta:
-    """The same voxels with wire versions (layer sequence numbers) instead of grid versions."""
+def relabel(delta: Delta, from_version: int, to_version: int, time: float | None = None) -> Delta:
+    """The same voxels with wire versions (layer sequence numbers) instead of grid versions.
+
+    `time` replaces the delta's reference time (the origin sets it to the publication time, so a
+    delta repaired through a range query still tells when it was made).
+    """
     return Delta(
         resolution=delta.resolution,
         from_version=from_version,
@@ -26,7 +30,15 @@ def relabel(delta: Delta, from_version: int, to_version: int) -> Delta:
         logodds=delta.logodds,
         last_time=delta.last_time,
         channels=delta.channels,
-        time=delta.time,
+        time=delta.time if time is None else time,
+    )
+
+
+def delta_nbytes(delta: Delta) -> int:
+    """Bytes held by the arrays of a delta."""
+    return int(
+        delta.keys.nbytes + delta.logodds.nbytes + delta.last_time.nbytes
+        + sum(v.nbytes for v in delta.channels.values())
     )
 
 
@@ -41,7 +53,11 @@ class Applied:
 
 
 class Layer:
-    """One origin's layer: a grid, its (epoch, seq), recent raw deltas and out-of-order ones."""
+    """One origin's layer: a grid, its (epoch, seq), recent deltas and out-of-order ones.
+
+    Deltas are labelled with the layer's versions: a delta covering (prev, seq] takes the layer
+    from seq `prev` to `seq`.
+    """
 
     def __init__(
         self, origin: str, resolution: float, *, ring_size: int = 64, pending_size: int = 64
@@ -52,18 +68,16 @@ class Layer:
         self.epoch = 0
         self.seq = 0
         self.lock = threading.RLock()
-        self.ring: deque[tuple[int, int, bytes]] = deque(maxlen=ring_size)
+        self.ring: deque[tuple[int, int, Delta]] = deque(maxlen=ring_size)
         self.ring_bytes = 0
         self.ring_max_bytes = 64 << 20
-        self.pending: dict[int, tuple[int, float, Delta, bytes]] = {}
+        self.pending: dict[int, tuple[int, float, Delta]] = {}
         self.pending_size = pending_size
         self.updated = 0.0
         self.reliability = 1.0
 
     # -- replica side ---------------------------------------------------------------------
-    def offer(
-        self, epoch: int, prev: int, seq: int, delta: Delta, raw: bytes, created: float = 0.0
-    ) -> Applied:
+    def offer(self, epoch: int, prev: int, seq: int, delta: Delta, created: float = 0.0) -> Applied:
         """Apply a delta covering (prev, seq] if it is next; buffer it if it comes early."""
         with self.lock:
             if epoch < self.epoch:
@@ -74,34 +88,35 @@ class Layer:
             if seq <= self.seq:
                 return Applied("duplicate")
             if prev > self.seq:
-                held = sum(len(v[3]) for v in self.pending.values())
-                if len(self.pending) >= self.pending_size or held + len(raw) > self.ring_max_bytes:
+                held = sum(delta_nbytes(v[2]) for v in self.pending.values())
+                if (len(self.pending) >= self.pending_size
+                        or held + delta_nbytes(delta) > self.ring_max_bytes):
                     self.pending.clear()  # bounded: a range query or a snapshot repairs it
-                self.pending[seq] = (prev, created, delta, raw)
+                self.pending[seq] = (prev, created, delta)
                 return Applied("reset" if reset else "gap", missing=(self.seq, prev))
-            n = self._apply(prev, seq, delta, raw)
+            n = self._apply(prev, seq, delta)
             result = Applied("applied", n, drained=[(seq, created)])
             self._drain(result)
             return result
 
-    def _apply(self, prev: int, seq: int, delta: Delta, raw: bytes | None) -> int:
+    def _apply(self, prev: int, seq: int, delta: Delta) -> int:
+        delta = relabel(delta, prev, seq)
         if len(delta):
-            self.grid.apply(relabel(delta, prev, seq))
+            self.grid.apply(delta)
         self.seq = seq
         self.updated = time.time()
-        if raw is not None:
-            self.remember(prev, seq, raw)
+        self.remember(prev, seq, delta)
         return len(delta)
 
-    def remember(self, prev: int, seq: int, raw: bytes) -> None:
-        """Keep a raw delta for range repair; bounded in count and bytes (oldest go first)."""
+    def remember(self, prev: int, seq: int, delta: Delta) -> None:
+        """Keep a delta (labelled (prev, seq]) for range repair; bounded in count and bytes."""
         with self.lock:
             if len(self.ring) == self.ring.maxlen:
-                self.ring_bytes -= len(self.ring[0][2])
-            self.ring.append((prev, seq, raw))
-            self.ring_bytes += len(raw)
+                self.ring_bytes -= delta_nbytes(self.ring[0][2])
+            self.ring.append((prev, seq, delta))
+            self.ring_bytes += delta_nbytes(delta)
             while self.ring_bytes > self.ring_max_bytes and len(self.ring) > 1:
-                self.ring_bytes -= len(self.ring.popleft()[2])
+                self.ring_bytes -= delta_nbytes(self.ring.popleft()[2])
 
     def _drain(self, result: Applied) -> None:
         while self.pending:
@@ -109,9 +124,9 @@ class Layer:
             if not ready:
                 break
             for s in sorted(ready):
-                p, created, delta, raw = self.pending.pop(s)
+                p, created, delta = self.pending.pop(s)
                 if s > self.seq:
-                    result.voxels += self._apply(p, s, delta, raw)
+                    result.voxels += self._apply(p, s, delta)
                     result.drained.append((s, created))
         if self.pending:
             result.missing = (self.seq, min(p for p, *_ in self.pending.values()))
@@ -157,17 +172,17 @@ class Layer:
         ]
         return epoch, seq, chunks
 
-    def range(self, have: int, want: int) -> list[bytes] | None:
-        """Raw recent deltas that take a replica from `have` to at least `want`, else None."""
+    def range(self, have: int, want: int) -> list[Delta] | None:
+        """Recent deltas (labelled (prev, seq]) taking a replica from `have` to >= `want`, else None."""
         with self.lock:
-            out: list[bytes] = []
+            out: list[Delta] = []
             at = have
-            for prev, seq, raw in self.ring:
+            for prev, seq, delta in self.ring:
                 if seq <= at:
                     continue
                 if prev > at:
                     return None
-                out.append(raw)
+                out.append(delta)
                 at = seq
                 if at >= want:
                     return out
@@ -201,14 +216,22 @@ class Layer:
             return int(self.grid.known_count())
 
     def digest(self) -> str:
-        """Hash of keys and log-odds, order-independent; equal digests mean identical layers."""
+        """Hash of every known voxel's key, log-odds, last time and channels, order-independent.
+
+        Equal digests mean identical layers, bit for bit at the grid's stored precision (what
+        `VoxelGrid.content_equal` compares).
+        """
         full = self.full()
         known = ~np.isnan(full.logodds)
         packed = vk.pack(full.keys[known])
-        order = np.argsort(packed, kind="stable")
+        order = np.flatnonzero(known)[np.argsort(packed, kind="stable")]
         h = hashlib.sha256()
-        h.update(packed[order].tobytes())
-        h.update(full.logodds[known][order].tobytes())
+        h.update(np.sort(packed).tobytes())
+        h.update(full.logodds[order].tobytes())
+        h.update(full.last_time[order].tobytes())
+        for name in sorted(full.channels):
+            h.update(name.encode() + b"\0")
+            h.update(np.ascontiguousarray(full.channels[name][order]).tobytes())
         return h.hexdigest()[:16]
 
 

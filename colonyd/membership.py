@@ -7,11 +7,10 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
-
 import zenoh
 
-from colonyd.runtime import Keys
+from protocol import Heartbeat, KeyExprError
+from protocol.keyexpr import alive_key, alive_subscription, parse_key
 
 log = logging.getLogger(__name__)
 
@@ -35,22 +34,24 @@ class Membership:
     def __init__(
         self,
         session: zenoh.Session,
-        keys: Keys,
+        namespace: str,
         own: str,
         on_event: Callable[[str, str], None],
     ) -> None:
-        self._keys = keys
         self.own = own
         self._on_event = on_event  # (agent, "join"|"leave"); must only enqueue
         self._lock = threading.Lock()
         self.members: dict[str, Member] = {}
-        self._token = session.liveliness().declare_token(keys.alive(own))
+        self._token = session.liveliness().declare_token(alive_key(namespace, own))
         self._sub = session.liveliness().declare_subscriber(
-            keys.alive("*"), self._on_liveliness, history=True
+            alive_subscription(namespace), self._on_liveliness, history=True
         )
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
-        agent = Keys.last(str(sample.key_expr))
+        try:
+            agent = parse_key(str(sample.key_expr)).origin
+        except KeyExprError:
+            return
         if agent == self.own:
             return
         joined = sample.kind == zenoh.SampleKind.PUT
@@ -64,23 +65,16 @@ class Membership:
                 m.joined = m.last_seen
         self._on_event(agent, "join" if joined else "leave")
 
-    def heard(self, agent: str, hb: dict[str, Any]) -> Member:
-        """Record a heartbeat; returns the member."""
+    def heard(self, agent: str, hb: Heartbeat) -> Member:
+        """Record a (validated) heartbeat; returns the member."""
         with self._lock:
             m = self.members.get(agent)
             if m is None:  # alive only once its liveliness token is seen
                 m = self.members[agent] = Member(agent, alive=False)
             m.last_seen = time.time()
-            m.kind = str(hb.get("k", "?"))[:32]
-            pose = hb.get("p") or []
-            m.pose = [float(x) for x in pose[:7]] if isinstance(pose, list) else []
-            layers = hb.get("L") or {}
-            if isinstance(layers, dict):
-                m.layers = {
-                    str(o): (int(v[0]), int(v[1]))
-                    for o, v in list(layers.items())[:4096]
-                    if isinstance(v, list | tuple) and len(v) == 2
-                }
+            m.kind = hb.kind
+            m.pose = list(hb.position) if hb.position is not None else []
+            m.layers = {entry.origin: (entry.epoch, entry.version) for entry in hb.layers}
             return m
 
     def alive(self) -> list[str]:

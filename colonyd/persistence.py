@@ -13,12 +13,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import math
+
 import msgpack
+import numpy as np
 
 from colonyd.errors import PersistenceError
 from colonyd.grid import VoxelGrid, load_grid, new_grid
-from colonyd.wire import _pack_delta, _unpack_delta
-from voxel.delta import Delta
+from voxel.delta import Delta, channel_spec
 
 log = logging.getLogger(__name__)
 
@@ -26,6 +28,7 @@ _HEAD = struct.Struct("<II")  # length, crc32
 META = "meta.json"
 SNAPSHOT = "snapshot.json"
 WAL = "wal.log"
+FRAMES = "frames.json"
 
 
 @dataclass
@@ -38,6 +41,7 @@ class Recovered:
     wal_records: int
     fresh: bool
     published: int  # grid version up to which changes were logged (and so may have been sent)
+    frame_seq: int = 0  # first protocol frame number this run may use (reserved by the last run)
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
@@ -120,7 +124,16 @@ class StateStore:
             published = max(published, int(rec["delta"].to_version))
             records += 1
         self._open_wal()
-        return Recovered(epoch, seq, grid, records, fresh, published)
+        frames = self._read_json(self.dir / FRAMES) if (self.dir / FRAMES).exists() else {}
+        return Recovered(epoch, seq, grid, records, fresh, published, int(frames.get("next", 0)))
+
+    def reserve_frames(self, up_to: int) -> None:
+        """Durably record that frame numbers below `up_to` may be in use (a restart skips them)."""
+        try:
+            _atomic_write(self.dir / FRAMES, json.dumps({"next": int(up_to)}).encode())
+        except OSError as exc:
+            msg = f"cannot reserve frame numbers in {self.dir}: {exc.strerror}"
+            raise PersistenceError(msg) from None
 
     def _read_json(self, path: Path) -> dict[str, Any]:
         try:
@@ -142,7 +155,7 @@ class StateStore:
                 break  # a torn write at the tail: everything before it was acknowledged
             try:
                 rec = msgpack.unpackb(body, raw=False)
-                rec["delta"] = _unpack_delta(rec["delta"])
+                rec["delta"] = _unpack_wal_delta(rec["delta"])
             except Exception:
                 break
             out.append(rec)
@@ -162,7 +175,7 @@ class StateStore:
 
     def append(self, seq: int, delta: Delta) -> None:
         """Log an own delta (grid versions) durably before it is published."""
-        body = msgpack.packb({"seq": int(seq), "delta": _pack_delta(delta)}, use_bin_type=True)
+        body = msgpack.packb({"seq": int(seq), "delta": _pack_wal_delta(delta)}, use_bin_type=True)
         try:
             self._wal.write(_HEAD.pack(len(body), zlib.crc32(body)) + body)
             self._wal.flush()
@@ -202,3 +215,47 @@ class StateStore:
             self._wal.close()
             self._wal = None
         os.close(self._lock_fd)
+
+
+# ------------------------------------------------------------------ log records (local, exact)
+
+
+def _pack_wal_delta(delta: Delta) -> dict[str, Any]:
+    """A delta as a log record: every array byte for byte (the log is local, never sent)."""
+    return {
+        "r": float(delta.resolution),
+        "f": int(delta.from_version),
+        "v": int(delta.to_version),
+        "tm": float(delta.time),
+        "n": len(delta),
+        "k": np.ascontiguousarray(delta.keys, dtype="<i8").tobytes(),
+        "l": np.ascontiguousarray(delta.logodds, dtype="<f4").tobytes(),
+        "lt": np.ascontiguousarray(delta.last_time, dtype="<f8").tobytes(),
+        "c": {
+            name: [list(arr.shape[1:]), np.ascontiguousarray(arr).tobytes()]
+            for name, arr in delta.channels.items()
+        },
+    }
+
+
+def _wal_array(raw: Any, dtype: np.dtype, shape: tuple[int, ...], what: str) -> np.ndarray:
+    want = dtype.itemsize * math.prod(shape)
+    if not isinstance(raw, bytes) or len(raw) != want:
+        msg = f"log record field {what}: expected {want} bytes"
+        raise PersistenceError(msg)
+    return np.frombuffer(raw, dtype=dtype.newbyteorder("<")).reshape(shape).astype(dtype)
+
+
+def _unpack_wal_delta(d: dict[str, Any]) -> Delta:
+    n = int(d["n"])
+    channels = {}
+    for name, (tail, raw) in d.get("c", {}).items():
+        dtype, _ = channel_spec(str(name))
+        channels[str(name)] = _wal_array(raw, dtype, (n, *(int(x) for x in tail)), name)
+    return Delta(
+        float(d["r"]), int(d["f"]), int(d["v"]),
+        _wal_array(d["k"], np.dtype(np.int64), (n, 3), "keys"),
+        _wal_array(d["l"], np.dtype(np.float32), (n,), "logodds"),
+        _wal_array(d["lt"], np.dtype(np.float64), (n,), "last_time"),
+        channels, float(d["tm"]),
+    )

@@ -103,31 +103,3 @@ def get_session(config: Config) -> zenoh.Session:
     )
     return session
 
-
-class Keys:
-    """Key expressions of one colony namespace."""
-
-    def __init__(self, namespace: str) -> None:
-        self.root = f"colony/{namespace}"
-
-    def alive(self, agent: str = "*") -> str:
-        return f"{self.root}/alive/{agent}"
-
-    def delta(self, origin: str = "*") -> str:
-        return f"{self.root}/delta/{origin}"
-
-    def heartbeat(self, agent: str = "*") -> str:
-        return f"{self.root}/hb/{agent}"
-
-    def status(self, agent: str = "*") -> str:
-        return f"{self.root}/status/{agent}"
-
-    def snapshot(self, server: str = "*", origin: str = "*") -> str:
-        return f"{self.root}/snap/{server}/{origin}"
-
-    def range(self, server: str = "*", origin: str = "*") -> str:
-        return f"{self.root}/range/{server}/{origin}"
-
-    @staticmethod
-    def last(key: str) -> str:
-        return str(key).rsplit("/", 1)[-1]

@@ -104,8 +104,9 @@ class BulkSource:
         keys = np.column_stack([idx // (side * side), (idx // side) % side, idx % side])
         keys += (self.seed % 64) * 2 * side
         rng = np.random.default_rng(self.seed)
-        lo = rng.uniform(-2.0, 3.5, size=self.voxels).astype(np.float32)
-        now = time.time()
+        # What a grid holds: log-odds on its 1/32 grid, times in whole milliseconds.
+        lo = (rng.integers(-64, 112, size=self.voxels) / 32).astype(np.float32)
+        now = round(time.time() * 1000) / 1000.0
         delta = Delta(self.resolution, 0, 1, keys, lo, np.full(self.voxels, now), time=now)
         yield Frame(time=now, delta=delta)
 

@@ -14,22 +14,24 @@ import zenoh
 
 from colonyd.config import Config
 from colonyd.errors import StatusError
-from colonyd.runtime import Keys, open_session, zenoh_config
+from colonyd.runtime import open_session, zenoh_config
+from protocol import KeyExprError
+from protocol.keyexpr import alive_subscription, parse_key, status_key, status_selector
 
 log = logging.getLogger(__name__)
 
 
 class StatusServer:
-    """Answers `colony/<ns>/status/<agent>` queries with `report(params)` (JSON)."""
+    """Answers `colony/<ns>/<agent>/status` queries with `report(params)` (JSON)."""
 
     def __init__(
-        self, session: zenoh.Session, keys: Keys, agent: str,
+        self, session: zenoh.Session, namespace: str, agent: str,
         report: Callable[[dict[str, str]], dict[str, Any]],
     ) -> None:
         self._report = report
         self._queue: queue.Queue[zenoh.Query] = queue.Queue(maxsize=16)
         self._stop = threading.Event()
-        self._queryable = session.declare_queryable(keys.status(agent), self._on_query)
+        self._queryable = session.declare_queryable(status_key(namespace, agent), self._on_query)
         self._thread = threading.Thread(target=self._loop, name="status", daemon=True)
         self._thread.start()
 
@@ -68,13 +70,12 @@ def query_status(
     timeout: float = 3.0,
 ) -> list[dict[str, Any]]:
     """One status report per daemon reachable in the namespace, sorted by agent id."""
-    keys = Keys(namespace)
     params = []
     if digest:
         params.append("digest=1")
     if samples:
         params.append("samples=1")
-    selector = keys.status("*") + ("?" + ";".join(params) if params else "")
+    selector = status_selector(namespace) + ("?" + ";".join(params) if params else "")
     replies = session.get(
         selector,
         consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout,
@@ -94,12 +95,14 @@ def query_status(
 
 def alive_members(session: zenoh.Session, namespace: str, timeout: float = 2.0) -> list[str]:
     """Agents whose liveliness token is visible."""
-    keys = Keys(namespace)
-    return sorted(
-        Keys.last(str(r.ok.key_expr))
-        for r in session.liveliness().get(keys.alive("*"), timeout=timeout)
-        if r.ok is not None
-    )
+    agents = set()
+    for r in session.liveliness().get(alive_subscription(namespace), timeout=timeout):
+        if r.ok is not None:
+            try:
+                agents.add(parse_key(str(r.ok.key_expr)).origin)
+            except KeyExprError:
+                continue
+    return sorted(agents)
 
 
 def collect_status(config: Config, *, digest: bool = False, samples: bool = False,

@@ -169,7 +169,7 @@ def _envelope(data: bytes, end: int, limits: Limits) -> tuple[str, int, int, flo
     if not isinstance(origin, str) or not _NAME_RE.fullmatch(origin):
         msg = f"envelope: expected origin matching {NAME_PATTERN}, found {str(origin)[:80]!r}"
         raise RangeError(msg)
-    for name, value, hi in (("epoch", epoch, 0xFFFF_FFFF), ("seq", seq, (1 << 63) - 1)):
+    for name, value, hi in (("epoch", epoch, (1 << 63) - 1), ("seq", seq, (1 << 63) - 1)):
         if isinstance(value, bool) or not isinstance(value, int):
             msg = f"envelope: expected integer {name}, found {type(value).__name__}"
             raise MalformedError(msg)

@@ -99,10 +99,24 @@ def significance(delta: Delta, prev_logodds: np.ndarray | None = None) -> np.nda
 # --------------------------------------------------------------------------- encoding
 
 
+#: The grid's own log-odds quantum (`voxel.grid` stores multiples of 2**GRID_Q): deltas whose
+#: values all lie on it travel with q = GRID_Q, exactly.
+GRID_Q = -5
+
+
 def quantum_exponent(logodds: np.ndarray) -> int:
-    """Smallest q in [Q_MIN, Q_MAX] with 127 * 2**q >= max |finite log-odds|."""
+    """Quantum exponent of a set of log-odds (NaN ignored).
+
+    GRID_Q (-5) when every finite value is a multiple of 2**-5 with |value| <= 127 * 2**-5 (the
+    grid's stored precision: exact on the wire); otherwise the smallest q in [Q_MIN, Q_MAX]
+    with 127 * 2**q >= max |finite log-odds|.
+    """
     finite = logodds[np.isfinite(logodds)]
     amax = float(np.max(np.abs(finite))) if finite.size else 0.0
+    if amax <= 127.0 * 2.0**GRID_Q:
+        scaled = finite.astype(np.float64) * 2.0**-GRID_Q
+        if np.array_equal(scaled, np.rint(scaled)):
+            return GRID_Q
     if amax <= 0.0:
         return Q_MIN
     q = math.ceil(math.log2(amax / 127.0))
@@ -127,14 +141,37 @@ def dequantise(codes: np.ndarray, q: int) -> np.ndarray:
     return out
 
 
+#: Largest |time| in ms that the integer-millisecond time arithmetic handles exactly (2**53).
+_MS_EXACT = float(1 << 53)
+
+
+def reference_ms(ref: float) -> int:
+    """The reference time T in whole milliseconds: round(T * 1000) (0 if |T| is beyond 2**53 ms).
+
+    Voxel times travel as integers relative to this, so a time of k / 1000.0 s (whole ms) on the
+    sender decodes to exactly k / 1000.0 on the receiver.
+    """
+    ms = float(ref) * 1000.0
+    return int(np.rint(ms)) if abs(ms) < _MS_EXACT else 0
+
+
 def _relative_ms(times: np.ndarray, ref: float) -> np.ndarray:
     t = np.asarray(times, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        rel = np.rint((t - ref) * 1000.0)
-    bad = ~np.isfinite(rel) | (np.abs(rel) > 2.0**62)
-    rel = np.where(bad, 0.0, rel).astype(np.int64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        ms = np.rint(t * 1000.0)
+    bad = ~np.isfinite(ms) | (np.abs(ms) >= _MS_EXACT)
+    rel = np.where(bad, 0.0, ms).astype(np.int64) - reference_ms(ref)
     rel[bad] = TIME_NAN
     return rel
+
+
+def _absolute_times(rel: np.ndarray, ref: float) -> np.ndarray:
+    """Seconds of relative ms codes: (T_ms + rel) / 1000.0 in one division; TIME_NAN -> NaN."""
+    nan = rel == TIME_NAN
+    total = reference_ms(ref) + np.where(nan, 0, rel)  # |T_ms| < 2**53, |rel| <= 2**62: no overflow
+    out = total.astype(np.float64) / 1000.0
+    out[nan] = np.nan
+    return out
 
 
 def _time_columns(times: np.ndarray, ref: float) -> tuple[bytes, bytes]:
@@ -634,7 +671,10 @@ def _decode_times(table_raw: Any, index_raw: Any, n: int, ref: float, what: str)
     if t == 0 or t > n:
         msg = f"{what}: expected 1..{n} time table entries, found {t}"
         raise MalformedError(msg)
-    values = np.where(table == TIME_NAN, np.nan, ref + table.astype(np.float64) / 1000.0)
+    if np.any(np.abs(table[table != TIME_NAN]) > (1 << 62)):
+        msg = f"{what}: expected relative times within 2**62 ms, found more"
+        raise RangeError(msg)
+    values = _absolute_times(table, ref)
     if t == 1:
         if index_raw:
             msg = (
@@ -826,7 +866,7 @@ def _decode_summary(
         to_version=v_to,
         keys=keys,
         logodds=dequantise(codes, q),
-        time=ref + rel / 1000.0,
+        time=float(_absolute_times(np.array([rel], dtype=np.int64), ref)[0]),
     )
 
 

@@ -2,10 +2,11 @@
 
 Layout (every NAME matches `NAME_PATTERN`):
 
-    colony/<colony>/<origin>/announce|pose|delta|objects|align     publications
+    colony/<colony>/<origin>/announce|pose|delta|objects|align|heartbeat   publications
     colony/<colony>/alive/<origin>                                  liveliness tokens
     colony/<colony>/<origin>/snapshot/<layer>                       queryable: snapshot of a layer
     colony/<colony>/<origin>/deltas/<layer>                         queryable: range of deltas
+    colony/<colony>/<origin>/status                                 queryable: JSON status report
 """
 
 from __future__ import annotations
@@ -22,12 +23,14 @@ ROOT = "colony"
 NAME_PATTERN = r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}"
 _NAME = re.compile(NAME_PATTERN)
 #: Topics an origin publishes on.
-TOPICS = ("announce", "pose", "delta", "objects", "align")
+TOPICS = ("announce", "pose", "delta", "objects", "align", "heartbeat")
 #: Queryables an origin serves, each for one layer.
 QUERIES = ("snapshot", "deltas")
 ALIVE = "alive"
+#: An origin's status queryable (a daemon's JSON report, not a protocol frame).
+STATUS = "status"
 
-Topic = Literal["announce", "pose", "delta", "objects", "align"]
+Topic = Literal["announce", "pose", "delta", "objects", "align", "heartbeat"]
 Query = Literal["snapshot", "deltas"]
 
 
@@ -90,6 +93,16 @@ def query_declaration(colony: str, origin: str, query: Query) -> str:
     return f"{ROOT}/{validate_name(colony, 'colony')}/{validate_name(origin, 'origin')}/{query}/*"
 
 
+def status_key(colony: str, origin: str) -> str:
+    """Key of the status queryable of `origin` (answers with a JSON report, not a frame)."""
+    return f"{ROOT}/{validate_name(colony, 'colony')}/{validate_name(origin, 'origin')}/{STATUS}"
+
+
+def status_selector(colony: str) -> str:
+    """Key expression matching the status queryables of every origin of a colony."""
+    return f"{ROOT}/{validate_name(colony, 'colony')}/*/{STATUS}"
+
+
 @dataclass(frozen=True)
 class ParsedKey:
     """A parsed colony key: `kind` is a topic, a query name or "alive"."""
@@ -117,12 +130,12 @@ def parse_key(key: str) -> ParsedKey:
         return ParsedKey(colony, validate_name(parts[3], "origin"), ALIVE)
     origin = validate_name(parts[2], "origin")
     kind = parts[3]
-    if len(parts) == 4 and kind in TOPICS:
+    if len(parts) == 4 and (kind in TOPICS or kind == STATUS):
         return ParsedKey(colony, origin, kind)
     if len(parts) == 5 and kind in QUERIES:
         return ParsedKey(colony, origin, kind, validate_name(parts[4], "layer"))
     msg = (
-        f"key must end in one of {TOPICS} or '<{'|'.join(QUERIES)}>/<layer>', "
+        f"key must end in one of {(*TOPICS, STATUS)} or '<{'|'.join(QUERIES)}>/<layer>', "
         f"found {'/'.join(parts[3:])!r} in {key!r}"
     )
     raise KeyExprError(msg)

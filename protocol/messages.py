@@ -57,7 +57,7 @@ class Message(BaseModel):
 
     version: U8 = PROTOCOL_VERSION
     origin: Name
-    epoch: U32 = 0
+    epoch: U63 = 0
     seq: U63 = 0
     time: Finite
 
@@ -291,7 +291,11 @@ class SnapshotRequest(Message):
 
 
 class SnapshotReply(Message):
-    """One part of the content of `layer` at version `delta.to_version` (from_version 0)."""
+    """One part of the content of `layer` at version `delta.to_version` (from_version 0).
+
+    `layer_epoch` is the epoch of the layer's origin the content belongs to: a server answering
+    for another origin's layer (store and forward) says which of that origin's epochs it holds.
+    """
 
     TYPE: ClassVar[int] = 7
     KIND: ClassVar[str] = "snapshot_reply"
@@ -299,6 +303,7 @@ class SnapshotReply(Message):
     layer: Name
     request_id: U63
     frame_id: Name
+    layer_epoch: U63
     part: U16 = 0
     parts: Annotated[int, Field(ge=1, le=0xFFFF)] = 1
     delta: Delta
@@ -336,7 +341,8 @@ class DeltaRangeReply(Message):
     """One part of the changes of `layer` in (from_version, to_version].
 
     `complete` is False if the server no longer holds that range; the requester should then ask
-    for a snapshot. `delta` is None when nothing changed or nothing is available.
+    for a snapshot. `delta` is None when nothing changed or nothing is available. `layer_epoch`
+    is the epoch of the layer's origin the versions belong to (0: the server holds no such layer).
     """
 
     TYPE: ClassVar[int] = 9
@@ -345,6 +351,7 @@ class DeltaRangeReply(Message):
     layer: Name
     request_id: U63
     frame_id: Name
+    layer_epoch: U63
     complete: bool = True
     part: U16 = 0
     parts: Annotated[int, Field(ge=1, le=0xFFFF)] = 1
@@ -354,6 +361,49 @@ class DeltaRangeReply(Message):
     def _part_in_range(self) -> DeltaRangeReply:
         _check_part(self.part, self.parts)
         return self
+
+
+class LayerVersion(BaseModel):
+    """One layer a peer holds: its origin, the origin's epoch and the layer's version (seq)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    origin: Name
+    epoch: U63
+    version: U63
+
+
+class Heartbeat(Message):
+    """What a peer is and holds: kind, pose, and the (origin, epoch, version) of every layer.
+
+    Sent periodically and on membership changes; a receiver that holds less of a layer than a
+    heartbeat reports asks the sender for it (SnapshotRequest or DeltaRangeRequest). `position`
+    is None when the peer does not know its pose.
+    """
+
+    TYPE: ClassVar[int] = 10
+    KIND: ClassVar[str] = "heartbeat"
+
+    kind: Name
+    frame_id: Name
+    position: Vec3 | None = None
+    orientation: Quat = (0.0, 0.0, 0.0, 1.0)
+    layers: Annotated[list[LayerVersion], Field(max_length=4096)] = []
+
+    @field_validator("orientation")
+    @classmethod
+    def _unit(cls, q: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+        return _check_quaternion(q)
+
+    @field_validator("layers")
+    @classmethod
+    def _unique(cls, layers: list[LayerVersion]) -> list[LayerVersion]:
+        origins = [entry.origin for entry in layers]
+        if len(set(origins)) != len(origins):
+            dup = next(o for o in origins if origins.count(o) > 1)
+            msg = f"layers must list each origin once, found {dup!r} twice"
+            raise ValueError(msg)
+        return layers
 
 
 #: Every message class by its type code (byte 5 of a frame).
@@ -369,5 +419,6 @@ MESSAGE_TYPES: dict[int, type[Message]] = {
         SnapshotReply,
         DeltaRangeRequest,
         DeltaRangeReply,
+        Heartbeat,
     )
 }

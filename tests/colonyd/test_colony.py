@@ -10,7 +10,8 @@ import time
 
 import numpy as np
 
-from colonyd.wire import Codec
+from protocol import VoxelDelta, encode
+from protocol.keyexpr import topic_key
 from voxel.delta import Delta
 
 from .conftest import logs
@@ -31,18 +32,24 @@ def test_three_converge_late_joiner_and_garbage(make_colony):
     try:
         colony.wait_members(3)
         colony.wait_converged(30)
-        # A peer sending garbage is ignored and counted.
+        # A peer sending garbage is ignored and counted, by reason.
         s = colony.session()
-        bad = [b"", b"garbage", b"CLD\x01\x00" + b"\x28\xb5\x2f\xfd" + b"\x00" * 20,
-               b"CLD\x09\x00xx", Codec().encode({"t": "delta", "o": "evil", "e": 1, "s": 1})]
+        ns = colony.namespace
+        evil = encode(VoxelDelta(origin="evil", epoch=1, seq=1, time=1.0, frame_id="map",
+                                 delta=Delta(0.1, 0, 1, [[0, 0, 0]], [0.5], [1.0])))
+        bad = [b"\x00", b"garbage", b"CLNY\x01\x03\x02\x00" + b"\x28\xb5\x2f\xfd" + b"\x00" * 20,
+               b"CLNY\x09\x03\x00\x00xx", evil[:-3]]
         for payload in bad:
-            s.put(f"colony/{colony.namespace}/delta/evil", payload or b"\x00")
-            s.put(f"colony/{colony.namespace}/hb/evil", payload or b"\x00")
+            s.put(topic_key(ns, "evil", "delta"), payload)
+            s.put(topic_key(ns, "evil", "heartbeat"), payload)
+        s.put(topic_key(ns, "c", "delta"), evil)  # a frame of one origin on another's key
         time.sleep(1.0)
         reports = colony.status()
         for r in reports:
             assert r["metrics"]["counts"].get("rejected", 0) >= len(bad), r["metrics"]
+            assert {"truncated", "malformed", "version"} <= set(r["metrics"]["rejected"])
             assert "evil" not in r["layers"]
+        assert any("keyexpr" in r["metrics"]["rejected"] for r in reports)
         # A late joiner catches up with every layer.
         colony.add("d")
         colony.wait_converged(20)
@@ -172,17 +179,17 @@ def test_flood_is_bounded_and_counted(make_colony):
         colony.wait_converged(30)
         s = colony.session()
         rng = np.random.default_rng(0)
-        codec = Codec()
-        big = Delta(0.1, 0, 1, rng.integers(-500, 500, (60_000, 3)), np.zeros(60_000, np.float32),
-                    np.zeros(60_000))
-        frames = [codec.encode({"t": "delta", "o": f"flood{i % 300}", "e": 1, "s": 1 + i // 300,
-                                "p": i // 300, "delta": big}) for i in range(4)]
+        keys = np.unique(rng.integers(-500, 500, (60_000, 3)), axis=0)
+        n_keys = len(keys)
+        big = Delta(0.1, 0, 1, keys, np.zeros(n_keys, np.float32), np.zeros(n_keys))
+        frames = [encode(VoxelDelta(origin=f"flood{i}", epoch=1, seq=1, time=1.0, frame_id="map",
+                                    delta=big)) for i in range(4)]
         junk = rng.bytes(256 << 10)
         t0 = time.monotonic()
         n = 0
         while time.monotonic() - t0 < 4.0:
             for i in range(50):
-                s.put(f"colony/{colony.namespace}/delta/flood{n % 400}", frames[n % 4][:5] + junk
+                s.put(topic_key(colony.namespace, f"flood{n % 400}", "delta"), frames[n % 4][:5] + junk
                       if n % 2 else frames[n % 4])
                 n += 1
         time.sleep(1.0)

@@ -91,3 +91,19 @@ def test_changes_after_the_last_publish_are_sent_after_a_restart(tmp_path):
     assert rec.seq == 1 and rec.published == published < rec.grid.version
     assert len(rec.grid.delta_since(rec.published)) > 0
     store.close()
+
+
+def test_frame_numbers_reserved_survive_a_restart(tmp_path):
+    from colonyd.frames import SEQ_BLOCK, Sender
+
+    store = StateStore(tmp_path, "a", 0.1)
+    rec = store.recover()
+    assert rec.frame_seq == 0
+    sender = Sender("a", rec.epoch, first_seq=rec.frame_seq, reserve=store.reserve_frames)
+    used = [sender.take() for _ in range(5)]
+    store.close()  # as after SIGKILL: nothing else written
+
+    store = StateStore(tmp_path, "a", 0.1)
+    again = store.recover()
+    assert again.epoch == rec.epoch and again.frame_seq == 1 + SEQ_BLOCK > max(used)
+    store.close()

@@ -1,96 +1,176 @@
-"""Wire format: round trip, and every hostile input rejected with a reason."""
+"""The daemon on the wire: protocol frames out, one Receiver in, exact replicas, rejections."""
 
 from __future__ import annotations
 
-import msgpack
+import threading
+
 import numpy as np
 import pytest
-import zstandard
 
 from colonyd.errors import WireError
-from colonyd.wire import MAGIC, VERSION, Codec
+from colonyd.frames import SEQ_BLOCK, Assembler, Sender, colony_key, get_receiver
+from colonyd.grid import new_grid
+from colonyd.layers import Layer, relabel
+from protocol import (
+    AuthError,
+    DecompressionBombError,
+    Heartbeat,
+    KeyExprError,
+    LayerVersion,
+    ProtocolError,
+    ReplayError,
+    VoxelDelta,
+    delta_messages,
+    peek,
+)
+from protocol.keyexpr import topic_key
 from voxel.delta import Delta
 
-
-def delta(n: int = 100) -> Delta:
-    rng = np.random.default_rng(0)
-    return Delta(0.1, 3, 4, rng.integers(-50, 50, (n, 3)), rng.normal(size=n).astype(np.float32),
-                 np.full(n, 12.5), {"hits": np.arange(n, dtype=np.uint16),
-                                    "colour": np.zeros((n, 3), np.uint8)}, time=12.5)
+SECRET = "correct horse battery staple"
 
 
-def test_delta_round_trip_is_exact():
-    codec = Codec()
-    d = delta()
-    msg = codec.decode(codec.encode({"t": "delta", "o": "a", "e": 1, "s": 4, "p": 3, "delta": d}))
-    got = msg["delta"]
-    assert (msg["o"], msg["s"], msg["p"]) == ("a", 4, 3)
-    np.testing.assert_array_equal(got.keys, d.keys)
-    np.testing.assert_array_equal(got.logodds, d.logodds)
-    np.testing.assert_array_equal(got.channels["hits"], d.channels["hits"])
-    assert got.channels["colour"].shape == (100, 3)
+def grid_deltas(n: int = 4, points: int = 400) -> tuple[object, list[Delta]]:
+    """An origin grid and the deltas it published (as the daemon labels them: (i, i+1])."""
+    grid, out, v = new_grid(0.1), [], 0
+    rng = np.random.default_rng(3)
+    for i in range(n):
+        pts = rng.uniform(-3, 3, (points, 3))
+        grid.integrate(pts, np.zeros(3), time=1_700_000_000.0 + i * 0.25 + 0.0004,
+                       colours=rng.integers(0, 256, (points, 3), dtype=np.uint8))
+        out.append(relabel(grid.delta_since(v), i, i + 1, time=1_700_000_001.5))
+        v = grid.version
+    return grid, out
 
 
-def frame(body: object, version: int = VERSION) -> bytes:
-    return MAGIC + bytes([version, 0]) + zstandard.ZstdCompressor().compress(
-        msgpack.packb(body, use_bin_type=True))
+def test_colony_key_is_sha256_of_the_secret() -> None:
+    import hashlib
+
+    assert colony_key(None) is None and colony_key("") is None
+    assert colony_key(SECRET) == hashlib.sha256(SECRET.encode()).digest()
+    assert len(colony_key("short")) == 32  # any passphrase gives a valid 32-byte protocol key
+
+
+def test_replica_through_protocol_frames_is_identical_to_origin() -> None:
+    origin, deltas = grid_deltas()
+    sender = Sender("a", 1_700_000_000_123_456, key=colony_key(SECRET))
+    receiver = get_receiver(SECRET, 64)
+    replica = Layer("a", 0.1)
+    assembler = Assembler()
+    key = topic_key("site", "a", "delta")
+    for d in deltas:
+        msgs = delta_messages(origin="a", epoch=sender.epoch, seq=0, time=1.0, frame_id="map",
+                              delta=d, max_bytes=4096)  # small parts: exercise reassembly
+        frames = sender.encode_all(msgs)
+        for frame in reversed(frames):  # parts in any order
+            msg = receiver.decode(frame, key_expr=key)
+            assert isinstance(msg, VoxelDelta) and msg.epoch == 1_700_000_000_123_456
+            whole = assembler.add((msg.origin, msg.epoch, msg.delta.from_version,
+                                   msg.delta.to_version), msg.part, msg.parts, msg.delta)
+            if whole is not None:
+                assert replica.offer(msg.epoch, whole.from_version, whole.to_version,
+                                     whole).outcome == "applied"
+    assert replica.seq == len(deltas)
+    assert replica.grid.content_equal(origin)  # bit for bit: log-odds, times, channels
+    own = Layer("a", 0.1)
+    own.grid = origin
+    assert replica.digest() == own.digest()
+
+
+def test_frame_numbers_are_shared_and_reserved_ahead() -> None:
+    reserved: list[int] = []
+    s = Sender("a", 5, first_seq=100, reserve=reserved.append)
+    assert s.take() == 100 and reserved == [101 + SEQ_BLOCK]
+    assert s.take(3) == 101 and s.take() == 104 and len(reserved) == 1
+    # a restart resumes at the reservation: never a seq the previous run may have used
+    restarted = Sender("a", 5, first_seq=reserved[-1])
+    assert restarted.take() > 104
+
+
+def test_heartbeat_round_trip_and_replay_rejected() -> None:
+    s = Sender("b", 7, key=colony_key(SECRET))
+    r = get_receiver(SECRET, 64)
+    frame = s.encode(Heartbeat(**s.header(), kind="robot", frame_id="map",
+                               position=(1.0, 2.0, 0.0),
+                               layers=[LayerVersion(origin="a", epoch=3, version=9)]))
+    msg = r.decode(frame, key_expr=topic_key("site", "b", "heartbeat"))
+    assert isinstance(msg, Heartbeat) and msg.layers[0].version == 9
+    with pytest.raises(ReplayError):
+        r.decode(frame)
+
+
+def test_colony_key_authenticates() -> None:
+    signed = Sender("x", 1, key=colony_key(SECRET))
+    hb = Heartbeat(**signed.header(), kind="robot", frame_id="map")
+    with pytest.raises(AuthError, match="tag does not match") as info:
+        get_receiver("another secret", 64).decode(signed.encode(hb))
+    assert info.value.reason == "auth"
+    open_ = Sender("x", 1)
+    with pytest.raises(AuthError, match="found no tag"):
+        get_receiver(SECRET, 64).decode(open_.encode(hb))
+    with pytest.raises(AuthError, match="found a tag"):
+        get_receiver(None, 64).decode(signed.encode(hb))
 
 
 @pytest.mark.parametrize(
     ("data", "reason"),
     [
-        (b"", "bad-magic"),
-        (b"nonsense bytes", "bad-magic"),
-        (MAGIC + bytes([9, 0]) + b"x", "bad-version"),
-        (MAGIC + bytes([VERSION, 0]) + b"not zstd", "bad-compression"),
-        (frame([1, 2, 3]), "bad-kind"),
-        (frame({"t": "evil"}), "bad-kind"),
-        (frame({"t": "delta", "delta": {"n": 5}}), "bad-delta"),
-        (frame({"t": "delta", "delta": {"n": 2, "r": 0.1, "f": 0, "v": 1, "tm": 0.0,
-                                        "k": b"\x00" * 47, "l": b"", "lt": b""}}), "bad-delta"),
-        (frame({"t": "delta", "delta": {"n": 1, "r": -1.0, "f": 0, "v": 1, "tm": 0.0}}), "bad-delta"),
-        (frame({"t": "delta", "delta": {"n": 0, "r": 0.1, "f": 0, "v": 1, "tm": 0.0, "k": b"",
-                                        "l": b"", "lt": b"", "c": {"nope": [[], b""]}}}), "bad-delta"),
+        (b"", "truncated"),
+        (b"nonsense bytes", "malformed"),
+        (b"CLNY\x09\x03\x00\x00" + b"\x00" * 8, "version"),
+        (b"CLNY\x01\x63\x00\x00" + b"\x00" * 8, "unknown_type"),
+        (b"CLNY\x01\x03\x02\x00\x95\xa1a\x01\x01\xcb" + b"\x00" * 8 + b"\xc4\x04nope", "malformed"),
     ],
 )
-def test_hostile_input_is_rejected_with_reason(data, reason):
-    with pytest.raises(WireError) as info:
-        Codec().decode(data)
+def test_hostile_input_is_rejected_with_reason(data: bytes, reason: str) -> None:
+    r = get_receiver(None, 64)
+    with pytest.raises(ProtocolError) as info:
+        r.decode(data)
     assert info.value.reason == reason
+    assert r.rejected[reason] == 1
 
 
-def test_decompression_bomb_is_rejected_without_allocating():
-    bomb = MAGIC + bytes([VERSION, 0]) + zstandard.ZstdCompressor().compress(b"\x00" * (8 << 20))
-    with pytest.raises(WireError, match="expected at most 1048576 bytes") as info:
-        Codec(max_bytes=1 << 20).decode(bomb)
-    assert info.value.reason == "oversized"
+def test_frame_on_another_origins_key_is_rejected() -> None:
+    s = Sender("evil", 1)
+    frame = s.encode(Heartbeat(**s.header(), kind="robot", frame_id="map"))
+    with pytest.raises(KeyExprError, match="belongs to origin 'a'"):
+        get_receiver(None, 64).decode(frame, key_expr=topic_key("site", "a", "heartbeat"))
 
 
-def test_colony_key_authenticates():
-    signed = Codec("secret").encode({"t": "hb", "a": "x"})
-    assert Codec("secret").decode(signed)["a"] == "x"
-    with pytest.raises(WireError, match="signature") as info:
-        Codec("other").decode(signed)
-    assert info.value.reason == "bad-signature"
-    with pytest.raises(WireError) as info:
-        Codec("secret").decode(Codec().encode({"t": "hb", "a": "x"}))
-    assert info.value.reason == "unauthenticated"
-    tampered = bytearray(signed)
-    tampered[-1] ^= 1
-    with pytest.raises(WireError, match="signature"):
-        Codec("secret").decode(bytes(tampered))
+def test_decompression_bomb_is_rejected_without_allocating() -> None:
+    import msgpack
+    import zstandard
+
+    body = zstandard.ZstdCompressor().compress(b"\x00" * (8 << 20))  # declares 8 MiB
+    envelope = msgpack.packb(["a", 1, 1, 1.0, body], use_bin_type=True)
+    frame = b"CLNY\x01\x03\x02\x00" + envelope  # VoxelDelta, zstd body
+    with pytest.raises(DecompressionBombError) as info:
+        get_receiver(None, 1).decode(frame)  # 1 MiB decoded at most
+    assert info.value.reason == "decompression_bomb"
 
 
-def test_encoding_from_many_threads_at_once():
-    import threading
+def test_assembler_is_bounded_and_checks_parts() -> None:
+    _, (d,) = grid_deltas(1)
+    a = Assembler(max_open=2)
+    halves = [d.select(np.arange(len(d)) < len(d) // 2), d.select(np.arange(len(d)) >= len(d) // 2)]
+    for i in range(3):
+        assert a.add(("o", 1, 0, i + 1), 0, 2, halves[0]) is None
+    assert a.add(("o", 1, 0, 1), 1, 2, halves[1]) is None  # evicted: the first never completes
+    whole = a.add(("o", 1, 0, 3), 1, 2, halves[1])
+    assert whole is not None and len(whole) == len(d)
+    with pytest.raises(WireError, match="expected 2 parts"):
+        a.add(("o", 1, 0, 1), 0, 3, halves[0])
 
-    codec, d, errors = Codec(), delta(5000), []
+
+def test_encoding_from_many_threads_at_once() -> None:
+    _, deltas = grid_deltas(1, 2000)
+    s, r, errors = Sender("a", 1, key=colony_key(SECRET)), get_receiver(SECRET, 64), []
 
     def work() -> None:
         try:
-            for _ in range(30):
-                msg = codec.decode(codec.encode({"t": "delta", "o": "a", "delta": d}))
-                assert len(msg["delta"]) == 5000
+            for _ in range(20):
+                msg = r.decode(s.encode(VoxelDelta(**s.header(), frame_id="map",
+                                                   delta=deltas[0])))
+                assert len(msg.delta) == len(deltas[0])
         except Exception as exc:  # pragma: no cover - reported below
             errors.append(exc)
 
@@ -100,3 +180,4 @@ def test_encoding_from_many_threads_at_once():
     for t in threads:
         t.join()
     assert not errors
+    assert peek(s.encode(Heartbeat(**s.header(), kind="robot", frame_id="map"))).seq == 120

@@ -9,6 +9,8 @@ from protocol.messages import (
     Announce,
     DeltaRangeReply,
     DeltaRangeRequest,
+    Heartbeat,
+    LayerVersion,
     Message,
     ObjectCentroid,
     Objects,
@@ -111,20 +113,37 @@ def sample_messages(rng: np.random.Generator | None = None) -> list[Message]:
             layer="robot-1",
             request_id=77,
             frame_id="robot-1.map",
+            layer_epoch=1_700_000_000_123_456,
             part=0,
             parts=2,
             delta=make_delta(rng, 40),
         ),
         DeltaRangeRequest(**common, layer="robot-1", request_id=78, from_version=10, to_version=12),
         DeltaRangeReply(
-            **common, layer="robot-1", request_id=78, frame_id="robot-1.map", complete=False
+            **common,
+            layer="robot-1",
+            request_id=78,
+            frame_id="robot-1.map",
+            layer_epoch=0,
+            complete=False,
         ),
         DeltaRangeReply(
             **common,
             layer="robot-1",
             request_id=79,
             frame_id="robot-1.map",
+            layer_epoch=5,
             delta=make_delta(rng, 30),
+        ),
+        Heartbeat(
+            **common,
+            kind="ground",
+            frame_id="robot-1.map",
+            position=(1.0, 2.0, 0.5),
+            layers=[
+                LayerVersion(origin="robot-1", epoch=3, version=17),
+                LayerVersion(origin="robot-2", epoch=1_700_000_000_123_456, version=4),
+            ],
         ),
     ]
 

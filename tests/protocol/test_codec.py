@@ -62,6 +62,14 @@ def test_every_message_type_round_trips(key: bytes | None, compression: str) -> 
         _same(msg, decode(frame, key=key))
 
 
+def test_epoch_is_64_bit() -> None:
+    epoch = 1_700_000_000_123_456  # a microsecond clock, as colonyd uses
+    for e in (epoch, (1 << 63) - 1):
+        msg = Pose(origin="r1", epoch=e, seq=2, time=3.0, frame_id="map", position=(0, 0, 0))
+        assert decode(encode(msg)).epoch == e
+        assert peek(encode(msg)).epoch == e
+
+
 def test_peek_reads_envelope_without_body() -> None:
     msg = sample_messages()[1]
     info = peek(encode(msg, key=KEY))
@@ -117,6 +125,7 @@ def test_reference_frame_decodes() -> None:
         (_frame(envelope={"a": 1}), MalformedError, "found dict"),
         (_frame(envelope=["bad/origin", 1, 2, 3.0, b""]), RangeError, "origin matching"),
         (_frame(envelope=["r1", -1, 2, 3.0, b""]), RangeError, "epoch in"),
+        (_frame(envelope=["r1", 1 << 63, 2, 3.0, b""]), RangeError, "epoch in"),
         (_frame(envelope=["r1", 1, "x", 3.0, b""]), MalformedError, "integer seq"),
         (_frame(envelope=["r1", 1, 2, 3, b""]), MalformedError, "float time, found int"),
         (_frame(envelope=["r1", 1, 2, float("nan"), b""]), RangeError, "finite time"),

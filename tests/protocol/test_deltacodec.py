@@ -143,6 +143,81 @@ def test_octomap_range_quantum_is_one_32nd() -> None:
     assert quantise(np.array([np.nan], dtype=np.float32), -5)[0] == UNKNOWN_CODE
 
 
+def test_grid_quantum_is_used_for_multiples_of_one_32nd() -> None:
+    grid_like = np.array([-63, -1, 0, 5, 127], dtype=np.float32) / 32  # small values, on the grid
+    assert quantum_exponent(grid_like) == -5  # the size rule alone would pick a finer quantum
+    assert quantum_exponent(np.array([0.25, np.nan], dtype=np.float32)) == -5
+    assert quantum_exponent(np.array([128 / 32], dtype=np.float32)) == -4  # beyond 127/32
+    assert quantum_exponent(np.array([0.1], dtype=np.float32)) == -10  # off the grid: size rule
+
+
+def _grid_like_delta(rng: np.random.Generator, n: int = 3000, time: float = 0.0) -> Delta:
+    """A delta as `voxel.grid` produces it: log-odds on 1/32, times whole ms (k / 1000.0)."""
+    keys = np.unique(rng.integers(-200, 200, size=(n, 3)), axis=0)
+    m = keys.shape[0]
+    lo = (rng.integers(-64, 112, m) / 32).astype(np.float32)  # OctoMap clamping [-1.99, 3.48]
+    lo[rng.random(m) < 0.05] = np.nan
+    ms = rng.integers(1_700_000_000_000, 1_700_000_900_000, m)
+    first_ms = ms - rng.integers(0, 3_600_000, m)
+    channels = {
+        "first_time": first_ms / 1000.0,
+        "hits": rng.integers(0, 65536, m).astype(np.uint16),
+        "misses": rng.integers(0, 65536, m).astype(np.uint16),
+        "colour": rng.integers(0, 256, (m, 3)).astype(np.uint8),
+        "normal": rng.normal(size=(m, 3)).astype(np.float32),
+        "class_ids": rng.integers(-1, 50, (m, 4)).astype(np.int16),
+        "class_probs": rng.random((m, 4)).astype(np.float32),
+        "scalar:temperature": rng.normal(20, 5, m).astype(np.float32),
+    }
+    return Delta(0.05, 7, 9, keys, lo, ms / 1000.0, channels=channels, time=time)
+
+
+@pytest.mark.parametrize("ref", [1_700_000_450.0, 1_700_000_450.0007, 1_700_000_450.125, 0.0, -3.5])
+def test_grid_like_delta_round_trips_bit_exactly(rng: np.random.Generator, ref: float) -> None:
+    delta = _grid_like_delta(rng, time=ref)
+    out = decode_delta(encode_delta(delta))
+    ia, ib = np.argsort(pack(delta.keys)), np.argsort(pack(out.keys))
+    np.testing.assert_array_equal(out.keys[ib], delta.keys[ia])
+    assert out.logodds.dtype == np.float32
+    assert np.array_equal(out.logodds[ib], delta.logodds[ia], equal_nan=True)
+    assert out.last_time.tobytes() != b"" and np.array_equal(
+        out.last_time[ib].view(np.int64), delta.last_time[ia].view(np.int64)
+    )  # bit for bit
+    assert set(out.channels) == set(delta.channels)
+    for name, values in delta.channels.items():
+        got = out.channels[name][ib]
+        want = values[ia].astype(got.dtype)
+        assert got.tobytes() == want.tobytes(), name
+    assert (out.time, out.from_version, out.to_version) == (ref, 7, 9)
+
+
+def test_grid_like_parts_round_trip_bit_exactly(rng: np.random.Generator) -> None:
+    delta = _grid_like_delta(rng, n=20_000, time=1_700_000_000.0)
+    parts = [decode_delta(encode_delta(p)) for p in split_delta(delta, 20_000)]
+    assert len(parts) > 1
+    keys = np.concatenate([p.keys for p in parts])
+    ia, ib = np.argsort(pack(delta.keys)), np.argsort(pack(keys))
+    lo = np.concatenate([p.logodds for p in parts])
+    first = np.concatenate([p.channels["first_time"] for p in parts])
+    assert np.array_equal(lo[ib], delta.logodds[ia], equal_nan=True)
+    assert first[ib].tobytes() == delta.channels["first_time"][ia].tobytes()
+
+
+def test_times_are_integer_milliseconds_from_the_rounded_reference() -> None:
+    from protocol.deltacodec import reference_ms
+
+    assert reference_ms(1_700_000_000.0004) == 1_700_000_000_000
+    assert reference_ms(-2.5) == -2500
+    times = np.array([1_700_000_000.001, 1_699_999_999.999, 1_700_000_000.0004, np.nan])
+    delta = Delta(0.1, 0, 1, np.arange(12).reshape(4, 3), np.zeros(4, np.float32), times,
+                  time=1_700_000_000.0004)
+    out = decode_delta(encode_delta(delta))
+    order = np.argsort(pack(out.keys))
+    want = [1_700_000_000.001, 1_699_999_999.999, 1_700_000_000.0]
+    assert out.last_time[order][:3].tolist() == want
+    assert np.isnan(out.last_time[order][3])
+
+
 def test_significance_tiers() -> None:
     lo = np.array([1.0, 1.0, -1.0, np.nan, -1.0, -1.0, 2.0], dtype=np.float32)
     prev = np.array([-1.0, 0.5, 0.5, 1.0, np.nan, -0.4, np.nan], dtype=np.float32)

@@ -81,7 +81,8 @@ def peer_delta(body: bytes) -> dict:
         idx = [0] * d["n"]
     else:
         idx = _ints("B" if len(table) <= 256 else "H" if len(table) <= 65536 else "I", d["ti"])
-    times = [d["time"] + table[i] / 1000.0 for i in idx]
+    t_ms = round(d["time"] * 1000) if abs(d["time"] * 1000) < 2**53 else 0
+    times = [math.nan if table[i] == -(2**63) else (t_ms + table[i]) / 1000.0 for i in idx]
     channels = {}
     for entry in d["ch"]:
         if entry[0] == "hits":
@@ -125,6 +126,8 @@ def test_independent_peer_reads_reference_frames(key: bytes | None) -> None:
                 if not math.isnan(ref):
                     assert (lo >= 0) == (ref >= 0) and abs(lo - ref) <= 2.0**-5
                 assert abs(t - want.last_time[i]) <= 5e-4
+                if round(want.last_time[i] * 1000) / 1000.0 == want.last_time[i]:
+                    assert t == want.last_time[i]  # whole milliseconds travel exactly
                 assert hits == want.channels["hits"][i]
             if msg.free_summary is not None and len(msg.free_summary):
                 level, cells = got["summary"]

@@ -12,6 +12,8 @@ from protocol.keyexpr import (
     parse_key,
     query_declaration,
     query_key,
+    status_key,
+    status_selector,
     topic_key,
     topic_subscription,
     validate_name,
@@ -19,7 +21,7 @@ from protocol.keyexpr import (
 
 
 def test_keys_build_and_parse_back() -> None:
-    for topic in ("announce", "pose", "delta", "objects", "align"):
+    for topic in ("announce", "pose", "delta", "objects", "align", "heartbeat"):
         key = topic_key("site-a", "robot-1", topic)  # type: ignore[arg-type]
         assert key == f"colony/site-a/robot-1/{topic}"
         assert parse_key(key) == ParsedKey("site-a", "robot-1", topic)
@@ -35,6 +37,14 @@ def test_wildcard_expressions() -> None:
     assert topic_subscription("c", "delta") == "colony/c/*/delta"
     assert alive_subscription("c") == "colony/c/alive/*"
     assert query_declaration("c", "r1", "snapshot") == "colony/c/r1/snapshot/*"
+    assert status_selector("c") == "colony/c/*/status"
+
+
+def test_status_key_parses_back() -> None:
+    assert status_key("c", "r1") == "colony/c/r1/status"
+    assert parse_key(status_key("c", "r1")) == ParsedKey("c", "r1", "status")
+    with pytest.raises(KeyExprError, match="reserved word"):
+        status_key("c", "alive")
 
 
 @pytest.mark.parametrize(

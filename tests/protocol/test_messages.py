@@ -13,9 +13,12 @@ from protocol.messages import (
     AlignOffer,
     Announce,
     DeltaRangeRequest,
+    Heartbeat,
+    LayerVersion,
     ObjectCentroid,
     Pose,
     SensorInfo,
+    SnapshotReply,
     SnapshotRequest,
     VoxelDelta,
 )
@@ -26,8 +29,8 @@ COMMON = {"origin": "r1", "time": 1.0}
 
 
 def test_every_type_has_a_unique_code_and_kind() -> None:
-    assert sorted(MESSAGE_TYPES) == list(range(1, 10))
-    assert len({c.KIND for c in MESSAGE_TYPES.values()}) == 9
+    assert sorted(MESSAGE_TYPES) == list(range(1, 11))
+    assert len({c.KIND for c in MESSAGE_TYPES.values()}) == 10
     assert {type(m) for m in sample_messages()} == set(MESSAGE_TYPES.values())
 
 
@@ -86,6 +89,33 @@ def test_sensor_info_round_trips_a_sensor_model() -> None:
             lambda: SnapshotRequest(**COMMON, layer="r", request_id=1, max_part_bytes=10),
             "greater than or equal",
         ),
+        (
+            lambda: SnapshotReply(
+                **COMMON,
+                layer="r",
+                request_id=1,
+                frame_id="m",
+                delta=make_delta(np.random.default_rng(0), 5),
+            ),
+            "layer_epoch",
+        ),
+        (
+            lambda: Heartbeat(
+                **COMMON,
+                kind="ground",
+                frame_id="m",
+                layers=[
+                    LayerVersion(origin="a", epoch=1, version=2),
+                    LayerVersion(origin="a", epoch=1, version=3),
+                ],
+            ),
+            "each origin once, found 'a' twice",
+        ),
+        (
+            lambda: Heartbeat(**COMMON, kind="ground", frame_id="m", layers=[{"origin": "a"}]),
+            "epoch",
+        ),
+        (lambda: Pose(**COMMON, epoch=1 << 63, frame_id="m", position=(0, 0, 0)), "less than"),
     ],
 )
 def test_invalid_messages_rejected(factory, match: str) -> None:

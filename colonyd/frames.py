@@ -1,0 +1,166 @@
+"""Frames: this daemon's side of the colony protocol (`protocol/`): sender, receiver, key, parts.
+
+Every byte the daemon puts on the network is a `protocol` frame (docs/PROTOCOL.md) and every
+byte it receives goes through one `protocol.Receiver` (validation, colony key, replays, origin of
+the key). This module adds what a daemon needs around them: the colony key derived from the
+configured secret, one frame counter for all frames of this origin (continued across restarts),
+and the reassembly of deltas sent in several parts.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from colonyd.errors import WireError
+from protocol import Limits, Message, Receiver, encode
+from voxel.delta import Delta
+
+#: The map frame every layer is expressed in (each origin's own map frame).
+FRAME_ID = "map"
+#: Frame numbers reserved on disk at a time (see `Sender`).
+SEQ_BLOCK = 1 << 20
+
+
+def colony_key(secret: str | None) -> bytes | None:
+    """The protocol colony key of a configured secret: sha256(UTF-8 secret), 32 bytes, or None.
+
+    `protocol.auth` wants at least 16 key bytes; hashing lets the configuration hold any string
+    (a passphrase) while every daemon of the colony derives the same key.
+    """
+    if not secret:
+        return None
+    return hashlib.sha256(secret.encode()).digest()
+
+
+def get_limits(max_message_mb: float) -> Limits:
+    """Decoder limits of a daemon: frames and decoded bodies up to `max_message_mb` MiB."""
+    size = int(max_message_mb * (1 << 20))
+    return Limits(max_message_bytes=size, max_body_bytes=size)
+
+
+def get_receiver(secret: str | None, max_message_mb: float) -> Receiver:
+    """The daemon's one decoding front door (key, limits, replay window, key-vs-origin check)."""
+    return Receiver(key=colony_key(secret), limits=get_limits(max_message_mb))
+
+
+class Sender:
+    """Encodes this origin's frames: one (epoch, seq) counter shared by every frame it sends.
+
+    The protocol wants seq to grow within an epoch even across restarts (receivers with a colony
+    key reject repeated seqs as replays), while the daemon keeps its epoch when it restarts with
+    its state. So frame numbers are reserved on disk `SEQ_BLOCK` at a time through `reserve(up_to)`
+    (durable before any of them is used); a restart continues from the last reservation.
+    """
+
+    def __init__(
+        self,
+        origin: str,
+        epoch: int,
+        *,
+        key: bytes | None = None,
+        first_seq: int = 0,
+        reserve: Callable[[int], None] | None = None,
+    ) -> None:
+        self.origin = origin
+        self.epoch = epoch
+        self._key = key
+        self._next = first_seq
+        self._reserved = first_seq
+        self._reserve = reserve
+        self._lock = threading.Lock()
+
+    def take(self, n: int = 1) -> int:
+        """The first of `n` consecutive frame numbers, reserved for the caller."""
+        with self._lock:
+            first = self._next
+            self._next += n
+            if self._reserve is None:
+                self._reserved = self._next
+            elif self._next > self._reserved:
+                self._reserved = self._next + SEQ_BLOCK
+                self._reserve(self._reserved)
+            return first
+
+    def header(self) -> dict[str, object]:
+        """Envelope fields of one new frame: origin, epoch, a fresh seq, the time now."""
+        return {"origin": self.origin, "epoch": self.epoch, "seq": self.take(), "time": time.time()}
+
+    def encode(self, msg: Message) -> bytes:
+        """Frame bytes of `msg` (signed when the colony has a key)."""
+        return encode(msg, key=self._key)
+
+    def encode_all(self, msgs: list[Message]) -> list[bytes]:
+        """Frames of `msgs` as this origin's, with consecutive fresh seqs (parts of one reply)."""
+        first = self.take(len(msgs))
+        head = {"origin": self.origin, "epoch": self.epoch}
+        return [
+            self.encode(m.model_copy(update={**head, "seq": first + i})) for i, m in enumerate(msgs)
+        ]
+
+
+def concat(parts: list[Delta]) -> Delta:
+    """One delta of the voxels of several parts of one delta (same versions, disjoint voxels)."""
+    if len(parts) == 1:
+        return parts[0]
+    first = parts[0]
+    names = set(first.channels)
+    for p in parts[1:]:
+        if (p.from_version, p.to_version) != (first.from_version, first.to_version):
+            raise WireError("bad-parts", "expected parts of one delta to share their versions")
+        if abs(p.resolution - first.resolution) > 1e-12 or set(p.channels) != names:
+            msg = "expected parts of one delta to share resolution and channels"
+            raise WireError("bad-parts", msg)
+    try:
+        return Delta(
+            resolution=first.resolution,
+            from_version=first.from_version,
+            to_version=first.to_version,
+            keys=np.concatenate([p.keys for p in parts]),
+            logodds=np.concatenate([p.logodds for p in parts]),
+            last_time=np.concatenate([p.last_time for p in parts]),
+            channels={n: np.concatenate([p.channels[n] for p in parts]) for n in sorted(names)},
+            time=first.time,
+        )
+    except ValueError as exc:
+        raise WireError("bad-parts", f"parts of one delta do not fit together: {exc}") from None
+
+
+@dataclass
+class _Partial:
+    parts: int
+    got: dict[int, Delta] = field(default_factory=dict)
+
+
+class Assembler:
+    """Collects the parts of deltas sent in several messages; bounded (oldest dropped first)."""
+
+    def __init__(self, max_open: int = 128) -> None:
+        self._open: OrderedDict[tuple[object, ...], _Partial] = OrderedDict()
+        self._max = max_open
+        self._lock = threading.Lock()
+
+    def add(self, key: tuple[object, ...], part: int, parts: int, delta: Delta) -> Delta | None:
+        """The whole delta once every part of `key` arrived, else None."""
+        if parts == 1:
+            return delta
+        with self._lock:
+            entry = self._open.get(key)
+            if entry is None:
+                entry = self._open[key] = _Partial(parts)
+                while len(self._open) > self._max:
+                    self._open.popitem(last=False)
+            if entry.parts != parts:
+                msg = f"expected {entry.parts} parts, found a part of {parts}"
+                raise WireError("bad-parts", msg)
+            entry.got[part] = delta
+            if len(entry.got) < parts:
+                return None
+            del self._open[key]
+        return concat([entry.got[i] for i in range(parts)])
