@@ -14,6 +14,7 @@ import numpy as np
 from plugins.checks import matrix_to_quaternion
 from plugins.observation import Observation
 from plugins.source import open_source
+from voxel import keys as vk
 from voxel.errors import InputError
 from voxel.grid import VoxelGrid
 from voxel.octomap_io import write_bt
@@ -163,7 +164,7 @@ def map_source(spec: str, resolution: float, out_dir: Path, *, max_frames: int |
         bar.close()
     files = write_map(grid, out_dir, trajectory)
     if adapter.kind == "lidar2d" and heights:
-        layer = int(np.floor(np.median(heights) / resolution))
+        layer = int(vk.points_to_keys(np.array([[0.0, 0.0, np.median(heights)]]), resolution)[0, 2])
         image, lo = floor_plan(grid.occupied_keys(), grid.free_keys(), layer)
         files["floorplan"] = out_dir / "floorplan.png"
         if not cv2.imwrite(str(files["floorplan"]), image):

@@ -39,8 +39,8 @@ class Traversal:
 
 def _ray_setup(origin: np.ndarray, ends: np.ndarray, resolution: float):
     """Per-ray DDA state: start key, end keys, step signs, tMax and tDelta (OctoMap computeRayKeys)."""
-    key_o = np.floor(origin / resolution).astype(np.int64)
-    key_e = np.floor(ends / resolution).astype(np.int64)
+    key_o = np.floor(origin * (1.0 / resolution)).astype(np.int64)
+    key_e = np.floor(ends * (1.0 / resolution)).astype(np.int64)
     d = ends - origin
     length = np.linalg.norm(d, axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -127,8 +127,8 @@ def trace(
     origin = np.asarray(origin, dtype=np.float64).reshape(3)
     ends = np.asarray(ends, dtype=np.float64).reshape(-1, 3)
     hit_keys = np.asarray(hit_keys, dtype=np.int64).reshape(-1, 3)
-    key_o = np.floor(origin / resolution).astype(np.int64)
-    key_e = np.floor(ends / resolution).astype(np.int64)
+    key_o = np.floor(origin * (1.0 / resolution)).astype(np.int64)
+    key_e = np.floor(ends * (1.0 / resolution)).astype(np.int64)
     # A ray whose end lies in the origin voxel marks nothing (OctoMap returns an empty ray).
     cast = np.any(key_e != key_o, axis=1)
     all_keys = np.concatenate([key_o[None, :], key_e, hit_keys])
@@ -137,8 +137,8 @@ def trace(
     hi = ((kmax + 1) >> BLOCK_SHIFT << BLOCK_SHIFT) + BLOCK
     dims = hi - lo
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
-    o_local = origin / resolution - lo
-    e_local = ends[cast] / resolution - lo
+    o_local = origin * (1.0 / resolution) - lo
+    e_local = ends[cast] * (1.0 / resolution) - lo
     start = int(((key_o - lo) * strides).sum())
     total = int(np.prod(dims))
 
