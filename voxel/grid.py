@@ -40,8 +40,9 @@ def quantise_time(t: float) -> float:
 #: Stored times span at most this many ms from the grid's time base (uint32).
 TIME_SPAN_MS = 2**32 - 1
 
-#: Beams without a hit are cast once per 1/CLEAR_SUBDIVISION-voxel cell of their truncated ends:
-#: close to casting every beam (OctoMap's default) at a fraction of the rays.
+#: Beams without a hit are cast once per 1/CLEAR_SUBDIVISION-voxel cell of their truncated ends
+#: (one real beam stands for its cell): close to casting every beam (OctoMap's default) at a
+#: fraction of the rays where beams are dense, exact where they are sparse.
 CLEAR_SUBDIVISION = 3
 
 #: |log-odds| below which a decayed voxel is forgotten (returns to unknown).
@@ -204,8 +205,11 @@ class VoxelGrid:
             idx = np.flatnonzero(clear_mask)
             clear_mask[idx[~ok]] = False
             fine = self.resolution / CLEAR_SUBDIVISION
-            sub = unique_keys(vk.points_to_keys(ends[ok], fine), False)[0]
-            clear_ends = org + _unit(vk.keys_to_centers(sub, fine) - org) * sensor.max_range
+            ends = ends[ok]
+            sub, which = unique_keys(vk.points_to_keys(ends, fine), True)
+            representative = np.empty(sub.shape[0], dtype=np.int64)
+            representative[which] = np.arange(ends.shape[0])  # one real beam per cell
+            clear_ends = ends[representative]
         else:
             clear_ends = np.empty((0, 3))
         invalid = n - int(np.count_nonzero(hit_mask)) - int(np.count_nonzero(clear_mask)) - dropped
@@ -794,10 +798,6 @@ class VoxelGrid:
             if not np.array_equal(va, vb, equal_nan=va.dtype.kind == "f"):
                 return False
         return True
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=1)[:, None]
 
 
 def _states(lo: np.ndarray) -> np.ndarray:
