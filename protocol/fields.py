@@ -64,6 +64,13 @@ _SIZED = {
 _CONTAINER = {0xDC: (2, 1), 0xDD: (4, 1), 0xDE: (2, 2), 0xDF: (4, 2)}
 
 
+
+def _need_field(what: str, field: str, pos: int, width: int, n: int) -> None:
+    """Raise TruncatedError unless a `width`-byte msgpack `field` field fits at `pos` of n bytes."""
+    if pos + width > n:
+        msg = f"{what}: msgpack {field} field at byte {pos} needs {width} bytes, found {n - pos}"
+        raise TruncatedError(msg)
+
 def scan_msgpack(
     data: bytes, what: str, max_objects: int = MAX_OBJECTS, max_depth: int = MAX_DEPTH
 ) -> None:
@@ -105,22 +112,12 @@ def scan_msgpack(
             continue
         elif head in _SIZED:
             width, extra = _SIZED[head]
-            if pos + width > n:
-                msg = (
-                    f"{what}: msgpack length field at byte {pos} needs {width} bytes, found "
-                    f"{n - pos}"
-                )
-                raise TruncatedError(msg)
+            _need_field(what, "length", pos, width, n)
             pos += width + extra + int.from_bytes(data[pos : pos + width], "big")
             continue
         elif head in _CONTAINER:
             width, per = _CONTAINER[head]
-            if pos + width > n:
-                msg = (
-                    f"{what}: msgpack count field at byte {pos} needs {width} bytes, found "
-                    f"{n - pos}"
-                )
-                raise TruncatedError(msg)
+            _need_field(what, "count", pos, width, n)
             count = per * int.from_bytes(data[pos : pos + width], "big")
             pos += width
         else:

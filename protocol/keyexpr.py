@@ -74,11 +74,15 @@ def alive_subscription(colony: str) -> str:
     return f"{ROOT}/{validate_name(colony, 'colony')}/{ALIVE}/*"
 
 
-def query_key(colony: str, origin: str, query: Query, layer: str) -> str:
-    """Key of the `query` queryable that `origin` serves for `layer`."""
+def _check_query(query: str) -> None:
     if query not in QUERIES:
         msg = f"query must be one of {QUERIES}, found {query!r}"
         raise KeyExprError(msg)
+
+
+def query_key(colony: str, origin: str, query: Query, layer: str) -> str:
+    """Key of the `query` queryable that `origin` serves for `layer`."""
+    _check_query(query)
     return (
         f"{ROOT}/{validate_name(colony, 'colony')}/{validate_name(origin, 'origin')}"
         f"/{query}/{validate_name(layer, 'layer')}"
@@ -87,9 +91,7 @@ def query_key(colony: str, origin: str, query: Query, layer: str) -> str:
 
 def query_declaration(colony: str, origin: str, query: Query) -> str:
     """Key expression an origin declares its `query` queryable on (every layer it holds)."""
-    if query not in QUERIES:
-        msg = f"query must be one of {QUERIES}, found {query!r}"
-        raise KeyExprError(msg)
+    _check_query(query)
     return f"{ROOT}/{validate_name(colony, 'colony')}/{validate_name(origin, 'origin')}/{query}/*"
 
 
