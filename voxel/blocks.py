@@ -170,5 +170,7 @@ class BlockStore:
 
     def nbytes(self) -> int:
         """Bytes held by the channel arrays of used slots plus the index."""
-        per_slot = sum(arr[0].nbytes for arr in self.channels.values()) + 8 + 8 + 8 + 4
+        index = (self.sorted_keys.itemsize + self.sorted_slots.itemsize + self.slot_keys.itemsize
+                 + self.slot_version.itemsize)
+        per_slot = sum(arr[0].nbytes for arr in self.channels.values()) + index
         return per_slot * len(self.sorted_slots)

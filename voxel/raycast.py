@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from voxel import keys as vk
-from voxel.blocks import BLOCK, BLOCK_SHIFT, BLOCK_VOXELS
+from voxel.blocks import BLOCK, BLOCK_SHIFT, BLOCK_VOXELS, split_keys
 
 FREE = np.uint8(1)
 HIT = np.uint8(2)
@@ -35,22 +35,6 @@ class Traversal:
     @property
     def hit_count(self) -> int:
         return int(np.count_nonzero(self.cells == HIT))
-
-
-def _ray_setup(origin: np.ndarray, ends: np.ndarray, resolution: float):
-    """Per-ray DDA state: start key, end keys, step signs, tMax and tDelta (OctoMap computeRayKeys)."""
-    key_o = np.floor(origin * (1.0 / resolution)).astype(np.int64)
-    key_e = np.floor(ends * (1.0 / resolution)).astype(np.int64)
-    d = ends - origin
-    length = np.linalg.norm(d, axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        dn = d / length[:, None]
-        step = np.sign(dn).astype(np.int64)
-        border = (key_o + 0.5 + 0.5 * step) * resolution
-        t_max = np.where(step != 0, (border - origin) / dn, np.inf)
-        t_delta = np.where(step != 0, resolution / np.abs(dn), np.inf)
-    n_steps = np.abs(key_e - key_o).sum(axis=1)
-    return key_o, key_e, step, t_max, t_delta, n_steps
 
 
 def _sweep(o: np.ndarray, e: np.ndarray, strides: np.ndarray, visit) -> None:
@@ -190,8 +174,6 @@ def unique_keys(keys: np.ndarray, want_inverse: bool) -> tuple[np.ndarray, np.nd
 
 def group_cells(free_keys: np.ndarray, hit_keys: np.ndarray) -> Traversal:
     """A Traversal from explicit free and hit voxel keys (hits win)."""
-    from voxel.blocks import split_keys
-
     keys = np.concatenate([free_keys, hit_keys]).astype(np.int64)
     vals = np.concatenate([np.full(len(free_keys), FREE), np.full(len(hit_keys), HIT)]).astype(np.uint8)
     blocks, offsets = split_keys(keys)
@@ -202,18 +184,28 @@ def group_cells(free_keys: np.ndarray, hit_keys: np.ndarray) -> Traversal:
 
 
 def ray_keys(origin: np.ndarray, end: np.ndarray, resolution: float) -> np.ndarray:
-    """Keys (M, 3) of the voxels one ray passes, in order from the origin voxel to the end voxel."""
-    origin = np.asarray(origin, dtype=np.float64).reshape(3)
-    end = np.asarray(end, dtype=np.float64).reshape(1, 3)
-    key_o, key_e, step, t_max, t_delta, n_steps = _ray_setup(origin, end, resolution)
-    out = [key_o.copy()]
-    # Walk in key space: a unit stride per axis makes the linear index the key itself.
-    cur = key_o.copy()
-    tm = t_max[0].copy()
-    for _ in range(int(n_steps[0])):
-        a = tm[0] < tm[1]
-        dim = (0 if tm[0] < tm[2] else 2) if a else (1 if tm[1] < tm[2] else 2)
-        cur[dim] += step[0, dim]
-        tm[dim] += t_delta[0, dim]
-        out.append(cur.copy())
-    return np.asarray(out, dtype=np.int64)
+    """Keys (M, 3) of the voxels one ray passes, in order from the origin voxel to the end voxel.
+
+    Every face crossing enters a voxel: per axis the crossings form an arithmetic sequence of ray
+    parameters, so all of them are computed at once and merged by parameter.
+    """
+    o = np.asarray(origin, dtype=np.float64).reshape(3) * (1.0 / resolution)
+    e = np.asarray(end, dtype=np.float64).reshape(3) * (1.0 / resolution)
+    ko = np.floor(o).astype(np.int64)
+    ke = np.floor(e).astype(np.int64)
+    d = e - o
+    params = [np.zeros(1)]
+    keys = [ko[None, :]]
+    for a in range(3):
+        m = int(abs(ke[a] - ko[a]))
+        if m == 0:
+            continue
+        sgn = 1 if d[a] > 0 else -1
+        j = np.arange(m)
+        t = (ko[a] + (sgn > 0) + sgn * j - o[a]) / d[a]
+        entered = np.floor(o + t[:, None] * d).astype(np.int64)
+        entered[:, a] = ko[a] + sgn * (j + 1)  # the plane fixes this axis exactly
+        params.append(t)
+        keys.append(entered)
+    order = np.argsort(np.concatenate(params), kind="stable")
+    return np.concatenate(keys)[order]
