@@ -130,6 +130,7 @@ class Scenario:
     resolution: float
     max_range: float
     frames: Callable[[], Iterator[Frame]]
+    block_shape: str = "cube"  # planar for a 2D scanner's layer, as `colonyd map` chooses
 
 
 def _synthetic_depth() -> Iterator[Frame]:
@@ -169,7 +170,7 @@ def scenarios(shared_data: Path | None) -> list[Scenario]:
     out = [
         Scenario("depth_640x480_0.05", 0.05, 5.0, _synthetic_depth),
         Scenario("depth_640x480_0.10", 0.10, 5.0, _synthetic_depth),
-        Scenario("lidar2d_1081_0.05", 0.05, 30.0, _lidar2d),
+        Scenario("lidar2d_1081_0.05", 0.05, 30.0, _lidar2d, "planar"),
         Scenario("lidar3d_64x1024_0.10", 0.10, 30.0, _lidar3d),
     ]
     if shared_data is not None and (shared_data / "redkitchen-50" / "frames").is_dir():
@@ -202,8 +203,9 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
     return 1.0 if union == 0 else inter / union
 
 
-def _time_ours(frames: list[Frame], resolution: float, sensor: SensorModel) -> tuple[VoxelGrid, list[float]]:
-    grid = VoxelGrid(resolution)
+def _time_ours(frames: list[Frame], resolution: float, sensor: SensorModel,
+               block_shape: str = "cube") -> tuple[VoxelGrid, list[float]]:
+    grid = VoxelGrid(resolution, block_shape=block_shape)
     times = []
     for i, f in enumerate(frames):
         t0 = time.perf_counter()
@@ -235,7 +237,7 @@ def run_scenario(sc: Scenario, repeats: int) -> dict:
     per_frame = len(frames) > 1
     ours, octo = [], {True: [], False: []}
     for _ in range(repeats):
-        grid, t = _time_ours(frames, sc.resolution, sensor)
+        grid, t = _time_ours(frames, sc.resolution, sensor, sc.block_shape)
         ours.append(statistics.median(t) if per_frame else t[0])
     trees = {}
     for disc in (False, True):
@@ -252,6 +254,7 @@ def run_scenario(sc: Scenario, repeats: int) -> dict:
     return {
         "scenario": sc.name,
         "resolution": sc.resolution,
+        "block_shape": sc.block_shape,
         "points": int(sum(len(f.points) for f in frames)),
         "frames": len(frames),
         "ours_ms": round(ours_ms, 2),

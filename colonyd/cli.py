@@ -38,6 +38,8 @@ def _config_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--source", dest="sources", action="append", metavar="SPEC",
                    help="data source (synthetic:..., bulk:..., sim:..., replay:...)")
     g.add_argument("--resolution", type=float, help="voxel size in metres")
+    g.add_argument("--block-shape", dest="block_shape", choices=["cube", "planar"],
+                   help="own layer's voxel blocks (planar: 2D scanners only)")
     g.add_argument("--publish-hz", dest="publish_hz", type=float, help="own-delta publish rate")
     g.add_argument("--heartbeat-s", dest="heartbeat_s", type=float, help="heartbeat period")
     g.add_argument("--lease-ms", dest="lease_ms", type=int, help="Zenoh transport lease")
@@ -50,7 +52,7 @@ def _config_flags(p: argparse.ArgumentParser) -> None:
 
 
 _FLAG_NAMES = ("colony", "namespace", "agent_id", "kind", "state_dir", "mode", "listen", "connect",
-               "multicast", "sources", "resolution", "publish_hz", "heartbeat_s", "lease_ms",
+               "multicast", "sources", "resolution", "block_shape", "publish_hz", "heartbeat_s", "lease_ms",
                "colony_key", "export_dir", "drop_rate", "log_level")
 
 

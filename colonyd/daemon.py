@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 
 
 def get_store(config: Config) -> StateStore:
-    return StateStore(config.state_dir, config.agent_id, config.resolution)
+    return StateStore(config.state_dir, config.agent_id, config.resolution, config.block_shape)
 
 
 def get_sources(config: Config) -> list[Source]:

@@ -142,7 +142,7 @@ def map_source(spec: str, resolution: float, out_dir: Path, *, max_frames: int |
     began = clock.monotonic()
     source = open_source(spec)
     adapter = source.adapter
-    grid = VoxelGrid(resolution)
+    grid = VoxelGrid(resolution, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     total = len(source) if max_frames is None else min(len(source), max_frames)

@@ -65,10 +65,11 @@ def _fsync_dir(path: Path) -> None:
 class StateStore:
     """Own layer on disk: `meta.json`, `snapshot.json` + grid file, and `wal.log`."""
 
-    def __init__(self, state_dir: Path, agent_id: str, resolution: float) -> None:
+    def __init__(self, state_dir: Path, agent_id: str, resolution: float, block_shape: str = "cube") -> None:
         self.dir = Path(state_dir)
         self.agent_id = agent_id
         self.resolution = resolution
+        self.block_shape = block_shape
         try:
             self.dir.mkdir(parents=True, exist_ok=True)
             self._lock_fd = os.open(self.dir / "lock", os.O_RDWR | os.O_CREAT, 0o600)
@@ -104,7 +105,7 @@ class StateStore:
                        f"{meta.get('resolution')}, expected {self.resolution}")
                 raise PersistenceError(msg)
             epoch = int(meta["epoch"])
-        grid, seq, published = new_grid(self.resolution), 0, 0
+        grid, seq, published = new_grid(self.resolution, self.block_shape), 0, 0
         snap_path = self.dir / SNAPSHOT
         if snap_path.exists():
             snap = self._read_json(snap_path)

@@ -1,15 +1,17 @@
-"""Sparse block storage: dense 8^3 blocks of voxels addressed by integer block keys, one numpy array per channel."""
+"""Sparse block storage: dense blocks of voxels addressed by integer block keys, one numpy array per channel."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from voxel import keys as vk
+from voxel.errors import InputError
 
-BLOCK_SHIFT = 2
-BLOCK = 1 << BLOCK_SHIFT  # voxels per block side
-BLOCK_VOXELS = BLOCK**3
-BLOCK_MASK = BLOCK - 1
+#: Block side lengths as powers of two per axis. Cubes (4x4x4) suit 3D sensors; planar blocks
+#: (8x8x1) suit layers mapped by a 2D scanner, whose voxels all lie in one z layer.
+CUBE = (2, 2, 2)
+PLANAR = (3, 3, 0)
+BLOCK_SHAPES = {"cube": CUBE, "planar": PLANAR}
 
 #: Channel name -> (dtype, trailing shape, fill value). Core channels always exist; the others are
 #: allocated the first time they are used.
@@ -30,36 +32,48 @@ RICH_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
 SCALAR_SPEC = (np.dtype(np.float32), (), np.nan)
 
 
-def split_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def block_shifts(shape: str | tuple[int, int, int]) -> tuple[int, int, int]:
+    """Per-axis shifts of a block shape: a name in BLOCK_SHAPES or side lengths (powers of two, 1-8)."""
+    if isinstance(shape, str):
+        if shape not in BLOCK_SHAPES:
+            msg = f"block shape must be one of {sorted(BLOCK_SHAPES)} or three side lengths, found {shape!r}"
+            raise InputError(msg)
+        return BLOCK_SHAPES[shape]
+    sides = tuple(shape)
+    if len(sides) != 3 or any(not isinstance(x, (int, np.integer)) or x not in (1, 2, 4, 8) for x in sides):
+        msg = f"block sides must be three of 1, 2, 4, 8 voxels, found {shape!r}"
+        raise InputError(msg)
+    return tuple(int(x).bit_length() - 1 for x in sides)  # type: ignore[return-value]
+
+
+def split_keys(keys: np.ndarray, shifts: tuple[int, int, int] = CUBE) -> tuple[np.ndarray, np.ndarray]:
     """Packed block keys (N,) and in-block offsets (N,) of voxel keys (N, 3)."""
     k = np.asarray(keys, dtype=np.int64)
-    blocks = vk.pack(k >> BLOCK_SHIFT)
-    o = k & BLOCK_MASK
-    offsets = (o[:, 0] << (2 * BLOCK_SHIFT)) | (o[:, 1] << BLOCK_SHIFT) | o[:, 2]
+    sx, sy, sz = shifts
+    blocks = vk.pack(np.stack([k[:, 0] >> sx, k[:, 1] >> sy, k[:, 2] >> sz], axis=1))
+    offsets = ((k[:, 0] & ((1 << sx) - 1)) << (sy + sz)) | ((k[:, 1] & ((1 << sy) - 1)) << sz)
+    offsets |= k[:, 2] & ((1 << sz) - 1)
     return blocks, offsets
 
 
-def join_keys(blocks: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+def join_keys(blocks: np.ndarray, offsets: np.ndarray, shifts: tuple[int, int, int] = CUBE) -> np.ndarray:
     """Voxel keys (N, 3) from packed block keys (N,) and offsets (N,)."""
-    base = vk.unpack(blocks) << BLOCK_SHIFT
+    sx, sy, sz = shifts
+    base = vk.unpack(blocks)
     off = np.asarray(offsets, dtype=np.int64)
-    base[:, 0] += off >> (2 * BLOCK_SHIFT)
-    base[:, 1] += (off >> BLOCK_SHIFT) & BLOCK_MASK
-    base[:, 2] += off & BLOCK_MASK
+    base[:, 0] = (base[:, 0] << sx) + (off >> (sy + sz))
+    base[:, 1] = (base[:, 1] << sy) + ((off >> sz) & ((1 << sy) - 1))
+    base[:, 2] = (base[:, 2] << sz) + (off & ((1 << sz) - 1))
     return base
 
 
-def block_offsets_grid() -> np.ndarray:
-    """In-block voxel offsets (512, 3) in storage order (x-major)."""
-    r = np.arange(BLOCK)
-    return np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)
-
-
 class BlockStore:
-    """Slots of 8^3 voxels with per-channel arrays of shape (capacity, 512, ...)."""
+    """Slots of one block of voxels each, with per-channel arrays of shape (capacity, block voxels, ...)."""
 
-    def __init__(self, class_k: int = 3, capacity: int = 64) -> None:
+    def __init__(self, class_k: int = 3, capacity: int = 64, shifts: tuple[int, int, int] = CUBE) -> None:
         self.class_k = class_k
+        self.shifts = tuple(shifts)
+        self.block_voxels = 1 << sum(self.shifts)
         self.capacity = capacity
         self.count = 0  # slots ever used (high-water mark)
         self.free_slots: list[int] = []
@@ -77,7 +91,7 @@ class BlockStore:
 
     def _new_array(self, spec: tuple[np.dtype, tuple[int, ...], float], n: int) -> np.ndarray:
         dtype, tail, fill = spec
-        return np.full((n, BLOCK_VOXELS, *self._shape(tail)), fill, dtype=dtype)
+        return np.full((n, self.block_voxels, *self._shape(tail)), fill, dtype=dtype)
 
     @staticmethod
     def spec(name: str) -> tuple[np.dtype, tuple[int, ...], float]:
@@ -113,6 +127,14 @@ class BlockStore:
         versions[: self.capacity] = self.slot_version
         self.slot_version = versions
         self.capacity = new_cap
+
+    def split(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Packed block keys and in-block offsets of voxel keys (N, 3), in this store's block shape."""
+        return split_keys(keys, self.shifts)
+
+    def join(self, blocks: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+        """Voxel keys (N, 3) of packed block keys and in-block offsets."""
+        return join_keys(blocks, offsets, self.shifts)
 
     # -- lookup -------------------------------------------------------------------------------
     def lookup(self, blocks: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ from typing import NamedTuple
 import numpy as np
 
 from voxel import keys as vk
-from voxel.blocks import BLOCK_VOXELS, BlockStore, join_keys, split_keys
+from voxel.blocks import BlockStore, block_shifts
 from voxel.delta import SCALAR_PREFIX, Delta
 from voxel.errors import DeltaError, InputError
 from voxel.history import History
@@ -105,7 +105,8 @@ class VoxelGrid:
 
     One grid is one layer with a single writer. Every change bumps the grid version; each voxel
     remembers the version of its last change, so `delta_since` returns exactly what changed and
-    `apply` is idempotent and order-independent.
+    `apply` is idempotent and order-independent. `block_shape` is "cube" (4x4x4, for 3D sensors),
+    "planar" (8x8x1, for a layer mapped by a 2D scanner) or three side lengths.
     """
 
     def __init__(
@@ -117,6 +118,7 @@ class VoxelGrid:
         class_k: int = 3,
         history_capacity: int = 2_000_000,
         history_per_voxel: int = 16,
+        block_shape: str | tuple[int, int, int] = "cube",
     ) -> None:
         if not (isinstance(resolution, (int, float)) and math.isfinite(resolution) and resolution > 0):
             msg = f"resolution must be a positive number of metres, found {resolution!r}"
@@ -127,7 +129,7 @@ class VoxelGrid:
         self.resolution = float(resolution)
         self.half_life = half_life
         self.statistics = statistics
-        self.store = BlockStore(class_k=class_k)
+        self.store = BlockStore(class_k=class_k, shifts=block_shifts(block_shape))
         self.history = History(capacity=history_capacity, per_voxel=history_per_voxel)
         self.version = 0
         self.now = 0.0  # latest observation time seen
@@ -180,47 +182,46 @@ class VoxelGrid:
         nr = np.zeros(n, dtype=bool) if nr is None else nr.astype(bool)
         scalars = {k: _per_point(v, n, f"scalars[{k!r}]") for k, v in (scalars or {}).items()}
 
-        d = pts - org
+        rows = np.ascontiguousarray(pts.T, dtype=np.float64)  # (3, N): per-axis passes are contiguous
+        r2 = rows[0] - org[0]
+        r2 *= r2
+        for axis in (1, 2):
+            t = rows[axis] - org[axis]
+            t *= t
+            r2 += t
+        max2 = sensor.max_range * sensor.max_range
         with np.errstate(invalid="ignore"):
-            r = np.sqrt(np.einsum("ij,ij->i", d, d))
-            valid = np.isfinite(r) & (r > 0)
-            beyond = valid & (r > sensor.max_range)
-        hit_mask = valid & ~beyond & ~nr
-        clear_mask = valid & (beyond | nr)
+            hit_mask = (r2 > 0) & (r2 <= max2)  # NaN, inf, zero-length and beyond max range fail
+        hit_mask &= ~nr
+        all_hit = bool(hit_mask.all())
+        clear_mask = np.zeros(n, dtype=bool)
+        if not all_hit:
+            rest = np.flatnonzero(~hit_mask)
+            r = np.sqrt(r2[rest])
+            with np.errstate(invalid="ignore"):
+                valid = np.isfinite(r) & (r > 0)
+                clear_mask[rest] = valid & ((r > sensor.max_range) | nr[rest])
         dropped = 0
         if not math.isfinite(sensor.max_range):
             dropped = int(np.count_nonzero(clear_mask))
             clear_mask[:] = False
-        hit_keys = vk.points_to_keys(pts if hit_mask.all() else pts[hit_mask], self.resolution)
-        ok = vk.in_range(hit_keys)
-        if not ok.all():
-            idx = np.flatnonzero(hit_mask)
-            hit_mask[idx[~ok]] = False
-            hit_keys = hit_keys[ok]
-        if clear_mask.any():
-            # One ray per voxel of the beams' own end points, truncated at max range (OctoMap's
-            # discretised update does the same): distant beams share voxels.
-            ends = org + d[clear_mask] * (sensor.max_range / r[clear_mask])[:, None]
-            ok = vk.in_range(vk.points_to_keys(ends, self.resolution))
-            idx = np.flatnonzero(clear_mask)
-            clear_mask[idx[~ok]] = False
-            fine = self.resolution / CLEAR_SUBDIVISION
-            ends = ends[ok]
-            sub, which = unique_keys(vk.points_to_keys(ends, fine), True)
-            representative = np.empty(sub.shape[0], dtype=np.int64)
-            representative[which] = np.arange(ends.shape[0])  # one real beam per cell
-            clear_ends = ends[representative]
-        else:
-            clear_ends = np.empty((0, 3))
-        invalid = n - int(np.count_nonzero(hit_mask)) - int(np.count_nonzero(clear_mask)) - dropped
+        inv = 1.0 / self.resolution
+        hit_keys = rows * inv if all_hit else np.compress(hit_mask, rows, axis=1) * inv
+        np.floor(hit_keys, out=hit_keys)
+        if hit_keys.size and (hit_keys.min() < vk.KEY_MIN or hit_keys.max() > vk.KEY_MAX):
+            ok = np.all((hit_keys >= vk.KEY_MIN) & (hit_keys <= vk.KEY_MAX), axis=0)
+            hit_mask[np.flatnonzero(hit_mask)[~ok]] = False
+            hit_keys = hit_keys[:, ok]
+        clear_ends = self._clear_ends(rows, org, r2, clear_mask, sensor.max_range) if clear_mask.any() else np.empty((0, 3))
+        n_hits = int(hit_keys.shape[1])
+        invalid = n - n_hits - int(np.count_nonzero(clear_mask)) - dropped
 
         want_inverse = any(x is not None for x in (colours, normals, class_ids, object_ids)) or bool(scalars)
-        uniq_keys, inverse = unique_keys(hit_keys, want_inverse)
-        uniq = vk.pack(uniq_keys)
-        ends = np.concatenate([vk.keys_to_centers(uniq_keys, self.resolution), clear_ends])
-        traversal = trace(org, ends, uniq_keys, self.resolution)
+        traversal = trace(org, hit_keys, clear_ends, self.resolution, self.store.shifts, want_inverse)
+        inverse = traversal.inverse
+        uniq = vk.pack(traversal.hit_keys) if want_inverse else np.empty(0, dtype=np.int64)
 
-        hit_mask_idx = np.flatnonzero(hit_mask)
+        hit_mask_idx = np.flatnonzero(hit_mask) if want_inverse else None
         rich = {
             "colours": None if colours is None else colours[hit_mask_idx],
             "normals": None if normals is None else normals[hit_mask_idx],
@@ -245,13 +246,14 @@ class VoxelGrid:
             "experience": experience,
             "bias": bias,
             "objects": objects,
+            "stamp": self._stamp(time),
         }
         changed = self._update(traversal, float(time), ev, context)
         self._update_rich(uniq, inverse, rich, float(time), bumped=changed > 0)
         self.now = max(self.now, float(time))
         return IntegrationReport(
             points=n,
-            hits=int(np.count_nonzero(hit_mask)),
+            hits=n_hits,
             cleared=int(np.count_nonzero(clear_mask)),
             invalid=invalid,
             dropped=dropped,
@@ -260,6 +262,31 @@ class VoxelGrid:
             voxels_changed=int(changed),
             version=self.version,
         )
+
+    def _clear_ends(self, rows: np.ndarray, org: np.ndarray, r2: np.ndarray, clear_mask: np.ndarray,
+                    max_range: float) -> np.ndarray:
+        """End points (M, 3) of the rays of beams without a hit; drops unusable beams from clear_mask.
+
+        Beams are truncated at max range and cast once per 1/CLEAR_SUBDIVISION-voxel cell of their
+        ends, one real beam standing for its cell (OctoMap's discretised update does the like):
+        distant beams share voxels.
+        """
+        idx = np.flatnonzero(clear_mask)
+        scale = max_range / np.sqrt(r2[idx])
+        ends = rows.take(idx, axis=1) - org[:, None]
+        ends *= scale
+        ends += org[:, None]
+        fine = ends * (CLEAR_SUBDIVISION / self.resolution)
+        np.floor(fine, out=fine)
+        limit = vk.KEY_MAX * CLEAR_SUBDIVISION
+        if fine.min() < -limit or fine.max() > limit:
+            ok = np.all((fine >= -limit) & (fine <= limit), axis=0)
+            clear_mask[idx[~ok]] = False
+            ends, fine = ends[:, ok], fine[:, ok]
+        _, which = unique_keys(fine.T.astype(np.int64), True)
+        representative = np.empty(int(which.max(initial=-1)) + 1, dtype=np.int64)
+        representative[which] = np.arange(which.size)  # one real beam per cell
+        return ends.T[representative]
 
     def integrate_depth(
         self,
@@ -386,7 +413,7 @@ class VoxelGrid:
         ver = st.channels["version"]
         ver[slots] = np.where(changed, v, ver[slots])
         last = st.channels["last_time"]
-        last[slots] = np.where(changed, self._stamp(time), last[slots])
+        last[slots] = np.where(changed, context["stamp"], last[slots])
         st.slot_version[slots[changed.any(axis=1)]] = v
         if self.statistics:
             first = st.channel("first_time")
@@ -404,7 +431,7 @@ class VoxelGrid:
         if uniq.size == 0 or inverse is None or all(x is None for x in wanted):
             return
         st = self.store
-        blocks, offsets = split_keys(vk.unpack(uniq))
+        blocks, offsets = self.store.split(vk.unpack(uniq))
         slots = st.lookup(blocks)
         m = uniq.size
         counts = np.bincount(inverse, minlength=m).astype(np.float64)
@@ -515,7 +542,7 @@ class VoxelGrid:
         b, o = np.nonzero(keep)
         if b.size == 0:
             return
-        keys = vk.pack(join_keys(self.store.slot_keys[slots[b]], o))
+        keys = vk.pack(self.store.join(self.store.slot_keys[slots[b]], o))
         obj_id = np.full(b.size, -1, dtype=np.int32)
         obj_p = np.zeros(b.size, dtype=np.float32)
         if context["objects"] is not None:
@@ -542,7 +569,7 @@ class VoxelGrid:
 
     # ---------------------------------------------------------------------------------- queries
     def _lookup(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        blocks, offsets = split_keys(keys)
+        blocks, offsets = self.store.split(keys)
         slots = self.store.lookup(blocks)
         return slots, offsets, slots >= 0
 
@@ -579,7 +606,7 @@ class VoxelGrid:
         slots, lo, bkeys = self._all()
         with np.errstate(invalid="ignore"):
             b, o = np.nonzero(pred(lo))
-        return join_keys(bkeys[b], o)
+        return self.store.join(bkeys[b], o)
 
     def occupied_keys(self) -> np.ndarray:
         """Keys (M, 3) of occupied voxels."""
@@ -681,7 +708,7 @@ class VoxelGrid:
         ver = st.channels["version"][slots]
         b, o = np.nonzero(ver > version)
         s = slots[b]
-        keys = join_keys(st.slot_keys[s], o)
+        keys = self.store.join(st.slot_keys[s], o)
         channels = {name: arr[s, o] for name, arr in st.channels.items() if name not in ("logodds", "version", "last_time")}
         return Delta(
             resolution=self.resolution,
@@ -709,7 +736,7 @@ class VoxelGrid:
             msg = f"delta keys must lie in [{vk.KEY_MIN}, {vk.KEY_MAX}] on every axis"
             raise DeltaError(msg)
         st = self.store
-        blocks, offsets = split_keys(delta.keys)
+        blocks, offsets = self.store.split(delta.keys)
         ub, inv = np.unique(blocks, return_inverse=True)
         slots = st.ensure(ub)[inv]
         incoming = np.uint32(delta.to_version)
@@ -755,7 +782,7 @@ class VoxelGrid:
         slots, lo, bkeys = self._all()
         with np.errstate(invalid="ignore"):
             b, o = np.nonzero(~np.isnan(lo))
-        write_bt(path, self.resolution, join_keys(bkeys[b], o), lo[b, o] >= 0)
+        write_bt(path, self.resolution, self.store.join(bkeys[b], o), lo[b, o] >= 0)
 
     def write_ply(self, path: str | Path) -> None:
         """Export occupied voxel centres as a binary PLY point cloud, with colour when known."""

@@ -2,31 +2,37 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from voxel import keys as vk
-from voxel.blocks import BLOCK, BLOCK_SHIFT, BLOCK_VOXELS, split_keys
+from voxel.blocks import CUBE, split_keys
 
 FREE = np.uint8(1)
 HIT = np.uint8(2)
 
-_RUN_DTYPE = {2: np.uint16, 4: np.uint32, 8: np.uint64}[BLOCK]
+#: Cells of one block column along z, read as one unsigned integer to find touched blocks fast.
+_RUN_DTYPE = {1: np.uint8, 2: np.uint16, 4: np.uint32, 8: np.uint64}
 
-#: Below this many active rays, remaining face crossings are enumerated in one flat pass.
+#: Below this many active crossing sequences, the remaining crossings are enumerated in one pass.
 FLAT_BELOW = 3000
 
 #: Largest dense scratch volume (cells) before traversal falls back to sorting visited keys.
 DENSE_LIMIT = 96_000_000
+#: `unique_keys` sorts instead of marking a dense box when the box has more cells per key than this.
+SPARSE_RATIO = 16
 
 
 @dataclass
 class Traversal:
-    """Voxels touched by one scan, grouped by block: 0 untouched, 1 free, 2 hit."""
+    """Voxels touched by one scan, grouped by block (0 untouched, 1 free, 2 hit), and its hit voxels."""
 
     blocks: np.ndarray  # (B,) packed block keys
-    cells: np.ndarray  # (B, 512) uint8
+    cells: np.ndarray  # (B, block voxels) uint8
+    hit_keys: np.ndarray  # (U, 3) int64 unique hit voxel keys, in packed-key order
+    inverse: np.ndarray | None = None  # (N,) each hit point's row in hit_keys, when asked for
 
     @property
     def free_count(self) -> int:
@@ -34,20 +40,17 @@ class Traversal:
 
     @property
     def hit_count(self) -> int:
-        return int(np.count_nonzero(self.cells == HIT))
+        return int(self.hit_keys.shape[0])
 
 
-def _sweep(o: np.ndarray, e: np.ndarray, strides: np.ndarray, visit) -> None:
-    """Visit the voxels rays o -> e enter, end voxel excluded; o and e in local voxel units (>= 0).
+def _sequences(o: np.ndarray, e: np.ndarray, strides: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Every (ray, axis) run of face crossings of rays o -> e, end voxel excluded, as arrays.
 
-    A ray enters a new voxel exactly where it crosses a voxel face. For each axis, the crossings
-    of the k-th face plane by all rays are computed at once: the plane fixes one key, the other
-    two are the ray's coordinates there, which advance by a constant per plane. Rays are sorted
-    by their number of crossings, so the rays of plane k are a prefix of the arrays: one numpy
-    operation per plane for all rays, about ten per crossing, no branches.
+    Crossing k of a run enters the voxel at linear index
+    plane + k * step + floor(y + k * inc_y) * stride_y + floor(z + k * inc_z) * stride_z,
+    where the run's axis fixes `plane` exactly and y, z are the ray's other two coordinates
+    on that face plane. Runs come sorted by length, longest first.
     """
-    if e.shape[0] == 0:
-        return
     ko = np.floor(o).astype(np.int64)
     ke = np.floor(e).astype(np.int64)
     d = e - o
@@ -57,103 +60,186 @@ def _sweep(o: np.ndarray, e: np.ndarray, strides: np.ndarray, visit) -> None:
         last_plane = ko + (d > 0) + (counts - 1) * np.sign(d)
         t_last = np.where(counts > 0, (last_plane - o) / d, -np.inf)
     latest = np.argmax(t_last, axis=1)
-    has = counts.sum(axis=1) > 0
-    counts[np.flatnonzero(has), latest[has]] -= 1
+    has = np.flatnonzero(counts.sum(axis=1) > 0)
+    counts[has, latest[has]] -= 1
+    parts: list[list[np.ndarray]] = []
     for a in range(3):
         b, c = [x for x in range(3) if x != a]
-        m = counts[:, a]
-        order = np.argsort(-m, kind="stable")
-        m = m[order]
-        if m[0] <= 0:
+        sel = np.flatnonzero(counts[:, a] > 0)
+        if sel.size == 0:
             continue
-        n_rays = int(np.count_nonzero(m))
-        order, m = order[:n_rays], m[:n_rays]
-        da = d[order, a]
+        da = d[sel, a]
         sgn = np.sign(da)
-        rb = d[order, b] / da
-        rc = d[order, c] / da
+        rb = d[sel, b] / da
+        rc = d[sel, c] / da
         dist0 = ko[a] + (sgn > 0) - o[a]  # signed distance along axis a to the first face plane
-        y = o[b] + dist0 * rb
-        z = o[c] + dist0 * rc
-        inc_y = sgn * rb
-        inc_z = sgn * rc
-        step_a = sgn.astype(np.int64) * strides[a]
-        plane = ko[a] * strides[a] + step_a
-        sb, sc = int(strides[b]), int(strides[c])
-        active = n_rays - np.searchsorted(m[::-1], np.arange(int(m[0])), side="right")
-        for k in range(int(m[0])):
-            n = int(active[k])
-            if n < FLAT_BELOW:
-                # Few rays left: enumerate all their remaining crossings at once, no loop.
-                left = m[:n] - k
-                ray = np.repeat(np.arange(n), left)
-                j = np.arange(ray.size) - np.repeat(np.cumsum(left) - left, left)
-                lin = plane[ray] + j * step_a[ray]
-                lin += (y[ray] + j * inc_y[ray]).astype(np.int64) * sb
-                lin += (z[ray] + j * inc_z[ray]).astype(np.int64) * sc
-                visit(lin)
-                break
-            lin = plane[:n] + y[:n].astype(np.int64) * sb
-            lin += z[:n].astype(np.int64) * sc
+        step = sgn.astype(np.int64) * strides[a]
+        parts.append([
+            counts[sel, a],
+            ko[a] * strides[a] + step,
+            step,
+            o[b] + dist0 * rb,
+            sgn * rb,
+            o[c] + dist0 * rc,
+            sgn * rc,
+            np.full(sel.size, strides[b]),
+            np.full(sel.size, strides[c]),
+        ])
+    if not parts:
+        return ()
+    cols = [np.concatenate(x) for x in zip(*parts)]
+    longest = int(cols[0].max())
+    # A stable sort of 16-bit integers is a radix sort: much faster than sorting int64.
+    order = np.argsort(-(cols[0].astype(np.int16) if longest < 2**15 else cols[0]), kind="stable")
+    return tuple(x[order] for x in cols)
+
+
+def _sweep(o: np.ndarray, e: np.ndarray, strides: np.ndarray, visit: Callable[[np.ndarray], None]) -> None:
+    """Visit the linear indices of the voxels rays o -> e enter, end voxel excluded.
+
+    o and e are in local voxel units (>= 0). A ray enters a new voxel exactly where it crosses a
+    voxel face; the crossings of one ray with one axis's face planes form a run whose coordinates
+    advance by constants. All runs of all axes advance together, one numpy operation per step
+    for every run still going (runs are sorted by length, so those are a prefix); when few runs
+    remain, their remaining crossings are enumerated at once.
+    """
+    if e.shape[0] == 0:
+        return
+    seqs = _sequences(o, e, strides)
+    if not seqs:
+        return
+    m, plane, step, y, inc_y, z, inc_z, sy, sz = seqs
+    active = m.size - np.searchsorted(m[::-1], np.arange(int(m[0])), side="right")
+    for k in range(int(m[0])):
+        n = int(active[k])
+        if n < FLAT_BELOW:
+            left = m[:n] - k
+            total = int(left.sum())
+            j = np.arange(total) - np.repeat(np.cumsum(left) - left, left)
+            lin = np.repeat(plane[:n], left) + j * np.repeat(step[:n], left)
+            lin += (np.repeat(y[:n], left) + j * np.repeat(inc_y[:n], left)).astype(np.int64) * np.repeat(sy[:n], left)
+            lin += (np.repeat(z[:n], left) + j * np.repeat(inc_z[:n], left)).astype(np.int64) * np.repeat(sz[:n], left)
             visit(lin)
-            y[:n] += inc_y[:n]
-            z[:n] += inc_z[:n]
-            plane[:n] += step_a[:n]
+            return
+        lin = y[:n].astype(np.int64)
+        lin *= sy[:n]
+        lin += plane[:n]
+        t = z[:n].astype(np.int64)
+        t *= sz[:n]
+        lin += t
+        visit(lin)
+        y[:n] += inc_y[:n]
+        z[:n] += inc_z[:n]
+        plane[:n] += step[:n]
+
+
+def _box(origin_key: np.ndarray, *key_rows: np.ndarray, shifts: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Block-aligned lower corner and dims of a box holding the origin key and key rows (3, N)."""
+    lo = origin_key.copy()
+    hi = origin_key.copy()
+    for rows in key_rows:
+        if rows.shape[1]:
+            for a in range(3):
+                lo[a] = min(lo[a], int(rows[a].min()))
+                hi[a] = max(hi[a], int(rows[a].max()))
+    sh = np.asarray(shifts, dtype=np.int64)
+    lo = (lo - 1) >> sh << sh
+    hi = ((hi + 1) >> sh << sh) + (1 << sh)
+    return lo, hi - lo
 
 
 def trace(
-    origin: np.ndarray, ends: np.ndarray, hit_keys: np.ndarray, resolution: float
+    origin: np.ndarray,
+    hit_keys: np.ndarray,
+    clear_ends: np.ndarray,
+    resolution: float,
+    shifts: tuple[int, int, int] = CUBE,
+    want_inverse: bool = False,
 ) -> Traversal:
-    """Free voxels along rays origin -> ends (end voxel excluded) and hit voxels `hit_keys`.
+    """One scan's free and hit voxels: a ray from `origin` to each distinct hit voxel's centre and
+    to each of `clear_ends` (world points); free voxels along rays (end voxel excluded), hits win.
 
-    Each voxel appears once however many rays pass it; hits win over free, as in OctoMap.
+    `hit_keys` are the hit points' voxel keys as rows (3, N) (float or int, exact integers).
+    Each voxel appears once however many rays pass it, as in OctoMap's update.
     """
     origin = np.asarray(origin, dtype=np.float64).reshape(3)
-    ends = np.asarray(ends, dtype=np.float64).reshape(-1, 3)
-    hit_keys = np.asarray(hit_keys, dtype=np.int64).reshape(-1, 3)
-    key_o = np.floor(origin * (1.0 / resolution)).astype(np.int64)
-    key_e = np.floor(ends * (1.0 / resolution)).astype(np.int64)
-    # A ray whose end lies in the origin voxel marks nothing (OctoMap returns an empty ray).
-    cast = np.any(key_e != key_o, axis=1)
-    all_keys = np.concatenate([key_o[None, :], key_e, hit_keys])
-    kmin, kmax = vk.bounds(all_keys)
-    lo = (kmin - 1) >> BLOCK_SHIFT << BLOCK_SHIFT
-    hi = ((kmax + 1) >> BLOCK_SHIFT << BLOCK_SHIFT) + BLOCK
-    dims = hi - lo
-    strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
-    o_local = origin * (1.0 / resolution) - lo
-    e_local = ends[cast] * (1.0 / resolution) - lo
-    start = int(((key_o - lo) * strides).sum())
+    hk = np.asarray(hit_keys, dtype=np.float64).reshape(3, -1)
+    clear = np.asarray(clear_ends, dtype=np.float64).reshape(-1, 3)
+    inv = 1.0 / resolution
+    o_scaled = origin * inv
+    key_o = np.floor(o_scaled).astype(np.int64)
+    clear_scaled = clear * inv
+    clear_keys = np.floor(clear_scaled).astype(np.int64)
+    lo, dims = _box(key_o, hk, clear_keys.T, shifts=shifts)
     total = int(np.prod(dims))
+    if total > DENSE_LIMIT:
+        return _trace_sparse(o_scaled, key_o, hk, clear_scaled, clear_keys, shifts, want_inverse)
 
-    if total <= DENSE_LIMIT:
-        cells = np.zeros(total, dtype=np.uint8)
-        if cast.any():
-            cells[start] = FREE
-        _sweep(o_local, e_local, strides, lambda lin: cells.__setitem__(lin, FREE))
-        if hit_keys.size:
-            cells[((hit_keys - lo) * strides).sum(axis=1)] = HIT
-        nb = dims >> BLOCK_SHIFT
-        c6 = cells.reshape(nb[0], BLOCK, nb[1], BLOCK, nb[2], BLOCK)
-        runs = cells.view(_RUN_DTYPE) != 0  # one flag per BLOCK cells along z
-        touched = runs.reshape(nb[0], BLOCK, nb[1], BLOCK, nb[2]).any(axis=(1, 3))
-        bx, by, bz = np.nonzero(touched)
-        vals = c6[bx, :, by, :, bz, :].reshape(-1, BLOCK_VOXELS)
-        bkeys = np.stack([bx, by, bz], axis=1) + (lo >> BLOCK_SHIFT)
-        return Traversal(blocks=vk.pack(bkeys), cells=vals)
+    strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
+    cells = np.zeros(total, dtype=np.uint8)
+    lin = (strides.astype(np.float64) @ hk - float(strides @ lo)).astype(np.int64)
+    cells[lin] = HIT
+    hit_lin = np.flatnonzero(cells)
+    local = np.empty((hit_lin.size, 3), dtype=np.int64)
+    local[:, 0], rest = np.divmod(hit_lin, strides[0])
+    local[:, 1], local[:, 2] = np.divmod(rest, strides[1])
+    start = int((key_o - lo) @ strides)
+    hit_cast = hit_lin != start  # a ray whose end lies in the origin voxel marks nothing
+    clear_cast = np.any(clear_keys != key_o, axis=1)
+    ends = np.concatenate([local[hit_cast] + 0.5, clear_scaled[clear_cast] - lo])
+    cells[hit_lin] = 0
+    _sweep(o_scaled - lo, ends, strides, lambda x: cells.__setitem__(x, FREE))
+    if ends.shape[0]:
+        cells[start] = FREE
+    cells[hit_lin] = HIT
+    blocks, vals = _blocks_of(cells, dims, lo, shifts)
+    inverse = np.searchsorted(hit_lin, lin) if want_inverse else None
+    return Traversal(blocks=blocks, cells=vals, hit_keys=local + lo, inverse=inverse)
 
-    # Sparse fallback for very large extents: collect visited indices and sort them once.
-    visited: list[np.ndarray] = [np.array([start], dtype=np.int64)] if cast.any() else []
-    _sweep(o_local, e_local, strides, lambda lin: visited.append(lin.copy()))
+
+def _blocks_of(cells: np.ndarray, dims: np.ndarray, lo: np.ndarray, shifts: tuple[int, int, int]):
+    """Packed keys and cells (B, block voxels) of the blocks of a dense box that hold a mark."""
+    sx, sy, sz = shifts
+    nb = dims >> np.asarray(shifts)
+    c6 = cells.reshape(nb[0], 1 << sx, nb[1], 1 << sy, nb[2], 1 << sz)
+    runs = cells.view(_RUN_DTYPE[1 << sz]) != 0  # one flag per block column along z
+    r5 = runs.reshape(nb[0], 1 << sx, nb[1], 1 << sy, nb[2])
+    rows = r5[:, 0].copy()  # OR over the block's x and y offsets: elementwise on views, fast
+    for i in range(1, 1 << sx):
+        rows |= r5[:, i]
+    touched = rows[:, :, 0].copy()
+    for i in range(1, 1 << sy):
+        touched |= rows[:, :, i]
+    bx, by, bz = np.nonzero(touched)
+    vals = c6[bx, :, by, :, bz, :].reshape(bx.size, 1 << sum(shifts))
+    bkeys = np.stack([bx, by, bz], axis=1) + (lo >> np.asarray(shifts))
+    return vk.pack(bkeys), vals
+
+
+def _trace_sparse(o_scaled, key_o, hk, clear_scaled, clear_keys, shifts, want_inverse) -> Traversal:
+    """`trace` for extents too large for a dense box: visited keys are collected and sorted once."""
+    hit_keys = hk.T.astype(np.int64)
+    packed, inverse = np.unique(vk.pack(hit_keys), return_inverse=True)
+    uniq = vk.unpack(packed)
+    ends_keys = np.concatenate([uniq, clear_keys])
+    lo, dims = _box(key_o, ends_keys.T, shifts=(0, 0, 0))
+    strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
+    hit_cast = np.any(uniq != key_o, axis=1)
+    clear_cast = np.any(clear_keys != key_o, axis=1)
+    ends = np.concatenate([uniq[hit_cast] + 0.5 - lo, clear_scaled[clear_cast] - lo])
+    visited: list[np.ndarray] = [np.array([int((key_o - lo) @ strides)])] if ends.shape[0] else []
+    _sweep(o_scaled - lo, ends, strides, lambda x: visited.append(x.copy()))
     free_lin = np.unique(np.concatenate(visited)) if visited else np.empty(0, dtype=np.int64)
     free_keys = np.stack(np.unravel_index(free_lin, tuple(int(x) for x in dims)), axis=1) + lo
-    return group_cells(free_keys, hit_keys)
+    blocks, cells = group_cells(free_keys, uniq, shifts)
+    return Traversal(blocks=blocks, cells=cells, hit_keys=uniq, inverse=inverse if want_inverse else None)
 
 
 def unique_keys(keys: np.ndarray, want_inverse: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """Unique voxel keys (U, 3) in packed-key order, and each input key's index into them.
 
-    Uses a dense marker over the keys' bounding box when it is small (no sort), else np.unique.
+    Uses a dense marker over the keys' bounding box when it is small next to the number of keys
+    (no sort), else np.unique.
     """
     keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
     if keys.shape[0] == 0:
@@ -161,7 +247,7 @@ def unique_keys(keys: np.ndarray, want_inverse: bool) -> tuple[np.ndarray, np.nd
     lo, hi = vk.bounds(keys)
     dims = hi - lo + 1
     total = int(np.prod(dims))
-    if total > DENSE_LIMIT:
+    if total > min(DENSE_LIMIT, SPARSE_RATIO * keys.shape[0]):
         up, inverse = np.unique(vk.pack(keys), return_inverse=True)
         return vk.unpack(up), (inverse if want_inverse else None)
     lin = (keys[:, 0] - lo[0]) * (dims[1] * dims[2]) + (keys[:, 1] - lo[1]) * dims[2] + (keys[:, 2] - lo[2])
@@ -172,15 +258,17 @@ def unique_keys(keys: np.ndarray, want_inverse: bool) -> tuple[np.ndarray, np.nd
     return uniq, (np.searchsorted(ulin, lin) if want_inverse else None)
 
 
-def group_cells(free_keys: np.ndarray, hit_keys: np.ndarray) -> Traversal:
-    """A Traversal from explicit free and hit voxel keys (hits win)."""
+def group_cells(
+    free_keys: np.ndarray, hit_keys: np.ndarray, shifts: tuple[int, int, int] = CUBE
+) -> tuple[np.ndarray, np.ndarray]:
+    """Packed block keys and cells (B, block voxels) of explicit free and hit voxel keys (hits win)."""
     keys = np.concatenate([free_keys, hit_keys]).astype(np.int64)
     vals = np.concatenate([np.full(len(free_keys), FREE), np.full(len(hit_keys), HIT)]).astype(np.uint8)
-    blocks, offsets = split_keys(keys)
+    blocks, offsets = split_keys(keys, shifts)
     ub, inv = np.unique(blocks, return_inverse=True)
-    cells = np.zeros((ub.size, BLOCK_VOXELS), dtype=np.uint8)
+    cells = np.zeros((ub.size, 1 << sum(shifts)), dtype=np.uint8)
     np.maximum.at(cells, (inv, offsets), vals)
-    return Traversal(blocks=ub, cells=cells)
+    return ub, cells
 
 
 def ray_keys(origin: np.ndarray, end: np.ndarray, resolution: float) -> np.ndarray:

@@ -19,7 +19,9 @@ if TYPE_CHECKING:
     from voxel.grid import VoxelGrid
 
 FORMAT = "colony-voxel-snapshot"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+#: Versions `load_grid` reads; version 2 predates block shapes (its blocks are cubes).
+READABLE_VERSIONS = (2, 3)
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 
 
@@ -34,6 +36,7 @@ def save_grid(grid: VoxelGrid, path: Path) -> None:
         "half_life": grid.half_life,
         "statistics": grid.statistics,
         "class_k": st.class_k,
+        "block_shape": [1 << x for x in st.shifts],
         "grid_version": grid.version,
         "now": grid.now,
         "time_base_ms": grid.time_base_ms,
@@ -81,8 +84,9 @@ def load_grid(path: Path) -> VoxelGrid:
                 msg = f"{path}: expected a {FORMAT} file with a 'meta' entry, found entries {sorted(files)[:5]}"
                 raise FileFormatError(msg)
             meta = json.loads(bytes(data["meta"]).decode())
-            if meta.get("format") != FORMAT or meta.get("version") != FORMAT_VERSION:
-                msg = f"{path}: expected format {FORMAT} v{FORMAT_VERSION}, found {meta.get('format')!r} v{meta.get('version')!r}"
+            if meta.get("format") != FORMAT or meta.get("version") not in READABLE_VERSIONS:
+                msg = (f"{path}: expected format {FORMAT} v{'/'.join(map(str, READABLE_VERSIONS))}, "
+                       f"found {meta.get('format')!r} v{meta.get('version')!r}")
                 raise FileFormatError(msg)
             grid = VoxelGrid(
                 meta["resolution"],
@@ -91,6 +95,7 @@ def load_grid(path: Path) -> VoxelGrid:
                 class_k=meta["class_k"],
                 history_capacity=meta["history_capacity"],
                 history_per_voxel=meta["history_per_voxel"],
+                block_shape=tuple(meta.get("block_shape", (4, 4, 4))),
             )
             keys = data["block_keys"]
             slots = grid.store.ensure(keys)

@@ -16,8 +16,9 @@ def scan(grid, seed: int) -> None:
     grid.integrate(pts, np.zeros(3), time=float(seed))
 
 
-def test_wal_and_snapshot_recover_everything_logged(tmp_path):
-    store = StateStore(tmp_path, "a", 0.1)
+@pytest.mark.parametrize("shape", ["cube", "planar"])
+def test_wal_and_snapshot_recover_everything_logged(tmp_path, shape):
+    store = StateStore(tmp_path, "a", 0.1, shape)
     rec = store.recover()
     assert rec.fresh and rec.seq == 0
     grid, published = rec.grid, 0
@@ -34,6 +35,7 @@ def test_wal_and_snapshot_recover_everything_logged(tmp_path):
     again = store.recover()
     assert not again.fresh and again.epoch == rec.epoch and again.seq == 3
     assert again.wal_records == 1
+    assert again.grid.store.shifts == rec.grid.store.shifts  # the snapshot keeps its block shape
     expected = new_grid(0.1)
     for seq in range(1, 4):
         scan(expected, seq)
