@@ -14,7 +14,7 @@ from voxel.blocks import BlockStore, block_shifts
 from voxel.delta import SCALAR_PREFIX, Delta
 from voxel.errors import DeltaError, InputError
 from voxel.history import History
-from voxel.raycast import FREE, HIT, Traversal, ray_keys, trace, unique_keys
+from voxel.raycast import FREE, HIT, Traversal, ray_keys, trace
 from voxel.sensor import SensorModel
 
 UNKNOWN = np.int8(-1)
@@ -283,10 +283,7 @@ class VoxelGrid:
             ok = np.all((fine >= -limit) & (fine <= limit), axis=0)
             clear_mask[idx[~ok]] = False
             ends, fine = ends[:, ok], fine[:, ok]
-        _, which = unique_keys(fine.T.astype(np.int64), True)
-        representative = np.empty(int(which.max(initial=-1)) + 1, dtype=np.int64)
-        representative[which] = np.arange(which.size)  # one real beam per cell
-        return ends.T[representative]
+        return ends.T[vk.one_per_key(fine)]  # one real beam per cell
 
     def integrate_depth(
         self,

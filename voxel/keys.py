@@ -53,3 +53,41 @@ def bounds(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     lo = np.array([k[:, i].min() for i in range(3)], dtype=k.dtype)
     hi = np.array([k[:, i].max() for i in range(3)], dtype=k.dtype)
     return lo, hi
+
+
+_HASH_MULTIPLIERS = (-7046029254386353131, -4658895280553007687, 7640891576956012809, -8350542686271633251)
+
+
+def one_per_key(keys: np.ndarray) -> np.ndarray:
+    """Indices of exactly one row per distinct key of integer keys (3, N), without sorting.
+
+    Rows are hashed into a table about four times their number; each slot keeps one writer and
+    rows whose key differs from their slot's winner (a collision) go round again with another hash.
+    """
+    k = np.asarray(keys)
+    n = k.shape[1]
+    if n == 0:
+        return np.empty(0, dtype=np.int64)
+    lo = [int(k[a].min()) for a in range(3)]
+    span = [int(k[a].max()) - lo[a] + 1 for a in range(3)]
+    lin = (k[0] - lo[0]).astype(np.int64) * (span[1] * span[2])
+    lin += (k[1] - lo[1]).astype(np.int64) * span[2]
+    lin += (k[2] - lo[2]).astype(np.int64)
+    bits = max(4, int(n).bit_length() + 2)
+    table = np.empty(1 << bits, dtype=np.int64)
+    pending = np.arange(n)
+    chosen: list[np.ndarray] = []
+    for r in range(64):
+        mult = _HASH_MULTIPLIERS[r % len(_HASH_MULTIPLIERS)] + 2 * (r // len(_HASH_MULTIPLIERS))
+        with np.errstate(over="ignore"):
+            slot = ((lin[pending] * mult) >> (64 - bits)) & ((1 << bits) - 1)
+        table[slot] = pending
+        winner = table[slot]
+        chosen.append(pending[winner == pending])
+        pending = pending[lin[winner] != lin[pending]]
+        if pending.size == 0:
+            break
+    else:  # pragma: no cover - 64 rounds of collisions: fall back to sorting what is left
+        _, last = np.unique(lin[pending][::-1], return_index=True)
+        chosen.append(pending[::-1][last])
+    return np.concatenate(chosen)

@@ -21,8 +21,6 @@ FLAT_BELOW = 3000
 
 #: Largest dense scratch volume (cells) before traversal falls back to sorting visited keys.
 DENSE_LIMIT = 96_000_000
-#: `unique_keys` sorts instead of marking a dense box when the box has more cells per key than this.
-SPARSE_RATIO = 16
 
 
 @dataclass
@@ -233,29 +231,6 @@ def _trace_sparse(o_scaled, key_o, hk, clear_scaled, clear_keys, shifts, want_in
     free_keys = np.stack(np.unravel_index(free_lin, tuple(int(x) for x in dims)), axis=1) + lo
     blocks, cells = group_cells(free_keys, uniq, shifts)
     return Traversal(blocks=blocks, cells=cells, hit_keys=uniq, inverse=inverse if want_inverse else None)
-
-
-def unique_keys(keys: np.ndarray, want_inverse: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """Unique voxel keys (U, 3) in packed-key order, and each input key's index into them.
-
-    Uses a dense marker over the keys' bounding box when it is small next to the number of keys
-    (no sort), else np.unique.
-    """
-    keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
-    if keys.shape[0] == 0:
-        return keys, (np.empty(0, dtype=np.int64) if want_inverse else None)
-    lo, hi = vk.bounds(keys)
-    dims = hi - lo + 1
-    total = int(np.prod(dims))
-    if total > min(DENSE_LIMIT, SPARSE_RATIO * keys.shape[0]):
-        up, inverse = np.unique(vk.pack(keys), return_inverse=True)
-        return vk.unpack(up), (inverse if want_inverse else None)
-    lin = (keys[:, 0] - lo[0]) * (dims[1] * dims[2]) + (keys[:, 1] - lo[1]) * dims[2] + (keys[:, 2] - lo[2])
-    mark = np.zeros(total, dtype=bool)
-    mark[lin] = True
-    ulin = np.flatnonzero(mark)
-    uniq = np.stack(np.unravel_index(ulin, tuple(int(d) for d in dims)), axis=1) + lo
-    return uniq, (np.searchsorted(ulin, lin) if want_inverse else None)
 
 
 def group_cells(
