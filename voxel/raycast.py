@@ -47,12 +47,14 @@ def _sequences(o: np.ndarray, e: np.ndarray, strides: np.ndarray) -> tuple[np.nd
     Crossing k of a run enters the voxel at linear index
     plane + k * step + floor(y + k * inc_y) * stride_y + floor(z + k * inc_z) * stride_z,
     where the run's axis fixes `plane` exactly and y, z are the ray's other two coordinates
-    on that face plane. Runs come sorted by length, longest first.
+    on that face plane (z's term folded into `plane`, stride_z 0, when the ray stays in one
+    layer along z). Runs come sorted by length, longest first.
     """
     ko = np.floor(o).astype(np.int64)
     ke = np.floor(e).astype(np.int64)
     d = e - o
     counts = np.abs(ke - ko)  # (R, 3) face crossings per axis
+    stays = counts == 0  # the ray never leaves the origin's voxel layer along this axis
     # The crossing that enters the end voxel is the latest one: drop it (OctoMap excludes the end).
     with np.errstate(divide="ignore", invalid="ignore"):
         last_plane = ko + (d > 0) + (counts - 1) * np.sign(d)
@@ -68,20 +70,28 @@ def _sequences(o: np.ndarray, e: np.ndarray, strides: np.ndarray) -> tuple[np.nd
             continue
         da = d[sel, a]
         sgn = np.sign(da)
-        rb = d[sel, b] / da
-        rc = d[sel, c] / da
         dist0 = ko[a] + (sgn > 0) - o[a]  # signed distance along axis a to the first face plane
         step = sgn.astype(np.int64) * strides[a]
+        plane = ko[a] * strides[a] + step
+        # Order the other two axes so that a fixed one comes second (y moves, z may not).
+        swap = stays[sel, b] & ~stays[sel, c]
+        b_ax = np.where(swap, c, b)
+        c_ax = np.where(swap, b, c)
+        rb = d[sel, b_ax] / da
+        rc = d[sel, c_ax] / da
+        fixed = stays[sel, c_ax]
+        # A fixed axis contributes a constant: fold it into the plane term.
+        plane += np.where(fixed, ko[c_ax] * strides[c_ax], 0)
         parts.append([
             counts[sel, a],
-            ko[a] * strides[a] + step,
+            plane,
             step,
-            o[b] + dist0 * rb,
+            o[b_ax] + dist0 * rb,
             sgn * rb,
-            o[c] + dist0 * rc,
-            sgn * rc,
-            np.full(sel.size, strides[b]),
-            np.full(sel.size, strides[c]),
+            np.where(fixed, 0.5, o[c_ax] + dist0 * rc),
+            np.where(fixed, 0.0, sgn * rc),
+            strides[b_ax],
+            np.where(fixed, 0, strides[c_ax]),
         ])
     if not parts:
         return ()
@@ -107,27 +117,30 @@ def _sweep(o: np.ndarray, e: np.ndarray, strides: np.ndarray, visit: Callable[[n
     if not seqs:
         return
     m, plane, step, y, inc_y, z, inc_z, sy, sz = seqs
+    z_moves = bool(sz.any())  # else every run's z is fixed (a planar scan): skip it
     active = m.size - np.searchsorted(m[::-1], np.arange(int(m[0])), side="right")
     for k in range(int(m[0])):
         n = int(active[k])
         if n < FLAT_BELOW:
             left = m[:n] - k
-            total = int(left.sum())
-            j = np.arange(total) - np.repeat(np.cumsum(left) - left, left)
+            j = np.arange(int(left.sum())) - np.repeat(np.cumsum(left) - left, left)
             lin = np.repeat(plane[:n], left) + j * np.repeat(step[:n], left)
-            lin += (np.repeat(y[:n], left) + j * np.repeat(inc_y[:n], left)).astype(np.int64) * np.repeat(sy[:n], left)
-            lin += (np.repeat(z[:n], left) + j * np.repeat(inc_z[:n], left)).astype(np.int64) * np.repeat(sz[:n], left)
+            jf = j.astype(np.float64)
+            lin += (np.repeat(y[:n], left) + jf * np.repeat(inc_y[:n], left)).astype(np.int64) * np.repeat(sy[:n], left)
+            if z_moves:
+                lin += (np.repeat(z[:n], left) + jf * np.repeat(inc_z[:n], left)).astype(np.int64) * np.repeat(sz[:n], left)
             visit(lin)
             return
         lin = y[:n].astype(np.int64)
         lin *= sy[:n]
         lin += plane[:n]
-        t = z[:n].astype(np.int64)
-        t *= sz[:n]
-        lin += t
+        if z_moves:
+            t = z[:n].astype(np.int64)
+            t *= sz[:n]
+            lin += t
+            z[:n] += inc_z[:n]
         visit(lin)
         y[:n] += inc_y[:n]
-        z[:n] += inc_z[:n]
         plane[:n] += step[:n]
 
 
