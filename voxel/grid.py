@@ -56,12 +56,21 @@ DEFAULT_SENSOR = SensorModel()
 
 
 class _Evidence(NamedTuple):
-    """Log-odds of one scan's hit and miss (reliability applied) and the clamping bounds."""
+    """One scan's log-odds per traversal cell value (0 untouched, FREE, HIT; reliability applied),
+    the same on the quantum grid, and the clamping bounds."""
 
-    hit: np.float32
-    miss: np.float32
+    raw: np.ndarray  # (3,) float32
+    step: np.ndarray  # (3,) float32, multiples of LOGODDS_QUANTUM
     low: np.float32
     high: np.float32
+
+    @classmethod
+    def of(cls, sensor: SensorModel, reliability: float) -> _Evidence:
+        raw = np.zeros(3, dtype=np.float32)
+        raw[FREE] = sensor.log_miss * reliability
+        raw[HIT] = sensor.log_hit * reliability
+        return cls(raw, quantise_logodds(raw), quantise_logodds(np.float32(sensor.log_min)),
+                   quantise_logodds(np.float32(sensor.log_max)))
 
 
 @dataclass(frozen=True)
@@ -230,12 +239,7 @@ class VoxelGrid:
             "object_ids": None if object_ids is None else object_ids[hit_mask_idx],
             "scalars": {k: v[hit_mask_idx] for k, v in scalars.items()},
         }
-        ev = _Evidence(
-            np.float32(sensor.log_hit * reliability),
-            np.float32(sensor.log_miss * reliability),
-            quantise_logodds(np.float32(sensor.log_min)),
-            quantise_logodds(np.float32(sensor.log_max)),
-        )
+        ev = _Evidence.of(sensor, reliability)
         time = quantise_time(time)
         objects = self._object_lookup(uniq, inverse, rich["object_ids"])
         context = {
@@ -391,13 +395,14 @@ class VoxelGrid:
         lo_arr = st.channels["logodds"]
         old = lo_arr[slots]
         touched = cells != 0
-        hit = cells == HIT
         known = ~np.isnan(old)
         base = np.where(known, old, np.float32(0.0))
         if self.half_life is not None:
             base = self._decayed(base, st.channels["last_time"][slots], time)
-        evidence = np.where(hit, ev.hit, ev.miss)
-        new = np.clip(quantise_logodds(base + evidence), ev.low, ev.high)
+            new = quantise_logodds(base + ev.raw[cells])
+        else:
+            new = base + ev.step[cells]  # base and steps lie on the quantum grid: the sum is exact
+        np.clip(new, ev.low, ev.high, out=new)
         new = np.where(touched, new, old)
         if self.half_life is not None or self.statistics:
             changed = touched
@@ -413,13 +418,14 @@ class VoxelGrid:
         last[slots] = np.where(changed, context["stamp"], last[slots])
         st.slot_version[slots[changed.any(axis=1)]] = v
         if self.statistics:
+            hit = cells == HIT
             first = st.channel("first_time")
             first[slots] = np.where(touched & ~known, time, first[slots])
             hits = st.channel("hits")
             misses = st.channel("misses")
             hits[slots] = np.minimum(hits[slots].astype(np.int32) + hit, 65535).astype(np.uint16)
             misses[slots] = np.minimum(misses[slots].astype(np.int32) + (cells == FREE), 65535).astype(np.uint16)
-        self._record(slots, old, new, changed, evidence, context)
+        self._record(slots, old, new, changed, cells, ev, context)
         return count
 
     def _update_rich(self, uniq: np.ndarray, inverse: np.ndarray, rich: dict, time: float, bumped: bool) -> None:
@@ -525,20 +531,26 @@ class VoxelGrid:
         return uniq, per_voxel
 
     def _record(
-        self, slots: np.ndarray, old: np.ndarray, new: np.ndarray, mask: np.ndarray, ev: np.ndarray, context: dict
+        self, slots: np.ndarray, old: np.ndarray, new: np.ndarray, mask: np.ndarray, cells: np.ndarray,
+        ev: _Evidence, context: dict,
     ) -> None:
         """History: every hit voxel and every voxel whose state flipped gets a record.
 
         Free space seen for the first time (unknown -> free) is not recorded: it is most of every
         scan and carries no event; `state_at` derives it from the voxel's current state.
         """
-        old_state = np.where(np.isnan(old), UNKNOWN, np.where(old >= 0, OCCUPIED, FREE_STATE))
-        new_state = np.where(new >= 0, OCCUPIED, FREE_STATE)
-        flip = old_state != new_state
-        keep = mask & ((flip & (old_state != UNKNOWN)) | (new_state == OCCUPIED) | (ev > 0))
+        with np.errstate(invalid="ignore"):
+            keep = (new >= 0) | (old >= 0)  # occupied now, or was (NaN, unknown, is neither)
+        keep |= cells == HIT
+        keep &= mask
         b, o = np.nonzero(keep)
         if b.size == 0:
             return
+        before = old[b, o]
+        state = new[b, o] >= 0
+        with np.errstate(invalid="ignore"):
+            flip = np.isnan(before) | ((before >= 0) != state)
+        hit = cells[b, o] == HIT
         keys = vk.pack(self.store.join(self.store.slot_keys[slots[b]], o))
         obj_id = np.full(b.size, -1, dtype=np.int32)
         obj_p = np.zeros(b.size, dtype=np.float32)
@@ -553,10 +565,10 @@ class VoxelGrid:
             time=context["time"],
             agent=context["agent"],
             sensor=context["sensor"],
-            evidence=ev[b, o],
+            evidence=np.where(hit, ev.raw[HIT], ev.raw[FREE]),
             logodds=new[b, o],
-            state=new_state[b, o],
-            flip=flip[b, o],
+            state=np.where(state, OCCUPIED, FREE_STATE),
+            flip=flip,
             object_id=obj_id,
             object_prob=obj_p,
             experience=context["experience"],
