@@ -18,6 +18,8 @@ _RUN_DTYPE = {1: np.uint8, 2: np.uint16, 4: np.uint32, 8: np.uint64}
 
 #: Below this many active crossing sequences, the remaining crossings are enumerated in one pass.
 FLAT_BELOW = 3000
+#: Crossings enumerated per chunk of that pass.
+FLAT_CHUNK = 1 << 14
 
 #: Largest dense scratch volume (cells) before traversal falls back to sorting visited keys.
 DENSE_LIMIT = 96_000_000
@@ -123,13 +125,13 @@ def _sweep(o: np.ndarray, e: np.ndarray, strides: np.ndarray, visit: Callable[[n
         n = int(active[k])
         if n < FLAT_BELOW:
             left = m[:n] - k
-            j = np.arange(int(left.sum())) - np.repeat(np.cumsum(left) - left, left)
-            lin = np.repeat(plane[:n], left) + j * np.repeat(step[:n], left)
-            jf = j.astype(np.float64)
-            lin += (np.repeat(y[:n], left) + jf * np.repeat(inc_y[:n], left)).astype(np.int64) * np.repeat(sy[:n], left)
-            if z_moves:
-                lin += (np.repeat(z[:n], left) + jf * np.repeat(inc_z[:n], left)).astype(np.int64) * np.repeat(sz[:n], left)
-            visit(lin)
+            ends = np.cumsum(left)
+            # Chunks of about FLAT_CHUNK crossings keep the temporaries in cache.
+            cuts = np.unique(np.searchsorted(ends, np.arange(FLAT_CHUNK, int(ends[-1]), FLAT_CHUNK), side="right"))
+            for lo, hi in zip([0, *cuts.tolist()], [*cuts.tolist(), n]):
+                if hi > lo:
+                    runs = (plane[lo:hi], step[lo:hi], y[lo:hi], inc_y[lo:hi], z[lo:hi], inc_z[lo:hi], sy[lo:hi], sz[lo:hi])
+                    visit(_enumerate(left[lo:hi], runs, z_moves))
             return
         lin = y[:n].astype(np.int64)
         lin *= sy[:n]
@@ -142,6 +144,18 @@ def _sweep(o: np.ndarray, e: np.ndarray, strides: np.ndarray, visit: Callable[[n
         visit(lin)
         y[:n] += inc_y[:n]
         plane[:n] += step[:n]
+
+
+def _enumerate(left: np.ndarray, runs: tuple[np.ndarray, ...], z_moves: bool) -> np.ndarray:
+    """Linear indices of the next `left[i]` crossings of each run, all at once."""
+    plane, step, y, inc_y, z, inc_z, sy, sz = runs
+    j = np.arange(int(left.sum())) - np.repeat(np.cumsum(left) - left, left)
+    lin = np.repeat(plane, left) + j * np.repeat(step, left)
+    jf = j.astype(np.float64)
+    lin += (np.repeat(y, left) + jf * np.repeat(inc_y, left)).astype(np.int64) * np.repeat(sy, left)
+    if z_moves:
+        lin += (np.repeat(z, left) + jf * np.repeat(inc_z, left)).astype(np.int64) * np.repeat(sz, left)
+    return lin
 
 
 def _box(origin_key: np.ndarray, *key_rows: np.ndarray, shifts: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
