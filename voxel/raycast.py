@@ -201,10 +201,11 @@ def trace(
         return _trace_sparse(o_scaled, key_o, hk, clear_scaled, clear_keys, shifts, want_inverse)
 
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
-    cells = np.zeros(total, dtype=np.uint8)
+    buf = np.zeros(-(-total // 8) * 8, dtype=np.uint8)  # whole 8-byte words, for `_marked`
+    cells = buf[:total]
     lin = (strides.astype(np.float64) @ hk - float(strides @ lo)).astype(np.int64)
     cells[lin] = HIT
-    hit_lin = np.flatnonzero(cells)
+    hit_lin = _marked(buf)
     local = np.empty((hit_lin.size, 3), dtype=np.int64)
     local[:, 0], rest = np.divmod(hit_lin, strides[0])
     local[:, 1], local[:, 2] = np.divmod(rest, strides[1])
@@ -217,25 +218,56 @@ def trace(
     if ends.shape[0]:
         cells[start] = FREE
     cells[hit_lin] = HIT
-    blocks, vals = _blocks_of(cells, dims, lo, shifts)
+    blocks, vals = _blocks_of(buf, dims, lo, shifts)
     inverse = np.searchsorted(hit_lin, lin) if want_inverse else None
     return Traversal(blocks=blocks, cells=vals, hit_keys=local + lo, inverse=inverse)
 
 
-def _blocks_of(cells: np.ndarray, dims: np.ndarray, lo: np.ndarray, shifts: tuple[int, int, int]):
-    """Packed keys and cells (B, block voxels) of the blocks of a dense box that hold a mark."""
+def _marked(buf: np.ndarray, words: np.ndarray | None = None) -> np.ndarray:
+    """Sorted indices of the non-zero cells of a contiguous uint8 array of whole 8-byte words.
+
+    Scans 8 cells per step: far faster than np.flatnonzero when few cells are marked.
+    """
+    if words is None:
+        words = np.flatnonzero(buf.view(np.uint64))
+    r, c = np.nonzero(buf.reshape(-1, 8)[words])
+    return words[r] * 8 + c
+
+
+def _blocks_of(buf: np.ndarray, dims: np.ndarray, lo: np.ndarray, shifts: tuple[int, int, int]):
+    """Packed keys and cells (B, block voxels) of the blocks of a dense box that hold a mark.
+
+    A box with few marks (long rays, thin scans) is read through its marked cells; a well
+    filled one block column by block column.
+    """
     sx, sy, sz = shifts
     nb = dims >> np.asarray(shifts)
+    cells = buf[: int(np.prod(dims))]
     c6 = cells.reshape(nb[0], 1 << sx, nb[1], 1 << sy, nb[2], 1 << sz)
-    runs = cells.view(_RUN_DTYPE[1 << sz]) != 0  # one flag per block column along z
-    r5 = runs.reshape(nb[0], 1 << sx, nb[1], 1 << sy, nb[2])
-    rows = r5[:, 0].copy()  # OR over the block's x and y offsets: elementwise on views, fast
-    for i in range(1, 1 << sx):
-        rows |= r5[:, i]
-    touched = rows[:, :, 0].copy()
-    for i in range(1, 1 << sy):
-        touched |= rows[:, :, i]
-    bx, by, bz = np.nonzero(touched)
+    words = np.flatnonzero(buf.view(np.uint64))
+    if words.size * 48 << sz < cells.size:
+        lin = _marked(buf, words)
+        x, rest = np.divmod(lin, dims[1] * dims[2])
+        y, z = np.divmod(rest, dims[2])
+        x >>= sx
+        x *= nb[1]
+        x += y >> sy
+        x *= nb[2]
+        x += z >> sz
+        mark = np.zeros(int(np.prod(nb)), dtype=bool)
+        mark[x] = True
+        bx, rest = np.divmod(np.flatnonzero(mark), nb[1] * nb[2])
+        by, bz = np.divmod(rest, nb[2])
+    else:
+        runs = cells.view(_RUN_DTYPE[1 << sz]) != 0  # one flag per block column along z
+        r5 = runs.reshape(nb[0], 1 << sx, nb[1], 1 << sy, nb[2])
+        rows = r5[:, 0].copy()  # OR over the block's x and y offsets: elementwise on views, fast
+        for i in range(1, 1 << sx):
+            rows |= r5[:, i]
+        touched = rows[:, :, 0].copy()
+        for i in range(1, 1 << sy):
+            touched |= rows[:, :, i]
+        bx, by, bz = np.nonzero(touched)
     vals = c6[bx, :, by, :, bz, :].reshape(bx.size, 1 << sum(shifts))
     bkeys = np.stack([bx, by, bz], axis=1) + (lo >> np.asarray(shifts))
     return vk.pack(bkeys), vals
