@@ -167,9 +167,12 @@ def _box(origin_key: np.ndarray, *key_rows: np.ndarray, shifts: tuple[int, int, 
             for a in range(3):
                 lo[a] = min(lo[a], int(rows[a].min()))
                 hi[a] = max(hi[a], int(rows[a].max()))
+    # A voxel of margin guards rounding at the box's faces; an axis on which every key is the
+    # same needs none (rays stay in that layer, and the sweep folds it in exactly).
+    margin = (lo != hi).astype(np.int64)
     sh = np.asarray(shifts, dtype=np.int64)
-    lo = (lo - 1) >> sh << sh
-    hi = ((hi + 1) >> sh << sh) + (1 << sh)
+    lo = (lo - margin) >> sh << sh
+    hi = ((hi + margin) >> sh << sh) + (1 << sh)
     return lo, hi - lo
 
 
