@@ -65,3 +65,23 @@ def test_fused_view_sums_layers():
     one_keys, one_lo = fused([a], 0.1)
     assert np.array_equal(keys, one_keys)
     np.testing.assert_allclose(lo, 2 * one_lo, rtol=1e-6)
+
+
+def test_replica_of_a_planar_layer_takes_planar_blocks():
+    origin = new_grid(0.05, "planar")
+    a = np.linspace(-2.0, 2.0, 361)
+    pts = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1) * 4.0 + [0.01, 0.02, 0.0123]
+    origin.integrate(pts, np.array([0.01, 0.02, 0.0123]), time=1.0)
+    planar = Layer("p", 0.05)
+    assert planar.offer(1, 0, 1, origin.delta_since(0)).outcome == "applied"
+    assert planar.grid.store.shifts == origin.store.shifts and planar.grid.content_equal(origin)
+    # new blocks are counted in the replica's own block shape: applying again allocates none
+    assert planar.new_blocks(origin.delta_since(0).keys) == 0
+    _, seq, chunks = planar.snapshot(chunk_voxels=100)
+    copy = Layer("p", 0.05)
+    copy.install_snapshot(1, seq, chunks)
+    assert copy.grid.store.shifts == (3, 3, 0) and copy.grid.content_equal(origin)
+    cube, ds = deltas(1)
+    three_d = Layer("c", 0.1)
+    three_d.offer(1, 0, 1, ds[0])
+    assert three_d.grid.store.shifts == (2, 2, 2)
