@@ -118,7 +118,7 @@ def load_grid(path: Path) -> VoxelGrid:
             return grid
     except FileFormatError:
         raise
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, EOFError,
+    except (OSError, ValueError, TypeError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, EOFError,
             zstandard.ZstdError) as exc:
         msg = f"{path}: not a readable {FORMAT} file ({type(exc).__name__}: {exc})"
         raise FileFormatError(msg) from None

@@ -314,6 +314,46 @@ def test_snapshot_errors(tmp_path):
         VoxelGrid.load(other)
 
 
+def _rewrite_meta(path, **changes) -> None:
+    """Re-save a snapshot with its metadata changed (or keys removed when given None)."""
+    import io
+    import json
+
+    import zstandard
+
+    raw = zstandard.ZstdDecompressor().stream_reader(io.BytesIO(path.read_bytes())).read()
+    with np.load(io.BytesIO(raw)) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(bytes(arrays["meta"]).decode())
+    for key, value in changes.items():
+        if value is None:
+            meta.pop(key, None)
+        else:
+            meta[key] = value
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    path.write_bytes(zstandard.ZstdCompressor().compress(buf.getvalue()))
+
+
+def test_snapshot_versions_and_block_shapes(tmp_path):
+    grid, _ = _grid_with_deltas(6, 2)
+    path = tmp_path / "g.npz"
+    grid.save(path)
+    _rewrite_meta(path, version=2, block_shape=None)  # written before block shapes existed
+    back = VoxelGrid.load(path)
+    assert back.store.shifts == (2, 2, 2) and back.content_equal(grid)
+    _rewrite_meta(path, version=3, block_shape=5)
+    with pytest.raises(FileFormatError, match="not a readable colony-voxel-snapshot"):
+        VoxelGrid.load(path)
+    _rewrite_meta(path, block_shape=[4, 4, 3])
+    with pytest.raises(FileFormatError, match="block sides must be three of 1, 2, 4, 8 voxels"):
+        VoxelGrid.load(path)
+    _rewrite_meta(path, version=9)
+    with pytest.raises(FileFormatError, match="expected format colony-voxel-snapshot v2/3, found"):
+        VoxelGrid.load(path)
+
+
 def test_bt_export_loads_in_octomap_with_the_same_occupied_set(tmp_path):
     pyoctomap = pytest.importorskip("pyoctomap")
     from colonyd.bench_integrate import octomap_sets, iou
