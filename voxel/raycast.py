@@ -21,8 +21,11 @@ FLAT_BELOW = 3000
 #: Crossings enumerated per chunk of that pass.
 FLAT_CHUNK = 1 << 14
 
-#: Largest dense scratch volume (cells) before traversal falls back to sorting visited keys.
+#: Largest dense scratch volume (cells); a scan whose box is larger is split into wedges.
 DENSE_LIMIT = 96_000_000
+#: Wedges per split, and the fewest rays worth splitting (fewer are traced sparsely).
+SPLIT_WAYS = 4
+SPLIT_MIN_RAYS = 64
 
 
 @dataclass
@@ -201,7 +204,10 @@ def trace(
     lo, dims = _box(key_o, hk, clear_keys.T, shifts=shifts)
     total = int(np.prod(dims))
     if total > DENSE_LIMIT:
-        return _trace_sparse(o_scaled, key_o, hk, clear_scaled, clear_keys, shifts, want_inverse)
+        packed, inverse = np.unique(vk.pack(hk.T.astype(np.int64)), return_inverse=True)
+        uniq = vk.unpack(packed)
+        blocks, cells = _split(origin, uniq, clear, resolution, shifts)
+        return Traversal(blocks=blocks, cells=cells, hit_keys=uniq, inverse=inverse if want_inverse else None)
 
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
     buf = np.zeros(-(-total // 8) * 8, dtype=np.uint8)  # whole 8-byte words, for `_marked`
@@ -276,13 +282,44 @@ def _blocks_of(buf: np.ndarray, dims: np.ndarray, lo: np.ndarray, shifts: tuple[
     return vk.pack(bkeys), vals
 
 
-def _trace_sparse(o_scaled, key_o, hk, clear_scaled, clear_keys, shifts, want_inverse) -> Traversal:
-    """`trace` for extents too large for a dense box: visited keys are collected and sorted once."""
-    hit_keys = hk.T.astype(np.int64)
-    packed, inverse = np.unique(vk.pack(hit_keys), return_inverse=True)
-    uniq = vk.unpack(packed)
-    ends_keys = np.concatenate([uniq, clear_keys])
-    lo, dims = _box(key_o, ends_keys.T, shifts=(0, 0, 0))
+def _split(
+    origin: np.ndarray, uniq: np.ndarray, clear: np.ndarray, resolution: float, shifts: tuple[int, int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Blocks and cells of rays to unique hit voxels `uniq` (U, 3) and to `clear` ends whose box is
+    too large for one dense scratch volume: the rays are split into wedges around the origin (by
+    angle about the box's thinnest axis), each traced on its own, and the results merged (a
+    voxel's marks combine, hits win). A few rays with a huge box are traced sparsely."""
+    n_hit = uniq.shape[0]
+    if n_hit + clear.shape[0] < SPLIT_MIN_RAYS:
+        return _trace_sparse(origin, uniq, clear, resolution, shifts)
+    o = origin * (1.0 / resolution)
+    dirs = np.concatenate([uniq + 0.5, clear * (1.0 / resolution)]) - o
+    extent = dirs.max(axis=0) - dirs.min(axis=0)
+    a, b = [x for x in range(3) if x != int(np.argmin(extent))]
+    order = np.argsort(np.arctan2(dirs[:, b], dirs[:, a]), kind="stable")
+    blocks: list[np.ndarray] = []
+    cells: list[np.ndarray] = []
+    for part in np.array_split(order, SPLIT_WAYS):
+        hits, clears = part[part < n_hit], part[part >= n_hit] - n_hit
+        tr = trace(origin, uniq[hits].T, clear[clears], resolution, shifts)
+        blocks.append(tr.blocks)
+        cells.append(tr.cells)
+    all_blocks = np.concatenate(blocks)
+    order = np.argsort(all_blocks, kind="stable")
+    sorted_blocks = all_blocks[order]
+    starts = np.flatnonzero(np.r_[True, sorted_blocks[1:] != sorted_blocks[:-1]])
+    return sorted_blocks[starts], np.maximum.reduceat(np.concatenate(cells)[order], starts, axis=0)
+
+
+def _trace_sparse(
+    origin: np.ndarray, uniq: np.ndarray, clear: np.ndarray, resolution: float, shifts: tuple[int, int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Blocks and cells of a few rays with a huge box: visited keys are collected and sorted."""
+    o_scaled = origin * (1.0 / resolution)
+    key_o = np.floor(o_scaled).astype(np.int64)
+    clear_scaled = clear * (1.0 / resolution)
+    clear_keys = np.floor(clear_scaled).astype(np.int64)
+    lo, dims = _box(key_o, uniq.T, clear_keys.T, shifts=(0, 0, 0))
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
     hit_cast = np.any(uniq != key_o, axis=1)
     clear_cast = np.any(clear_keys != key_o, axis=1)
@@ -291,8 +328,7 @@ def _trace_sparse(o_scaled, key_o, hk, clear_scaled, clear_keys, shifts, want_in
     _sweep(o_scaled - lo, ends, strides, lambda x: visited.append(x.copy()))
     free_lin = np.unique(np.concatenate(visited)) if visited else np.empty(0, dtype=np.int64)
     free_keys = np.stack(np.unravel_index(free_lin, tuple(int(x) for x in dims)), axis=1) + lo
-    blocks, cells = group_cells(free_keys, uniq, shifts)
-    return Traversal(blocks=blocks, cells=cells, hit_keys=uniq, inverse=inverse if want_inverse else None)
+    return group_cells(free_keys, uniq, shifts)
 
 
 def group_cells(

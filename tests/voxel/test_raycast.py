@@ -101,3 +101,25 @@ def test_block_shape_errors_say_what_was_expected():
         VoxelGrid(RES, block_shape="flat")
     with pytest.raises(InputError, match="three of 1, 2, 4, 8 voxels, found \\(4, 4, 3\\)"):
         VoxelGrid(RES, block_shape=(4, 4, 3))
+
+
+@pytest.mark.parametrize("limit", [20_000, 600])
+def test_a_box_too_large_for_one_scratch_volume_is_split_and_merged(monkeypatch, limit):
+    import voxel.raycast as rc
+
+    monkeypatch.setattr(rc, "DENSE_LIMIT", limit)  # small limits force wedges, then sparse tracing
+    rng = np.random.default_rng(5)
+    origin = rng.uniform(-0.05, 0.05, size=3)
+    hits = origin + rng.normal(size=(3000, 3)) * [2.0, 2.0, 0.4]
+    dirs = rng.normal(size=(200, 3))
+    clear_ends = origin + dirs / np.linalg.norm(dirs, axis=1, keepdims=True) * 3.0
+    keys = vk.points_to_keys(hits, RES).T
+    tr = trace(origin, keys, clear_ends, RES, (2, 2, 2), want_inverse=True)
+    b, o = np.nonzero(tr.cells)
+    found = join_keys(tr.blocks[b], o, (2, 2, 2))
+    vals = tr.cells[b, o]
+    ref_free, ref_hit = _reference(origin, hits, clear_ends)
+    assert {tuple(k) for k in found[vals == HIT]} == ref_hit
+    assert {tuple(k) for k in found[vals == FREE]} == ref_free
+    assert np.all(np.diff(tr.blocks) > 0)  # merged: each block once, in key order
+    np.testing.assert_array_equal(tr.hit_keys[tr.inverse], keys.T)  # each point finds its voxel
