@@ -89,6 +89,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--json", type=Path, required=True)
     b.add_argument("--shared-data", type=Path, default=None)
     b.add_argument("--repeats", type=int, default=3)
+    b.add_argument("--only", action="append", metavar="SCENARIO",
+                   help="run this scenario (repeatable; also opt-in ones such as lidar3d_64x1024_0.05)")
     b = bsub.add_parser("wire", help="wire-format benchmark")
     b.add_argument("--json", type=Path, required=True)
     b.add_argument("--shared-data", type=Path, default=None)
@@ -163,7 +165,7 @@ def _bench(args: argparse.Namespace) -> int:
     if args.bench == "integrate":
         from colonyd.bench_integrate import run_integrate_bench
 
-        result = run_integrate_bench(args.json, args.shared_data, args.repeats)
+        result = run_integrate_bench(args.json, args.shared_data, args.repeats, args.only)
     elif args.bench == "wire":
         from colonyd.bench_wire import run_wire_bench
 

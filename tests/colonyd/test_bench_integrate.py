@@ -25,3 +25,10 @@ def test_lidar2d_scenario_agrees_with_octomap(tmp_path: Path) -> None:
     # memory is deterministic: a planar scan in planar blocks costs less per voxel than OctoMap
     assert row["block_shape"] == "planar"
     assert row["bytes_per_known_voxel"] <= row["octomap_bytes_per_node"]
+
+
+def test_unknown_scenario_is_a_config_error(tmp_path: Path) -> None:
+    from colonyd.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="unknown scenario.*'nope'.*expected some of.*lidar3d_64x1024_0.05"):
+        run_integrate_bench(tmp_path / "x.json", None, repeats=1, only=["nope"])
