@@ -228,7 +228,7 @@ class VoxelGrid:
         want_inverse = any(x is not None for x in (colours, normals, class_ids, object_ids)) or bool(scalars)
         traversal = trace(org, hit_keys, clear_ends, self.resolution, self.store.shifts, want_inverse)
         inverse = traversal.inverse
-        uniq = vk.pack(traversal.hit_keys) if want_inverse else np.empty(0, dtype=np.int64)
+        uniq = vk.pack(traversal.hit_keys) if object_ids is not None else None
 
         hit_mask_idx = np.flatnonzero(hit_mask) if want_inverse else None
         rich = {
@@ -253,7 +253,7 @@ class VoxelGrid:
             "stamp": self._stamp(time),
         }
         changed = self._update(traversal, float(time), ev, context)
-        self._update_rich(uniq, inverse, rich, float(time), bumped=changed > 0)
+        self._update_rich(traversal.hit_keys, inverse, rich, float(time), bumped=changed > 0)
         self.now = max(self.now, float(time))
         return IntegrationReport(
             points=n,
@@ -428,15 +428,15 @@ class VoxelGrid:
         self._record(slots, old, new, changed, cells, ev, context)
         return count
 
-    def _update_rich(self, uniq: np.ndarray, inverse: np.ndarray, rich: dict, time: float, bumped: bool) -> None:
+    def _update_rich(self, keys: np.ndarray, inverse: np.ndarray, rich: dict, time: float, bumped: bool) -> None:
         """Fold colour, normals, classes and scalar channels of hit points into their voxels."""
         wanted = [rich["colours"], rich["normals"], rich["class_ids"]] + list(rich["scalars"].values())
-        if uniq.size == 0 or inverse is None or all(x is None for x in wanted):
+        if keys.shape[0] == 0 or inverse is None or all(x is None for x in wanted):
             return
         st = self.store
-        blocks, offsets = self.store.split(vk.unpack(uniq))
+        blocks, offsets = self.store.split(keys)
         slots = st.lookup(blocks)
-        m = uniq.size
+        m = keys.shape[0]
         counts = np.bincount(inverse, minlength=m).astype(np.float64)
         weight_arr = st.channel("hits")
         w_old = weight_arr[slots, offsets].astype(np.float64)
@@ -522,9 +522,9 @@ class VoxelGrid:
         st.slot_version[slots] = v
 
     @staticmethod
-    def _object_lookup(uniq: np.ndarray, inverse: np.ndarray | None, object_ids: np.ndarray | None):
+    def _object_lookup(uniq: np.ndarray | None, inverse: np.ndarray | None, object_ids: np.ndarray | None):
         """(sorted packed keys, object id per key) of hit voxels carrying an object id, or None."""
-        if object_ids is None or inverse is None or uniq.size == 0:
+        if object_ids is None or inverse is None or uniq is None or uniq.size == 0:
             return None
         per_voxel = np.full(uniq.size, -1, dtype=np.int64)
         per_voxel[inverse] = object_ids  # the last point of a voxel wins
