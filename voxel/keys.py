@@ -47,14 +47,6 @@ def in_range(keys: np.ndarray) -> np.ndarray:
     return np.all((k >= KEY_MIN) & (k <= KEY_MAX), axis=1)
 
 
-def bounds(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-axis minimum and maximum of keys (N, 3), N > 0 (column-wise: much faster than axis=0)."""
-    k = np.asarray(keys)
-    lo = np.array([k[:, i].min() for i in range(3)], dtype=k.dtype)
-    hi = np.array([k[:, i].max() for i in range(3)], dtype=k.dtype)
-    return lo, hi
-
-
 _HASH_MULTIPLIERS = (-7046029254386353131, -4658895280553007687, 7640891576956012809, -8350542686271633251)
 
 
