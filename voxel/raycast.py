@@ -52,8 +52,8 @@ def _sequences(o: np.ndarray, e: np.ndarray, strides: np.ndarray) -> tuple[np.nd
     Crossing k of a run enters the voxel at linear index
     plane + k * step + floor(y + k * inc_y) * stride_y + floor(z + k * inc_z) * stride_z,
     where the run's axis fixes `plane` exactly and y, z are the ray's other two coordinates
-    on that face plane (z's term folded into `plane`, stride_z 0, when the ray stays in one
-    layer along z). Runs come sorted by length, longest first.
+    on that face plane (a coordinate the ray never changes layer in is folded into `plane`, its
+    stride 0; z is such a one whenever y is). Runs come sorted by length, longest first.
     """
     ko = np.floor(o).astype(np.int64)
     ke = np.floor(e).astype(np.int64)
@@ -85,17 +85,18 @@ def _sequences(o: np.ndarray, e: np.ndarray, strides: np.ndarray) -> tuple[np.nd
         rb = d[sel, b_ax] / da
         rc = d[sel, c_ax] / da
         fixed = stays[sel, c_ax]
+        fixed_b = stays[sel, b_ax]  # only with z fixed too (a ray along one axis)
         # A fixed axis contributes a constant: fold it into the plane term.
-        plane += np.where(fixed, ko[c_ax] * strides[c_ax], 0)
+        plane += np.where(fixed, ko[c_ax] * strides[c_ax], 0) + np.where(fixed_b, ko[b_ax] * strides[b_ax], 0)
         parts.append([
             counts[sel, a],
             plane,
             step,
-            o[b_ax] + dist0 * rb,
-            sgn * rb,
+            np.where(fixed_b, 0.5, o[b_ax] + dist0 * rb),
+            np.where(fixed_b, 0.0, sgn * rb),
             np.where(fixed, 0.5, o[c_ax] + dist0 * rc),
             np.where(fixed, 0.0, sgn * rc),
-            strides[b_ax],
+            np.where(fixed_b, 0, strides[b_ax]),
             np.where(fixed, 0, strides[c_ax]),
         ])
     if not parts:

@@ -123,3 +123,21 @@ def test_a_box_too_large_for_one_scratch_volume_is_split_and_merged(monkeypatch,
     assert {tuple(k) for k in found[vals == FREE]} == ref_free
     assert np.all(np.diff(tr.blocks) > 0)  # merged: each block once, in key order
     np.testing.assert_array_equal(tr.hit_keys[tr.inverse], keys.T)  # each point finds its voxel
+
+
+def test_rays_along_an_axis_and_ends_on_voxel_faces():
+    # origin and ends on voxel faces, rays along the axes and in coordinate planes: every fixed
+    # coordinate is folded, nothing leaves the one-layer box of a planar scan
+    origin = np.array([0.3, 0.2, 0.5]) * RES * 2
+    ends = []
+    for d in np.eye(3):
+        for s in (1, -1):
+            for length in (0.35, 1.0, 2.05):
+                ends.append(origin + s * d * length)
+    ends = np.array(ends)
+    for shifts in [(2, 2, 2), (3, 3, 0)]:
+        free, hit = _traced(origin, ends, np.empty((0, 3)), shifts)
+        assert (free, hit) == _reference(origin, ends, np.empty((0, 3)))
+    flat = ends[np.abs(ends[:, 2] - origin[2]) < 1e-12]
+    free, hit = _traced(origin, flat, flat[:2] * 1.5, (3, 3, 0))
+    assert (free, hit) == _reference(origin, flat, flat[:2] * 1.5)
