@@ -98,7 +98,8 @@ class Daemon:
         self.sender = Sender(self.config.agent_id, rec.epoch, key=colony_key(self.config.colony_key),
                              first_seq=rec.frame_seq, reserve=self.store.reserve_frames)
         self.layers = Layers(self.config.agent_id, self.config.resolution,
-                             ring_size=self.config.ring_size)
+                             ring_size=self.config.ring_size, max_layers=self.config.max_layers,
+                             max_peer_blocks=self.config.max_peer_blocks)
         own = self.layers.own
         own.grid, own.epoch, own.seq = rec.grid, rec.epoch, rec.seq
         self._published_local = rec.published  # changes after it were never logged: send them
@@ -110,9 +111,9 @@ class Daemon:
         ns = cfg.key_namespace
         self.gossip = Gossip(
             self.session, ns, self.layers, self.sender,
-            get_receiver(cfg.colony_key, cfg.max_message_mb), self.metrics, epoch=self.epoch,
+            get_receiver(cfg.colony_key, cfg.max_message_mb, cfg.agent_id), self.metrics, epoch=self.epoch,
             inbox_size=cfg.inbox_size, inbox_bytes=int(cfg.inbox_mb * (1 << 20)),
-            max_layers=cfg.max_layers, max_peer_blocks=cfg.max_peer_blocks, drop_rate=cfg.drop_rate,
+            drop_rate=cfg.drop_rate,
             query_timeout_s=cfg.query_timeout_s,
             chunk_voxels=cfg.snapshot_chunk_voxels,
         )

@@ -45,9 +45,10 @@ def get_limits(max_message_mb: float) -> Limits:
     return Limits(max_message_bytes=size, max_body_bytes=size)
 
 
-def get_receiver(secret: str | None, max_message_mb: float) -> Receiver:
-    """The daemon's one decoding front door (key, limits, replay window, key-vs-origin check)."""
-    return Receiver(key=colony_key(secret), limits=get_limits(max_message_mb))
+def get_receiver(secret: str | None, max_message_mb: float, own: str) -> Receiver:
+    """The daemon's one decoding front door (key, limits, replay window, key-vs-origin check,
+    frames claiming our own origin `own` refused)."""
+    return Receiver(key=colony_key(secret), limits=get_limits(max_message_mb), own=own)
 
 
 class Sender:

@@ -112,8 +112,6 @@ class Gossip:
         epoch: int,
         inbox_size: int = 256,
         inbox_bytes: int = 128 << 20,
-        max_layers: int = 256,
-        max_peer_blocks: int = 100_000,
         drop_rate: float = 0.0,
         query_timeout_s: float = 5.0,
         chunk_voxels: int = 250_000,
@@ -132,8 +130,6 @@ class Gossip:
         self.part_bytes = part_bytes
         self.stop = threading.Event()
         self.inbox = Inbox(inbox_size, inbox_bytes, metrics)
-        self.max_layers = max_layers
-        self.max_peer_blocks = max_peer_blocks
         self.parts = Assembler()
         self._drop_rate = drop_rate
         self._rng = random.Random()
@@ -273,30 +269,36 @@ class Gossip:
                 log.exception("failed to handle %s on %s", kind, key)
 
     def _handle_delta(self, key: str, raw: bytes) -> None:
-        self.metrics.add("bytes_received", len(raw))
         msg = _expect(self.receiver.decode(raw, key_expr=key), VoxelDelta, f"on {key}")
         if not msg.exact:
             raise WireError("inexact", "expected an exact delta, found a free-space summary")
         d = msg.delta
+        self._admit(msg.origin, msg.epoch, [d])
+        self._accept(msg, raw)  # only now: a frame refused above moved no window
         delta = self.parts.add(
             (msg.origin, msg.epoch, d.from_version, d.to_version), msg.part, msg.parts, d
         )
         if delta is not None:
             self._offer(msg.origin, msg.epoch, delta)
 
+    def _accept(self, msg: Message, raw: bytes) -> None:
+        """Take a frame that passed every check: its replay window moves, its bytes count."""
+        self.receiver.accept(msg)
+        self.metrics.add("bytes_received", len(raw))
+
+    def _admit(self, origin: str, epoch: int, deltas: list[Delta], replace: bool = False) -> None:
+        """Raise WireError unless `deltas` (a snapshot if `replace`) may enter `origin`'s layer."""
+        for d in deltas:
+            prev, seq = d.from_version, d.to_version
+            if not (0 <= prev < seq) or epoch <= 0:
+                raise WireError("bad-header", f"delta header invalid: epoch {epoch} {prev}->{seq}")
+        self.layers.admit(origin, deltas, replace=replace)
+
     def _offer(self, origin: str, epoch: int, delta: Delta) -> None:
         """Fold a whole delta of `origin`'s layer (epoch `epoch`, covering (from, to]) into it."""
-        if origin == self.own:
-            return
-        prev, seq = delta.from_version, delta.to_version
-        if not (0 <= prev < seq) or epoch <= 0:
-            raise WireError("bad-header", f"delta header invalid: epoch {epoch} {prev}->{seq}")
-        layer = self._layer_for(origin, delta.resolution)
-        if abs(layer.resolution - delta.resolution) > 1e-12:
-            raise WireError("bad-resolution",
-                            f"expected resolution {layer.resolution}, found {delta.resolution}")
-        self._check_budget(layer, [delta])
-        result = layer.offer(epoch, prev, seq, delta, delta.time)
+        self._admit(origin, epoch, [delta])
+        layer = self.layers.get(origin, delta.resolution)
+        result = layer.offer(epoch, delta.from_version, delta.to_version, delta, delta.time)
         now = time.time()
         if result.outcome == "duplicate":
             self.metrics.add("duplicates")
@@ -310,34 +312,9 @@ class Gossip:
             self.metrics.add("gaps")
             self.request_repair(origin, [origin])
 
-    def _layer_for(self, origin: str, resolution: float) -> Layer:
-        """The layer of `origin`, created if there is room (a hostile peer cannot invent many)."""
-        layer = self.layers.find(origin)
-        if layer is None:
-            if len(self.layers.all()) > self.max_layers:
-                raise WireError("too-many-layers",
-                                f"expected at most {self.max_layers} peer layers, found another: {origin!r}")
-            if not (0 < resolution <= 10):
-                raise WireError("bad-resolution", f"expected a resolution in (0, 10] m, found {resolution}")
-            layer = self.layers.get(origin, resolution)
-        return layer
-
-    def _check_budget(self, layer: Layer, deltas: list[Any], replace: bool = False) -> None:
-        """Refuse what would push peer layers past `max_peer_blocks` (sparse floods)."""
-        used = sum(l.blocks() for l in self.layers.all() if l.origin != self.own)
-        if replace:
-            used -= layer.blocks()
-            keys = np.concatenate([d.keys for d in deltas]) if deltas else np.empty((0, 3))
-            new = Layer(layer.origin, layer.resolution).new_blocks(keys)
-        else:
-            new = sum(layer.new_blocks(d.keys) for d in deltas)
-        if used + new > self.max_peer_blocks:
-            raise WireError("over-budget",
-                            f"expected peer layers within {self.max_peer_blocks} blocks, "
-                            f"found {used} held + {new} new for {layer.origin!r}")
-
     def _handle_hb(self, key: str, raw: bytes) -> None:
         msg = _expect(self.receiver.decode(raw, key_expr=key), Heartbeat, f"on {key}")
+        self._accept(msg, raw)
         if self.membership is None:
             return
         member = self.membership.heard(msg.origin, msg)
@@ -406,8 +383,9 @@ class Gossip:
             if self._fetch_snapshot(server, rep.origin):
                 return
 
-    def _ask(self, server: str, query: str, layer: str, request: Message) -> list[Message]:
-        """Send a request frame to `server`'s queryable; its valid replies (others counted)."""
+    def _ask(self, server: str, query: str, layer: str, request: Any, cls: type[Message]) -> list[Any]:
+        """Send a request frame to `server`'s queryable; the replies of type `cls` for `layer`
+        and this request (every other reply is rejected and counted)."""
         replies = self.session.get(
             query_key(self.namespace, server, query, layer),  # type: ignore[arg-type]
             payload=self.sender.encode(request),
@@ -419,11 +397,17 @@ class Gossip:
             if reply.ok is None:
                 continue
             raw = reply.ok.payload.to_bytes()
-            self.metrics.add("bytes_received", len(raw))
             try:
                 if len(out) >= MAX_REPLY_PARTS:
                     raise WireError("oversized", f"expected at most {MAX_REPLY_PARTS} replies")
-                out.append(self.receiver.decode(raw, key_expr=str(reply.ok.key_expr)))
+                msg = self.receiver.decode(raw, key_expr=str(reply.ok.key_expr))
+                if not (isinstance(msg, cls) and msg.layer == layer  # type: ignore[attr-defined]
+                        and msg.request_id == request.request_id):  # type: ignore[attr-defined]
+                    text = (f"expected a {cls.KIND} for layer {layer!r}, request "
+                            f"{request.request_id}, found a {msg.KIND}")
+                    raise WireError("bad-reply", text)
+                self._accept(msg, raw)
+                out.append(msg)
             except (ProtocolError, WireError) as exc:
                 self.metrics.reject(exc.reason)
                 log.warning("rejected a %s reply from %s: %s", query, server, exc)
@@ -448,10 +432,7 @@ class Gossip:
             **self.sender.header(), layer=origin, request_id=rid,
             from_version=layer.seq, to_version=want, max_part_bytes=self.part_bytes,
         )
-        msgs = [
-            m for m in self._ask(server, "deltas", origin, request)
-            if self._matches(m, DeltaRangeReply, origin, rid)
-        ]
+        msgs = self._ask(server, "deltas", origin, request, DeltaRangeReply)
         self.metrics.add("range_repairs")
         if not self._complete(msgs, "range") or not all(m.complete for m in msgs):
             return False
@@ -477,26 +458,13 @@ class Gossip:
                 return False
         return got > 0
 
-    def _matches(self, msg: Message, cls: type[Message], layer: str, rid: int) -> bool:
-        ok = (
-            isinstance(msg, cls)
-            and msg.layer == layer  # type: ignore[attr-defined]
-            and msg.request_id == rid  # type: ignore[attr-defined]
-        )
-        if not ok:
-            self.metrics.reject("bad-reply")
-        return ok
-
     def _fetch_snapshot(self, server: str, origin: str) -> bool:
         t0 = time.monotonic()
         rid = self._rng.getrandbits(63)
         request = SnapshotRequest(
             **self.sender.header(), layer=origin, request_id=rid, max_part_bytes=self.part_bytes
         )
-        msgs = [
-            m for m in self._ask(server, "snapshot", origin, request)
-            if self._matches(m, SnapshotReply, origin, rid)
-        ]
+        msgs = self._ask(server, "snapshot", origin, request, SnapshotReply)
         if not self._complete(msgs, "snapshot"):
             return False
         states = {(m.layer_epoch, m.delta.from_version, m.delta.to_version) for m in msgs}
@@ -507,22 +475,14 @@ class Gossip:
         if epoch <= 0 or start != 0:
             self.metrics.reject("bad-snapshot")
             return False
-        voxel_limit = self.max_peer_blocks * 512  # a layer larger than the budget is refused
-        if sum(len(m.delta) for m in msgs) > voxel_limit:
-            self.metrics.reject("over-budget")
-            log.warning("snapshot of %s from %s exceeds %d voxels; refused", origin, server,
-                        voxel_limit)
-            return False
         chunks = [m.delta for m in sorted(msgs, key=lambda m: m.part)]
-        layer = self._layer_for(origin, chunks[0].resolution)
         try:
-            if any(abs(c.resolution - layer.resolution) > 1e-12 for c in chunks):
-                raise WireError("bad-resolution", f"expected resolution {layer.resolution}")
-            self._check_budget(layer, chunks, replace=True)
+            self._admit(origin, epoch, chunks, replace=True)
         except WireError as exc:
             self.metrics.reject(exc.reason)
             log.warning("snapshot of %s from %s refused: %s", origin, server, exc)
             return False
+        layer = self.layers.get(origin, chunks[0].resolution)
         voxels = layer.install_snapshot(epoch, seq, chunks)
         dt = time.monotonic() - t0
         self.metrics.add("snapshots_installed")
@@ -556,13 +516,13 @@ class Gossip:
         if query.payload is None:
             raise WireError("bad-query", f"expected a request frame as the payload of {key!r}")
         raw = query.payload.to_bytes()
-        self.metrics.add("bytes_received", len(raw))
         msg = self.receiver.decode(raw)  # the requester's frame: its origin is not the key's
         cls = SnapshotRequest if parsed.kind == "snapshot" else DeltaRangeRequest
         request = _expect(msg, cls, f"on {key}")
         if request.layer != parsed.layer:
             text = f"expected layer {parsed.layer!r}, found {request.layer!r}"
             raise WireError("bad-query", text)
+        self._accept(request, raw)
         layer = self.layers.find(request.layer)
         if parsed.kind == "snapshot":
             if layer is not None and layer.seq > 0:

@@ -11,9 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
+from colonyd.errors import WireError
 from colonyd.grid import VoxelGrid, new_grid
 from voxel import keys as vk
-from voxel.blocks import block_shifts
+from voxel.blocks import BLOCK_SHAPES, block_shifts, split_keys
 from voxel.delta import Delta
 
 
@@ -41,6 +42,17 @@ def delta_nbytes(delta: Delta) -> int:
         delta.keys.nbytes + delta.logodds.nbytes + delta.last_time.nbytes
         + sum(v.nbytes for v in delta.channels.values())
     )
+
+
+#: Most voxels a replica's block holds (its shapes are BLOCK_SHAPES): N voxels fill >= N / this.
+BLOCK_VOXELS = max(1 << sum(shifts) for shifts in BLOCK_SHAPES.values())
+
+
+def replica_shape(keys: np.ndarray) -> str:
+    """Block shape an empty replica takes for its first voxels `keys` (N, 3): "planar" when they
+    all lie in one z layer (a 2D scanner's map, a third of the memory of cubes), else "cube"."""
+    z = keys[:, 2]
+    return "planar" if len(z) and z.min() == z.max() else "cube"
 
 
 @dataclass
@@ -100,19 +112,17 @@ class Layer:
             self._drain(result)
             return result
 
-    def _fit_blocks(self, delta: Delta) -> None:
-        """An empty replica whose first voxels all lie in one z layer (a 2D scanner's map) takes
-        planar blocks: a third of the memory of cubes for such a layer."""
-        if len(delta) and self.grid.store.sorted_keys.size == 0:
-            z = delta.keys[:, 2]
-            shape = "planar" if z.min() == z.max() else "cube"
+    def _fit_blocks(self, keys: np.ndarray) -> None:
+        """An empty replica takes the block shape of its first voxels (`replica_shape`)."""
+        if len(keys) and self.grid.store.sorted_keys.size == 0:
+            shape = replica_shape(keys)
             if self.grid.store.shifts != block_shifts(shape):
                 self.grid = new_grid(self.resolution, shape)
 
     def _apply(self, prev: int, seq: int, delta: Delta) -> int:
         delta = relabel(delta, prev, seq)
         if len(delta):
-            self._fit_blocks(delta)
+            self._fit_blocks(delta.keys)
             self.grid.apply(delta)
         self.seq = seq
         self.updated = time.time()
@@ -157,10 +167,10 @@ class Layer:
                 return 0
             pending = self.pending if epoch == self.epoch else {}
             self._reset(epoch)
+            self._fit_blocks(np.concatenate([c.keys for c in chunks]) if chunks else np.empty((0, 3)))
             n = 0
             for chunk in chunks:
                 if len(chunk):
-                    self._fit_blocks(chunk)
                     self.grid.apply(relabel(chunk, 0, seq))
                     n += len(chunk)
             self.seq = seq
@@ -202,20 +212,19 @@ class Layer:
 
     # -- queries --------------------------------------------------------------------------
     def blocks(self) -> int:
-        """Voxel blocks allocated by this layer's grid (its memory, ~8 KiB each)."""
-        store = getattr(self.grid, "store", None)
-        return int(store.sorted_keys.size) if store is not None else self.voxels() // 64
+        """Voxel blocks allocated by this layer's grid (its memory; 64 voxels each)."""
+        return int(self.grid.store.sorted_keys.size)
 
-    def new_blocks(self, keys: np.ndarray) -> int:
-        """Blocks that applying voxels at `keys` would allocate."""
+    def new_blocks(self, keys: np.ndarray, *, replace: bool = False) -> int:
+        """Blocks that applying voxels at `keys` would allocate, in the block shape this layer's
+        grid has or (when it is empty, or `replace`d by a snapshot of `keys`) will take."""
         if not len(keys):
             return 0
-        from voxel.blocks import split_keys
-
-        store = getattr(self.grid, "store", None)
-        if store is None:
-            return int(np.unique(split_keys(keys)[0]).size)
         with self.lock:
+            store = self.grid.store
+            if replace or store.sorted_keys.size == 0:
+                shifts = block_shifts(replica_shape(keys))
+                return int(np.unique(split_keys(keys, shifts)[0]).size)
             blocks = np.unique(store.split(keys)[0])
             return int(np.count_nonzero(store.lookup(blocks) < 0))
 
@@ -248,15 +257,65 @@ class Layer:
 
 
 class Layers:
-    """All layers of a daemon by origin; the own layer is written by this daemon only."""
+    """All layers of a daemon by origin; the own layer is written by this daemon only.
 
-    def __init__(self, own: str, resolution: float, *, ring_size: int = 64) -> None:
+    Peer layers are bounded: at most `max_layers` of them, holding at most `max_peer_blocks`
+    voxel blocks together (`admit` refuses what would exceed either).
+    """
+
+    def __init__(
+        self,
+        own: str,
+        resolution: float,
+        *,
+        ring_size: int = 64,
+        max_layers: int = 256,
+        max_peer_blocks: int = 100_000,
+    ) -> None:
         self.own_id = own
         self.resolution = resolution
         self.ring_size = ring_size
+        self.max_layers = max_layers
+        self.max_peer_blocks = max_peer_blocks
         self._layers: dict[str, Layer] = {}
         self._lock = threading.Lock()
         self.own = self.get(own)
+
+    def admit(self, origin: str, deltas: list[Delta], *, replace: bool = False) -> None:
+        """Raise WireError unless peer layer `origin` may take `deltas` (or be `replace`d by them,
+        a snapshot): not our own layer, room for a new layer, the layer's resolution, and the
+        peer block budget counted in the block shape the replica will use. Changes nothing."""
+        if origin == self.own_id:
+            raise WireError("own-origin", f"expected another agent's layer, found our own {origin!r}")
+        layer = self.find(origin)
+        resolutions = {float(d.resolution) for d in deltas}
+        if layer is None:
+            if len(self.all()) > self.max_layers:
+                text = f"expected at most {self.max_layers} peer layers, found another: {origin!r}"
+                raise WireError("too-many-layers", text)
+            bad = [r for r in resolutions if not 0 < r <= 10]
+            if bad:
+                raise WireError("bad-resolution", f"expected a resolution in (0, 10] m, found {bad[0]}")
+            layer = Layer(origin, deltas[0].resolution if deltas else self.resolution)
+        bad = [r for r in resolutions if abs(r - layer.resolution) > 1e-12]
+        if bad:
+            raise WireError("bad-resolution", f"expected resolution {layer.resolution}, found {bad[0]}")
+        used = sum(p.blocks() for p in self.all() if p.origin != self.own_id)
+        keys = [d.keys for d in deltas]
+        if replace:
+            used -= layer.blocks()
+            voxels = sum(len(k) for k in keys)
+            if voxels > (self.max_peer_blocks - used) * BLOCK_VOXELS:  # too many to count blocks
+                text = (f"expected peer layers within {self.max_peer_blocks} blocks, found {used} "
+                        f"held + a snapshot of {voxels} voxels for {origin!r}")
+                raise WireError("over-budget", text)
+            new = layer.new_blocks(np.concatenate(keys) if keys else np.empty((0, 3)), replace=True)
+        else:
+            new = sum(layer.new_blocks(k) for k in keys)
+        if used + new > self.max_peer_blocks:
+            text = (f"expected peer layers within {self.max_peer_blocks} blocks, "
+                    f"found {used} held + {new} new for {origin!r}")
+            raise WireError("over-budget", text)
 
     def get(self, origin: str, resolution: float | None = None) -> Layer:
         with self._lock:

@@ -66,25 +66,30 @@ class ReplayWindow:
         Thread-safe: daemons decode on several worker threads.
         """
         with self._lock:
-            self._check(origin, epoch, seq)
+            state = self._next_state(origin, epoch, seq)
+            self._state.pop(origin, None)
+            if len(self._state) >= self.max_origins:
+                self._state.pop(next(iter(self._state)))
+            self._state[origin] = state
 
-    def _check(self, origin: str, epoch: int, seq: int) -> None:
+    def peek(self, origin: str, epoch: int, seq: int) -> None:
+        """Raise ReplayError if `check` would; never records anything (the window stays put)."""
+        with self._lock:
+            self._next_state(origin, epoch, seq)
+
+    def _next_state(self, origin: str, epoch: int, seq: int) -> tuple[int, int, int]:
+        """The origin's state after accepting (epoch, seq), or ReplayError."""
         state = self._state.get(origin)
-        if state is None:
-            self._record(origin, epoch, seq, 1)
-            return
+        if state is None or epoch > state[0]:  # a higher epoch: the origin started afresh
+            return (epoch, seq, 1)
         cur_epoch, top, mask = state
         if epoch < cur_epoch:
             msg = f"replay from {origin!r}: expected epoch >= {cur_epoch}, found epoch {epoch}"
             raise ReplayError(msg)
-        if epoch > cur_epoch:
-            self._record(origin, epoch, seq, 1)
-            return
         if seq > top:
             shift = seq - top
             mask = ((mask << shift) | 1) & ((1 << self.window) - 1) if shift < self.window else 1
-            self._record(origin, epoch, seq, mask)
-            return
+            return (epoch, seq, mask)
         age = top - seq
         if age >= self.window:
             msg = (
@@ -95,13 +100,7 @@ class ReplayWindow:
         if mask >> age & 1:
             msg = f"replay from {origin!r}: seq {seq} of epoch {epoch} was already accepted"
             raise ReplayError(msg)
-        self._state[origin] = (cur_epoch, top, mask | (1 << age))
-
-    def _record(self, origin: str, epoch: int, seq: int, mask: int) -> None:
-        self._state.pop(origin, None)
-        if len(self._state) >= self.max_origins:
-            self._state.pop(next(iter(self._state)))
-        self._state[origin] = (epoch, seq, mask)
+        return (cur_epoch, top, mask | (1 << age))
 
     def forget(self, origin: str) -> None:
         """Stop tracking `origin`."""

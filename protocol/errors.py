@@ -64,6 +64,12 @@ class ReplayError(AuthError):
     reason = "replay"
 
 
+class OwnOriginError(AuthError):
+    """A received frame claims the receiver's own origin (a forgery or an echo of its own)."""
+
+    reason = "own_origin"
+
+
 class KeyExprError(ProtocolError, ValueError):
     """A key expression or one of its names is not valid."""
 

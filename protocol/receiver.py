@@ -7,7 +7,7 @@ from collections import Counter
 
 from protocol.auth import ReplayWindow
 from protocol.codec import decode
-from protocol.errors import ProtocolError
+from protocol.errors import OwnOriginError, ProtocolError
 from protocol.keyexpr import check_origin
 from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.messages import Message
@@ -18,7 +18,12 @@ class Receiver:
 
     With a colony `key`, frames must be authenticated and each (origin, epoch, seq) is accepted
     once (replay window). Given the Zenoh key a frame arrived on, the key's origin must be the
-    frame's origin.
+    frame's origin. Frames claiming the receiver's `own` origin are forgeries or echoes of its own
+    frames and are rejected.
+
+    Receiving is two steps so that a rejected frame has no side effect: `decode` validates and
+    records nothing but a rejection; the caller then checks what only it can check (message type,
+    layer, budgets) and calls `accept`, which moves the replay window and counts the frame.
     """
 
     def __init__(
@@ -27,24 +32,57 @@ class Receiver:
         key: bytes | None = None,
         limits: Limits = DEFAULT_LIMITS,
         replay_window: int = 4096,
+        own: str | None = None,
     ) -> None:
         self.key = key
         self.limits = limits
+        self.own = own
         self.replay = ReplayWindow(replay_window) if key is not None else None
         self.accepted: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         self._lock = threading.Lock()
 
     def decode(self, data: bytes, key_expr: str | None = None) -> Message:
-        """The validated message of `data`, or a ProtocolError (counted under its `reason`)."""
+        """The validated message of `data`, or a ProtocolError (counted under its `reason`).
+
+        A replay is rejected here, but nothing is recorded for a frame that passes: the replay
+        window moves only in `accept`.
+        """
         try:
-            msg = decode(data, key=self.key, limits=self.limits, replay=self.replay)
+            msg = decode(data, key=self.key, limits=self.limits)
             if key_expr is not None:
                 check_origin(key_expr, msg.origin)
+            if msg.origin == self.own:
+                text = f"frame: expected another agent's origin, found our own {msg.origin!r}"
+                raise OwnOriginError(text)
+            if self.replay is not None:
+                self.replay.peek(msg.origin, msg.epoch, msg.seq)
         except ProtocolError as exc:
-            with self._lock:
-                self.rejected[exc.reason] += 1
+            self.count_rejected(exc.reason)
             raise
+        return msg
+
+    def accept(self, msg: Message) -> None:
+        """Take a decoded message: record its (origin, epoch, seq) and count it as accepted.
+
+        Raises ReplayError (counted) if the same frame was accepted meanwhile on another thread.
+        """
+        if self.replay is not None:
+            try:
+                self.replay.check(msg.origin, msg.epoch, msg.seq)
+            except ProtocolError as exc:
+                self.count_rejected(exc.reason)
+                raise
         with self._lock:
             self.accepted[msg.KIND] += 1
+
+    def receive(self, data: bytes, key_expr: str | None = None) -> Message:
+        """`decode` then `accept`: for a caller with nothing of its own to check."""
+        msg = self.decode(data, key_expr)
+        self.accept(msg)
         return msg
+
+    def count_rejected(self, reason: str) -> None:
+        """Count a rejected frame under `reason`."""
+        with self._lock:
+            self.rejected[reason] += 1

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from colonyd.errors import WireError
 from colonyd.grid import new_grid
-from colonyd.layers import Layer, fused
+from colonyd.layers import Layer, Layers, fused
+from voxel.delta import Delta
 
 
 def deltas(n: int = 4):
@@ -85,3 +88,43 @@ def test_replica_of_a_planar_layer_takes_planar_blocks():
     three_d = Layer("c", 0.1)
     three_d.offer(1, 0, 1, ds[0])
     assert three_d.grid.store.shifts == (2, 2, 2)
+
+
+def _planar_map() -> object:
+    grid = new_grid(0.05, "planar")
+    a = np.linspace(-3.0, 3.0, 1081)
+    pts = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1) * 6.0 + [0.01, 0.02, 0.0123]
+    grid.integrate(pts, np.array([0.01, 0.02, 0.0123]), time=1.0)
+    return grid
+
+
+def test_budget_counts_a_planar_snapshot_in_planar_blocks():
+    origin = _planar_map()
+    chunks = Layer("p", 0.05)
+    chunks.grid = origin
+    _, seq, parts = chunks.snapshot(chunk_voxels=5000)
+    blocks = int(origin.store.sorted_keys.size)  # what the replica will allocate
+    Layers("me", 0.05, max_peer_blocks=blocks).admit("p", parts, replace=True)
+    with pytest.raises(WireError, match=f"within {blocks - 1} blocks") as info:
+        Layers("me", 0.05, max_peer_blocks=blocks - 1).admit("p", parts, replace=True)
+    assert info.value.reason == "over-budget"
+    layers = Layers("me", 0.05, max_peer_blocks=blocks)  # the same for deltas into a new layer
+    layers.admit("p", [origin.delta_since(0)])
+    layers.get("p").install_snapshot(1, seq, parts)
+    assert layers.get("p").blocks() == blocks
+
+
+def test_admission_changes_nothing_and_refuses_our_own_layer():
+    _, ds = deltas(1)
+    layers = Layers("me", 0.1, max_layers=1, max_peer_blocks=10_000)
+    layers.admit("p", ds)
+    assert layers.find("p") is None  # admission creates no layer
+    with pytest.raises(WireError, match="found our own 'me'"):
+        layers.admit("me", ds)
+    layers.get("p").offer(1, 0, 1, ds[0])
+    coarse = Delta(0.2, 1, 2, ds[0].keys, ds[0].logodds, ds[0].last_time)
+    with pytest.raises(WireError, match="expected resolution 0.1, found 0.2"):
+        layers.admit("p", [coarse])
+    with pytest.raises(WireError, match="at most 1 peer layers") as info:
+        layers.admit("q", ds)
+    assert info.value.reason == "too-many-layers"

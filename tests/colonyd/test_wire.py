@@ -53,7 +53,7 @@ def test_colony_key_is_sha256_of_the_secret() -> None:
 def test_replica_through_protocol_frames_is_identical_to_origin() -> None:
     origin, deltas = grid_deltas()
     sender = Sender("a", 1_700_000_000_123_456, key=colony_key(SECRET))
-    receiver = get_receiver(SECRET, 64)
+    receiver = get_receiver(SECRET, 64, "me")
     replica = Layer("a", 0.1)
     assembler = Assembler()
     key = topic_key("site", "a", "delta")
@@ -88,11 +88,11 @@ def test_frame_numbers_are_shared_and_reserved_ahead() -> None:
 
 def test_heartbeat_round_trip_and_replay_rejected() -> None:
     s = Sender("b", 7, key=colony_key(SECRET))
-    r = get_receiver(SECRET, 64)
+    r = get_receiver(SECRET, 64, "me")
     frame = s.encode(Heartbeat(**s.header(), kind="robot", frame_id="map",
                                position=(1.0, 2.0, 0.0),
                                layers=[LayerVersion(origin="a", epoch=3, version=9)]))
-    msg = r.decode(frame, key_expr=topic_key("site", "b", "heartbeat"))
+    msg = r.receive(frame, key_expr=topic_key("site", "b", "heartbeat"))
     assert isinstance(msg, Heartbeat) and msg.layers[0].version == 9
     with pytest.raises(ReplayError):
         r.decode(frame)
@@ -102,13 +102,13 @@ def test_colony_key_authenticates() -> None:
     signed = Sender("x", 1, key=colony_key(SECRET))
     hb = Heartbeat(**signed.header(), kind="robot", frame_id="map")
     with pytest.raises(AuthError, match="tag does not match") as info:
-        get_receiver("another secret", 64).decode(signed.encode(hb))
+        get_receiver("another secret", 64, "me").decode(signed.encode(hb))
     assert info.value.reason == "auth"
     open_ = Sender("x", 1)
     with pytest.raises(AuthError, match="found no tag"):
-        get_receiver(SECRET, 64).decode(open_.encode(hb))
+        get_receiver(SECRET, 64, "me").decode(open_.encode(hb))
     with pytest.raises(AuthError, match="found a tag"):
-        get_receiver(None, 64).decode(signed.encode(hb))
+        get_receiver(None, 64, "me").decode(signed.encode(hb))
 
 
 @pytest.mark.parametrize(
@@ -122,7 +122,7 @@ def test_colony_key_authenticates() -> None:
     ],
 )
 def test_hostile_input_is_rejected_with_reason(data: bytes, reason: str) -> None:
-    r = get_receiver(None, 64)
+    r = get_receiver(None, 64, "me")
     with pytest.raises(ProtocolError) as info:
         r.decode(data)
     assert info.value.reason == reason
@@ -133,7 +133,7 @@ def test_frame_on_another_origins_key_is_rejected() -> None:
     s = Sender("evil", 1)
     frame = s.encode(Heartbeat(**s.header(), kind="robot", frame_id="map"))
     with pytest.raises(KeyExprError, match="belongs to origin 'a'"):
-        get_receiver(None, 64).decode(frame, key_expr=topic_key("site", "a", "heartbeat"))
+        get_receiver(None, 64, "me").decode(frame, key_expr=topic_key("site", "a", "heartbeat"))
 
 
 def test_decompression_bomb_is_rejected_without_allocating() -> None:
@@ -144,7 +144,7 @@ def test_decompression_bomb_is_rejected_without_allocating() -> None:
     envelope = msgpack.packb(["a", 1, 1, 1.0, body], use_bin_type=True)
     frame = b"CLNY\x01\x03\x02\x00" + envelope  # VoxelDelta, zstd body
     with pytest.raises(DecompressionBombError) as info:
-        get_receiver(None, 1).decode(frame)  # 1 MiB decoded at most
+        get_receiver(None, 1, "me").decode(frame)  # 1 MiB decoded at most
     assert info.value.reason == "decompression_bomb"
 
 
@@ -163,12 +163,12 @@ def test_assembler_is_bounded_and_checks_parts() -> None:
 
 def test_encoding_from_many_threads_at_once() -> None:
     _, deltas = grid_deltas(1, 2000)
-    s, r, errors = Sender("a", 1, key=colony_key(SECRET)), get_receiver(SECRET, 64), []
+    s, r, errors = Sender("a", 1, key=colony_key(SECRET)), get_receiver(SECRET, 64, "me"), []
 
     def work() -> None:
         try:
             for _ in range(20):
-                msg = r.decode(s.encode(VoxelDelta(**s.header(), frame_id="map",
+                msg = r.receive(s.encode(VoxelDelta(**s.header(), frame_id="map",
                                                    delta=deltas[0])))
                 assert len(msg.delta) == len(deltas[0])
         except Exception as exc:  # pragma: no cover - reported below
