@@ -84,27 +84,28 @@ class StateStore:
             raise PersistenceError(msg) from None
         self._wal: Any = None
         self.wal_bytes = 0
+        self.epoch = 0  # set by `recover`
 
     # -- recovery -------------------------------------------------------------------------
     def recover(self) -> Recovered:
-        """Load the last snapshot and replay the log after it; start a new epoch if empty."""
+        """Load the last snapshot and replay the log after it; start a new epoch if empty.
+
+        Layer versions and frame numbers are never reused within an epoch: when the files show
+        that logged records or frame reservations may be missing (the log or `frames.json` gone,
+        a log that does not continue the snapshot, a gap in its sequence), the daemon keeps what
+        it recovered but continues in a new epoch, snapshotted at once. A log record that passes
+        its CRC but cannot be decoded, or damage before the log's end, stops recovery with a
+        PersistenceError; the files are left as they were.
+        """
         meta_path = self.dir / META
         fresh = not meta_path.exists()
         if fresh:
-            epoch = time.time_ns() // 1000
-            meta = {"agent_id": self.agent_id, "epoch": epoch, "resolution": self.resolution}
-            _atomic_write(meta_path, json.dumps(meta).encode())
+            epoch = _new_epoch(0)
+            self._write_meta(epoch)
+            self.reserve_frames(0)
+            _atomic_write(self.dir / WAL, _wal_header(0, epoch))
         else:
-            meta = self._read_json(meta_path)
-            if meta.get("agent_id") != self.agent_id:
-                msg = (f"state directory {self.dir} belongs to agent {meta.get('agent_id')!r}, "
-                       f"expected {self.agent_id!r}")
-                raise PersistenceError(msg)
-            if abs(float(meta.get("resolution", 0)) - self.resolution) > 1e-12:
-                msg = (f"state directory {self.dir} holds a map at resolution "
-                       f"{meta.get('resolution')}, expected {self.resolution}")
-                raise PersistenceError(msg)
-            epoch = int(meta["epoch"])
+            epoch = self._check_meta(self._read_json(meta_path))
         grid, seq, published = new_grid(self.resolution, self.block_shape), 0, 0
         snap_path = self.dir / SNAPSHOT
         if snap_path.exists():
@@ -116,17 +117,64 @@ class StateStore:
                 raise PersistenceError(msg) from None
             seq = int(snap["seq"])
             published = int(snap.get("published", grid.version))
-        records = 0
-        for rec in self._read_wal():
+        header, records = self._read_wal()
+        lost = self._lost(header, seq, epoch)
+        applied = 0
+        for rec in records:
             if rec["seq"] <= seq:
                 continue
+            if rec["seq"] != seq + 1:
+                lost = lost or f"{WAL} skips from seq {seq} to seq {rec['seq']}"
+                break  # later records cannot apply in order
             grid.apply(rec["delta"])
             seq = rec["seq"]
             published = max(published, int(rec["delta"].to_version))
-            records += 1
+            applied += 1
+        frames_path = self.dir / FRAMES
+        frames = self._read_json(frames_path) if frames_path.exists() else {}
+        frame_seq = int(frames.get("next", 0))
+        if lost:
+            old, epoch = epoch, _new_epoch(epoch)
+            log.warning("state %s: %s; continuing with what was recovered (seq %d) in a new "
+                        "epoch %d (was %d), so no layer version or frame number is reused",
+                        self.dir, lost, seq, epoch, old)
+            self._write_meta(epoch)
+            self.reserve_frames(0)
+            frame_seq = 0
+        self.epoch = epoch
         self._open_wal()
-        frames = self._read_json(self.dir / FRAMES) if (self.dir / FRAMES).exists() else {}
-        return Recovered(epoch, seq, grid, records, fresh, published, int(frames.get("next", 0)))
+        if lost:
+            self.snapshot(grid, seq, published)
+        return Recovered(epoch, seq, grid, applied, fresh, published, frame_seq)
+
+    def _check_meta(self, meta: dict[str, Any]) -> int:
+        """The epoch of a state directory's meta.json, after checking it is ours."""
+        if meta.get("agent_id") != self.agent_id:
+            msg = (f"state directory {self.dir} belongs to agent {meta.get('agent_id')!r}, "
+                   f"expected {self.agent_id!r}")
+            raise PersistenceError(msg)
+        if abs(float(meta.get("resolution", 0)) - self.resolution) > 1e-12:
+            msg = (f"state directory {self.dir} holds a map at resolution "
+                   f"{meta.get('resolution')}, expected {self.resolution}")
+            raise PersistenceError(msg)
+        return int(meta["epoch"])
+
+    def _write_meta(self, epoch: int) -> None:
+        meta = {"agent_id": self.agent_id, "epoch": epoch, "resolution": self.resolution}
+        _atomic_write(self.dir / META, json.dumps(meta).encode())
+
+    def _lost(self, header: dict[str, Any] | None, seq: int, epoch: int) -> str:
+        """Why logged records or frame reservations may be missing ("" if nothing shows it),
+        for a snapshot at `seq` in `epoch`."""
+        if not (self.dir / FRAMES).exists():
+            return f"{FRAMES} is missing"
+        if header is None:
+            return f"{WAL} is missing or has no header (emptied or replaced)"
+        if header["epoch"] != epoch:
+            return f"{WAL} belongs to epoch {header['epoch']}, expected {epoch}"
+        if header["base"] > seq:
+            return f"{WAL} continues seq {header['base']} but the snapshot is at seq {seq}"
+        return ""
 
     def reserve_frames(self, up_to: int) -> None:
         """Durably record that frame numbers below `up_to` may be in use (a restart skips them)."""
@@ -143,29 +191,49 @@ class StateStore:
             msg = f"{path} is unreadable or not JSON: {exc}"
             raise PersistenceError(msg) from None
 
-    def _read_wal(self) -> list[dict[str, Any]]:
+    def _read_wal(self) -> tuple[dict[str, Any] | None, list[dict[str, Any]]]:
+        """The log's header record (None if absent) and its delta records.
+
+        Only a torn *tail* is dropped (cut from the file): a last record that is incomplete or
+        fails its CRC with nothing after it, as a crash during an append leaves. A record that
+        fails its CRC with more records after it, or passes its CRC but cannot be decoded (a
+        newer build's record, say), raises PersistenceError naming the file, offset and seq; the
+        file is left as it was.
+        """
         path = self.dir / WAL
         if not path.exists():
-            return []
+            return None, []
         data = path.read_bytes()
-        out, pos = [], 0
+        header: dict[str, Any] | None = None
+        out: list[dict[str, Any]] = []
+        pos = 0
         while pos + _HEAD.size <= len(data):
             length, crc = _HEAD.unpack_from(data, pos)
-            body = data[pos + _HEAD.size : pos + _HEAD.size + length]
-            if len(body) != length or zlib.crc32(body) != crc:
+            end = pos + _HEAD.size + length
+            body = data[pos + _HEAD.size : end]
+            if end > len(data) or (zlib.crc32(body) != crc and end == len(data)):
                 break  # a torn write at the tail: everything before it was acknowledged
-            try:
-                rec = msgpack.unpackb(body, raw=False)
-                rec["delta"] = _unpack_wal_delta(rec["delta"])
-            except Exception:
-                break
-            out.append(rec)
-            pos += _HEAD.size + length
+            if zlib.crc32(body) != crc:
+                msg = (f"write-ahead log {path}: the record at offset {pos} fails its CRC and "
+                       f"{len(data) - end} bytes follow it: expected damage only at the end "
+                       "(a torn append), found it inside the log; the file is left as it was")
+                raise PersistenceError(msg)
+            rec = _decode_wal_record(body, path, pos)
+            if "base" in rec:
+                if pos != 0:
+                    msg = (f"write-ahead log {path}: expected its header only at offset 0, "
+                           f"found another at offset {pos}; the file is left as it was")
+                    raise PersistenceError(msg)
+                header = rec
+            else:
+                out.append(rec)
+            pos = end
         if pos != len(data):
             log.warning("write-ahead log %s: dropped a torn tail of %d bytes", path, len(data) - pos)
             with open(path, "r+b") as fh:
                 fh.truncate(pos)
-        return out
+                os.fsync(fh.fileno())
+        return header, out
 
     # -- writing --------------------------------------------------------------------------
     def _open_wal(self) -> None:
@@ -176,21 +244,22 @@ class StateStore:
 
     def append(self, seq: int, delta: Delta) -> None:
         """Log an own delta (grid versions) durably before it is published."""
-        body = msgpack.packb({"seq": int(seq), "delta": _pack_wal_delta(delta)}, use_bin_type=True)
+        record = _record({"seq": int(seq), "delta": _pack_wal_delta(delta)})
         try:
-            self._wal.write(_HEAD.pack(len(body), zlib.crc32(body)) + body)
+            self._wal.write(record)
             self._wal.flush()
             os.fsync(self._wal.fileno())
         except OSError as exc:
             msg = f"cannot append to the write-ahead log in {self.dir}: {exc.strerror}"
             raise PersistenceError(msg) from None
-        self.wal_bytes += _HEAD.size + len(body)
+        self.wal_bytes += len(record)
 
     def snapshot(self, grid: VoxelGrid, seq: int, published: int | None = None) -> None:
-        """Save the grid at `seq`, point snapshot.json at it, then empty the log.
+        """Save the grid at `seq`, point snapshot.json at it, then start an empty log after it.
 
         `published` is the grid version up to which changes went into deltas; later changes in
-        the saved grid are sent after a restart.
+        the saved grid are sent after a restart. The new log's header names `seq` and the epoch,
+        so a log emptied or replaced later is noticed at recovery.
         """
         published = int(grid.version if published is None else published)
         name = f"own-{seq}.grid"
@@ -202,7 +271,7 @@ class StateStore:
             os.replace(tmp, self.dir / name)
             _atomic_write(self.dir / SNAPSHOT, json.dumps({"seq": int(seq), "file": name, "published": published}).encode())
             self._wal.close()
-            _atomic_write(self.dir / WAL, b"")
+            _atomic_write(self.dir / WAL, _wal_header(seq, self.epoch))
             self._open_wal()
         except OSError as exc:
             msg = f"cannot write a snapshot in {self.dir}: {exc.strerror}"
@@ -219,6 +288,41 @@ class StateStore:
 
 
 # ------------------------------------------------------------------ log records (local, exact)
+
+
+def _new_epoch(previous: int) -> int:
+    """A fresh epoch: microseconds since 1970, and always above `previous`."""
+    return max(time.time_ns() // 1000, previous + 1)
+
+
+def _record(fields: dict[str, Any]) -> bytes:
+    """One framed log record: length, CRC32, msgpack body."""
+    body = msgpack.packb(fields, use_bin_type=True)
+    return _HEAD.pack(len(body), zlib.crc32(body)) + body
+
+
+def _wal_header(base: int, epoch: int) -> bytes:
+    """The first record of a log started after a snapshot at seq `base` in `epoch`."""
+    return _record({"base": int(base), "epoch": int(epoch)})
+
+
+def _decode_wal_record(body: bytes, path: Path, offset: int) -> dict[str, Any]:
+    """A log record (header or delta) of a CRC-checked body, or PersistenceError."""
+    seq: Any = "unknown"
+    try:
+        rec = msgpack.unpackb(body, raw=False)
+        if isinstance(rec, dict):
+            seq = rec.get("seq", seq)
+            if "base" in rec:
+                return {"base": int(rec["base"]), "epoch": int(rec["epoch"])}
+        rec["seq"] = int(rec["seq"])
+        rec["delta"] = _unpack_wal_delta(rec["delta"])
+        return rec
+    except Exception as exc:
+        msg = (f"write-ahead log {path}: the record at offset {offset} (seq {seq}) passes its "
+               f"CRC but cannot be decoded ({type(exc).__name__}: {exc}); expected a record of "
+               "this colonyd version (a newer one may have written it); the file is left as it was")
+        raise PersistenceError(msg) from None
 
 
 def _pack_wal_delta(delta: Delta) -> dict[str, Any]:

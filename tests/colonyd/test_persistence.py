@@ -109,3 +109,113 @@ def test_frame_numbers_reserved_survive_a_restart(tmp_path):
     again = store.recover()
     assert again.epoch == rec.epoch and again.frame_seq == 1 + SEQ_BLOCK > max(used)
     store.close()
+
+
+def _logged(tmp_path, n: int = 3, snapshot_at: int | None = None):
+    """A state directory with `n` logged deltas (and a snapshot after `snapshot_at` of them)."""
+    store = StateStore(tmp_path, "a", 0.1)
+    rec = store.recover()
+    grid, published = rec.grid, 0
+    for seq in range(1, n + 1):
+        scan(grid, seq)
+        store.append(seq, grid.delta_since(published))
+        published = grid.version
+        if seq == snapshot_at:
+            store.snapshot(grid, seq)
+    store.close()
+    return rec.epoch, grid
+
+
+def _offsets(data: bytes) -> list[int]:
+    import struct
+
+    out, pos = [], 0
+    while pos < len(data):
+        out.append(pos)
+        pos += 8 + struct.unpack_from("<I", data, pos)[0]
+    return out
+
+
+def test_undecodable_record_stops_recovery_and_leaves_the_log_as_it_was(tmp_path):
+    import struct
+    import zlib
+
+    import msgpack
+
+    _logged(tmp_path, 3)
+    wal = tmp_path / WAL
+    data = wal.read_bytes()
+    first = _offsets(data)[1]  # the first delta record, after the header
+    # a record of a newer build: a valid CRC, a body this build cannot decode
+    body = msgpack.packb({"seq": 1, "delta": {"format": 9}}, use_bin_type=True)
+    alien = struct.pack("<II", len(body), zlib.crc32(body)) + body
+    damaged = data[:first] + alien + data[first:]
+    wal.write_bytes(damaged)
+    store = StateStore(tmp_path, "a", 0.1)
+    try:
+        with pytest.raises(PersistenceError, match=rf"wal.log: the record at offset {first} "
+                                                   r"\(seq 1\) passes its CRC but cannot be decoded"):
+            store.recover()
+    finally:
+        store.close()
+    assert wal.read_bytes() == damaged  # nothing acknowledged was cut
+
+
+def test_crc_damage_inside_the_log_is_not_a_torn_tail(tmp_path):
+    _logged(tmp_path, 3)
+    wal = tmp_path / WAL
+    data = bytearray(wal.read_bytes())
+    second = _offsets(bytes(data))[2]
+    data[second + 20] ^= 0xFF
+    wal.write_bytes(bytes(data))
+    store = StateStore(tmp_path, "a", 0.1)
+    try:
+        with pytest.raises(PersistenceError, match=rf"offset {second} fails its CRC and \d+ bytes "
+                                                   "follow it"):
+            store.recover()
+    finally:
+        store.close()
+    assert wal.read_bytes() == bytes(data)
+
+
+def test_zero_filled_last_record_is_a_torn_tail(tmp_path):
+    _logged(tmp_path, 3)
+    wal = tmp_path / WAL
+    data = wal.read_bytes()
+    last = _offsets(data)[-1]
+    wal.write_bytes(data[: last + 8] + b"\0" * (len(data) - last - 8))  # as a crash may leave it
+    store = StateStore(tmp_path, "a", 0.1)
+    rec = store.recover()
+    assert rec.seq == 2 and wal.stat().st_size == last
+    store.close()
+
+
+@pytest.mark.parametrize("damage", ["wal-deleted", "wal-emptied", "gap", "frames-deleted",
+                                    "old-snapshot"])
+def test_lost_records_start_a_new_epoch_never_a_reused_version(tmp_path, damage):
+    epoch, grid = _logged(tmp_path, 4, snapshot_at=2)
+    wal = tmp_path / WAL
+    if damage == "wal-deleted":
+        wal.unlink()
+    elif damage == "wal-emptied":
+        wal.write_bytes(b"")
+    elif damage == "gap":  # the record of seq 3 vanished
+        data = wal.read_bytes()
+        offsets = _offsets(data)
+        wal.write_bytes(data[: offsets[1]] + data[offsets[2]:])
+    elif damage == "frames-deleted":
+        (tmp_path / "frames.json").unlink()
+    elif damage == "old-snapshot":  # snapshot.json replaced by an older copy
+        (tmp_path / "snapshot.json").write_text('{"seq": 1, "file": "own-2.grid", "published": 1}')
+    store = StateStore(tmp_path, "a", 0.1)
+    rec = store.recover()
+    store.close()
+    want = {"wal-deleted": 2, "wal-emptied": 2, "gap": 2, "frames-deleted": 4, "old-snapshot": 1}
+    assert rec.seq == want[damage]
+    assert rec.epoch > epoch and rec.frame_seq == 0  # versions above seq may exist in the old one
+    if damage == "frames-deleted":
+        assert rec.grid.content_equal(grid)  # what was recovered is kept
+    store = StateStore(tmp_path, "a", 0.1)  # the new epoch is consistent: a restart keeps it
+    again = store.recover()
+    store.close()
+    assert (again.epoch, again.seq) == (rec.epoch, rec.seq) and again.grid.content_equal(rec.grid)
