@@ -13,12 +13,12 @@ from pathlib import Path
 from typing import Any
 
 from colonyd.config import Config, load_config
-from colonyd.errors import ColonydError
+from colonyd.errors import ColonydError, DuplicateAgentError
 from colonyd.frames import Sender, colony_key, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.layers import Layers
 from colonyd.logs import setup_logging
-from colonyd.membership import Membership
+from colonyd.membership import Membership, agent_alive
 from colonyd.metrics import Metrics
 from colonyd.notify import Notifier
 from colonyd.persistence import StateStore
@@ -29,6 +29,10 @@ from voxel.delta import Delta
 from voxel.sensor import SensorModel
 
 log = logging.getLogger(__name__)
+
+#: A heartbeat claiming our origin with another epoch is from a live duplicate when its time is
+#: within this many seconds of ours (older ones are replays).
+FRESH_S = 30.0
 
 
 def get_store(config: Config) -> StateStore:
@@ -57,6 +61,8 @@ class Daemon:
         self._published_local = 0
         self._last_snapshot = time.monotonic()
         self._sources_done = threading.Event()
+        self.conflict = ""  # set when another live daemon has our agent id and we give way
+        self._conflict_logged = 0.0
 
     # -- table of contents ----------------------------------------------------------------
     def run(self) -> int:
@@ -68,6 +74,7 @@ class Daemon:
             self._recover()
             self.session = get_session(cfg)
             try:
+                self._refuse_duplicate()
                 self._declare()
                 self._start_threads()
                 self.notifier.ready(f"colony {cfg.colony} agent {cfg.agent_id} seq {self.layers.own.seq}")
@@ -82,6 +89,8 @@ class Daemon:
         finally:
             self.store.close()
         log.info("stopped")
+        if self.conflict:
+            raise DuplicateAgentError(self.conflict)
         return 0
 
     # -- steps ----------------------------------------------------------------------------
@@ -106,6 +115,34 @@ class Daemon:
         log.info("state %s: %s, epoch %d, seq %d, %d log records replayed", self.config.state_dir,
                  "fresh" if rec.fresh else "recovered", rec.epoch, rec.seq, rec.wal_records)
 
+    def _duplicate(self, detail: str) -> str:
+        cfg = self.config
+        return (f"agent id {cfg.agent_id!r} is already in use in colony {cfg.colony!r} "
+                f"(namespace {cfg.key_namespace!r}): {detail}; expected every daemon to have "
+                "its own agent_id")
+
+    def _refuse_duplicate(self) -> None:
+        """Refuse to start (before anything is declared or sent) if our agent id is taken."""
+        if agent_alive(self.session, self.config.key_namespace, self.config.agent_id):
+            raise DuplicateAgentError(self._duplicate("another colonyd holds its liveliness token"))
+
+    def _on_own_origin(self, exc: Any) -> None:
+        """A heartbeat with our origin: a replay, or a live duplicate that the start-up check
+        missed (both started at once). Then the younger gives way; an established daemon keeps
+        running and says so loudly."""
+        now = time.time()
+        if exc.epoch == self.epoch or abs(exc.time - now) > FRESH_S:
+            log.warning("rejected a replayed heartbeat of our own origin: %s", exc)
+            return
+        self.metrics.add("duplicate_agent")
+        text = self._duplicate(f"heard a heartbeat of epoch {exc.epoch} (ours is {self.epoch})")
+        if now - self.started < max(5.0, 3 * self.config.heartbeat_s):
+            self.conflict = text
+            self.stop.set()
+        elif now - self._conflict_logged > 10.0:
+            self._conflict_logged = now
+            log.error("%s; this daemon keeps running, the other should stop", text)
+
     def _declare(self) -> None:
         cfg = self.config
         ns = cfg.key_namespace
@@ -119,6 +156,7 @@ class Daemon:
         )
         self.membership = Membership(self.session, ns, cfg.agent_id, self.gossip.on_member_event)
         self.status_server = StatusServer(self.session, ns, cfg.agent_id, self.report)
+        self.gossip.on_own_origin = self._on_own_origin
         self.gossip.start(self.membership)
 
     def _start_threads(self) -> None:

@@ -11,6 +11,10 @@ class ConfigError(ColonydError, ValueError):
     """The configuration file, environment or flags are invalid."""
 
 
+class DuplicateAgentError(ConfigError):
+    """Another daemon is alive in the colony with this daemon's agent id."""
+
+
 class RuntimeSetupError(ColonydError):
     """The Zenoh session could not be opened with the given configuration."""
 

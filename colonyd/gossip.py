@@ -14,6 +14,7 @@ import queue
 import random
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,6 +32,7 @@ from protocol import (
     Heartbeat,
     LayerVersion,
     Message,
+    OwnOriginError,
     ProtocolError,
     Receiver,
     SnapshotReply,
@@ -138,6 +140,8 @@ class Gossip:
         self._repairing: set[str] = set()
         self._repair_lock = threading.Lock()
         self.membership: Membership | None = None
+        #: Called (on the inbox thread) with a heartbeat that claims our own origin.
+        self.on_own_origin: Callable[[OwnOriginError], None] | None = None
         self.hb_now = threading.Event()  # set on a join: send our heartbeat without waiting
         drop = zenoh.CongestionControl.DROP
         self._publisher = session.declare_publisher(
@@ -258,6 +262,12 @@ class Gossip:
                     self._handle_hb(key, raw)
                 elif kind == "join":
                     self._handle_join(key)
+            except OwnOriginError as exc:
+                self.metrics.reject(exc.reason)
+                if self.on_own_origin is not None and exc.kind == Heartbeat.KIND:
+                    self.on_own_origin(exc)
+                else:
+                    log.warning("rejected %s on %s: %s", kind, key, exc)
             except (ProtocolError, WireError) as exc:
                 self.metrics.reject(exc.reason)
                 log.warning("rejected %s on %s: %s", kind, key, exc)

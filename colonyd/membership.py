@@ -14,6 +14,26 @@ from protocol.keyexpr import alive_key, alive_subscription, parse_key
 
 log = logging.getLogger(__name__)
 
+#: How long a starting daemon looks for a live member with its own agent id (peers reached
+#: through gossip answer within ~0.1 s here).
+PROBE_S = 0.3
+
+
+def agent_alive(session: zenoh.Session, namespace: str, agent: str, seconds: float = PROBE_S) -> bool:
+    """True if a daemon with agent id `agent` holds its liveliness token in the colony now.
+
+    Asked repeatedly for `seconds`, since `zenoh.open` returns before gossip completes the mesh.
+    """
+    deadline = time.monotonic() + seconds
+    while True:
+        left = deadline - time.monotonic()
+        replies = session.liveliness().get(alive_key(namespace, agent), timeout=max(0.05, left))
+        if any(reply.ok is not None for reply in replies):
+            return True
+        if left <= 0:
+            return False
+        time.sleep(min(0.05, max(0.0, left)))
+
 
 @dataclass
 class Member:

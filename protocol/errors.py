@@ -65,9 +65,17 @@ class ReplayError(AuthError):
 
 
 class OwnOriginError(AuthError):
-    """A received frame claims the receiver's own origin (a forgery or an echo of its own)."""
+    """A received frame claims the receiver's own origin: a replay of one of its own frames, a
+    forgery, or another process running under the same origin (then its epoch differs and its
+    time is recent). The frame's `kind`, `epoch` and `time` say which."""
 
     reason = "own_origin"
+
+    def __init__(self, message: str, *, kind: str = "", epoch: int = 0, time: float = 0.0) -> None:
+        super().__init__(message)
+        self.kind = kind
+        self.epoch = epoch
+        self.time = time
 
 
 class KeyExprError(ProtocolError, ValueError):

@@ -54,7 +54,7 @@ class Receiver:
                 check_origin(key_expr, msg.origin)
             if msg.origin == self.own:
                 text = f"frame: expected another agent's origin, found our own {msg.origin!r}"
-                raise OwnOriginError(text)
+                raise OwnOriginError(text, kind=msg.KIND, epoch=msg.epoch, time=msg.time)
             if self.replay is not None:
                 self.replay.peek(msg.origin, msg.epoch, msg.seq)
         except ProtocolError as exc:

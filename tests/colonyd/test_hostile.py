@@ -54,3 +54,42 @@ def test_forged_frames_neither_freeze_replication_nor_impersonate(make_colony):
     except Exception:
         print(logs(colony))
         raise
+
+
+def test_a_second_daemon_with_a_taken_agent_id_refuses_to_start(make_colony):
+    colony = make_colony("dup")
+    colony.add("a", ["synthetic:scans=4,rate=4,points=100,seed=1"])
+    colony.add("b")
+    try:
+        colony.wait_converged(30)
+        twin = colony.add("twin", ["synthetic:scans=4,rate=4,points=100,seed=2"], start=False)
+        twin.args[twin.args.index("twin")] = "a"  # its own state dir, the first one's agent id
+        twin.start()
+        assert twin.proc is not None and twin.proc.wait(30) == 3  # a configuration error
+        text = twin.log_path.read_text()
+        assert "agent id 'a' is already in use in colony 'dup'" in text, text
+        assert "expected every daemon to have its own agent_id" in text
+        reports = {r["agent"]: r for r in colony.status()}
+        assert set(reports) == {"a", "b"}  # the first 'a' carries on, unharmed
+        assert reports["b"]["layers"]["a"]["epoch"] == reports["a"]["epoch"]
+        colony.wait_converged(10, ["a", "b"])
+    except Exception:
+        print(logs(colony))
+        raise
+
+
+def test_a_young_daemon_gives_way_to_a_live_twin_it_hears_later(make_colony):
+    """Two daemons started at once both pass the start-up check; the younger then gives way."""
+    colony = make_colony("twins")
+    a = colony.add("a", ["synthetic:scans=40,rate=4,points=100,seed=1"])
+    try:
+        colony.wait_members(1)
+        s = colony.session()
+        twin = Sender("a", 12345)  # another process running as 'a', in its own epoch
+        s.put(topic_key(colony.namespace, "a", "heartbeat"),
+              twin.encode(Heartbeat(**twin.header(), kind="robot", frame_id="map")))
+        assert a.proc is not None and a.proc.wait(20) == 3
+        assert "heard a heartbeat of epoch 12345" in a.log_path.read_text()
+    except Exception:
+        print(logs(colony))
+        raise
