@@ -42,6 +42,7 @@ from protocol import (
     split_delta,
 )
 from protocol.codec import FRAME_OVERHEAD
+from protocol.deltacodec import MIN_PART_BODY
 from protocol.keyexpr import parse_key, query_declaration, query_key, topic_key, topic_subscription
 from voxel.delta import Delta
 
@@ -543,55 +544,58 @@ class Gossip:
     def _layer_epoch(self, layer: Layer) -> int:
         return self.epoch if layer.origin == self.own else layer.epoch
 
-    def _part_limit(self, request: Any) -> int:
-        return max(1024, min(self.part_bytes, request.max_part_bytes) - FRAME_OVERHEAD - 128)
+    def _fit(self, request: Any, chunks: list[Delta],
+             make: Callable[[int, int, Delta], Message]) -> list[bytes]:
+        """Reply frames `make(part, parts, chunk)` of `chunks`, each frame within the request's
+        `max_part_bytes` (and ours): parts that come out too large are cut finer and re-encoded
+        (one encoding per part in the common case)."""
+        max_frame = min(self.part_bytes, request.max_part_bytes)
+        limit = max_frame - FRAME_OVERHEAD - 128  # >= 640: max_part_bytes is at least 1024
+        while True:
+            frames = self.sender.encode_all(
+                [make(i, len(chunks), c) for i, c in enumerate(chunks)]
+            )
+            big = [i for i, f in enumerate(frames) if len(f) > max_frame]
+            if not big:
+                return frames
+            if limit < MIN_PART_BODY:
+                text = f"expected parts within {max_frame} bytes, found a voxel too large for one"
+                raise WireError("oversized", text)
+            for i in reversed(big):
+                chunks[i:i + 1] = split_delta(chunks[i], limit)
+            limit //= 2  # still too large next time: the frame around a body grew, cut finer
+
+    def _reply(self, query: zenoh.Query, key: str, frames: list[bytes]) -> None:
+        for frame in frames:
+            query.reply(key, frame)
+            self.metrics.add("bytes_served", len(frame))
 
     def _serve_snapshot(self, query: zenoh.Query, key: str, layer: Layer, request: Any) -> None:
         epoch, seq, chunks = layer.snapshot(self.chunk_voxels)
         if layer.origin == self.own:
             epoch = self.epoch
-        limit = self._part_limit(request)
-        while True:  # one encoding per part unless a part is too large (then cut it, re-encode)
-            msgs = [
-                SnapshotReply(
-                    origin=self.own, time=time.time(), layer=layer.origin,
-                    request_id=request.request_id, frame_id=FRAME_ID, layer_epoch=epoch,
-                    part=i, parts=len(chunks), delta=chunk,
-                )
-                for i, chunk in enumerate(chunks)
-            ]
-            frames = self.sender.encode_all(msgs)
-            big = [i for i, f in enumerate(frames) if len(f) > request.max_part_bytes]
-            if not big:
-                break
-            for i in reversed(big):
-                chunks[i:i + 1] = split_delta(chunks[i], limit)
-        for frame in frames:
-            query.reply(key, frame)
-            self.metrics.add("bytes_served", len(frame))
+        common = {"origin": self.own, "layer": layer.origin, "request_id": request.request_id,
+                  "frame_id": FRAME_ID, "layer_epoch": epoch}
+        frames = self._fit(request, chunks, lambda i, n, c: SnapshotReply(
+            **common, time=time.time(), part=i, parts=n, delta=c))
+        self._reply(query, key, frames)
         self.metrics.add("snapshots_served")
 
     def _serve_range(self, query: zenoh.Query, key: str, layer: Layer | None, request: Any) -> None:
+        """Deltas of (from_version, min(to_version, newest)]: none if that range is empty
+        (`complete`, no delta), `complete` False if it is no longer held or the layer is not."""
         deltas = None
         epoch = 0
         if layer is not None and layer.seq > 0:
             epoch = self._layer_epoch(layer)
             deltas = layer.range(request.from_version, request.to_version)
-        common = {"layer": request.layer, "request_id": request.request_id, "frame_id": FRAME_ID,
-                  "layer_epoch": epoch}
-        if deltas is None:
-            msgs = [DeltaRangeReply(origin=self.own, time=time.time(), **common, complete=False)]
-        else:
-            limit = self._part_limit(request)
-            pieces = [p for d in deltas for p in split_delta(d, limit)]
-            msgs = [
-                DeltaRangeReply(origin=self.own, time=time.time(), **common, part=i,
-                                parts=len(pieces), delta=p)
-                for i, p in enumerate(pieces)
-            ]
-        frames = self.sender.encode_all(msgs)
-        for frame in frames:
-            query.reply(key, frame)
-            self.metrics.add("bytes_served", len(frame))
-        if deltas is not None:
-            self.metrics.add("ranges_served")
+        common = {"origin": self.own, "layer": request.layer, "request_id": request.request_id,
+                  "frame_id": FRAME_ID, "layer_epoch": epoch}
+        if not deltas:
+            msg = DeltaRangeReply(**common, time=time.time(), complete=deltas is not None)
+            self._reply(query, key, self.sender.encode_all([msg]))
+            return
+        frames = self._fit(request, list(deltas), lambda i, n, c: DeltaRangeReply(
+            **common, time=time.time(), part=i, parts=n, delta=c))
+        self._reply(query, key, frames)
+        self.metrics.add("ranges_served")

@@ -195,8 +195,12 @@ class Layer:
         return epoch, seq, chunks
 
     def range(self, have: int, want: int) -> list[Delta] | None:
-        """Recent deltas (labelled (prev, seq]) taking a replica from `have` to >= `want`, else None."""
+        """Recent deltas (labelled (prev, seq]) taking a replica from `have` to >= min(`want`,
+        this layer's seq): [] if that is nothing, None if the ring no longer holds them."""
         with self.lock:
+            want = min(want, self.seq)
+            if have >= want:
+                return []
             out: list[Delta] = []
             at = have
             for prev, seq, delta in self.ring:

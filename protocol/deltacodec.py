@@ -493,6 +493,10 @@ def fit_delta(
     return best[1], best[2]
 
 
+#: Smallest codec body `split_delta` cuts to (a part holds at least one voxel and the header).
+MIN_PART_BODY = 256
+
+
 def split_delta(
     delta: Delta,
     max_bytes: int,
@@ -504,8 +508,8 @@ def split_delta(
     Parts follow significance order (the first parts carry surfaces) and each is a complete
     Delta with the same versions, so every part can be decoded and applied on its own.
     """
-    if max_bytes < 256:
-        msg = f"max_bytes must be >= 256, found {max_bytes}"
+    if max_bytes < MIN_PART_BODY:
+        msg = f"max_bytes must be >= {MIN_PART_BODY}, found {max_bytes}"
         raise ValueError(msg)
     total = encoded_size(delta)
     if total <= max_bytes:

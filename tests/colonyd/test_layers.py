@@ -35,7 +35,13 @@ def test_out_of_order_duplicates_and_gaps_converge():
     # the ring holds the deltas labelled with layer versions, ready to serve a range query
     assert [(d.from_version, d.to_version) for d in layer.range(1, 4)] == [(1, 2), (2, 3), (3, 4)]
     assert [len(d) for d in layer.range(0, 4)] == [len(d) for d in ds]
-    assert layer.range(0, 9) is None
+    # a range beyond the newest version ends at it; an empty one is nothing to send
+    assert [d.to_version for d in layer.range(0, 9)] == [1, 2, 3, 4]
+    assert layer.range(4, 9) == [] and layer.range(2, 2) == []
+    short = Layer("o", 0.1, ring_size=2)
+    for i, d in enumerate(ds):
+        short.offer(7, i, i + 1, d)
+    assert short.range(0, 4) is None and len(short.range(2, 4)) == 2  # no longer held: None
     assert layer.offer(6, 4, 5, ds[0]).outcome == "stale-epoch"
 
 
