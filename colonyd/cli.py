@@ -1,4 +1,4 @@
-"""Command line: `colonyd run|status|map|bench|demo|dump-config`; the one place errors become exit codes."""
+"""Command line: `colonyd run|status|map|sources|bench|demo|dump-config`; the one place errors become exit codes."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ log = logging.getLogger("colonyd")
 EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
-EXIT_CONFIG = 3
+EXIT_CONFIG = 3  # configuration, including bad source specs
 EXIT_DATA = 4  # voxel / protocol / plugin input errors
 EXIT_INTERRUPTED = 130
 
@@ -36,7 +36,8 @@ def _config_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--no-multicast", dest="multicast", action="store_const", const=False,
                    help="disable multicast scouting")
     g.add_argument("--source", dest="sources", action="append", metavar="SPEC",
-                   help="data source (synthetic:..., bulk:..., sim:..., replay:...)")
+                   help="data source, repeatable (sim:..., replay:PATH, synthetic:..., bulk:...; "
+                        "see `colonyd sources`)")
     g.add_argument("--resolution", type=float, help="voxel size in metres")
     g.add_argument("--block-shape", dest="block_shape", choices=["cube", "planar"],
                    help="own layer's voxel blocks (planar: 2D scanners only)")
@@ -79,9 +80,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("map", help="map a source offline into a directory of map files")
     p.add_argument("--source", dest="map_source", required=True, metavar="SPEC",
-                   help="source spec (sim:..., replay:PATH)")
+                   help="source spec (sim:..., replay:PATH, ...; see `colonyd sources`)")
     p.add_argument("--resolution", type=float, default=0.1)
     p.add_argument("--out", type=Path, required=True, help="output directory")
+
+    p = sub.add_parser("sources", help="print every source kind, what it reads and its options")
+    p.add_argument("--markdown", action="store_true", help="print Markdown (the reference in docs/SOURCES.md)")
 
     p = sub.add_parser("bench", help="benchmarks")
     bsub = p.add_subparsers(dest="bench", required=True)
@@ -138,6 +142,11 @@ def main(argv: list[str] | None = None) -> int:
         from colonyd.daemon import run_daemon
 
         return run_daemon(config, args.config, flags)
+    if cmd == "sources":
+        from plugins.source import describe_sources
+
+        sys.stdout.write(describe_sources(markdown=args.markdown))
+        return EXIT_OK
     from colonyd.logs import setup_logging
 
     setup_logging("info")
@@ -196,8 +205,9 @@ def _known_errors() -> list[tuple[type[BaseException], int, str]]:
     except ImportError:
         pass
     try:
-        from plugins.errors import PluginError
+        from plugins.errors import PluginError, SourceSpecError
 
+        known.append((SourceSpecError, EXIT_CONFIG, "source"))
         known.append((PluginError, EXIT_DATA, "plugin"))
     except ImportError:
         pass

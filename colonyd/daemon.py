@@ -18,15 +18,16 @@ from colonyd.frames import Sender, colony_key, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.layers import Layers
 from colonyd.logs import setup_logging
+from colonyd.mapping import integrate_observation
 from colonyd.membership import Membership, agent_alive
 from colonyd.metrics import Metrics
 from colonyd.notify import Notifier
 from colonyd.persistence import StateStore
 from colonyd.runtime import get_session
-from colonyd.source import Frame, Source, get_source
 from colonyd.status import StatusServer
-from voxel.delta import Delta
-from voxel.sensor import SensorModel
+from plugins.observation import Observation
+from plugins.source import open_source
+from plugins.stream import Source
 
 log = logging.getLogger(__name__)
 
@@ -39,9 +40,11 @@ def get_store(config: Config) -> StateStore:
     return StateStore(config.state_dir, config.agent_id, config.resolution, config.block_shape)
 
 
-def get_sources(config: Config) -> list[Source]:
+def get_sources(config: Config, stop: threading.Event) -> list[Source]:
+    """The configured sources; those whose spec sets no seed take one derived from the agent id."""
     seed = zlib.crc32(config.agent_id.encode()) % (1 << 16)
-    return [get_source(spec, config.resolution, seed=seed + i) for i, spec in enumerate(config.sources)]
+    return [open_source(spec, resolution=config.resolution, seed=seed + i, stop=stop)
+            for i, spec in enumerate(config.sources)]
 
 
 class Daemon:
@@ -70,7 +73,7 @@ class Daemon:
         cfg = self.config
         self.store = get_store(cfg)
         try:
-            self._sources = get_sources(cfg)  # bad specs fail before the network is touched
+            self._sources = get_sources(cfg, self.stop)  # bad specs fail before the network is touched
             self._recover()
             self.session = get_session(cfg)
             try:
@@ -238,42 +241,32 @@ class Daemon:
 
     # -- mapping (never waits on the network) ---------------------------------------------
     def _map_loop(self) -> None:
-        sensor = SensorModel(kind="sim")
         own = self.layers.own
         for source in self._sources:
+            if self.stop.is_set():
+                break
             try:
-                for frame in source.frames(self.stop):
+                for obs in source:
+                    if self.stop.is_set():
+                        break
                     try:
-                        self._integrate(own, frame, sensor)
+                        self._integrate(own, obs, source)
                     except ValueError as exc:  # one bad frame (voxel/plugin input errors)
                         self.metrics.reject("bad-frame")
-                        log.warning("source %s: frame skipped: %s", source.name, exc)
+                        log.warning("source %s: frame skipped: %s", source.spec, exc)
                         continue
                     self.metrics.add("frames")
             except (ColonydError, ValueError) as exc:  # the source itself failed
-                log.error("source %s failed: %s", source.name, exc)
+                log.error("source %s failed: %s", source.spec, exc)
             except Exception:
-                log.exception("source %s failed", source.name)
+                log.exception("source %s failed", source.spec)
         self._sources_done.set()
 
-    def _integrate(self, own: Any, frame: Frame, sensor: SensorModel) -> None:
+    def _integrate(self, own: Any, obs: Observation, source: Source) -> None:
         with own.lock:
-            if frame.delta is not None:
-                v = int(own.grid.version)
-                d = frame.delta
-                own.grid.apply(Delta(d.resolution, v, v + 1, d.keys, d.logodds, d.last_time,
-                                     d.channels, d.time))
-            elif "observation" in frame.extra:
-                from colonyd.mapping import integrate_observation
-
-                integrate_observation(own.grid, frame.extra["observation"],
-                                      sensor=frame.extra.get("sensor") or sensor,
-                                      reliability=frame.extra.get("reliability", 1.0),
-                                      agent=self.config.agent_id)
-            elif len(frame.points):
-                own.grid.integrate(frame.points, frame.origin, time=frame.time, sensor=sensor,
-                                   agent=self.config.agent_id)
-        self.pose = list(frame.pose)
+            integrate_observation(own.grid, obs, sensor=source.adapter.sensor_model,
+                                  reliability=source.adapter.reliability, agent=self.config.agent_id)
+        self.pose = [float(v) for v in obs.origin]
 
     # -- publishing (own deltas, write-ahead logged, coalesced) ---------------------------
     def _publish_loop(self) -> None:

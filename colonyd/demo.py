@@ -12,15 +12,14 @@ from colonyd.launcher import LocalColony
 
 log = logging.getLogger(__name__)
 
+#: Demo agents in the plugins' office world: cheap sensors, a few seconds of mapping each.
+DEMO_AGENTS = (("lidar-1", 40), ("lidar3d-1", 40), ("depth-1", 25), ("lidar-1", 40))
+
 
 def demo_sources(agent_index: int) -> list[str]:
-    """A short simulated run per agent: a plugin `sim:` source if available, else synthetic."""
-    from colonyd.plugin_source import sim_spec
-
-    spec = sim_spec(agent_index)
-    if spec is not None:
-        return [spec]
-    return [f"synthetic:scans=12,rate=4,points=720,seed={agent_index + 1},room=10"]
+    """A short simulated run per agent: one agent of the `sim:` office world, paced in real time."""
+    agent, frames = DEMO_AGENTS[agent_index % len(DEMO_AGENTS)]
+    return [f"sim:world=office,agent={agent},frames={frames},seed={agent_index + 1},realtime=1"]
 
 
 def run_demo(out: Path, *, daemons: int = 3, timeout: float = 45.0) -> int:
@@ -41,8 +40,8 @@ def run_demo(out: Path, *, daemons: int = 3, timeout: float = 45.0) -> int:
         colony.wait_converged(timeout, agents)
         converged_s = time.monotonic() - started
         reports = colony.status(digest=True)
-        lines = [f"colony 'demo' (namespace {colony.namespace}): {len(reports)} members, "
-                 f"converged {converged_s:.1f} s after all joined"]
+        lines = [(f"colony 'demo' (namespace {colony.namespace}): {len(reports)} members, "
+                  f"converged {converged_s:.1f} s after all joined")]
         total_bytes = 0
         for r in reports:
             counts = r["metrics"]["counts"]

@@ -31,9 +31,5 @@ class WireError(ColonydError, ValueError):
         self.reason = reason
 
 
-class SourceError(ConfigError):
-    """A source spec names no known source or has invalid parameters."""
-
-
 class StatusError(ColonydError):
     """A running colony could not be queried."""

@@ -15,10 +15,12 @@ from plugins.checks import matrix_to_quaternion
 from plugins.observation import Observation
 from plugins.source import open_source
 from voxel import keys as vk
+from voxel.delta import Delta
 from voxel.errors import InputError
 from voxel.grid import VoxelGrid
 from voxel.octomap_io import write_bt
 from voxel.ply import write_ply
+from voxel.sensor import SensorModel
 
 #: Floor-plan grey levels (map_server convention): occupied, free, unknown.
 OCCUPIED_GREY, FREE_GREY, UNKNOWN_GREY = 0, 254, 205
@@ -93,9 +95,13 @@ def get_progress(enabled: bool) -> Progress:
     return BarProgress() if enabled else NullProgress()
 
 
-def integrate_observation(grid: VoxelGrid, obs: Observation, *, sensor: object, reliability: float,
+def integrate_observation(grid: VoxelGrid, obs: Observation, *, sensor: SensorModel, reliability: float,
                           agent: str = "self") -> None:
-    """Integrate one observation, with its pose guess, into `grid`."""
+    """Integrate one observation, with its pose guess, into `grid`; a ready-made delta is applied as the grid's next version."""
+    if obs.delta is not None:
+        v, d = int(grid.version), obs.delta
+        grid.apply(Delta(d.resolution, v, v + 1, d.keys, d.logodds, d.last_time, d.channels, d.time))
+        return
     if len(obs) == 0:
         return
     grid.integrate(obs.points_world(), obs.origin, time=obs.time, sensor=sensor, agent=agent,
@@ -140,7 +146,7 @@ def map_source(spec: str, resolution: float, out_dir: Path, *, max_frames: int |
     """Map the source `spec` at `resolution` metres and write grid.npz, map.bt, map.ply,
     trajectory.tum (and floorplan.png for 2D scanners) into `out_dir`."""
     began = clock.monotonic()
-    source = open_source(spec)
+    source = open_source(spec, resolution=resolution)
     adapter = source.adapter
     grid = VoxelGrid(resolution, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
     out_dir = Path(out_dir)

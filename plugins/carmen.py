@@ -10,12 +10,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from pydantic import Field
 
 from plugins.adapter import SensorAdapter, load_adapter
 from plugins.checks import pose_matrix
 from plugins.errors import ParseError, SourceError, SourceSpecError
 from plugins.lidar import Scan
 from plugins.observation import Observation
+from plugins.spec import Options
 from plugins.stream import StreamStats
 
 #: Readings at or beyond this range are "no return" in CARMEN logs.
@@ -83,11 +85,24 @@ def read_lines(path: Path) -> Iterator[tuple[int, str]]:
     lineno = 0
     try:
         with opener(path, "rt", encoding="ascii", errors="replace") as f:
-            for lineno, text in enumerate(f, start=1):  # noqa: B007
+            for lineno, text in enumerate(f, start=1):
                 yield lineno, text
     except (EOFError, zlib.error, gzip.BadGzipFile) as exc:
         msg = f"{path}: truncated or corrupt after line {lineno}: expected a complete gzip stream, found {exc}"
         raise SourceError(msg) from None
+
+
+class CarmenOptions(Options):
+    """Options of `replay:` for a CARMEN log."""
+
+    poses: str = Field("reference", description="pose of each scan: reference (the corrected pose) or "
+                                                "odometry")
+    max_range: float = Field(NO_RETURN, description="sensor range, metres; readings at 80 m or more are "
+                                                    "no-return beams")
+    start: int = Field(0, description="first scan (index among FLASER lines)")
+    stop: int | None = Field(None, description="scan index to stop before; none: the end")
+    step: int = Field(1, description="take every step-th scan (>= 1)")
+    strict: bool = Field(False, description="fail on the first bad line instead of skipping and counting it")
 
 
 class CarmenSource:

@@ -15,12 +15,12 @@ class AdapterNotFoundError(PluginError, LookupError):
     """No sensor adapter is registered under the requested name."""
 
 
-class SourceSpecError(PluginError, ValueError):
-    """A source specification string cannot be parsed."""
-
-
 class SourceError(PluginError):
     """A data source (recording, simulated world) cannot be opened or read."""
+
+
+class SourceSpecError(SourceError, ValueError):
+    """A source spec names no known source, or an option it does not take or cannot parse."""
 
 
 class ParseError(SourceError, ValueError):

@@ -8,6 +8,7 @@ import numpy as np
 
 from plugins.checks import as_array, as_intrinsics, as_pose
 from plugins.errors import SensorInputError
+from voxel.delta import Delta
 
 
 @dataclass(frozen=True)
@@ -42,6 +43,8 @@ class Observation:
     `pose` is sensor-to-world (4x4, the agent's current guess: reference poses for recordings,
     dead reckoning in the simulator). `no_return[i]` marks a beam without a return; its point is
     the beam direction scaled to the sensor's maximum range, to be cleared but not hit.
+    `delta`, instead of points, carries voxels integrated elsewhere (the `bulk:` source), to be
+    applied to a grid as they are.
     """
 
     sensor: str
@@ -59,6 +62,7 @@ class Observation:
     depth: DepthView | None = None
     truth: np.ndarray | None = None  # (4, 4) true sensor pose, when a simulator knows it
     frame: str = ""  # where the reading came from (file, line, index)
+    delta: Delta | None = None  # ready-made voxels instead of points (bulk source)
 
     def __post_init__(self) -> None:
         points = as_array(self.points, "points", shape=(None, 3))
@@ -89,6 +93,9 @@ class Observation:
                 object.__setattr__(self, name, as_pose(value, name))
         if self.depth is not None:
             as_intrinsics(self.depth.K, "depth.K")
+        if self.delta is not None and not isinstance(self.delta, Delta):
+            msg = f"delta: expected a voxel.delta.Delta, found {type(self.delta).__name__}"
+            raise SensorInputError(msg)
 
     def __len__(self) -> int:
         return int(self.points.shape[0])

@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import gzip
 from pathlib import Path
-from typing import Any
+from typing import Literal
 
-from plugins.carmen import CarmenSource
-from plugins.errors import SourceError, SourceSpecError
-from plugins.sevenscenes import RgbdSource
-from plugins.stream import Source
+from pydantic import Field
 
-FORMATS = ("carmen", "7scenes", "tum", "rosbag")
+from plugins.carmen import CarmenOptions, CarmenSource
+from plugins.errors import SourceError
+from plugins.rosbag import RosbagOptions, RosbagSource
+from plugins.sevenscenes import RgbdOptions, RgbdSource
+from plugins.spec import Options, SourceSpec, parse_options
+from plugins.stream import Source, SourceContext
 
 
 def detect_format(path: Path) -> str:
@@ -43,17 +45,36 @@ def detect_format(path: Path) -> str:
     raise SourceError(msg)
 
 
-def open_replay(path: str | Path, *, format: str = "auto", spec: str = "", **options: Any) -> Source:  # noqa: A002
-    """A replay source for `path` with reader options (see each reader's parameters)."""
-    path = Path(path)
-    kind = detect_format(path) if format == "auto" else format
-    if kind == "carmen":
-        return CarmenSource(path, spec=spec, **options)
-    if kind in ("7scenes", "tum"):
-        return RgbdSource(path, layout=kind, spec=spec, **options)
-    if kind == "rosbag":
-        from plugins.rosbag import RosbagSource
+class ReplayOptions(Options):
+    """Options of `replay:` whatever the recording."""
 
-        return RosbagSource(path, spec=spec, **options)
-    msg = f"format: expected 'auto' or one of {list(FORMATS)}, found {format!r}"
-    raise SourceSpecError(msg)
+    format: Literal["auto", "carmen", "7scenes", "tum", "rosbag"] = Field(
+        "auto", description="recording format; auto: from the path (folder contents, file suffix, first lines)")
+
+
+class CarmenReplay(ReplayOptions, CarmenOptions):
+    """Options of `replay:` for a CARMEN log, format included."""
+
+
+class RgbdReplay(ReplayOptions, RgbdOptions):
+    """Options of `replay:` for a 7-Scenes or TUM RGB-D folder, format included."""
+
+
+class RosbagReplay(ReplayOptions, RosbagOptions):
+    """Options of `replay:` for a ROS bag, format included."""
+
+
+def open_replay(spec: SourceSpec, context: SourceContext) -> Source:
+    """The replay source of a parsed `replay:PATH,...` spec: the reader of the path's format."""
+    chosen = {k: v for k, v in spec.options.items() if k == "format"}
+    fmt = parse_options(ReplayOptions, chosen, spec.text).format
+    path = Path(str(spec.path)).expanduser()
+    kind = detect_format(path) if fmt == "auto" else fmt
+    if kind == "carmen":
+        carmen = parse_options(CarmenReplay, spec.options, spec.text)
+        return CarmenSource(path, spec=spec.text, **carmen.model_dump(exclude={"format"}))
+    if kind in ("7scenes", "tum"):
+        rgbd = parse_options(RgbdReplay, spec.options, spec.text)
+        return RgbdSource(path, layout=kind, spec=spec.text, **rgbd.model_dump(exclude={"format"}))
+    bag = parse_options(RosbagReplay, spec.options, spec.text)
+    return RosbagSource(path, spec=spec.text, **bag.model_dump(exclude={"format"}))

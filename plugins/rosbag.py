@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import Field
 
 from plugins.adapter import SensorAdapter, load_adapter
 from plugins.checks import quaternion_to_matrix
@@ -14,6 +15,7 @@ from plugins.depth import DepthFrame
 from plugins.errors import ParseError, SensorInputError, SourceError, SourceSpecError
 from plugins.lidar import Cloud, Scan
 from plugins.observation import Observation
+from plugins.spec import Options
 from plugins.stream import StreamStats
 
 SCAN = "sensor_msgs/msg/LaserScan"
@@ -39,7 +41,7 @@ def _any_reader() -> Any:
     def open_bag(paths: list[Path]) -> Any:
         try:
             return AnyReader(paths, default_typestore=typestore)
-        except Exception as exc:  # rosbags raises its own error types for unreadable bags
+        except Exception as exc:  # noqa: BLE001 - rosbags raises its own error types for unreadable bags
             msg = f"{paths[0]}: expected a readable ROS 1 or ROS 2 bag, found {type(exc).__name__}: {exc}"
             raise SourceError(msg) from None
 
@@ -101,6 +103,17 @@ def depth_image(msg: Any, field: str = "Image") -> np.ndarray:
     return depth
 
 
+class RosbagOptions(Options):
+    """Options of `replay:` for a ROS 1 or ROS 2 bag."""
+
+    topic: str | None = Field(None, description="sensor topic (LaserScan, PointCloud2 or depth Image); "
+                                                "none: the first LaserScan, else PointCloud2, else Image")
+    odom: str | None = Field(None, description="Odometry topic giving the poses; none: the first one, if any")
+    info: str | None = Field(None, description="CameraInfo topic for depth images; none: the first one")
+    max_range: float = Field(30.0, description="sensor range, metres")
+    strict: bool = Field(False, description="fail on the first bad message instead of skipping and counting it")
+
+
 class RosbagSource:
     """Observations from one sensor topic of a ROS 1 or ROS 2 bag; poses from an Odometry topic."""
 
@@ -120,7 +133,7 @@ class RosbagSource:
                 counts = {c.topic: c.msgcount for c in reader.connections}
         except SourceError:
             raise
-        except Exception as exc:  # rosbags' errors for unreadable bags
+        except Exception as exc:  # noqa: BLE001 - rosbags' errors for unreadable bags
             msg = f"{self.path}: expected a readable ROS 1 or ROS 2 bag, found {type(exc).__name__}: {exc}"
             raise SourceError(msg) from None
         if topic is None:

@@ -9,12 +9,14 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from pydantic import Field
 
 from plugins.adapter import SensorAdapter, load_adapter
 from plugins.checks import quaternion_to_matrix
 from plugins.depth import DepthFrame
 from plugins.errors import ParseError, SensorInputError, SourceError, SourceSpecError
 from plugins.observation import Observation
+from plugins.spec import Options
 from plugins.stream import StreamStats
 
 #: 7-Scenes' Kinect intrinsics, used when camera-intrinsics.txt is absent.
@@ -143,6 +145,17 @@ def tum_frames(root: Path, max_dt: float = 0.02) -> list[RgbdFrame]:
             continue  # no reference pose close enough
         frames.append(RgbdFrame(depth=root / fields[0], pose=truth[best][1], time=stamp))
     return frames
+
+
+class RgbdOptions(Options):
+    """Options of `replay:` for a 7-Scenes or TUM RGB-D folder."""
+
+    start: int = Field(0, description="first frame (index in time order)")
+    stop: int | None = Field(None, description="frame index to stop before; none: the end")
+    step: int = Field(1, description="take every step-th frame (>= 1)")
+    stride: int = Field(1, description="take every stride-th pixel on each image axis")
+    max_range: float = Field(10.0, description="depth range, metres; farther readings are dropped")
+    strict: bool = Field(False, description="fail on the first bad frame instead of skipping and counting it")
 
 
 class RgbdSource:

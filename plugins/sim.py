@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import time as clock
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
+from pydantic import Field
 
 from plugins.adapter import SensorAdapter, load_adapter
 from plugins.cctv import CctvFrame
@@ -16,8 +18,9 @@ from plugins.depth import DepthFrame
 from plugins.errors import SourceSpecError
 from plugins.lidar import Cloud, Scan
 from plugins.observation import Observation
-from plugins.stream import StreamStats
-from plugins.world import CLASSES, World, get_world
+from plugins.spec import Options, SourceSpec, parse_options
+from plugins.stream import SourceContext, StreamStats
+from plugins.world import CLASSES, WORLDS, World, get_world
 
 #: Camera optical frame (x right, y down, z forward) in a body frame (x forward, y left, z up).
 OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
@@ -72,7 +75,7 @@ class Path:
         times, poses = [0.0], []
         yaw = math.atan2(*(pts[1] - pts[0])[::-1])
         poses.append((*pts[0], yaw))
-        for a, b in zip(pts[:-1], pts[1:], strict=True):
+        for a, b in itertools.pairwise(pts):
             heading = math.atan2(b[1] - a[1], b[0] - a[0])
             turn = (heading - yaw + math.pi) % (2 * math.pi) - math.pi
             if abs(turn) > 1e-9:
@@ -180,13 +183,26 @@ def render(world: World, sensor: str, rig: Rig, pose: np.ndarray, rng: np.random
     return CctvFrame(image=colour, depth=depth)
 
 
+class SimOptions(Options):
+    """Options of `sim:`."""
+
+    world: str = Field("office", description=f"simulated world: {', '.join(sorted(WORLDS))}")
+    agent: str = Field("lidar-1", description="agent, with its sensor and path: "
+                       + "; ".join(f"{w}: {', '.join(sorted(a))}" for w, a in sorted(AGENTS.items())))
+    seed: int = Field(0, description="seed of the odometry and range noise")
+    frames: int = Field(100, description="frames to deliver (>= 0), at the agent's rate in simulated time")
+    noise: float = Field(0.02, description="odometry noise, relative to the distance travelled")
+    drift: float = Field(0.0, description="odometry heading drift, radians per metre")
+    range_noise: float = Field(0.01, description="range noise of the sensor, metres (standard deviation)")
+    start: str = Field("origin", description="where pose guesses start: origin (the identity) or "
+                                             "world (the true start pose)")
+    realtime: bool = Field(False, description="pace frames at the agent's rate in wall-clock time")
+
+
 class SimSource:
     """Deterministic simulated stream of one agent's observations (seeded), with ground truth.
 
-    Parameters (all in the spec string `sim:world=office,agent=lidar-1,...`): world, agent, seed,
-    frames, noise (odometry, relative), drift (heading drift, rad per metre), range_noise (m),
-    start ("origin": pose guesses start at the identity; "world": at the true start pose),
-    realtime (1: pace frames at the agent's rate).
+    Options: `SimOptions` (`colonyd sources`).
     """
 
     def __init__(self, *, world: str = "office", agent: str = "lidar-1", seed: int = 0,
@@ -261,3 +277,8 @@ class SimSource:
 
 def _with_truth(obs: Observation, truth: np.ndarray) -> Observation:
     return replace(obs, truth=truth)
+
+
+def open_sim(spec: SourceSpec, context: SourceContext) -> SimSource:
+    """The `sim:` source of a parsed spec."""
+    return SimSource(**parse_options(SimOptions, spec.options, spec.text).model_dump(), spec=spec.text)

@@ -1,116 +1,113 @@
-"""Source specs (`sim:world=office,agent=lidar-1`, `replay:PATH,step=2`) and `open_source(spec)`.
-
-Grammar: ``KIND ":" BODY`` where KIND is ``sim`` or ``replay``.
-
-- ``sim:key=value,...``: world (room, office), agent (depth-1, lidar-1, lidar3d-1, cctv-1,
-  cctv-2 in office), seed, frames, noise, drift, range_noise, start (origin, world), realtime.
-- ``replay:PATH[,key=value...]``: PATH is a CARMEN log (.log, .log.gz), a 7-Scenes or TUM RGB-D
-  folder, or a ROS 1/2 bag; options: format (auto, carmen, 7scenes, tum, rosbag), start, stop,
-  step, strict; CARMEN: poses (reference, odometry), max_range; RGB-D: stride, max_range;
-  ROS: topic, odom, info, max_range.
-"""
+"""Source kinds (`sim:`, `replay:`, `synthetic:`, `bulk:`): their registry, `open_source(spec)` and reference."""
 
 from __future__ import annotations
 
-import inspect
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
 
-from plugins.carmen import CarmenSource
-from plugins.errors import SourceSpecError
-from plugins.replay import detect_format, open_replay
-from plugins.sevenscenes import RgbdSource
-from plugins.sim import SimSource
-from plugins.stream import Source
-
-KINDS = ("sim", "replay")
-_TRUE, _FALSE = {"1", "true", "yes", "on"}, {"0", "false", "no", "off"}
+from plugins.bulk import BulkOptions, open_bulk
+from plugins.carmen import CarmenOptions
+from plugins.replay import ReplayOptions, open_replay
+from plugins.rosbag import RosbagOptions
+from plugins.sevenscenes import RgbdOptions
+from plugins.sim import SimOptions, open_sim
+from plugins.spec import Options, SourceSpec, option_docs, split_spec
+from plugins.stream import Source, SourceContext
+from plugins.synthetic import SyntheticOptions, open_synthetic
 
 
 @dataclass(frozen=True)
-class SourceSpec:
-    """A parsed source spec: kind, path (replay only) and options as strings."""
+class SourceKind:
+    """A kind of source: how its spec looks, what it reads, its options models and how to open it.
 
-    kind: str
-    path: str | None = None
-    options: dict[str, str] = field(default_factory=dict)
+    `options` lists (heading, model): the kind's own options under heading "", then options that
+    depend on what is read (replay: per recording format).
+    """
+
+    name: str
+    usage: str
+    reads: str
+    options: tuple[tuple[str, type[Options]], ...]
+    open: Callable[[SourceSpec, SourceContext], Source]
+    takes_path: bool = False
+
+
+SOURCE_KINDS: dict[str, SourceKind] = {kind.name: kind for kind in (
+    SourceKind(
+        "sim", "sim:key=value,...",
+        "an agent of a simulated world: a depth camera, 2D or 3D LiDAR or CCTV camera rendered by ray "
+        "casting along the agent's path, pose guesses from noisy odometry, ground truth kept; "
+        "deterministic for a seed",
+        (("", SimOptions),), open_sim),
+    SourceKind(
+        "replay", "replay:PATH[,key=value...]",
+        "a real recording at PATH: a CARMEN laser log (.log, .log.gz), a 7-Scenes or TUM RGB-D folder, "
+        "or a ROS 1/2 bag (.bag, .db3, .mcap, or a folder with metadata.yaml; needs the [ros] extra); "
+        "bad frames are skipped and counted unless strict",
+        (("", ReplayOptions), ("carmen", CarmenOptions), ("7scenes, tum", RgbdOptions),
+         ("rosbag", RosbagOptions)),
+        open_replay, takes_path=True),
+    SourceKind(
+        "synthetic", "synthetic:key=value,...",
+        "nothing: a 2.5D scanner walking an empty square room, horizontal beams to the walls with "
+        "returns at random heights, paced in real time (daemon tests and benchmarks)",
+        (("", SyntheticOptions),), open_synthetic),
+    SourceKind(
+        "bulk", "bulk:key=value,...",
+        "nothing: one ready-made layer of occupied voxels with random log-odds, at the grid's "
+        "resolution, integrated at once (benchmarks of catch-up)",
+        (("", BulkOptions),), open_bulk),
+)}
 
 
 def parse_spec(spec: str) -> SourceSpec:
-    """Parse a source spec string (see the module docstring)."""
-    kind, sep, body = spec.partition(":")
-    if not sep or kind not in KINDS:
-        msg = f"source spec: expected 'sim:key=value,...' or 'replay:PATH', found {spec!r}"
-        raise SourceSpecError(msg)
-    parts = [p for p in body.split(",")] if body else []
-    path = None
-    if kind == "replay":
-        if not parts or not parts[0] or "=" in parts[0]:
-            msg = f"source spec: expected 'replay:PATH[,key=value...]', found {spec!r}"
-            raise SourceSpecError(msg)
-        path, parts = parts[0], parts[1:]
-    options: dict[str, str] = {}
-    for part in parts:
-        key, eq, value = part.partition("=")
-        key = key.strip()
-        if not eq or not key:
-            msg = f"source spec {spec!r}: expected key=value, found {part!r}"
-            raise SourceSpecError(msg)
-        if key in options:
-            msg = f"source spec {spec!r}: expected each option once, found {key!r} twice"
-            raise SourceSpecError(msg)
-        options[key] = value.strip()
-    return SourceSpec(kind=kind, path=path, options=options)
+    """Split a spec of any registered kind into kind, path and options (values still text)."""
+    usages = {name: kind.usage for name, kind in SOURCE_KINDS.items()}
+    with_path = frozenset(name for name, kind in SOURCE_KINDS.items() if kind.takes_path)
+    return split_spec(spec, usages, with_path)
 
 
-def _coerce(target: Any, options: dict[str, str], spec: str, exclude: tuple[str, ...] = ()) -> dict[str, Any]:
-    """Options converted to the types of `target`'s keyword parameters; unknown keys rejected."""
-    params = {name: p for name, p in inspect.signature(target).parameters.items()
-              if p.kind is inspect.Parameter.KEYWORD_ONLY and name not in ("spec", *exclude)}
-    out: dict[str, Any] = {}
-    for key, text in options.items():
-        if key not in params:
-            msg = f"source spec {spec!r}: option {key!r}: expected one of {sorted(params)}, found unknown option"
-            raise SourceSpecError(msg)
-        kind = str(params[key].annotation)
-        try:
-            if text.lower() in ("none", "") and "None" in kind:
-                out[key] = None
-            elif kind.startswith("bool"):
-                if text.lower() not in _TRUE | _FALSE:
-                    raise ValueError
-                out[key] = text.lower() in _TRUE
-            elif kind.startswith("int"):
-                out[key] = int(text)
-            elif kind.startswith("float"):
-                out[key] = float(text)
-            else:
-                out[key] = text
-        except ValueError:
-            msg = f"source spec {spec!r}: option {key!r}: expected {kind}, found {text!r}"
-            raise SourceSpecError(msg) from None
-    return out
+def open_source(spec: str, *, resolution: float = 0.1, seed: int = 0,
+                stop: threading.Event | None = None) -> Source:
+    """Open the source described by `spec` (`colonyd sources` lists them).
 
-
-def open_source(spec: str) -> Source:
-    """Open the source described by `spec`."""
+    `resolution` is the voxel size of the grid it feeds, `seed` the seed of sources whose spec
+    sets none, `stop` ends paced or endless sources between frames.
+    """
     parsed = parse_spec(spec)
-    if parsed.kind == "sim":
-        return SimSource(spec=spec, **_coerce(SimSource, parsed.options, spec))
-    options = dict(parsed.options)
-    fmt = options.pop("format", "auto")
-    path = Path(parsed.path).expanduser()
-    kind = detect_format(path) if fmt == "auto" else fmt
-    if kind == "carmen":
-        target: Any = CarmenSource
-    elif kind in ("7scenes", "tum"):
-        target = RgbdSource
-    elif kind == "rosbag":
-        from plugins.rosbag import RosbagSource
+    context = SourceContext(resolution=resolution, seed=seed, stop=stop if stop is not None else threading.Event())
+    return SOURCE_KINDS[parsed.kind].open(parsed, context)
 
-        target = RosbagSource
-    else:
-        msg = f"source spec {spec!r}: option 'format': expected auto, carmen, 7scenes, tum or rosbag, found {fmt!r}"
-        raise SourceSpecError(msg)
-    return open_replay(path, format=kind, spec=spec, **_coerce(target, options, spec, exclude=("layout",)))
+
+def describe_sources(*, markdown: bool = False) -> str:
+    """Every source kind: its spec, what it reads and its options with type, default and help."""
+    return "\n".join(_markdown(kind) if markdown else _text(kind) for kind in SOURCE_KINDS.values())
+
+
+def _sections(kind: SourceKind) -> list[tuple[str, list]]:
+    """(heading, option docs) of a kind; later sections leave out the options of the first."""
+    own = tuple(kind.options[0][1].model_fields)
+    return [(heading, option_docs(model, exclude=own if i else ())) for i, (heading, model) in enumerate(kind.options)]
+
+
+def _text(kind: SourceKind) -> str:
+    lines = [kind.usage, f"  reads: {kind.reads}"]
+    for heading, docs in _sections(kind):
+        lines.append(f"  options{f' for {heading}' if heading else ''}:")
+        width = max((len(d.name) for d in docs), default=0)
+        tw = max((len(d.type) for d in docs), default=0)
+        dw = max((len(d.default) for d in docs), default=0)
+        lines += [f"    {d.name:<{width}}  {d.type:<{tw}}  {d.default:<{dw}}  {d.help}" for d in docs]
+    return "\n".join(lines) + "\n"
+
+
+def _markdown(kind: SourceKind) -> str:
+    lines = [f"### `{kind.usage}`", "", f"Reads {kind.reads}.", ""]
+    for heading, docs in _sections(kind):
+        if heading:
+            lines += [f"Options for {heading}:", ""]
+        lines += ["| option | type | default | meaning |", "|---|---|---|---|"]
+        lines += [f"| `{d.name}` | {d.type} | `{d.default}` | {d.help} |" for d in docs]
+        lines.append("")
+    return "\n".join(lines)

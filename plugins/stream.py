@@ -1,8 +1,9 @@
-"""Source protocol and per-stream counters: a source yields Observations and counts what it skipped."""
+"""Source protocol, per-stream counters and what a caller gives every source: resolution, seed, stop."""
 
 from __future__ import annotations
 
 import logging
+import threading
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -30,6 +31,20 @@ class StreamStats:
         if len(self.first_errors) < 10:
             self.first_errors.append(f"{where}: {error}")
             log.warning("skipped bad frame %s: %s", where, error)
+
+
+@dataclass(frozen=True)
+class SourceContext:
+    """What the caller of a source knows and a spec does not say.
+
+    `resolution`: voxel size of the grid fed (sources of ready-made voxels need it); `seed`: the
+    seed of sources whose spec sets none (the daemon derives one per agent); `stop`: set to end
+    a paced or endless source between frames.
+    """
+
+    resolution: float = 0.1
+    seed: int = 0
+    stop: threading.Event = field(default_factory=threading.Event)
 
 
 @runtime_checkable

@@ -209,7 +209,7 @@ class World:
             tag = self._tag(marker)
             side = float(np.linalg.norm(np.roll(uv, 1, axis=0) - uv, axis=1).max())
             if side < tag.shape[0] / 2:  # pre-filter: anti-aliased edges at the projected size
-                size = max(int(round(side * 2)), 8)
+                size = max(round(side * 2), 8)
                 tag = cv2.resize(tag, (size, size), interpolation=cv2.INTER_AREA)
             s = tag.shape[0]
             src = np.array([[-0.5, -0.5], [s - 0.5, -0.5], [s - 0.5, s - 0.5], [-0.5, s - 0.5]], np.float32)
@@ -229,7 +229,7 @@ class World:
             cells = dictionary.markerSize + 2
             px = 16
             inner = cv2.aruco.generateImageMarker(dictionary, marker.marker_id, cells * px, borderBits=1)
-            pad = int(round(marker.margin * cells * px))
+            pad = round(marker.margin * cells * px)
             self._bitmaps[marker.marker_id] = cv2.copyMakeBorder(inner, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=255)
         return self._bitmaps[marker.marker_id]
 
@@ -318,6 +318,11 @@ def office_world() -> World:
                  Cylinder((1.2, -2.5), 0.3, 0.0, 1.1, CLASSES["cylinder"], 21),
                  Cylinder((5.2, 0.5), 0.25, 0.0, 1.0, CLASSES["cylinder"], 22)]
     return World(name="office", boxes=boxes, cylinders=cylinders, markers=markers)
+
+
+def box_room(side: float, height: float = 2.5) -> World:
+    """An empty square room without a floor: inner wall faces at 0 and `side` on x and y (the synthetic scanner's)."""
+    return World(name="box", boxes=_walls(0.0, 0.0, side, side, height), floor=None)
 
 
 WORLDS = {"room": room_world, "office": office_world}

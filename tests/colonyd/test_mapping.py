@@ -8,11 +8,20 @@ import cv2
 import numpy as np
 import pytest
 
-from colonyd.mapping import FREE_GREY, OCCUPIED_GREY, UNKNOWN_GREY, floor_plan, map_source, tum_line
+from colonyd.mapping import (
+    FREE_GREY,
+    OCCUPIED_GREY,
+    UNKNOWN_GREY,
+    floor_plan,
+    integrate_observation,
+    map_source,
+    tum_line,
+)
 from plugins.source import open_source
 from voxel import keys as vk
 from voxel.grid import VoxelGrid
 from voxel.octomap_io import read_bt
+from voxel.sensor import SensorModel
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 KITCHEN = DATA / "redkitchen-50"
@@ -117,3 +126,18 @@ def test_tum_line() -> None:
     pose = np.eye(4)
     pose[:3, 3] = [1, 2, 3]
     assert tum_line(1.5, pose) == "1.500000 1.000000 2.000000 3.000000 0.000000000 0.000000000 0.000000000 1.000000000"
+
+
+def test_a_bulk_observation_is_applied_as_the_next_version() -> None:
+    grid = VoxelGrid(0.1)
+    grid.integrate(np.array([[3.0, 0.0, 0.0]]), np.zeros(3), time=1.0)
+    before = int(grid.version)
+    (obs,) = list(open_source("bulk:voxels=27", resolution=0.1))
+    integrate_observation(grid, obs, sensor=SensorModel(), reliability=1.0)
+    assert int(grid.version) == before + 1 and len(grid.occupied_keys()) + len(grid.free_keys()) >= 27
+    np.testing.assert_array_equal(grid.channel_at_keys("logodds", obs.delta.keys), obs.delta.logodds)
+
+
+def test_colonyd_map_maps_a_synthetic_source(tmp_path: Path) -> None:
+    summary = map_source("synthetic:scans=3,rate=1000,points=90", 0.1, tmp_path, progress=False)
+    assert summary.frames == 3 and summary.points == 270 and summary.occupied > 0

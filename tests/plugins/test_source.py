@@ -1,17 +1,21 @@
-"""Tests of source spec parsing and open_source."""
+"""Tests of the source registry: spec parsing, open_source for every kind, the reference text."""
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 
 import pytest
 
-from plugins.carmen import CarmenSource
+from plugins.bulk import BulkOptions, BulkSource
+from plugins.carmen import CarmenOptions, CarmenSource
 from plugins.errors import SourceSpecError
-from plugins.sevenscenes import RgbdSource
-from plugins.sim import SimSource
-from plugins.source import open_source, parse_spec
+from plugins.rosbag import RosbagOptions, RosbagSource
+from plugins.sevenscenes import RgbdOptions, RgbdSource
+from plugins.sim import SimOptions, SimSource
+from plugins.source import SOURCE_KINDS, describe_sources, open_source, parse_spec
 from plugins.stream import Source
+from plugins.synthetic import SyntheticOptions, SyntheticSource
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 
@@ -25,8 +29,8 @@ def test_parse_spec() -> None:
 
 
 @pytest.mark.parametrize(("spec", "message"), [
-    ("office", r"expected 'sim:key=value,...' or 'replay:PATH', found 'office'"),
-    ("lidar:x", r"expected 'sim:key=value,...' or 'replay:PATH', found 'lidar:x'"),
+    ("office", r"expected 'sim:key=value,...', 'replay:PATH\[,key=value...\]', 'synthetic:key=value,...' or 'bulk:key=value,...', found 'office'"),
+    ("lidar:x", r"expected 'sim:key=value,...', 'replay:PATH\[,key=value...\]', .* found 'lidar:x'"),
     ("replay:", r"expected 'replay:PATH\[,key=value...\]', found 'replay:'"),
     ("sim:world", r"expected key=value, found 'world'"),
     ("sim:seed=1,seed=2", r"expected each option once, found 'seed' twice"),
@@ -62,5 +66,50 @@ def test_open_replays() -> None:
     assert isinstance(kitchen, RgbdSource) and len(kitchen) == 10
     with pytest.raises(SourceSpecError, match=r"option 'poses': expected one of"):
         open_source(f"replay:{DATA}/redkitchen-50,poses=odometry")
-    with pytest.raises(SourceSpecError, match=r"option 'format': expected auto, carmen, 7scenes, tum or rosbag, found 'pcd'"):
+    with pytest.raises(SourceSpecError, match=r"option 'format': expected 'auto', 'carmen', '7scenes', 'tum' or 'rosbag', found 'pcd'"):
         open_source(f"replay:{DATA}/redkitchen-50,format=pcd")
+
+
+def test_every_kind_opens_from_its_spec() -> None:
+    assert set(SOURCE_KINDS) == {"sim", "replay", "synthetic", "bulk"}
+    assert isinstance(open_source("synthetic:scans=1"), SyntheticSource)
+    assert isinstance(open_source("bulk:voxels=8"), BulkSource)
+    for source in (open_source("synthetic:scans=1"), open_source("bulk:voxels=8"), open_source("sim:frames=1")):
+        assert isinstance(source, Source)
+        assert source.adapter.sensor_model is not None and 0 < source.adapter.reliability <= 1
+
+
+def test_replay_options_depend_on_the_format(tmp_path: Path) -> None:
+    log = tmp_path / "run.log"
+    log.write_text("PARAM robot_name test\n")
+    source = open_source(f"replay:{log},format=carmen,stop=none,poses=odometry")
+    assert isinstance(source, CarmenSource) and source.stop is None and source.poses == "odometry"
+    with pytest.raises(SourceSpecError, match=r"option 'stride': expected one of \['format', 'max_range', 'poses', 'start', 'step', 'stop', 'strict'\], found unknown option"):
+        open_source(f"replay:{log},stride=2")
+    with pytest.raises(SourceSpecError, match=r"option 'stop': expected int or None, found 'end'"):
+        open_source(f"replay:{log},stop=end")
+
+
+def test_model_defaults_are_the_sources_defaults() -> None:
+    """What `colonyd sources` prints as a default is what a source gets when the option is left out."""
+    pairs = [(SimOptions, SimSource), (CarmenOptions, CarmenSource), (RgbdOptions, RgbdSource),
+             (RosbagOptions, RosbagSource), (SyntheticOptions, SyntheticSource), (BulkOptions, BulkSource)]
+    for model, source in pairs:
+        params = {name: p.default for name, p in inspect.signature(source).parameters.items()
+                  if p.kind is inspect.Parameter.KEYWORD_ONLY}
+        for name, info in model.model_fields.items():
+            assert name in params, (model.__name__, name)
+            if info.default is not None or params[name] is None:  # none: the caller's value (seed)
+                assert info.default == params[name], (model.__name__, name)
+
+
+def test_describe_sources_lists_every_option_of_every_kind() -> None:
+    text = describe_sources()
+    for kind in SOURCE_KINDS.values():
+        assert kind.usage in text and kind.reads in text
+        for _, model in kind.options:
+            for name, info in model.model_fields.items():
+                assert name in text and str(info.description) in text
+    assert "int or None" in text and "80.0" in text
+    markdown = describe_sources(markdown=True)
+    assert "### `replay:PATH[,key=value...]`" in markdown and "| `max_range` | float | `10.0` |" in markdown
