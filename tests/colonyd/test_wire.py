@@ -181,3 +181,11 @@ def test_encoding_from_many_threads_at_once() -> None:
         t.join()
     assert not errors
     assert peek(s.encode(Heartbeat(**s.header(), kind="robot", frame_id="map"))).seq == 120
+
+
+def test_protocol_doc_states_how_the_key_is_derived() -> None:
+    from pathlib import Path
+
+    doc = (Path(__file__).parents[2] / "docs" / "PROTOCOL.md").read_text()
+    phrase = "correct horse battery staple"
+    assert f"passphrase `{phrase}` gives the key\n`{colony_key(phrase).hex()}`" in doc
