@@ -69,7 +69,7 @@ def fuse_channels(store: BlockStore, hit_keys: np.ndarray, inverse: np.ndarray |
     def mean_of(values: np.ndarray) -> np.ndarray:
         v = values.reshape(values.shape[0], -1).astype(np.float64)
         out = np.stack([np.bincount(inverse, weights=v[:, j], minlength=m) for j in range(v.shape[1])], axis=1)
-        return out / counts[:, None]  # type: ignore[no-any-return]
+        return out / counts[:, None]
 
     if channels.colours is not None:
         arr = store.channel("colour")

@@ -172,7 +172,8 @@ class History:
         rec = self.view()
         mine = rec[rec["key"] == key]
         mine = mine[np.argsort(mine["time"], kind="stable")]
-        return mine[-self.per_voxel :].copy()
+        newest: np.ndarray = mine[-self.per_voxel :].copy()
+        return newest
 
     def state_at(self, keys: np.ndarray, t: float) -> np.ndarray:
         """State (-1/0/1) of packed keys after the last record at or before time t; -1 if none."""

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+import numpy.typing as npt
 
 from voxel import keys as vk
 from voxel.blocks import BlockStore
@@ -28,7 +29,7 @@ FORGET_EPSILON = 0.05
 UPDATE_CHUNK = 4096
 
 
-def quantise_logodds(values: np.ndarray | float) -> np.ndarray:
+def quantise_logodds(values: npt.ArrayLike) -> np.ndarray:
     """Nearest multiple of LOGODDS_QUANTUM (float32; NaN stays NaN)."""
     scaled: np.ndarray = np.rint(np.asarray(values, dtype=np.float32) * _Q_SCALE)
     return (scaled / _Q_SCALE).astype(np.float32)
