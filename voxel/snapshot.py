@@ -1,9 +1,4 @@
-"""Lossless grid snapshots: an .npz archive wrapped in zstd, with metadata, block keys, channels, history.
-
-The file is a zstd frame around a NumPy .npz archive, so `np.load` cannot open it directly:
-decompress it first (`zstandard.ZstdDecompressor().stream_reader(fh).read()`), or use
-`VoxelGrid.load`. The name `grid.npz` that `colonyd map` writes is kept for existing files.
-"""
+"""Lossless grid snapshots: an .npz archive wrapped in zstd, with metadata, block keys, channels, history."""
 
 from __future__ import annotations
 
@@ -46,7 +41,12 @@ G = TypeVar("G", bound=SnapshotGrid)
 
 
 def save_grid(grid: SnapshotGrid, path: Path) -> None:
-    """Write `grid` to `path` atomically (temporary file, fsync, rename)."""
+    """Write `grid` to `path` atomically (temporary file, fsync, rename).
+
+    The file is a zstd frame around a NumPy .npz archive, so `np.load` cannot open it directly
+    whatever its name (`colonyd map` keeps `grid.npz` for existing files and scripts): read it
+    with `load_grid`, or decompress it first (`zstandard.ZstdDecompressor().stream_reader(fh)`).
+    """
     st = grid.store
     slots = st.used_slots()
     meta = {
