@@ -72,7 +72,7 @@ class BlockStore:
 
     def __init__(self, class_k: int = 3, capacity: int = 64, shifts: tuple[int, int, int] = CUBE) -> None:
         self.class_k = class_k
-        self.shifts = tuple(shifts)
+        self.shifts: tuple[int, int, int] = (int(shifts[0]), int(shifts[1]), int(shifts[2]))
         self.block_voxels = 1 << sum(self.shifts)
         self.capacity = capacity
         self.count = 0  # slots ever used (high-water mark)
@@ -194,5 +194,5 @@ class BlockStore:
         """Bytes held by the channel arrays of used slots plus the index."""
         index = (self.sorted_keys.itemsize + self.sorted_slots.itemsize + self.slot_keys.itemsize
                  + self.slot_version.itemsize)
-        per_slot = sum(arr[0].nbytes for arr in self.channels.values()) + index
+        per_slot = sum(int(arr[0].nbytes) for arr in self.channels.values()) + index
         return per_slot * len(self.sorted_slots)

@@ -6,7 +6,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from voxel import keys as vk
+from voxel.blocks import CORE_CHANNELS, BlockStore
 from voxel.errors import DeltaError
+from voxel.timebase import TimeBase
 
 #: Optional per-voxel channels a delta may carry, with dtype and trailing shape.
 #: `class_ids`/`class_probs` have a trailing dimension k (top-k object classes); a scalar channel
@@ -100,3 +103,77 @@ class Delta:
             channels={k: v[mask] for k, v in self.channels.items()},
             time=self.time,
         )
+
+
+def delta_of(store: BlockStore, times: TimeBase, version: int, *, resolution: float, to_version: int,
+             time: float) -> Delta:
+    """Every voxel of `store` changed after `version`, with its absolute current values."""
+    slots = store.used_slots()
+    slots = slots[store.slot_version[slots] > version]
+    ver = store.channels["version"][slots]
+    b, o = np.nonzero(ver > version)
+    s = slots[b]
+    keys = store.join(store.slot_keys[s], o)
+    channels = {name: arr[s, o] for name, arr in store.channels.items() if name not in CORE_CHANNELS}
+    return Delta(
+        resolution=resolution,
+        from_version=int(version),
+        to_version=to_version,
+        keys=keys,
+        logodds=store.channels["logodds"][s, o],
+        last_time=times.seconds(store.channels["last_time"][s, o]),
+        channels=channels,
+        time=time,
+    )
+
+
+def merge_delta(store: BlockStore, times: TimeBase, delta: Delta) -> np.ndarray:
+    """Write a delta's voxels into `store` where it is newer than the stored voxel (by version).
+
+    Returns the delta's times (seconds) of the voxels that took its values.
+    """
+    if len(delta) == 0:
+        return np.empty(0)
+    if not vk.in_range(delta.keys).all():
+        msg = (f"delta keys must lie in [{vk.KEY_MIN}, {vk.KEY_MAX}] on every axis, "
+               f"found [{delta.keys.min()}, {delta.keys.max()}]")
+        raise DeltaError(msg)
+    blocks, offsets = store.split(delta.keys)
+    ub, inv = np.unique(blocks, return_inverse=True)
+    slots = store.ensure(ub)[inv]
+    incoming = np.uint32(delta.to_version)
+    take = store.channels["version"][slots, offsets] < incoming
+    if not take.any():
+        return np.empty(0)
+    s, o = slots[take], offsets[take]
+    store.channels["logodds"][s, o] = delta.logodds[take]
+    store.channels["last_time"][s, o] = times.stamp(delta.last_time[take])
+    store.channels["version"][s, o] = incoming
+    for name, values in delta.channels.items():
+        arr = store.channel(name)
+        if arr.shape[2:] != values.shape[1:]:
+            msg = f"delta channel {name!r} has shape {values.shape[1:]} per voxel, grid holds {arr.shape[2:]}"
+            raise DeltaError(msg)
+        arr[s, o] = values[take]
+    np.maximum.at(store.slot_version, s, incoming)
+    taken: np.ndarray = delta.last_time[take]
+    return taken
+
+
+def same_content(a: Delta, b: Delta) -> bool:
+    """True when two full deltas hold the same known voxels with the same values in every channel."""
+    ka, kb = vk.pack(a.keys), vk.pack(b.keys)
+    ia, ib = np.argsort(ka), np.argsort(kb)
+    ma, mb = ~np.isnan(a.logodds[ia]), ~np.isnan(b.logodds[ib])
+    ia, ib = ia[ma], ib[mb]
+    if not np.array_equal(ka[ia], kb[ib]):
+        return False
+    if not (np.array_equal(a.logodds[ia], b.logodds[ib]) and np.array_equal(a.last_time[ia], b.last_time[ib])):
+        return False
+    for name in set(a.channels) | set(b.channels):
+        if name not in a.channels or name not in b.channels:
+            return False
+        va, vb = a.channels[name][ia], b.channels[name][ib]
+        if not np.array_equal(va, vb, equal_nan=va.dtype.kind == "f"):
+            return False
+    return True

@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import NamedTuple
+
 import numpy as np
+
+from voxel import keys as vk
+from voxel.occupancy import FREE_STATE, OCCUPIED, Changes, Evidence
+from voxel.raycast import FREE, HIT
 
 #: Columns of a history record, in storage order.
 RECORD_DTYPE = np.dtype(
@@ -22,6 +29,44 @@ RECORD_DTYPE = np.dtype(
         ("bias", np.float32),
     ]
 )
+
+
+@dataclass(frozen=True)
+class Observer:
+    """Who made one scan, when, and how far to trust it: the columns every record of it shares."""
+
+    time: float  # seconds, whole milliseconds
+    agent: int  # History.agent_code of the agent
+    sensor: int  # voxel.sensor.SENSOR_KINDS code
+    reliability: float
+    experience: float
+    bias: float
+
+
+class ObjectTags(NamedTuple):
+    """Object id of each hit voxel of one scan that carries one (the last point of a voxel wins)."""
+
+    keys: np.ndarray  # (U,) packed voxel keys, sorted
+    ids: np.ndarray  # (U,) int64 object id per key, -1 none
+
+    @classmethod
+    def of(cls, hit_keys: np.ndarray, inverse: np.ndarray | None, object_ids: np.ndarray | None) -> ObjectTags | None:
+        """Tags of hit voxel keys (U, 3) in packed order from each hit point's row and object id."""
+        if object_ids is None or inverse is None or hit_keys.shape[0] == 0:
+            return None
+        per_voxel = np.full(hit_keys.shape[0], -1, dtype=np.int64)
+        per_voxel[inverse] = object_ids
+        return cls(vk.pack(hit_keys), per_voxel)
+
+    def lookup(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Object id (int32, -1 none) and probability (1 where tagged) of packed keys."""
+        obj_id = np.full(keys.size, -1, dtype=np.int32)
+        obj_p = np.zeros(keys.size, dtype=np.float32)
+        pos = np.minimum(np.searchsorted(self.keys, keys), self.keys.size - 1)
+        found = self.keys[pos] == keys
+        obj_id[found] = self.ids[pos[found]]
+        obj_p[found & (obj_id >= 0)] = 1.0
+        return obj_id, obj_p
 
 
 class History:
@@ -68,6 +113,40 @@ class History:
             block[name] = value
         self.size += n
 
+    def record(self, changes: list[Changes], observer: Observer, evidence: Evidence,
+               objects: ObjectTags | None) -> None:
+        """Append one scan's records: every hit voxel and every voxel whose state flipped.
+
+        `changes` are the occupancy update's chunks (appended one by one, as the update made
+        them); free space seen for the first time (unknown -> free) is not among them.
+        """
+        for ch in changes:
+            if ch.keys.size == 0:
+                continue
+            state = ch.after >= 0
+            with np.errstate(invalid="ignore"):
+                flip = np.isnan(ch.before) | ((ch.before >= 0) != state)
+            if objects is None:
+                obj_id = np.full(ch.keys.size, -1, dtype=np.int32)
+                obj_p = np.zeros(ch.keys.size, dtype=np.float32)
+            else:
+                obj_id, obj_p = objects.lookup(ch.keys)
+            self.append(
+                ch.keys,
+                time=observer.time,
+                agent=observer.agent,
+                sensor=observer.sensor,
+                evidence=np.where(ch.hit, evidence.raw[HIT], evidence.raw[FREE]),
+                logodds=ch.after,
+                state=np.where(state, OCCUPIED, FREE_STATE),
+                flip=flip,
+                object_id=obj_id,
+                object_prob=obj_p,
+                experience=observer.experience,
+                reliability=observer.reliability,
+                bias=observer.bias,
+            )
+
     def _compact(self, incoming: int) -> None:
         rec = self._buf[: self.size]
         order = np.lexsort((-rec["time"], rec["key"]))  # by key, newest first
@@ -93,7 +172,8 @@ class History:
         rec = self.view()
         mine = rec[rec["key"] == key]
         mine = mine[np.argsort(mine["time"], kind="stable")]
-        return mine[-self.per_voxel :].copy()
+        newest: np.ndarray = mine[-self.per_voxel :].copy()
+        return newest
 
     def state_at(self, keys: np.ndarray, t: float) -> np.ndarray:
         """State (-1/0/1) of packed keys after the last record at or before time t; -1 if none."""

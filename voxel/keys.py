@@ -44,7 +44,8 @@ def in_range(keys: np.ndarray) -> np.ndarray:
     k = np.asarray(keys)
     if k.size == 0 or (k.min() >= KEY_MIN and k.max() <= KEY_MAX):
         return np.ones(k.shape[0], dtype=bool)
-    return np.all((k >= KEY_MIN) & (k <= KEY_MAX), axis=1)
+    inside: np.ndarray = np.all((k >= KEY_MIN) & (k <= KEY_MAX), axis=1)
+    return inside
 
 
 _HASH_MULTIPLIERS = (-7046029254386353131, -4658895280553007687, 7640891576956012809, -8350542686271633251)

@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from voxel import keys as vk
 from voxel.errors import InputError
+
+if TYPE_CHECKING:
+    from voxel.grid import VoxelGrid
 
 
 @dataclass(frozen=True)
@@ -25,7 +29,7 @@ class ObjectCentroid:
 
 
 def extract_objects(
-    grid, *, min_probability: float = 0.3, min_voxels: int = 4, id_cell: float = 0.5
+    grid: VoxelGrid, *, min_probability: float = 0.3, min_voxels: int = 4, id_cell: float = 0.5
 ) -> list[ObjectCentroid]:
     """Cluster occupied, class-labelled voxels of `grid` into objects (DBSCAN per class).
 
@@ -33,7 +37,7 @@ def extract_objects(
     26-connected voxels (DBSCAN with eps = 1.8 voxels) smaller than `min_voxels` are outliers.
     The centroid covariance is the voxel scatter over the count, plus the voxel quantisation.
     """
-    from sklearn.cluster import DBSCAN
+    from sklearn.cluster import DBSCAN  # type: ignore[import-untyped]
 
     if min_voxels < 1 or not 0.0 <= min_probability <= 1.0:
         msg = f"need min_voxels >= 1 and min_probability in [0, 1], found {min_voxels!r}, {min_probability!r}"

@@ -74,7 +74,7 @@ def read_ply(path: StrPath) -> tuple[np.ndarray, np.ndarray | None]:
         raise FileFormatError(msg) from None
     data = np.frombuffer(body, dtype=dtype, count=count)
     centres = np.stack([data[name].astype(np.float64) for name in _XYZ], axis=1)
-    if not all(name in dtype.names for name in _RGB):
+    if not all(name in (dtype.names or ()) for name in _RGB):
         return centres, None
     colours = np.stack([data[name] for name in _RGB], axis=1)
     return centres, colours

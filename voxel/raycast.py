@@ -159,7 +159,8 @@ def _enumerate(left: np.ndarray, runs: tuple[np.ndarray, ...], z_moves: bool) ->
     lin += (np.repeat(y, left) + jf * np.repeat(inc_y, left)).astype(np.int64) * np.repeat(sy, left)
     if z_moves:
         lin += (np.repeat(z, left) + jf * np.repeat(inc_z, left)).astype(np.int64) * np.repeat(sz, left)
-    return lin
+    out: np.ndarray = lin
+    return out
 
 
 def _box(origin_key: np.ndarray, *key_rows: np.ndarray, shifts: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -229,8 +230,8 @@ def trace(
         cells[start] = FREE
     cells[hit_lin] = HIT
     blocks, vals = _blocks_of(buf, dims, lo, shifts)
-    inverse = np.searchsorted(hit_lin, lin) if want_inverse else None
-    return Traversal(blocks=blocks, cells=vals, hit_keys=local + lo, inverse=inverse)
+    point_rows = np.searchsorted(hit_lin, lin) if want_inverse else None
+    return Traversal(blocks=blocks, cells=vals, hit_keys=local + lo, inverse=point_rows)
 
 
 def _marked(buf: np.ndarray, words: np.ndarray | None = None) -> np.ndarray:
@@ -244,7 +245,9 @@ def _marked(buf: np.ndarray, words: np.ndarray | None = None) -> np.ndarray:
     return words[r] * 8 + c
 
 
-def _blocks_of(buf: np.ndarray, dims: np.ndarray, lo: np.ndarray, shifts: tuple[int, int, int]):
+def _blocks_of(
+    buf: np.ndarray, dims: np.ndarray, lo: np.ndarray, shifts: tuple[int, int, int]
+) -> tuple[np.ndarray, np.ndarray]:
     """Packed keys and cells (B, block voxels) of the blocks of a dense box that hold a mark.
 
     A box with few marks (long rays, thin scans) is read through its marked cells; a well

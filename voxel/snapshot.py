@@ -1,4 +1,4 @@
-"""Lossless grid snapshots: a zstd-compressed .npz with metadata, block keys, channels and history."""
+"""Lossless grid snapshots: an .npz archive wrapped in zstd, with metadata, block keys, channels, history."""
 
 from __future__ import annotations
 
@@ -6,17 +6,16 @@ import io
 import json
 import os
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol, TypeVar
 
 import numpy as np
 import zstandard
 
+from voxel.blocks import BlockStore
 from voxel.errors import FileFormatError
-from voxel.history import RECORD_DTYPE
-
-if TYPE_CHECKING:
-    from voxel.grid import VoxelGrid
+from voxel.history import RECORD_DTYPE, History
 
 FORMAT = "colony-voxel-snapshot"
 FORMAT_VERSION = 3
@@ -25,8 +24,29 @@ READABLE_VERSIONS = (2, 3)
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 
 
-def save_grid(grid: VoxelGrid, path: Path) -> None:
-    """Write `grid` to `path` atomically (temporary file, fsync, rename)."""
+class SnapshotGrid(Protocol):
+    """What a snapshot holds of a grid (`voxel.grid.VoxelGrid` is one)."""
+
+    resolution: float
+    half_life: float | None
+    statistics: bool
+    store: BlockStore
+    history: History
+    version: int
+    now: float
+    time_base_ms: int | None
+
+
+G = TypeVar("G", bound=SnapshotGrid)
+
+
+def save_grid(grid: SnapshotGrid, path: Path) -> None:
+    """Write `grid` to `path` atomically (temporary file, fsync, rename).
+
+    The file is a zstd frame around a NumPy .npz archive, so `np.load` cannot open it directly
+    whatever its name (`colonyd map` keeps `grid.npz` for existing files and scripts): read it
+    with `load_grid`, or decompress it first (`zstandard.ZstdDecompressor().stream_reader(fh)`).
+    """
     st = grid.store
     slots = st.used_slots()
     meta = {
@@ -65,10 +85,8 @@ def save_grid(grid: VoxelGrid, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def load_grid(path: Path) -> VoxelGrid:
-    """Read a snapshot written by `save_grid`."""
-    from voxel.grid import VoxelGrid
-
+def load_grid(path: Path, make_grid: Callable[..., G]) -> G:
+    """Read a snapshot written by `save_grid` into the grid `make_grid(resolution, **settings)` returns."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
@@ -88,7 +106,7 @@ def load_grid(path: Path) -> VoxelGrid:
                 msg = (f"{path}: expected format {FORMAT} v{'/'.join(map(str, READABLE_VERSIONS))}, "
                        f"found {meta.get('format')!r} v{meta.get('version')!r}")
                 raise FileFormatError(msg)
-            grid = VoxelGrid(
+            grid = make_grid(
                 meta["resolution"],
                 half_life=meta["half_life"],
                 statistics=meta["statistics"],
