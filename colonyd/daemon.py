@@ -151,7 +151,8 @@ class Daemon:
         ns = cfg.key_namespace
         self.gossip = Gossip(
             self.session, ns, self.layers, self.sender,
-            get_receiver(cfg.colony_key, cfg.max_message_mb, cfg.agent_id), self.metrics, epoch=self.epoch,
+            get_receiver(cfg.colony_key, cfg.max_message_mb, cfg.agent_id), self.metrics,
+            epoch=self.epoch, on_own_origin=self._on_own_origin,
             inbox_size=cfg.inbox_size, inbox_bytes=int(cfg.inbox_mb * (1 << 20)),
             drop_rate=cfg.drop_rate,
             query_timeout_s=cfg.query_timeout_s,
@@ -159,7 +160,6 @@ class Daemon:
         )
         self.membership = Membership(self.session, ns, cfg.agent_id, self.gossip.on_member_event)
         self.status_server = StatusServer(self.session, ns, cfg.agent_id, self.report)
-        self.gossip.on_own_origin = self._on_own_origin
         self.gossip.start(self.membership)
 
     def _start_threads(self) -> None:
@@ -234,7 +234,7 @@ class Daemon:
         restart = [k for k in changed if k not in live]
         self.config = self.config.model_copy(update={k: getattr(new, k) for k in changed if k in live})
         logging.getLogger().setLevel(self.config.log_level.upper())
-        self.gossip.query_timeout_s = self.config.query_timeout_s
+        self.gossip.catchup.query_timeout_s = self.config.query_timeout_s
         log.info("reloaded: %s%s", ", ".join(k for k in changed if k in live) or "nothing changed",
                  f"; restart needed for {', '.join(restart)}" if restart else "")
         self.notifier.ready()

@@ -15,10 +15,12 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from colonyd.errors import WireError
+from colonyd.metrics import Metrics
 from protocol import Limits, Message, Receiver, encode
 from voxel.delta import Delta
 
@@ -49,6 +51,20 @@ def get_receiver(secret: str | None, max_message_mb: float, own: str) -> Receive
     """The daemon's one decoding front door (key, limits, replay window, key-vs-origin check,
     frames claiming our own origin `own` refused)."""
     return Receiver(key=colony_key(secret), limits=get_limits(max_message_mb), own=own)
+
+
+def expect(msg: Message, cls: type[Message], what: str) -> Any:
+    """`msg` if it is a `cls`, else WireError("unexpected-type")."""
+    if not isinstance(msg, cls):
+        text = f"expected a {cls.KIND} message {what}, found {msg.KIND}"
+        raise WireError("unexpected-type", text)
+    return msg
+
+
+def accept(receiver: Receiver, metrics: Metrics, msg: Message, raw: bytes) -> None:
+    """Take a frame that passed every check: its replay window moves, its bytes count."""
+    receiver.accept(msg)
+    metrics.add("bytes_received", len(raw))
 
 
 class Sender:

@@ -2,17 +2,16 @@
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+
 import zenoh
 
+from colonyd.runtime import undeclare
 from protocol import Heartbeat, KeyExprError
 from protocol.keyexpr import alive_key, alive_subscription, parse_key
-
-log = logging.getLogger(__name__)
 
 #: How long a starting daemon looks for a live member with its own agent id (peers reached
 #: through gossip answer within ~0.1 s here).
@@ -124,8 +123,4 @@ class Membership:
         return best[0], best[1], holders
 
     def close(self) -> None:
-        for obj in (self._sub, self._token):
-            try:
-                obj.undeclare()
-            except Exception as exc:  # already closed with the session
-                log.debug("undeclare: %s", exc)
+        undeclare(self._sub, self._token)

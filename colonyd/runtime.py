@@ -33,7 +33,7 @@ def zenoh_config(
     if extra_file is not None:
         try:
             conf = zenoh.Config.from_file(str(extra_file))
-        except Exception as exc:  # zenoh raises its own ZError
+        except zenoh.ZError as exc:
             msg = f"zenoh config {extra_file} is invalid: {exc}"
             raise RuntimeSetupError(msg) from None
     else:
@@ -59,7 +59,7 @@ def zenoh_config(
     for key, value in entries.items():
         try:
             conf.insert_json5(key, json.dumps(value))
-        except Exception as exc:
+        except zenoh.ZError as exc:
             msg = f"zenoh rejected {key}={value!r}: {exc}"
             raise RuntimeSetupError(msg) from None
     return conf
@@ -85,7 +85,7 @@ def open_session(conf: zenoh.Config) -> zenoh.Session:
     """Open a session; the caller closes it in `finally`."""
     try:
         return zenoh.open(conf)
-    except Exception as exc:
+    except zenoh.ZError as exc:
         msg = f"cannot open the Zenoh session: {exc}"
         raise RuntimeSetupError(msg) from None
 
@@ -103,3 +103,13 @@ def get_session(config: Config) -> zenoh.Session:
     )
     return session
 
+
+
+def undeclare(*entities: object) -> None:
+    """Undeclare Zenoh publishers, subscribers, queryables or tokens; quietly for any the
+    session has already closed."""
+    for entity in entities:
+        try:
+            entity.undeclare()  # type: ignore[attr-defined]
+        except Exception as exc:  # noqa: BLE001 - shutting down: whatever it was, go on
+            log.debug("undeclare: %s", exc)

@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import json
-import logging
-import queue
-import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -14,11 +11,10 @@ import zenoh
 
 from colonyd.config import Config
 from colonyd.errors import StatusError
-from colonyd.runtime import open_session, zenoh_config
+from colonyd.runtime import open_session, undeclare, zenoh_config
+from colonyd.worker import Bounded, Worker
 from protocol import KeyExprError
 from protocol.keyexpr import alive_subscription, parse_key, status_key, status_selector
-
-log = logging.getLogger(__name__)
 
 
 class StatusServer:
@@ -29,40 +25,21 @@ class StatusServer:
         report: Callable[[dict[str, str]], dict[str, Any]],
     ) -> None:
         self._report = report
-        self._queue: queue.Queue[zenoh.Query] = queue.Queue(maxsize=16)
-        self._stop = threading.Event()
-        self._queryable = session.declare_queryable(status_key(namespace, agent), self._on_query)
-        self._thread = threading.Thread(target=self._loop, name="status", daemon=True)
-        self._thread.start()
+        self._worker: Worker[zenoh.Query] = Worker(
+            "status", self._answer, Bounded(16),
+            describe=lambda q: f"a status query on {q.key_expr}", done=lambda q: q.drop(),
+        )
+        self._queryable = session.declare_queryable(status_key(namespace, agent), self._worker.put)
+        self._worker.start()
 
-    def _on_query(self, query: zenoh.Query) -> None:
-        try:
-            self._queue.put_nowait(query)
-        except queue.Full:
-            query.drop()
-
-    def _loop(self) -> None:
-        while not self._stop.is_set():
-            try:
-                query = self._queue.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            try:
-                params = {str(k): str(v) for k, v in query.parameters}
-                body = json.dumps(self._report(params)).encode()
-                query.reply(str(query.key_expr), body)
-            except Exception:
-                log.exception("status query failed")
-            finally:
-                query.drop()
+    def _answer(self, query: zenoh.Query) -> None:
+        params = {str(k): str(v) for k, v in query.parameters}
+        body = json.dumps(self._report(params)).encode()
+        query.reply(str(query.key_expr), body)
 
     def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2.0)
-        try:
-            self._queryable.undeclare()
-        except Exception as exc:
-            log.debug("undeclare: %s", exc)
+        self._worker.close()
+        undeclare(self._queryable)
 
 
 def query_status(

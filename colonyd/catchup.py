@@ -1,0 +1,232 @@
+"""Catch-up: the repair client that brings a peer's layer up to the best version the colony reports."""
+
+from __future__ import annotations
+
+import logging
+import random
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+
+from colonyd.errors import WireError
+from colonyd.frames import Sender, accept, concat
+from colonyd.layers import Layer, Layers
+from colonyd.membership import Membership
+from colonyd.metrics import Metrics
+from colonyd.replicas import Replicas
+from colonyd.worker import Bounded, Worker
+from protocol import (
+    DeltaRangeReply,
+    DeltaRangeRequest,
+    Message,
+    ProtocolError,
+    Receiver,
+    SnapshotReply,
+    SnapshotRequest,
+)
+from protocol.keyexpr import query_key
+from voxel.delta import Delta
+
+log = logging.getLogger(__name__)
+
+#: Most parts of one reply a requester accepts (a snapshot of a full budget is far fewer).
+MAX_REPLY_PARTS = 4096
+#: Most holders of a layer asked in one repair.
+MAX_SERVERS = 3
+
+
+@dataclass
+class Repair:
+    """A request to bring the layer of `origin` up to the best version the colony reports."""
+
+    origin: str
+    servers: list[str]
+
+
+def complete(msgs: list[Any], what: str) -> bool:
+    """True if `msgs` are every part of one reply, each once."""
+    if not msgs:
+        return False
+    parts = {m.parts for m in msgs}
+    indices = {m.part for m in msgs}
+    if len(parts) != 1 or len(indices) != len(msgs) or len(msgs) != parts.pop():
+        log.info("incomplete %s reply: %d parts received", what, len(msgs))
+        return False
+    return True
+
+
+class CatchUp:
+    """One repair at a time per origin, on one worker: a range of recent deltas from a holder
+    when it has them, else the holder's snapshot of the whole layer."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        namespace: str,
+        replicas: Replicas,
+        sender: Sender,
+        receiver: Receiver,
+        metrics: Metrics,
+        *,
+        query_timeout_s: float = 5.0,
+        part_bytes: int = 4 << 20,
+        stop: threading.Event | None = None,
+    ) -> None:
+        self.session = session
+        self.namespace = namespace
+        self.replicas = replicas
+        self.layers: Layers = replicas.layers
+        self.sender = sender
+        self.receiver = receiver
+        self.metrics = metrics
+        self.query_timeout_s = query_timeout_s
+        self.part_bytes = part_bytes
+        self.membership: Membership | None = None
+        self._rng = random.Random()
+        self._repairing: set[str] = set()
+        self._lock = threading.Lock()
+        self._worker: Worker[Repair] = Worker(
+            "gossip-repair", self._repair, Bounded(1024),
+            describe=lambda rep: f"repair of {rep.origin}", done=self._done, stop=stop,
+        )
+
+    def start(self, membership: Membership) -> None:
+        self.membership = membership
+        self._worker.start()
+
+    def close(self) -> None:
+        self._worker.close()
+
+    def request(self, origin: str, servers: list[str]) -> None:
+        """Bring `origin`'s layer up to date, asking `servers` first; no-op while it is under way."""
+        with self._lock:
+            if origin in self._repairing:
+                return
+            self._repairing.add(origin)
+        self._worker.put(Repair(origin, servers))  # a full queue forgets it (done below)
+
+    def _done(self, rep: Repair) -> None:
+        with self._lock:
+            self._repairing.discard(rep.origin)
+
+    # -- the worker -----------------------------------------------------------------------
+    def _repair(self, rep: Repair) -> None:
+        servers = list(rep.servers)
+        want_epoch, want_seq = 0, 0
+        if self.membership is not None:
+            want_epoch, want_seq, holders = self.membership.best(rep.origin)
+            servers = holders + [s for s in servers if s not in holders]
+        layer = self.layers.find(rep.origin)
+        for server in servers[:MAX_SERVERS]:
+            if self._worker.stop.is_set():
+                return
+            have = (layer.epoch, layer.seq) if layer else (0, 0)
+            if want_epoch and (want_epoch, want_seq) <= have and not (layer and layer.pending):
+                return
+            if (layer and layer.seq > 0 and want_epoch in (0, layer.epoch)
+                    and self._fetch_range(server, rep.origin, layer, want_seq)):
+                layer = self.layers.find(rep.origin)
+                if layer is not None and not layer.pending:
+                    return
+            if self._fetch_snapshot(server, rep.origin):
+                return
+
+    def _ask(self, server: str, query: str, layer: str, request: Any, cls: type[Message]) -> list[Any]:
+        """Send a request frame to `server`'s queryable; the replies of type `cls` for `layer`
+        and this request (every other reply is rejected and counted)."""
+        replies = self.session.get(
+            query_key(self.namespace, server, query, layer),  # type: ignore[arg-type]
+            payload=self.sender.encode(request),
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=self.query_timeout_s,
+        )
+        out: list[Message] = []
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            raw = reply.ok.payload.to_bytes()
+            try:
+                if len(out) >= MAX_REPLY_PARTS:
+                    raise WireError("oversized", f"expected at most {MAX_REPLY_PARTS} replies")
+                msg = self.receiver.decode(raw, key_expr=str(reply.ok.key_expr))
+                if not (isinstance(msg, cls) and msg.layer == layer  # type: ignore[attr-defined]
+                        and msg.request_id == request.request_id):  # type: ignore[attr-defined]
+                    text = (f"expected a {cls.KIND} for layer {layer!r}, request "
+                            f"{request.request_id}, found a {msg.KIND}")
+                    raise WireError("bad-reply", text)
+                accept(self.receiver, self.metrics, msg, raw)
+                out.append(msg)
+            except (ProtocolError, WireError) as exc:
+                self.metrics.reject(exc.reason)
+                log.warning("rejected a %s reply from %s: %s", query, server, exc)
+        return out
+
+    def _fetch_range(self, server: str, origin: str, layer: Layer, want: int) -> bool:
+        want = max(want, max((p for p, *_ in layer.pending.values()), default=0), layer.seq + 1)
+        rid = self._rng.getrandbits(63)
+        request = DeltaRangeRequest(
+            **self.sender.header(), layer=origin, request_id=rid,
+            from_version=layer.seq, to_version=want, max_part_bytes=self.part_bytes,
+        )
+        msgs = self._ask(server, "deltas", origin, request, DeltaRangeReply)
+        self.metrics.add("range_repairs")
+        if not complete(msgs, "range") or not all(m.complete for m in msgs):
+            return False
+        groups: dict[tuple[int, int], list[tuple[int, Delta]]] = {}
+        for m in msgs:
+            if m.delta is not None:
+                d = m.delta
+                groups.setdefault((d.from_version, d.to_version), []).append((m.part, d))
+        epochs = {m.layer_epoch for m in msgs}
+        if len(epochs) != 1:
+            self.metrics.reject("bad-parts")
+            return False
+        epoch = epochs.pop()
+        got = 0
+        for versions in sorted(groups, key=lambda v: v[1]):
+            try:
+                delta = concat([d for _, d in sorted(groups[versions], key=lambda x: x[0])])
+                # a gap it leaves is this repair's own: `_repair` goes on to a snapshot
+                self.replicas.offer(origin, epoch, delta)
+                got += 1
+            except (ProtocolError, WireError) as exc:
+                self.metrics.reject(exc.reason)
+                log.warning("range reply from %s refused: %s", server, exc)
+                return False
+        return got > 0
+
+    def _fetch_snapshot(self, server: str, origin: str) -> bool:
+        t0 = time.monotonic()
+        rid = self._rng.getrandbits(63)
+        request = SnapshotRequest(
+            **self.sender.header(), layer=origin, request_id=rid, max_part_bytes=self.part_bytes
+        )
+        msgs = self._ask(server, "snapshot", origin, request, SnapshotReply)
+        if not complete(msgs, "snapshot"):
+            return False
+        states = {(m.layer_epoch, m.delta.from_version, m.delta.to_version) for m in msgs}
+        if len(states) != 1:
+            self.metrics.reject("bad-snapshot")
+            return False
+        epoch, start, seq = states.pop()
+        if epoch <= 0 or start != 0:
+            self.metrics.reject("bad-snapshot")
+            return False
+        chunks = [m.delta for m in sorted(msgs, key=lambda m: m.part)]
+        try:
+            self.replicas.admit(origin, epoch, chunks, replace=True)
+        except WireError as exc:
+            self.metrics.reject(exc.reason)
+            log.warning("snapshot of %s from %s refused: %s", origin, server, exc)
+            return False
+        layer = self.layers.get(origin, chunks[0].resolution)
+        voxels = layer.install_snapshot(epoch, seq, chunks)
+        dt = time.monotonic() - t0
+        self.metrics.add("snapshots_installed")
+        self.metrics.catchup(origin, voxels, dt)
+        log.info("caught up %s from %s: %d voxels at seq %d in %.3f s", origin, server, voxels,
+                 seq, dt)
+        return True

@@ -1,0 +1,152 @@
+"""Inbox: peers' deltas, heartbeats and joins, queued by Zenoh callbacks and handled in order."""
+
+from __future__ import annotations
+
+import logging
+import random
+import threading
+from collections.abc import Callable
+
+import zenoh
+
+from colonyd.errors import WireError
+from colonyd.frames import Assembler, accept, expect
+from colonyd.membership import Membership
+from colonyd.metrics import Metrics
+from colonyd.replicas import Replicas
+from colonyd.runtime import undeclare
+from colonyd.worker import Bounded, Worker
+from protocol import Heartbeat, OwnOriginError, Receiver, VoxelDelta
+from protocol.keyexpr import topic_subscription
+
+log = logging.getLogger(__name__)
+
+#: An inbox item: (kind "delta" | "hb" | "join", key expression or agent, raw frame).
+Item = tuple[str, str, bytes]
+
+
+class Inbox:
+    """Subscribes to every peer's deltas and heartbeats; a bounded queue (count and bytes: a
+    flood drops, never grows memory) and one worker decode and fold them in."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        namespace: str,
+        replicas: Replicas,
+        receiver: Receiver,
+        metrics: Metrics,
+        *,
+        request_repair: Callable[[str, list[str]], None],
+        send_heartbeat: Callable[[], None],
+        on_own_origin: Callable[[OwnOriginError], None] | None = None,
+        size: int = 256,
+        max_bytes: int = 128 << 20,
+        drop_rate: float = 0.0,
+        stop: threading.Event | None = None,
+    ) -> None:
+        self.replicas = replicas
+        self.receiver = receiver
+        self.metrics = metrics
+        self.parts = Assembler()
+        self.membership: Membership | None = None
+        self._request_repair = request_repair
+        self._send_heartbeat = send_heartbeat
+        #: Called (on the inbox thread) with a heartbeat that claims our own origin.
+        self._on_own_origin = on_own_origin
+        self._drop_rate = drop_rate
+        self._rng = random.Random()
+        self._worker: Worker[Item] = Worker(
+            "gossip-inbox", self._handle, Bounded(size, max_bytes, weigh=lambda item: len(item[2])),
+            metrics=metrics, hostile=True, drops="inbox_dropped",
+            describe=lambda item: f"{item[0]} on {item[1]}", stop=stop,
+        )
+        remote = zenoh.Locality.REMOTE
+        self._subs = [
+            session.declare_subscriber(
+                topic_subscription(namespace, "delta"), self._on_delta, allowed_origin=remote
+            ),
+            session.declare_subscriber(
+                topic_subscription(namespace, "heartbeat"), self._on_hb, allowed_origin=remote
+            ),
+        ]
+
+    # -- zenoh callbacks: enqueue only ----------------------------------------------------
+    def _on_delta(self, sample: zenoh.Sample) -> None:
+        if self._drop_rate and self._rng.random() < self._drop_rate:
+            self.metrics.add("dropped_on_purpose")
+            return
+        self._worker.put(("delta", str(sample.key_expr), sample.payload.to_bytes()))
+
+    def _on_hb(self, sample: zenoh.Sample) -> None:
+        self._worker.put(("hb", str(sample.key_expr), sample.payload.to_bytes()))
+
+    def on_member_event(self, agent: str, event: str) -> None:
+        """Liveliness join: ask the newcomer (or returning peer) what it holds."""
+        self.metrics.add(f"member_{event}")
+        if event == "join":
+            self._worker.put(("join", agent, b""))
+
+    # -- lifecycle ------------------------------------------------------------------------
+    def start(self, membership: Membership) -> None:
+        self.membership = membership
+        self._worker.start()
+
+    def close(self) -> None:
+        self._worker.close()
+        undeclare(*self._subs)
+
+    # -- the worker -----------------------------------------------------------------------
+    def _handle(self, item: Item) -> None:
+        kind, key, raw = item
+        try:
+            if kind == "delta":
+                self._handle_delta(key, raw)
+            elif kind == "hb":
+                self._handle_hb(key, raw)
+            elif kind == "join":
+                self._handle_join(key)
+        except OwnOriginError as exc:
+            self.metrics.reject(exc.reason)
+            if self._on_own_origin is not None and exc.kind == Heartbeat.KIND:
+                self._on_own_origin(exc)
+            else:
+                log.warning("rejected %s on %s: %s", kind, key, exc)
+
+    def _handle_delta(self, key: str, raw: bytes) -> None:
+        msg = expect(self.receiver.decode(raw, key_expr=key), VoxelDelta, f"on {key}")
+        if not msg.exact:
+            raise WireError("inexact", "expected an exact delta, found a free-space summary")
+        d = msg.delta
+        self.replicas.admit(msg.origin, msg.epoch, [d])
+        accept(self.receiver, self.metrics, msg, raw)  # only now: a frame refused above moved no window
+        delta = self.parts.add(
+            (msg.origin, msg.epoch, d.from_version, d.to_version), msg.part, msg.parts, d
+        )
+        if delta is not None and self.replicas.offer(msg.origin, msg.epoch, delta):
+            self._request_repair(msg.origin, [msg.origin])
+
+    def _handle_hb(self, key: str, raw: bytes) -> None:
+        msg = expect(self.receiver.decode(raw, key_expr=key), Heartbeat, f"on {key}")
+        accept(self.receiver, self.metrics, msg, raw)
+        if self.membership is None:
+            return
+        member = self.membership.heard(msg.origin, msg)
+        self._compare(msg.origin, member.layers)
+
+    def _handle_join(self, agent: str) -> None:
+        """A member joined (or came back): tell it what we hold right away."""
+        self.metrics.add("joins")
+        # The joiner's own heartbeat drives our comparison; ours, sent now, drives its catch-up.
+        self._send_heartbeat()
+
+    def _compare(self, agent: str, theirs: dict[str, tuple[int, int]]) -> None:
+        """Schedule a repair for every origin where `agent` holds more than we do."""
+        layers = self.replicas.layers
+        for origin, version in theirs.items():
+            if origin == layers.own_id:
+                continue
+            layer = layers.find(origin)
+            mine = (layer.epoch, layer.seq) if layer else (0, 0)
+            if version > mine:
+                self._request_repair(origin, [agent])

@@ -1,0 +1,92 @@
+"""Publisher: this daemon's own deltas and heartbeats, out to the colony."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import zenoh
+
+from colonyd.frames import FRAME_ID, Sender
+from colonyd.layers import Layers, relabel
+from colonyd.metrics import Metrics
+from colonyd.runtime import undeclare
+from protocol import Heartbeat, LayerVersion, VoxelDelta, delta_messages
+from protocol.keyexpr import topic_key
+from voxel.delta import Delta
+
+#: Most layers one heartbeat lists.
+MAX_HEARTBEAT_LAYERS = 4096
+
+
+class Publisher:
+    """Puts own deltas on `<own>/delta` and heartbeats on `<own>/heartbeat` (dropped, never
+    blocking, when the network is congested)."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        namespace: str,
+        layers: Layers,
+        sender: Sender,
+        metrics: Metrics,
+        *,
+        epoch: int,
+        part_bytes: int = 4 << 20,
+    ) -> None:
+        self.layers = layers
+        self.sender = sender
+        self.metrics = metrics
+        self.own = layers.own_id
+        self.epoch = epoch
+        self.part_bytes = part_bytes
+        self.hb_now = threading.Event()  # set on a join: send our heartbeat without waiting
+        drop = zenoh.CongestionControl.DROP
+        self._deltas = session.declare_publisher(
+            topic_key(namespace, self.own, "delta"), congestion_control=drop
+        )
+        self._heartbeats = session.declare_publisher(
+            topic_key(namespace, self.own, "heartbeat"), congestion_control=drop
+        )
+
+    def publish_own(self, prev: int, seq: int, delta: Delta, created: float) -> int:
+        """Publish an own delta (already logged) as VoxelDelta parts; returns the bytes sent."""
+        own = self.layers.own
+        with own.lock:  # the number is taken (it is in the log) whatever happens next
+            own.seq = seq
+            own.epoch = self.epoch
+        wire = relabel(delta, prev, seq, time=created)
+        whole = VoxelDelta(origin=self.own, time=created, frame_id=FRAME_ID, delta=wire)
+        payloads = self.sender.encode_all([whole])  # one encoding in the common case
+        if len(payloads[0]) > self.part_bytes:  # too large for one frame: cut into parts
+            msgs = delta_messages(
+                origin=self.own, epoch=self.epoch, seq=0, time=created, frame_id=FRAME_ID,
+                delta=wire, max_bytes=self.part_bytes,
+            )
+            payloads = self.sender.encode_all(msgs)
+        own.remember(prev, seq, wire)
+        for payload in payloads:
+            self._deltas.put(payload)
+        sent = sum(len(p) for p in payloads)
+        self.metrics.add("deltas_published")
+        self.metrics.add("bytes_published", sent)
+        return sent
+
+    def heartbeat(self, kind: str, pose: list[float]) -> None:
+        """Publish what this daemon is and holds: kind, pose, every layer's (epoch, seq)."""
+        layers = [
+            LayerVersion(origin=o, epoch=e, version=s)
+            for o, (e, s) in list(self.layers.versions().items())[:MAX_HEARTBEAT_LAYERS]
+        ]
+        position = tuple(float(x) for x in pose[:3])
+        msg = Heartbeat(
+            **self.sender.header(), kind=kind, frame_id=FRAME_ID, layers=layers,
+            position=position if len(position) == 3 and all(map(math.isfinite, position)) else None,
+        )
+        payload = self.sender.encode(msg)
+        self._heartbeats.put(payload)
+        self.metrics.add("bytes_published", len(payload))
+
+    def close(self) -> None:
+        undeclare(self._deltas, self._heartbeats)
+

@@ -1,0 +1,46 @@
+"""Replicas: peers' deltas admitted and folded into their layers, with what it did counted."""
+
+from __future__ import annotations
+
+import time
+
+from colonyd.errors import WireError
+from colonyd.layers import Layers
+from colonyd.metrics import Metrics
+from voxel.delta import Delta
+
+
+class Replicas:
+    """The peer side of `Layers`: admission (headers, budgets) and ordered application."""
+
+    def __init__(self, layers: Layers, metrics: Metrics) -> None:
+        self.layers = layers
+        self.metrics = metrics
+
+    def admit(self, origin: str, epoch: int, deltas: list[Delta], replace: bool = False) -> None:
+        """Raise WireError unless `deltas` (a snapshot if `replace`) may enter `origin`'s layer."""
+        for d in deltas:
+            prev, seq = d.from_version, d.to_version
+            if not (0 <= prev < seq) or epoch <= 0:
+                raise WireError("bad-header", f"delta header invalid: epoch {epoch} {prev}->{seq}")
+        self.layers.admit(origin, deltas, replace=replace)
+
+    def offer(self, origin: str, epoch: int, delta: Delta) -> bool:
+        """Fold a whole delta of `origin`'s layer (epoch `epoch`, covering (from, to]) into it;
+        True if the layer is left with a gap to repair."""
+        self.admit(origin, epoch, [delta])
+        layer = self.layers.get(origin, delta.resolution)
+        result = layer.offer(epoch, delta.from_version, delta.to_version, delta, delta.time)
+        now = time.time()
+        if result.outcome == "duplicate":
+            self.metrics.add("duplicates")
+        elif result.outcome == "stale-epoch":
+            self.metrics.add("stale_epoch")
+        for s, c in result.drained:
+            self.metrics.sample(origin, s, c, now)
+        if result.drained:
+            self.metrics.add("deltas_applied", len(result.drained))
+        if result.missing is not None:
+            self.metrics.add("gaps")
+            return True
+        return False

@@ -1,0 +1,141 @@
+"""Worker: a named daemon thread that hands each item of a bounded queue to a handler."""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from collections.abc import Callable
+from typing import Generic, TypeVar
+
+from colonyd.errors import ColonydError, WireError
+from colonyd.metrics import Metrics
+from protocol import ProtocolError
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+#: How often an idle worker looks at its stop event (seconds).
+POLL_S = 0.2
+
+
+class Bounded(Generic[T]):
+    """A queue bounded in count and, with `weigh`, in bytes: `put` refuses rather than grows."""
+
+    def __init__(self, size: int, max_bytes: int = 0, weigh: Callable[[T], int] | None = None) -> None:
+        self._q: queue.Queue[T] = queue.Queue(maxsize=size)
+        self._weigh = weigh
+        self._max = max_bytes
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def put(self, item: T) -> bool:
+        """Enqueue `item` without waiting; False (nothing kept) when it does not fit."""
+        n = self._weigh(item) if self._weigh is not None else 0
+        with self._lock:
+            if self._weigh is not None and self._bytes + n > self._max:
+                return False
+            self._bytes += n
+        try:
+            self._q.put_nowait(item)
+        except queue.Full:
+            with self._lock:
+                self._bytes -= n
+            return False
+        return True
+
+    def get(self, timeout: float) -> T | None:
+        """The oldest item, or None after `timeout` seconds without one."""
+        try:
+            item = self._q.get(timeout=timeout)
+        except queue.Empty:
+            return None
+        if self._weigh is not None:
+            n = self._weigh(item)
+            with self._lock:
+                self._bytes -= n
+        return item
+
+
+class Worker(Generic[T]):
+    """A named daemon thread calling `handle(item)` for each item `put` on its bounded queue.
+
+    No exception ends the thread. With `metrics`, a refusal (`ProtocolError`, `WireError`) is
+    counted by its reason and logged as a warning; with `hostile` (items straight from the
+    network) any other `ColonydError` or `ValueError` counts as `invalid` and anything else as
+    `internal`. Every other exception is logged with its stack. `done(item)` runs once per item,
+    handled or refused by `put` (a query is dropped there); a refused `put` counts `drops`.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        handle: Callable[[T], None],
+        items: Bounded[T],
+        *,
+        metrics: Metrics | None = None,
+        hostile: bool = False,
+        drops: str | None = None,
+        describe: Callable[[T], str] = str,
+        done: Callable[[T], None] | None = None,
+        stop: threading.Event | None = None,
+    ) -> None:
+        self.name = name
+        self._handle = handle
+        self._items = items
+        self._metrics = metrics
+        self._hostile = hostile
+        self._drops = drops
+        self._describe = describe
+        self._done = done
+        self.stop = stop if stop is not None else threading.Event()
+        self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
+
+    def put(self, item: T) -> bool:
+        """Enqueue `item` for the thread; False if the queue is full (dropped and counted)."""
+        if self._items.put(item):
+            return True
+        if self._metrics is not None and self._drops:
+            self._metrics.add(self._drops)
+        if self._done is not None:
+            self._done(item)
+        return False
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def close(self, timeout: float = 2.0) -> None:
+        """Stop the thread (after the item in hand) and wait up to `timeout` seconds for it."""
+        self.stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=timeout)
+
+    def is_alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def _loop(self) -> None:
+        while not self.stop.is_set():
+            item = self._items.get(timeout=POLL_S)
+            if item is None:
+                continue
+            try:
+                self._handle(item)
+            except Exception as exc:  # noqa: BLE001 - one item never kills the worker
+                self._failed(item, exc)
+            finally:
+                if self._done is not None:
+                    self._done(item)
+
+    def _failed(self, item: T, exc: Exception) -> None:
+        metrics = self._metrics
+        if metrics is not None and isinstance(exc, (ProtocolError, WireError)):
+            metrics.reject(exc.reason)
+            log.warning("rejected %s: %s", self._describe(item), exc)
+        elif metrics is not None and self._hostile and isinstance(exc, (ColonydError, ValueError)):
+            metrics.reject("invalid")
+            log.warning("rejected %s: %s", self._describe(item), exc)
+        else:
+            if metrics is not None and self._hostile:
+                metrics.reject("internal")
+            log.exception("%s: failed to handle %s", self.name, self._describe(item))
