@@ -78,6 +78,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("dump-config", help="print the effective configuration as TOML")
     _config_flags(p)
 
+    p = sub.add_parser("identity", help="print this agent's public identity key (made if missing), "
+                       "for other agents' trusted_keys")
+    _config_flags(p)
+
     p = sub.add_parser("map", help="map a source offline into a directory of map files")
     p.add_argument("--source", dest="map_source", required=True, metavar="SPEC",
                    help="source spec (sim:..., replay:PATH, ...; see `colonyd sources`)")
@@ -115,9 +119,15 @@ def main(argv: list[str] | None = None) -> int:
     """Parse and dispatch; raises the package errors that `launch` maps to exit codes."""
     args = build_parser().parse_args(argv)
     cmd = args.command
-    if cmd in ("run", "status", "dump-config"):
+    if cmd in ("run", "status", "dump-config", "identity"):
         flags = _flags(args)
         config = load_config(args.config, **flags)
+        if cmd == "identity":
+            from colonyd.identity import identity_path, load_signer
+
+            signer = load_signer(identity_path(config.identity_file, config.state_dir))
+            sys.stdout.write(f'"{config.agent_id}" = "{signer.public.hex()}"\n')
+            return EXIT_OK
         if cmd == "dump-config":
             from colonyd.config import dump_config
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import socket
 import tomllib
@@ -109,6 +110,12 @@ class Config(BaseSettings):
     query_timeout_s: float = Field(5.0, gt=0, description="range/snapshot query timeout")
     snapshot_chunk_voxels: int = Field(250_000, ge=1000, description="voxels per snapshot reply")
     colony_key: str | None = Field(None, description="shared secret; unauthenticated dropped")
+    trust: Literal["off", "tofu", "list"] = Field(
+        "tofu", description="peers' identities: off, pinned on first use, or trusted_keys only")
+    trusted_keys: dict[str, str] = Field(
+        default_factory=dict, description="agent id -> Ed25519 public key (64 hex digits) pinned in advance")
+    identity_file: Path | None = Field(
+        None, description="this agent's Ed25519 key (default <state_dir>/identity.key, made on first start)")
     export_dir: Path | None = Field(None, description="write the fused map here on shutdown")
     drop_rate: float = Field(0.0, ge=0, lt=1, description="testing: drop this share of received deltas")
     log_level: Literal["debug", "info", "warning", "error"] = "info"
@@ -146,6 +153,18 @@ class Config(BaseSettings):
         if value is not None and not _NAME.match(value):
             msg = f"expected 1-64 characters of [A-Za-z0-9_.-] starting with a letter or digit, found {value!r}"
             raise ValueError(msg)
+        return value
+
+    @field_validator("trusted_keys")
+    @classmethod
+    def _trusted(cls, value: dict[str, str]) -> dict[str, str]:
+        for agent, key in value.items():
+            if not _NAME.match(agent):
+                msg = f"expected agent ids of 1-64 characters of [A-Za-z0-9_.-], found {agent!r}"
+                raise ValueError(msg)
+            if not re.fullmatch(r"[0-9a-fA-F]{64}", key):
+                msg = f"expected {agent!r}'s Ed25519 public key as 64 hex digits, found {key!r}"
+                raise ValueError(msg)
         return value
 
     @field_validator("listen", "connect")
@@ -222,6 +241,6 @@ def _toml_value(value: Any) -> str:
         return repr(value)
     if isinstance(value, list):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    import json
-
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{json.dumps(k)} = {_toml_value(v)}" for k, v in value.items()) + "}"
     return json.dumps(str(value))

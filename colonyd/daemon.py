@@ -16,6 +16,7 @@ from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError, DuplicateAgentError
 from colonyd.frames import Sender, colony_key, get_receiver
 from colonyd.gossip import Gossip
+from colonyd.identity import get_trust, identity_path, load_signer
 from colonyd.layers import Layers
 from colonyd.logs import setup_logging
 from colonyd.mapping import integrate_observation
@@ -107,11 +108,12 @@ class Daemon:
     def _recover(self) -> None:
         rec = self.store.recover()
         self.epoch = rec.epoch
-        self.sender = Sender(self.config.agent_id, rec.epoch, key=colony_key(self.config.colony_key),
+        cfg = self.config
+        signer = load_signer(identity_path(cfg.identity_file, cfg.state_dir))
+        self.sender = Sender(cfg.agent_id, rec.epoch, key=colony_key(cfg.colony_key), signer=signer,
                              first_seq=rec.frame_seq, reserve=self.store.reserve_frames)
-        self.layers = Layers(self.config.agent_id, self.config.resolution,
-                             ring_size=self.config.ring_size, max_layers=self.config.max_layers,
-                             max_peer_blocks=self.config.max_peer_blocks)
+        self.layers = Layers(cfg.agent_id, cfg.resolution, ring_size=cfg.ring_size,
+                             max_layers=cfg.max_layers, max_peer_blocks=cfg.max_peer_blocks)
         own = self.layers.own
         own.grid, own.epoch, own.seq = rec.grid, rec.epoch, rec.seq
         self._published_local = rec.published  # changes after it were never logged: send them
@@ -151,7 +153,8 @@ class Daemon:
         ns = cfg.key_namespace
         self.gossip = Gossip(
             self.session, ns, self.layers, self.sender,
-            get_receiver(cfg.colony_key, cfg.max_message_mb, cfg.agent_id), self.metrics,
+            get_receiver(cfg.colony_key, cfg.max_message_mb, cfg.agent_id,
+                         get_trust(cfg.trust, cfg.trusted_keys, cfg.state_dir)), self.metrics,
             epoch=self.epoch, on_own_origin=self._on_own_origin,
             inbox_size=cfg.inbox_size, inbox_bytes=int(cfg.inbox_mb * (1 << 20)),
             drop_rate=cfg.drop_rate,

@@ -22,6 +22,7 @@ import numpy as np
 from colonyd.errors import WireError
 from colonyd.metrics import Metrics
 from protocol import Limits, Message, Receiver, encode
+from protocol.identity import Signer, Trust
 from voxel.delta import Delta
 
 #: The map frame every layer is expressed in (each origin's own map frame).
@@ -47,10 +48,12 @@ def get_limits(max_message_mb: float) -> Limits:
     return Limits(max_message_bytes=size, max_body_bytes=size)
 
 
-def get_receiver(secret: str | None, max_message_mb: float, own: str) -> Receiver:
+def get_receiver(secret: str | None, max_message_mb: float, own: str,
+                 trust: Trust | None = None) -> Receiver:
     """The daemon's one decoding front door (key, limits, replay window, key-vs-origin check,
-    frames claiming our own origin `own` refused)."""
-    return Receiver(key=colony_key(secret), limits=get_limits(max_message_mb), own=own)
+    frames claiming our own origin `own` refused, peers' signatures checked by `trust`)."""
+    return Receiver(key=colony_key(secret), limits=get_limits(max_message_mb), own=own,
+                    trust=trust)
 
 
 def expect(msg: Message, cls: type[Message], what: str) -> Any:
@@ -82,12 +85,16 @@ class Sender:
         epoch: int,
         *,
         key: bytes | None = None,
+        signer: Signer | None = None,
         first_seq: int = 0,
         reserve: Callable[[int], None] | None = None,
     ) -> None:
         self.origin = origin
         self.epoch = epoch
         self._key = key
+        self._signer = signer
+        #: The public key this origin signs with (None: frames are not signed).
+        self.identity = signer.public if signer is not None else None
         self._next = first_seq
         self._reserved = first_seq
         self._reserve = reserve
@@ -110,8 +117,8 @@ class Sender:
         return {"origin": self.origin, "epoch": self.epoch, "seq": self.take(), "time": time.time()}
 
     def encode(self, msg: Message) -> bytes:
-        """Frame bytes of `msg` (signed when the colony has a key)."""
-        return encode(msg, key=self._key)
+        """Frame bytes of `msg`: signed with our identity, authenticated with the colony key."""
+        return encode(msg, key=self._key, signer=self._signer)
 
     def encode_all(self, msgs: list[Message]) -> list[bytes]:
         """Frames of `msgs` as this origin's, with consecutive fresh seqs (parts of one reply)."""

@@ -44,9 +44,11 @@ class Recovered:
     frame_seq: int = 0  # first protocol frame number this run may use (reserved by the last run)
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
+def atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
+    """Replace `path` by `data` durably: a temporary file (created with `mode`), fsync, rename."""
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+    with open(fd, "wb") as fh:
         fh.write(data)
         fh.flush()
         os.fsync(fh.fileno())
@@ -103,7 +105,7 @@ class StateStore:
             epoch = _new_epoch(0)
             self._write_meta(epoch)
             self.reserve_frames(0)
-            _atomic_write(self.dir / WAL, _wal_header(0, epoch))
+            atomic_write(self.dir / WAL, _wal_header(0, epoch))
         else:
             epoch = self._check_meta(self._read_json(meta_path))
         grid, seq, published = new_grid(self.resolution, self.block_shape), 0, 0
@@ -161,7 +163,7 @@ class StateStore:
 
     def _write_meta(self, epoch: int) -> None:
         meta = {"agent_id": self.agent_id, "epoch": epoch, "resolution": self.resolution}
-        _atomic_write(self.dir / META, json.dumps(meta).encode())
+        atomic_write(self.dir / META, json.dumps(meta).encode())
 
     def _lost(self, header: dict[str, Any] | None, seq: int, epoch: int) -> str:
         """Why logged records or frame reservations may be missing ("" if nothing shows it),
@@ -179,7 +181,7 @@ class StateStore:
     def reserve_frames(self, up_to: int) -> None:
         """Durably record that frame numbers below `up_to` may be in use (a restart skips them)."""
         try:
-            _atomic_write(self.dir / FRAMES, json.dumps({"next": int(up_to)}).encode())
+            atomic_write(self.dir / FRAMES, json.dumps({"next": int(up_to)}).encode())
         except OSError as exc:
             msg = f"cannot reserve frame numbers in {self.dir}: {exc.strerror}"
             raise PersistenceError(msg) from None
@@ -269,9 +271,9 @@ class StateStore:
             with open(tmp, "rb") as fh:
                 os.fsync(fh.fileno())
             os.replace(tmp, self.dir / name)
-            _atomic_write(self.dir / SNAPSHOT, json.dumps({"seq": int(seq), "file": name, "published": published}).encode())
+            atomic_write(self.dir / SNAPSHOT, json.dumps({"seq": int(seq), "file": name, "published": published}).encode())
             self._wal.close()
-            _atomic_write(self.dir / WAL, _wal_header(seq, self.epoch))
+            atomic_write(self.dir / WAL, _wal_header(seq, self.epoch))
             self._open_wal()
         except OSError as exc:
             msg = f"cannot write a snapshot in {self.dir}: {exc.strerror}"

@@ -81,6 +81,7 @@ class Publisher:
         position = tuple(float(x) for x in pose[:3])
         msg = Heartbeat(
             **self.sender.header(), kind=kind, frame_id=FRAME_ID, layers=layers,
+            identity=self.sender.identity,
             position=position if len(position) == 3 and all(map(math.isfinite, position)) else None,
         )
         payload = self.sender.encode(msg)

@@ -1,8 +1,9 @@
 """Frames: encode a message into bytes for Zenoh, decode hostile bytes into a validated message.
 
 A frame is an 8-byte prefix (magic, version, type, flags), a msgpack envelope
-[origin, epoch, seq, time, body] with the body zstd-compressed, and, with a colony key, a
-32-byte HMAC-SHA256 tag over everything before it. See docs/PROTOCOL.md.
+[origin, epoch, seq, time, body] with the body zstd-compressed, the origin's 64-byte Ed25519
+signature when it signs, and, with a colony key, a 32-byte HMAC-SHA256 tag over everything
+before it. See docs/PROTOCOL.md.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from protocol.deltacodec import (
 )
 from protocol.errors import (
     AuthError,
+    IdentityError,
     MalformedError,
     OversizedError,
     ProtocolError,
@@ -34,6 +36,7 @@ from protocol.errors import (
     UnknownTypeError,
     VersionError,
 )
+from protocol.identity import SIG_BYTES, Signer, Trust, verify_signature
 from protocol.keyexpr import NAME_PATTERN
 from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.messages import HEADER_FIELDS, MESSAGE_TYPES, PROTOCOL_VERSION, Message, VoxelDelta
@@ -48,11 +51,13 @@ COMPRESSION_SHIFT = 1
 COMPRESSION_MASK = 0x06
 COMPRESSION_NONE = 0
 COMPRESSION_ZSTD = 1
-FLAGS_RESERVED = 0xF8
+FLAG_SIGNED = 0x08
+FLAGS_RESERVED = 0xF0
 #: Bodies shorter than this are sent uncompressed (zstd would not make them smaller).
 MIN_COMPRESS_BYTES = 64
-#: Bytes a frame adds around a delta body (prefix, envelope, body fields, tag), upper bound.
-FRAME_OVERHEAD = 256
+#: Bytes a frame adds around a delta body (prefix, envelope, body fields, signature, tag), upper
+#: bound.
+FRAME_OVERHEAD = 320
 
 _NAME_RE = __import__("re").compile(NAME_PATTERN)
 _DELTA_FIELDS = ("delta", "free_summary")
@@ -93,8 +98,10 @@ def encode(
     key: bytes | None = None,
     compression: Literal["zstd", "none"] = "zstd",
     level: int = fields.DEFAULT_LEVEL,
+    signer: Signer | None = None,
 ) -> bytes:
-    """Frame bytes of `msg`; authenticated with HMAC-SHA256 when a colony `key` is given."""
+    """Frame bytes of `msg`; signed by the origin's identity `signer` (Ed25519) when given, and
+    authenticated with HMAC-SHA256 when a colony `key` is given."""
     if msg.version != PROTOCOL_VERSION:
         msg_ = (
             f"can only encode protocol version {PROTOCOL_VERSION}, found message version "
@@ -116,8 +123,11 @@ def encode(
         msg_ = f"compression must be 'zstd' or 'none', found {compression!r}"
         raise ValueError(msg_)
     flags = (code << COMPRESSION_SHIFT) | (FLAG_AUTH if key is not None else 0)
+    flags |= FLAG_SIGNED if signer is not None else 0
     envelope = fields.pack([msg.origin, msg.epoch, msg.seq, float(msg.time), body])
     frame = PREFIX.pack(MAGIC, PROTOCOL_VERSION, type(msg).TYPE, flags, 0) + envelope
+    if signer is not None:
+        frame += signer.sign(frame)
     if key is not None:
         frame += compute_tag(key, frame)
     return frame
@@ -188,17 +198,28 @@ def _envelope(data: bytes, end: int, limits: Limits) -> tuple[str, int, int, flo
     return origin, epoch, seq, time, body
 
 
+def _envelope_end(data: bytes | memoryview, flags: int) -> int:
+    """Where the envelope ends: before the signature and the tag the flags announce."""
+    tail = (TAG_BYTES if flags & FLAG_AUTH else 0) + (SIG_BYTES if flags & FLAG_SIGNED else 0)
+    end = len(data) - tail
+    if end <= PREFIX_BYTES:
+        what = " and ".join(
+            w for w, f in (("a 64-byte signature", FLAG_SIGNED), ("a 32-byte tag", FLAG_AUTH))
+            if flags & f
+        )
+        msg = (
+            f"frame: expected an envelope{' and ' + what if what else ''} after the prefix, "
+            f"found {len(data) - PREFIX_BYTES} bytes"
+        )
+        raise TruncatedError(msg)
+    return end
+
+
 def peek(data: bytes, limits: Limits = DEFAULT_LIMITS) -> FrameInfo:
     """Prefix and envelope of a frame without decoding its body or checking its tag."""
     mtype, flags, compression = _prefix(data, limits)
     auth = bool(flags & FLAG_AUTH)
-    end = len(data) - (TAG_BYTES if auth else 0)
-    if end <= PREFIX_BYTES:
-        msg = (
-            f"frame: expected an envelope{' and a 32-byte tag' if auth else ''} after the prefix, "
-            f"found {len(data) - PREFIX_BYTES} bytes"
-        )
-        raise TruncatedError(msg)
+    end = _envelope_end(data, flags)
     origin, epoch, seq, time, _ = _envelope(data, end, limits)
     cls = MESSAGE_TYPES[mtype]
     return FrameInfo(
@@ -240,32 +261,34 @@ def decode(
     key: bytes | None = None,
     limits: Limits = DEFAULT_LIMITS,
     replay: ReplayWindow | None = None,
+    trust: Trust | None = None,
 ) -> Message:
     """Validated message of hostile frame bytes, or a ProtocolError subclass saying why not.
 
     With a colony `key`, frames without a valid tag are rejected (AuthError); without one,
-    authenticated frames are rejected too (the colony is closed to us). With a `replay` window,
-    a frame whose (origin, epoch, seq) was already accepted raises ReplayError.
+    authenticated frames are rejected too (the colony is closed to us). With a `trust` that
+    checks identities, every message but a request must carry its origin's valid signature
+    (IdentityError). With a `replay` window, a frame whose (origin, epoch, seq) was already
+    accepted raises ReplayError.
     """
     mtype, flags, compression = _prefix(data, limits)
     auth = bool(flags & FLAG_AUTH)
-    end = len(data)
+    view = memoryview(data)
     if key is not None:
         if not auth:
             msg = "frame: expected an authenticated frame (colony key configured), found no tag"
             raise AuthError(msg)
-        end -= TAG_BYTES
-        if end <= PREFIX_BYTES:
+        if len(data) - TAG_BYTES <= PREFIX_BYTES:
             msg = (
                 f"frame: expected an envelope and a {TAG_BYTES}-byte tag after the prefix, found "
                 f"{len(data) - PREFIX_BYTES} bytes"
             )
             raise TruncatedError(msg)
-        view = memoryview(data)
-        verify_tag(key, view[:end], view[end:])
+        verify_tag(key, view[: len(data) - TAG_BYTES], view[len(data) - TAG_BYTES :])
     elif auth:
         msg = "frame: expected an unauthenticated frame (no colony key configured), found a tag"
         raise AuthError(msg)
+    end = _envelope_end(data, flags)
     origin, epoch, seq, time, body = _envelope(data, end, limits)
     if compression == COMPRESSION_ZSTD:
         body = fields.decompress(body, limits, "body")
@@ -304,9 +327,26 @@ def decode(
         )
     except ValidationError as exc:
         raise _validation_error(cls, exc) from None
+    if trust is not None:
+        verify_identity(data, message, trust)
     if replay is not None:
         replay.check(origin, epoch, seq)
     return message
+
+
+def verify_identity(data: bytes, message: Message, trust: Trust) -> None:
+    """Raise IdentityError unless frame `data` of the decoded `message` carries its origin's
+    valid signature (requests and a `trust` that checks nothing pass)."""
+    if not trust.checks or message.REQUEST:
+        return
+    _, flags, _ = _prefix(data, DEFAULT_LIMITS)
+    if not flags & FLAG_SIGNED:
+        msg = f"frame: expected {message.origin!r}'s signature on a {message.KIND} frame, found none"
+        raise IdentityError(msg)
+    end = _envelope_end(data, flags)
+    public = trust.key_for(message.origin, getattr(message, "identity", None))
+    view = memoryview(data)
+    verify_signature(public, view[:end], view[end : end + SIG_BYTES], message.origin)
 
 
 # --------------------------------------------------------------------------- delta helpers

@@ -78,6 +78,19 @@ class OwnOriginError(AuthError):
         self.time = time
 
 
+class IdentityError(AuthError):
+    """A frame's signature does not verify with its origin's key, a frame that must be signed is
+    not, or an agent presents another key than the one pinned for it."""
+
+    reason = "identity"
+
+
+class UnknownIdentityError(IdentityError):
+    """No key is known for a signed frame's origin yet (or it is not on the trust list)."""
+
+    reason = "unknown_identity"
+
+
 class KeyExprError(ProtocolError, ValueError):
     """A key expression or one of its names is not valid."""
 

@@ -54,6 +54,9 @@ class Message(BaseModel):
 
     TYPE: ClassVar[int] = 0
     KIND: ClassVar[str] = ""
+    #: A request (query payload): read-only, so receivers that check identities accept it
+    #: unsigned; every other message must carry its origin's signature there.
+    REQUEST: ClassVar[bool] = False
 
     version: U8 = PROTOCOL_VERSION
     origin: Name
@@ -283,6 +286,7 @@ class SnapshotRequest(Message):
 
     TYPE: ClassVar[int] = 6
     KIND: ClassVar[str] = "snapshot_request"
+    REQUEST: ClassVar[bool] = True
 
     layer: Name
     request_id: U63
@@ -319,6 +323,7 @@ class DeltaRangeRequest(Message):
 
     TYPE: ClassVar[int] = 8
     KIND: ClassVar[str] = "delta_range_request"
+    REQUEST: ClassVar[bool] = True
 
     layer: Name
     request_id: U63
@@ -389,6 +394,8 @@ class Heartbeat(Message):
     position: Vec3 | None = None
     orientation: Quat = (0.0, 0.0, 0.0, 1.0)
     layers: Annotated[list[LayerVersion], Field(max_length=4096)] = []
+    #: The sender's Ed25519 public key (32 bytes): how peers that trust on first use learn it.
+    identity: Annotated[bytes, Field(min_length=32, max_length=32)] | None = None
 
     @field_validator("orientation")
     @classmethod

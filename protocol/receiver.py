@@ -6,8 +6,9 @@ import threading
 from collections import Counter
 
 from protocol.auth import ReplayWindow
-from protocol.codec import decode
+from protocol.codec import decode, verify_identity
 from protocol.errors import OwnOriginError, ProtocolError
+from protocol.identity import Trust
 from protocol.keyexpr import check_origin
 from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.messages import Message
@@ -19,7 +20,9 @@ class Receiver:
     With a colony `key`, frames must be authenticated and each (origin, epoch, seq) is accepted
     once (replay window). Given the Zenoh key a frame arrived on, the key's origin must be the
     frame's origin. Frames claiming the receiver's `own` origin are forgeries or echoes of its own
-    frames and are rejected.
+    frames and are rejected. With a `trust` that checks identities, every frame but a request must
+    carry its origin's Ed25519 signature (an agent's first Heartbeat introduces its key when the
+    trust is on first use; `accept` pins it).
 
     Receiving is two steps so that a rejected frame has no side effect: `decode` validates and
     records nothing but a rejection; the caller then checks what only it can check (message type,
@@ -33,8 +36,10 @@ class Receiver:
         limits: Limits = DEFAULT_LIMITS,
         replay_window: int = 4096,
         own: str | None = None,
+        trust: Trust | None = None,
     ) -> None:
         self.key = key
+        self.trust = trust
         self.limits = limits
         self.own = own
         self.replay = ReplayWindow(replay_window) if key is not None else None
@@ -55,6 +60,8 @@ class Receiver:
             if msg.origin == self.own:
                 text = f"frame: expected another agent's origin, found our own {msg.origin!r}"
                 raise OwnOriginError(text, kind=msg.KIND, epoch=msg.epoch, time=msg.time)
+            if self.trust is not None:
+                verify_identity(data, msg, self.trust)
             if self.replay is not None:
                 self.replay.peek(msg.origin, msg.epoch, msg.seq)
         except ProtocolError as exc:
@@ -73,6 +80,9 @@ class Receiver:
             except ProtocolError as exc:
                 self.count_rejected(exc.reason)
                 raise
+        identity = getattr(msg, "identity", None)
+        if self.trust is not None and self.trust.checks and identity is not None:
+            self.trust.pin(msg.origin, identity)  # first use: verified with this very key
         with self._lock:
             self.accepted[msg.KIND] += 1
 

@@ -93,3 +93,34 @@ def test_cli_dump_config_and_config_error_exit_code(tmp_path):
 def test_dump_config_hides_the_colony_key():
     text = dump_config(load_config(None, colony_key="very secret value"))
     assert "very secret value" not in text and "colony_key = " in text
+
+
+def test_trusted_keys_from_toml_and_dump_config(tmp_path):
+    key = "ab" * 32
+    toml = tmp_path / "c.toml"
+    toml.write_text(f'trust = "list"\n[trusted_keys]\ncctv-1 = "{key}"\n')
+    cfg = load_config(toml)
+    assert cfg.trust == "list" and cfg.trusted_keys == {"cctv-1": key}
+    assert f'trusted_keys = {{"cctv-1" = "{key}"}}' in dump_config(cfg)
+    with pytest.raises(ConfigError, match=r"expected 'x''s Ed25519 public key as 64 hex digits"):
+        load_config(trusted_keys={"x": "abc"})
+    with pytest.raises(ConfigError, match="trust: Input should be 'off', 'tofu' or 'list'"):
+        load_config(trust="maybe")
+
+
+def test_identity_command_prints_a_stable_public_key(tmp_path):
+    from protocol.identity import Signer
+
+    cmd = [sys.executable, "-m", "colonyd", "identity", "--agent-id", "r1", "--state-dir",
+           str(tmp_path)]
+    first = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert first.returncode == 0, first.stderr
+    key = tmp_path / "identity.key"
+    assert key.stat().st_mode & 0o777 == 0o600
+    public = Signer.from_bytes(key.read_bytes()).public.hex()
+    assert first.stdout == f'"r1" = "{public}"\n'  # a line for another agent's [trusted_keys]
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert again.stdout == first.stdout
+    key.write_bytes(b"short")
+    bad = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 1 and "expected 32 raw Ed25519 private key bytes, found 5" in bad.stderr

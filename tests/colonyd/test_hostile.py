@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 
@@ -90,6 +91,48 @@ def test_a_young_daemon_gives_way_to_a_live_twin_it_hears_later(make_colony):
               twin.encode(Heartbeat(**twin.header(), kind="robot", frame_id="map")))
         assert a.proc is not None and a.proc.wait(20) == 3
         assert "heard a heartbeat of epoch 12345" in a.log_path.read_text()
+    except Exception:
+        print(logs(colony))
+        raise
+
+
+def test_a_key_holder_cannot_forge_another_agents_layer(make_colony):
+    """Identities: with the colony key but not a's identity key, c cannot write a's layer."""
+    from protocol.identity import Signer
+
+    colony = make_colony("ident", extra=["--colony-key", SECRET])
+    a = colony.add("a", ["synthetic:scans=4,rate=8,points=200,seed=1"])
+    colony.add("b")
+    try:
+        colony.wait_converged(30)
+        a_public = Signer.from_bytes((a.state_dir / "identity.key").read_bytes()).public
+        pins = json.loads((colony.daemons["b"].state_dir / "known_agents.json").read_text())
+        assert pins["a"] == a_public.hex()  # b pinned a's key on first use
+        before = {r["agent"]: r for r in colony.status(digest=True)}
+        layer = before["b"]["layers"]["a"]
+        s = colony.session()
+        mallory = Sender("a", before["a"]["epoch"], key=colony_key(SECRET),
+                         signer=Signer.generate(), first_seq=10**9)
+        delta = Delta(0.1, layer["seq"], layer["seq"] + 1, [[7, 7, 7]], [3.0], [1.0])
+        s.put(topic_key(colony.namespace, "a", "delta"),
+              mallory.encode(VoxelDelta(**mallory.header(), frame_id="map", delta=delta)))
+        s.put(topic_key(colony.namespace, "a", "heartbeat"),
+              mallory.encode(Heartbeat(**mallory.header(), kind="robot", frame_id="map",
+                                       identity=mallory.identity)))
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            b = next(r for r in colony.status(digest=True) if r["agent"] == "b")
+            if b["metrics"]["rejected"].get("identity", 0) >= 2:
+                break
+            time.sleep(0.2)
+        assert b["metrics"]["rejected"].get("identity", 0) >= 2, b["metrics"]["rejected"]
+        assert b["layers"]["a"]["digest"] == layer["digest"]  # nothing of mallory's applied
+        # a restarts with its identity: b still accepts it, no new identity rejection
+        a.stop()
+        a.start()
+        colony.wait_converged(30)
+        b2 = next(r for r in colony.status() if r["agent"] == "b")
+        assert b2["metrics"]["rejected"].get("identity", 0) == b["metrics"]["rejected"]["identity"]
     except Exception:
         print(logs(colony))
         raise

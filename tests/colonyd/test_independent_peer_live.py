@@ -1,5 +1,6 @@
 """A peer written from docs/PROTOCOL.md alone (msgpack, zstd, hmac, zenoh; no protocol package)
-talks to a real daemon: key derivation, reply keys, range edge cases, small parts, apply rule."""
+talks to a real daemon: key derivation, signatures, reply keys, range edge cases, small parts,
+the apply rule. Its requests are unsigned (requests may be); every frame of the daemon is signed."""
 
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ class Peer:
         self.key = hashlib.sha256(PASSPHRASE.encode()).digest()  # §4: the passphrase's SHA-256
         self.ns = namespace
         self.seq = 0
+        self.identities: dict[str, bytes] = {}  # pinned from heartbeats (trust on first use)
         conf = zenoh.Config()
         conf.insert_json5("mode", '"peer"')
         conf.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
@@ -52,7 +54,7 @@ class Peer:
                                       consolidation=zenoh.ConsolidationMode.NONE):
             assert reply.ok is not None
             raw = reply.ok.payload.to_bytes()
-            rtype, header, decoded = peer_decode_frame(raw, self.key)
+            rtype, header, decoded = peer_decode_frame(raw, self.key, self.identities[server])
             out.append((str(reply.ok.key_expr), len(raw), rtype, header, decoded))
         return out
 
@@ -69,8 +71,9 @@ class Peer:
             assert ready.wait(10.0), f"no heartbeat of {agent}"
         finally:
             sub.undeclare()
-        mtype, header, body = peer_decode_frame(got[0], self.key)
-        assert mtype == HEARTBEAT and header[0] == agent
+        mtype, header, body = peer_decode_frame(got[0], self.key)  # verified with its identity
+        assert mtype == HEARTBEAT and header[0] == agent and len(body["identity"]) == 32
+        self.identities[agent] = body["identity"]
         return body
 
 

@@ -12,6 +12,7 @@ import msgpack
 import numpy as np
 import pytest
 import zstandard
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
 from protocol.codec import encode
 from protocol.deltacodec import summarise_free
@@ -19,20 +20,31 @@ from protocol.messages import VoxelDelta
 from tests.protocol.helpers import KEY, make_delta
 
 
-def peer_decode_frame(frame: bytes, key: bytes | None) -> tuple[int, list, dict]:
-    """§2-§4: prefix, tag, envelope, body."""
+def peer_decode_frame(frame: bytes, key: bytes | None,
+                      identity: bytes | None = None) -> tuple[int, list, dict]:
+    """§2-§4: prefix, tag, signature (verified when the origin's `identity` key is given, or
+    the key a Heartbeat carries), envelope, body."""
     magic, version, mtype, flags, reserved = struct.unpack_from("<4sBBBB", frame)
-    assert magic == b"CLNY" and version == 1 and reserved == 0 and flags & 0xF8 == 0
+    assert magic == b"CLNY" and version == 1 and reserved == 0 and flags & 0xF0 == 0
     end = len(frame)
     if flags & 1:
         end -= 32
         tag = hmac.new(key, frame[:end], hashlib.sha256).digest()
         assert hmac.compare_digest(tag, frame[end:])
+    signature = None
+    if flags & 8:
+        signature = frame[end - 64 : end]
+        end -= 64
     origin, epoch, seq, time, body = msgpack.unpackb(frame[8:end], raw=False)
     if (flags >> 1) & 3 == 1:
         assert zstandard.get_frame_parameters(body).content_size < 1 << 26
         body = zstandard.ZstdDecompressor().decompress(body)
-    return mtype, [origin, epoch, seq, time], msgpack.unpackb(body, raw=False)
+    decoded = msgpack.unpackb(body, raw=False)
+    public = identity or (decoded.get("identity") if mtype == 10 else None)
+    if public is not None:
+        assert signature is not None, "expected a signed frame"
+        Ed25519PublicKey.from_public_bytes(public).verify(signature, frame[:end])
+    return mtype, [origin, epoch, seq, time], decoded
 
 
 def _ints(fmt: str, data: bytes) -> list[int]:

@@ -1,0 +1,79 @@
+"""Agent identities: signed frames, trust on first use, trust lists, impersonation refused."""
+
+from __future__ import annotations
+
+import pytest
+
+from protocol.codec import decode, encode
+from protocol.errors import IdentityError, UnknownIdentityError
+from protocol.identity import Signer, Trust, parse_public, verify_signature
+from protocol.messages import DeltaRangeRequest, Heartbeat, Pose
+from protocol.receiver import Receiver
+from tests.protocol.helpers import KEY
+
+A, B = Signer.generate(), Signer.generate()
+
+
+def _hb(seq: int, signer: Signer | None, origin: str = "a", identity: bytes | None = None) -> bytes:
+    msg = Heartbeat(origin=origin, epoch=1, seq=seq, time=1.0, kind="robot", frame_id="map",
+                    identity=identity if identity is not None else (signer.public if signer else None))
+    return encode(msg, key=KEY, signer=signer)
+
+
+def _pose(seq: int, signer: Signer | None, origin: str = "a") -> bytes:
+    return encode(Pose(origin=origin, epoch=1, seq=seq, time=1.0, frame_id="map",
+                       position=(0.0, 0.0, 0.0)), key=KEY, signer=signer)
+
+
+def test_signatures_verify_and_tampering_is_caught() -> None:
+    frame = _pose(1, A)
+    assert decode(frame, key=KEY, trust=Trust("list", {"a": A.public})).origin == "a"
+    with pytest.raises(IdentityError, match="does not verify") as info:
+        decode(frame, key=KEY, trust=Trust("list", {"a": B.public}))
+    assert info.value.reason == "identity"
+    with pytest.raises(IdentityError, match="does not verify"):
+        verify_signature(A.public, b"other data", A.sign(b"data"), "a")
+    assert decode(frame, key=KEY).origin == "a"  # without a trust the signature is not checked
+
+
+def test_trust_on_first_use_pins_at_accept_and_refuses_another_key() -> None:
+    pinned: list[tuple[str, bytes]] = []
+    rx = Receiver(key=KEY, trust=Trust("tofu", on_pin=lambda a, k: pinned.append((a, k))))
+    with pytest.raises(UnknownIdentityError, match="expected its heartbeat first"):
+        rx.decode(_pose(1, A))  # nothing known of 'a' yet
+    rx.decode(_hb(2, A))  # checked with the key it carries, not yet accepted: nothing pinned
+    assert pinned == [] and rx.trust.pins() == {}
+    rx.receive(_hb(3, A))
+    assert pinned == [("a", A.public)] and rx.trust.pins() == {"a": A.public}
+    rx.receive(_pose(4, A))
+    with pytest.raises(IdentityError, match="expected its pinned key") as info:
+        rx.decode(_hb(5, B))  # another key holder claiming to be 'a'
+    assert info.value.reason == "identity"
+    with pytest.raises(IdentityError, match="does not verify"):
+        rx.decode(_hb(6, B, identity=A.public))  # claims a's key, cannot sign with it
+    with pytest.raises(IdentityError, match="found none"):
+        rx.decode(_pose(7, None))  # unsigned
+    assert rx.rejected == {"unknown_identity": 1, "identity": 3}
+
+
+def test_requests_need_no_signature_and_off_checks_nothing() -> None:
+    rx = Receiver(key=KEY, trust=Trust("list", {}))
+    request = DeltaRangeRequest(origin="peer", epoch=1, seq=1, time=1.0, layer="a", request_id=1,
+                                from_version=0, to_version=3)
+    rx.receive(encode(request, key=KEY))
+    with pytest.raises(UnknownIdentityError, match="trust list"):
+        rx.decode(_hb(1, A))  # a list admits only the agents on it, heartbeat or not
+    off = Receiver(key=KEY, trust=Trust("off"))
+    off.receive(_pose(1, None))
+    off.receive(_hb(2, B))
+    assert off.trust.pins() == {}
+
+
+def test_bad_keys_and_modes_are_refused() -> None:
+    with pytest.raises(IdentityError, match="64 hex digits, found 'abc'"):
+        parse_public("abc", "trusted_keys['a']")
+    with pytest.raises(IdentityError, match="trust mode must be one of"):
+        Trust("sometimes")  # type: ignore[arg-type]
+    with pytest.raises(IdentityError, match="expected 32 raw Ed25519 private key bytes, found 3"):
+        Signer.from_bytes(b"abc")
+    assert Signer.from_bytes(A.private_bytes()).public == A.public
