@@ -105,6 +105,9 @@ class Config(BaseSettings):
     inbox_mb: float = Field(128.0, gt=0, description="bytes the received-message queue may hold")
     max_layers: int = Field(256, ge=1, description="most peer layers held (hostile origins)")
     max_peer_blocks: int = Field(100_000, ge=1, description="voxel blocks (64 voxels each) in peer layers")
+    objects_s: float = Field(2.0, ge=0, description="seconds between object-list refreshes (0: no objects)")
+    structure_classes: list[int] = Field(
+        [1, 2], description="class ids that are structure (walls, floors), never objects; the sim's")
     ring_size: int = Field(64, ge=1, description="recent deltas kept per layer for gap repair")
     max_message_mb: float = Field(64.0, gt=0, description="largest accepted decoded message")
     query_timeout_s: float = Field(5.0, gt=0, description="range/snapshot query timeout")

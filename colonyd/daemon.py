@@ -14,7 +14,7 @@ from typing import Any
 
 from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError, DuplicateAgentError
-from colonyd.frames import Sender, colony_key, get_receiver
+from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.identity import get_trust, identity_path, load_signer
 from colonyd.layers import Layers
@@ -23,6 +23,7 @@ from colonyd.mapping import integrate_observation
 from colonyd.membership import Membership, agent_alive
 from colonyd.metrics import Metrics
 from colonyd.notify import Notifier
+from colonyd.objects import OwnObjects, to_wire
 from colonyd.persistence import StateStore
 from colonyd.runtime import get_session
 from colonyd.status import StatusServer
@@ -65,6 +66,7 @@ class Daemon:
         self._published_local = 0
         self._last_snapshot = time.monotonic()
         self._sources_done = threading.Event()
+        self.objects = OwnObjects(frozenset(config.structure_classes))
         self.conflict = ""  # set when another live daemon has our agent id and we give way
         self._conflict_logged = 0.0
 
@@ -170,6 +172,9 @@ class Daemon:
             threading.Thread(target=self._map_loop, name="mapping", daemon=True),
             threading.Thread(target=self._publish_loop, name="publisher", daemon=True),
         ]
+        if self.config.objects_s > 0:
+            self._threads.append(
+                threading.Thread(target=self._objects_loop, name="objects", daemon=True))
         for t in self._threads:
             t.start()
 
@@ -187,7 +192,7 @@ class Daemon:
                 self.gossip.heartbeat(self.config.kind, self.pose)
                 next_hb = now + self.config.heartbeat_s
             if wd and now >= next_wd:
-                mapping, publisher = self._threads
+                mapping, publisher = self._threads[:2]
                 if publisher.is_alive() and (mapping.is_alive() or self._sources_done.is_set()):
                     self.notifier.watchdog()
                 next_wd = now + wd / 3
@@ -269,7 +274,20 @@ class Daemon:
         with own.lock:
             integrate_observation(own.grid, obs, sensor=source.adapter.sensor_model,
                                   reliability=source.adapter.reliability, agent=self.config.agent_id)
+        self.objects.observe(obs)
         self.pose = [float(v) for v in obs.origin]
+
+    # -- objects (own list refreshed and published when it changes) -----------------------
+    def _objects_loop(self) -> None:
+        own = self.layers.own
+        while not self.stop.wait(self.config.objects_s):
+            try:
+                with own.lock:
+                    changed = self.objects.refresh(own.grid, int(own.grid.version))
+                if changed is not None:
+                    self.gossip.publish_objects(to_wire(changed))
+            except Exception:
+                log.exception("object refresh failed")
 
     # -- publishing (own deltas, write-ahead logged, coalesced) ---------------------------
     def _publish_loop(self) -> None:
@@ -329,7 +347,18 @@ class Daemon:
             "pose": self.pose,
             "sources_done": self._sources_done.is_set() or not self.config.sources,
             "unpublished": unpublished,
+            "frame": frame_of(self.config.agent_id),
             "layers": layers,
+            "objects": [
+                {"id": o.object_id, "class": o.class_id, "position": [float(x) for x in o.position],
+                 "voxels": o.voxel_count}
+                for o in self.objects.current
+            ],
+            "peer_objects": {
+                origin: [{"id": o.object_id, "class": o.class_id, "position": list(o.position)}
+                         for o in self.gossip.peer_objects.get(origin)]
+                for origin in self.gossip.peer_objects.origins()
+            },
             "members": [
                 {"agent": m.agent, "alive": m.alive, "kind": m.kind, "last_seen": m.last_seen,
                  "pose": m.pose, "layers": {o: list(v) for o, v in m.layers.items()}}

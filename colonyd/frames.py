@@ -25,10 +25,16 @@ from protocol import Limits, Message, Receiver, encode
 from protocol.identity import Signer, Trust
 from voxel.delta import Delta
 
-#: The map frame every layer is expressed in (each origin's own map frame).
-FRAME_ID = "map"
+#: Suffix of an agent's own map frame: its layer lives in `<agent>.odom`, where it started.
+FRAME_SUFFIX = ".odom"
 #: Frame numbers reserved on disk at a time (see `Sender`).
 SEQ_BLOCK = 1 << 20
+
+
+def frame_of(agent: str) -> str:
+    """The frame an agent's layer and objects are expressed in: `<agent>.odom` (a protocol
+    name, so at most 64 characters: a longer agent id is cut before the suffix)."""
+    return agent[: 64 - len(FRAME_SUFFIX)] + FRAME_SUFFIX
 
 
 def colony_key(secret: str | None) -> bytes | None:

@@ -1,7 +1,7 @@
 """Gossip: wires the publisher, inbox, catch-up and layer server of one daemon together.
 
 Everything on the wire is the colony protocol (`protocol/`, docs/PROTOCOL.md): VoxelDelta on
-`<origin>/delta`, Heartbeat on `<origin>/heartbeat`, SnapshotRequest/Reply and
+`<origin>/delta`, Heartbeat on `<origin>/heartbeat`, Objects on `<origin>/objects`, SnapshotRequest/Reply and
 DeltaRangeRequest/Reply through the `<server>/snapshot/<layer>` and `<server>/deltas/<layer>`
 queryables. Layer versions on the wire are the origin's delta sequence numbers.
 """
@@ -20,9 +20,10 @@ from colonyd.layers import Layers
 from colonyd.layerserver import LayerServer
 from colonyd.membership import Membership
 from colonyd.metrics import Metrics
+from colonyd.objects import PeerObjects
 from colonyd.publisher import Publisher
 from colonyd.replicas import Replicas
-from protocol import OwnOriginError, Receiver
+from protocol import ObjectCentroid, OwnOriginError, Receiver
 from voxel.delta import Delta
 
 
@@ -49,12 +50,13 @@ class Gossip:
     ) -> None:
         self.stop = threading.Event()  # one stop for every worker: they wind down together
         replicas = Replicas(layers, metrics)
+        self.peer_objects = PeerObjects(layers.max_layers)
         self.publisher = Publisher(session, namespace, layers, sender, metrics, epoch=epoch,
                                    part_bytes=part_bytes)
         self.catchup = CatchUp(session, namespace, replicas, sender, receiver, metrics,
                                query_timeout_s=query_timeout_s, part_bytes=part_bytes,
                                stop=self.stop)
-        self.inbox = Inbox(session, namespace, replicas, receiver, metrics,
+        self.inbox = Inbox(session, namespace, replicas, receiver, metrics, self.peer_objects,
                            request_repair=self.catchup.request,
                            send_heartbeat=self.publisher.hb_now.set, on_own_origin=on_own_origin,
                            size=inbox_size, max_bytes=inbox_bytes, drop_rate=drop_rate,
@@ -83,6 +85,10 @@ class Gossip:
     def publish_own(self, prev: int, seq: int, delta: Delta, created: float) -> int:
         """Publish an own delta (already logged); returns the bytes sent."""
         return self.publisher.publish_own(prev, seq, delta, created)
+
+    def publish_objects(self, objects: list[ObjectCentroid]) -> None:
+        """Publish the own layer's object list."""
+        self.publisher.publish_objects(objects)
 
     def heartbeat(self, kind: str, pose: list[float]) -> None:
         """Publish what this daemon is and holds."""

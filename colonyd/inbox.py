@@ -13,21 +13,22 @@ from colonyd.errors import WireError
 from colonyd.frames import Assembler, accept, expect
 from colonyd.membership import Membership
 from colonyd.metrics import Metrics
+from colonyd.objects import PeerObjects
 from colonyd.replicas import Replicas
 from colonyd.runtime import undeclare
 from colonyd.worker import Bounded, Worker
-from protocol import Heartbeat, OwnOriginError, Receiver, VoxelDelta
+from protocol import Heartbeat, Objects, OwnOriginError, Receiver, VoxelDelta
 from protocol.keyexpr import topic_subscription
 
 log = logging.getLogger(__name__)
 
-#: An inbox item: (kind "delta" | "hb" | "join", key expression or agent, raw frame).
+#: An inbox item: (kind "delta" | "hb" | "objects" | "join", key expression or agent, raw frame).
 Item = tuple[str, str, bytes]
 
 
 class Inbox:
-    """Subscribes to every peer's deltas and heartbeats; a bounded queue (count and bytes: a
-    flood drops, never grows memory) and one worker decode and fold them in."""
+    """Subscribes to every peer's deltas, heartbeats and object lists; a bounded queue (count
+    and bytes: a flood drops, never grows memory) and one worker decode and fold them in."""
 
     def __init__(
         self,
@@ -36,6 +37,7 @@ class Inbox:
         replicas: Replicas,
         receiver: Receiver,
         metrics: Metrics,
+        objects: PeerObjects,
         *,
         request_repair: Callable[[str, list[str]], None],
         send_heartbeat: Callable[[], None],
@@ -46,6 +48,7 @@ class Inbox:
         stop: threading.Event | None = None,
     ) -> None:
         self.replicas = replicas
+        self.objects = objects
         self.receiver = receiver
         self.metrics = metrics
         self.parts = Assembler()
@@ -69,6 +72,9 @@ class Inbox:
             session.declare_subscriber(
                 topic_subscription(namespace, "heartbeat"), self._on_hb, allowed_origin=remote
             ),
+            session.declare_subscriber(
+                topic_subscription(namespace, "objects"), self._on_objects, allowed_origin=remote
+            ),
         ]
 
     # -- zenoh callbacks: enqueue only ----------------------------------------------------
@@ -80,6 +86,9 @@ class Inbox:
 
     def _on_hb(self, sample: zenoh.Sample) -> None:
         self._worker.put(("hb", str(sample.key_expr), sample.payload.to_bytes()))
+
+    def _on_objects(self, sample: zenoh.Sample) -> None:
+        self._worker.put(("objects", str(sample.key_expr), sample.payload.to_bytes()))
 
     def on_member_event(self, agent: str, event: str) -> None:
         """Liveliness join: ask the newcomer (or returning peer) what it holds."""
@@ -104,6 +113,8 @@ class Inbox:
                 self._handle_delta(key, raw)
             elif kind == "hb":
                 self._handle_hb(key, raw)
+            elif kind == "objects":
+                self._handle_objects(key, raw)
             elif kind == "join":
                 self._handle_join(key)
         except OwnOriginError as exc:
@@ -133,6 +144,13 @@ class Inbox:
             return
         member = self.membership.heard(msg.origin, msg)
         self._compare(msg.origin, member.layers)
+
+    def _handle_objects(self, key: str, raw: bytes) -> None:
+        msg = expect(self.receiver.decode(raw, key_expr=key), Objects, f"on {key}")
+        self.objects.admit(msg.origin)
+        accept(self.receiver, self.metrics, msg, raw)
+        self.objects.put(msg.origin, msg.objects)
+        self.metrics.add("objects_received")
 
     def _handle_join(self, agent: str) -> None:
         """A member joined (or came back): tell it what we hold right away."""

@@ -10,7 +10,7 @@ from typing import Any
 import zenoh
 
 from colonyd.errors import WireError
-from colonyd.frames import FRAME_ID, Sender, accept, expect
+from colonyd.frames import frame_of, Sender, accept, expect
 from colonyd.layers import Layer, Layers
 from colonyd.metrics import Metrics
 from colonyd.runtime import undeclare
@@ -128,7 +128,7 @@ class LayerServer:
         if layer.origin == self.own:
             epoch = self.epoch
         common = {"origin": self.own, "layer": layer.origin, "request_id": request.request_id,
-                  "frame_id": FRAME_ID, "layer_epoch": epoch}
+                  "frame_id": frame_of(layer.origin), "layer_epoch": epoch}
         frames = self._fit(request, chunks, lambda i, n, c: SnapshotReply(
             **common, time=time.time(), part=i, parts=n, delta=c))
         self._reply(query, key, frames)
@@ -143,7 +143,7 @@ class LayerServer:
             epoch = self._layer_epoch(layer)
             deltas = layer.range(request.from_version, request.to_version)
         common = {"origin": self.own, "layer": request.layer, "request_id": request.request_id,
-                  "frame_id": FRAME_ID, "layer_epoch": epoch}
+                  "frame_id": frame_of(request.layer), "layer_epoch": epoch}
         if not deltas:
             msg = DeltaRangeReply(**common, time=time.time(), complete=deltas is not None)
             self._reply(query, key, self.sender.encode_all([msg]))

@@ -7,11 +7,11 @@ import threading
 
 import zenoh
 
-from colonyd.frames import FRAME_ID, Sender
+from colonyd.frames import frame_of, Sender
 from colonyd.layers import Layers, relabel
 from colonyd.metrics import Metrics
 from colonyd.runtime import undeclare
-from protocol import Heartbeat, LayerVersion, VoxelDelta, delta_messages
+from protocol import Heartbeat, LayerVersion, ObjectCentroid, Objects, VoxelDelta, delta_messages
 from protocol.keyexpr import topic_key
 from voxel.delta import Delta
 
@@ -20,8 +20,8 @@ MAX_HEARTBEAT_LAYERS = 4096
 
 
 class Publisher:
-    """Puts own deltas on `<own>/delta` and heartbeats on `<own>/heartbeat` (dropped, never
-    blocking, when the network is congested)."""
+    """Puts own deltas on `<own>/delta`, heartbeats on `<own>/heartbeat` and the own object list
+    on `<own>/objects` (dropped, never blocking, when the network is congested)."""
 
     def __init__(
         self,
@@ -48,6 +48,9 @@ class Publisher:
         self._heartbeats = session.declare_publisher(
             topic_key(namespace, self.own, "heartbeat"), congestion_control=drop
         )
+        self._objects = session.declare_publisher(
+            topic_key(namespace, self.own, "objects"), congestion_control=drop
+        )
 
     def publish_own(self, prev: int, seq: int, delta: Delta, created: float) -> int:
         """Publish an own delta (already logged) as VoxelDelta parts; returns the bytes sent."""
@@ -56,11 +59,11 @@ class Publisher:
             own.seq = seq
             own.epoch = self.epoch
         wire = relabel(delta, prev, seq, time=created)
-        whole = VoxelDelta(origin=self.own, time=created, frame_id=FRAME_ID, delta=wire)
+        whole = VoxelDelta(origin=self.own, time=created, frame_id=frame_of(self.own), delta=wire)
         payloads = self.sender.encode_all([whole])  # one encoding in the common case
         if len(payloads[0]) > self.part_bytes:  # too large for one frame: cut into parts
             msgs = delta_messages(
-                origin=self.own, epoch=self.epoch, seq=0, time=created, frame_id=FRAME_ID,
+                origin=self.own, epoch=self.epoch, seq=0, time=created, frame_id=frame_of(self.own),
                 delta=wire, max_bytes=self.part_bytes,
             )
             payloads = self.sender.encode_all(msgs)
@@ -80,7 +83,7 @@ class Publisher:
         ]
         position = tuple(float(x) for x in pose[:3])
         msg = Heartbeat(
-            **self.sender.header(), kind=kind, frame_id=FRAME_ID, layers=layers,
+            **self.sender.header(), kind=kind, frame_id=frame_of(self.own), layers=layers,
             identity=self.sender.identity,
             position=position if len(position) == 3 and all(map(math.isfinite, position)) else None,
         )
@@ -88,6 +91,14 @@ class Publisher:
         self._heartbeats.put(payload)
         self.metrics.add("bytes_published", len(payload))
 
+    def publish_objects(self, objects: list[ObjectCentroid]) -> None:
+        """Publish the own layer's full object list (in its frame)."""
+        msg = Objects(**self.sender.header(), frame_id=frame_of(self.own), objects=objects)
+        payload = self.sender.encode(msg)
+        self._objects.put(payload)
+        self.metrics.add("objects_published")
+        self.metrics.add("bytes_published", len(payload))
+
     def close(self) -> None:
-        undeclare(self._deltas, self._heartbeats)
+        undeclare(self._deltas, self._heartbeats, self._objects)
 

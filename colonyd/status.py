@@ -146,21 +146,25 @@ def format_status(reports: list[dict[str, Any]]) -> str:
         seen[r["agent"]] = max(seen.get(r["agent"], 0.0), float(r.get("time", now)))
         for m in r.get("members", []):
             seen[m["agent"]] = max(seen.get(m["agent"], 0.0), float(m.get("last_seen", 0.0)))
-    lines = [f"{'agent':<16} {'kind':<8} {'last seen':>9} {'pose':<22} {'behind':>6}  layers"]
+    lines = [f"{'agent':<16} {'kind':<8} {'last seen':>9} {'pose':<22} {'behind':>6} "
+             f"{'objects':>7}  layers"]
     for r in reports:
         pose = ",".join(f"{x:.2f}" for x in r.get("pose", [])[:3]) or "-"
         ago = f"{max(0.0, now - seen.get(r['agent'], now)):.1f}s"
         layers = " ".join(
             f"{o}@{v['seq']}({v['voxels']})" for o, v in sorted(r.get("layers", {}).items())
         )
+        objects = len(r.get("objects", []))
+        heard = ",".join(f"{o}:{len(v)}" for o, v in sorted(r.get("peer_objects", {}).items()))
         lines.append(
             f"{r['agent']:<16} {r.get('kind', '?'):<8} {ago:>9} {pose:<22} "
-            f"{lags.get(r['agent'], 0):>6}  {layers}"
+            f"{lags.get(r['agent'], 0):>6} {objects:>7}  {layers}"
+            + (f"  objects heard: {heard}" if heard else "")
         )
     answered = {r["agent"] for r in reports}
     for agent in sorted(set(seen) - answered):  # known to peers but not answering (frozen, gone)
         kind = next((m.get("kind", "?") for r in reports for m in r.get("members", [])
                      if m["agent"] == agent), "?")
         ago = f"{max(0.0, now - seen[agent]):.1f}s"
-        lines.append(f"{agent:<16} {kind:<8} {ago:>9} {'-':<22} {'?':>6}  (not answering)")
+        lines.append(f"{agent:<16} {kind:<8} {ago:>9} {'-':<22} {'?':>6} {'?':>7}  (not answering)")
     return "\n".join(lines)

@@ -1,9 +1,10 @@
-"""Object centroids: clusters of occupied voxels sharing an object class, with covariance."""
+"""Object centroids: clusters of occupied voxels sharing an object class, with covariance, and
+the tracker that keeps their ids stable as the map grows."""
 
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -29,13 +30,22 @@ class ObjectCentroid:
 
 
 def extract_objects(
-    grid: VoxelGrid, *, min_probability: float = 0.3, min_voxels: int = 4, id_cell: float = 0.5
+    grid: VoxelGrid,
+    *,
+    min_probability: float = 0.3,
+    min_voxels: int = 4,
+    id_cell: float = 0.5,
+    exclude: frozenset[int] = frozenset(),
+    link: float = 1.8,
 ) -> list[ObjectCentroid]:
     """Cluster occupied, class-labelled voxels of `grid` into objects (DBSCAN per class).
 
-    Voxels whose best class probability is below `min_probability` are ignored; clusters of
-    26-connected voxels (DBSCAN with eps = 1.8 voxels) smaller than `min_voxels` are outliers.
-    The centroid covariance is the voxel scatter over the count, plus the voxel quantisation.
+    Voxels whose best class probability is below `min_probability`, or whose class is in
+    `exclude` (structure such as walls and floors), are ignored; voxels within `link` voxels of
+    each other (DBSCAN eps; 1.8 joins 26-connected voxels) form a cluster, and clusters smaller
+    than `min_voxels` are outliers. The centroid covariance is the voxel scatter over the count,
+    plus the voxel quantisation. `object_id` is the class and the centroid's `id_cell` cell
+    (`ObjectTracker` keeps ids stable as centroids move).
     """
     from sklearn.cluster import DBSCAN  # type: ignore[import-untyped]
 
@@ -54,6 +64,8 @@ def extract_objects(
     cls = ids[rows, best].astype(np.int64)
     p = probs[rows, best]
     keep = (cls >= 0) & (p >= min_probability)
+    if exclude:
+        keep &= ~np.isin(cls, np.fromiter(exclude, np.int64))
     keys, cls, p = keys[keep], cls[keep], p[keep]
     times = grid.channel_at_keys("last_time", keys) if keys.size else np.empty(0)
     res = grid.resolution
@@ -62,7 +74,7 @@ def extract_objects(
     for c in np.unique(cls):  # one pass per class present, vectorised inside
         m = cls == c
         pts = centres[m]
-        labels = DBSCAN(eps=1.8 * res, min_samples=1).fit_predict(pts / 1.0)
+        labels = DBSCAN(eps=link * res, min_samples=1).fit_predict(pts)
         counts = np.bincount(labels)
         for lab in np.flatnonzero(counts >= min_voxels):
             sel = labels == lab
@@ -85,3 +97,57 @@ def extract_objects(
                 )
             )
     return out
+
+
+class ObjectTracker:
+    """Stable ids for objects found again and again in a growing map.
+
+    Each object of a new extraction takes the id of the nearest object of the same class in the
+    previous list within `gate` metres (nearest pairs first, each id once); the others get new
+    ids counting up from `first_id`. Objects not found again are gone.
+    """
+
+    def __init__(self, gate: float = 0.75, first_id: int = 1) -> None:
+        if gate <= 0 or first_id < 0:
+            msg = f"need gate > 0 and first_id >= 0, found {gate!r}, {first_id!r}"
+            raise InputError(msg)
+        self.gate = gate
+        self._next = first_id
+        self.objects: list[ObjectCentroid] = []
+
+    def update(self, found: list[ObjectCentroid]) -> list[ObjectCentroid]:
+        """`found` with tracked ids (also kept as `objects`)."""
+        prev = self.objects
+        ids: list[int | None] = [None] * len(found)
+        if prev and found:
+            a = np.array([o.position for o in prev])
+            b = np.array([o.position for o in found])
+            dist = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=2)
+            same = np.array([o.class_id for o in prev])[:, None] == np.array(
+                [o.class_id for o in found]
+            )[None, :]
+            dist = np.where(same & (dist <= self.gate), dist, np.inf)
+            used = np.zeros(len(prev), bool)
+            for flat in np.argsort(dist, axis=None):  # nearest pairs first
+                i, j = divmod(int(flat), len(found))
+                if not np.isfinite(dist[i, j]):
+                    break
+                if used[i] or ids[j] is not None:
+                    continue
+                used[i] = True
+                ids[j] = prev[i].object_id
+        out = []
+        for o, oid in zip(found, ids, strict=True):
+            if oid is None:
+                oid, self._next = self._next, self._next + 1
+            out.append(replace(o, object_id=oid))
+        self.objects = out
+        return out
+
+
+def moved(a: list[ObjectCentroid], b: list[ObjectCentroid], tolerance: float) -> bool:
+    """True if `b` differs from `a`: other ids or classes, or an object moved over `tolerance` m."""
+    if [(o.object_id, o.class_id) for o in a] != [(o.object_id, o.class_id) for o in b]:
+        return True
+    return any(float(np.linalg.norm(x.position - y.position)) > tolerance
+               for x, y in zip(a, b, strict=True))

@@ -1,0 +1,136 @@
+"""Objects: the own layer's object list (tracked clusters and sensor-identified objects) and peers'."""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from colonyd.errors import WireError
+from colonyd.grid import VoxelGrid
+from plugins.observation import Observation
+from protocol import ObjectCentroid as WireObject
+from voxel.objects import ObjectCentroid, ObjectTracker, extract_objects, moved
+
+#: Tracked clusters take ids from here up; below it are the ids sensors give (markers, instances).
+CLUSTER_IDS = 1 << 40
+
+
+@dataclass
+class _Sighting:
+    """Running mean and scatter of one identified object's world positions."""
+
+    class_id: int
+    count: int
+    mean: np.ndarray
+    m2: np.ndarray  # sum of squared deviations (3, 3)
+    time: float
+
+
+class OwnObjects:
+    """The objects of this daemon's own layer, in its frame.
+
+    Objects with an identity from the sensor (an ArUco marker's id, a simulator's instance id, a
+    detector's track) are averaged over their sightings; other class-labelled voxels are
+    clustered (DBSCAN per class, `structure` classes such as walls and floors excluded) and
+    tracked so that ids stay stable as the map grows. `refresh` gives the list when it changed.
+    """
+
+    def __init__(self, structure: frozenset[int], *, min_voxels: int = 20, link: float = 3.0,
+                 gate: float = 0.75, tolerance: float = 0.05) -> None:
+        self.structure = structure
+        self.min_voxels = min_voxels
+        self.link = link
+        self.tolerance = tolerance
+        self._tracker = ObjectTracker(gate=gate, first_id=CLUSTER_IDS)
+        self._sightings: dict[int, _Sighting] = {}
+        self._lock = threading.Lock()
+        self._version = -1
+        self.current: list[ObjectCentroid] = []
+
+    def observe(self, obs: Observation) -> None:
+        """Fold the objects a sensor identified in `obs` into their running means (world frame)."""
+        with self._lock:
+            for det in obs.objects:
+                if det.class_id in self.structure or not 0 <= det.object_id < CLUSTER_IDS:
+                    continue
+                p = obs.pose[:3, :3] @ det.position + obs.pose[:3, 3]
+                s = self._sightings.get(det.object_id)
+                if s is None:
+                    self._sightings[det.object_id] = _Sighting(det.class_id, 1, p, np.zeros((3, 3)),
+                                                               obs.time)
+                    continue
+                s.count += 1
+                step = p - s.mean
+                s.mean = s.mean + step / s.count
+                s.m2 = s.m2 + np.outer(step, p - s.mean)
+                s.time = max(s.time, obs.time)
+
+    def refresh(self, grid: VoxelGrid, version: int) -> list[ObjectCentroid] | None:
+        """The object list if it changed since the last refresh (`grid` at `version`), else None."""
+        found: list[ObjectCentroid] = []
+        if version != self._version:
+            found = extract_objects(grid, exclude=self.structure, min_voxels=self.min_voxels,
+                                    link=self.link)
+        with self._lock:
+            tracked = self._tracker.update(found) if version != self._version else self._tracker.objects
+            self._version = version
+            identified = [
+                ObjectCentroid(object_id=oid, class_id=s.class_id, position=s.mean,
+                               covariance=(s.m2 / s.count / s.count if s.count > 1
+                                           else np.eye(3) * 0.01) + np.eye(3) * 1e-4,
+                               voxel_count=0, probability=1.0, time=s.time)
+                for oid, s in sorted(self._sightings.items())
+            ]
+        objects = identified + tracked
+        if not moved(self.current, objects, self.tolerance):
+            return None
+        self.current = objects
+        return objects
+
+
+def to_wire(objects: list[ObjectCentroid]) -> list[WireObject]:
+    """Objects as the protocol's Objects list."""
+    return [
+        WireObject(object_id=o.object_id, class_id=o.class_id,
+                   position=tuple(float(x) for x in o.position),
+                   covariance=[float(x) for x in np.asarray(o.covariance).ravel()],
+                   voxel_count=o.voxel_count, time=float(o.time))
+        for o in objects
+    ]
+
+
+class PeerObjects:
+    """The latest object list each peer published (a full list replaces the previous one), for
+    at most `max_origins` peers (a hostile peer cannot invent many)."""
+
+    def __init__(self, max_origins: int = 256) -> None:
+        self.max_origins = max_origins
+        self._lists: dict[str, tuple[float, list[WireObject]]] = {}
+        self._lock = threading.Lock()
+
+    def admit(self, origin: str) -> None:
+        """Raise WireError unless a list of `origin` may be kept."""
+        with self._lock:
+            if origin not in self._lists and len(self._lists) >= self.max_origins:
+                text = f"expected object lists of at most {self.max_origins} peers, found another: {origin!r}"
+                raise WireError("too-many-layers", text)
+
+    def put(self, origin: str, objects: list[WireObject]) -> None:
+        with self._lock:
+            self._lists[origin] = (time.time(), list(objects))
+
+    def drop(self, origin: str) -> None:
+        with self._lock:
+            self._lists.pop(origin, None)
+
+    def get(self, origin: str) -> list[WireObject]:
+        with self._lock:
+            entry = self._lists.get(origin)
+            return list(entry[1]) if entry else []
+
+    def origins(self) -> list[str]:
+        with self._lock:
+            return sorted(self._lists)
