@@ -33,7 +33,7 @@ class AlignParams:
     """Knobs of `align_clouds`; the defaults are what the benchmark measured."""
 
     dof: int = 4  # 3: x, y, yaw; 4: + z; 6: full
-    search_cell_m: float | None = None  # cell of the yaw search images; None: max(4 voxels, 0.2 m)
+    search_cell_m: float | None = None  # cell of the yaw search images; None: max(2 voxels, 0.2 m)
     yaw_step_deg: float = 1.0
     hypotheses: int = 8  # distinct poses from the global search refined by ICP
     coarse_samples: int = 4000  # B points per hypothesis ICP / evidence
@@ -106,7 +106,7 @@ def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) ->
     p = params or AlignParams()
     _check(a, b, p)
     res = max(a.resolution, b.resolution)
-    cell = p.search_cell_m or max(4.0 * res, 0.2)
+    cell = p.search_cell_m or max(2.0 * res, 0.2)
     both_planar = a.planar and b.planar
     icp_dof = 3 if both_planar else p.dof
     inlier_m = p.inlier_voxels * res
