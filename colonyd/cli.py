@@ -106,6 +106,14 @@ def build_parser() -> argparse.ArgumentParser:
     b = bsub.add_parser("wire", help="wire-format benchmark")
     b.add_argument("--json", type=Path, required=True)
     b.add_argument("--shared-data", type=Path, default=None)
+    b = bsub.add_parser("align", help="map alignment: real laser halves, OctoMap crops, negatives, vs map_merge's ORB")
+    b.add_argument("--json", type=Path, required=True)
+    b.add_argument("--shared-data", type=Path, default=None)
+    b.add_argument("--seeds", type=int, default=20, help="random moves of the CARMEN halves")
+    b.add_argument("--octomap-seeds", type=int, default=10, help="random moves of the OctoMap crops")
+    b.add_argument("--negative-seeds", type=int, default=5, help="random moves of each negative pair")
+    b.add_argument("--carmen-step", type=int, default=1, help="map every step-th scan of each half")
+    b.add_argument("--work-dir", type=Path, default=None, help="keep the maps here (default: a temporary folder)")
     b = bsub.add_parser("colony", help="N daemons on loopback: propagation, catch-up, idle cost")
     b.add_argument("--json", type=Path, required=True)
     b.add_argument("--daemons", type=int, default=4)
@@ -202,6 +210,13 @@ def _bench(args: argparse.Namespace) -> int:
         from colonyd.bench_integrate import run_integrate_bench
 
         result = run_integrate_bench(args.json, args.shared_data, args.repeats, args.only)
+    elif args.bench == "align":
+        from colonyd.bench_align import run_align_bench
+
+        result = run_align_bench(args.json, args.shared_data, seeds=args.seeds, octomap_seeds=args.octomap_seeds,
+                                 negative_seeds=args.negative_seeds, carmen_step=args.carmen_step,
+                                 work_dir=args.work_dir)
+        result = {"summary": result["summary"], "json": str(args.json)}
     elif args.bench == "wire":
         from colonyd.bench_wire import run_wire_bench
 
