@@ -1,4 +1,4 @@
-"""Command line: `colonyd run|status|map|sources|bench|demo|dump-config`; the one place errors become exit codes."""
+"""Command line: `colonyd run|status|map|align|sources|bench|demo|dump-config`; the one place errors become exit codes."""
 
 from __future__ import annotations
 
@@ -88,6 +88,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", type=float, default=0.1)
     p.add_argument("--out", type=Path, required=True, help="output directory")
 
+    p = sub.add_parser("align", help="align map B to map A by their geometry (offline)")
+    p.add_argument("map_a", type=Path, metavar="A", help="reference map (.bt, grid .npz from `colonyd map`, .ply)")
+    p.add_argument("map_b", type=Path, metavar="B", help="map to align into A's frame")
+    p.add_argument("--dof", type=int, choices=[3, 4, 6], default=4,
+                   help="3: x, y, yaw (planar); 4: adds z (default); 6: full")
+    p.add_argument("--json", type=Path, required=True, metavar="OUT",
+                   help="write the result here (transform maps B's points into A's frame)")
+
     p = sub.add_parser("sources", help="print every source kind, what it reads and its options")
     p.add_argument("--markdown", action="store_true", help="print Markdown (the reference in docs/SOURCES.md)")
 
@@ -102,6 +110,14 @@ def build_parser() -> argparse.ArgumentParser:
     b = bsub.add_parser("wire", help="wire-format benchmark")
     b.add_argument("--json", type=Path, required=True)
     b.add_argument("--shared-data", type=Path, default=None)
+    b = bsub.add_parser("align", help="map alignment: real laser halves, OctoMap crops, negatives, vs map_merge's ORB")
+    b.add_argument("--json", type=Path, required=True)
+    b.add_argument("--shared-data", type=Path, default=None)
+    b.add_argument("--seeds", type=int, default=20, help="random moves of the CARMEN halves")
+    b.add_argument("--octomap-seeds", type=int, default=10, help="random moves of the OctoMap crops")
+    b.add_argument("--negative-seeds", type=int, default=5, help="random moves of each negative pair")
+    b.add_argument("--carmen-step", type=int, default=1, help="map every step-th scan of each half")
+    b.add_argument("--work-dir", type=Path, default=None, help="keep the maps here (default: a temporary folder)")
     b = bsub.add_parser("colony", help="N daemons on loopback: propagation, catch-up, idle cost")
     b.add_argument("--json", type=Path, required=True)
     b.add_argument("--daemons", type=int, default=4)
@@ -171,6 +187,8 @@ def main(argv: list[str] | None = None) -> int:
             f"at {summary.resolution} m in {summary.seconds:.1f} s\nwrote {files}\n"
         )
         return EXIT_OK
+    if cmd == "align":
+        return _align(args)
     if cmd == "bench":
         return _bench(args)
     if cmd == "demo":
@@ -180,11 +198,35 @@ def main(argv: list[str] | None = None) -> int:
     return EXIT_USAGE
 
 
+def _align(args: argparse.Namespace) -> int:
+    """`colonyd align`: exit 0 whether or not the maps aligned; the JSON says which and why."""
+    from voxel.registration import AlignParams, align_maps
+
+    result = align_maps(args.map_a, args.map_b, AlignParams(dof=args.dof)).to_json()
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(result, indent=1) + "\n")
+    if result["aligned"]:
+        sys.stdout.write(
+            f"aligned (confidence {result['confidence']:.2f}): x {result['x']:.3f} y {result['y']:.3f} "
+            f"z {result['z']:.3f} m, yaw {result['yaw_deg']:.2f} deg, {result['inliers']} inliers, "
+            f"RMS {result['rmse_m']} m, in {result['seconds']:.2f} s\nwrote {args.json}\n")
+    else:
+        sys.stdout.write(f"not aligned: {result['reason']}\nwrote {args.json}\n")
+    return EXIT_OK
+
+
 def _bench(args: argparse.Namespace) -> int:
     if args.bench == "integrate":
         from colonyd.bench_integrate import run_integrate_bench
 
         result = run_integrate_bench(args.json, args.shared_data, args.repeats, args.only)
+    elif args.bench == "align":
+        from colonyd.bench_align import run_align_bench
+
+        result = run_align_bench(args.json, args.shared_data, seeds=args.seeds, octomap_seeds=args.octomap_seeds,
+                                 negative_seeds=args.negative_seeds, carmen_step=args.carmen_step,
+                                 work_dir=args.work_dir)
+        result = {"summary": result["summary"], "json": str(args.json)}
     elif args.bench == "wire":
         from colonyd.bench_wire import run_wire_bench
 

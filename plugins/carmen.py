@@ -103,18 +103,24 @@ class CarmenOptions(Options):
     stop: int | None = Field(None, description="scan index to stop before; none: the end")
     step: int = Field(1, description="take every step-th scan (>= 1)")
     strict: bool = Field(False, description="fail on the first bad line instead of skipping and counting it")
+    move_x: float = Field(0.0, description="moves every scan pose: x shift, metres (after the rotation "
+                                                "move_yaw)")
+    move_y: float = Field(0.0, description="moves every scan pose: y shift, metres")
+    move_yaw: float = Field(0.0, description="moves every scan pose: rotation about z through the "
+                                                  "origin, degrees (then the shift)")
 
 
 class CarmenSource:
     """Scans of a CARMEN log as 2D LiDAR observations (sensor plane at z = 0).
 
     poses: "reference" (the corrected x y theta) or "odometry"; bad lines are skipped and counted
-    unless strict; start/stop/step select scans by index.
+    unless strict; start/stop/step select scans by index; move_x/move_y/move_yaw (degrees) move
+    every delivered pose by one rigid transform, as if the robot had started elsewhere.
     """
 
     def __init__(self, path: str | Path, *, poses: str = "reference", max_range: float = NO_RETURN,
                  start: int = 0, stop: int | None = None, step: int = 1, strict: bool = False,
-                 spec: str = "") -> None:
+                 move_x: float = 0.0, move_y: float = 0.0, move_yaw: float = 0.0, spec: str = "") -> None:
         self.path = Path(path)
         if not self.path.is_file():
             msg = f"carmen log: expected a file, found nothing at {self.path}"
@@ -126,6 +132,11 @@ class CarmenSource:
             msg = f"start/step: expected start >= 0 and step >= 1, found {start}, {step}"
             raise SourceSpecError(msg)
         self.poses, self.start, self.stop, self.step, self.strict = poses, start, stop, step, strict
+        for name, value in (("move_x", move_x), ("move_y", move_y), ("move_yaw", move_yaw)):
+            if not math.isfinite(value):
+                msg = f"{name}: expected a finite number, found {value!r}"
+                raise SourceSpecError(msg)
+        self.move = pose_matrix(move_x, move_y, 0.0, math.radians(move_yaw))
         self.spec = spec or f"replay:{self.path}"
         self.adapter: SensorAdapter = load_adapter(
             "lidar2d", beams=None, angle_min=-math.pi / 2, angle_increment=math.pi / 360,
@@ -173,7 +184,7 @@ class CarmenSource:
             ox, oy, oth = record.odometry
             obs = self.adapter.observe(
                 Scan(ranges=record.ranges, angle_min=-math.pi / 2, angle_increment=math.pi / len(record.ranges)),
-                pose=pose_matrix(x, y, 0.0, th), time=record.time,
+                pose=self.move @ pose_matrix(x, y, 0.0, th), time=record.time,
                 odometry=pose_matrix(ox, oy, 0.0, oth), frame=f"{self.path}:{record.line}")
             self.stats.delivered += 1
             yield obs

@@ -17,3 +17,7 @@ class DeltaError(VoxelError, ValueError):
 
 class FileFormatError(VoxelError):
     """A snapshot, PLY or OctoMap file is not what it claims to be."""
+
+
+class AlignmentError(VoxelError, ValueError):
+    """Maps or parameters given to registration cannot be aligned as asked (empty map, bad dof)."""

@@ -97,3 +97,21 @@ def test_bad_options(tmp_path: Path) -> None:
     with pytest.raises(SourceSpecError, match="poses: expected 'reference' or 'odometry', found 'gps'"):
         CarmenSource(log, poses="gps")
     assert math.isfinite(CarmenSource(log).adapter.sensor_model.max_range)
+
+
+@needs_log
+def test_move_options_move_every_pose_rigidly() -> None:
+    plain = list(CarmenSource(LOG, stop=3))
+    moved = list(CarmenSource(LOG, stop=3, move_x=5.0, move_y=-2.0, move_yaw=90.0))
+    for a, b in zip(plain, moved, strict=True):
+        expect = np.array([-a.pose[1, 3] + 5.0, a.pose[0, 3] - 2.0])
+        np.testing.assert_allclose(b.pose[:2, 3], expect, atol=1e-9)
+        np.testing.assert_allclose(b.points_world()[:, :2], np.column_stack(
+            [-a.points_world()[:, 1] + 5.0, a.points_world()[:, 0] - 2.0]), atol=1e-9)
+
+
+def test_move_options_must_be_finite(tmp_path: Path) -> None:
+    log = tmp_path / "x.log"
+    log.write_text("FLASER 3 1.0 2.0 3.0 0 0 0 0 0 0 12.5 host 12.5\n")
+    with pytest.raises(SourceSpecError, match="move_yaw: expected a finite number, found nan"):
+        CarmenSource(log, move_yaw=float("nan"))

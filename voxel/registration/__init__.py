@@ -1,0 +1,6 @@
+"""Registration of two maps' geometry: global yaw search, ICP refinement, confidence and verdict."""
+
+from voxel.registration.aligner import Alignment, AlignParams, align_clouds, align_maps
+from voxel.registration.mapcloud import MapCloud, load_map
+
+__all__ = ["AlignParams", "Alignment", "MapCloud", "align_clouds", "align_maps", "load_map"]

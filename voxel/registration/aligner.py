@@ -1,0 +1,293 @@
+"""Align two maps by their geometry: global yaw search, ICP on the best distinct hypotheses, verdict."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from os import PathLike
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from voxel import keys as vk
+from voxel.errors import AlignmentError
+from voxel.registration.evidence import Evidence, Side, evaluate
+from voxel.registration.global_search import (
+    Hypothesis,
+    observed_columns,
+    structure,
+    yaw_search,
+    z_offsets,
+)
+from voxel.registration.icp import covariance, icp, normals
+from voxel.registration.mapcloud import MapCloud, load_map
+from voxel.registration.transform import apply, euler
+from voxel.registration.verdict import Thresholds, judge
+
+METHOD = "yaw-correlation+icp"
+
+
+@dataclass(frozen=True)
+class AlignParams:
+    """Knobs of `align_clouds`; the defaults are what the benchmark measured."""
+
+    dof: int = 4  # 3: x, y, yaw; 4: + z; 6: full
+    search_cell_m: float | None = None  # cell of the yaw search images; None: max(2 voxels, 0.2 m)
+    yaw_step_deg: float = 1.0
+    hypotheses: int = 8  # distinct poses from the global search refined by ICP
+    coarse_samples: int = 4000  # B points per hypothesis ICP / evidence
+    fine_samples: int = 20000  # B points of the final ICP
+    eval_samples: int = 50000  # B points the final evidence counts
+    inlier_voxels: float = 2.0  # inlier distance, voxels
+    distinct_m: float = 0.5  # poses moving B's extent less than this apart are the same pose
+    seed: int = 0
+    limits: Thresholds = field(default_factory=Thresholds)
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """Result of aligning map B to map A: `transform` maps B's points into A's frame."""
+
+    aligned: bool
+    transform: np.ndarray
+    confidence: float
+    inliers: int
+    rmse_m: float
+    overlap: float
+    inlier_ratio: float
+    conflict: float
+    ambiguity: float
+    covariance: np.ndarray
+    covariance_params: list[str]
+    hypotheses: int
+    dof: int
+    seconds: float
+    reason: str | None
+    method: str = METHOD
+
+    def to_json(self) -> dict:
+        """The JSON record `colonyd align` writes (angles in degrees, transform 4x4 row-major)."""
+        roll, pitch, yaw = (math.degrees(v) for v in euler(self.transform))
+        out = {
+            "aligned": self.aligned, "transform": np.round(self.transform, 9).tolist(),
+            "x": float(self.transform[0, 3]), "y": float(self.transform[1, 3]), "z": float(self.transform[2, 3]),
+            "roll_deg": roll, "pitch_deg": pitch, "yaw_deg": yaw,
+            "confidence": round(self.confidence, 4), "inliers": self.inliers,
+            "rmse_m": None if not math.isfinite(self.rmse_m) else round(self.rmse_m, 5),
+            "overlap": round(self.overlap, 4), "inlier_ratio": round(self.inlier_ratio, 4),
+            "conflict": round(self.conflict, 4), "ambiguity": round(self.ambiguity, 4),
+            "covariance": np.round(self.covariance, 12).tolist(), "covariance_params": self.covariance_params,
+            "hypotheses": self.hypotheses, "dof": self.dof, "method": self.method,
+            "seconds": round(self.seconds, 3),
+        }
+        if not self.aligned:
+            out["reason"] = self.reason
+        return out
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    transform: np.ndarray
+    evidence: Evidence
+
+
+def align_maps(path_a: str | PathLike[str], path_b: str | PathLike[str], params: AlignParams | None = None) -> Alignment:
+    """Align the map file B to the map file A (.bt, grid .npz, .ply); time includes reading."""
+    began = time.perf_counter()
+    a, b = load_map(path_a), load_map(path_b)
+    result = align_clouds(a, b, params)
+    return _with_seconds(result, time.perf_counter() - began)
+
+
+def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) -> Alignment:
+    """Align map B to map A: the transform of B's points into A's frame, with its verdict."""
+    began = time.perf_counter()
+    p = params or AlignParams()
+    _check(a, b, p)
+    res = max(a.resolution, b.resolution)
+    cell = p.search_cell_m or max(2.0 * res, 0.2)
+    both_planar = a.planar and b.planar
+    icp_dof = 3 if both_planar else p.dof
+    inlier_m = p.inlier_voxels * res
+    rng = np.random.default_rng(p.seed)
+
+    a_tree = cKDTree(a.occupied)
+    a_coarse = _thin(a.occupied, 2.0 * res)
+    a_coarse_tree = cKDTree(a_coarse)
+    a_wall, b_wall = structure(a.occupied, a.resolution), structure(b.occupied, b.resolution)
+    a_walls, b_walls = a.occupied[a_wall], b.occupied[b_wall]
+    a_side, b_side = _side(a, a_tree, a_walls, cell), _side(b, cKDTree(b.occupied), b_walls, cell)
+    b_coarse = _sample(b.occupied, p.coarse_samples, rng)
+    b_check = _sample_masked(b.occupied, b_wall, p.coarse_samples, rng)
+    a_check = _sample_masked(a.occupied, a_wall, p.coarse_samples, rng)
+
+    hypotheses = _global_hypotheses(a, b, a_walls, b_walls, a_side, cell, res, p, both_planar)
+    candidates = [_refine_coarse(h, a_coarse, a_coarse_tree, a_side, b_side, b_coarse, b_check, a_check,
+                                 icp_dof, cell, res, inlier_m) for h in hypotheses]
+    ranked, z_ambiguity = _distinct(candidates, b.occupied, p.distinct_m)
+    if not ranked:
+        return _not_aligned(p.dof, len(hypotheses), time.perf_counter() - began,
+                            "the global search found no pose that puts any of B on A")
+    best = ranked[0]
+    ambiguity = _ambiguity(ranked, z_ambiguity)
+
+    b_fine = _sample(b.occupied, p.fine_samples, rng)
+    fine = icp(b_fine, a_tree, a.occupied, best.transform, icp_dof, start_m=3.0 * res, end_m=1.5 * res,
+               iterations=30)
+    b_eval = _sample_masked(b.occupied, b_wall, p.eval_samples, rng)
+    a_eval = _sample_masked(a.occupied, a_wall, p.eval_samples, rng)
+    evidence = evaluate(fine.transform, a_side, *b_eval, b_side, *a_eval, inlier_m)
+    cov, names = _covariance(fine.transform, b_fine, a, a_tree, inlier_m, icp_dof, both_planar)
+    verdict = judge(evidence, ambiguity, cov, names, p.limits)
+    return Alignment(
+        aligned=verdict.aligned, transform=fine.transform, confidence=verdict.confidence,
+        inliers=evidence.inliers, rmse_m=evidence.rmse, overlap=evidence.overlap,
+        inlier_ratio=evidence.inlier_ratio, conflict=evidence.conflict_ratio, ambiguity=ambiguity,
+        covariance=cov, covariance_params=names, hypotheses=len(hypotheses), dof=p.dof,
+        seconds=time.perf_counter() - began, reason=verdict.reason)
+
+
+def _check(a: MapCloud, b: MapCloud, p: AlignParams) -> None:
+    if p.dof not in (3, 4, 6):
+        msg = f"dof: expected 3 (x, y, yaw), 4 (x, y, z, yaw) or 6, found {p.dof!r}"
+        raise AlignmentError(msg)
+    for name, m in (("A", a), ("B", b)):
+        if m.occupied.ndim != 2 or m.occupied.shape[1] != 3 or len(m.occupied) < 10:
+            msg = f"map {name} ({m.name}): expected at least 10 occupied voxels (N, 3), found shape {m.occupied.shape}"
+            raise AlignmentError(msg)
+        if not np.all(np.isfinite(m.occupied)):
+            msg = f"map {name} ({m.name}): expected finite coordinates, found NaN or inf"
+            raise AlignmentError(msg)
+
+
+def _side(m: MapCloud, tree: cKDTree, walls: np.ndarray, cell: float) -> Side:
+    """Evidence's view of a map: walls, and the columns it observed (with free space: every column
+    with a known voxel; without: columns with occupied voxels)."""
+    observed = observed_columns(m.known, m.resolution, cell) if m.known is not None else m.occupied[:, :2]
+    return Side.build(tree, walls, observed, cell)
+
+
+def _global_hypotheses(a: MapCloud, b: MapCloud, a_walls: np.ndarray, b_walls: np.ndarray, a_side: Side,
+                       cell: float, res: float, p: AlignParams, both_planar: bool) -> list[Hypothesis]:
+    """Distinct planar poses from the yaw search, each with its best vertical offsets (dof 4, 6)."""
+    a_free = (vk.unpack(a_side.observed)[:, :2] + 0.5) * cell
+    planar_hyps = yaw_search(a_walls[:, :2], b_walls[:, :2], cell, a_free_xy=a_free,
+                             yaw_step_deg=p.yaw_step_deg, keep=p.hypotheses)
+    if p.dof == 3 and not both_planar:
+        return planar_hyps
+    a_thin = _thin(a.occupied, res, xy_cell=cell)
+    out: list[Hypothesis] = []
+    b_sample = _sample(b.occupied, 20000, np.random.default_rng(p.seed + 1))
+    for h in planar_hyps:
+        placed = apply(h.transform, b_sample)
+        for dz, _ in z_offsets(a_thin, placed, cell, res, count=1 if both_planar else 2):
+            t = h.transform.copy()
+            t[2, 3] = dz
+            out.append(Hypothesis(t, h.yaw, h.score))
+    return out
+
+
+def _refine_coarse(h: Hypothesis, a_coarse: np.ndarray, a_coarse_tree: cKDTree, a_side: Side, b_side: Side,
+                   b_coarse: np.ndarray, b_check: tuple[np.ndarray, np.ndarray],
+                   a_check: tuple[np.ndarray, np.ndarray], dof: int, cell: float,
+                   res: float, inlier_m: float) -> _Candidate:
+    """ICP from a global hypothesis against a thinned A; evidence counted on both maps' walls."""
+    fit = icp(b_coarse, a_coarse_tree, a_coarse, h.transform, dof, start_m=2.0 * cell, end_m=2.5 * res,
+              iterations=24)
+    return _Candidate(fit.transform, evaluate(fit.transform, a_side, *b_check, b_side, *a_check, inlier_m))
+
+
+def _distinct(candidates: list[_Candidate], b_points: np.ndarray, distinct_m: float) -> tuple[list[_Candidate], float]:
+    """Distinct candidates best first, and the z ambiguity of the best.
+
+    Candidates whose planar poses move B's extent less than `distinct_m` apart are one planar
+    pose: of those the one with the most support (floors and ceilings included) sets z, and the
+    z ambiguity is the support of a z more than `distinct_m` away over the best's.
+    """
+    lo, hi = b_points.min(axis=0), b_points.max(axis=0)
+    corners = np.array([[x, y, lo[2]] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])])
+    groups: list[list[_Candidate]] = []
+    for c in sorted(candidates, key=lambda c: c.evidence.score, reverse=True):
+        if c.evidence.inliers == 0:
+            continue
+        for g in groups:
+            if _planar_moved(c.transform, g[0].transform, corners) <= distinct_m:
+                g.append(c)
+                break
+        else:
+            groups.append([c])
+    if not groups:
+        return [], 0.0
+    ranked = []
+    for g in groups:
+        g.sort(key=lambda c: c.evidence.support, reverse=True)
+        ranked.append(g[0])
+    best_group = groups[0]
+    z_amb = 0.0
+    for c in best_group[1:]:
+        if abs(c.transform[2, 3] - best_group[0].transform[2, 3]) > distinct_m:
+            z_amb = max(z_amb, c.evidence.support / max(best_group[0].evidence.support, 1))
+    return ranked, z_amb
+
+
+def _ambiguity(ranked: list[_Candidate], z_ambiguity: float) -> float:
+    """Score of the second-best distinct pose over the best's (1 when the best scores nothing)."""
+    best = ranked[0].evidence.score
+    if best <= 0:
+        return 1.0
+    second = max(0.0, ranked[1].evidence.score) if len(ranked) > 1 else 0.0
+    return max(z_ambiguity, second / best)
+
+
+def _planar_moved(t1: np.ndarray, t2: np.ndarray, corners: np.ndarray) -> float:
+    p1 = corners[:, :2] @ t1[:2, :2].T + t1[:2, 3]
+    p2 = corners[:, :2] @ t2[:2, :2].T + t2[:2, 3]
+    return float(np.max(np.linalg.norm(p1 - p2, axis=1)))
+
+
+def _covariance(t: np.ndarray, b_points: np.ndarray, a: MapCloud, a_tree: cKDTree, inlier_m: float,
+                dof: int, both_planar: bool) -> tuple[np.ndarray, list[str]]:
+    moved = apply(t, b_points)
+    d, idx = a_tree.query(moved, distance_upper_bound=inlier_m)
+    ok = np.isfinite(d)
+    if ok.sum() < 10:
+        n = {3: 3, 4: 4, 6: 6}[dof]
+        names = {3: ["x", "y", "yaw"], 4: ["x", "y", "z", "yaw"], 6: ["x", "y", "z", "roll", "pitch", "yaw"]}[dof]
+        return np.eye(n) * 1e6, names
+    n = normals(a.occupied, a_tree, a.occupied[idx[ok]], both_planar)
+    return covariance(moved[ok], a.occupied[idx[ok]], n, dof)
+
+
+def _sample(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    if len(points) <= count:
+        return points
+    return points[np.sort(rng.choice(len(points), count, replace=False))]
+
+
+def _sample_masked(points: np.ndarray, mask: np.ndarray, count: int,
+                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    if len(points) <= count:
+        return points, mask
+    pick = np.sort(rng.choice(len(points), count, replace=False))
+    return points[pick], mask[pick]
+
+
+def _thin(points: np.ndarray, cell: float, xy_cell: float | None = None) -> np.ndarray:
+    """One point per cell (xy cells of `xy_cell` when given, z cells of `cell`)."""
+    scale = np.array([xy_cell or cell, xy_cell or cell, cell])
+    keys = np.floor(points / scale).astype(np.int64)
+    _, first = np.unique(vk.pack(keys), return_index=True)
+    return points[np.sort(first)]
+
+
+def _not_aligned(dof: int, hypotheses: int, seconds: float, reason: str) -> Alignment:
+    names = {3: ["x", "y", "yaw"], 4: ["x", "y", "z", "yaw"], 6: ["x", "y", "z", "roll", "pitch", "yaw"]}[dof]
+    return Alignment(False, np.eye(4), 0.0, 0, math.inf, 0.0, 0.0, 0.0, 1.0, np.eye(len(names)) * 1e6, names,
+                     hypotheses, dof, seconds, reason)
+
+
+def _with_seconds(result: Alignment, seconds: float) -> Alignment:
+    from dataclasses import replace
+
+    return replace(result, seconds=seconds)

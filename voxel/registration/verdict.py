@@ -1,0 +1,78 @@
+"""Whether an alignment is trusted: hard checks on the evidence, ambiguity and covariance, and one
+confidence number. A wrong merge is worse than none, so any failed check means *not aligned*."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from voxel.registration.evidence import Evidence
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """Limits a trusted alignment must meet."""
+
+    min_inliers: int = 150  # matching B sample points
+    min_inlier_ratio: float = 0.55  # of the overlapping points
+    max_conflict: float = 0.25  # share of overlapping points that land in the other map's free space
+    max_ambiguity: float = 0.6  # second-best distinct pose's score over the best's
+    max_translation_std_m: float = 0.05
+    max_yaw_std_deg: float = 0.5
+    min_confidence: float = 0.05
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Aligned or not, the confidence in [0, 1], and why not."""
+
+    aligned: bool
+    confidence: float
+    reason: str | None
+
+
+def judge(best: Evidence, ambiguity: float, cov: np.ndarray, names: list[str], limits: Thresholds) -> Verdict:
+    """The verdict on the best pose given its evidence, the ambiguity ratio and its covariance."""
+    var = dict(zip(names, np.diag(cov), strict=True))
+    t_std = math.sqrt(max(var.get(n, 0.0) for n in ("x", "y", "z")))
+    yaw_std = math.degrees(math.sqrt(var["yaw"]))
+    # Each factor is 0 at its check's limit and 1 with a clear margin, so a failed check always
+    # means confidence 0 and a pass only counts as much as its margin.
+    confidence = (
+        _ramp(best.inliers, limits.min_inliers, 3 * limits.min_inliers)
+        * _ramp(best.inlier_ratio, limits.min_inlier_ratio, limits.min_inlier_ratio + 0.2)
+        * _ramp(-best.conflict_ratio, -limits.max_conflict, -limits.max_conflict * 0.4)
+        * _ramp(-ambiguity, -limits.max_ambiguity, -limits.max_ambiguity * 0.4)
+    )
+    checks = [
+        (best.inliers >= limits.min_inliers,
+         f"too few matching voxels: expected at least {limits.min_inliers}, found {best.inliers}"),
+        (best.inlier_ratio >= limits.min_inlier_ratio,
+         (f"the maps disagree where they overlap: expected at least {limits.min_inlier_ratio:.0%} of "
+          f"overlapping voxels to match, found {best.inlier_ratio:.0%}")),
+        (best.conflict_ratio <= limits.max_conflict,
+         (f"occupied voxels land in the other map's open space: expected at most "
+          f"{limits.max_conflict:.0%}, found {best.conflict_ratio:.0%}")),
+        (ambiguity <= limits.max_ambiguity,
+         (f"ambiguous: a distinct pose scores {ambiguity:.0%} of the best (expected at most "
+          f"{limits.max_ambiguity:.0%}); e.g. a symmetric corridor, repeated rooms or maps of different places")),
+        (t_std <= limits.max_translation_std_m and yaw_std <= limits.max_yaw_std_deg,
+         (f"the geometry does not constrain every direction: expected standard deviations within "
+          f"{limits.max_translation_std_m} m and {limits.max_yaw_std_deg} deg, found {t_std:.3g} m and "
+          f"{yaw_std:.3g} deg")),
+        (confidence >= limits.min_confidence,
+         f"confidence {confidence:.2f} below {limits.min_confidence}"),
+    ]
+    for ok, reason in checks:
+        if not ok:
+            return Verdict(False, confidence, reason)
+    return Verdict(True, confidence, None)
+
+
+def _ramp(value: float, lo: float, hi: float) -> float:
+    """0 at or below lo, 1 at or above hi, linear between."""
+    if hi <= lo:
+        return 1.0 if value >= hi else 0.0
+    return float(min(1.0, max(0.0, (value - lo) / (hi - lo))))
