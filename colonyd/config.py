@@ -105,6 +105,9 @@ class Config(BaseSettings):
     inbox_mb: float = Field(128.0, gt=0, description="bytes the received-message queue may hold")
     max_layers: int = Field(256, ge=1, description="most peer layers held (hostile origins)")
     max_peer_blocks: int = Field(100_000, ge=1, description="voxel blocks (64 voxels each) in peer layers")
+    align_s: float = Field(5.0, ge=0, description="seconds between alignment attempts with peers (0: none)")
+    align_dof: Literal[3, 4, 6] = Field(4, description="alignment degrees of freedom: 3 planar, 4 + z, 6 full")
+    anchor: str | None = Field(None, description="agent whose frame is the site frame (a surveyed CCTV)")
     objects_s: float = Field(2.0, ge=0, description="seconds between object-list refreshes (0: no objects)")
     structure_classes: list[int] = Field(
         [1, 2], description="class ids that are structure (walls, floors), never objects; the sim's")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import faulthandler
 import logging
+import math
 import os
 import signal
 import threading
@@ -12,6 +13,9 @@ import zlib
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from colonyd.alignment import ColonyFrame, align_layers, edge_of
 from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError, DuplicateAgentError
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
@@ -67,6 +71,7 @@ class Daemon:
         self._last_snapshot = time.monotonic()
         self._sources_done = threading.Event()
         self.objects = OwnObjects(frozenset(config.structure_classes))
+        self.attempts: dict[str, dict[str, Any]] = {}  # peer -> last alignment attempt (JSON)
         self.conflict = ""  # set when another live daemon has our agent id and we give way
         self._conflict_logged = 0.0
 
@@ -175,6 +180,9 @@ class Daemon:
         if self.config.objects_s > 0:
             self._threads.append(
                 threading.Thread(target=self._objects_loop, name="objects", daemon=True))
+        if self.config.align_s > 0:
+            self._threads.append(
+                threading.Thread(target=self._align_loop, name="alignment", daemon=True))
         for t in self._threads:
             t.start()
 
@@ -221,7 +229,8 @@ class Daemon:
 
         try:
             directory.mkdir(parents=True, exist_ok=True)
-            keys, lo = fused(self.layers.all(), self.config.resolution)
+            keys, lo = fused(self.layers.all(), self.config.resolution,
+                             self.colony_frame().transforms)
             write_fused(directory / self.config.agent_id, keys, lo, self.config.resolution)
             log.info("fused map of %d layers (%d voxels) written to %s", len(self.layers.all()),
                      len(keys), directory)
@@ -277,6 +286,38 @@ class Daemon:
         self.objects.observe(obs)
         self.pose = [float(v) for v in obs.origin]
 
+    # -- alignment (own layer against each peer's, one pair per round) ---------------------
+    def _align_loop(self) -> None:
+        attempted: dict[str, int] = {}  # peer -> own seq + its seq at our last attempt
+        while not self.stop.wait(self.config.align_s):
+            own = self.layers.own
+            grown = {layer.origin: own.seq + layer.seq - attempted.get(layer.origin, 0)
+                     for layer in self.layers.all() if layer.origin != own.origin and layer.seq}
+            if own.seq == 0 or not grown or max(grown.values()) <= 0:
+                continue
+            origin = max(grown, key=lambda o: (grown[o], o))  # the pair with most new data
+            peer = self.layers.find(origin)
+            if peer is None:
+                continue
+            attempted[origin] = own.seq + peer.seq
+            try:
+                result = align_layers(own, peer, self.config.align_dof)
+            except ValueError as exc:  # too little of a map to align yet
+                self.attempts[peer.origin] = {"aligned": False, "reason": str(exc)}
+                continue
+            except Exception:
+                log.exception("alignment with %s failed", peer.origin)
+                continue
+            self.attempts[peer.origin] = result.to_json()
+            if result.aligned:
+                self.gossip.publish_align(edge_of(own.origin, peer.origin, result))
+                log.info("aligned %s to our frame: %s", peer.origin, _pose_text(result.transform))
+
+    def colony_frame(self) -> ColonyFrame:
+        """The colony frame from every alignment known (own and offered)."""
+        agents = [layer.origin for layer in self.layers.all()]
+        return self.gossip.alignments.colony(agents, self.config.anchor)
+
     # -- objects (own list refreshed and published when it changes) -----------------------
     def _objects_loop(self) -> None:
         own = self.layers.own
@@ -321,6 +362,11 @@ class Daemon:
             self._last_snapshot = time.monotonic()
 
     # -- status ---------------------------------------------------------------------------
+    def _colony_report(self) -> dict[str, Any]:
+        frame = self.colony_frame()
+        return {"root": frame.root,
+                "agents": {a: np.round(t, 6).tolist() for a, t in sorted(frame.transforms.items())}}
+
     def report(self, params: dict[str, str]) -> dict[str, Any]:
         want_digest = params.get("digest") == "1"
         layers = {}
@@ -348,6 +394,8 @@ class Daemon:
             "sources_done": self._sources_done.is_set() or not self.config.sources,
             "unpublished": unpublished,
             "frame": frame_of(self.config.agent_id),
+            "colony_frame": self._colony_report(),
+            "alignments": self.attempts,
             "layers": layers,
             "objects": [
                 {"id": o.object_id, "class": o.class_id, "position": [float(x) for x in o.position],
@@ -366,6 +414,11 @@ class Daemon:
             ],
             "metrics": self.metrics.snapshot(samples=params.get("samples") == "1"),
         }
+
+
+def _pose_text(t: Any) -> str:
+    yaw = math.degrees(math.atan2(t[1, 0], t[0, 0]))
+    return f"x {t[0, 3]:.2f} y {t[1, 3]:.2f} z {t[2, 3]:.2f} m, yaw {yaw:.1f} deg"
 
 
 def run_daemon(config: Config, config_path: Path | None = None,

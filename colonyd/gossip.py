@@ -1,7 +1,8 @@
 """Gossip: wires the publisher, inbox, catch-up and layer server of one daemon together.
 
 Everything on the wire is the colony protocol (`protocol/`, docs/PROTOCOL.md): VoxelDelta on
-`<origin>/delta`, Heartbeat on `<origin>/heartbeat`, Objects on `<origin>/objects`, SnapshotRequest/Reply and
+`<origin>/delta`, Heartbeat on `<origin>/heartbeat`, Objects on `<origin>/objects`, AlignOffer on
+`<origin>/align`, SnapshotRequest/Reply and
 DeltaRangeRequest/Reply through the `<server>/snapshot/<layer>` and `<server>/deltas/<layer>`
 queryables. Layer versions on the wire are the origin's delta sequence numbers.
 """
@@ -13,6 +14,7 @@ from collections.abc import Callable
 
 import zenoh
 
+from colonyd.alignment import Alignments, Edge
 from colonyd.catchup import CatchUp
 from colonyd.frames import Sender
 from colonyd.inbox import Inbox
@@ -51,12 +53,14 @@ class Gossip:
         self.stop = threading.Event()  # one stop for every worker: they wind down together
         replicas = Replicas(layers, metrics)
         self.peer_objects = PeerObjects(layers.max_layers)
+        self.alignments = Alignments(layers.max_layers)
         self.publisher = Publisher(session, namespace, layers, sender, metrics, epoch=epoch,
                                    part_bytes=part_bytes)
         self.catchup = CatchUp(session, namespace, replicas, sender, receiver, metrics,
                                query_timeout_s=query_timeout_s, part_bytes=part_bytes,
                                stop=self.stop)
         self.inbox = Inbox(session, namespace, replicas, receiver, metrics, self.peer_objects,
+                           self.alignments,
                            request_repair=self.catchup.request,
                            send_heartbeat=self.publisher.hb_now.set, on_own_origin=on_own_origin,
                            size=inbox_size, max_bytes=inbox_bytes, drop_rate=drop_rate,
@@ -89,6 +93,11 @@ class Gossip:
     def publish_objects(self, objects: list[ObjectCentroid]) -> None:
         """Publish the own layer's object list."""
         self.publisher.publish_objects(objects)
+
+    def publish_align(self, edge: Edge) -> None:
+        """Keep an own alignment and offer it to the colony."""
+        self.alignments.put(edge)
+        self.publisher.publish_align(edge)
 
     def heartbeat(self, kind: str, pose: list[float]) -> None:
         """Publish what this daemon is and holds."""

@@ -9,6 +9,7 @@ from collections.abc import Callable
 
 import zenoh
 
+from colonyd.alignment import Alignments, edge_from_offer
 from colonyd.errors import WireError
 from colonyd.frames import Assembler, accept, expect
 from colonyd.membership import Membership
@@ -17,17 +18,18 @@ from colonyd.objects import PeerObjects
 from colonyd.replicas import Replicas
 from colonyd.runtime import undeclare
 from colonyd.worker import Bounded, Worker
-from protocol import Heartbeat, Objects, OwnOriginError, Receiver, VoxelDelta
+from protocol import AlignOffer, Heartbeat, Objects, OwnOriginError, Receiver, VoxelDelta
 from protocol.keyexpr import topic_subscription
 
 log = logging.getLogger(__name__)
 
-#: An inbox item: (kind "delta" | "hb" | "objects" | "join", key expression or agent, raw frame).
+#: An inbox item: (kind "delta" | "hb" | "objects" | "align" | "join", key expression or agent,
+#: raw frame).
 Item = tuple[str, str, bytes]
 
 
 class Inbox:
-    """Subscribes to every peer's deltas, heartbeats and object lists; a bounded queue (count
+    """Subscribes to every peer's deltas, heartbeats, object lists and alignments; a bounded queue (count
     and bytes: a flood drops, never grows memory) and one worker decode and fold them in."""
 
     def __init__(
@@ -38,6 +40,7 @@ class Inbox:
         receiver: Receiver,
         metrics: Metrics,
         objects: PeerObjects,
+        alignments: Alignments,
         *,
         request_repair: Callable[[str, list[str]], None],
         send_heartbeat: Callable[[], None],
@@ -49,6 +52,7 @@ class Inbox:
     ) -> None:
         self.replicas = replicas
         self.objects = objects
+        self.alignments = alignments
         self.receiver = receiver
         self.metrics = metrics
         self.parts = Assembler()
@@ -75,6 +79,9 @@ class Inbox:
             session.declare_subscriber(
                 topic_subscription(namespace, "objects"), self._on_objects, allowed_origin=remote
             ),
+            session.declare_subscriber(
+                topic_subscription(namespace, "align"), self._on_align, allowed_origin=remote
+            ),
         ]
 
     # -- zenoh callbacks: enqueue only ----------------------------------------------------
@@ -89,6 +96,9 @@ class Inbox:
 
     def _on_objects(self, sample: zenoh.Sample) -> None:
         self._worker.put(("objects", str(sample.key_expr), sample.payload.to_bytes()))
+
+    def _on_align(self, sample: zenoh.Sample) -> None:
+        self._worker.put(("align", str(sample.key_expr), sample.payload.to_bytes()))
 
     def on_member_event(self, agent: str, event: str) -> None:
         """Liveliness join: ask the newcomer (or returning peer) what it holds."""
@@ -115,6 +125,8 @@ class Inbox:
                 self._handle_hb(key, raw)
             elif kind == "objects":
                 self._handle_objects(key, raw)
+            elif kind == "align":
+                self._handle_align(key, raw)
             elif kind == "join":
                 self._handle_join(key)
         except OwnOriginError as exc:
@@ -151,6 +163,14 @@ class Inbox:
         accept(self.receiver, self.metrics, msg, raw)
         self.objects.put(msg.origin, msg.objects)
         self.metrics.add("objects_received")
+
+    def _handle_align(self, key: str, raw: bytes) -> None:
+        msg = expect(self.receiver.decode(raw, key_expr=key), AlignOffer, f"on {key}")
+        edge = edge_from_offer(msg)
+        self.alignments.admit(edge)
+        accept(self.receiver, self.metrics, msg, raw)
+        self.alignments.put(edge)
+        self.metrics.add("align_received")
 
     def _handle_join(self, agent: str) -> None:
         """A member joined (or came back): tell it what we hold right away."""

@@ -348,22 +348,37 @@ class Layers:
                 self._layers.pop(origin, None)
 
 
-def fused(layers: list[Layer], resolution: float) -> tuple[np.ndarray, np.ndarray]:
+def fused(
+    layers: list[Layer], resolution: float, transforms: dict[str, np.ndarray] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Fused view: (keys (N,3), log-odds (N,)), the reliability-weighted sum over layers.
 
-    All layers are taken as already in the local frame (identity alignment); layers at another
-    resolution are skipped.
+    Without `transforms`, every layer at `resolution` is taken as already in the local frame
+    (identity). With them (origin -> 4x4 taking its frame into the colony frame), only the layers
+    that have one are fused: each voxel's centre is moved into the colony frame and keyed at
+    `resolution`; voxels of one layer that land in one key are averaged, then layers summed.
     """
     packed_parts, lo_parts = [], []
     for layer in layers:
-        if abs(layer.resolution - resolution) > 1e-9:
+        t = None if transforms is None else transforms.get(layer.origin)
+        if transforms is not None and t is None:
+            continue
+        if t is None and abs(layer.resolution - resolution) > 1e-9:
             continue
         full = layer.full()
         known = ~np.isnan(full.logodds)
         if not known.any():
             continue
-        packed_parts.append(vk.pack(full.keys[known]))
-        lo_parts.append(full.logodds[known].astype(np.float64) * layer.reliability)
+        keys, lo = full.keys[known], full.logodds[known].astype(np.float64)
+        if t is not None:
+            centres = vk.keys_to_centers(keys, layer.resolution) @ t[:3, :3].T + t[:3, 3]
+            packed, inv = np.unique(vk.pack(vk.points_to_keys(centres, resolution)),
+                                    return_inverse=True)
+            lo = np.bincount(inv, weights=lo) / np.bincount(inv)
+        else:
+            packed = vk.pack(keys)
+        packed_parts.append(packed)
+        lo_parts.append(lo * layer.reliability)
     if not packed_parts:
         return np.empty((0, 3), np.int64), np.empty(0, np.float32)
     packed = np.concatenate(packed_parts)

@@ -7,7 +7,8 @@ import threading
 
 import zenoh
 
-from colonyd.frames import frame_of, Sender
+from colonyd.alignment import Edge, offer_of
+from colonyd.frames import Sender, frame_of
 from colonyd.layers import Layers, relabel
 from colonyd.metrics import Metrics
 from colonyd.runtime import undeclare
@@ -20,8 +21,9 @@ MAX_HEARTBEAT_LAYERS = 4096
 
 
 class Publisher:
-    """Puts own deltas on `<own>/delta`, heartbeats on `<own>/heartbeat` and the own object list
-    on `<own>/objects` (dropped, never blocking, when the network is congested)."""
+    """Puts own deltas on `<own>/delta`, heartbeats on `<own>/heartbeat`, the own object list on
+    `<own>/objects` and alignments on `<own>/align` (dropped, never blocking, when the network
+    is congested)."""
 
     def __init__(
         self,
@@ -50,6 +52,9 @@ class Publisher:
         )
         self._objects = session.declare_publisher(
             topic_key(namespace, self.own, "objects"), congestion_control=drop
+        )
+        self._align = session.declare_publisher(
+            topic_key(namespace, self.own, "align"), congestion_control=drop
         )
 
     def publish_own(self, prev: int, seq: int, delta: Delta, created: float) -> int:
@@ -99,6 +104,13 @@ class Publisher:
         self.metrics.add("objects_published")
         self.metrics.add("bytes_published", len(payload))
 
+    def publish_align(self, edge: Edge) -> None:
+        """Offer an own alignment (a peer's frame into ours) to the colony."""
+        payload = self.sender.encode(offer_of(edge, self.sender.header()))
+        self._align.put(payload)
+        self.metrics.add("align_published")
+        self.metrics.add("bytes_published", len(payload))
+
     def close(self) -> None:
-        undeclare(self._deltas, self._heartbeats, self._objects)
+        undeclare(self._deltas, self._heartbeats, self._objects, self._align)
 

@@ -277,6 +277,8 @@ class AlignOffer(Message, _Rigid):
     matches: U32 = 0
     inliers: U32 = 0
     rmse: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] = 0.0
+    #: How sure the sender is, 0-1 (senders offer only transforms they accept).
+    confidence: Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)] = 1.0
     #: (own object id, target's object id) pairs used for the estimate.
     pairs: Annotated[list[tuple[U63, U63]], Field(max_length=4096)] = []
 

@@ -1,0 +1,156 @@
+"""Alignments: transforms between agents' frames (own estimates and peers' offers) and the colony frame."""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from colonyd.errors import WireError
+from colonyd.frames import frame_of
+from colonyd.layers import Layer
+from protocol import AlignOffer
+from voxel.registration import Alignment, AlignParams, MapCloud, align_clouds
+
+
+@dataclass(frozen=True)
+class Edge:
+    """An accepted alignment: `transform` takes points of `target`'s frame into `source`'s."""
+
+    source: str
+    target: str
+    transform: np.ndarray  # (4, 4)
+    confidence: float
+    inliers: int
+    rmse: float
+    covariance: np.ndarray  # (6, 6)
+    time: float
+
+    def inverse(self) -> Edge:
+        return Edge(self.target, self.source, np.linalg.inv(self.transform), self.confidence,
+                    self.inliers, self.rmse, self.covariance, self.time)
+
+
+@dataclass(frozen=True)
+class ColonyFrame:
+    """The frame every daemon agrees on and each agent's frame in it (agents not connected to
+    the root by accepted alignments have none)."""
+
+    root: str
+    transforms: dict[str, np.ndarray]  # agent -> (4, 4) taking its frame into the colony frame
+
+
+def layer_cloud(layer: Layer) -> MapCloud:
+    """A layer's known voxels as registration sees them (read under the layer's lock)."""
+    full = layer.full()
+    known = ~np.isnan(full.logodds)
+    return MapCloud.from_keys(layer.resolution, full.keys[known], full.logodds[known] >= 0,
+                              layer.origin)
+
+
+def align_layers(own: Layer, peer: Layer, dof: int) -> Alignment:
+    """Register `peer`'s layer to `own`'s: the transform of the peer's frame into ours."""
+    return align_clouds(layer_cloud(own), layer_cloud(peer), AlignParams(dof=dof))
+
+
+def edge_of(own: str, peer: str, result: Alignment) -> Edge:
+    cov = np.zeros((6, 6))
+    n = min(6, result.covariance.shape[0]) if result.covariance.ndim == 2 else 0
+    cov[:n, :n] = result.covariance[:n, :n]
+    return Edge(own, peer, result.transform, float(result.confidence), int(result.inliers),
+                float(result.rmse_m), cov, time.time())
+
+
+def offer_of(edge: Edge, header: dict[str, object]) -> AlignOffer:
+    """The AlignOffer message of an own edge."""
+    return AlignOffer(
+        **header, target=edge.target, source_frame=frame_of(edge.source),
+        target_frame=frame_of(edge.target), **AlignOffer.split_matrix(edge.transform),
+        covariance=[float(x) for x in edge.covariance.ravel()], inliers=edge.inliers,
+        matches=edge.inliers, rmse=edge.rmse, confidence=edge.confidence,
+    )
+
+
+def edge_from_offer(msg: AlignOffer) -> Edge:
+    """The edge a peer offers, after checking it is consistent; else WireError."""
+    if msg.target == msg.origin:
+        raise WireError("bad-align", f"expected an offer for another agent, found {msg.origin!r} itself")
+    if msg.source_frame != frame_of(msg.origin) or msg.target_frame != frame_of(msg.target):
+        text = (f"expected frames {frame_of(msg.origin)!r} -> {frame_of(msg.target)!r}, found "
+                f"{msg.source_frame!r} -> {msg.target_frame!r}")
+        raise WireError("bad-align", text)
+    return Edge(msg.origin, msg.target, msg.matrix(), float(msg.confidence), int(msg.inliers),
+                float(msg.rmse), np.asarray(msg.covariance, float).reshape(6, 6), msg.time)
+
+
+class Alignments:
+    """Every accepted alignment this daemon knows, one per unordered pair (the most confident,
+    newest on a tie), bounded in the number of agents; and the colony frame they define."""
+
+    def __init__(self, max_agents: int = 256) -> None:
+        self.max_agents = max_agents
+        self._edges: dict[tuple[str, str], Edge] = {}
+        self._lock = threading.Lock()
+
+    def admit(self, edge: Edge) -> None:
+        """Raise WireError unless an edge between these agents may be kept."""
+        with self._lock:
+            agents = {a for pair in self._edges for a in pair}
+            new = {edge.source, edge.target} - agents
+            if len(agents) + len(new) > self.max_agents:
+                text = f"expected alignments of at most {self.max_agents} agents, found more"
+                raise WireError("too-many-layers", text)
+
+    def put(self, edge: Edge) -> None:
+        key = tuple(sorted((edge.source, edge.target)))
+        stored = edge if (edge.source, edge.target) == key else edge.inverse()
+        with self._lock:
+            old = self._edges.get(key)  # type: ignore[arg-type]
+            if old is None or (stored.confidence, stored.time) >= (old.confidence, old.time):
+                self._edges[key] = stored  # type: ignore[index]
+
+    def edges(self) -> list[Edge]:
+        with self._lock:
+            return list(self._edges.values())
+
+    def colony(self, agents: list[str], anchor: str | None = None) -> ColonyFrame:
+        """The colony frame: the `anchor`'s frame if it is given, else the frame of the smallest
+        agent id of the largest connected group; each agent reached by accepted alignments gets
+        its transform along the most confident spanning tree (deterministic: every daemon that
+        knows the same offers computes the same frame)."""
+        edges = sorted(self.edges(), key=lambda e: (-e.confidence, e.source, e.target))
+        nodes = sorted(set(agents) | {a for e in edges for a in (e.source, e.target)})
+        parent = {a: a for a in nodes}
+
+        def find(a: str) -> str:
+            while parent[a] != a:
+                parent[a] = parent[parent[a]]
+                a = parent[a]
+            return a
+
+        tree: dict[str, list[tuple[str, np.ndarray]]] = {a: [] for a in nodes}
+        for e in edges:  # Kruskal, most confident first
+            ra, rb = find(e.source), find(e.target)
+            if ra == rb:
+                continue
+            parent[ra] = rb
+            tree[e.source].append((e.target, e.transform))
+            tree[e.target].append((e.source, np.linalg.inv(e.transform)))
+        groups: dict[str, list[str]] = {}
+        for a in nodes:
+            groups.setdefault(find(a), []).append(a)
+        if anchor is not None and anchor in parent:
+            root = anchor
+        else:  # the largest group, the smallest id on a tie; its smallest id
+            root = min(min(groups.values(), key=lambda g: (-len(g), min(g))))
+        transforms = {root: np.eye(4)}
+        todo = [root]
+        while todo:  # each edge (a -> b, T) takes b's frame into a's
+            a = todo.pop()
+            for b, t in tree.get(a, []):
+                if b not in transforms:
+                    transforms[b] = transforms[a] @ t
+                    todo.append(b)
+        return ColonyFrame(root, transforms)
