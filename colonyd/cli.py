@@ -78,6 +78,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("dump-config", help="print the effective configuration as TOML")
     _config_flags(p)
 
+    p = sub.add_parser("export", help="fetch the live fused map (colony frame) and the layers' maps "
+                       "from a running colony into .bt/.ply files (and a floor plan for 2D maps)")
+    _config_flags(p)
+    p.add_argument("--out", dest="export_out", type=Path, required=True, help="output directory")
+    p.add_argument("--layer", dest="export_layer", default=None, metavar="ID",
+                   help="only this agent's layer, in its own frame")
+    p.add_argument("--from", dest="export_agent", default=None, metavar="AGENT",
+                   help="ask this daemon (default: the first to answer, by agent id)")
+
     p = sub.add_parser("identity", help="print this agent's public identity key (made if missing), "
                        "for other agents' trusted_keys")
     _config_flags(p)
@@ -135,9 +144,19 @@ def main(argv: list[str] | None = None) -> int:
     """Parse and dispatch; raises the package errors that `launch` maps to exit codes."""
     args = build_parser().parse_args(argv)
     cmd = args.command
-    if cmd in ("run", "status", "dump-config", "identity"):
+    if cmd in ("run", "status", "dump-config", "identity", "export"):
         flags = _flags(args)
         config = load_config(args.config, **flags)
+        if cmd == "export":
+            from colonyd.export import export_maps
+            from colonyd.logs import setup_logging
+
+            setup_logging("warning")
+            frame, files = export_maps(config, args.export_out, layer=args.export_layer,
+                                       agent=args.export_agent)
+            sys.stdout.write(f"fused map in frame {frame}; wrote "
+                             + ", ".join(str(p) for p in files.values()) + "\n")
+            return EXIT_OK
         if cmd == "identity":
             from colonyd.identity import identity_path, load_signer
 

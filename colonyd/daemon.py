@@ -18,10 +18,11 @@ import numpy as np
 from colonyd.alignment import ColonyFrame, align_layers, edge_of
 from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError, DuplicateAgentError
+from colonyd.export import encode_map
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.identity import get_trust, identity_path, load_signer
-from colonyd.layers import Layers
+from colonyd.layers import Layers, fused, write_fused
 from colonyd.logs import setup_logging
 from colonyd.mapping import integrate_observation
 from colonyd.membership import Membership, agent_alive
@@ -170,6 +171,8 @@ class Daemon:
         )
         self.membership = Membership(self.session, ns, cfg.agent_id, self.gossip.on_member_event)
         self.status_server = StatusServer(self.session, ns, cfg.agent_id, self.report)
+        self.export_server = StatusServer(self.session, ns, cfg.agent_id, self.export_map,
+                                          report="export")
         self.gossip.start(self.membership)
 
     def _start_threads(self) -> None:
@@ -221,12 +224,11 @@ class Daemon:
         if self.config.export_dir is not None:
             self._export(self.config.export_dir)
         self.status_server.close()
+        self.export_server.close()
         self.gossip.close()
         self.membership.close()
 
     def _export(self, directory: Path) -> None:
-        from colonyd.layers import fused, write_fused
-
         try:
             directory.mkdir(parents=True, exist_ok=True)
             keys, lo = fused(self.layers.all(), self.config.resolution,
@@ -360,6 +362,23 @@ class Daemon:
             with own.lock:
                 self.store.snapshot(own.grid, own.seq, self._published_local)
             self._last_snapshot = time.monotonic()
+
+    # -- export (a live map for `colonyd export`) -----------------------------------------
+    def export_map(self, params: dict[str, str]) -> bytes | None:
+        """The fused map in the colony frame, or with `layer=ID` that layer in its own frame."""
+        agent, res = self.config.agent_id, self.config.resolution
+        layer_id = params.get("layer")
+        if layer_id:
+            layer = self.layers.find(layer_id)
+            if layer is None:
+                return None
+            full = layer.full()
+            known = ~np.isnan(full.logodds)
+            return encode_map(agent, layer_id, frame_of(layer_id), layer.resolution,
+                              full.keys[known], full.logodds[known], [])
+        frame = self.colony_frame()
+        keys, lo = fused(self.layers.all(), res, frame.transforms)
+        return encode_map(agent, None, frame_of(frame.root), res, keys, lo, sorted(frame.transforms))
 
     # -- status ---------------------------------------------------------------------------
     def _colony_report(self) -> dict[str, Any]:

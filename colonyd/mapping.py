@@ -141,6 +141,21 @@ def floor_plan(occupied: np.ndarray, free: np.ndarray, layer: int, margin: int |
     return image, lo
 
 
+def write_floor_plan(out_dir: Path, occupied: np.ndarray, free: np.ndarray, layer: int,
+                     resolution: float) -> dict[str, Path]:
+    """`floorplan.png` of voxel layer z = `layer` and its ROS map_server `floorplan.yaml`."""
+    image, lo = floor_plan(occupied, free, layer)
+    files = {"floorplan": out_dir / "floorplan.png", "floorplan_yaml": out_dir / "floorplan.yaml"}
+    if not cv2.imwrite(str(files["floorplan"]), image):
+        msg = f"{files['floorplan']}: cannot write the floor plan PNG"
+        raise OSError(msg)
+    files["floorplan_yaml"].write_text(
+        f"image: floorplan.png\nresolution: {resolution}\n"
+        f"origin: [{lo[0] * resolution}, {lo[1] * resolution}, 0.0]\n"
+        f"layer: {layer}\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n", encoding="ascii")
+    return files
+
+
 def map_source(spec: str, resolution: float, out_dir: Path, *, max_frames: int | None = None,
                progress: bool = True) -> MapSummary:
     """Map the source `spec` at `resolution` metres and write grid.npz, map.bt, map.ply,
@@ -171,16 +186,8 @@ def map_source(spec: str, resolution: float, out_dir: Path, *, max_frames: int |
     files = write_map(grid, out_dir, trajectory)
     if adapter.kind == "lidar2d" and heights:
         layer = int(vk.points_to_keys(np.array([[0.0, 0.0, np.median(heights)]]), resolution)[0, 2])
-        image, lo = floor_plan(grid.occupied_keys(), grid.free_keys(), layer)
-        files["floorplan"] = out_dir / "floorplan.png"
-        if not cv2.imwrite(str(files["floorplan"]), image):
-            msg = f"{files['floorplan']}: cannot write the floor plan PNG"
-            raise OSError(msg)
-        files["floorplan_yaml"] = out_dir / "floorplan.yaml"
-        files["floorplan_yaml"].write_text(
-            f"image: floorplan.png\nresolution: {resolution}\n"
-            f"origin: [{lo[0] * resolution}, {lo[1] * resolution}, 0.0]\n"
-            f"layer: {layer}\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n", encoding="ascii")
+        files.update(write_floor_plan(out_dir, grid.occupied_keys(), grid.free_keys(), layer,
+                                      resolution))
     return MapSummary(spec=spec, resolution=resolution, frames=frames, skipped=source.stats.skipped,
                       points=points, occupied=len(grid.occupied_keys()), free=len(grid.free_keys()),
                       seconds=clock.monotonic() - began, files=files,

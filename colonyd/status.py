@@ -18,23 +18,29 @@ from protocol.keyexpr import alive_subscription, parse_key, status_key, status_s
 
 
 class StatusServer:
-    """Answers `colony/<ns>/<agent>/status` queries with `report(params)` (JSON)."""
+    """Answers `colony/<ns>/<agent>/<report>` queries (status: `answer(params)` as JSON; export:
+    the map bytes `answer(params)` returns; None: no reply), one at a time on a worker."""
 
     def __init__(
         self, session: zenoh.Session, namespace: str, agent: str,
-        report: Callable[[dict[str, str]], dict[str, Any]],
+        answer: Callable[[dict[str, str]], Any], report: str = "status",
     ) -> None:
-        self._report = report
+        self._answer_params = answer
         self._worker: Worker[zenoh.Query] = Worker(
-            "status", self._answer, Bounded(16),
-            describe=lambda q: f"a status query on {q.key_expr}", done=lambda q: q.drop(),
+            report, self._answer, Bounded(16),
+            describe=lambda q: f"a {report} query on {q.key_expr}", done=lambda q: q.drop(),
         )
-        self._queryable = session.declare_queryable(status_key(namespace, agent), self._worker.put)
+        self._queryable = session.declare_queryable(status_key(namespace, agent, report),
+                                                    self._worker.put)
         self._worker.start()
 
     def _answer(self, query: zenoh.Query) -> None:
         params = {str(k): str(v) for k, v in query.parameters}
-        body = json.dumps(self._report(params)).encode()
+        body = self._answer_params(params)
+        if body is None:  # nothing to say (an export of a layer not held)
+            return
+        if not isinstance(body, bytes):
+            body = json.dumps(body).encode()
         query.reply(str(query.key_expr), body)
 
     def close(self) -> None:

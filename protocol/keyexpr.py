@@ -7,6 +7,7 @@ Layout (every NAME matches `NAME_PATTERN`):
     colony/<colony>/<origin>/snapshot/<layer>                       queryable: snapshot of a layer
     colony/<colony>/<origin>/deltas/<layer>                         queryable: range of deltas
     colony/<colony>/<origin>/status                                 queryable: JSON status report
+    colony/<colony>/<origin>/export                                 queryable: the daemon's map
 """
 
 from __future__ import annotations
@@ -29,6 +30,10 @@ QUERIES = ("snapshot", "deltas")
 ALIVE = "alive"
 #: An origin's status queryable (a daemon's JSON report, not a protocol frame).
 STATUS = "status"
+#: An origin's map export queryable (a daemon's fused or per-layer map, not a protocol frame).
+EXPORT = "export"
+#: Queryables of a daemon's own that are not protocol frames (tooling).
+REPORTS = (STATUS, EXPORT)
 
 Topic = Literal["announce", "pose", "delta", "objects", "align", "heartbeat"]
 Query = Literal["snapshot", "deltas"]
@@ -95,14 +100,20 @@ def query_declaration(colony: str, origin: str, query: Query) -> str:
     return f"{ROOT}/{validate_name(colony, 'colony')}/{validate_name(origin, 'origin')}/{query}/*"
 
 
-def status_key(colony: str, origin: str) -> str:
-    """Key of the status queryable of `origin` (answers with a JSON report, not a frame)."""
-    return f"{ROOT}/{validate_name(colony, 'colony')}/{validate_name(origin, 'origin')}/{STATUS}"
+def status_key(colony: str, origin: str, report: str = STATUS) -> str:
+    """Key of `origin`'s status (JSON) or export (map) queryable: tooling, not frames."""
+    if report not in REPORTS:
+        msg = f"report must be one of {REPORTS}, found {report!r}"
+        raise KeyExprError(msg)
+    return f"{ROOT}/{validate_name(colony, 'colony')}/{validate_name(origin, 'origin')}/{report}"
 
 
-def status_selector(colony: str) -> str:
-    """Key expression matching the status queryables of every origin of a colony."""
-    return f"{ROOT}/{validate_name(colony, 'colony')}/*/{STATUS}"
+def status_selector(colony: str, report: str = STATUS) -> str:
+    """Key expression matching the status (or export) queryables of every origin of a colony."""
+    if report not in REPORTS:
+        msg = f"report must be one of {REPORTS}, found {report!r}"
+        raise KeyExprError(msg)
+    return f"{ROOT}/{validate_name(colony, 'colony')}/*/{report}"
 
 
 @dataclass(frozen=True)
@@ -132,12 +143,12 @@ def parse_key(key: str) -> ParsedKey:
         return ParsedKey(colony, validate_name(parts[3], "origin"), ALIVE)
     origin = validate_name(parts[2], "origin")
     kind = parts[3]
-    if len(parts) == 4 and (kind in TOPICS or kind == STATUS):
+    if len(parts) == 4 and (kind in TOPICS or kind in REPORTS):
         return ParsedKey(colony, origin, kind)
     if len(parts) == 5 and kind in QUERIES:
         return ParsedKey(colony, origin, kind, validate_name(parts[4], "layer"))
     msg = (
-        f"key must end in one of {(*TOPICS, STATUS)} or '<{'|'.join(QUERIES)}>/<layer>', "
+        f"key must end in one of {(*TOPICS, *REPORTS)} or '<{'|'.join(QUERIES)}>/<layer>', "
         f"found {'/'.join(parts[3:])!r} in {key!r}"
     )
     raise KeyExprError(msg)
