@@ -8,7 +8,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from colonyd.launcher import LocalColony
+from colonyd.bench.launcher import LocalColony
 
 log = logging.getLogger(__name__)
 

@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from colonyd.launcher import LocalColony
+from colonyd.bench.launcher import LocalColony
 
 
 @pytest.fixture

@@ -7,7 +7,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from colonyd.launcher import LocalColony
+from colonyd.bench.launcher import LocalColony
 
 
 def main() -> int:

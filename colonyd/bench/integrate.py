@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from colonyd.benchfiles import shared_data_dir, write_results
+from colonyd.bench.files import shared_data_dir, write_results
 from colonyd.errors import ConfigError
 from voxel import keys as vk
 from voxel.grid import VoxelGrid
@@ -208,7 +208,7 @@ def octomap_sets(tree, resolution: float) -> tuple[np.ndarray, np.ndarray]:
     for leaf in tree.begin_leafs():
         c = np.asarray(leaf.getCoordinate(), dtype=np.float64)
         s = leaf.getSize()
-        n = int(round(s / resolution))
+        n = round(s / resolution)
         lo = np.floor((c - s / 2) / resolution + 0.5).astype(np.int64)
         if n not in by_size:
             r = np.arange(n)

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from colonyd.launcher import LocalColony
+from colonyd.bench.launcher import LocalColony
 
 log = logging.getLogger(__name__)
 

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import zstandard
 
-from colonyd.bench_integrate import KINECT, camera_pose, depth_frame, lidar3d_scan
-from colonyd.benchfiles import shared_data_dir, write_results
+from colonyd.bench.files import shared_data_dir, write_results
+from colonyd.bench.integrate import KINECT, camera_pose, depth_frame, lidar3d_scan
 from protocol.codec import decode, encode
 from protocol.deltacodec import fit_delta
 from protocol.fields import DEFAULT_LEVEL

@@ -11,13 +11,12 @@ import time
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import zenoh
 
 from colonyd.runtime import open_session, zenoh_config
 from colonyd.status import alive_members, query_status
-
 
 _GIVEN: set[int] = set()
 
@@ -211,7 +210,7 @@ class LocalColony:
             for d in self.daemons.values():
                 d.stop()
 
-    def __enter__(self) -> LocalColony:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:
