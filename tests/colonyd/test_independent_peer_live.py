@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import itertools
 import json
 import math
 import struct
@@ -113,7 +114,7 @@ def test_a_peer_from_the_document_talks_to_a_daemon(make_colony):
         versions = [(msgpack.unpackb(b["delta"])["from"], msgpack.unpackb(b["delta"])["to"])
                     for _, b in parts]
         assert versions[0][0] == 0 and versions[-1][1] == version
-        assert all(a[1] == b[0] for a, b in zip(versions, versions[1:]))  # contiguous
+        assert all(a[1] == b[0] for a, b in itertools.pairwise(versions))  # contiguous
         from_ranges: dict = {}
         for d in deltas:
             apply(from_ranges, d)
