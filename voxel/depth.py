@@ -19,6 +19,14 @@ class DepthPoints(NamedTuple):
     class_probs: np.ndarray | None  # (N,) float32 ones, with labels
 
 
+def pixel_rays(intrinsics: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Camera-frame rays (H * W, 3) through every pixel, row-major, scaled to z = 1 (a point at depth d is d * ray)."""
+    k = intrinsics
+    v, u = np.mgrid[0:height, 0:width]
+    rays = np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones((height, width))], axis=-1)
+    return rays.reshape(-1, 3)
+
+
 def camera_points(depth: np.ndarray, intrinsics: np.ndarray, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Camera-frame points (M, 3) float64 of the valid pixels (finite, > 0), row-major, and their flat pixel indices.
 

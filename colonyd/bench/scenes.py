@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from plugins.world import furnished_room
+from voxel.depth import pixel_rays
 
 ROOM = furnished_room()
 
@@ -36,9 +37,7 @@ def camera_pose(position: np.ndarray, target: np.ndarray) -> np.ndarray:
 def depth_frame(pose: np.ndarray, k: np.ndarray = KINECT, w: int = 640, h: int = 480, max_depth: float = 5.0,
                 noise: float = 0.0, seed: int = 0) -> np.ndarray:
     """A synthetic depth image (metres, 0 = no reading beyond max_depth) of the room."""
-    u, v = np.meshgrid(np.arange(w), np.arange(h))
-    rays = np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones_like(u, dtype=float)], -1).reshape(-1, 3)
-    world_dirs = rays @ pose[:3, :3].T
+    world_dirs = pixel_rays(k, w, h) @ pose[:3, :3].T
     norms = np.linalg.norm(world_dirs, axis=1)
     rng = render(pose[:3, 3], world_dirs / norms[:, None])
     z = rng / norms

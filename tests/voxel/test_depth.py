@@ -39,3 +39,11 @@ def test_back_project_moves_points_into_the_world_with_colour_and_labels() -> No
     assert seen.colours.tolist() == [[1, 2, 3]] and seen.class_ids.tolist() == [7]
     with pytest.raises(InputError, match="colour must be an \\(H, W, 3\\) image"):
         back_project(depth, K, pose, colour=colour[:2])
+
+
+def test_pixel_rays_at_depth_are_the_back_projected_points() -> None:
+    from voxel.depth import pixel_rays
+
+    depth = np.full((3, 4), 2.0)
+    points, _ = camera_points(depth, K)
+    np.testing.assert_allclose(pixel_rays(K, 4, 3) * 2.0, points)
