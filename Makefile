@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench clean
+.PHONY: demo test fuzz bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -16,7 +16,10 @@ demo: $(STAMP)
 	$(BIN)/colonyd demo --out demo-out
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q tests
+	$(BIN)/python -m pytest -q --durations=15 tests
+
+fuzz: $(STAMP)
+	COLONY_FUZZ_CASES=100000 $(BIN)/python -m pytest -q tests/protocol/test_fuzz.py
 
 bench: $(STAMP)
 	$(BIN)/colonyd bench integrate --json docs/bench-integrate.json

@@ -236,7 +236,7 @@ def _align(args: argparse.Namespace) -> int:
 
 def _bench(args: argparse.Namespace) -> int:
     if args.bench == "integrate":
-        from colonyd.bench_integrate import run_integrate_bench
+        from colonyd.bench.integrate import run_integrate_bench
 
         result = run_integrate_bench(args.json, args.shared_data, args.repeats, args.only)
     elif args.bench == "align":
@@ -247,11 +247,11 @@ def _bench(args: argparse.Namespace) -> int:
                                  work_dir=args.work_dir)
         result = {"summary": result["summary"], "json": str(args.json)}
     elif args.bench == "wire":
-        from colonyd.bench_wire import run_wire_bench
+        from colonyd.bench.wire import run_wire_bench
 
         result = run_wire_bench(args.json, args.shared_data)
     else:
-        from colonyd.bench_colony import run_colony_bench
+        from colonyd.bench.colony import run_colony_bench
 
         result = run_colony_bench(args.json, daemons=args.daemons, duration=args.duration,
                                   catchup_voxels=args.catchup_voxels)

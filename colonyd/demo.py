@@ -8,7 +8,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from colonyd.launcher import LocalColony
+from colonyd.bench.launcher import LocalColony
 
 log = logging.getLogger(__name__)
 
@@ -32,9 +32,7 @@ def run_demo(out: Path, *, daemons: int = 3, timeout: float = 45.0) -> int:
     try:
         agents = [f"robot-{i + 1}" for i in range(daemons)]
         for i, agent in enumerate(agents):
-            colony.add(agent, demo_sources(i), extra=["--export-dir", str(out)])
-            if i == 0:
-                time.sleep(0.3)  # the hub listens before the others connect
+            colony.add(agent, demo_sources(i), extra=["--export-dir", str(out)])  # waits for the hub
         colony.wait_members(daemons, timeout=20)
         started = time.monotonic()
         colony.wait_converged(timeout, agents)

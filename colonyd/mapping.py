@@ -11,7 +11,6 @@ from typing import Protocol, TextIO
 import cv2
 import numpy as np
 
-from plugins.checks import matrix_to_quaternion
 from plugins.observation import Observation
 from plugins.source import open_source
 from voxel import keys as vk
@@ -20,6 +19,7 @@ from voxel.errors import InputError
 from voxel.grid import VoxelGrid
 from voxel.octomap_io import write_bt
 from voxel.ply import write_ply
+from voxel.rotation import matrix_to_quaternion
 from voxel.sensor import SensorModel
 
 #: Floor-plan grey levels (map_server convention): occupied, free, unknown.

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from plugins.errors import SensorInputError
+from voxel import rotation
 
 
 def as_array(value: object, field: str, *, shape: tuple[int | None, ...], dtype: type = np.float64,
@@ -77,36 +78,10 @@ def pose_matrix(x: float, y: float, z: float, yaw: float, pitch: float = 0.0, ro
 
 
 def quaternion_to_matrix(qx: float, qy: float, qz: float, qw: float) -> np.ndarray:
-    """Rotation matrix (3, 3) of a quaternion (normalised here)."""
+    """Rotation matrix (3, 3) of a quaternion (normalised here); `voxel.rotation` does the math."""
     q = np.array([qx, qy, qz, qw], dtype=np.float64)
     n = np.linalg.norm(q)
     if not np.isfinite(n) or n < 1e-9:
         msg = f"quaternion: expected a non-zero finite quaternion, found {q.tolist()}"
         raise SensorInputError(msg)
-    x, y, z, w = q / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
-    """Quaternion (qx, qy, qz, qw) of a rotation matrix, qw >= 0."""
-    m = np.asarray(rotation, dtype=np.float64)
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
-    if trace > 0:
-        s = 2.0 * np.sqrt(trace + 1.0)
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    q = np.asarray(q)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
+    return rotation.quaternion_to_matrix(q / n)

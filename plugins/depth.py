@@ -10,6 +10,7 @@ import numpy as np
 from plugins.checks import as_array, as_intrinsics, as_pose, intrinsics_from_fov
 from plugins.errors import SensorInputError
 from plugins.observation import DepthView, Observation
+from voxel.depth import camera_points
 from voxel.sensor import SensorModel
 
 
@@ -22,19 +23,6 @@ class DepthFrame:
     labels: np.ndarray | None = None  # (H, W) int class ids, negative = unlabelled
     label_probs: np.ndarray | None = None  # (H, W) float in [0, 1]
     normals: np.ndarray | None = None  # (H, W, 3) float, camera frame
-
-
-def back_project(depth: np.ndarray, K: np.ndarray, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-frame points (M, 3) of the valid pixels (finite, > 0) and their flat pixel indices."""
-    h, w = depth.shape
-    v, u = np.mgrid[0:h:stride, 0:w:stride]
-    z = depth[::stride, ::stride]
-    valid = np.isfinite(z) & (z > 0)
-    index = (v * w + u)[valid]
-    z = z[valid].astype(np.float64)
-    x = (u[valid] - K[0, 2]) * z / K[0, 0]
-    y = (v[valid] - K[1, 2]) * z / K[1, 1]
-    return np.column_stack([x, y, z]), index
 
 
 class DepthCamera:
@@ -88,7 +76,7 @@ class DepthCamera:
             reading = DepthFrame(depth=reading)
         depth = self.metres(reading.depth)
         h, w = depth.shape
-        points, index = back_project(depth, self.K, self.stride)
+        points, index = camera_points(depth, self.K, self.stride)
         extras: dict[str, np.ndarray] = {}
         if reading.colour is not None:
             colour = as_array(reading.colour, "colour", shape=(h, w, 3), dtype=np.uint8)

@@ -21,6 +21,7 @@ from plugins.observation import Observation
 from plugins.spec import Options, SourceSpec, parse_options
 from plugins.stream import SourceContext, StreamStats
 from plugins.world import CLASSES, WORLDS, World, get_world
+from voxel.depth import pixel_rays
 
 #: Camera optical frame (x right, y down, z forward) in a body frame (x forward, y left, z up).
 OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
@@ -138,11 +139,10 @@ def make_rig(sensor: str) -> tuple[Rig, dict]:
     if sensor in ("depth", "cctv"):
         w, h, fov = (160, 120, math.radians(70)) if sensor == "depth" else (640, 480, math.radians(75))
         K = intrinsics_from_fov(w, h, fov)
-        v, u = np.mgrid[0:h, 0:w]
-        d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((h, w))], axis=-1)
+        d = pixel_rays(K, w, h)
         if sensor == "depth":
-            return Rig(d.reshape(-1, 3), pose_matrix(0.1, 0.0, 0.5, 0.0) @ OPTICAL, (h, w), K), {"K": K, "max_range": 8.0}
-        return Rig(d.reshape(-1, 3), OPTICAL, (h, w), K), {"K": K, "max_range": 10.0}
+            return Rig(d, pose_matrix(0.1, 0.0, 0.5, 0.0) @ OPTICAL, (h, w), K), {"K": K, "max_range": 8.0}
+        return Rig(d, OPTICAL, (h, w), K), {"K": K, "max_range": 10.0}
     if sensor == "lidar2d":
         n, span = 360, math.radians(270)
         a = -span / 2 + span / (n - 1) * np.arange(n)

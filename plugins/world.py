@@ -325,6 +325,36 @@ def box_room(side: float, height: float = 2.5) -> World:
     return World(name="box", boxes=_walls(0.0, 0.0, side, side, height), floor=None)
 
 
+#: Offset of the furnished room's surfaces from voxel boundaries, so float32 (OctoMap) and float64
+#: (ours) agree on the keys of its surfaces.
+FURNISHED_SHIFT = (0.0131, 0.0217, 0.0093)
+
+
+def furnished_room(thick: float = 0.1) -> World:
+    """An 8 x 6 x 2.8 m closed room (floor and ceiling as boxes) with a table, cupboard, bed, chair and
+    wall shelf, unlabelled, shifted by FURNISHED_SHIFT: the benchmarks' scene."""
+    shift = np.array(FURNISHED_SHIFT)
+    lo, hi = np.array([-4.0, -3.0, 0.0]) + shift, np.array([4.0, 3.0, 2.8]) + shift
+    col = (200, 200, 205)
+    # Six slabs whose inner faces are the room's faces, overlapping at the edges.
+    slabs = []
+    for axis in range(3):
+        for side in (lo, hi):
+            a, b = lo - thick, hi + thick
+            a[axis], b[axis] = (side[axis] - thick, side[axis]) if side is lo else (side[axis], side[axis] + thick)
+            slabs.append(Box(tuple(a.tolist()), tuple(b.tolist()), CLASSES["wall"], colour=col))
+    furniture = [
+        ((1.0, -1.0, 0.0), (2.2, 0.2, 0.75)),  # table
+        ((-2.5, 1.5, 0.0), (-1.5, 2.9, 1.9)),  # cupboard
+        ((2.8, 1.8, 0.0), (3.9, 2.9, 0.5)),  # bed
+        ((-0.4, -2.6, 0.0), (0.3, -1.9, 1.1)),  # chair
+        ((-3.2, -1.0, 0.8), (-2.9, 0.5, 1.6)),  # shelf on the wall
+    ]
+    boxes = [Box(tuple((np.array(a) + shift).tolist()), tuple((np.array(b) + shift).tolist()), CLASSES["box"])
+             for a, b in furniture]
+    return World(name="furnished", boxes=[*slabs, *boxes], floor=None)
+
+
 WORLDS = {"room": room_world, "office": office_world}
 
 

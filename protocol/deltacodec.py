@@ -7,6 +7,7 @@ Layout and tolerances are specified in docs/PROTOCOL.md ("Delta body").
 
 from __future__ import annotations
 
+import itertools
 import math
 from enum import IntEnum
 from typing import Any
@@ -518,7 +519,7 @@ def split_delta(
     n = order.shape[0]
     pieces = max(2, math.ceil(total / (0.8 * max_bytes)))
     bounds = np.linspace(0, n, pieces + 1).astype(np.int64)
-    todo = [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+    todo = [(int(a), int(b)) for a, b in itertools.pairwise(bounds) if b > a]
     parts: list[Delta] = []
     while todo:
         a, b = todo.pop(0)
@@ -804,8 +805,7 @@ def decode_delta_with_summary(
         raise MalformedError(msg)
     keys = np.concatenate(key_parts) if key_parts else np.zeros((0, 3), np.int64)
     if len(key_parts) > 1:
-        b = keys - KEY_MIN
-        packed = np.sort((b[:, 0] << 42) | (b[:, 1] << 21) | b[:, 2])
+        packed = np.sort(pack(keys))
         if np.any(packed[1:] == packed[:-1]):
             msg = "delta body: expected each voxel at most once, found a voxel in two sections"
             raise MalformedError(msg)

@@ -18,6 +18,7 @@ from pydantic import (
 from protocol.keyexpr import NAME_PATTERN
 from protocol.summary import FreeSummary
 from voxel.delta import Delta
+from voxel.rotation import matrix_to_quaternion, quaternion_to_matrix
 from voxel.sensor import SENSOR_KINDS, SensorModel
 
 #: The protocol version this implementation speaks (byte 4 of every frame).
@@ -135,36 +136,6 @@ def _check_quaternion(q: tuple[float, float, float, float]) -> tuple[float, floa
     return q
 
 
-def _quat_to_matrix(q: tuple[float, float, float, float]) -> np.ndarray:
-    x, y, z, w = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def _matrix_to_quat(r: np.ndarray) -> tuple[float, float, float, float]:
-    m = np.asarray(r, dtype=np.float64)
-    t = np.trace(m)
-    if t > 0:
-        s = math.sqrt(t + 1.0) * 2
-        q = ((m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s)
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
-        q = (0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s)
-    elif m[1, 1] > m[2, 2]:
-        s = math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
-        q = ((m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s)
-    else:
-        s = math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
-        q = ((m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s)
-    n = math.sqrt(sum(c * c for c in q))
-    return tuple(float(c / n) for c in q)  # type: ignore[return-value]
-
-
 class _Rigid(BaseModel):
     """Mixin: a rigid transform as position + unit quaternion (x, y, z, w)."""
 
@@ -179,7 +150,7 @@ class _Rigid(BaseModel):
     def matrix(self) -> np.ndarray:
         """The 4x4 homogeneous matrix of this transform."""
         t = np.eye(4)
-        t[:3, :3] = _quat_to_matrix(self.orientation)
+        t[:3, :3] = quaternion_to_matrix(self.orientation)
         t[:3, 3] = self.position
         return t
 
@@ -192,7 +163,7 @@ class _Rigid(BaseModel):
             raise ValueError(msg)
         return {
             "position": tuple(float(v) for v in m[:3, 3]),
-            "orientation": _matrix_to_quat(m[:3, :3]),
+            "orientation": tuple(float(c) for c in matrix_to_quaternion(m[:3, :3])),
         }
 
 

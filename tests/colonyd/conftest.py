@@ -1,20 +1,25 @@
-"""Fixtures for daemon tests: local colonies of real `colonyd` processes on loopback."""
+"""Fixtures for daemon tests: local colonies of real `colonyd` processes on loopback; their logs on failure."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from colonyd.launcher import LocalColony
+from colonyd.bench.launcher import LocalColony
+
+#: Attribute of a test item holding the colonies its `make_colony` made.
+_COLONIES = "_colonies_made"
 
 
 @pytest.fixture
-def make_colony(tmp_path: Path) -> Iterator[Callable[..., LocalColony]]:
-    """Factory of LocalColony objects; every daemon is stopped at teardown, whatever happens."""
+def make_colony(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Callable[..., LocalColony]]:
+    """Factory of LocalColony objects; every daemon is stopped at teardown, whatever happens, and a
+    failed test's report carries the logs of every daemon it started."""
     made: list[LocalColony] = []
+    setattr(request.node, _COLONIES, made)
 
     def make(name: str = "test", **kwargs: Any) -> LocalColony:
         colony = LocalColony(tmp_path / f"{name}-{len(made)}", colony=name, **kwargs)
@@ -28,10 +33,12 @@ def make_colony(tmp_path: Path) -> Iterator[Callable[..., LocalColony]]:
             colony.close()
 
 
-def logs(colony: LocalColony) -> str:
-    """All daemon logs of a colony, for assertion messages."""
-    out = []
-    for d in colony.daemons.values():
-        if d.log_path.exists():
-            out.append(f"--- {d.agent}\n" + d.log_path.read_text()[-3000:])
-    return "\n".join(out)
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Generator[None, Any, None]:
+    """Attach the daemon logs of the colonies a failed test made to its report."""
+    outcome = yield
+    report = outcome.get_result()
+    colonies: list[LocalColony] = getattr(item, _COLONIES, [])
+    if report.failed and report.when == "call" and colonies:
+        for colony in colonies:
+            report.sections.append((f"daemon logs of colony {colony.colony!r}", colony.logs()))

@@ -7,12 +7,12 @@ import sys
 import tempfile
 from pathlib import Path
 
-from colonyd.launcher import LocalColony
+from colonyd.bench.launcher import LocalColony
 
 
 def main() -> int:
     # /proc/net/dev lists the interfaces of this process's network namespace (sysfs may not).
-    lines = open("/proc/net/dev").read().splitlines()[2:]
+    lines = Path("/proc/net/dev").read_text().splitlines()[2:]
     interfaces = sorted(line.split(":")[0].strip() for line in lines)
     if interfaces != ["lo"]:
         print(f"refusing to run multicast outside a private network namespace: {interfaces}")

@@ -7,14 +7,13 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 from protocol import VoxelDelta, encode
 from protocol.keyexpr import topic_key
 from voxel.delta import Delta
-
-from .conftest import logs
 
 SCANS = "synthetic:scans={n},rate=4,points=240,seed={seed},room=6"
 
@@ -27,50 +26,46 @@ def test_three_converge_late_joiner_and_garbage(make_colony):
     colony = make_colony("conv")
     for i, agent in enumerate(["a", "b", "c"]):
         colony.add(agent, src(i + 1))
-        if i == 0:
-            time.sleep(0.3)
-    try:
-        colony.wait_members(3)
-        colony.wait_converged(30)
-        # A peer sending garbage is ignored and counted, by reason.
-        s = colony.session()
-        ns = colony.namespace
-        evil = encode(VoxelDelta(origin="evil", epoch=1, seq=1, time=1.0, frame_id="map",
-                                 delta=Delta(0.1, 0, 1, [[0, 0, 0]], [0.5], [1.0])))
-        bad = [b"\x00", b"garbage", b"CLNY\x01\x03\x02\x00" + b"\x28\xb5\x2f\xfd" + b"\x00" * 20,
-               b"CLNY\x09\x03\x00\x00xx", evil[:-3]]
-        for payload in bad:
-            s.put(topic_key(ns, "evil", "delta"), payload)
-            s.put(topic_key(ns, "evil", "heartbeat"), payload)
-        s.put(topic_key(ns, "c", "delta"), evil)  # a frame of one origin on another's key
-        time.sleep(1.0)
-        reports = colony.status()
-        for r in reports:
-            assert r["metrics"]["counts"].get("rejected", 0) >= len(bad), r["metrics"]
-            assert {"truncated", "malformed", "version"} <= set(r["metrics"]["rejected"])
-            assert "evil" not in r["layers"]
-        assert any("keyexpr" in r["metrics"]["rejected"] for r in reports)
-        # A late joiner catches up with every layer.
-        colony.add("d")
-        colony.wait_converged(20)
-        d = next(r for r in colony.status() if r["agent"] == "d")
-        assert {"a", "b", "c"} <= set(d["layers"])
-        assert d["metrics"]["counts"].get("snapshots_installed", 0) >= 3
-        # `colonyd status` (the console command) sees all four, none behind.
-        hub = colony.daemons["a"].endpoint
-        base = [sys.executable, "-m", "colonyd", "status", "--colony", "conv", "--namespace",
-                colony.namespace, "--no-multicast", "--connect", hub]
-        out = subprocess.run([*base, "--json"], capture_output=True, text=True, timeout=60)
-        assert out.returncode == 0, out.stderr
-        listed = {r["agent"]: r for r in json.loads(out.stdout)}
-        assert set(listed) == {"a", "b", "c", "d"}
-        assert all(r["behind"] == 0 for r in listed.values())
-        table = subprocess.run(base, capture_output=True, text=True, timeout=60)
-        assert table.returncode == 0 and "behind" in table.stdout
-        assert all(f"\n{agent} " in table.stdout for agent in "abcd"), table.stdout
-    except Exception:
-        print(logs(colony))
-        raise
+    colony.wait_members(3)
+    colony.wait_converged(30)
+    # A peer sending garbage is ignored and counted, by reason.
+    s = colony.session()
+    ns = colony.namespace
+    evil = encode(VoxelDelta(origin="evil", epoch=1, seq=1, time=1.0, frame_id="map",
+                             delta=Delta(0.1, 0, 1, [[0, 0, 0]], [0.5], [1.0])))
+    bad = [b"\x00", b"garbage", b"CLNY\x01\x03\x02\x00" + b"\x28\xb5\x2f\xfd" + b"\x00" * 20,
+           b"CLNY\x09\x03\x00\x00xx", evil[:-3]]
+    for payload in bad:
+        s.put(topic_key(ns, "evil", "delta"), payload)
+        s.put(topic_key(ns, "evil", "heartbeat"), payload)
+    s.put(topic_key(ns, "c", "delta"), evil)  # a frame of one origin on another's key
+    reports = colony.wait_status(lambda rs: len(rs) == 3 and all(
+        r["metrics"]["counts"].get("rejected", 0) >= len(bad)
+        and {"truncated", "malformed", "version"} <= set(r["metrics"]["rejected"]) for r in rs)
+        and any("keyexpr" in r["metrics"]["rejected"] for r in rs))
+    for r in reports:
+        assert r["metrics"]["counts"].get("rejected", 0) >= len(bad), r["metrics"]
+        assert {"truncated", "malformed", "version"} <= set(r["metrics"]["rejected"])
+        assert "evil" not in r["layers"]
+    assert any("keyexpr" in r["metrics"]["rejected"] for r in reports)
+    # A late joiner catches up with every layer.
+    colony.add("d")
+    colony.wait_converged(20)
+    d = next(r for r in colony.status() if r["agent"] == "d")
+    assert {"a", "b", "c"} <= set(d["layers"])
+    assert d["metrics"]["counts"].get("snapshots_installed", 0) >= 3
+    # `colonyd status` (the console command) sees all four, none behind.
+    hub = colony.daemons["a"].endpoint
+    base = [sys.executable, "-m", "colonyd", "status", "--colony", "conv", "--namespace",
+            colony.namespace, "--no-multicast", "--connect", hub]
+    out = subprocess.run([*base, "--json"], check=False, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    listed = {r["agent"]: r for r in json.loads(out.stdout)}
+    assert set(listed) == {"a", "b", "c", "d"}
+    assert all(r["behind"] == 0 for r in listed.values())
+    table = subprocess.run(base, check=False, capture_output=True, text=True, timeout=60)
+    assert table.returncode == 0 and "behind" in table.stdout
+    assert all(f"\n{agent} " in table.stdout for agent in "abcd"), table.stdout
 
 
 def _without_sources(args: list[str]) -> list[str]:
@@ -89,51 +84,45 @@ def _without_sources(args: list[str]) -> list[str]:
 def test_sigkill_restart_loses_nothing_logged(make_colony):
     colony = make_colony("kill")
     a = colony.add("a", src(1, 40))
-    time.sleep(0.3)
     colony.add("b")
-    try:
-        # Kill a in the middle of mapping, once b has received some of its deltas.
-        deadline = time.monotonic() + 30
-        seen_by_b, epoch = 0, None
-        while time.monotonic() < deadline and seen_by_b < 3:
-            reports = {r["agent"]: r for r in colony.status(timeout=1.0)}
-            seen_by_b = reports.get("b", {}).get("layers", {}).get("a", {}).get("seq", 0)
-            epoch = reports.get("a", {}).get("epoch", epoch)
-            time.sleep(0.2)
-        assert seen_by_b >= 3
-        a.kill()  # SIGKILL: no flush, no snapshot; the write-ahead log is all that survives
-        a.args = _without_sources(a.args)
-        a.start()
-        colony.wait_converged(30)  # same epoch: b never resets, so nothing it holds was lost
-        after = {r["agent"]: r for r in colony.status(digest=True)}
-        assert after["a"]["epoch"] == epoch
-        seq = after["a"]["layers"]["a"]["seq"]
-        assert seq >= seen_by_b
-        assert after["b"]["layers"]["a"]["digest"] == after["a"]["layers"]["a"]["digest"]
-        assert after["b"]["metrics"]["counts"].get("snapshots_installed", 0) <= 1
-        # It continues its sequence: more mapping gets new numbers, and b follows.
-        a.stop()
-        a.args += ["--source", SCANS.format(n=3, seed=9)]
-        a.start()
-        colony.wait_converged(30)
-        final = {r["agent"]: r for r in colony.status(digest=True)}
-        assert final["a"]["epoch"] == epoch
-        assert final["a"]["layers"]["a"]["seq"] > seq
-        assert final["b"]["layers"]["a"]["digest"] == final["a"]["layers"]["a"]["digest"]
-    except Exception:
-        print(logs(colony))
-        raise
+    # Kill a in the middle of mapping, once b has received some of its deltas.
+    deadline = time.monotonic() + 30
+    seen_by_b, epoch = 0, None
+    while time.monotonic() < deadline and seen_by_b < 3:
+        reports = {r["agent"]: r for r in colony.status(timeout=1.0)}
+        seen_by_b = reports.get("b", {}).get("layers", {}).get("a", {}).get("seq", 0)
+        epoch = reports.get("a", {}).get("epoch", epoch)
+        time.sleep(0.2)
+    assert seen_by_b >= 3
+    a.kill()  # SIGKILL: no flush, no snapshot; the write-ahead log is all that survives
+    a.args = _without_sources(a.args)
+    a.start()
+    colony.wait_converged(30)  # same epoch: b never resets, so nothing it holds was lost
+    after = {r["agent"]: r for r in colony.status(digest=True)}
+    assert after["a"]["epoch"] == epoch
+    seq = after["a"]["layers"]["a"]["seq"]
+    assert seq >= seen_by_b
+    assert after["b"]["layers"]["a"]["digest"] == after["a"]["layers"]["a"]["digest"]
+    assert after["b"]["metrics"]["counts"].get("snapshots_installed", 0) <= 1
+    # It continues its sequence: more mapping gets new numbers, and b follows.
+    a.stop()
+    a.args += ["--source", SCANS.format(n=3, seed=9)]
+    a.start()
+    colony.wait_converged(30)
+    final = {r["agent"]: r for r in colony.status(digest=True)}
+    assert final["a"]["epoch"] == epoch
+    assert final["a"]["layers"]["a"]["seq"] > seq
+    assert final["b"]["layers"]["a"]["digest"] == final["a"]["layers"]["a"]["digest"]
 
 
 def test_frozen_daemon_does_not_stall_others(make_colony):
     colony = make_colony("freeze", lease_ms=2000)
-    a = colony.add("a", src(1, 28))
-    time.sleep(0.3)
+    colony.add("a", src(1, 28))
     colony.add("b", src(2, 28))
     c = colony.add("c", src(3, 3))
     try:
         colony.wait_members(3)
-        time.sleep(1.0)
+        colony.wait_status(lambda rs: any(r["agent"] == "c" and "a" in r["layers"] for r in rs), within=10)
         c.signal(signal.SIGSTOP)
         frozen_at = {r["agent"]: r["layers"]["a"]["seq"] for r in colony.status(timeout=1.0)
                      if "a" in r["layers"]}
@@ -143,9 +132,6 @@ def test_frozen_daemon_does_not_stall_others(make_colony):
         assert seq_a > frozen_at.get("a", 0)
         c.signal(signal.SIGCONT)
         colony.wait_converged(40)
-    except Exception:
-        print(logs(colony))
-        raise
     finally:
         c.signal(signal.SIGCONT)
 
@@ -155,98 +141,83 @@ def test_two_colonies_do_not_see_each_other(make_colony):
     y = make_colony("y")
     x.add("x1", src(1, 2))
     y.add("y1", src(2, 2))
-    time.sleep(0.3)
     x.add("x2")
     y.add("y2")
-    try:
-        x.wait_converged(30)
-        y.wait_converged(30)
-        rx, ry = x.status(), y.status()
-        assert {r["agent"] for r in rx} == {"x1", "x2"}
-        assert {r["agent"] for r in ry} == {"y1", "y2"}
-        for r in rx:
-            assert set(r["layers"]) <= {"x1", "x2"}
-            assert {m["agent"] for m in r["members"]} <= {"x1", "x2"}
-    except Exception:
-        print(logs(x), logs(y))
-        raise
+    x.wait_converged(30)
+    y.wait_converged(30)
+    rx, ry = x.status(), y.status()
+    assert {r["agent"] for r in rx} == {"x1", "x2"}
+    assert {r["agent"] for r in ry} == {"y1", "y2"}
+    for r in rx:
+        assert set(r["layers"]) <= {"x1", "x2"}
+        assert {m["agent"] for m in r["members"]} <= {"x1", "x2"}
 
 
 def test_flood_is_bounded_and_counted(make_colony):
     colony = make_colony("flood", extra=["--log-level", "error"])
     a = colony.add("a", src(1, 3))
-    try:
-        colony.wait_converged(30)
-        s = colony.session()
-        rng = np.random.default_rng(0)
-        keys = np.unique(rng.integers(-500, 500, (60_000, 3)), axis=0)
-        n_keys = len(keys)
-        big = Delta(0.1, 0, 1, keys, np.zeros(n_keys, np.float32), np.zeros(n_keys))
-        frames = [encode(VoxelDelta(origin=f"flood{i}", epoch=1, seq=1, time=1.0, frame_id="map",
-                                    delta=big)) for i in range(4)]
-        junk = rng.bytes(256 << 10)
-        t0 = time.monotonic()
-        n = 0
-        while time.monotonic() - t0 < 4.0:
-            for i in range(50):
-                s.put(topic_key(colony.namespace, f"flood{n % 400}", "delta"), frames[n % 4][:5] + junk
-                      if n % 2 else frames[n % 4])
-                n += 1
-        time.sleep(1.0)
-        reports = colony.status(timeout=5.0)
-        r = next(r for r in reports if r["agent"] == "a")
-        counts = r["metrics"]["counts"]
-        assert counts.get("rejected", 0) + counts.get("inbox_dropped", 0) > 0
-        assert len(r["layers"]) <= 1 + 256 + 1
-        rss = int(next(line.split()[1] for line in open(f"/proc/{a.proc.pid}/status")
-                       if line.startswith("VmRSS:"))) / 1024
-        print(f"flood: {n} messages, RSS {rss:.0f} MB, layers {len(r['layers'])}, {counts}, "
-              f"{r['metrics']['rejected']}")
-        assert rss < 900, f"RSS {rss:.0f} MB after a flood of {n} messages"
-        assert a.alive()
-    except Exception:
-        print(logs(colony))
-        raise
+    colony.wait_converged(30)
+    s = colony.session()
+    rng = np.random.default_rng(0)
+    keys = np.unique(rng.integers(-500, 500, (60_000, 3)), axis=0)
+    n_keys = len(keys)
+    big = Delta(0.1, 0, 1, keys, np.zeros(n_keys, np.float32), np.zeros(n_keys))
+    frames = [encode(VoxelDelta(origin=f"flood{i}", epoch=1, seq=1, time=1.0, frame_id="map",
+                                delta=big)) for i in range(4)]
+    junk = rng.bytes(256 << 10)
+    t0 = time.monotonic()
+    n = 0
+    while time.monotonic() - t0 < 4.0:
+        for i in range(50):
+            s.put(topic_key(colony.namespace, f"flood{n % 400}", "delta"), frames[n % 4][:5] + junk
+                  if n % 2 else frames[n % 4])
+            n += 1
+
+    def counted(reports: list[dict]) -> bool:
+        c = next((r["metrics"]["counts"] for r in reports if r["agent"] == "a"), {})
+        return c.get("rejected", 0) + c.get("inbox_dropped", 0) > 0
+
+    reports = colony.wait_status(counted, within=10.0, timeout=5.0)
+    r = next(r for r in reports if r["agent"] == "a")
+    counts = r["metrics"]["counts"]
+    assert counts.get("rejected", 0) + counts.get("inbox_dropped", 0) > 0
+    assert len(r["layers"]) <= 1 + 256 + 1
+    rss = int(next(line.split()[1] for line in Path(f"/proc/{a.proc.pid}/status").read_text().splitlines()
+                   if line.startswith("VmRSS:"))) / 1024
+    print(f"flood: {n} messages, RSS {rss:.0f} MB, layers {len(r['layers'])}, {counts}, "
+          f"{r['metrics']['rejected']}")
+    assert rss < 900, f"RSS {rss:.0f} MB after a flood of {n} messages"
+    assert a.alive()
 
 
 def test_lost_deltas_are_repaired_by_range_queries(make_colony):
     colony = make_colony("lossy")
     colony.add("a", src(1, 24))
-    time.sleep(0.3)
     colony.add("b", extra=["--drop-rate", "0.4"])
-    try:
-        colony.wait_converged(40)
-        b = next(r for r in colony.status() if r["agent"] == "b")
-        counts = b["metrics"]["counts"]
-        text = json.dumps(counts, sort_keys=True)
-        print("lossy counts", text)
-        assert counts.get("dropped_on_purpose", 0) > 0, text
-        assert counts.get("range_repairs", 0) > 0, text
-    except Exception:
-        print(logs(colony))
-        raise
+    colony.wait_converged(40)
+    b = next(r for r in colony.status() if r["agent"] == "b")
+    counts = b["metrics"]["counts"]
+    text = json.dumps(counts, sort_keys=True)
+    print("lossy counts", text)
+    assert counts.get("dropped_on_purpose", 0) > 0, text
+    assert counts.get("range_repairs", 0) > 0, text
 
 
 def test_store_and_forward_through_a_third_peer(make_colony):
     colony = make_colony("relay")
     a = colony.add("a", src(1, 4))
-    time.sleep(0.3)
     colony.add("b")
-    try:
-        colony.wait_converged(30)
-        digest = next(r for r in colony.status(digest=True) if r["agent"] == "a")["layers"]["a"]["digest"]
-        a.stop()  # a leaves before c ever arrives
-        colony.add("c")
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline:
-            reports = {r["agent"]: r for r in colony.status(digest=True)}
-            have = reports.get("c", {}).get("layers", {}).get("a")
-            if have and have["digest"] == digest:
-                break
-            time.sleep(0.3)
-        else:
-            raise AssertionError("c never received a's layer through b")
-        assert "a" not in reports
-    except Exception:
-        print(logs(colony))
-        raise
+    colony.wait_converged(30)
+    digest = next(r for r in colony.status(digest=True) if r["agent"] == "a")["layers"]["a"]["digest"]
+    a.stop()  # a leaves before c ever arrives
+    colony.add("c")
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        reports = {r["agent"]: r for r in colony.status(digest=True)}
+        have = reports.get("c", {}).get("layers", {}).get("a")
+        if have and have["digest"] == digest:
+            break
+        time.sleep(0.3)
+    else:
+        raise AssertionError("c never received a's layer through b")
+    assert "a" not in reports

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import itertools
 import json
 import math
 import struct
@@ -16,8 +17,6 @@ import msgpack
 import zenoh
 
 from tests.protocol.test_independent_peer import peer_decode_frame, peer_delta
-
-from .conftest import logs
 
 PASSPHRASE = "correct horse battery staple"
 SNAPSHOT_REQUEST, SNAPSHOT_REPLY, RANGE_REQUEST, RANGE_REPLY, HEARTBEAT = 6, 7, 8, 9, 10
@@ -89,56 +88,52 @@ def apply(replica: dict, delta: dict) -> None:
 def test_a_peer_from_the_document_talks_to_a_daemon(make_colony):
     colony = make_colony("doc", extra=["--colony-key", PASSPHRASE])
     colony.add("a", ["synthetic:scans=6,rate=8,points=300,seed=3"])
+    colony.wait_converged(30)
+    peer = Peer(colony.daemons["a"].endpoint, colony.namespace)
     try:
-        colony.wait_converged(30)
-        peer = Peer(colony.daemons["a"].endpoint, colony.namespace)
-        try:
-            hb = peer.heartbeat_of("a")
-            (mine,) = [lv for lv in hb["layers"] if lv["origin"] == "a"]
-            epoch, version = mine["epoch"], mine["version"]
-            assert version >= 2
-            # an empty range: one complete reply with no delta, on the query's key, from 'a'
-            replies = peer.ask("a", "deltas", "a", RANGE_REQUEST,
-                               {"layer": "a", "request_id": 7, "from_version": version,
-                                "to_version": version})
-            assert len(replies) == 1
-            key, _, rtype, header, body = replies[0]
-            assert key == f"colony/{colony.namespace}/a/deltas/a" and header[0] == "a"
-            assert rtype == RANGE_REPLY and body["request_id"] == 7
-            assert body.get("complete", True) is True and body.get("delta") is None
-            assert body["layer_epoch"] == epoch
-            # a range reaching beyond the newest version ends at it; applied in order from 0,
-            # it gives the layer the snapshot holds
-            replies = peer.ask("a", "deltas", "a", RANGE_REQUEST,
-                               {"layer": "a", "request_id": 8, "from_version": 0,
-                                "to_version": version + 1000})
-            parts = sorted((b.get("part", 0), b) for *_, b in replies)
-            assert [p for p, _ in parts] == list(range(len(parts)))
-            assert all(b.get("parts", 1) == len(parts) and b.get("complete", True) for _, b in parts)
-            deltas = [peer_delta(b["delta"]) for _, b in parts]
-            versions = [(msgpack.unpackb(b["delta"])["from"], msgpack.unpackb(b["delta"])["to"])
-                        for _, b in parts]
-            assert versions[0][0] == 0 and versions[-1][1] == version
-            assert all(a[1] == b[0] for a, b in zip(versions, versions[1:]))  # contiguous
-            from_ranges: dict = {}
-            for d in deltas:
-                apply(from_ranges, d)
-            # a snapshot in parts of at most 1024 bytes (the smallest max_part_bytes)
-            replies = peer.ask("a", "snapshot", "a", SNAPSHOT_REQUEST,
-                               {"layer": "a", "request_id": 9, "max_part_bytes": 1024})
-            assert len(replies) > 1 and all(size <= 1024 for _, size, *_ in replies)
-            bodies = [b for *_, b in replies]
-            assert sorted(b.get("part", 0) for b in bodies) == list(range(len(bodies)))
-            snapshot: dict = {}
-            for b in bodies:
-                assert b["layer_epoch"] == epoch and msgpack.unpackb(b["delta"])["to"] == version
-                apply(snapshot, peer_delta(b["delta"]))
-            assert snapshot == from_ranges and len(snapshot) > 100
-        finally:
-            peer.session.close()
-    except Exception:
-        print(logs(colony))
-        raise
+        hb = peer.heartbeat_of("a")
+        (mine,) = [lv for lv in hb["layers"] if lv["origin"] == "a"]
+        epoch, version = mine["epoch"], mine["version"]
+        assert version >= 2
+        # an empty range: one complete reply with no delta, on the query's key, from 'a'
+        replies = peer.ask("a", "deltas", "a", RANGE_REQUEST,
+                           {"layer": "a", "request_id": 7, "from_version": version,
+                            "to_version": version})
+        assert len(replies) == 1
+        key, _, rtype, header, body = replies[0]
+        assert key == f"colony/{colony.namespace}/a/deltas/a" and header[0] == "a"
+        assert rtype == RANGE_REPLY and body["request_id"] == 7
+        assert body.get("complete", True) is True and body.get("delta") is None
+        assert body["layer_epoch"] == epoch
+        # a range reaching beyond the newest version ends at it; applied in order from 0,
+        # it gives the layer the snapshot holds
+        replies = peer.ask("a", "deltas", "a", RANGE_REQUEST,
+                           {"layer": "a", "request_id": 8, "from_version": 0,
+                            "to_version": version + 1000})
+        parts = sorted((b.get("part", 0), b) for *_, b in replies)
+        assert [p for p, _ in parts] == list(range(len(parts)))
+        assert all(b.get("parts", 1) == len(parts) and b.get("complete", True) for _, b in parts)
+        deltas = [peer_delta(b["delta"]) for _, b in parts]
+        versions = [(msgpack.unpackb(b["delta"])["from"], msgpack.unpackb(b["delta"])["to"])
+                    for _, b in parts]
+        assert versions[0][0] == 0 and versions[-1][1] == version
+        assert all(a[1] == b[0] for a, b in itertools.pairwise(versions))  # contiguous
+        from_ranges: dict = {}
+        for d in deltas:
+            apply(from_ranges, d)
+        # a snapshot in parts of at most 1024 bytes (the smallest max_part_bytes)
+        replies = peer.ask("a", "snapshot", "a", SNAPSHOT_REQUEST,
+                           {"layer": "a", "request_id": 9, "max_part_bytes": 1024})
+        assert len(replies) > 1 and all(size <= 1024 for _, size, *_ in replies)
+        bodies = [b for *_, b in replies]
+        assert sorted(b.get("part", 0) for b in bodies) == list(range(len(bodies)))
+        snapshot: dict = {}
+        for b in bodies:
+            assert b["layer_epoch"] == epoch and msgpack.unpackb(b["delta"])["to"] == version
+            apply(snapshot, peer_delta(b["delta"]))
+        assert snapshot == from_ranges and len(snapshot) > 100
+    finally:
+        peer.session.close()
 
 
 def test_unknown_voxels_and_missing_channels_as_the_document_says() -> None:

@@ -8,8 +8,6 @@ import subprocess
 import sys
 import time
 
-from .conftest import logs
-
 
 def test_notify_watchdog_reload_and_clean_sigterm(make_colony, tmp_path):
     colony = make_colony("life")
@@ -38,9 +36,6 @@ def test_notify_watchdog_reload_and_clean_sigterm(make_colony, tmp_path):
         assert time.monotonic() - t0 < 5
         text = d.log_path.read_text()
         assert "reloaded" in text and "stopped" in text
-    except Exception:
-        print(logs(colony))
-        raise
     finally:
         sock.close()
 
@@ -48,38 +43,33 @@ def test_notify_watchdog_reload_and_clean_sigterm(make_colony, tmp_path):
 def test_colony_key_closes_the_colony(make_colony):
     colony = make_colony("keyed", extra=["--colony-key", "correct horse battery staple"])
     colony.add("a", ["synthetic:scans=3,rate=4,points=100,seed=1"])
-    time.sleep(0.3)
     colony.add("b", ["synthetic:scans=3,rate=4,points=100,seed=2"])
     intruder = colony.add("x", ["synthetic:scans=3,rate=4,points=100,seed=3"], start=False)
     intruder.args = [a for a in intruder.args if a not in ("--colony-key", "correct horse battery staple")]
     intruder.start()
-    try:
-        colony.wait_converged(30, ["a", "b"])
-        time.sleep(1.5)
-        reports = {r["agent"]: r for r in colony.status()}
-        for agent in ("a", "b"):
-            assert "x" not in reports[agent]["layers"]
-            assert reports[agent]["metrics"]["rejected"].get("auth", 0) > 0
-        # A member restarting with its state keeps its epoch and continues its frame numbers
-        # (reserved on disk), so the others' replay windows accept it.
-        a = colony.daemons["a"]
-        a.stop()
-        a.args = [x if not x.startswith("synthetic:") else
-                  "synthetic:scans=2,rate=4,points=100,seed=4" for x in a.args]
-        a.start()
-        colony.wait_converged(30, ["a", "b"])
-        b = next(r for r in colony.status() if r["agent"] == "b")
-        assert b["metrics"]["rejected"].get("replay", 0) == 0, b["metrics"]["rejected"]
-    except Exception:
-        print(logs(colony))
-        raise
+    colony.wait_converged(30, ["a", "b"])
+    reports = {r["agent"]: r for r in colony.wait_status(lambda rs: all(
+        r["metrics"]["rejected"].get("auth", 0) > 0 for r in rs if r["agent"] in ("a", "b")))}
+    for agent in ("a", "b"):
+        assert "x" not in reports[agent]["layers"]
+        assert reports[agent]["metrics"]["rejected"].get("auth", 0) > 0
+    # A member restarting with its state keeps its epoch and continues its frame numbers
+    # (reserved on disk), so the others' replay windows accept it.
+    a = colony.daemons["a"]
+    a.stop()
+    a.args = [x if not x.startswith("synthetic:") else
+              "synthetic:scans=2,rate=4,points=100,seed=4" for x in a.args]
+    a.start()
+    colony.wait_converged(30, ["a", "b"])
+    b = next(r for r in colony.status() if r["agent"] == "b")
+    assert b["metrics"]["rejected"].get("replay", 0) == 0, b["metrics"]["rejected"]
 
 
 def test_demo_runs_and_writes_maps(tmp_path):
     out = tmp_path / "demo-out"
     t0 = time.monotonic()
     run = subprocess.run([sys.executable, "-m", "colonyd", "demo", "--out", str(out)],
-                         capture_output=True, text=True, timeout=120)
+                         check=False, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stdout + run.stderr
     assert time.monotonic() - t0 < 60
     assert "every replica equals its origin" in run.stdout
@@ -93,7 +83,7 @@ def _netns_available() -> bool:
 
     if shutil.which("unshare") is None or shutil.which("ip") is None:
         return False
-    probe = subprocess.run(["unshare", "-n", "true"], capture_output=True, timeout=10)
+    probe = subprocess.run(["unshare", "-n", "true"], check=False, capture_output=True, timeout=10)
     return probe.returncode == 0
 
 
@@ -109,7 +99,7 @@ def test_multicast_discovery_in_a_private_network_namespace():
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[2]
-    run = subprocess.run(["unshare", "-n", "sh", "-c", script], capture_output=True, text=True,
+    run = subprocess.run(["unshare", "-n", "sh", "-c", script], check=False, capture_output=True, text=True,
                          timeout=90, cwd=root)
     assert run.returncode == 0, run.stdout + run.stderr
     assert "converged by multicast discovery" in run.stdout

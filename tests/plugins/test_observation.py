@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from plugins.checks import matrix_to_quaternion, pose_matrix, quaternion_to_matrix
+from plugins.checks import pose_matrix, quaternion_to_matrix
 from plugins.errors import SensorInputError
 from plugins.observation import Observation
+from voxel.rotation import matrix_to_quaternion
 
 
 def test_points_world_applies_the_pose() -> None:

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from plugins.checks import matrix_to_quaternion
 from plugins.errors import ParseError, SourceError, SourceSpecError
 from plugins.sevenscenes import RgbdSource, read_depth_png, read_matrix
+from voxel.rotation import matrix_to_quaternion
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 KITCHEN = DATA / "redkitchen-50"

@@ -49,3 +49,15 @@ def test_builtin_worlds_and_objects() -> None:
     assert all(objects[m.object_id][0] == CLASSES["landmark"] for m in office.markers)
     with pytest.raises(SourceSpecError, match=r"world: expected one of \['office', 'room'\], found 'mars'"):
         get_world("mars")
+
+
+def test_furnished_room_walls_and_furniture_at_known_distances() -> None:
+    from plugins.world import FURNISHED_SHIFT, furnished_room
+
+    room = furnished_room()
+    sx, sy, sz = FURNISHED_SHIFT
+    origin = np.array([0.0, 0.0, 1.0])
+    dirs = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0, 0, -1.0], [0.0, -1.0, 0.0]])
+    t = room.cast(origin, dirs).t
+    # +x wall, the shelf on the -x wall (x = -2.9), +y wall, ceiling, floor, the chair (y = -1.9)
+    np.testing.assert_allclose(t, [4.0 + sx, 2.9 - sx, 3.0 + sy, 1.8 + sz, 1.0 - sz, 1.9 - sy], atol=1e-12)

@@ -44,7 +44,7 @@ def test_wall_is_occupied_space_before_is_free_behind_unknown():
 
 def test_matches_octomap_discretized_update():
     pyoctomap = pytest.importorskip("pyoctomap")
-    from colonyd.bench_integrate import octomap_sets, iou
+    from colonyd.bench.integrate import iou, octomap_sets
 
     rng = np.random.default_rng(3)
     origin = np.array([0.031, -0.017, 0.4])
@@ -356,7 +356,7 @@ def test_snapshot_versions_and_block_shapes(tmp_path):
 
 def test_bt_export_loads_in_octomap_with_the_same_occupied_set(tmp_path):
     pyoctomap = pytest.importorskip("pyoctomap")
-    from colonyd.bench_integrate import octomap_sets, iou
+    from colonyd.bench.integrate import iou, octomap_sets
 
     grid = VoxelGrid(RES)
     for i, (pts, origin) in enumerate(_random_scans(7, 3)):

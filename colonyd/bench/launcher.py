@@ -9,15 +9,15 @@ import subprocess
 import sys
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import zenoh
 
 from colonyd.runtime import open_session, zenoh_config
 from colonyd.status import alive_members, query_status
-
 
 _GIVEN: set[int] = set()
 
@@ -60,6 +60,24 @@ class LocalDaemon:
             )
         finally:
             log.close()
+
+    def listening(self) -> bool:
+        """True once the process listens on its port (read from /proc/net/tcp: no connection made)."""
+        want = f":{self.port:04X}"
+        for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[1].endswith(want) and fields[3] == "0A":  # local address, state LISTEN
+                return True
+        return False
+
+    def wait_listening(self, timeout: float = 15.0) -> None:
+        """Return once the daemon listens on its port; TimeoutError if it dies or never does."""
+        deadline = time.monotonic() + timeout
+        while not self.listening():
+            if not self.alive() or time.monotonic() > deadline:
+                msg = f"{self.agent} is not listening on {self.endpoint} after {timeout:.0f} s"
+                raise TimeoutError(msg)
+            time.sleep(0.05)
 
     def alive(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
@@ -119,6 +137,8 @@ class LocalColony:
             args.append("--no-multicast")
         if hub is not None and not self.multicast:
             args += ["--connect", hub.endpoint]
+            if start and hub.alive():
+                hub.wait_listening()  # connect to a listening hub, not to a process still starting
         if self.lease_ms:
             args += ["--lease-ms", str(self.lease_ms)]
         for spec in sources or []:
@@ -185,6 +205,17 @@ class LocalColony:
             time.sleep(0.3)
         raise TimeoutError(f"colony did not converge in {timeout:.0f} s: {reason}")
 
+    def wait_status(self, until: Callable[[list[dict[str, Any]]], bool], within: float = 15.0,
+                    **query: Any) -> list[dict[str, Any]]:
+        """Status reports once `until(reports)` holds, or the last ones after `within` seconds (the
+        caller's assertions then say what is missing); `query` goes to `status`."""
+        deadline = time.monotonic() + within
+        while True:
+            reports = self.status(**query)
+            if until(reports) or time.monotonic() > deadline:
+                return reports
+            time.sleep(0.2)
+
     def wait_members(self, n: int, timeout: float = 15.0) -> None:
         t0 = time.monotonic()
         while time.monotonic() - t0 < timeout:
@@ -211,7 +242,7 @@ class LocalColony:
             for d in self.daemons.values():
                 d.stop()
 
-    def __enter__(self) -> LocalColony:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:

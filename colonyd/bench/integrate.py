@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import statistics
 import time
 from collections.abc import Callable, Iterator
@@ -11,111 +10,13 @@ from pathlib import Path
 
 import numpy as np
 
-from colonyd.benchfiles import shared_data_dir, write_results
+from colonyd.bench.files import shared_data_dir, write_results
+from colonyd.bench.scenes import KINECT, camera_pose, depth_frame, lidar2d_scan, lidar3d_scan
 from colonyd.errors import ConfigError
 from voxel import keys as vk
+from voxel.depth import back_project
 from voxel.grid import VoxelGrid
 from voxel.sensor import SensorModel
-
-# A furnished room: interior of the outer box, furniture as solid boxes (min corner, max corner).
-# Surfaces sit off voxel boundaries (SHIFT) so float32 (OctoMap) and float64 (ours) agree on keys.
-SHIFT = np.array([0.0131, 0.0217, 0.0093])
-ROOM = (np.array([-4.0, -3.0, 0.0]) + SHIFT, np.array([4.0, 3.0, 2.8]) + SHIFT)
-_FURNITURE = [
-    (np.array([1.0, -1.0, 0.0]), np.array([2.2, 0.2, 0.75])),  # table
-    (np.array([-2.5, 1.5, 0.0]), np.array([-1.5, 2.9, 1.9])),  # cupboard
-    (np.array([2.8, 1.8, 0.0]), np.array([3.9, 2.9, 0.5])),  # bed
-    (np.array([-0.4, -2.6, 0.0]), np.array([0.3, -1.9, 1.1])),  # chair
-    (np.array([-3.2, -1.0, 0.8]), np.array([-2.9, 0.5, 1.6])),  # shelf on the wall
-]
-FURNITURE = [(lo + SHIFT, hi + SHIFT) for lo, hi in _FURNITURE]
-
-
-def _ray_box(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray, inside: bool) -> np.ndarray:
-    """Distance along unit rays d from o to a box's surface (exit when inside), inf if missed."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        t1 = (lo - o) * inv
-        t2 = (hi - o) * inv
-    tmin = np.nanmax(np.minimum(t1, t2), axis=1)
-    tmax = np.nanmin(np.maximum(t1, t2), axis=1)
-    if inside:
-        return np.where(tmax > 0, tmax, np.inf)
-    hit = (tmax >= np.maximum(tmin, 0.0)) & (tmin > 0)
-    return np.where(hit, tmin, np.inf)
-
-
-def render(origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """Range along each unit direction from `origin` inside the furnished room."""
-    r = _ray_box(origin, dirs, ROOM[0], ROOM[1], inside=True)
-    for lo, hi in FURNITURE:
-        r = np.minimum(r, _ray_box(origin, dirs, lo, hi, inside=False))
-    return r
-
-
-def camera_pose(position: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Camera-to-world pose (OpenCV axes: x right, y down, z forward) looking at target."""
-    z = target - position
-    z = z / np.linalg.norm(z)
-    x = np.cross(z, np.array([0.0, 0.0, 1.0]))
-    x = x / np.linalg.norm(x)
-    y = np.cross(z, x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([x, y, z], axis=1)
-    pose[:3, 3] = position
-    return pose
-
-
-KINECT = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
-
-
-def depth_frame(pose: np.ndarray, k: np.ndarray = KINECT, w: int = 640, h: int = 480, max_depth: float = 5.0,
-                noise: float = 0.0, seed: int = 0) -> np.ndarray:
-    """A synthetic depth image (metres, 0 = no reading beyond max_depth) of the room."""
-    u, v = np.meshgrid(np.arange(w), np.arange(h))
-    rays = np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones_like(u, dtype=float)], -1).reshape(-1, 3)
-    world_dirs = rays @ pose[:3, :3].T
-    norms = np.linalg.norm(world_dirs, axis=1)
-    rng = render(pose[:3, 3], world_dirs / norms[:, None])
-    z = rng / norms
-    if noise:
-        z = z + np.random.default_rng(seed).normal(scale=noise, size=z.shape) * z * z
-    z[~np.isfinite(z) | (z > max_depth)] = 0.0
-    return z.reshape(h, w)
-
-
-def depth_points(depth: np.ndarray, pose: np.ndarray, k: np.ndarray = KINECT) -> np.ndarray:
-    """World points of the valid pixels of a depth image."""
-    v, u = np.nonzero(depth > 0)
-    z = depth[v, u]
-    cam = np.stack([(u - k[0, 2]) * z / k[0, 0], (v - k[1, 2]) * z / k[1, 1], z], axis=1)
-    return cam @ pose[:3, :3].T + pose[:3, 3]
-
-
-def lidar2d_scan(origin: np.ndarray, beams: int = 1081, fov: float = math.radians(270), max_range: float = 30.0):
-    """A planar scan; returns (endpoints, no_return mask); no-return beams point at max range."""
-    a = np.linspace(-fov / 2, fov / 2, beams)
-    dirs = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=1)
-    r = render(origin, dirs)
-    nr = ~np.isfinite(r) | (r > max_range)
-    r = np.where(nr, max_range, r)
-    return origin + dirs * r[:, None], nr
-
-
-def lidar3d_scan(origin: np.ndarray, rings: int = 64, cols: int = 1024, max_range: float = 30.0,
-                 fov_up: float = 2.0, fov_down: float = -24.8):
-    """A spinning 3D LiDAR scan in an open courtyard made of the room scaled x6 (points within 30 m)."""
-    el = np.radians(np.linspace(fov_down, fov_up, rings))
-    az = np.linspace(-math.pi, math.pi, cols, endpoint=False)
-    e, a = np.meshgrid(el, az, indexing="ij")
-    dirs = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
-    scale = np.array([6.0, 6.0, 3.0])
-    r = render(origin / scale, dirs / scale)
-    # render() works on a unit-direction parameter; rescale distances back to metres.
-    r = r * np.linalg.norm(dirs / scale, axis=1) / np.linalg.norm(dirs / scale, axis=1) ** 2
-    nr = ~np.isfinite(r) | (r > max_range)
-    r = np.where(nr, max_range, r)
-    return origin + dirs * r[:, None], nr
 
 
 @dataclass
@@ -138,7 +39,7 @@ class Scenario:
 def _synthetic_depth() -> Iterator[Frame]:
     pose = camera_pose(np.array([-3.0, -2.0, 1.4]), np.array([2.0, 1.0, 0.6]))
     depth = depth_frame(pose)
-    yield Frame(depth_points(depth, pose), pose[:3, 3].copy())
+    yield Frame(back_project(depth, KINECT, pose).points, pose[:3, 3].copy())
 
 
 def _lidar2d() -> Iterator[Frame]:
@@ -163,7 +64,7 @@ def _redkitchen(shared_data: Path) -> Callable[[], Iterator[Frame]]:
             raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64)
             raw[(raw == 0) | (raw == 65535)] = 0
             pose = np.loadtxt(str(path).replace(".depth.png", ".pose.txt"))
-            yield Frame(depth_points(raw / 1000.0, pose, k), pose[:3, 3].copy())
+            yield Frame(back_project(raw / 1000.0, k, pose).points, pose[:3, 3].copy())
 
     return frames
 
@@ -208,7 +109,7 @@ def octomap_sets(tree, resolution: float) -> tuple[np.ndarray, np.ndarray]:
     for leaf in tree.begin_leafs():
         c = np.asarray(leaf.getCoordinate(), dtype=np.float64)
         s = leaf.getSize()
-        n = int(round(s / resolution))
+        n = round(s / resolution)
         lo = np.floor((c - s / 2) / resolution + 0.5).astype(np.int64)
         if n not in by_size:
             r = np.arange(n)

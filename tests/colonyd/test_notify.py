@@ -1,13 +1,10 @@
-"""sd_notify datagrams and journald priority prefixes."""
+"""sd_notify datagrams: ready, watchdog and stopping, and a no-op without a socket."""
 
 from __future__ import annotations
 
-import logging
 import os
 import socket
-import sys
 
-from colonyd.logs import JournalFormatter, stderr_is_journal
 from colonyd.notify import Notifier
 
 
@@ -30,15 +27,3 @@ def test_notify_without_socket_is_a_no_op(monkeypatch):
     monkeypatch.delenv("WATCHDOG_USEC", raising=False)
     n = Notifier()
     assert not n.ready() and n.watchdog_s is None
-
-
-def test_journal_prefix_and_detection(monkeypatch):
-    rec = logging.LogRecord("x", logging.WARNING, __file__, 1, "careful", None, None)
-    assert JournalFormatter("%(message)s").format(rec) == "<4>careful"
-    rec = logging.LogRecord("x", logging.ERROR, __file__, 1, "bad", None, None)
-    assert JournalFormatter("%(message)s").format(rec) == "<3>bad"
-    st = os.fstat(sys.stderr.fileno())
-    monkeypatch.setenv("JOURNAL_STREAM", f"{st.st_dev}:{st.st_ino}")
-    assert stderr_is_journal()
-    monkeypatch.setenv("JOURNAL_STREAM", "1:2")
-    assert not stderr_is_journal()

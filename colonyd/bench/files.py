@@ -10,7 +10,7 @@ def shared_data_dir(given: Path | None) -> Path | None:
     """`given`, else the checkout's sibling `../shared/data` when it exists, else None."""
     if given is not None:
         return Path(given)
-    candidate = Path(__file__).resolve().parents[2] / "shared" / "data"
+    candidate = Path(__file__).resolve().parents[3] / "shared" / "data"
     return candidate if candidate.is_dir() else None
 
 

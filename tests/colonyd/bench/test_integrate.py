@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from colonyd.bench_integrate import run_integrate_bench
+from colonyd.bench.integrate import run_integrate_bench
 
 FIELDS = {"scenario", "resolution", "points", "ours_ms", "octomap_ms", "speedup", "occupied_agreement",
           "free_agreement", "bytes_per_known_voxel", "octomap_bytes_per_node"}

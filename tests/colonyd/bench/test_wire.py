@@ -1,4 +1,4 @@
-"""Smoke test of the wire benchmark (colonyd/bench_wire.py) on a two-frame camera path."""
+"""Smoke test of the wire benchmark (colonyd/bench/wire.py) on a two-frame camera path."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-bench_wire = pytest.importorskip("colonyd.bench_wire")
+bench_wire = pytest.importorskip("colonyd.bench.wire")
 
 KEYS = {
     "scenario",

@@ -11,14 +11,15 @@ from pathlib import Path
 import numpy as np
 import zstandard
 
-from colonyd.bench_integrate import KINECT, camera_pose, depth_frame, lidar3d_scan
-from colonyd.benchfiles import shared_data_dir, write_results
+from colonyd.bench.files import shared_data_dir, write_results
+from colonyd.bench.scenes import KINECT, camera_pose, depth_frame, lidar3d_scan
 from protocol.codec import decode, encode
 from protocol.deltacodec import fit_delta
 from protocol.fields import DEFAULT_LEVEL
 from protocol.limits import Limits
 from protocol.messages import VoxelDelta
 from voxel.delta import Delta
+from voxel.depth import camera_points
 from voxel.grid import VoxelGrid
 from voxel.sensor import SensorModel
 
@@ -66,11 +67,9 @@ def _camera_path(frames: int = 50) -> Iterator[Frame]:
         position = np.array([-3.0 + 1.5 * math.sin(a), -2.2 + 0.8 * math.cos(a), 1.4])
         pose = camera_pose(position, np.array([1.0 + 0.5 * math.sin(2 * a), 0.5, 0.7]))
         depth = depth_frame(pose)
-        v, u = np.nonzero(depth > 0)
-        z = depth[v, u]
-        local = np.stack(
-            [(u - KINECT[0, 2]) * z / KINECT[0, 0], (v - KINECT[1, 2]) * z / KINECT[1, 1], z], 1
-        )
+        local, index = camera_points(depth, KINECT)
+        v, u = np.divmod(index, depth.shape[1])
+        z = local[:, 2]
         world_z = (local @ pose[:3, :3].T + pose[:3, 3])[:, 2]
         colour = np.zeros(depth.shape + (3,), dtype=np.uint8)
         colour[v, u] = np.stack(
@@ -109,9 +108,7 @@ def _redkitchen(shared_data: Path) -> Callable[[], Iterator[Frame]]:
             raw[(raw == 0) | (raw == 65535)] = 0
             depth = raw / 1000.0
             pose = np.loadtxt(str(path).replace(".depth.png", ".pose.txt"))
-            v, u = np.nonzero(depth > 0)
-            z = depth[v, u]
-            local = np.stack([(u - k[0, 2]) * z / k[0, 0], (v - k[1, 2]) * z / k[1, 1], z], 1)
+            local, _ = camera_points(depth, k)
 
             def integrate(grid: VoxelGrid, t: float, depth=depth, pose=pose) -> object:
                 return grid.integrate_depth(depth, k, pose, time=t, sensor=sensor)

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from colonyd.launcher import LocalColony
+from colonyd.bench.launcher import LocalColony
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +71,7 @@ def _propagation_and_idle(base: Path, daemons: int, duration: float) -> dict[str
         for i, agent in enumerate(agents):
             colony.daemons[agent].start()
             if i == 0:
-                time.sleep(0.3)
+                colony.daemons[agent].wait_listening()
         colony.wait_members(daemons, timeout=30)
         colony.wait_converged(duration + 60, agents)
         reports = colony.status(samples=True)

@@ -1,0 +1,1 @@
+"""Benchmarks and test harnesses: integration, wire, colony, and the local colony launcher."""

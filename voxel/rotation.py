@@ -1,0 +1,23 @@
+"""Rotations as unit quaternions (x, y, z, w), the protocol's order, and 3x3 matrices (scipy's `Rotation`).
+
+One convention everywhere: scalar last, Hamilton product, active rotation (a matrix maps points
+from the rotated frame into the reference frame: a quaternion (0, 0, sin(a/2), cos(a/2)) turns
++x towards +y by a), and w >= 0 for quaternions computed from matrices.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def quaternion_to_matrix(q: np.ndarray | tuple[float, float, float, float]) -> np.ndarray:
+    """Rotation matrix (3, 3) float64 of a non-zero quaternion (x, y, z, w), normalised first."""
+    matrix: np.ndarray = Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix()
+    return matrix
+
+
+def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) float64, w >= 0, of a rotation matrix (3, 3)."""
+    q: np.ndarray = Rotation.from_matrix(np.asarray(rotation, dtype=np.float64)).as_quat(canonical=True)
+    return q
