@@ -38,7 +38,6 @@ def test_object_lists_reach_peers_and_hostile_ones_are_refused(make_colony):
         assert o["class"] not in (1, 2)  # walls and floors are structure, not objects
         err = min(np.linalg.norm(np.subtract(o["position"], c)) for cl, c in truth.values()
                   if cl == o["class"])
-        print("object", o["id"], "class", o["class"], "error", round(float(err), 3))
         assert err < 0.5, (o, err)  # surface voxels only: the centroid leans to the camera
     # hostile lists: on another origin's key, unsigned, too long; none is kept
     s = colony.session()
