@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from colonyd.config import Config, load_config
-from colonyd.errors import ColonydError, DuplicateAgentError
+from colonyd.errors import ColonydError, DuplicateAgentError, PersistenceError
 from colonyd.frames import Sender, colony_key, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.identity import get_trust, identity_path, load_signer
@@ -67,6 +67,9 @@ class Daemon:
         self._sources_done = threading.Event()
         self.conflict = ""  # set when another live daemon has our agent id and we give way
         self._conflict_logged = 0.0
+        #: The last state-directory error (disk full, read-only), "" once writing works again.
+        self.state_error = ""
+        self._state_error_logged = 0.0
 
     # -- table of contents ----------------------------------------------------------------
     def run(self) -> int:
@@ -117,8 +120,9 @@ class Daemon:
         own = self.layers.own
         own.grid, own.epoch, own.seq = rec.grid, rec.epoch, rec.seq
         self._published_local = rec.published  # changes after it were never logged: send them
-        log.info("state %s: %s, epoch %d, seq %d, %d log records replayed", self.config.state_dir,
-                 "fresh" if rec.fresh else "recovered", rec.epoch, rec.seq, rec.wal_records)
+        log.info("state %s: %s, epoch %d, seq %d, %d log records replayed, layer digest %s",
+                 self.config.state_dir, "fresh" if rec.fresh else "recovered", rec.epoch, rec.seq,
+                 rec.wal_records, own.digest())
 
     def _duplicate(self, detail: str) -> str:
         cfg = self.config
@@ -184,7 +188,10 @@ class Daemon:
                 self._reload()
             if now >= next_hb or self.gossip.hb_now.is_set():
                 self.gossip.hb_now.clear()
-                self.gossip.heartbeat(self.config.kind, self.pose)
+                try:
+                    self.gossip.heartbeat(self.config.kind, self.pose)
+                except PersistenceError as exc:  # no frame numbers could be reserved
+                    self._state_failed(exc)
                 next_hb = now + self.config.heartbeat_s
             if wd and now >= next_wd:
                 mapping, publisher = self._threads
@@ -200,11 +207,14 @@ class Daemon:
         self.stop.set()
         for t in self._threads:
             t.join(timeout=3.0)
-        self._publish_once(final=True)
         own = self.layers.own
-        if own.seq > 0:
-            with own.lock:
-                self.store.snapshot(own.grid, own.seq)
+        try:
+            self._publish_once(final=True)
+            if own.seq > 0:
+                with own.lock:
+                    self.store.snapshot(own.grid, own.seq, self._published_local)
+        except PersistenceError as exc:  # the last good snapshot and the log stay as they were
+            log.error("shutting down without a final snapshot: %s", exc)
         if self.config.export_dir is not None:
             self._export(self.config.export_dir)
         self.status_server.close()
@@ -279,6 +289,8 @@ class Daemon:
                 break
             try:
                 self._publish_once()
+            except PersistenceError as exc:
+                self._state_failed(exc)
             except ColonydError as exc:
                 log.error("publish failed: %s", exc)
             except Exception:
@@ -289,18 +301,38 @@ class Daemon:
         with own.lock:
             version = int(own.grid.version)
             delta = own.grid.delta_since(self._published_local) if version != self._published_local else None
+        wrote = False
         if delta is not None and len(delta):
             created = time.time()
             prev, seq = own.seq, own.seq + 1
-            self.store.append(seq, delta)  # acknowledged to the log before anyone sees it
+            # Acknowledged to the log before anyone sees it; if the log cannot take it (disk
+            # full), nothing is published and the same changes are tried again next time.
+            self.store.append(seq, delta)
+            wrote = True
+            logged = time.time()
             self.gossip.publish_own(prev, seq, delta, created)
+            self.metrics.stage("out", self.config.agent_id, seq, created, logged, time.time())
         if delta is not None:
             self._published_local = version
         due = time.monotonic() - self._last_snapshot >= self.config.snapshot_s
         if not final and own.seq > 0 and (due or self.store.wal_bytes > (64 << 20)):
+            self._last_snapshot = time.monotonic()  # a failed one is retried after snapshot_s
             with own.lock:
                 self.store.snapshot(own.grid, own.seq, self._published_local)
-            self._last_snapshot = time.monotonic()
+            wrote = True
+        if wrote and self.state_error:
+            log.warning("state directory %s is writable again", self.config.state_dir)
+            self.state_error = ""
+
+    def _state_failed(self, exc: PersistenceError) -> None:
+        """A state-directory write failed: count it, say so (every 10 s at most), keep running."""
+        self.metrics.add("state_errors")
+        now = time.monotonic()
+        if str(exc) != self.state_error or now - self._state_error_logged > 10.0:
+            self._state_error_logged = now
+            log.error("%s; mapping and replicas go on, own deltas wait until the state "
+                      "directory takes writes again", exc)
+        self.state_error = str(exc)
 
     # -- status ---------------------------------------------------------------------------
     def report(self, params: dict[str, str]) -> dict[str, Any]:
@@ -329,6 +361,7 @@ class Daemon:
             "pose": self.pose,
             "sources_done": self._sources_done.is_set() or not self.config.sources,
             "unpublished": unpublished,
+            "state_error": self.state_error,
             "layers": layers,
             "members": [
                 {"agent": m.agent, "alive": m.alive, "kind": m.kind, "last_seen": m.last_seen,

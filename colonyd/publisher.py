@@ -87,6 +87,7 @@ class Publisher:
         payload = self.sender.encode(msg)
         self._heartbeats.put(payload)
         self.metrics.add("bytes_published", len(payload))
+        self.metrics.add("bytes_heartbeat", len(payload))
 
     def close(self) -> None:
         undeclare(self._deltas, self._heartbeats)
