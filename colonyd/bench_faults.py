@@ -524,19 +524,28 @@ def partition(base: Path, *, lease_ms: int = 1500, cut_s: float = 4.0) -> dict[s
                     time.sleep(0.5)
             colony.wait_members(3, timeout=30)
             time.sleep(1.0)
+            # (The observer reaches the daemons through the same switch: while c's link is cut
+            # it sees a and b only; c's side is read right after the heal.)
+            r0 = by_agent(colony, timeout=1.0)
             lab.cut("c")
             t_cut = time.monotonic()
-            r0 = by_agent(colony, timeout=0.5)
-            time.sleep(cut_s)
-            r1 = by_agent(colony, timeout=0.5)
-            a_side = seq_of(r1, "a", "a") - seq_of(r0, "a", "a")
-            c_side = seq_of(r1, "c", "c") - seq_of(r0, "c", "c")
+            time.sleep(1.0)
+            r_cut = by_agent(colony, timeout=0.5)
+            time.sleep(cut_s - 1.0)
+            r1 = by_agent(colony, timeout=1.0)
+            a_side = seq_of(r1, "a", "a") - seq_of(r_cut, "a", "a")
             b_lag = seq_of(r1, "a", "a") - seq_of(r1, "b", "a")
-            c_saw_a = seq_of(r1, "c", "a") - seq_of(r0, "c", "a")
+            log.info("partition: during the cut %s", {h: {o: seq_of(r1, h, o) for o in names} for h in r1})
             lab.heal("c")
             cut = time.monotonic() - t_cut
-            want = {o: seq_of(r1, o, o) for o in names}
-            heal = wait_holding(colony, want, names, 60)
+            t_heal = time.monotonic()
+            wait_for("c answers after the heal", lambda: "c" in by_agent(colony, timeout=0.5), 30)
+            rc = by_agent(colony, timeout=1.0)
+            c_side = seq_of(rc, "c", "c") - seq_of(r0, "c", "c")
+            c_saw_a = seq_of(rc, "c", "a")  # before any repair: what leaked across the cut
+            want = {"a": seq_of(r1, "a", "a"), "b": seq_of(r1, "b", "b"), "c": seq_of(rc, "c", "c")}
+            wait_holding(colony, want, names, 60)
+            heal = time.monotonic() - t_heal
             converge = colony.wait_converged(90)
             return {
                 "partition_cut_s": round(cut, 2),
@@ -544,7 +553,8 @@ def partition(base: Path, *, lease_ms: int = 1500, cut_s: float = 4.0) -> dict[s
                 "partition_majority_progress": a_side,
                 "partition_minority_progress": c_side,
                 "partition_majority_lag": b_lag,
-                "partition_leak": c_saw_a,
+                "partition_minority_held_a": c_saw_a,
+                "partition_majority_a_seq_at_heal": want["a"],
                 "partition_heal_s": round(heal, 2),
                 "partition_converge_s": round(converge, 2),
             }
