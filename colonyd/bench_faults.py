@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zenoh
 
 from colonyd.faults import DeltaWatch, NetLab, Spinner, Tmpfs, delta_digest, need_root, peak_rss_mb
 from colonyd.launcher import LocalColony, LocalDaemon, free_port
@@ -238,14 +239,14 @@ def crash(base: Path, *, kills: int = 20, seed: int = 7) -> dict[str, Any]:
 # ------------------------------------------------------------------------------------ freeze
 
 
-def freeze(base: Path, *, lease_ms: int = 1000, frozen_s: float = 3.0) -> dict[str, Any]:
+def freeze(base: Path, *, lease_ms: int = 1000, frozen_s: float = 3.0, scans: int = 40) -> dict[str, Any]:
     """SIGSTOP one of three mapping daemons past the lease: the others map and converge between
     themselves; after SIGCONT it catches up (`freeze_catchup_s`: to the others' seqs at SIGCONT)."""
     colony = LocalColony(base, colony="freeze", lease_ms=lease_ms, heartbeat_s=0.5)
-    a = colony.add("a", src(1, 40))
+    a = colony.add("a", src(1, scans))
     time.sleep(0.3)
-    colony.add("b", src(2, 40))
-    c = colony.add("c", src(3, 40))
+    colony.add("b", src(2, scans))
+    c = colony.add("c", src(3, scans))
     try:
         colony.wait_members(3, timeout=30)
         time.sleep(1.0)
@@ -384,8 +385,9 @@ def _hostile_round(base: Path, closed: bool) -> dict[str, Any]:
         for topic, raw in frames:
             if topic == "heartbeat:own":  # the target's own origin, to the target
                 s.put(topic_key(ns, "a", "heartbeat"), raw)
-            else:
-                s.put(topic_key(ns, "evil", topic), raw)
+            else:  # (blocking: a huge frame is not dropped on the way by congestion control)
+                s.put(topic_key(ns, "evil", topic), raw,
+                      congestion_control=zenoh.CongestionControl.BLOCK)
             sent += 1
             time.sleep(0.01)
         # Queries: hostile request payloads on every queryable of both daemons.
@@ -508,7 +510,7 @@ def disk(base: Path, *, size_mb: float = 6.0) -> dict[str, Any]:
 # --------------------------------------------------------------------------------- partition
 
 
-def partition(base: Path, *, lease_ms: int = 1500, cut_s: float = 4.0) -> dict[str, Any]:
+def partition(base: Path, *, lease_ms: int = 1500, cut_s: float = 4.0, scans: int = 48) -> dict[str, Any]:
     """Three daemons in their own network namespaces on a bridge; c's link is cut during
     mapping and restored: both sides keep mapping, every replica converges after the heal."""
     reason = need_root("the partition scenario (network namespaces)")
@@ -519,7 +521,7 @@ def partition(base: Path, *, lease_ms: int = 1500, cut_s: float = 4.0) -> dict[s
         colony = LocalColony(base, colony="partition", lease_ms=lease_ms, heartbeat_s=0.5)
         try:
             for i, name in enumerate(names):
-                colony.add(name, src(i + 1, 48), host=lab.hosts[name], prefix=lab.prefix(name))
+                colony.add(name, src(i + 1, scans), host=lab.hosts[name], prefix=lab.prefix(name))
                 if i == 0:
                     time.sleep(0.5)
             colony.wait_members(3, timeout=30)
@@ -535,6 +537,7 @@ def partition(base: Path, *, lease_ms: int = 1500, cut_s: float = 4.0) -> dict[s
             r1 = by_agent(colony, timeout=1.0)
             a_side = seq_of(r1, "a", "a") - seq_of(r_cut, "a", "a")
             b_lag = seq_of(r1, "a", "a") - seq_of(r1, "b", "a")
+            saw_c = max(seq_of(r1, h, "c") - seq_of(r_cut, h, "c") for h in ("a", "b"))
             log.info("partition: during the cut %s", {h: {o: seq_of(r1, h, o) for o in names} for h in r1})
             lab.heal("c")
             cut = time.monotonic() - t_cut
@@ -554,6 +557,7 @@ def partition(base: Path, *, lease_ms: int = 1500, cut_s: float = 4.0) -> dict[s
                 "partition_minority_progress": c_side,
                 "partition_majority_lag": b_lag,
                 "partition_minority_held_a": c_saw_a,
+                "partition_majority_saw_c": saw_c,
                 "partition_majority_a_seq_at_heal": want["a"],
                 "partition_heal_s": round(heal, 2),
                 "partition_converge_s": round(converge, 2),
@@ -588,8 +592,17 @@ def stage_breakdown(reports: list[dict[str, Any]]) -> dict[str, dict[str, float 
                                 ("decode", decoded - dequeued), ("apply", applied - decoded),
                                 ("total", applied - created)):
                 parts[name].append(value * 1000)
-    return {k: {"p50": percentile(v, 50), "p99": percentile(v, 99), "mean": round(float(np.mean(v)), 2) if v else None}
-            for k, v in parts.items()}
+    out: dict[str, dict[str, float | None]] = {
+        k: {"p50": percentile(v, 50), "p99": percentile(v, 99),
+            "mean": round(float(np.mean(v)), 2) if v else None}
+        for k, v in parts.items()}
+    # The tail: what each stage contributes, on average, to the slowest 10 % of deliveries.
+    total = np.asarray(parts["total"])
+    if len(total):
+        slow = total >= np.percentile(total, 90)
+        for k, v in parts.items():
+            out[k]["tail_mean"] = round(float(np.asarray(v)[slow].mean()), 2)
+    return out
 
 
 def propagation(base: Path, *, daemons: int = 4, duration: float = 10.0,
