@@ -32,7 +32,7 @@ def make_pki(directory: Path, ca_name: str, member: str) -> Path:
     """A CA and one certificate it signs (for 127.0.0.1 and localhost, server and client use);
     returns a Zenoh JSON5 config enabling mutual TLS with them."""
     directory.mkdir(parents=True, exist_ok=True)
-    now = datetime.datetime.now(datetime.timezone.utc)
+    now = datetime.datetime.now(datetime.UTC)
     ca_key = ec.generate_private_key(ec.SECP256R1())
     ca = (x509.CertificateBuilder().subject_name(_name(ca_name)).issuer_name(_name(ca_name))
           .public_key(ca_key.public_key()).serial_number(x509.random_serial_number())
