@@ -305,12 +305,14 @@ class Daemon:
         if delta is not None and len(delta):
             created = time.time()
             prev, seq = own.seq, own.seq + 1
-            # Acknowledged to the log before anyone sees it; if the log cannot take it (disk
-            # full), nothing is published and the same changes are tried again next time.
-            self.store.append(seq, delta)
+            # Acknowledged to the log before anyone sees it (the frames are encoded while the
+            # disk flushes); if the log cannot take it (disk full), nothing is published and
+            # the same changes are tried again next time.
+            encoded = self.store.append(
+                seq, delta, meanwhile=lambda: self.gossip.encode_own(prev, seq, delta, created))
             wrote = True
             logged = time.time()
-            self.gossip.publish_own(prev, seq, delta, created)
+            self.gossip.publish_own(prev, seq, delta, created, encoded)
             self.metrics.stage("out", self.config.agent_id, seq, created, logged, time.time())
         if delta is not None:
             self._published_local = version

@@ -185,11 +185,29 @@ class LocalColony:
                     return False, f"{a} lacks {origin}@{want['seq']} (has {have and have['seq']})"
         return True, "converged"
 
+    def _still_mapping(self, agents: list[str] | None) -> tuple[bool, str]:
+        """(True, why) while a listed daemon is missing, still mapping or has unpublished changes."""
+        agents = agents or [a for a, d in self.daemons.items() if d.alive()]
+        reports = {r["agent"]: r for r in self.status()}
+        for agent in agents:
+            r = reports.get(agent)
+            if r is None:
+                return True, f"no status from {agent}"
+            if not r.get("sources_done") or r.get("unpublished"):
+                return True, f"{agent} is still mapping"
+        return False, ""
+
     def wait_converged(self, timeout: float, agents: list[str] | None = None) -> float:
         """Seconds until converged; raises TimeoutError with the last reason."""
         t0 = time.monotonic()
         reason = "not checked"
         while time.monotonic() - t0 < timeout:
+            # Digests cost each daemon a pass over every layer it holds: ask for them only once
+            # mapping is over, so watching a colony does not slow down what it watches.
+            mapping, reason = self._still_mapping(agents)
+            if mapping:
+                time.sleep(0.3)
+                continue
             ok, reason = self.converged(agents)
             if ok:
                 return time.monotonic() - t0

@@ -5,15 +5,16 @@ from __future__ import annotations
 import fcntl
 import json
 import logging
+import math
 import os
 import struct
 import time
 import zlib
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-import math
+from typing import Any, TypeVar
 
 import msgpack
 import numpy as np
@@ -23,6 +24,8 @@ from colonyd.grid import VoxelGrid, load_grid, new_grid
 from voxel.delta import Delta, channel_spec
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 _HEAD = struct.Struct("<II")  # length, crc32
 META = "meta.json"
@@ -92,6 +95,7 @@ class StateStore:
         self.wal_bytes = 0
         #: Why appends are refused (a failed append could not be cut back off the log); "" if not.
         self.broken = ""
+        self._flusher: ThreadPoolExecutor | None = None  # fsyncs while the caller works on
         self.epoch = 0  # set by `recover`
 
     # -- recovery -------------------------------------------------------------------------
@@ -257,8 +261,12 @@ class StateStore:
         self._wal = open(self.dir / WAL, "ab", buffering=0)  # noqa: SIM115 - kept open for appends
         self.wal_bytes = self._wal.seek(0, os.SEEK_END)
 
-    def append(self, seq: int, delta: Delta) -> None:
+    def append(self, seq: int, delta: Delta, meanwhile: Callable[[], T] | None = None) -> T | None:
         """Log an own delta (grid versions) durably before it is published.
+
+        `meanwhile()` (encoding the frames, say) runs while the disk flushes, and its result is
+        returned once the record is durable: the flush and the work overlap, nothing is sent
+        earlier. If `meanwhile` raises, the record is still logged, then the error propagates.
 
         All or nothing: when the write or fsync fails (disk full, I/O error) the bytes written
         are cut off again, so the seq can be logged later with other content and a restart
@@ -276,12 +284,33 @@ class StateStore:
             view = memoryview(record)
             while view:
                 view = view[self._wal.write(view):]
-            os.fsync(self._wal.fileno())
+            result, failure = self._flush(self._wal.fileno(), meanwhile)
         except OSError as exc:
             msg = f"cannot append seq {seq} to the write-ahead log in {self.dir}: {exc.strerror}"
             self._rewind(msg)
             raise PersistenceError(msg) from None
         self.wal_bytes = start + len(record)
+        if failure is not None:
+            raise failure
+        return result
+
+    def _flush(self, fd: int, work: Callable[[], T] | None) -> tuple[T | None, Exception | None]:
+        """fsync(fd), with `work()` running meanwhile (the flush on the flusher thread); the
+        work's result or error. Raises OSError if the flush failed."""
+        if work is None:
+            os.fsync(fd)
+            return None, None
+        if self._flusher is None:
+            self._flusher = ThreadPoolExecutor(max_workers=1, thread_name_prefix="wal-fsync")
+        flushed = self._flusher.submit(lambda: os.fsync(fd))
+        result: T | None = None
+        failure: Exception | None = None
+        try:
+            result = work()
+        except Exception as exc:  # noqa: BLE001 - handed back: the record is logged all the same
+            failure = exc
+        flushed.result()  # the flush's OSError, if any, wins: then nothing was logged
+        return result, failure
 
     def _rewind(self, why: str) -> None:
         """Cut the log back to its last acknowledged record after a failed append."""
@@ -336,6 +365,9 @@ class StateStore:
                 old.unlink(missing_ok=True)
 
     def close(self) -> None:
+        if self._flusher is not None:
+            self._flusher.shutdown(wait=True)
+            self._flusher = None
         if self._wal is not None:
             self._wal.close()
             self._wal = None
