@@ -128,7 +128,7 @@ class Inbox:
         )
         if delta is None:
             return
-        if self.replicas.offer(msg.origin, msg.epoch, delta):
+        if self.replicas.offer(msg.origin, msg.epoch, delta, admitted=msg.parts == 1):
             self._request_repair(msg.origin, [msg.origin])
         self.metrics.stage("in", msg.origin, delta.to_version, queued, dequeued, decoded, time.time())
 
