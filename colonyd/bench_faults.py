@@ -675,7 +675,9 @@ def flood(base: Path, *, flooders: int = 3, rate_x: int = 10, seconds: float = 8
         own_rate = (c1.get("frames", 0) - c0.get("frames", 0)) / dt
         peak = peak_rss_mb(target.proc.pid)
         converge = colony.wait_converged(90)
+        most = saturate(colony, target)
         return {
+            **most,
             "flood_peers": flooders,
             "flood_rate_x": rate_x,
             "flood_offered_deltas_per_s": round(offered, 1),
@@ -692,6 +694,72 @@ def flood(base: Path, *, flooders: int = 3, rate_x: int = 10, seconds: float = 8
         raise
     finally:
         colony.close()
+
+
+def saturate(colony: LocalColony, target: LocalDaemon, *, origins: int = 4, frames: int = 250,
+             rate: float = 400.0) -> dict[str, Any]:
+    """The delta rate one daemon sustains: `origins` signed peers put real-sized deltas (a
+    synthetic scan's, ~4.5k voxels) at `rate` deltas/s in all, more than it can take; the
+    deltas it applied per second until its inbox was worked through, its drops, peak RSS."""
+    import threading
+
+    from colonyd.frames import Sender
+    from colonyd.grid import new_grid
+    from colonyd.layers import relabel
+    from colonyd.mapping import integrate_observation
+    from plugins.source import open_source
+    from protocol import Heartbeat, VoxelDelta
+    from protocol.identity import Signer
+    from protocol.keyexpr import topic_key
+
+    scan = open_source("synthetic:scans=1,points=120,seed=5,room=6", resolution=0.1, seed=5,
+                       stop=threading.Event())
+    grid = new_grid(0.1)
+    for obs in scan:
+        integrate_observation(grid, obs, sensor=scan.adapter.sensor_model, reliability=1.0, agent="s")
+    delta = grid.delta_since(0)
+    s = colony.session()
+    epoch = 1
+    streams = []
+    for i in range(origins):
+        snd = Sender(f"sat{i}", epoch, signer=Signer.generate())
+        hb = snd.encode(Heartbeat(**snd.header(), kind="robot", frame_id="map", identity=snd.identity))
+        msgs = [snd.encode(VoxelDelta(**snd.header(), frame_id="map",
+                                      delta=relabel(delta, k, k + 1, time=time.time())))
+                for k in range(frames)]
+        streams.append((f"sat{i}", hb, msgs))
+    for name, hb, _ in streams:
+        s.put(topic_key(colony.namespace, name, "heartbeat"), hb)
+    time.sleep(1.0)
+    assert target.proc is not None
+    r0 = by_agent(colony)
+    count0 = r0[target.agent]["metrics"]["counts"].get("deltas_applied", 0)
+    t0 = time.monotonic()
+    sent = 0
+    for k in range(frames):  # paced at `rate` deltas/s in all
+        for name, _, msgs in streams:
+            s.put(topic_key(colony.namespace, name, "delta"), msgs[k])
+            sent += 1
+        time.sleep(max(0.0, t0 + sent / rate - time.monotonic()))
+    put_s = time.monotonic() - t0
+    # Then until the target has worked through its inbox (its count stops moving).
+    last, t_last = count0, t0
+    while time.monotonic() - t_last < 1.0:
+        time.sleep(0.3)
+        now = by_agent(colony)[target.agent]["metrics"]["counts"].get("deltas_applied", 0)
+        if now != last:
+            last, t_last = now, time.monotonic()
+    r1 = by_agent(colony)
+    c0, c1 = r0[target.agent]["metrics"]["counts"], r1[target.agent]["metrics"]["counts"]
+    applied = c1.get("deltas_applied", 0) - count0
+    return {
+        "saturate_offered_deltas_per_s": round(sent / put_s, 1),
+        "saturate_deltas_per_s": round(applied / max(t_last - t0, put_s), 1),
+        "saturate_voxels_per_delta": len(delta),
+        "saturate_inbox_dropped": c1.get("inbox_dropped", 0) - c0.get("inbox_dropped", 0),
+        "saturate_peak_rss_mb": round(peak_rss_mb(target.proc.pid), 1),
+        "saturate_alive": target.alive(),
+    }
 
 
 # ------------------------------------------------------------------------------------- scale
