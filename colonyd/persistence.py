@@ -295,21 +295,25 @@ class StateStore:
         return result
 
     def _flush(self, fd: int, work: Callable[[], T] | None) -> tuple[T | None, Exception | None]:
-        """fsync(fd), with `work()` running meanwhile (the flush on the flusher thread); the
-        work's result or error. Raises OSError if the flush failed."""
+        """fsync(fd) here, with `work()` running meanwhile on a helper thread (fsync releases
+        the GIL); the work's result or error. Raises OSError if the flush failed.
+
+        The caller flushes itself, so it resumes straight from the system call when the disk is
+        done; the work (shorter than a flush) is normally finished by then.
+        """
         if work is None:
             os.fsync(fd)
             return None, None
         if self._flusher is None:
-            self._flusher = ThreadPoolExecutor(max_workers=1, thread_name_prefix="wal-fsync")
-        flushed = self._flusher.submit(lambda: os.fsync(fd))
-        result: T | None = None
-        failure: Exception | None = None
+            self._flusher = ThreadPoolExecutor(max_workers=1, thread_name_prefix="wal-overlap")
+        done = self._flusher.submit(work)
         try:
-            result = work()
-        except Exception as exc:  # noqa: BLE001 - handed back: the record is logged all the same
-            failure = exc
-        flushed.result()  # the flush's OSError, if any, wins: then nothing was logged
+            os.fsync(fd)
+        finally:
+            try:
+                result, failure = done.result(), None
+            except Exception as exc:  # noqa: BLE001 - handed back: the record is logged all the same
+                result, failure = None, exc
         return result, failure
 
     def _rewind(self, why: str) -> None:
