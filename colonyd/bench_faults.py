@@ -605,12 +605,21 @@ def stage_breakdown(reports: list[dict[str, Any]]) -> dict[str, dict[str, float 
     return out
 
 
+def propagation_ms(reports: list[dict[str, Any]], agents: list[str]) -> list[float]:
+    """Per (origin, seq) delta: ms from creation to its application on the last other peer
+    (as `bench colony` computes it)."""
+    applied: dict[tuple[str, int], list[float]] = {}
+    for r in reports:
+        for origin, seq, created, at in r["metrics"].get("samples", []):
+            if origin != r["agent"]:
+                applied.setdefault((origin, int(seq)), []).append(float(at) - float(created))
+    return [max(v) * 1000 for v in applied.values() if len(v) >= len(agents) - 1]
+
+
 def propagation(base: Path, *, daemons: int = 4, duration: float = 10.0,
                 extra: list[str] | None = None) -> dict[str, Any]:
     """N daemons mapping at 2 deltas/s: propagation (creation to application on the last other
     peer) p50 / p99, and the stage breakdown."""
-    from colonyd.bench_colony import propagation_ms
-
     scans = max(2, int(duration * 2))
     colony = LocalColony(base, colony="prop", heartbeat_s=1.0, extra=extra)
     agents = [f"d{i}" for i in range(daemons)]
