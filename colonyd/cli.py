@@ -132,6 +132,14 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--daemons", type=int, default=4)
     b.add_argument("--duration", type=float, default=10.0, help="seconds of 2 Hz gossip")
     b.add_argument("--catchup-voxels", type=int, default=1_000_000)
+    b = bsub.add_parser("faults", help="real daemons under faults: crash, partition, freeze, disk, "
+                        "busy CPU, flood, hostile input (scale with --only scale)")
+    b.add_argument("--json", type=Path, required=True)
+    b.add_argument("--only", action="append", metavar="SCENARIO",
+                   help="run this scenario (repeatable): crash, freeze, hostile, disk, partition, "
+                        "busy, flood, scale")
+    b.add_argument("--kills", type=int, default=20, help="SIGKILLs in the crash scenario")
+    b.add_argument("--duration", type=float, default=10.0, help="seconds of 2 Hz gossip (busy)")
 
     p = sub.add_parser("demo", help="a 3-daemon colony on loopback with simulated sources")
     p.add_argument("--out", type=Path, default=Path("demo-out"))
@@ -250,6 +258,11 @@ def _bench(args: argparse.Namespace) -> int:
         from colonyd.bench.wire import run_wire_bench
 
         result = run_wire_bench(args.json, args.shared_data)
+    elif args.bench == "faults":
+        from colonyd.bench.faults import run_faults_bench
+
+        result = run_faults_bench(args.json, only=args.only, kills=args.kills,
+                                  duration=args.duration)
     else:
         from colonyd.bench.colony import run_colony_bench
 

@@ -7,6 +7,7 @@ import logging
 import math
 import os
 import signal
+import sys
 import threading
 import time
 import zlib
@@ -17,7 +18,7 @@ import numpy as np
 
 from colonyd.alignment import ColonyFrame, align_layers, edge_of
 from colonyd.config import Config, load_config
-from colonyd.errors import ColonydError, DuplicateAgentError
+from colonyd.errors import ColonydError, DuplicateAgentError, PersistenceError
 from colonyd.export import encode_map
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
@@ -41,6 +42,8 @@ log = logging.getLogger(__name__)
 #: A heartbeat claiming our origin with another epoch is from a live duplicate when its time is
 #: within this many seconds of ours (older ones are replays).
 FRESH_S = 30.0
+#: The interpreter's thread switch interval in a daemon (Python's default is 5 ms).
+SWITCH_INTERVAL_S = 0.001
 
 
 def get_store(config: Config) -> StateStore:
@@ -75,6 +78,9 @@ class Daemon:
         self.attempts: dict[str, dict[str, Any]] = {}  # peer -> last alignment attempt (JSON)
         self.conflict = ""  # set when another live daemon has our agent id and we give way
         self._conflict_logged = 0.0
+        #: The last state-directory error (disk full, read-only), "" once writing works again.
+        self.state_error = ""
+        self._state_error_logged = 0.0
 
     # -- table of contents ----------------------------------------------------------------
     def run(self) -> int:
@@ -125,8 +131,9 @@ class Daemon:
         own = self.layers.own
         own.grid, own.epoch, own.seq = rec.grid, rec.epoch, rec.seq
         self._published_local = rec.published  # changes after it were never logged: send them
-        log.info("state %s: %s, epoch %d, seq %d, %d log records replayed", self.config.state_dir,
-                 "fresh" if rec.fresh else "recovered", rec.epoch, rec.seq, rec.wal_records)
+        log.info("state %s: %s, epoch %d, seq %d, %d log records replayed, layer digest %s",
+                 self.config.state_dir, "fresh" if rec.fresh else "recovered", rec.epoch, rec.seq,
+                 rec.wal_records, own.digest())
 
     def _duplicate(self, detail: str) -> str:
         cfg = self.config
@@ -200,7 +207,10 @@ class Daemon:
                 self._reload()
             if now >= next_hb or self.gossip.hb_now.is_set():
                 self.gossip.hb_now.clear()
-                self.gossip.heartbeat(self.config.kind, self.pose)
+                try:
+                    self.gossip.heartbeat(self.config.kind, self.pose)
+                except PersistenceError as exc:  # no frame numbers could be reserved
+                    self._state_failed(exc)
                 next_hb = now + self.config.heartbeat_s
             if wd and now >= next_wd:
                 mapping, publisher = self._threads[:2]
@@ -216,11 +226,14 @@ class Daemon:
         self.stop.set()
         for t in self._threads:
             t.join(timeout=3.0)
-        self._publish_once(final=True)
         own = self.layers.own
-        if own.seq > 0:
-            with own.lock:
-                self.store.snapshot(own.grid, own.seq)
+        try:
+            self._publish_once(final=True)
+            if own.seq > 0:
+                with own.lock:
+                    self.store.snapshot(own.grid, own.seq, self._published_local)
+        except PersistenceError as exc:  # the last good snapshot and the log stay as they were
+            log.error("shutting down without a final snapshot: %s", exc)
         if self.config.export_dir is not None:
             self._export(self.config.export_dir)
         self.status_server.close()
@@ -340,6 +353,8 @@ class Daemon:
                 break
             try:
                 self._publish_once()
+            except PersistenceError as exc:
+                self._state_failed(exc)
             except ColonydError as exc:
                 log.error("publish failed: %s", exc)
             except Exception:
@@ -350,18 +365,40 @@ class Daemon:
         with own.lock:
             version = int(own.grid.version)
             delta = own.grid.delta_since(self._published_local) if version != self._published_local else None
+        wrote = False
         if delta is not None and len(delta):
             created = time.time()
             prev, seq = own.seq, own.seq + 1
-            self.store.append(seq, delta)  # acknowledged to the log before anyone sees it
-            self.gossip.publish_own(prev, seq, delta, created)
+            # Acknowledged to the log before anyone sees it (the frames are encoded while the
+            # disk flushes); if the log cannot take it (disk full), nothing is published and
+            # the same changes are tried again next time.
+            encoded = self.store.append(
+                seq, delta, meanwhile=lambda: self.gossip.encode_own(prev, seq, delta, created))
+            wrote = True
+            logged = time.time()
+            self.gossip.publish_own(prev, seq, delta, created, encoded)
+            self.metrics.stage("out", self.config.agent_id, seq, created, logged, time.time())
         if delta is not None:
             self._published_local = version
         due = time.monotonic() - self._last_snapshot >= self.config.snapshot_s
         if not final and own.seq > 0 and (due or self.store.wal_bytes > (64 << 20)):
+            self._last_snapshot = time.monotonic()  # a failed one is retried after snapshot_s
             with own.lock:
                 self.store.snapshot(own.grid, own.seq, self._published_local)
-            self._last_snapshot = time.monotonic()
+            wrote = True
+        if wrote and self.state_error:
+            log.warning("state directory %s is writable again", self.config.state_dir)
+            self.state_error = ""
+
+    def _state_failed(self, exc: PersistenceError) -> None:
+        """A state-directory write failed: count it, say so (every 10 s at most), keep running."""
+        self.metrics.add("state_errors")
+        now = time.monotonic()
+        if str(exc) != self.state_error or now - self._state_error_logged > 10.0:
+            self._state_error_logged = now
+            log.error("%s; mapping and replicas go on, own deltas wait until the state "
+                      "directory takes writes again", exc)
+        self.state_error = str(exc)
 
     # -- export (a live map for `colonyd export`) -----------------------------------------
     def export_map(self, params: dict[str, str]) -> bytes | None:
@@ -415,6 +452,7 @@ class Daemon:
             "frame": frame_of(self.config.agent_id),
             "colony_frame": self._colony_report(),
             "alignments": self.attempts,
+            "state_error": self.state_error,
             "layers": layers,
             "objects": [
                 {"id": o.object_id, "class": o.class_id, "position": [float(x) for x in o.position],
@@ -444,4 +482,7 @@ def run_daemon(config: Config, config_path: Path | None = None,
                flags: dict[str, Any] | None = None) -> int:
     """Run until SIGTERM/SIGINT; returns the exit code."""
     setup_logging(config.log_level, agent=config.agent_id)
+    # A thread waiting for the GIL (a Zenoh callback, the inbox, the publisher) gets it within
+    # 1 ms instead of 5 while mapping holds it: the latency of gossip under load.
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     return Daemon(config, config_path, flags).run()

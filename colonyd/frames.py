@@ -114,8 +114,12 @@ class Sender:
             if self._reserve is None:
                 self._reserved = self._next
             elif self._next > self._reserved:
+                try:  # durable first: a failed reservation hands out no number
+                    self._reserve(self._next + SEQ_BLOCK)
+                except Exception:
+                    self._next = first
+                    raise
                 self._reserved = self._next + SEQ_BLOCK
-                self._reserve(self._reserved)
             return first
 
     def header(self) -> dict[str, object]:

@@ -86,9 +86,14 @@ class Gossip:
         """Liveliness join or leave (on a Zenoh thread: only enqueues)."""
         self.inbox.on_member_event(agent, event)
 
-    def publish_own(self, prev: int, seq: int, delta: Delta, created: float) -> int:
+    def publish_own(self, prev: int, seq: int, delta: Delta, created: float,
+                    encoded: tuple[Delta, list[bytes]] | None = None) -> int:
         """Publish an own delta (already logged); returns the bytes sent."""
-        return self.publisher.publish_own(prev, seq, delta, created)
+        return self.publisher.publish_own(prev, seq, delta, created, encoded)
+
+    def encode_own(self, prev: int, seq: int, delta: Delta, created: float) -> tuple[Delta, list[bytes]]:
+        """Frames of an own delta, made before it is logged (nothing sent)."""
+        return self.publisher.encode_own(prev, seq, delta, created)
 
     def publish_objects(self, objects: list[ObjectCentroid]) -> None:
         """Publish the own layer's object list."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import random
 import threading
+import time
 from collections.abc import Callable
 
 import zenoh
@@ -24,8 +25,8 @@ from protocol.keyexpr import topic_subscription
 log = logging.getLogger(__name__)
 
 #: An inbox item: (kind "delta" | "hb" | "objects" | "align" | "join", key expression or agent,
-#: raw frame).
-Item = tuple[str, str, bytes]
+#: raw frame, time queued).
+Item = tuple[str, str, bytes, float]
 
 
 class Inbox:
@@ -89,22 +90,22 @@ class Inbox:
         if self._drop_rate and self._rng.random() < self._drop_rate:
             self.metrics.add("dropped_on_purpose")
             return
-        self._worker.put(("delta", str(sample.key_expr), sample.payload.to_bytes()))
+        self._worker.put(("delta", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
 
     def _on_hb(self, sample: zenoh.Sample) -> None:
-        self._worker.put(("hb", str(sample.key_expr), sample.payload.to_bytes()))
+        self._worker.put(("hb", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
 
     def _on_objects(self, sample: zenoh.Sample) -> None:
-        self._worker.put(("objects", str(sample.key_expr), sample.payload.to_bytes()))
+        self._worker.put(("objects", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
 
     def _on_align(self, sample: zenoh.Sample) -> None:
-        self._worker.put(("align", str(sample.key_expr), sample.payload.to_bytes()))
+        self._worker.put(("align", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
 
     def on_member_event(self, agent: str, event: str) -> None:
         """Liveliness join: ask the newcomer (or returning peer) what it holds."""
         self.metrics.add(f"member_{event}")
         if event == "join":
-            self._worker.put(("join", agent, b""))
+            self._worker.put(("join", agent, b"", time.time()))
 
     # -- lifecycle ------------------------------------------------------------------------
     def start(self, membership: Membership) -> None:
@@ -117,10 +118,10 @@ class Inbox:
 
     # -- the worker -----------------------------------------------------------------------
     def _handle(self, item: Item) -> None:
-        kind, key, raw = item
+        kind, key, raw, queued = item
         try:
             if kind == "delta":
-                self._handle_delta(key, raw)
+                self._handle_delta(key, raw, queued)
             elif kind == "hb":
                 self._handle_hb(key, raw)
             elif kind == "objects":
@@ -136,8 +137,10 @@ class Inbox:
             else:
                 log.warning("rejected %s on %s: %s", kind, key, exc)
 
-    def _handle_delta(self, key: str, raw: bytes) -> None:
+    def _handle_delta(self, key: str, raw: bytes, queued: float = 0.0) -> None:
+        dequeued = time.time()
         msg = expect(self.receiver.decode(raw, key_expr=key), VoxelDelta, f"on {key}")
+        decoded = time.time()
         if not msg.exact:
             raise WireError("inexact", "expected an exact delta, found a free-space summary")
         d = msg.delta
@@ -146,8 +149,11 @@ class Inbox:
         delta = self.parts.add(
             (msg.origin, msg.epoch, d.from_version, d.to_version), msg.part, msg.parts, d
         )
-        if delta is not None and self.replicas.offer(msg.origin, msg.epoch, delta):
+        if delta is None:
+            return
+        if self.replicas.offer(msg.origin, msg.epoch, delta, admitted=msg.parts == 1):
             self._request_repair(msg.origin, [msg.origin])
+        self.metrics.stage("in", msg.origin, delta.to_version, queued, dequeued, decoded, time.time())
 
     def _handle_hb(self, key: str, raw: bytes) -> None:
         msg = expect(self.receiver.decode(raw, key_expr=key), Heartbeat, f"on {key}")

@@ -15,6 +15,9 @@ class Metrics:
         self.rejected: Counter[str] = Counter()
         self.applied: deque[tuple[str, int, float, float]] = deque(maxlen=samples)
         self.catchups: deque[tuple[str, int, float]] = deque(maxlen=64)
+        #: Where a delta's time goes: ("out", own, seq, created, logged, sent) at its origin and
+        #: ("in", origin, seq, received, dequeued, decoded, applied) at a replica (epoch seconds).
+        self.stages: deque[tuple[object, ...]] = deque(maxlen=samples)
 
     def add(self, name: str, n: int = 1) -> None:
         with self._lock:
@@ -29,6 +32,10 @@ class Metrics:
         with self._lock:
             self.applied.append((origin, seq, created, applied))
 
+    def stage(self, *fields: object) -> None:
+        with self._lock:
+            self.stages.append(fields)
+
     def catchup(self, origin: str, voxels: int, seconds: float) -> None:
         with self._lock:
             self.catchups.append((origin, voxels, seconds))
@@ -42,4 +49,5 @@ class Metrics:
             }
             if samples:
                 out["samples"] = [list(s) for s in self.applied]
+                out["stages"] = [list(s) for s in self.stages]
             return out

@@ -5,15 +5,16 @@ from __future__ import annotations
 import fcntl
 import json
 import logging
+import math
 import os
 import struct
 import time
 import zlib
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-import math
+from typing import Any, TypeVar
 
 import msgpack
 import numpy as np
@@ -23,6 +24,8 @@ from colonyd.grid import VoxelGrid, load_grid, new_grid
 from voxel.delta import Delta, channel_spec
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 _HEAD = struct.Struct("<II")  # length, crc32
 META = "meta.json"
@@ -47,12 +50,16 @@ class Recovered:
 def atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
     """Replace `path` by `data` durably: a temporary file (created with `mode`), fsync, rename."""
     tmp = path.with_name(path.name + ".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
-    with open(fd, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+        with open(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)  # a full disk keeps no half-written temporary file
+        raise
     _fsync_dir(path.parent)
 
 
@@ -86,6 +93,9 @@ class StateStore:
             raise PersistenceError(msg) from None
         self._wal: Any = None
         self.wal_bytes = 0
+        #: Why appends are refused (a failed append could not be cut back off the log); "" if not.
+        self.broken = ""
+        self._flusher: ThreadPoolExecutor | None = None  # fsyncs while the caller works on
         self.epoch = 0  # set by `recover`
 
     # -- recovery -------------------------------------------------------------------------
@@ -193,6 +203,11 @@ class StateStore:
             msg = f"{path} is unreadable or not JSON: {exc}"
             raise PersistenceError(msg) from None
 
+    def logged(self) -> list[tuple[int, Delta]]:
+        """The (seq, delta) records of the log as it is on disk (for checks; changes nothing
+        but a torn tail, as recovery would)."""
+        return [(rec["seq"], rec["delta"]) for rec in self._read_wal()[1]]
+
     def _read_wal(self) -> tuple[dict[str, Any] | None, list[dict[str, Any]]]:
         """The log's header record (None if absent) and its delta records.
 
@@ -241,20 +256,77 @@ class StateStore:
     def _open_wal(self) -> None:
         if self._wal is not None:
             self._wal.close()
-        self._wal = open(self.dir / WAL, "ab")  # noqa: SIM115 - kept open for appends
-        self.wal_bytes = self._wal.tell()
+            self._wal = None
+        # Unbuffered: a failed write leaves nothing in a buffer that a later write would flush.
+        self._wal = open(self.dir / WAL, "ab", buffering=0)  # noqa: SIM115 - kept open for appends
+        self.wal_bytes = self._wal.seek(0, os.SEEK_END)
 
-    def append(self, seq: int, delta: Delta) -> None:
-        """Log an own delta (grid versions) durably before it is published."""
+    def append(self, seq: int, delta: Delta, meanwhile: Callable[[], T] | None = None) -> T | None:
+        """Log an own delta (grid versions) durably before it is published.
+
+        `meanwhile()` (encoding the frames, say) runs while the disk flushes, and its result is
+        returned once the record is durable: the flush and the work overlap, nothing is sent
+        earlier. If `meanwhile` raises, the record is still logged, then the error propagates.
+
+        All or nothing: when the write or fsync fails (disk full, I/O error) the bytes written
+        are cut off again, so the seq can be logged later with other content and a restart
+        never finds a record that was not acknowledged. If they cannot be cut off, the store
+        refuses every later append (`broken`): the daemon keeps running but publishes nothing
+        of its own until restarted, and recovery then takes the record as the last one.
+        """
+        if self.broken:
+            raise PersistenceError(self.broken)
         record = _record({"seq": int(seq), "delta": _pack_wal_delta(delta)})
         try:
-            self._wal.write(record)
-            self._wal.flush()
+            if self._wal is None:  # closed by a snapshot that failed half-way
+                self._open_wal()
+            start = self.wal_bytes
+            view = memoryview(record)
+            while view:
+                view = view[self._wal.write(view):]
+            result, failure = self._flush(self._wal.fileno(), meanwhile)
+        except OSError as exc:
+            msg = f"cannot append seq {seq} to the write-ahead log in {self.dir}: {exc.strerror}"
+            self._rewind(msg)
+            raise PersistenceError(msg) from None
+        self.wal_bytes = start + len(record)
+        if failure is not None:
+            raise failure
+        return result
+
+    def _flush(self, fd: int, work: Callable[[], T] | None) -> tuple[T | None, Exception | None]:
+        """fsync(fd) here, with `work()` running meanwhile on a helper thread (fsync releases
+        the GIL); the work's result or error. Raises OSError if the flush failed.
+
+        The caller flushes itself, so it resumes straight from the system call when the disk is
+        done; the work (shorter than a flush) is normally finished by then.
+        """
+        if work is None:
+            os.fsync(fd)
+            return None, None
+        if self._flusher is None:
+            self._flusher = ThreadPoolExecutor(max_workers=1, thread_name_prefix="wal-overlap")
+        done = self._flusher.submit(work)
+        try:
+            os.fsync(fd)
+        finally:
+            try:
+                result, failure = done.result(), None
+            except Exception as exc:  # noqa: BLE001 - handed back: the record is logged all the same
+                result, failure = None, exc
+        return result, failure
+
+    def _rewind(self, why: str) -> None:
+        """Cut the log back to its last acknowledged record after a failed append."""
+        if self._wal is None:
+            return
+        try:
+            os.ftruncate(self._wal.fileno(), self.wal_bytes)
             os.fsync(self._wal.fileno())
         except OSError as exc:
-            msg = f"cannot append to the write-ahead log in {self.dir}: {exc.strerror}"
-            raise PersistenceError(msg) from None
-        self.wal_bytes += len(record)
+            self.broken = (f"{why}; the partial record could not be removed ({exc.strerror}), "
+                           "so nothing more is logged or published until colonyd restarts")
+            log.error("%s", self.broken)
 
     def snapshot(self, grid: VoxelGrid, seq: int, published: int | None = None) -> None:
         """Save the grid at `seq`, point snapshot.json at it, then start an empty log after it.
@@ -262,20 +334,34 @@ class StateStore:
         `published` is the grid version up to which changes went into deltas; later changes in
         the saved grid are sent after a restart. The new log's header names `seq` and the epoch,
         so a log emptied or replaced later is noticed at recovery.
+
+        A snapshot that fails (disk full, read-only) leaves the previous one and the log in
+        use, removes its partial files and raises PersistenceError; appends go on.
         """
         published = int(grid.version if published is None else published)
         name = f"own-{seq}.grid"
         tmp = self.dir / (name + ".tmp")
+        pointed = False
+        try:
+            previous = json.loads((self.dir / SNAPSHOT).read_text()).get("file")
+        except (OSError, ValueError):
+            previous = None
         try:
             grid.save(tmp)
             with open(tmp, "rb") as fh:
                 os.fsync(fh.fileno())
             os.replace(tmp, self.dir / name)
             atomic_write(self.dir / SNAPSHOT, json.dumps({"seq": int(seq), "file": name, "published": published}).encode())
-            self._wal.close()
+            pointed = True
+            # The old log stays in use until the new one is in place (its records up to `seq`
+            # are skipped at recovery, as they are in the snapshot).
             atomic_write(self.dir / WAL, _wal_header(seq, self.epoch))
             self._open_wal()
+            self.broken = ""  # the new log holds only whole records
         except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            if not pointed and name != previous:  # the previous snapshot stays the one in use
+                (self.dir / name).unlink(missing_ok=True)
             msg = f"cannot write a snapshot in {self.dir}: {exc.strerror}"
             raise PersistenceError(msg) from None
         for old in self.dir.glob("own-*.grid"):
@@ -283,6 +369,9 @@ class StateStore:
                 old.unlink(missing_ok=True)
 
     def close(self) -> None:
+        if self._flusher is not None:
+            self._flusher.shutdown(wait=True)
+            self._flusher = None
         if self._wal is not None:
             self._wal.close()
             self._wal = None

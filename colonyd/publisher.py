@@ -57,12 +57,28 @@ class Publisher:
             topic_key(namespace, self.own, "align"), congestion_control=drop
         )
 
-    def publish_own(self, prev: int, seq: int, delta: Delta, created: float) -> int:
-        """Publish an own delta (already logged) as VoxelDelta parts; returns the bytes sent."""
+    def publish_own(self, prev: int, seq: int, delta: Delta, created: float,
+                    encoded: tuple[Delta, list[bytes]] | None = None) -> int:
+        """Publish an own delta (already logged) as VoxelDelta parts; returns the bytes sent.
+
+        `encoded` is what `encode_own` made of it (while the log flushed), else it is made here.
+        """
         own = self.layers.own
         with own.lock:  # the number is taken (it is in the log) whatever happens next
             own.seq = seq
             own.epoch = self.epoch
+        wire, payloads = encoded or self.encode_own(prev, seq, delta, created)
+        own.remember(prev, seq, wire)
+        for payload in payloads:
+            self._deltas.put(payload)
+        sent = sum(len(p) for p in payloads)
+        self.metrics.add("deltas_published")
+        self.metrics.add("bytes_published", sent)
+        return sent
+
+    def encode_own(self, prev: int, seq: int, delta: Delta, created: float) -> tuple[Delta, list[bytes]]:
+        """The delta as labelled on the wire and its frames (one, or parts when large); sends
+        nothing and changes no layer (so it may run before the delta is logged)."""
         wire = relabel(delta, prev, seq, time=created)
         whole = VoxelDelta(origin=self.own, time=created, frame_id=frame_of(self.own), delta=wire)
         payloads = self.sender.encode_all([whole])  # one encoding in the common case
@@ -72,13 +88,7 @@ class Publisher:
                 delta=wire, max_bytes=self.part_bytes,
             )
             payloads = self.sender.encode_all(msgs)
-        own.remember(prev, seq, wire)
-        for payload in payloads:
-            self._deltas.put(payload)
-        sent = sum(len(p) for p in payloads)
-        self.metrics.add("deltas_published")
-        self.metrics.add("bytes_published", sent)
-        return sent
+        return wire, payloads
 
     def heartbeat(self, kind: str, pose: list[float]) -> None:
         """Publish what this daemon is and holds: kind, pose, every layer's (epoch, seq)."""
@@ -95,6 +105,7 @@ class Publisher:
         payload = self.sender.encode(msg)
         self._heartbeats.put(payload)
         self.metrics.add("bytes_published", len(payload))
+        self.metrics.add("bytes_heartbeat", len(payload))
 
     def publish_objects(self, objects: list[ObjectCentroid]) -> None:
         """Publish the own layer's full object list (in its frame)."""

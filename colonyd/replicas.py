@@ -25,10 +25,12 @@ class Replicas:
                 raise WireError("bad-header", f"delta header invalid: epoch {epoch} {prev}->{seq}")
         self.layers.admit(origin, deltas, replace=replace)
 
-    def offer(self, origin: str, epoch: int, delta: Delta) -> bool:
+    def offer(self, origin: str, epoch: int, delta: Delta, *, admitted: bool = False) -> bool:
         """Fold a whole delta of `origin`'s layer (epoch `epoch`, covering (from, to]) into it;
-        True if the layer is left with a gap to repair."""
-        self.admit(origin, epoch, [delta])
+        True if the layer is left with a gap to repair. `admitted`: the caller has just admitted
+        this very delta (a single-part frame), so its budget is not counted twice."""
+        if not admitted:
+            self.admit(origin, epoch, [delta])
         layer = self.layers.get(origin, delta.resolution)
         result = layer.offer(epoch, delta.from_version, delta.to_version, delta, delta.time)
         now = time.time()

@@ -44,17 +44,20 @@ class LocalDaemon:
     args: list[str]
     proc: subprocess.Popen | None = None
     env: dict[str, str] = field(default_factory=dict)
+    host: str = "127.0.0.1"  # its address (another one inside a network namespace)
+    prefix: list[str] = field(default_factory=list)  # e.g. ["ip", "netns", "exec", NS]
+    transport: str = "tcp"  # or "tls" (with a zenoh_config naming the certificates)
 
     @property
     def endpoint(self) -> str:
-        return f"tcp/127.0.0.1:{self.port}"
+        return f"{self.transport}/{self.host}:{self.port}"
 
     def start(self) -> None:
         self.state_dir.mkdir(parents=True, exist_ok=True)
         log = open(self.log_path, "ab")  # noqa: SIM115 - owned by the child
         try:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "colonyd", "run", *self.args],
+                [*self.prefix, sys.executable, "-m", "colonyd", "run", *self.args],
                 stdin=subprocess.DEVNULL, stdout=log, stderr=log,
                 env={**os.environ, **self.env},
             )
@@ -112,7 +115,8 @@ class LocalColony:
 
     def __init__(self, base: Path, *, colony: str = "local", namespace: str | None = None,
                  lease_ms: int | None = None, heartbeat_s: float = 0.5,
-                 extra: list[str] | None = None, multicast: bool = False) -> None:
+                 extra: list[str] | None = None, multicast: bool = False,
+                 transport: str = "tcp", zenoh_config: Path | None = None) -> None:
         self.base = Path(base)
         self.base.mkdir(parents=True, exist_ok=True)
         self.colony = colony
@@ -121,18 +125,21 @@ class LocalColony:
         self.heartbeat_s = heartbeat_s
         self.extra = list(extra or [])
         self.multicast = multicast  # only ever inside a private network namespace (tests)
+        self.transport = transport
+        self.zenoh_config = zenoh_config  # extra Zenoh JSON5 (TLS) for daemons and observer
         self.daemons: dict[str, LocalDaemon] = {}
         self._session: zenoh.Session | None = None
         self._session_endpoints: list[str] = []
 
     def add(self, agent: str, sources: list[str] | None = None, *, start: bool = True,
-            extra: list[str] | None = None) -> LocalDaemon:
+            extra: list[str] | None = None, host: str = "127.0.0.1",
+            prefix: list[str] | None = None) -> LocalDaemon:
         port = free_port()
         hub = next((d for d in self.daemons.values() if d.alive()), None)
         hub = hub or next(iter(self.daemons.values()), None)
         args = ["--colony", self.colony, "--namespace", self.namespace, "--agent-id", agent,
                 "--state-dir", str(self.base / agent),
-                "--listen", f"tcp/127.0.0.1:{port}", "--heartbeat-s", str(self.heartbeat_s)]
+                "--listen", f"{self.transport}/{host}:{port}", "--heartbeat-s", str(self.heartbeat_s)]
         if not self.multicast:
             args.append("--no-multicast")
         if hub is not None and not self.multicast:
@@ -144,7 +151,10 @@ class LocalColony:
         for spec in sources or []:
             args += ["--source", spec]
         args += self.extra + list(extra or [])
-        d = LocalDaemon(agent, port, self.base / agent, self.base / f"{agent}.log", args)
+        d = LocalDaemon(agent, port, self.base / agent, self.base / f"{agent}.log", args,
+                        host=host, prefix=list(prefix or []), transport=self.transport)
+        if self.zenoh_config is not None:
+            d.env["COLONYD_ZENOH_CONFIG"] = str(self.zenoh_config)
         self.daemons[agent] = d
         if start:
             d.start()
@@ -159,8 +169,9 @@ class LocalColony:
             self._session.close()
             self._session = None
         if self._session is None:
-            conf = zenoh_config(mode="peer", listen=["tcp/127.0.0.1:0"], connect=endpoints,
-                                multicast=False, gossip=True)
+            conf = zenoh_config(mode="peer", listen=[f"{self.transport}/127.0.0.1:0"],
+                                connect=endpoints, multicast=False, gossip=True,
+                                extra_file=self.zenoh_config)
             self._session = open_session(conf)
             self._session_endpoints = endpoints
             time.sleep(0.2)  # let the links come up before the first query
@@ -194,11 +205,29 @@ class LocalColony:
                     return False, f"{a} lacks {origin}@{want['seq']} (has {have and have['seq']})"
         return True, "converged"
 
+    def _still_mapping(self, agents: list[str] | None) -> tuple[bool, str]:
+        """(True, why) while a listed daemon is missing, still mapping or has unpublished changes."""
+        agents = agents or [a for a, d in self.daemons.items() if d.alive()]
+        reports = {r["agent"]: r for r in self.status()}
+        for agent in agents:
+            r = reports.get(agent)
+            if r is None:
+                return True, f"no status from {agent}"
+            if not r.get("sources_done") or r.get("unpublished"):
+                return True, f"{agent} is still mapping"
+        return False, ""
+
     def wait_converged(self, timeout: float, agents: list[str] | None = None) -> float:
         """Seconds until converged; raises TimeoutError with the last reason."""
         t0 = time.monotonic()
         reason = "not checked"
         while time.monotonic() - t0 < timeout:
+            # Digests cost each daemon a pass over every layer it holds: ask for them only once
+            # mapping is over, so watching a colony does not slow down what it watches.
+            mapping, reason = self._still_mapping(agents)
+            if mapping:
+                time.sleep(0.3)
+                continue
             ok, reason = self.converged(agents)
             if ok:
                 return time.monotonic() - t0

@@ -1,0 +1,161 @@
+"""Faults with real processes: SIGKILL loops, frozen peers, hostile input on every key, a full
+disk, a network partition in namespaces (the scenarios of `colonyd bench faults`, shorter)."""
+
+from __future__ import annotations
+
+import errno
+import os
+
+import numpy as np
+import pytest
+
+from colonyd.bench import faults as bench_faults
+from colonyd.errors import PersistenceError
+from colonyd.bench.faultlab import need_root
+from colonyd.persistence import WAL, StateStore
+
+
+def test_sigkill_loop_loses_nothing_and_reuses_no_seq(tmp_path):
+    got = bench_faults.crash(tmp_path, kills=3)
+    assert got["kills"] == 3
+    assert got["records_lost"] == 0, got
+    assert got["seq_reused"] == 0, got
+    assert got["restart_mismatch"] == 0, got
+    assert got["logged_records_checked"] > 0, got  # the watcher saw frames the log holds
+    assert got["crash_peer_equal"], got
+
+
+def test_a_frozen_peer_stalls_nobody_and_catches_up(tmp_path):
+    got = bench_faults.freeze(tmp_path, frozen_s=2.5, scans=16)
+    assert got["freeze_others_progress"] > 0, got  # a went on mapping and publishing
+    assert got["freeze_peer_lag_while_frozen"] <= 2, got  # and b kept receiving
+    assert got["freeze_alive"], got
+    assert got["freeze_catchup_s"] < 15, got
+
+
+def test_hostile_input_on_every_key_is_rejected_and_counted(tmp_path):
+    got = bench_faults.hostile(tmp_path)
+    for label in ("open", "closed"):
+        assert got[f"hostile_{label}_all_counted"], got
+        assert got[f"hostile_{label}_layers_unchanged"], got
+        assert got[f"hostile_{label}_foreign_layers"] == [], got
+        assert got[f"hostile_{label}_alive"], got
+    reasons = got["rejected"]
+    for reason in ("truncated", "malformed", "version", "unknown_type", "decompression_bomb",
+                   "oversized", "keyexpr", "own_origin", "bad-query", "auth", "replay"):
+        assert reasons.get(reason, 0) > 0, (reason, reasons)
+
+
+def _fill(store: StateStore, grid, seq: int, published: int):
+    rng = np.random.default_rng(seq)
+    grid.integrate(rng.uniform(-2, 2, (200, 3)), np.zeros(3), time=float(seq))
+    return grid.delta_since(published)
+
+
+def test_a_failed_append_is_cut_off_so_the_seq_keeps_one_content(tmp_path, monkeypatch):
+    """Disk full during an append: the partial record must not survive, or the seq would be
+    logged with one content and published later with another."""
+    store = StateStore(tmp_path, "a", 0.1)
+    grid = store.recover().grid
+    d1 = _fill(store, grid, 1, 0)
+    store.append(1, d1)
+    size = (tmp_path / WAL).stat().st_size
+    d2 = _fill(store, grid, 2, d1.to_version)
+    real = os.fsync
+    calls = {"n": 0}
+
+    def full(fd: int) -> None:
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(fd)
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(PersistenceError, match="cannot append seq 2 .*No space left"):
+        store.append(2, d2)
+    monkeypatch.setattr(os, "fsync", real)
+    assert (tmp_path / WAL).stat().st_size == size  # nothing of the failed record is left
+    d2b = _fill(store, grid, 3, d1.to_version)  # later: more changes under the same seq
+    store.append(2, d2b)
+    store.close()
+    again = StateStore(tmp_path, "a", 0.1)
+    rec = again.recover()
+    assert rec.seq == 2
+    assert rec.grid.content_equal(grid)
+    again.close()
+
+
+def test_a_failed_snapshot_keeps_the_last_good_one_and_the_log(tmp_path, monkeypatch):
+    store = StateStore(tmp_path, "a", 0.1)
+    grid = store.recover().grid
+    d1 = _fill(store, grid, 1, 0)
+    store.append(1, d1)
+    store.snapshot(grid, 1)
+    good = (tmp_path / "snapshot.json").read_text()
+
+    def broken(self, path) -> None:
+        with open(path, "wb") as fh:
+            fh.write(b"partial")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    d2 = _fill(store, grid, 2, d1.to_version)
+    store.append(2, d2)
+    monkeypatch.setattr(type(grid), "save", broken)
+    with pytest.raises(PersistenceError, match="cannot write a snapshot"):
+        store.snapshot(grid, 2)
+    monkeypatch.undo()
+    assert (tmp_path / "snapshot.json").read_text() == good
+    assert not list(tmp_path.glob("*.tmp")) and not (tmp_path / "own-2.grid").exists()
+    d3 = _fill(store, grid, 3, d2.to_version)
+    store.append(3, d3)  # the log is still open and appends go on
+    store.close()
+    again = StateStore(tmp_path, "a", 0.1)
+    rec = again.recover()
+    assert rec.seq == 3 and rec.grid.content_equal(grid)
+    again.close()
+
+
+def test_a_full_state_directory_is_reported_and_the_colony_goes_on(tmp_path):
+    reason = need_root("a tmpfs state directory")
+    if reason:
+        pytest.skip(reason)
+    got = bench_faults.disk(tmp_path)
+    assert "No space left on device" in got["disk_full_error"], got
+    assert got["disk_alive"], got
+    assert got["disk_frames_mapped_while_full"] > 0, got  # mapping went on
+    assert got["disk_seq_held_while_full"], got  # nothing published that is not logged
+    assert got["disk_peer_progress_while_full"] > 0, got  # the colony went on
+    assert got["disk_snapshot_intact"], got
+    assert got["disk_error_cleared"], got  # and it caught up once space was freed
+
+
+def test_an_unwritable_state_directory_fails_with_a_clear_error(tmp_path):
+    reason = need_root("a read-only tmpfs")
+    if reason:
+        pytest.skip(reason)
+    import subprocess
+    import sys
+
+    from colonyd.bench.faultlab import Tmpfs
+
+    with Tmpfs(tmp_path / "ro", 1) as mount:
+        mount.remount(read_only=True)
+        run = subprocess.run(
+            [sys.executable, "-m", "colonyd", "run", "--agent-id", "a", "--no-multicast",
+             "--state-dir", str(tmp_path / "ro" / "state"), "--listen", "tcp/127.0.0.1:0"],
+            capture_output=True, text=True, timeout=60, check=False)
+    assert run.returncode == 1, run.stderr
+    assert "is not writable: Read-only file system" in run.stderr
+
+
+def test_a_partition_in_network_namespaces_heals(tmp_path):
+    reason = need_root("network namespaces")
+    if reason:
+        pytest.skip(reason)
+    got = bench_faults.partition(tmp_path, cut_s=3.0, scans=24)
+    assert got["partition_majority_progress"] > 0, got  # a kept mapping, b kept receiving
+    assert got["partition_majority_lag"] <= 2, got
+    assert got["partition_minority_progress"] > 0, got  # so did c, alone
+    assert got["partition_majority_saw_c"] == 0, got  # the cut really separated them
+    assert got["partition_heal_s"] < 30, got
+
