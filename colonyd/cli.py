@@ -225,7 +225,8 @@ def main(argv: list[str] | None = None) -> int:
         s = localize_source(args.loc_source, args.out, resolution=args.resolution,
                             odometry_noise=args.odometry_noise, seed=args.seed, max_frames=args.max_frames,
                             progress=args.progress)
-        ate = (f"ATE {s.ate_estimate:.3f} m (odometry {s.ate_odometry if s.ate_odometry is None else round(s.ate_odometry, 3)} m)"
+        odo = "no odometry" if s.ate_odometry is None else f"odometry {s.ate_odometry:.3f} m"
+        ate = (f"ATE {s.ate_estimate:.3f} m ({odo})"
                if s.ate_estimate is not None else "no reference: ATE not measured")
         sys.stdout.write(f"{s.spec}: {s.frames} frames by {s.estimator} in {s.seconds:.1f} s; {ate}\n"
                          f"wrote {', '.join(str(p) for p in s.files.values())}\n")
