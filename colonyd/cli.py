@@ -1,4 +1,4 @@
-"""Command line: `colonyd run|status|map|align|sources|bench|demo|dump-config`; the one place errors become exit codes."""
+"""Command line: `colonyd run|status|map|localize|align|sources|bench|demo|dump-config`; the one place errors become exit codes."""
 
 from __future__ import annotations
 
@@ -96,6 +96,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="source spec (sim:..., replay:PATH, ...; see `colonyd sources`)")
     p.add_argument("--resolution", type=float, default=0.1)
     p.add_argument("--out", type=Path, required=True, help="output directory")
+
+    p = sub.add_parser("localize", help="estimate one agent's poses offline (EKF with scan matching, or RGB-D "
+                       "visual odometry), map from them, and measure ATE against the source's reference")
+    p.add_argument("--source", dest="loc_source", required=True, metavar="SPEC",
+                   help="source spec (sim:..., replay:CARMEN_LOG, replay:RGBD_FOLDER, replay:BAG)")
+    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--resolution", type=float, default=0.1)
+    p.add_argument("--odometry-noise", dest="odometry_noise", default=None, metavar="MODEL",
+                   help="synthesise wheel odometry from the reference: none, low, realistic, high or "
+                        "trans/rot/rot_per_m/scale_bias/yaw_bias (docs/LOCALISATION.md)")
+    p.add_argument("--seed", type=int, default=None, help="seed of the odometry noise")
+    p.add_argument("--max-frames", dest="max_frames", type=int, default=None)
+    p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
 
     p = sub.add_parser("align", help="align map B to map A by their geometry (offline)")
     p.add_argument("map_a", type=Path, metavar="A", help="reference map (.bt, grid .npz from `colonyd map`, .ply)")
@@ -213,6 +226,18 @@ def main(argv: list[str] | None = None) -> int:
             f"{summary.points} points -> {summary.occupied} occupied, {summary.free} free voxels "
             f"at {summary.resolution} m in {summary.seconds:.1f} s\nwrote {files}\n"
         )
+        return EXIT_OK
+    if cmd == "localize":
+        from colonyd.localize import localize_source
+
+        s = localize_source(args.loc_source, args.out, resolution=args.resolution,
+                            odometry_noise=args.odometry_noise, seed=args.seed, max_frames=args.max_frames,
+                            progress=args.progress)
+        odo = "no odometry" if s.ate_odometry is None else f"odometry {s.ate_odometry:.3f} m"
+        ate = (f"ATE {s.ate_estimate:.3f} m ({odo})"
+               if s.ate_estimate is not None else "no reference: ATE not measured")
+        sys.stdout.write(f"{s.spec}: {s.frames} frames by {s.estimator} in {s.seconds:.1f} s; {ate}\n"
+                         f"wrote {', '.join(str(p) for p in s.files.values())}\n")
         return EXIT_OK
     if cmd == "align":
         return _align(args)

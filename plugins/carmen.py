@@ -17,8 +17,10 @@ from plugins.checks import pose_matrix
 from plugins.errors import ParseError, SourceError, SourceSpecError
 from plugins.lidar import Scan
 from plugins.observation import Observation
+from plugins.odometry import odometry_noise_of
 from plugins.spec import Options
 from plugins.stream import StreamStats
+from voxel.localisation.odometry import WheelOdometer
 
 #: Readings at or beyond this range are "no return" in CARMEN logs.
 NO_RETURN = 80.0
@@ -103,6 +105,11 @@ class CarmenOptions(Options):
     stop: int | None = Field(None, description="scan index to stop before; none: the end")
     step: int = Field(1, description="take every step-th scan (>= 1)")
     strict: bool = Field(False, description="fail on the first bad line instead of skipping and counting it")
+    odometry_noise: str | None = Field(None, description="replace the log's odometry by odometry synthesised "
+                                       "from the reference poses with this wheel noise model: none, low, "
+                                       "realistic, high or trans/rot/rot_per_m/scale_bias/yaw_bias "
+                                       "(docs/LOCALISATION.md); default: the log's own odometry")
+    seed: int = Field(0, description="seed of the synthesised odometry noise")
     move_x: float = Field(0.0, description="moves every scan pose: x shift, metres (after the rotation "
                                                 "move_yaw)")
     move_y: float = Field(0.0, description="moves every scan pose: y shift, metres")
@@ -120,7 +127,8 @@ class CarmenSource:
 
     def __init__(self, path: str | Path, *, poses: str = "reference", max_range: float = NO_RETURN,
                  start: int = 0, stop: int | None = None, step: int = 1, strict: bool = False,
-                 move_x: float = 0.0, move_y: float = 0.0, move_yaw: float = 0.0, spec: str = "") -> None:
+                 move_x: float = 0.0, move_y: float = 0.0, move_yaw: float = 0.0,
+                 odometry_noise: str | None = None, seed: int = 0, spec: str = "") -> None:
         self.path = Path(path)
         if not self.path.is_file():
             msg = f"carmen log: expected a file, found nothing at {self.path}"
@@ -137,6 +145,8 @@ class CarmenSource:
                 msg = f"{name}: expected a finite number, found {value!r}"
                 raise SourceSpecError(msg)
         self.move = pose_matrix(move_x, move_y, 0.0, math.radians(move_yaw))
+        self.noise = odometry_noise_of(odometry_noise)
+        self.seed = seed
         self.spec = spec or f"replay:{self.path}"
         self.adapter: SensorAdapter = load_adapter(
             "lidar2d", beams=None, angle_min=-math.pi / 2, angle_increment=math.pi / 360,
@@ -179,9 +189,13 @@ class CarmenSource:
             self.stats.skip(str(self.path), exc)
 
     def __iter__(self) -> Iterator[Observation]:
+        odometer = None
         for record in self.records():
             x, y, th = record.pose if self.poses == "reference" else record.odometry
             ox, oy, oth = record.odometry
+            if self.noise is not None:
+                odometer = odometer or WheelOdometer(np.array(record.pose), self.noise, self.seed)
+                ox, oy, oth = odometer.step(np.array(record.pose))
             obs = self.adapter.observe(
                 Scan(ranges=record.ranges, angle_min=-math.pi / 2, angle_increment=math.pi / len(record.ranges)),
                 pose=self.move @ pose_matrix(x, y, 0.0, th), time=record.time,

@@ -78,6 +78,7 @@ class DepthCamera:
         h, w = depth.shape
         points, index = camera_points(depth, self.K, self.stride)
         extras: dict[str, np.ndarray] = {}
+        colour = None
         if reading.colour is not None:
             colour = as_array(reading.colour, "colour", shape=(h, w, 3), dtype=np.uint8)
             extras["colours"] = colour.reshape(-1, 3)[index]
@@ -92,7 +93,7 @@ class DepthCamera:
             extras["normals"] = np.nan_to_num(normals.reshape(-1, 3)[index])
         body = np.eye(4) if pose is None else as_pose(pose, "pose")
         return Observation(sensor=self.name, time=time, points=points, pose=body @ self.mount,
-                           odometry=odometry, depth=DepthView(depth=depth, K=self.K), frame=frame,
+                           odometry=odometry, depth=DepthView(depth=depth, K=self.K, image=colour), frame=frame,
                            **extras)
 
 

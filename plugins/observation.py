@@ -34,6 +34,7 @@ class DepthView:
 
     depth: np.ndarray  # (H, W) float32 metres, NaN = no reading
     K: np.ndarray  # (3, 3)
+    image: np.ndarray | None = None  # (H, W, 3) uint8 colour registered to depth, if any
 
 
 @dataclass(frozen=True)

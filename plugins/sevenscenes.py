@@ -77,6 +77,18 @@ def read_depth_png(path: Path) -> np.ndarray:
     return image
 
 
+def read_colour(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    """An RGB colour image (PNG or JPEG) of the depth image's size; ParseError names the file otherwise."""
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        msg = f"{path}: expected a readable colour image, found an unreadable or truncated file"
+        raise ParseError(msg)
+    if image.shape[:2] != tuple(shape):
+        msg = f"{path}: expected a colour image of the depth image's size {shape[1]}x{shape[0]}, found {image.shape[1]}x{image.shape[0]}"
+        raise ParseError(msg)
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
 def seven_scenes_frames(root: Path) -> list[RgbdFrame]:
     """Frames of a 7-Scenes sequence folder (frames/ or the folder itself), in index order, 30 Hz."""
     folder = root / "frames" if (root / "frames").is_dir() else root
@@ -89,6 +101,8 @@ def seven_scenes_frames(root: Path) -> list[RgbdFrame]:
         except ValueError:
             index = len(frames)
         colour = folder / f"{stem}.color.png"
+        if not colour.is_file():
+            colour = folder / f"{stem}.color.jpg"
         frames.append(RgbdFrame(depth=depth, pose=folder / f"{stem}.pose.txt", time=index / 30.0,
                                 colour=colour if colour.is_file() else None))
     return frames
@@ -203,7 +217,8 @@ class RgbdSource:
             try:
                 pose = read_matrix(frame.pose, (4, 4)) if isinstance(frame.pose, Path) else frame.pose
                 depth = read_depth_png(frame.depth)
-                obs = self.adapter.observe(DepthFrame(depth=depth), pose=pose, time=frame.time, frame=str(frame.depth))
+                colour = read_colour(frame.colour, depth.shape) if frame.colour is not None else None
+                obs = self.adapter.observe(DepthFrame(depth=depth, colour=colour), pose=pose, time=frame.time, frame=str(frame.depth))
             except (ParseError, SensorInputError) as exc:
                 if self.strict:
                     raise

@@ -18,10 +18,12 @@ from plugins.depth import DepthFrame
 from plugins.errors import SourceSpecError
 from plugins.lidar import Cloud, Scan
 from plugins.observation import Observation
+from plugins.odometry import odometry_noise_of
 from plugins.spec import Options, SourceSpec, parse_options
 from plugins.stream import SourceContext, StreamStats
 from plugins.world import CLASSES, WORLDS, World, get_world
 from voxel.depth import pixel_rays
+from voxel.localisation.odometry import WheelOdometer
 
 #: Camera optical frame (x right, y down, z forward) in a body frame (x forward, y left, z up).
 OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
@@ -193,6 +195,9 @@ class SimOptions(Options):
     frames: int = Field(100, description="frames to deliver (>= 0), at the agent's rate in simulated time")
     noise: float = Field(0.02, description="odometry noise, relative to the distance travelled")
     drift: float = Field(0.0, description="odometry heading drift, radians per metre")
+    odometry_noise: str | None = Field(None, description="wheel odometry noise model instead of noise and "
+                                       "drift: none, low, realistic, high or trans/rot/rot_per_m/scale_bias/"
+                                       "yaw_bias (docs/LOCALISATION.md)")
     range_noise: float = Field(0.01, description="range noise of the sensor, metres (standard deviation)")
     start: str = Field("origin", description="where pose guesses start: origin (the identity) or "
                                              "world (the true start pose)")
@@ -207,7 +212,8 @@ class SimSource:
 
     def __init__(self, *, world: str = "office", agent: str = "lidar-1", seed: int = 0,
                  frames: int = 100, noise: float = 0.02, drift: float = 0.0, range_noise: float = 0.01,
-                 start: str = "origin", realtime: bool = False, spec: str = "") -> None:
+                 start: str = "origin", realtime: bool = False, odometry_noise: str | None = None,
+                 spec: str = "") -> None:
         self.world = get_world(world)
         agents = AGENTS[self.world.name]
         if agent not in agents:
@@ -223,6 +229,7 @@ class SimSource:
         self.spec = spec or f"sim:world={world},agent={agent}"
         self.seed, self.frames, self.noise, self.drift = seed, frames, noise, drift
         self.range_noise, self.start, self.realtime = range_noise, start, realtime
+        self.odometry_noise = odometry_noise_of(odometry_noise)
         self.rig, params = make_rig(self.agent.sensor)
         params["noise"] = range_noise
         if self.agent.sensor == "cctv":
@@ -246,7 +253,8 @@ class SimSource:
         fixed = agent.sensor == "cctv"
         path = None if fixed else Path(agent.waypoints, agent.speed, agent.turn_rate)
         start = (0.0, 0.0, 0.0) if fixed else path(0.0)
-        odometer = Odometer(start, self.noise, self.drift, rng)
+        odometer = (Odometer(start, self.noise, self.drift, rng) if self.odometry_noise is None
+                    else WheelOdometer(np.array(start), self.odometry_noise, rng))
         to_agent = np.eye(4) if self.start == "world" or fixed else np.linalg.inv(pose_matrix(start[0], start[1], 0.0, start[2]))
         self.ground_truth = []
         began = clock.monotonic()

@@ -21,3 +21,7 @@ class FileFormatError(VoxelError):
 
 class AlignmentError(VoxelError, ValueError):
     """Maps or parameters given to registration cannot be aligned as asked (empty map, bad dof)."""
+
+
+class LocalisationError(VoxelError, ValueError):
+    """Trajectories, odometry or sensor data given to localisation have the wrong shape or value."""

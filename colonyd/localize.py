@@ -1,0 +1,160 @@
+"""Offline localisation: run one agent's estimator over a source, build the map from its poses, write trajectories, map and ATE."""
+
+from __future__ import annotations
+
+import json
+import time as clock
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from colonyd.mapping import get_progress, integrate_observation, tum_line, write_map
+from plugins.carmen import CarmenSource
+from plugins.observation import Observation
+from plugins.sevenscenes import RgbdSource
+from plugins.source import open_source
+from voxel.grid import VoxelGrid
+from voxel.localisation import se2
+from voxel.localisation.localiser import ScanLocaliser
+from voxel.localisation.metrics import absolute_trajectory_error
+from voxel.localisation.visual import VisualOdometry
+
+
+@dataclass(frozen=True)
+class LocalizeSummary:
+    """What `localize_source` measured and wrote."""
+
+    spec: str
+    estimator: str
+    frames: int
+    seconds: float
+    ate_estimate: float | None
+    ate_odometry: float | None
+    recording_seconds: float
+    files: dict[str, Path]
+
+
+class _Scan:
+    """Adapter of `ScanLocaliser` to observations: body-frame points in, sensor pose out."""
+
+    name = "ekf+scan-to-map"
+
+    def __init__(self, planar: bool, mount: np.ndarray) -> None:
+        self.localiser = ScanLocaliser(planar=planar)
+        self.mount = mount
+
+    def __call__(self, obs: Observation) -> np.ndarray:
+        points = obs.points if obs.no_return is None else obs.points[~obs.no_return]
+        body = points @ self.mount[:3, :3].T + self.mount[:3, 3]
+        odometry = None if obs.odometry is None else se2.from_matrix(obs.odometry)
+        return se2.to_matrix(self.localiser.step(body, odometry).pose) @ self.mount
+
+
+class _Visual:
+    """Adapter of `VisualOdometry` to depth observations (colour image when there is one)."""
+
+    name = "rgbd-visual-odometry"
+
+    def __init__(self) -> None:
+        self.odometry: VisualOdometry | None = None
+
+    def __call__(self, obs: Observation) -> np.ndarray:
+        import cv2
+
+        view = obs.depth
+        if view is None:
+            from voxel.errors import LocalisationError
+
+            msg = f"{obs.frame}: expected a depth image for visual odometry, found none"
+            raise LocalisationError(msg)
+        if self.odometry is None:
+            self.odometry = VisualOdometry(view.K)
+        gray = None if view.image is None else cv2.cvtColor(view.image, cv2.COLOR_RGB2GRAY)
+        return self.odometry.step(gray, view.depth).pose
+
+
+def _reference(source: object, obs: Observation) -> np.ndarray | None:
+    """The reference sensor pose of an observation, for evaluation only: simulator truth or a recording's reference."""
+    if obs.truth is not None:
+        return obs.truth
+    if isinstance(source, RgbdSource) or (isinstance(source, CarmenSource) and source.poses == "reference"):
+        return obs.pose
+    return None
+
+
+def localize_source(spec: str, out_dir: Path, *, resolution: float = 0.1, odometry_noise: str | None = None,
+                    seed: int | None = None, max_frames: int | None = None, progress: bool = True) -> LocalizeSummary:
+    """Estimate the poses of the agent of `spec` and write estimate.tum, odometry.tum, groundtruth.tum,
+    the map from the estimated poses (grid.npz, map.bt, map.ply) and results.json into `out_dir`."""
+    began = clock.monotonic()
+    if odometry_noise is not None:
+        spec += f",odometry_noise={odometry_noise}"
+    if seed is not None:
+        spec += f",seed={seed}"
+    source = open_source(spec, resolution=resolution)
+    adapter = source.adapter
+    grid = VoxelGrid(resolution, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    total = len(source) if max_frames is None else min(len(source), max_frames)
+    bar = get_progress(progress)
+    estimator: _Scan | _Visual | None = None
+    times: list[float] = []
+    est: list[np.ndarray] = []
+    odo: list[np.ndarray] = []
+    ref: list[np.ndarray] = []
+    try:
+        for obs in source:
+            if max_frames is not None and len(times) >= max_frames:
+                break
+            if estimator is None:
+                mount = getattr(adapter, "mount", np.eye(4))
+                if adapter.kind in ("lidar2d", "lidar3d") or obs.odometry is not None:
+                    estimator = _Scan(adapter.kind == "lidar2d", mount)
+                else:
+                    estimator = _Visual()
+            pose = estimator(obs)
+            integrate_observation(grid, replace(obs, pose=pose), sensor=adapter.sensor_model,
+                                  reliability=adapter.reliability)
+            times.append(obs.time)
+            est.append(pose)
+            if obs.odometry is not None:
+                odo.append(obs.odometry @ getattr(adapter, "mount", np.eye(4)))
+            reference = _reference(source, obs)
+            if reference is not None:
+                ref.append(reference)
+            bar.update(len(times), total)
+    finally:
+        bar.close()
+    files = write_map(grid, out_dir, [tum_line(t, p) for t, p in zip(times, est)])
+    files["estimate"] = _write_tum(out_dir / "estimate.tum", times, est)
+    ate_est = ate_odo = None
+    if len(odo) == len(times) and odo:
+        files["odometry"] = _write_tum(out_dir / "odometry.tum", times, odo)
+    if len(ref) == len(times) and len(ref) >= 3:
+        files["groundtruth"] = _write_tum(out_dir / "groundtruth.tum", times, ref)
+        ate_est = absolute_trajectory_error(np.array(ref), np.array(est)).rmse
+        if "odometry" in files:
+            ate_odo = absolute_trajectory_error(np.array(ref), np.array(odo)).rmse
+    seconds = clock.monotonic() - began
+    recording = float(times[-1] - times[0]) if times else 0.0
+    summary = LocalizeSummary(spec=spec, estimator=estimator.name if estimator else "none", frames=len(times),
+                              seconds=seconds, ate_estimate=ate_est, ate_odometry=ate_odo,
+                              recording_seconds=recording, files=files)
+    files["results"] = out_dir / "results.json"
+    files["results"].write_text(json.dumps({
+        "spec": spec, "estimator": summary.estimator,
+        "ate_rmse_m": {"estimate": ate_est, "odometry": ate_odo},
+        "frames": len(times), "seconds": round(seconds, 3),
+        "frames_per_second": round(len(times) / max(seconds, 1e-9), 2),
+        "recording_seconds": round(recording, 3),
+        "faster_than_real_time": round(recording / max(seconds, 1e-9), 2) if recording else None,
+        "skipped": source.stats.skipped,
+    }, indent=1) + "\n", encoding="ascii")
+    return summary
+
+
+def _write_tum(path: Path, times: list[float], poses: list[np.ndarray]) -> Path:
+    path.write_text("".join(tum_line(t, p) + "\n" for t, p in zip(times, poses)), encoding="ascii")
+    return path

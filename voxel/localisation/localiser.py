@@ -1,0 +1,86 @@
+"""One agent's pose estimator for range sensors (paper Alg. 1-2): EKF predict from odometry, update by scan-to-map matching."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from voxel.localisation import se2
+from voxel.localisation.ekf import MotionNoise, PlanarEkf
+from voxel.localisation.scan_match import LocalMap, Match, match, thin
+
+
+@dataclass(frozen=True)
+class ScanParams:
+    """Parameters of `ScanLocaliser` (plain values; see `LocalMap` and `match`)."""
+
+    keyframes: int = 100
+    map_cell: float = 0.05
+    key_distance: float = 0.25
+    key_angle: float = 0.15
+    scan_cell: float = 0.05  # thin each scan to one point per cell before matching
+    max_points: int = 3000
+    max_range: float = 30.0  # ignore returns beyond this for matching (they still map)
+    max_distance: float = 0.5
+    final_distance: float = 0.15
+    iterations: int = 20
+    inflation: float = 10.0
+
+
+@dataclass(frozen=True)
+class Step:
+    """What one step did: the estimated body pose (x, y, yaw), the match (if any) and whether it was fused."""
+
+    pose: np.ndarray
+    match: Match | None
+    fused: bool
+
+
+class ScanLocaliser:
+    """Pose of a ground agent with a 2D or 3D range sensor, in its own odometry frame.
+
+    Each step: predict with the odometry increment (or widen without odometry), match the scan
+    against the agent's own recent map from the predicted pose, fuse the matched pose (gated by
+    its Mahalanobis distance), then add the scan to the local map when it is a keyframe.
+    Reads only odometry and the scan: never a reference pose.
+    """
+
+    def __init__(self, *, planar: bool, params: ScanParams | None = None, motion: MotionNoise | None = None) -> None:
+        self.params = params or ScanParams()
+        p = self.params
+        self.local = LocalMap(planar=planar, keyframes=p.keyframes, cell=p.map_cell, key_distance=p.key_distance,
+                              key_angle=p.key_angle)
+        self.motion = motion
+        self.ekf: PlanarEkf | None = None
+        self.last_odometry: np.ndarray | None = None
+        self.rng = np.random.default_rng(0)
+
+    def step(self, points_body: np.ndarray, odometry: np.ndarray | None) -> Step:
+        """Advance with one scan (N, 3) in the body frame and the odometry pose (x, y, yaw) read with it."""
+        p = self.params
+        pts = np.asarray(points_body, np.float64)
+        pts = pts[np.linalg.norm(pts[:, :2], axis=1) <= p.max_range]
+        pts = thin(pts, p.scan_cell)
+        if len(pts) > p.max_points:
+            pts = pts[self.rng.choice(len(pts), p.max_points, replace=False)]
+        result: Match | None = None
+        fused = False
+        if self.ekf is None:
+            start = np.zeros(3) if odometry is None else np.asarray(odometry, np.float64)
+            self.ekf = PlanarEkf(start, motion=self.motion)
+        else:
+            increment = None
+            if odometry is not None and self.last_odometry is not None:
+                increment = se2.relative(self.last_odometry, np.asarray(odometry, np.float64))
+            self.ekf.predict(increment)
+            result = match(pts, self.local, se2.to_matrix(self.ekf.pose), dof=3, max_distance=p.max_distance,
+                           final_distance=p.final_distance, iterations=p.iterations, inflation=p.inflation)
+            if result.ok:
+                fused = self.ekf.update(se2.from_matrix(result.pose), result.covariance)
+        self.last_odometry = None if odometry is None else np.asarray(odometry, np.float64).copy()
+        pose = self.ekf.pose
+        m = se2.to_matrix(pose)
+        if self.local.wants(m):
+            self.local.add(pts @ m[:3, :3].T + m[:3, 3], m)
+        return Step(pose, result, fused)

@@ -1,0 +1,179 @@
+"""Scan-to-map matching: a local map of an agent's recent keyframes and robust point-to-plane (2D: point-to-line) ICP."""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from voxel.errors import LocalisationError
+
+
+def thin(points: np.ndarray, cell: float) -> np.ndarray:
+    """One point per `cell`-sized voxel (the first one met), in input order."""
+    if len(points) == 0:
+        return points
+    keys = np.floor(points / cell).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return points[np.sort(first)]
+
+
+def surface_normals(where: np.ndarray, points: np.ndarray, tree: cKDTree, k: int,
+                    planar: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (M, 3) at `where` from the covariance of their k nearest `points` (indexed by `tree`),
+    and a flatness in [0, 1] (1: a clean line or plane).
+
+    planar: points of a 2D scanner; normals lie in the x-y plane (normal of the fitted line).
+    """
+    k = min(k, len(points))
+    _, idx = tree.query(where, k=k)
+    nb = points[idx]  # (M, k, 3)
+    dim = 2 if planar else 3
+    centred = nb[:, :, :dim] - nb[:, :, :dim].mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred) / k
+    values, vectors = np.linalg.eigh(cov)  # ascending
+    normals = np.zeros((len(where), 3))
+    normals[:, :dim] = vectors[:, :, 0]
+    spread = values[:, -1] + 1e-12
+    flatness = 1.0 - values[:, 0] / spread if planar else 1.0 - values[:, 0] / (values[:, 1] + 1e-12)
+    return normals, np.clip(flatness, 0.0, 1.0)
+
+
+class LocalMap:
+    """The agent's recent map: points of its last `keyframes` keyframes in the map frame, thinned, with normals.
+
+    A new keyframe is taken when the agent has moved `key_distance` metres or turned `key_angle`
+    radians since the last one.
+    """
+
+    def __init__(self, *, planar: bool, keyframes: int = 30, cell: float = 0.05, k: int = 8,
+                 key_distance: float = 0.25, key_angle: float = 0.15) -> None:
+        if keyframes < 1 or cell <= 0 or k < 3:
+            msg = f"local map: expected keyframes >= 1, cell > 0, k >= 3, found {keyframes}, {cell}, {k}"
+            raise LocalisationError(msg)
+        self.planar, self.cell, self.k = planar, cell, k
+        self.key_distance, self.key_angle = key_distance, key_angle
+        self.frames: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=keyframes)
+        self.last_key: np.ndarray | None = None
+        self.points = np.zeros((0, 3))
+        self.normals = np.zeros((0, 3))
+        self.tree: cKDTree | None = None
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def wants(self, pose: np.ndarray) -> bool:
+        """Whether a scan taken at `pose` (4x4) should become a keyframe."""
+        if self.last_key is None:
+            return True
+        moved = float(np.linalg.norm(pose[:3, 3] - self.last_key[:3, 3]))
+        rel = self.last_key[:3, :3].T @ pose[:3, :3]
+        turned = math.acos(max(-1.0, min(1.0, (np.trace(rel) - 1.0) / 2.0)))
+        return moved >= self.key_distance or turned >= self.key_angle
+
+    def add(self, points_map: np.ndarray, pose: np.ndarray) -> None:
+        """Add a keyframe's points (already in the map frame): normals from the map around them, then a new tree.
+
+        Older keyframes keep the normals they were given, so a keyframe costs one scan's normals
+        and two tree builds, however long the window.
+        """
+        new = thin(np.asarray(points_map, np.float64), self.cell)
+        self.last_key = np.asarray(pose, np.float64).copy()
+        both = np.concatenate([self.points, new]) if len(self.points) else new
+        if len(both) >= self.k:
+            normals, flat = surface_normals(new, both, cKDTree(both), self.k, self.planar)
+            keep = flat > 0.7  # corners and clutter have no reliable normal
+            self.frames.append((new[keep], normals[keep]))
+        self.points = np.concatenate([f[0] for f in self.frames]) if self.frames else np.zeros((0, 3))
+        self.normals = np.concatenate([f[1] for f in self.frames]) if self.frames else np.zeros((0, 3))
+        self.tree = cKDTree(self.points) if len(self.points) >= self.k else None
+
+
+@dataclass(frozen=True)
+class Match:
+    """Result of matching a scan to a map: the refined pose and how much to trust it."""
+
+    pose: np.ndarray  # (4, 4) body pose in the map frame
+    covariance: np.ndarray  # (dof, dof): x y yaw (dof 3) or x y z rx ry rz (dof 6), rotations about the pose
+    matched: int
+    rmse: float
+    iterations: int
+    ok: bool
+    reason: str = ""
+
+
+def _increment(delta: np.ndarray, centre: np.ndarray, dof: int) -> np.ndarray:
+    """4x4 of a small motion: rotation about `centre`, then a translation."""
+    if dof == 3:
+        rot = np.array([0.0, 0.0, delta[2]])
+        t = np.array([delta[0], delta[1], 0.0])
+    else:
+        rot, t = delta[3:], delta[:3]
+    angle = float(np.linalg.norm(rot))
+    r = np.eye(3)
+    if angle > 1e-12:
+        a = rot / angle
+        kx = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+        r = np.eye(3) + math.sin(angle) * kx + (1 - math.cos(angle)) * kx @ kx
+    m = np.eye(4)
+    m[:3, :3] = r
+    m[:3, 3] = centre - r @ centre + t
+    return m
+
+
+def match(points_body: np.ndarray, local: LocalMap, init: np.ndarray, *, dof: int = 3,
+          max_distance: float = 0.5, final_distance: float = 0.15, iterations: int = 20,
+          robust_scale: float = 0.05, min_matched: int = 30, inflation: float = 10.0) -> Match:
+    """Refine the body pose `init` (4x4) so the scan `points_body` (N, 3, body frame) lies on the local map.
+
+    Gauss-Newton on point-to-plane distances (point-to-line for 2D maps) with Cauchy weights;
+    correspondences within `max_distance`, shrinking to `final_distance` in the second half.
+    dof 3 moves x, y, yaw (a ground robot); dof 6 moves everything. The covariance is the
+    Gauss-Newton inverse Hessian times the residual variance, times `inflation` (neighbouring
+    residuals are correlated, so the raw one is overconfident); a direction the map does not
+    constrain (a corridor's length) keeps a large variance.
+    """
+    if dof not in (3, 6):
+        msg = f"dof: expected 3 (x, y, yaw) or 6, found {dof}"
+        raise LocalisationError(msg)
+    t = np.asarray(init, np.float64).copy()
+    if local.tree is None:
+        return Match(t, np.eye(dof) * 1e6, 0, math.inf, 0, False, "empty map")
+    src = np.asarray(points_body, np.float64)
+    rot, trans = src @ t[:3, :3].T, t[:3, 3]
+    half = max(1, iterations // 2)
+    matched, rmse, it = 0, math.inf, 0
+    h = np.eye(dof)
+    sigma2 = 1.0
+    for it in range(1, iterations + 1):
+        limit = max_distance if it <= half else final_distance
+        moved = rot + trans
+        d, idx = local.tree.query(moved, distance_upper_bound=limit)
+        ok = np.isfinite(d)
+        matched = int(ok.sum())
+        if matched < min_matched:
+            return Match(t, np.eye(dof) * 1e6, matched, math.inf, it, False,
+                         f"{matched} correspondences, expected at least {min_matched}")
+        p, q, n = moved[ok], local.points[idx[ok]], local.normals[idx[ok]]
+        r = np.einsum("ij,ij->i", p - q, n)
+        w = 1.0 / (1.0 + (r / robust_scale) ** 2)
+        lever = p - t[:3, 3]
+        if dof == 3:
+            j = np.column_stack([n[:, 0], n[:, 1], lever[:, 0] * n[:, 1] - lever[:, 1] * n[:, 0]])
+        else:
+            j = np.column_stack([n, np.cross(lever, n)])
+        h = j.T @ (j * w[:, None])
+        g = j.T @ (w * r)
+        delta = -np.linalg.solve(h + 1e-6 * np.eye(dof), g)
+        step = _increment(delta, t[:3, 3], dof)
+        t = step @ t
+        rot, trans = src @ t[:3, :3].T, t[:3, 3]
+        rmse = float(np.sqrt(np.sum(w * r**2) / np.sum(w)))
+        sigma2 = float(np.sum(w * r**2) / max(np.sum(w) - dof, 1.0))
+        if it > half and float(np.linalg.norm(delta)) < 1e-5:
+            break
+    cov = inflation * max(sigma2, 1e-4) * np.linalg.inv(h + 1e-6 * np.eye(dof))
+    return Match(t, cov, matched, rmse, it, True)
