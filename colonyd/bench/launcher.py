@@ -65,9 +65,16 @@ class LocalDaemon:
             log.close()
 
     def listening(self) -> bool:
-        """True once the process listens on its port (read from /proc/net/tcp: no connection made)."""
+        """True once the process listens on its port (read from /proc/<pid>/net/tcp, its own
+        network namespace's table: no connection made)."""
+        if self.proc is None:
+            return False
         want = f":{self.port:04X}"
-        for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
+        try:
+            table = Path(f"/proc/{self.proc.pid}/net/tcp").read_text()
+        except OSError:  # the process is gone
+            return False
+        for line in table.splitlines()[1:]:
             fields = line.split()
             if fields[1].endswith(want) and fields[3] == "0A":  # local address, state LISTEN
                 return True
