@@ -57,6 +57,7 @@ class Alignment:
     overlap: float
     inlier_ratio: float
     conflict: float
+    agreement: float
     ambiguity: float
     covariance: np.ndarray
     covariance_params: list[str]
@@ -76,7 +77,8 @@ class Alignment:
             "confidence": round(self.confidence, 4), "inliers": self.inliers,
             "rmse_m": None if not math.isfinite(self.rmse_m) else round(self.rmse_m, 5),
             "overlap": round(self.overlap, 4), "inlier_ratio": round(self.inlier_ratio, 4),
-            "conflict": round(self.conflict, 4), "ambiguity": round(self.ambiguity, 4),
+            "conflict": round(self.conflict, 4),
+            "agreement": round(self.agreement, 4), "ambiguity": round(self.ambiguity, 4),
             "covariance": np.round(self.covariance, 12).tolist(), "covariance_params": self.covariance_params,
             "hypotheses": self.hypotheses, "dof": self.dof, "method": self.method,
             "seconds": round(self.seconds, 3),
@@ -143,7 +145,8 @@ def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) ->
     return Alignment(
         aligned=verdict.aligned, transform=fine.transform, confidence=verdict.confidence,
         inliers=evidence.inliers, rmse_m=evidence.rmse, overlap=evidence.overlap,
-        inlier_ratio=evidence.inlier_ratio, conflict=evidence.conflict_ratio, ambiguity=ambiguity,
+        inlier_ratio=evidence.inlier_ratio, conflict=evidence.conflict_ratio,
+        agreement=evidence.agreement, ambiguity=ambiguity,
         covariance=cov, covariance_params=names, hypotheses=len(hypotheses), dof=p.dof,
         seconds=time.perf_counter() - began, reason=verdict.reason)
 
@@ -283,7 +286,7 @@ def _thin(points: np.ndarray, cell: float, xy_cell: float | None = None) -> np.n
 
 def _not_aligned(dof: int, hypotheses: int, seconds: float, reason: str) -> Alignment:
     names = {3: ["x", "y", "yaw"], 4: ["x", "y", "z", "yaw"], 6: ["x", "y", "z", "roll", "pitch", "yaw"]}[dof]
-    return Alignment(False, np.eye(4), 0.0, 0, math.inf, 0.0, 0.0, 0.0, 1.0, np.eye(len(names)) * 1e6, names,
+    return Alignment(False, np.eye(4), 0.0, 0, math.inf, 0.0, 0.0, 0.0, 0.0, 1.0, np.eye(len(names)) * 1e6, names,
                      hypotheses, dof, seconds, reason)
 
 

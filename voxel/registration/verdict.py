@@ -16,12 +16,13 @@ class Thresholds:
     """Limits a trusted alignment must meet."""
 
     min_inliers: int = 150  # matching B sample points
-    min_inlier_ratio: float = 0.55  # of the overlapping points
-    max_conflict: float = 0.25  # share of overlapping points that land in the other map's free space
+    min_agreement: float = 0.3  # confirmed minus contradicted share of overlapping wall points, both ways
+    min_inlier_ratio: float = 0.45  # confirmed share of overlapping wall points, in the worse direction
+    max_conflict: float = 0.3  # contradicted share (in the other map's open space), in the worse direction
     max_ambiguity: float = 0.6  # second-best distinct pose's score over the best's
     max_translation_std_m: float = 0.05
     max_yaw_std_deg: float = 0.5
-    min_confidence: float = 0.05
+    min_confidence: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -38,23 +39,29 @@ def judge(best: Evidence, ambiguity: float, cov: np.ndarray, names: list[str], l
     var = dict(zip(names, np.diag(cov), strict=True))
     t_std = math.sqrt(max(var.get(n, 0.0) for n in ("x", "y", "z")))
     yaw_std = math.degrees(math.sqrt(var["yaw"]))
-    # Each factor is 0 at its check's limit and 1 with a clear margin, so a failed check always
-    # means confidence 0 and a pass only counts as much as its margin.
-    confidence = (
-        _ramp(best.inliers, limits.min_inliers, 3 * limits.min_inliers)
-        * _ramp(best.inlier_ratio, limits.min_inlier_ratio, limits.min_inlier_ratio + 0.2)
-        * _ramp(-best.conflict_ratio, -limits.max_conflict, -limits.max_conflict * 0.4)
-        * _ramp(-ambiguity, -limits.max_ambiguity, -limits.max_ambiguity * 0.4)
+    # Each factor is 0 at its check's limit and 1 with a clear margin; the confidence is their
+    # geometric mean, so a failed check always means confidence 0 and a pass counts by its margin.
+    factors = (
+        _ramp(best.inliers, limits.min_inliers, 3 * limits.min_inliers),
+        _ramp(best.agreement, limits.min_agreement, limits.min_agreement + 0.3),
+        _ramp(best.worst_inlier_ratio, limits.min_inlier_ratio, limits.min_inlier_ratio + 0.2),
+        _ramp(-best.worst_conflict_ratio, -limits.max_conflict, -limits.max_conflict * 0.4),
+        _ramp(-ambiguity, -limits.max_ambiguity, -limits.max_ambiguity * 0.4),
     )
+    confidence = float(np.prod(factors)) ** (1.0 / len(factors))
     checks = [
         (best.inliers >= limits.min_inliers,
          f"too few matching voxels: expected at least {limits.min_inliers}, found {best.inliers}"),
-        (best.inlier_ratio >= limits.min_inlier_ratio,
-         (f"the maps disagree where they overlap: expected at least {limits.min_inlier_ratio:.0%} of "
-          f"overlapping voxels to match, found {best.inlier_ratio:.0%}")),
-        (best.conflict_ratio <= limits.max_conflict,
-         (f"occupied voxels land in the other map's open space: expected at most "
-          f"{limits.max_conflict:.0%}, found {best.conflict_ratio:.0%}")),
+        (best.agreement >= limits.min_agreement,
+         (f"the maps disagree where they overlap: expected confirmed minus contradicted walls of at "
+          f"least {limits.min_agreement:.0%}, found {best.agreement:.0%} ({best.inlier_ratio:.0%} "
+          f"confirmed, {best.conflict_ratio:.0%} in the other map's open space)")),
+        (best.worst_inlier_ratio >= limits.min_inlier_ratio,
+         (f"one map's walls are not confirmed by the other: expected at least "
+          f"{limits.min_inlier_ratio:.0%} in each direction, found {best.worst_inlier_ratio:.0%}")),
+        (best.worst_conflict_ratio <= limits.max_conflict,
+         (f"walls land in the other map's open space: expected at most {limits.max_conflict:.0%} in "
+          f"each direction, found {best.worst_conflict_ratio:.0%}")),
         (ambiguity <= limits.max_ambiguity,
          (f"ambiguous: a distinct pose scores {ambiguity:.0%} of the best (expected at most "
           f"{limits.max_ambiguity:.0%}); e.g. a symmetric corridor, repeated rooms or maps of different places")),
