@@ -39,7 +39,8 @@ class AlignParams:
     coarse_samples: int = 4000  # B points per hypothesis ICP / evidence
     fine_samples: int = 20000  # B points of the final ICP
     eval_samples: int = 50000  # B points the final evidence counts
-    inlier_voxels: float = 2.0  # inlier distance, voxels
+    inlier_voxels: float = 1.5  # inlier distance, voxels (at least inlier_min_m)
+    inlier_min_m: float = 0.1
     distinct_m: float = 0.5  # poses moving B's extent less than this apart are the same pose
     seed: int = 0
     limits: Thresholds = field(default_factory=Thresholds)
@@ -111,7 +112,7 @@ def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) ->
     cell = p.search_cell_m or max(2.0 * res, 0.2)
     both_planar = a.planar and b.planar
     icp_dof = 3 if both_planar else p.dof
-    inlier_m = p.inlier_voxels * res
+    inlier_m = max(p.inlier_voxels * res, p.inlier_min_m)
     rng = np.random.default_rng(p.seed)
 
     a_tree = cKDTree(a.occupied)

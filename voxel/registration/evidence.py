@@ -68,6 +68,7 @@ class Evidence:
     back_overlapping: int
     back_conflicts: int
     support: int  # inliers among all sampled B points
+    support_overlapping: int  # all sampled B points where A has observed (or inliers)
 
     @property
     def overlap(self) -> float:
@@ -85,6 +86,12 @@ class Evidence:
         """Share of the overlapping wall points, both ways, that the other map contradicts."""
         over = self.overlapping + self.back_overlapping
         return (self.conflicts + self.back_conflicts) / over if over else 0.0
+
+    @property
+    def support_ratio(self) -> float:
+        """Share of all overlapping B points (floors and ceilings included) that A confirms: low
+        when the walls agree but the floors do not (a height error the pose does not model)."""
+        return self.support / self.support_overlapping if self.support_overlapping else 0.0
 
     @property
     def worst_inlier_ratio(self) -> float:
@@ -140,4 +147,4 @@ def evaluate(t: np.ndarray, a: Side, b_sample: np.ndarray, b_wall: np.ndarray, b
                     overlapping=int((overlapping & b_wall).sum()), conflicts=int(conflict.sum()),
                     back_inliers=int((inlier_back & a_wall).sum()),
                     back_overlapping=int((ov_back & a_wall).sum()), back_conflicts=int(conflict_back.sum()),
-                    support=int(inlier.sum()))
+                    support=int(inlier.sum()), support_overlapping=int(overlapping.sum()))

@@ -19,7 +19,8 @@ class Thresholds:
     min_agreement: float = 0.3  # confirmed minus contradicted share of overlapping wall points, both ways
     min_inlier_ratio: float = 0.45  # confirmed share of overlapping wall points, in the worse direction
     max_conflict: float = 0.3  # contradicted share (in the other map's open space), in the worse direction
-    max_ambiguity: float = 0.6  # second-best distinct pose's score over the best's
+    min_support_ratio: float = 0.45  # confirmed share of all overlapping B points, floors included
+    max_ambiguity: float = 0.55  # second-best distinct pose's score over the best's
     max_translation_std_m: float = 0.05
     max_yaw_std_deg: float = 0.5
     min_confidence: float = 0.1
@@ -47,6 +48,7 @@ def judge(best: Evidence, ambiguity: float, cov: np.ndarray, names: list[str], l
         _ramp(best.worst_inlier_ratio, limits.min_inlier_ratio, limits.min_inlier_ratio + 0.2),
         _ramp(-best.worst_conflict_ratio, -limits.max_conflict, -limits.max_conflict * 0.4),
         _ramp(-ambiguity, -limits.max_ambiguity, -limits.max_ambiguity * 0.4),
+        _ramp(best.support_ratio, limits.min_support_ratio, limits.min_support_ratio + 0.2),
     )
     confidence = float(np.prod(factors)) ** (1.0 / len(factors))
     checks = [
@@ -62,6 +64,10 @@ def judge(best: Evidence, ambiguity: float, cov: np.ndarray, names: list[str], l
         (best.worst_conflict_ratio <= limits.max_conflict,
          (f"walls land in the other map's open space: expected at most {limits.max_conflict:.0%} in "
           f"each direction, found {best.worst_conflict_ratio:.0%}")),
+        (best.support_ratio >= limits.min_support_ratio,
+         (f"walls agree but floors and ceilings do not: expected at least {limits.min_support_ratio:.0%} "
+          f"of all overlapping voxels to match, found {best.support_ratio:.0%} (a height offset "
+          f"--dof 3 cannot model?)")),
         (ambiguity <= limits.max_ambiguity,
          (f"ambiguous: a distinct pose scores {ambiguity:.0%} of the best (expected at most "
           f"{limits.max_ambiguity:.0%}); e.g. a symmetric corridor, repeated rooms or maps of different places")),
@@ -74,7 +80,7 @@ def judge(best: Evidence, ambiguity: float, cov: np.ndarray, names: list[str], l
     ]
     for ok, reason in checks:
         if not ok:
-            return Verdict(False, confidence, reason)
+            return Verdict(False, 0.0, reason)
     return Verdict(True, confidence, None)
 
 
