@@ -50,11 +50,23 @@ def observed_columns(known: np.ndarray, resolution: float, cell: float) -> np.nd
     """xy centres (M, 2) of the search cells in which a map knows any voxel (free or occupied).
 
     Where a map has observed the floor or free space but has no wall, another map's wall would be
-    a contradiction: `score_field` penalises B's walls landing there.
+    a contradiction: `score_field` and the evidence penalise B's walls landing there. Cells are
+    marked in a dense bitmap over the known extent (no sort of the millions of known voxels).
     """
-    cols = np.floor((vk.unpack(known)[:, :2] + 0.5) * (resolution / cell)).astype(np.int64)
-    uniq = np.unique(vk.pack(np.column_stack([cols, np.zeros(len(cols), np.int64)])))
-    return (vk.unpack(uniq)[:, :2] + 0.5) * cell
+    if known.size == 0:
+        return np.empty((0, 2))
+    scale = resolution / cell
+    cx = np.floor((((known >> (2 * vk.AXIS_BITS)) & vk.AXIS_MASK) - vk.AXIS_OFFSET + 0.5) * scale).astype(np.int64)
+    cy = np.floor((((known >> vk.AXIS_BITS) & vk.AXIS_MASK) - vk.AXIS_OFFSET + 0.5) * scale).astype(np.int64)
+    x0, y0 = int(cx.min()), int(cy.min())
+    shape = (int(cx.max()) - x0 + 1, int(cy.max()) - y0 + 1)
+    if shape[0] * shape[1] > 50_000_000:  # absurd extent: sort instead
+        uniq = np.unique(vk.pack(np.column_stack([cx, cy, np.zeros(len(cx), np.int64)])))
+        return (vk.unpack(uniq)[:, :2] + 0.5) * cell
+    seen = np.zeros(shape, bool)
+    seen[cx - x0, cy - y0] = True
+    ix, iy = np.nonzero(seen)
+    return (np.column_stack([ix + x0, iy + y0]) + 0.5) * cell
 
 
 def score_field(xy: np.ndarray, cell: float, pad: int, sigma: float = 1.0, free_xy: np.ndarray | None = None,
