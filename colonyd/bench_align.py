@@ -188,7 +188,7 @@ def negative_cases(halves: CarmenHalves, octomap: Path, work: Path, seeds: int) 
             (f"079_vs_sim_{w}", a, _moved_cloud(others[w], move), 3, True) for w in others]
         pairs.append(("079_halves_no_overlap", _crop_cloud(a, known_keys, 0.0, 0.4, None),
                       _crop_cloud(a, known_keys, 0.6, 1.0, move), 3, True))
-        pairs.append(("fr079_crops_no_overlap", _bt_cloud(bt, 0.0, 0.35, None), _bt_cloud(bt, 0.65, 1.0, move),
+        pairs.append(("octomap_crops_no_overlap", _bt_cloud(bt, 0.0, 0.35, None), _bt_cloud(bt, 0.65, 1.0, move),
                       4, False))
         for name, first, second, dof, planar in pairs:
             result = align_clouds(first, second, AlignParams(dof=dof))
