@@ -60,6 +60,7 @@ class Alignment:
     conflict: float
     agreement: float
     ambiguity: float
+    z_ambiguity: float
     covariance: np.ndarray
     covariance_params: list[str]
     hypotheses: int
@@ -80,6 +81,7 @@ class Alignment:
             "overlap": round(self.overlap, 4), "inlier_ratio": round(self.inlier_ratio, 4),
             "conflict": round(self.conflict, 4),
             "agreement": round(self.agreement, 4), "ambiguity": round(self.ambiguity, 4),
+            "z_ambiguity": round(self.z_ambiguity, 4),
             "covariance": np.round(self.covariance, 12).tolist(), "covariance_params": self.covariance_params,
             "hypotheses": self.hypotheses, "dof": self.dof, "method": self.method,
             "seconds": round(self.seconds, 3),
@@ -133,7 +135,7 @@ def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) ->
         return _not_aligned(p.dof, len(hypotheses), time.perf_counter() - began,
                             "the global search found no pose that puts any of B on A")
     best = ranked[0]
-    ambiguity = _ambiguity(ranked, z_ambiguity)
+    ambiguity = _ambiguity(ranked)
 
     b_fine = _sample(b.occupied, p.fine_samples, rng)
     fine = icp(b_fine, a_tree, a.occupied, best.transform, icp_dof, start_m=3.0 * res, end_m=1.5 * res,
@@ -142,12 +144,12 @@ def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) ->
     a_eval = _sample_masked(a.occupied, a_wall, p.eval_samples, rng)
     evidence = evaluate(fine.transform, a_side, *b_eval, b_side, *a_eval, inlier_m)
     cov, names = _covariance(fine.transform, b_fine, a, a_tree, inlier_m, icp_dof, both_planar)
-    verdict = judge(evidence, ambiguity, cov, names, p.limits)
+    verdict = judge(evidence, ambiguity, z_ambiguity, cov, names, p.limits)
     return Alignment(
         aligned=verdict.aligned, transform=fine.transform, confidence=verdict.confidence,
         inliers=evidence.inliers, rmse_m=evidence.rmse, overlap=evidence.overlap,
         inlier_ratio=evidence.inlier_ratio, conflict=evidence.conflict_ratio,
-        agreement=evidence.agreement, ambiguity=ambiguity,
+        agreement=evidence.agreement, ambiguity=ambiguity, z_ambiguity=z_ambiguity,
         covariance=cov, covariance_params=names, hypotheses=len(hypotheses), dof=p.dof,
         seconds=time.perf_counter() - began, reason=verdict.reason)
 
@@ -235,13 +237,13 @@ def _distinct(candidates: list[_Candidate], b_points: np.ndarray, distinct_m: fl
     return ranked, z_amb
 
 
-def _ambiguity(ranked: list[_Candidate], z_ambiguity: float) -> float:
-    """Score of the second-best distinct pose over the best's (1 when the best scores nothing)."""
+def _ambiguity(ranked: list[_Candidate]) -> float:
+    """Score of the second-best distinct planar pose over the best's (1 when the best scores nothing)."""
     best = ranked[0].evidence.score
     if best <= 0:
         return 1.0
     second = max(0.0, ranked[1].evidence.score) if len(ranked) > 1 else 0.0
-    return max(z_ambiguity, second / best)
+    return second / best
 
 
 def _planar_moved(t1: np.ndarray, t2: np.ndarray, corners: np.ndarray) -> float:
@@ -287,7 +289,7 @@ def _thin(points: np.ndarray, cell: float, xy_cell: float | None = None) -> np.n
 
 def _not_aligned(dof: int, hypotheses: int, seconds: float, reason: str) -> Alignment:
     names = {3: ["x", "y", "yaw"], 4: ["x", "y", "z", "yaw"], 6: ["x", "y", "z", "roll", "pitch", "yaw"]}[dof]
-    return Alignment(False, np.eye(4), 0.0, 0, math.inf, 0.0, 0.0, 0.0, 0.0, 1.0, np.eye(len(names)) * 1e6, names,
+    return Alignment(False, np.eye(4), 0.0, 0, math.inf, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, np.eye(len(names)) * 1e6, names,
                      hypotheses, dof, seconds, reason)
 
 

@@ -20,7 +20,8 @@ class Thresholds:
     min_inlier_ratio: float = 0.45  # confirmed share of overlapping wall points, in the worse direction
     max_conflict: float = 0.3  # contradicted share (in the other map's open space), in the worse direction
     min_support_ratio: float = 0.45  # confirmed share of all overlapping B points, floors included
-    max_ambiguity: float = 0.55  # second-best distinct pose's score over the best's
+    max_ambiguity: float = 0.5  # second-best distinct planar pose's score over the best's
+    max_z_ambiguity: float = 0.7  # support of the best other height over the best height's
     max_translation_std_m: float = 0.05
     max_yaw_std_deg: float = 0.5
     min_confidence: float = 0.1
@@ -35,8 +36,10 @@ class Verdict:
     reason: str | None
 
 
-def judge(best: Evidence, ambiguity: float, cov: np.ndarray, names: list[str], limits: Thresholds) -> Verdict:
-    """The verdict on the best pose given its evidence, the ambiguity ratio and its covariance."""
+def judge(best: Evidence, ambiguity: float, z_ambiguity: float, cov: np.ndarray, names: list[str],
+          limits: Thresholds) -> Verdict:
+    """The verdict on the best pose given its evidence, the ambiguity ratios (planar and in
+    height) and its covariance."""
     var = dict(zip(names, np.diag(cov), strict=True))
     t_std = math.sqrt(max(var.get(n, 0.0) for n in ("x", "y", "z")))
     yaw_std = math.degrees(math.sqrt(var["yaw"]))
@@ -48,6 +51,7 @@ def judge(best: Evidence, ambiguity: float, cov: np.ndarray, names: list[str], l
         _ramp(best.worst_inlier_ratio, limits.min_inlier_ratio, limits.min_inlier_ratio + 0.2),
         _ramp(-best.worst_conflict_ratio, -limits.max_conflict, -limits.max_conflict * 0.4),
         _ramp(-ambiguity, -limits.max_ambiguity, -limits.max_ambiguity * 0.4),
+        _ramp(-z_ambiguity, -limits.max_z_ambiguity, -limits.max_z_ambiguity * 0.6),
         _ramp(best.support_ratio, limits.min_support_ratio, limits.min_support_ratio + 0.2),
     )
     confidence = float(np.prod(factors)) ** (1.0 / len(factors))
@@ -71,6 +75,9 @@ def judge(best: Evidence, ambiguity: float, cov: np.ndarray, names: list[str], l
         (ambiguity <= limits.max_ambiguity,
          (f"ambiguous: a distinct pose scores {ambiguity:.0%} of the best (expected at most "
           f"{limits.max_ambiguity:.0%}); e.g. a symmetric corridor, repeated rooms or maps of different places")),
+        (z_ambiguity <= limits.max_z_ambiguity,
+         (f"ambiguous in height: another height is supported {z_ambiguity:.0%} as well as the best "
+          f"(expected at most {limits.max_z_ambiguity:.0%})")),
         (t_std <= limits.max_translation_std_m and yaw_std <= limits.max_yaw_std_deg,
          (f"the geometry does not constrain every direction: expected standard deviations within "
           f"{limits.max_translation_std_m} m and {limits.max_yaw_std_deg} deg, found {t_std:.3g} m and "
