@@ -194,8 +194,9 @@ def negative_cases(halves: CarmenHalves, octomap: Path, work: Path, seeds: int) 
             result = align_clouds(first, second, AlignParams(dof=dof))
             row = {"case": f"negative_{name}", "seed": seed, "expect": "not aligned", "aligned": result.aligned,
                    "confidence": round(result.confidence, 4), "reason": result.reason,
-                   "ambiguity": round(result.ambiguity, 4), "inlier_ratio": round(result.inlier_ratio, 4),
-                   "conflict": round(result.conflict, 4), "seconds": round(result.seconds, 3)}
+                   "failed_checks": list(result.failed_checks), "ambiguity": round(result.ambiguity, 4),
+                   "inlier_ratio": round(result.inlier_ratio, 4), "conflict": round(result.conflict, 4),
+                   "agreement": round(result.agreement, 4), "seconds": round(result.seconds, 3)}
             if planar:
                 base = baseline_estimate(first, second, seed)
                 row.update({"baseline_merged": base.merged, "baseline_confidence": round(base.confidence, 3),
@@ -241,7 +242,8 @@ def _ours(result: Alignment, truth: np.ndarray, points: np.ndarray, tol_m: float
             "rms_m": round(rms, 4), "yaw_err_deg": round(yaw, 4), "confidence": round(result.confidence, 4),
             "inliers": result.inliers, "rmse_m": round(result.rmse_m, 4) if math.isfinite(result.rmse_m) else None,
             "overlap": round(result.overlap, 4), "ambiguity": round(result.ambiguity, 4),
-            "conflict": round(result.conflict, 4), "reason": result.reason, "seconds": round(result.seconds, 3)}
+            "conflict": round(result.conflict, 4), "reason": result.reason,
+            "failed_checks": list(result.failed_checks), "seconds": round(result.seconds, 3)}
 
 
 def _baseline(a: MapCloud, b: MapCloud, truth: np.ndarray, points: np.ndarray, tol_m: float, seed: int) -> dict:
@@ -284,6 +286,8 @@ def summarise(rows: list[dict]) -> list[dict]:
         else:
             line.update({"ours_correctly_refused": sum(not r["aligned"] for r in rs),
                          "ours_confident_wrong": sum(r["aligned"] for r in rs),
+                         "ours_fewest_failed_checks": min(len(r["failed_checks"]) for r in rs),
+                         "ours_failed_checks": sorted({c for r in rs for c in r["failed_checks"]}),
                          "ours_seconds_max": _max([r["seconds"] for r in rs])})
             if "baseline_merged" in rs[0]:
                 line.update({"baseline_correctly_refused": sum(not r["baseline_merged"] for r in rs),

@@ -67,6 +67,7 @@ class Alignment:
     dof: int
     seconds: float
     reason: str | None
+    failed_checks: tuple[str, ...] = ()
     method: str = METHOD
 
     def to_json(self) -> dict:
@@ -88,6 +89,7 @@ class Alignment:
         }
         if not self.aligned:
             out["reason"] = self.reason
+            out["failed_checks"] = list(self.failed_checks)
         return out
 
 
@@ -151,7 +153,7 @@ def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) ->
         inlier_ratio=evidence.inlier_ratio, conflict=evidence.conflict_ratio,
         agreement=evidence.agreement, ambiguity=ambiguity, z_ambiguity=z_ambiguity,
         covariance=cov, covariance_params=names, hypotheses=len(hypotheses), dof=p.dof,
-        seconds=time.perf_counter() - began, reason=verdict.reason)
+        seconds=time.perf_counter() - began, reason=verdict.reason, failed_checks=verdict.failed)
 
 
 def _check(a: MapCloud, b: MapCloud, p: AlignParams) -> None:
@@ -290,7 +292,7 @@ def _thin(points: np.ndarray, cell: float, xy_cell: float | None = None) -> np.n
 def _not_aligned(dof: int, hypotheses: int, seconds: float, reason: str) -> Alignment:
     names = {3: ["x", "y", "yaw"], 4: ["x", "y", "z", "yaw"], 6: ["x", "y", "z", "roll", "pitch", "yaw"]}[dof]
     return Alignment(False, np.eye(4), 0.0, 0, math.inf, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, np.eye(len(names)) * 1e6, names,
-                     hypotheses, dof, seconds, reason)
+                     hypotheses, dof, seconds, reason, ("search",))
 
 
 def _with_seconds(result: Alignment, seconds: float) -> Alignment:

@@ -104,6 +104,18 @@ class Evidence:
         return max(self.conflicts / max(self.overlapping, 1), self.back_conflicts / max(self.back_overlapping, 1))
 
     @property
+    def worst_near_miss_ratio(self) -> float:
+        """The higher of the two directions' shares of near misses: overlapping wall points that
+        the other map neither confirms nor contradicts (a wall of it within CLEAR_M, not within
+        the inlier distance). A right pose puts walls on walls or where the other map saw none;
+        a pose slid along repeated structure puts many next to them."""
+        def share(inl: int, over: int, conf: int) -> float:
+            return (over - inl - conf) / over if over else 0.0
+
+        return max(share(self.inliers, self.overlapping, self.conflicts),
+                   share(self.back_inliers, self.back_overlapping, self.back_conflicts))
+
+    @property
     def agreement(self) -> float:
         """Confirmed minus contradicted share, in [0, 1]."""
         return max(0.0, self.inlier_ratio - self.conflict_ratio)
