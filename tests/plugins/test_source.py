@@ -84,7 +84,7 @@ def test_replay_options_depend_on_the_format(tmp_path: Path) -> None:
     log.write_text("PARAM robot_name test\n")
     source = open_source(f"replay:{log},format=carmen,stop=none,poses=odometry")
     assert isinstance(source, CarmenSource) and source.stop is None and source.poses == "odometry"
-    with pytest.raises(SourceSpecError, match=r"option 'stride': expected one of \['format', 'max_range', 'poses', 'start', 'step', 'stop', 'strict'\], found unknown option"):
+    with pytest.raises(SourceSpecError, match=r"option 'stride': expected one of \['format', 'max_range', 'move_x', 'move_y', 'move_yaw', 'poses', 'start', 'step', 'stop', 'strict'\], found unknown option"):
         open_source(f"replay:{log},stride=2")
     with pytest.raises(SourceSpecError, match=r"option 'stop': expected int or None, found 'end'"):
         open_source(f"replay:{log},stop=end")
