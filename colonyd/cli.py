@@ -273,7 +273,7 @@ def _bench(args: argparse.Namespace) -> int:
 
         result = run_integrate_bench(args.json, args.shared_data, args.repeats, args.only)
     elif args.bench == "align":
-        from colonyd.bench_align import run_align_bench
+        from colonyd.bench.align import run_align_bench
 
         result = run_align_bench(args.json, args.shared_data, seeds=args.seeds, octomap_seeds=args.octomap_seeds,
                                  negative_seeds=args.negative_seeds, carmen_step=args.carmen_step,

@@ -39,7 +39,8 @@ class AlignParams:
     coarse_samples: int = 4000  # B points per hypothesis ICP / evidence
     fine_samples: int = 20000  # B points of the final ICP
     eval_samples: int = 50000  # B points the final evidence counts
-    inlier_voxels: float = 2.0  # inlier distance, voxels
+    inlier_voxels: float = 1.5  # inlier distance, voxels (at least inlier_min_m)
+    inlier_min_m: float = 0.1
     distinct_m: float = 0.5  # poses moving B's extent less than this apart are the same pose
     seed: int = 0
     limits: Thresholds = field(default_factory=Thresholds)
@@ -57,13 +58,16 @@ class Alignment:
     overlap: float
     inlier_ratio: float
     conflict: float
+    agreement: float
     ambiguity: float
+    z_ambiguity: float
     covariance: np.ndarray
     covariance_params: list[str]
     hypotheses: int
     dof: int
     seconds: float
     reason: str | None
+    failed_checks: tuple[str, ...] = ()
     method: str = METHOD
 
     def to_json(self) -> dict:
@@ -76,13 +80,16 @@ class Alignment:
             "confidence": round(self.confidence, 4), "inliers": self.inliers,
             "rmse_m": None if not math.isfinite(self.rmse_m) else round(self.rmse_m, 5),
             "overlap": round(self.overlap, 4), "inlier_ratio": round(self.inlier_ratio, 4),
-            "conflict": round(self.conflict, 4), "ambiguity": round(self.ambiguity, 4),
+            "conflict": round(self.conflict, 4),
+            "agreement": round(self.agreement, 4), "ambiguity": round(self.ambiguity, 4),
+            "z_ambiguity": round(self.z_ambiguity, 4),
             "covariance": np.round(self.covariance, 12).tolist(), "covariance_params": self.covariance_params,
             "hypotheses": self.hypotheses, "dof": self.dof, "method": self.method,
             "seconds": round(self.seconds, 3),
         }
         if not self.aligned:
             out["reason"] = self.reason
+            out["failed_checks"] = list(self.failed_checks)
         return out
 
 
@@ -109,7 +116,7 @@ def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) ->
     cell = p.search_cell_m or max(2.0 * res, 0.2)
     both_planar = a.planar and b.planar
     icp_dof = 3 if both_planar else p.dof
-    inlier_m = p.inlier_voxels * res
+    inlier_m = max(p.inlier_voxels * res, p.inlier_min_m)
     rng = np.random.default_rng(p.seed)
 
     a_tree = cKDTree(a.occupied)
@@ -130,7 +137,7 @@ def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) ->
         return _not_aligned(p.dof, len(hypotheses), time.perf_counter() - began,
                             "the global search found no pose that puts any of B on A")
     best = ranked[0]
-    ambiguity = _ambiguity(ranked, z_ambiguity)
+    ambiguity = _ambiguity(ranked)
 
     b_fine = _sample(b.occupied, p.fine_samples, rng)
     fine = icp(b_fine, a_tree, a.occupied, best.transform, icp_dof, start_m=3.0 * res, end_m=1.5 * res,
@@ -139,13 +146,14 @@ def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) ->
     a_eval = _sample_masked(a.occupied, a_wall, p.eval_samples, rng)
     evidence = evaluate(fine.transform, a_side, *b_eval, b_side, *a_eval, inlier_m)
     cov, names = _covariance(fine.transform, b_fine, a, a_tree, inlier_m, icp_dof, both_planar)
-    verdict = judge(evidence, ambiguity, cov, names, p.limits)
+    verdict = judge(evidence, ambiguity, z_ambiguity, cov, names, p.limits)
     return Alignment(
         aligned=verdict.aligned, transform=fine.transform, confidence=verdict.confidence,
         inliers=evidence.inliers, rmse_m=evidence.rmse, overlap=evidence.overlap,
-        inlier_ratio=evidence.inlier_ratio, conflict=evidence.conflict_ratio, ambiguity=ambiguity,
+        inlier_ratio=evidence.inlier_ratio, conflict=evidence.conflict_ratio,
+        agreement=evidence.agreement, ambiguity=ambiguity, z_ambiguity=z_ambiguity,
         covariance=cov, covariance_params=names, hypotheses=len(hypotheses), dof=p.dof,
-        seconds=time.perf_counter() - began, reason=verdict.reason)
+        seconds=time.perf_counter() - began, reason=verdict.reason, failed_checks=verdict.failed)
 
 
 def _check(a: MapCloud, b: MapCloud, p: AlignParams) -> None:
@@ -231,13 +239,13 @@ def _distinct(candidates: list[_Candidate], b_points: np.ndarray, distinct_m: fl
     return ranked, z_amb
 
 
-def _ambiguity(ranked: list[_Candidate], z_ambiguity: float) -> float:
-    """Score of the second-best distinct pose over the best's (1 when the best scores nothing)."""
+def _ambiguity(ranked: list[_Candidate]) -> float:
+    """Score of the second-best distinct planar pose over the best's (1 when the best scores nothing)."""
     best = ranked[0].evidence.score
     if best <= 0:
         return 1.0
     second = max(0.0, ranked[1].evidence.score) if len(ranked) > 1 else 0.0
-    return max(z_ambiguity, second / best)
+    return second / best
 
 
 def _planar_moved(t1: np.ndarray, t2: np.ndarray, corners: np.ndarray) -> float:
@@ -283,8 +291,8 @@ def _thin(points: np.ndarray, cell: float, xy_cell: float | None = None) -> np.n
 
 def _not_aligned(dof: int, hypotheses: int, seconds: float, reason: str) -> Alignment:
     names = {3: ["x", "y", "yaw"], 4: ["x", "y", "z", "yaw"], 6: ["x", "y", "z", "roll", "pitch", "yaw"]}[dof]
-    return Alignment(False, np.eye(4), 0.0, 0, math.inf, 0.0, 0.0, 0.0, 1.0, np.eye(len(names)) * 1e6, names,
-                     hypotheses, dof, seconds, reason)
+    return Alignment(False, np.eye(4), 0.0, 0, math.inf, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, np.eye(len(names)) * 1e6, names,
+                     hypotheses, dof, seconds, reason, ("search",))
 
 
 def _with_seconds(result: Alignment, seconds: float) -> Alignment:

@@ -49,40 +49,88 @@ def _columns(xy: np.ndarray, cell: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Evidence:
-    """Agreement of B's sampled wall points, moved into A's frame, with A (and of A's with B).
+    """Agreement of the two maps under one pose, counted both ways: B's sampled wall points moved
+    into A's frame against A, and A's moved into B's frame against B.
 
     Walls decide the planar pose (floors match floors anywhere); `support`, the inliers among all
-    sampled points (floors and ceilings included), decides between poses that differ only in z.
+    sampled B points (floors and ceilings included), decides between poses that differ only in z.
+    Both directions are pooled: a small map dropped into a big one agrees one way (its few
+    points all land near walls) and is contradicted the other (the big map's walls cross its
+    open rooms).
     """
 
     samples: int  # B wall points evaluated
     inliers: int  # of them, with an A point within the inlier distance
-    rmse: float  # RMS distance of the inliers, metres
+    rmse: float  # RMS distance of those inliers, metres
     overlapping: int  # of them, in columns A has observed (or inliers)
     conflicts: int  # of them, where A has observed and has no wall within CLEAR_M
-    conflict_ratio: float  # the larger share of conflicts of B in A and of A in B
+    back_inliers: int  # the same for A's wall points in B
+    back_overlapping: int
+    back_conflicts: int
     support: int  # inliers among all sampled B points
+    support_overlapping: int  # all sampled B points where A has observed (or inliers)
 
     @property
     def overlap(self) -> float:
-        """Share of B's points that fall where A has observed."""
+        """Share of B's wall points that fall where A has observed."""
         return self.overlapping / self.samples if self.samples else 0.0
 
     @property
     def inlier_ratio(self) -> float:
-        """Share of the overlapping points that match A's geometry."""
-        return self.inliers / self.overlapping if self.overlapping else 0.0
+        """Share of the overlapping wall points, both ways, that the other map confirms."""
+        over = self.overlapping + self.back_overlapping
+        return (self.inliers + self.back_inliers) / over if over else 0.0
+
+    @property
+    def conflict_ratio(self) -> float:
+        """Share of the overlapping wall points, both ways, that the other map contradicts."""
+        over = self.overlapping + self.back_overlapping
+        return (self.conflicts + self.back_conflicts) / over if over else 0.0
+
+    @property
+    def support_ratio(self) -> float:
+        """Share of all overlapping B points (floors and ceilings included) that A confirms: low
+        when the walls agree but the floors do not (a height error the pose does not model)."""
+        return self.support / self.support_overlapping if self.support_overlapping else 0.0
+
+    @property
+    def worst_inlier_ratio(self) -> float:
+        """The lower of the two directions' confirmed shares."""
+        return min(self.inliers / max(self.overlapping, 1), self.back_inliers / max(self.back_overlapping, 1))
+
+    @property
+    def worst_conflict_ratio(self) -> float:
+        """The higher of the two directions' contradicted shares."""
+        return max(self.conflicts / max(self.overlapping, 1), self.back_conflicts / max(self.back_overlapping, 1))
+
+    @property
+    def worst_near_miss_ratio(self) -> float:
+        """The higher of the two directions' shares of near misses: overlapping wall points that
+        the other map neither confirms nor contradicts (a wall of it within CLEAR_M, not within
+        the inlier distance). A right pose puts walls on walls or where the other map saw none;
+        a pose slid along repeated structure puts many next to them."""
+        def share(inl: int, over: int, conf: int) -> float:
+            return (over - inl - conf) / over if over else 0.0
+
+        return max(share(self.inliers, self.overlapping, self.conflicts),
+                   share(self.back_inliers, self.back_overlapping, self.back_conflicts))
+
+    @property
+    def agreement(self) -> float:
+        """Confirmed minus contradicted share, in [0, 1]."""
+        return max(0.0, self.inlier_ratio - self.conflict_ratio)
 
     @property
     def score(self) -> float:
-        """Confirmed minus unconfirmed points where A has observed, contradictions counted twice:
-        what hypotheses are ranked by.
+        """What hypotheses are ranked by: confirmed points (both ways) times agreement to the
+        fourth power.
 
-        A pose that piles more of B onto A does not win by overlap alone: every overlapping
-        point that A does not confirm costs as much as a confirmed one earns, and one A
-        contradicts (its wall in A's open space) costs double.
+        A pose that piles more of B onto A does not win by overlap alone: twice the confirmed
+        points cannot make up for agreement falling from 100 % to 84 %, so a repeated corridor
+        slid by one office, or a building turned round, loses to the pose where everything
+        that can be checked agrees.
         """
-        return float(self.inliers - (self.overlapping - self.inliers) - self.conflicts)
+        return float((self.inliers + self.back_inliers) * self.agreement**4)
 
 
 def _one_way(moved: np.ndarray, wall: np.ndarray, target: Side,
@@ -104,11 +152,11 @@ def evaluate(t: np.ndarray, a: Side, b_sample: np.ndarray, b_wall: np.ndarray, b
              a_sample: np.ndarray, a_wall: np.ndarray, inlier_m: float) -> Evidence:
     """Evidence for the transform `t` (B into A) on samples of both maps (with wall masks)."""
     d, inlier, overlapping, conflict = _one_way(apply(t, b_sample), b_wall, a, inlier_m)
-    _, _, ov_back, conflict_back = _one_way(apply(np.linalg.inv(t), a_sample), a_wall, b, inlier_m)
-    n_over = int((overlapping & b_wall).sum())
-    ratio = max(int(conflict.sum()) / max(n_over, 1),
-                int(conflict_back.sum()) / max(int((ov_back & a_wall).sum()), 1))
+    _, inlier_back, ov_back, conflict_back = _one_way(apply(np.linalg.inv(t), a_sample), a_wall, b, inlier_m)
     wall_in = inlier & b_wall
     rmse = float(np.sqrt(np.mean(d[wall_in] ** 2))) if wall_in.any() else float("inf")
-    return Evidence(samples=int(b_wall.sum()), inliers=int(wall_in.sum()), rmse=rmse, overlapping=n_over,
-                    conflicts=int(conflict.sum()), conflict_ratio=float(ratio), support=int(inlier.sum()))
+    return Evidence(samples=int(b_wall.sum()), inliers=int(wall_in.sum()), rmse=rmse,
+                    overlapping=int((overlapping & b_wall).sum()), conflicts=int(conflict.sum()),
+                    back_inliers=int((inlier_back & a_wall).sum()),
+                    back_overlapping=int((ov_back & a_wall).sum()), back_conflicts=int(conflict_back.sum()),
+                    support=int(inlier.sum()), support_overlapping=int(overlapping.sum()))

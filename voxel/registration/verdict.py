@@ -16,12 +16,16 @@ class Thresholds:
     """Limits a trusted alignment must meet."""
 
     min_inliers: int = 150  # matching B sample points
-    min_inlier_ratio: float = 0.55  # of the overlapping points
-    max_conflict: float = 0.25  # share of overlapping points that land in the other map's free space
-    max_ambiguity: float = 0.6  # second-best distinct pose's score over the best's
+    min_agreement: float = 0.3  # confirmed minus contradicted share of overlapping wall points, both ways
+    min_inlier_ratio: float = 0.45  # confirmed share of overlapping wall points, in the worse direction
+    max_conflict: float = 0.3  # contradicted share (in the other map's open space), in the worse direction
+    max_near_miss: float = 0.3  # walls next to (not on) the other map's walls, in the worse direction
+    min_support_ratio: float = 0.45  # confirmed share of all overlapping B points, floors included
+    max_ambiguity: float = 0.5  # second-best distinct planar pose's score over the best's
+    max_z_ambiguity: float = 0.7  # support of the best other height over the best height's
     max_translation_std_m: float = 0.05
     max_yaw_std_deg: float = 0.5
-    min_confidence: float = 0.05
+    min_confidence: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -31,43 +35,68 @@ class Verdict:
     aligned: bool
     confidence: float
     reason: str | None
+    failed: tuple[str, ...] = ()  # names of every check that failed (reason: the first's message)
 
 
-def judge(best: Evidence, ambiguity: float, cov: np.ndarray, names: list[str], limits: Thresholds) -> Verdict:
-    """The verdict on the best pose given its evidence, the ambiguity ratio and its covariance."""
+def judge(best: Evidence, ambiguity: float, z_ambiguity: float, cov: np.ndarray, names: list[str],
+          limits: Thresholds) -> Verdict:
+    """The verdict on the best pose given its evidence, the ambiguity ratios (planar and in
+    height) and its covariance."""
     var = dict(zip(names, np.diag(cov), strict=True))
     t_std = math.sqrt(max(var.get(n, 0.0) for n in ("x", "y", "z")))
     yaw_std = math.degrees(math.sqrt(var["yaw"]))
-    # Each factor is 0 at its check's limit and 1 with a clear margin, so a failed check always
-    # means confidence 0 and a pass only counts as much as its margin.
-    confidence = (
-        _ramp(best.inliers, limits.min_inliers, 3 * limits.min_inliers)
-        * _ramp(best.inlier_ratio, limits.min_inlier_ratio, limits.min_inlier_ratio + 0.2)
-        * _ramp(-best.conflict_ratio, -limits.max_conflict, -limits.max_conflict * 0.4)
-        * _ramp(-ambiguity, -limits.max_ambiguity, -limits.max_ambiguity * 0.4)
+    # Each factor is 0 at its check's limit and 1 with a clear margin; the confidence is their
+    # geometric mean, so a failed check always means confidence 0 and a pass counts by its margin.
+    factors = (
+        _ramp(best.inliers, limits.min_inliers, 3 * limits.min_inliers),
+        _ramp(best.agreement, limits.min_agreement, limits.min_agreement + 0.3),
+        _ramp(best.worst_inlier_ratio, limits.min_inlier_ratio, limits.min_inlier_ratio + 0.2),
+        _ramp(-best.worst_conflict_ratio, -limits.max_conflict, -limits.max_conflict * 0.4),
+        _ramp(-ambiguity, -limits.max_ambiguity, -limits.max_ambiguity * 0.4),
+        _ramp(-z_ambiguity, -limits.max_z_ambiguity, -limits.max_z_ambiguity * 0.6),
+        _ramp(best.support_ratio, limits.min_support_ratio, limits.min_support_ratio + 0.2),
+        _ramp(-best.worst_near_miss_ratio, -limits.max_near_miss, -limits.max_near_miss * 0.4),
     )
+    confidence = float(np.prod(factors)) ** (1.0 / len(factors))
     checks = [
-        (best.inliers >= limits.min_inliers,
+        ("inliers", best.inliers >= limits.min_inliers,
          f"too few matching voxels: expected at least {limits.min_inliers}, found {best.inliers}"),
-        (best.inlier_ratio >= limits.min_inlier_ratio,
-         (f"the maps disagree where they overlap: expected at least {limits.min_inlier_ratio:.0%} of "
-          f"overlapping voxels to match, found {best.inlier_ratio:.0%}")),
-        (best.conflict_ratio <= limits.max_conflict,
-         (f"occupied voxels land in the other map's open space: expected at most "
-          f"{limits.max_conflict:.0%}, found {best.conflict_ratio:.0%}")),
-        (ambiguity <= limits.max_ambiguity,
+        ("agreement", best.agreement >= limits.min_agreement,
+         (f"the maps disagree where they overlap: expected confirmed minus contradicted walls of at "
+          f"least {limits.min_agreement:.0%}, found {best.agreement:.0%} ({best.inlier_ratio:.0%} "
+          f"confirmed, {best.conflict_ratio:.0%} in the other map's open space)")),
+        ("confirmed", best.worst_inlier_ratio >= limits.min_inlier_ratio,
+         (f"one map's walls are not confirmed by the other: expected at least "
+          f"{limits.min_inlier_ratio:.0%} in each direction, found {best.worst_inlier_ratio:.0%}")),
+        ("contradicted", best.worst_conflict_ratio <= limits.max_conflict,
+         (f"walls land in the other map's open space: expected at most {limits.max_conflict:.0%} in "
+          f"each direction, found {best.worst_conflict_ratio:.0%}")),
+        ("near_miss", best.worst_near_miss_ratio <= limits.max_near_miss,
+         (f"walls land next to the other map's walls, not on them: expected at most "
+          f"{limits.max_near_miss:.0%} near misses in each direction, found {best.worst_near_miss_ratio:.0%} "
+          f"(a pose slid along repeated structure?)")),
+        ("support", best.support_ratio >= limits.min_support_ratio,
+         (f"walls agree but floors and ceilings do not: expected at least {limits.min_support_ratio:.0%} "
+          f"of all overlapping voxels to match, found {best.support_ratio:.0%} (a height offset "
+          f"--dof 3 cannot model?)")),
+        ("ambiguity", ambiguity <= limits.max_ambiguity,
          (f"ambiguous: a distinct pose scores {ambiguity:.0%} of the best (expected at most "
           f"{limits.max_ambiguity:.0%}); e.g. a symmetric corridor, repeated rooms or maps of different places")),
-        (t_std <= limits.max_translation_std_m and yaw_std <= limits.max_yaw_std_deg,
+        ("z_ambiguity", z_ambiguity <= limits.max_z_ambiguity,
+         (f"ambiguous in height: another height is supported {z_ambiguity:.0%} as well as the best "
+          f"(expected at most {limits.max_z_ambiguity:.0%})")),
+        ("constrained", t_std <= limits.max_translation_std_m and yaw_std <= limits.max_yaw_std_deg,
          (f"the geometry does not constrain every direction: expected standard deviations within "
           f"{limits.max_translation_std_m} m and {limits.max_yaw_std_deg} deg, found {t_std:.3g} m and "
           f"{yaw_std:.3g} deg")),
-        (confidence >= limits.min_confidence,
+        ("confidence", confidence >= limits.min_confidence,
          f"confidence {confidence:.2f} below {limits.min_confidence}"),
     ]
-    for ok, reason in checks:
-        if not ok:
-            return Verdict(False, confidence, reason)
+    failed = [(name, reason) for name, ok, reason in checks if not ok]
+    if len(failed) > 1:  # the confidence check only speaks when every other check passed
+        failed = [(name, reason) for name, reason in failed if name != "confidence"]
+    if failed:
+        return Verdict(False, 0.0, failed[0][1], tuple(name for name, _ in failed))
     return Verdict(True, confidence, None)
 
 

@@ -37,13 +37,15 @@ def test_planar_map_moved_by_known_transform_is_recovered(plan, dof: int, yaw_de
     assert np.allclose(np.array(record["transform"]), result.transform, atol=1e-8)
 
 
-def test_3d_map_moved_in_x_y_z_yaw_is_recovered(plan) -> None:
+@pytest.mark.parametrize("dof", [4, 6])
+def test_3d_map_moved_in_x_y_z_yaw_is_recovered(plan, dof: int) -> None:
     keys, mask = plan_map(*plan, height=20)
     move = rigid(-3.2, 11.0, 1.7, yaw=math.radians(-151.0))
-    a = crop_and_move(keys, mask, 0.0, 14.0)
-    b = crop_and_move(keys, mask, 10.0, 24.0, move)
-    result = align_clouds(a, b, AlignParams(dof=4))
+    a = crop_and_move(keys, mask, 0.0, 15.0)
+    b = crop_and_move(keys, mask, 8.0, 24.0, move)
+    result = align_clouds(a, b, AlignParams(dof=dof))
     assert result.aligned, result.reason
+    assert len(result.covariance_params) == dof
     rms, yaw = error(result.transform, np.linalg.inv(move), b.occupied)
     assert rms < 1.5 * RES and yaw < 1.0
     assert abs(result.transform[2, 3] - np.linalg.inv(move)[2, 3]) < RES

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from colonyd.benchfiles import shared_data_dir
+from colonyd.bench.files import shared_data_dir
 from colonyd.errors import ConfigError
-from colonyd.mapmerge_baseline import estimate as baseline_estimate
+from colonyd.bench.mapmerge import estimate as baseline_estimate
 from voxel import keys as vk
 from voxel.octomap_io import read_bt, write_bt
 from voxel.registration import Alignment, AlignParams, MapCloud, align_clouds, load_map
@@ -188,14 +188,15 @@ def negative_cases(halves: CarmenHalves, octomap: Path, work: Path, seeds: int) 
             (f"079_vs_sim_{w}", a, _moved_cloud(others[w], move), 3, True) for w in others]
         pairs.append(("079_halves_no_overlap", _crop_cloud(a, known_keys, 0.0, 0.4, None),
                       _crop_cloud(a, known_keys, 0.6, 1.0, move), 3, True))
-        pairs.append(("fr079_crops_no_overlap", _bt_cloud(bt, 0.0, 0.35, None), _bt_cloud(bt, 0.65, 1.0, move),
+        pairs.append(("octomap_crops_no_overlap", _bt_cloud(bt, 0.0, 0.35, None), _bt_cloud(bt, 0.65, 1.0, move),
                       4, False))
         for name, first, second, dof, planar in pairs:
             result = align_clouds(first, second, AlignParams(dof=dof))
             row = {"case": f"negative_{name}", "seed": seed, "expect": "not aligned", "aligned": result.aligned,
                    "confidence": round(result.confidence, 4), "reason": result.reason,
-                   "ambiguity": round(result.ambiguity, 4), "inlier_ratio": round(result.inlier_ratio, 4),
-                   "conflict": round(result.conflict, 4), "seconds": round(result.seconds, 3)}
+                   "failed_checks": list(result.failed_checks), "ambiguity": round(result.ambiguity, 4),
+                   "inlier_ratio": round(result.inlier_ratio, 4), "conflict": round(result.conflict, 4),
+                   "agreement": round(result.agreement, 4), "seconds": round(result.seconds, 3)}
             if planar:
                 base = baseline_estimate(first, second, seed)
                 row.update({"baseline_merged": base.merged, "baseline_confidence": round(base.confidence, 3),
@@ -241,7 +242,8 @@ def _ours(result: Alignment, truth: np.ndarray, points: np.ndarray, tol_m: float
             "rms_m": round(rms, 4), "yaw_err_deg": round(yaw, 4), "confidence": round(result.confidence, 4),
             "inliers": result.inliers, "rmse_m": round(result.rmse_m, 4) if math.isfinite(result.rmse_m) else None,
             "overlap": round(result.overlap, 4), "ambiguity": round(result.ambiguity, 4),
-            "conflict": round(result.conflict, 4), "reason": result.reason, "seconds": round(result.seconds, 3)}
+            "conflict": round(result.conflict, 4), "reason": result.reason,
+            "failed_checks": list(result.failed_checks), "seconds": round(result.seconds, 3)}
 
 
 def _baseline(a: MapCloud, b: MapCloud, truth: np.ndarray, points: np.ndarray, tol_m: float, seed: int) -> dict:
@@ -284,6 +286,8 @@ def summarise(rows: list[dict]) -> list[dict]:
         else:
             line.update({"ours_correctly_refused": sum(not r["aligned"] for r in rs),
                          "ours_confident_wrong": sum(r["aligned"] for r in rs),
+                         "ours_fewest_failed_checks": min(len(r["failed_checks"]) for r in rs),
+                         "ours_failed_checks": sorted({c for r in rs for c in r["failed_checks"]}),
                          "ours_seconds_max": _max([r["seconds"] for r in rs])})
             if "baseline_merged" in rs[0]:
                 line.update({"baseline_correctly_refused": sum(not r["baseline_merged"] for r in rs),
