@@ -13,10 +13,11 @@ import pytest
 
 from colonyd.bench.align import crop_keys
 from colonyd.cli import EXIT_DATA, EXIT_OK, main
+from tests.shared import SHARED_DATA
 from voxel.octomap_io import read_bt, write_bt
 from voxel.registration.transform import apply, rigid
 
-OCTOMAP = Path(__file__).resolve().parents[3] / "shared" / "data" / "octomap" / "geb079.bt"
+OCTOMAP = SHARED_DATA / "octomap" / "geb079.bt"
 needs_octomap = pytest.mark.skipif(not OCTOMAP.is_file(), reason=f"real OctoMap map not found at {OCTOMAP}")
 KEYS = {"aligned", "transform", "x", "y", "z", "roll_deg", "pitch_deg", "yaw_deg", "confidence", "inliers",
         "rmse_m", "overlap", "method", "seconds"}

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from colonyd.cli import EXIT_CONFIG, launch, main
+from tests.shared import SHARED_DATA
 
-DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+DATA = SHARED_DATA
 LOG = DATA / "carmen" / "freiburg-079-corrected.log.gz"
 KITCHEN = DATA / "redkitchen-seq01-a"
 

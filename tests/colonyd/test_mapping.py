@@ -18,12 +18,13 @@ from colonyd.mapping import (
     tum_line,
 )
 from plugins.source import open_source
+from tests.shared import SHARED_DATA
 from voxel import keys as vk
 from voxel.grid import VoxelGrid
 from voxel.octomap_io import read_bt
 from voxel.sensor import SensorModel
 
-DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+DATA = SHARED_DATA
 KITCHEN = DATA / "redkitchen-50"
 LOG = DATA / "carmen" / "freiburg-079-corrected.log.gz"
 

@@ -13,7 +13,6 @@ from protocol.identity import Signer
 from protocol.keyexpr import topic_key
 
 
-
 def test_object_lists_reach_peers_and_hostile_ones_are_refused(make_colony):
     colony = make_colony("objects")
     depth = colony.add("depth", ["sim:world=room,agent=depth-1,frames=40,start=world,noise=0"],

@@ -17,7 +17,6 @@ from colonyd.runtime import open_session, zenoh_config
 from colonyd.status import alive_members
 
 
-
 def _name(cn: str) -> x509.Name:
     return x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, cn)])
 

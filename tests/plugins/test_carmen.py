@@ -11,8 +11,9 @@ import pytest
 
 from plugins.carmen import CarmenSource, parse_flaser, read_lines
 from plugins.errors import ParseError, SourceError, SourceSpecError
+from tests.shared import SHARED_DATA
 
-DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+DATA = SHARED_DATA
 LOG = DATA / "carmen" / "freiburg-079-corrected.log.gz"
 needs_log = pytest.mark.skipif(not LOG.is_file(), reason=f"real CARMEN log not found at {LOG}")
 

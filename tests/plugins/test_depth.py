@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from plugins.checks import pose_matrix
 from plugins.depth import DepthCamera, DepthFrame, fov_of
 from plugins.errors import SensorInputError
 from plugins.sim import OPTICAL, render
-from plugins.checks import pose_matrix
 from plugins.world import CLASSES, Box, World
 
 K = np.array([[585.0, 0.0, 320.0], [0.0, 585.0, 240.0], [0.0, 0.0, 1.0]])

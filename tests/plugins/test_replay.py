@@ -8,8 +8,9 @@ import pytest
 
 from plugins.errors import SourceError
 from plugins.replay import detect_format
+from tests.shared import SHARED_DATA
 
-DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+DATA = SHARED_DATA
 
 
 @pytest.mark.skipif(not DATA.is_dir(), reason=f"real data not found at {DATA}")

@@ -10,9 +10,10 @@ import pytest
 
 from plugins.errors import ParseError, SourceError, SourceSpecError
 from plugins.sevenscenes import RgbdSource, read_depth_png, read_matrix
+from tests.shared import SHARED_DATA
 from voxel.rotation import matrix_to_quaternion
 
-DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+DATA = SHARED_DATA
 KITCHEN = DATA / "redkitchen-50"
 needs_kitchen = pytest.mark.skipif(not KITCHEN.is_dir(), reason=f"real 7-Scenes frames not found at {KITCHEN}")
 

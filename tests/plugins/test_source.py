@@ -16,8 +16,9 @@ from plugins.sim import SimOptions, SimSource
 from plugins.source import SOURCE_KINDS, describe_sources, open_source, parse_spec
 from plugins.stream import Source
 from plugins.synthetic import SyntheticOptions, SyntheticSource
+from tests.shared import SHARED_DATA
 
-DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+DATA = SHARED_DATA
 
 
 def test_parse_spec() -> None:

@@ -7,13 +7,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.shared import SHARED_DATA
 from voxel.errors import FileFormatError, InputError
 from voxel.keys import pack
 from voxel.octomap_io import read_bt, read_bt_leaves, write_bt
 
 pyoctomap = pytest.importorskip("pyoctomap")
 
-DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "octomap"
+DATA = SHARED_DATA / "octomap"
 REAL_MAPS = {"fr_079.bt": 0.05, "geb079.bt": 0.08}
 
 

@@ -9,8 +9,9 @@ import pytest
 
 from colonyd.bench.align import run_align_bench
 from colonyd.errors import ConfigError
+from tests.shared import SHARED_DATA
 
-DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+DATA = SHARED_DATA
 needs_data = pytest.mark.skipif(not (DATA / "carmen").is_dir() or not (DATA / "octomap").is_dir(),
                                 reason=f"shared recordings not found at {DATA}")
 ROW = {"case", "seed", "expect", "aligned", "confidence", "reason", "seconds"}

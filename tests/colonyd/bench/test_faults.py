@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from colonyd.bench import faults as bench_faults
-from colonyd.errors import PersistenceError
 from colonyd.bench.faultlab import need_root
+from colonyd.errors import PersistenceError
 from colonyd.persistence import WAL, StateStore
 
 

@@ -3,19 +3,19 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
+from tests.shared import SHARED_DATA
 from voxel.errors import LocalisationError
 from voxel.localisation.metrics import absolute_trajectory_error
 from voxel.localisation.visual import VisualOdometry
 from voxel.registration.transform import rigid
 
 K = np.array([[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]])
-KITCHEN = Path(__file__).resolve().parents[4] / "shared" / "data" / "redkitchen-seq01-a"
+KITCHEN = SHARED_DATA / "redkitchen-seq01-a"
 
 #: A room (inside of a box) with a block in it: planes n . x = c.
 PLANES = [((1, 0, 0), 2.0), ((-1, 0, 0), 2.5), ((0, 1, 0), 0.6), ((0, -1, 0), 0.8), ((0, 0, 1), 3.0), ((0, 0, -1), 1.0)]

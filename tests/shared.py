@@ -1,0 +1,7 @@
+"""Where the real recordings live: `../shared/data` beside the checkout (never copied into it)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
