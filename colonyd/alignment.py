@@ -29,8 +29,16 @@ class Edge:
     time: float
 
     def inverse(self) -> Edge:
-        return Edge(self.target, self.source, np.linalg.inv(self.transform), self.confidence,
-                    self.inliers, self.rmse, self.covariance, self.time)
+        return Edge(
+            self.target,
+            self.source,
+            np.linalg.inv(self.transform),
+            self.confidence,
+            self.inliers,
+            self.rmse,
+            self.covariance,
+            self.time,
+        )
 
 
 @dataclass(frozen=True)
@@ -46,8 +54,9 @@ def layer_cloud(layer: Layer) -> MapCloud:
     """A layer's known voxels as registration sees them (read under the layer's lock)."""
     full = layer.full()
     known = ~np.isnan(full.logodds)
-    return MapCloud.from_keys(layer.resolution, full.keys[known], full.logodds[known] >= 0,
-                              layer.origin)
+    return MapCloud.from_keys(
+        layer.resolution, full.keys[known], full.logodds[known] >= 0, layer.origin
+    )
 
 
 def align_layers(own: Layer, peer: Layer, dof: int) -> Alignment:
@@ -59,30 +68,56 @@ def edge_of(own: str, peer: str, result: Alignment) -> Edge:
     cov = np.zeros((6, 6))
     n = min(6, result.covariance.shape[0]) if result.covariance.ndim == 2 else 0
     cov[:n, :n] = result.covariance[:n, :n]
-    return Edge(own, peer, result.transform, float(result.confidence), int(result.inliers),
-                float(result.rmse_m), cov, time.time())
+    return Edge(
+        own,
+        peer,
+        result.transform,
+        float(result.confidence),
+        int(result.inliers),
+        float(result.rmse_m),
+        cov,
+        time.time(),
+    )
 
 
 def offer_of(edge: Edge, header: dict[str, object]) -> AlignOffer:
     """The AlignOffer message of an own edge."""
     return AlignOffer(
-        **header, target=edge.target, source_frame=frame_of(edge.source),
-        target_frame=frame_of(edge.target), **AlignOffer.split_matrix(edge.transform),
-        covariance=[float(x) for x in edge.covariance.ravel()], inliers=edge.inliers,
-        matches=edge.inliers, rmse=edge.rmse, confidence=edge.confidence,
+        **header,
+        target=edge.target,
+        source_frame=frame_of(edge.source),
+        target_frame=frame_of(edge.target),
+        **AlignOffer.split_matrix(edge.transform),
+        covariance=[float(x) for x in edge.covariance.ravel()],
+        inliers=edge.inliers,
+        matches=edge.inliers,
+        rmse=edge.rmse,
+        confidence=edge.confidence,
     )
 
 
 def edge_from_offer(msg: AlignOffer) -> Edge:
     """The edge a peer offers, after checking it is consistent; else WireError."""
     if msg.target == msg.origin:
-        raise WireError("bad-align", f"expected an offer for another agent, found {msg.origin!r} itself")
+        raise WireError(
+            "bad-align", f"expected an offer for another agent, found {msg.origin!r} itself"
+        )
     if msg.source_frame != frame_of(msg.origin) or msg.target_frame != frame_of(msg.target):
-        text = (f"expected frames {frame_of(msg.origin)!r} -> {frame_of(msg.target)!r}, found "
-                f"{msg.source_frame!r} -> {msg.target_frame!r}")
+        text = (
+            f"expected frames {frame_of(msg.origin)!r} -> {frame_of(msg.target)!r}, found "
+            f"{msg.source_frame!r} -> {msg.target_frame!r}"
+        )
         raise WireError("bad-align", text)
-    return Edge(msg.origin, msg.target, msg.matrix(), float(msg.confidence), int(msg.inliers),
-                float(msg.rmse), np.asarray(msg.covariance, float).reshape(6, 6), msg.time)
+    return Edge(
+        msg.origin,
+        msg.target,
+        msg.matrix(),
+        float(msg.confidence),
+        int(msg.inliers),
+        float(msg.rmse),
+        np.asarray(msg.covariance, float).reshape(6, 6),
+        msg.time,
+    )
 
 
 class Alignments:

@@ -89,8 +89,12 @@ class CatchUp:
         self._repairing: set[str] = set()
         self._lock = threading.Lock()
         self._worker: Worker[Repair] = Worker(
-            "gossip-repair", self._repair, Bounded(1024),
-            describe=lambda rep: f"repair of {rep.origin}", done=self._done, stop=stop,
+            "gossip-repair",
+            self._repair,
+            Bounded(1024),
+            describe=lambda rep: f"repair of {rep.origin}",
+            done=self._done,
+            stop=stop,
         )
 
     def start(self, membership: Membership) -> None:
@@ -126,15 +130,21 @@ class CatchUp:
             have = (layer.epoch, layer.seq) if layer else (0, 0)
             if want_epoch and (want_epoch, want_seq) <= have and not (layer and layer.pending):
                 return
-            if (layer and layer.seq > 0 and want_epoch in (0, layer.epoch)
-                    and self._fetch_range(server, rep.origin, layer, want_seq)):
+            if (
+                layer
+                and layer.seq > 0
+                and want_epoch in (0, layer.epoch)
+                and self._fetch_range(server, rep.origin, layer, want_seq)
+            ):
                 layer = self.layers.find(rep.origin)
                 if layer is not None and not layer.pending:
                     return
             if self._fetch_snapshot(server, rep.origin):
                 return
 
-    def _ask(self, server: str, query: str, layer: str, request: Any, cls: type[Message]) -> list[Any]:
+    def _ask(
+        self, server: str, query: str, layer: str, request: Any, cls: type[Message]
+    ) -> list[Any]:
         """Send a request frame to `server`'s queryable; the replies of type `cls` for `layer`
         and this request (every other reply is rejected and counted)."""
         replies = self.session.get(
@@ -152,10 +162,15 @@ class CatchUp:
                 if len(out) >= MAX_REPLY_PARTS:
                     raise WireError("oversized", f"expected at most {MAX_REPLY_PARTS} replies")
                 msg = self.receiver.decode(raw, key_expr=str(reply.ok.key_expr))
-                if not (isinstance(msg, cls) and msg.layer == layer  # type: ignore[attr-defined]
-                        and msg.request_id == request.request_id):  # type: ignore[attr-defined]
-                    text = (f"expected a {cls.KIND} for layer {layer!r}, request "
-                            f"{request.request_id}, found a {msg.KIND}")
+                if not (
+                    isinstance(msg, cls)
+                    and msg.layer == layer  # type: ignore[attr-defined]
+                    and msg.request_id == request.request_id
+                ):  # type: ignore[attr-defined]
+                    text = (
+                        f"expected a {cls.KIND} for layer {layer!r}, request "
+                        f"{request.request_id}, found a {msg.KIND}"
+                    )
                     raise WireError("bad-reply", text)
                 accept(self.receiver, self.metrics, msg, raw)
                 out.append(msg)
@@ -168,8 +183,12 @@ class CatchUp:
         want = max(want, max((p for p, *_ in layer.pending.values()), default=0), layer.seq + 1)
         rid = self._rng.getrandbits(63)
         request = DeltaRangeRequest(
-            **self.sender.header(), layer=origin, request_id=rid,
-            from_version=layer.seq, to_version=want, max_part_bytes=self.part_bytes,
+            **self.sender.header(),
+            layer=origin,
+            request_id=rid,
+            from_version=layer.seq,
+            to_version=want,
+            max_part_bytes=self.part_bytes,
         )
         msgs = self._ask(server, "deltas", origin, request, DeltaRangeReply)
         self.metrics.add("range_repairs")
@@ -227,6 +246,7 @@ class CatchUp:
         dt = time.monotonic() - t0
         self.metrics.add("snapshots_installed")
         self.metrics.catchup(origin, voxels, dt)
-        log.info("caught up %s from %s: %d voxels at seq %d in %.3f s", origin, server, voxels,
-                 seq, dt)
+        log.info(
+            "caught up %s from %s: %d voxels at seq %d in %.3f s", origin, server, voxels, seq, dt
+        )
         return True

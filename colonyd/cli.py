@@ -33,28 +33,68 @@ def _config_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--mode", choices=["peer", "client"], help="Zenoh mode")
     g.add_argument("--listen", action="append", metavar="ENDPOINT", help="listen endpoint")
     g.add_argument("--connect", action="append", metavar="ENDPOINT", help="connect endpoint")
-    g.add_argument("--no-multicast", dest="multicast", action="store_const", const=False,
-                   help="disable multicast scouting")
-    g.add_argument("--source", dest="sources", action="append", metavar="SPEC",
-                   help="data source, repeatable (sim:..., replay:PATH, synthetic:..., bulk:...; "
-                        "see `colonyd sources`)")
+    g.add_argument(
+        "--no-multicast",
+        dest="multicast",
+        action="store_const",
+        const=False,
+        help="disable multicast scouting",
+    )
+    g.add_argument(
+        "--source",
+        dest="sources",
+        action="append",
+        metavar="SPEC",
+        help="data source, repeatable (sim:..., replay:PATH, synthetic:..., bulk:...; "
+        "see `colonyd sources`)",
+    )
     g.add_argument("--resolution", type=float, help="voxel size in metres")
-    g.add_argument("--block-shape", dest="block_shape", choices=["cube", "planar"],
-                   help="own layer's voxel blocks (planar: 2D scanners only)")
+    g.add_argument(
+        "--block-shape",
+        dest="block_shape",
+        choices=["cube", "planar"],
+        help="own layer's voxel blocks (planar: 2D scanners only)",
+    )
     g.add_argument("--publish-hz", dest="publish_hz", type=float, help="own-delta publish rate")
     g.add_argument("--heartbeat-s", dest="heartbeat_s", type=float, help="heartbeat period")
     g.add_argument("--lease-ms", dest="lease_ms", type=int, help="Zenoh transport lease")
     g.add_argument("--colony-key", dest="colony_key", help="shared secret for authentication")
-    g.add_argument("--export-dir", dest="export_dir", type=Path,
-                   help="write the fused map (.ply, .bt) here on shutdown")
-    g.add_argument("--drop-rate", dest="drop_rate", type=float,
-                   help="testing: drop this share of received deltas (exercises gap repair)")
+    g.add_argument(
+        "--export-dir",
+        dest="export_dir",
+        type=Path,
+        help="write the fused map (.ply, .bt) here on shutdown",
+    )
+    g.add_argument(
+        "--drop-rate",
+        dest="drop_rate",
+        type=float,
+        help="testing: drop this share of received deltas (exercises gap repair)",
+    )
     g.add_argument("--log-level", dest="log_level", choices=["debug", "info", "warning", "error"])
 
 
-_FLAG_NAMES = ("colony", "namespace", "agent_id", "kind", "state_dir", "mode", "listen", "connect",
-               "multicast", "sources", "resolution", "block_shape", "publish_hz", "heartbeat_s", "lease_ms",
-               "colony_key", "export_dir", "drop_rate", "log_level")
+_FLAG_NAMES = (
+    "colony",
+    "namespace",
+    "agent_id",
+    "kind",
+    "state_dir",
+    "mode",
+    "listen",
+    "connect",
+    "multicast",
+    "sources",
+    "resolution",
+    "block_shape",
+    "publish_hz",
+    "heartbeat_s",
+    "lease_ms",
+    "colony_key",
+    "export_dir",
+    "drop_rate",
+    "log_level",
+)
 
 
 def _flags(args: argparse.Namespace) -> dict[str, Any]:
@@ -63,7 +103,8 @@ def _flags(args: argparse.Namespace) -> dict[str, Any]:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="colonyd", description="colony daemon: peer-to-peer voxel mapping over Zenoh")
+        prog="colonyd", description="colony daemon: peer-to-peer voxel mapping over Zenoh"
+    )
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("run", help="run the daemon until SIGTERM")
@@ -78,48 +119,99 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("dump-config", help="print the effective configuration as TOML")
     _config_flags(p)
 
-    p = sub.add_parser("export", help="fetch the live fused map (colony frame) and the layers' maps "
-                       "from a running colony into .bt/.ply files (and a floor plan for 2D maps)")
+    p = sub.add_parser(
+        "export",
+        help="fetch the live fused map (colony frame) and the layers' maps "
+        "from a running colony into .bt/.ply files (and a floor plan for 2D maps)",
+    )
     _config_flags(p)
     p.add_argument("--out", dest="export_out", type=Path, required=True, help="output directory")
-    p.add_argument("--layer", dest="export_layer", default=None, metavar="ID",
-                   help="only this agent's layer, in its own frame")
-    p.add_argument("--from", dest="export_agent", default=None, metavar="AGENT",
-                   help="ask this daemon (default: the first to answer, by agent id)")
+    p.add_argument(
+        "--layer",
+        dest="export_layer",
+        default=None,
+        metavar="ID",
+        help="only this agent's layer, in its own frame",
+    )
+    p.add_argument(
+        "--from",
+        dest="export_agent",
+        default=None,
+        metavar="AGENT",
+        help="ask this daemon (default: the first to answer, by agent id)",
+    )
 
-    p = sub.add_parser("identity", help="print this agent's public identity key (made if missing), "
-                       "for other agents' trusted_keys")
+    p = sub.add_parser(
+        "identity",
+        help="print this agent's public identity key (made if missing), "
+        "for other agents' trusted_keys",
+    )
     _config_flags(p)
 
     p = sub.add_parser("map", help="map a source offline into a directory of map files")
-    p.add_argument("--source", dest="map_source", required=True, metavar="SPEC",
-                   help="source spec (sim:..., replay:PATH, ...; see `colonyd sources`)")
+    p.add_argument(
+        "--source",
+        dest="map_source",
+        required=True,
+        metavar="SPEC",
+        help="source spec (sim:..., replay:PATH, ...; see `colonyd sources`)",
+    )
     p.add_argument("--resolution", type=float, default=0.1)
     p.add_argument("--out", type=Path, required=True, help="output directory")
 
-    p = sub.add_parser("localize", help="estimate one agent's poses offline (EKF with scan matching, or RGB-D "
-                       "visual odometry), map from them, and measure ATE against the source's reference")
-    p.add_argument("--source", dest="loc_source", required=True, metavar="SPEC",
-                   help="source spec (sim:..., replay:CARMEN_LOG, replay:RGBD_FOLDER, replay:BAG)")
+    p = sub.add_parser(
+        "localize",
+        help="estimate one agent's poses offline (EKF with scan matching, or RGB-D "
+        "visual odometry), map from them, and measure ATE against the source's reference",
+    )
+    p.add_argument(
+        "--source",
+        dest="loc_source",
+        required=True,
+        metavar="SPEC",
+        help="source spec (sim:..., replay:CARMEN_LOG, replay:RGBD_FOLDER, replay:BAG)",
+    )
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--resolution", type=float, default=0.1)
-    p.add_argument("--odometry-noise", dest="odometry_noise", default=None, metavar="MODEL",
-                   help="synthesise wheel odometry from the reference: none, low, realistic, high or "
-                        "trans/rot/rot_per_m/scale_bias/yaw_bias (docs/LOCALISATION.md)")
+    p.add_argument(
+        "--odometry-noise",
+        dest="odometry_noise",
+        default=None,
+        metavar="MODEL",
+        help="synthesise wheel odometry from the reference: none, low, realistic, high or "
+        "trans/rot/rot_per_m/scale_bias/yaw_bias (docs/LOCALISATION.md)",
+    )
     p.add_argument("--seed", type=int, default=None, help="seed of the odometry noise")
     p.add_argument("--max-frames", dest="max_frames", type=int, default=None)
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
 
     p = sub.add_parser("align", help="align map B to map A by their geometry (offline)")
-    p.add_argument("map_a", type=Path, metavar="A", help="reference map (.bt, grid .npz from `colonyd map`, .ply)")
+    p.add_argument(
+        "map_a",
+        type=Path,
+        metavar="A",
+        help="reference map (.bt, grid .npz from `colonyd map`, .ply)",
+    )
     p.add_argument("map_b", type=Path, metavar="B", help="map to align into A's frame")
-    p.add_argument("--dof", type=int, choices=[3, 4, 6], default=4,
-                   help="3: x, y, yaw (planar); 4: adds z (default); 6: full")
-    p.add_argument("--json", type=Path, required=True, metavar="OUT",
-                   help="write the result here (transform maps B's points into A's frame)")
+    p.add_argument(
+        "--dof",
+        type=int,
+        choices=[3, 4, 6],
+        default=4,
+        help="3: x, y, yaw (planar); 4: adds z (default); 6: full",
+    )
+    p.add_argument(
+        "--json",
+        type=Path,
+        required=True,
+        metavar="OUT",
+        help="write the result here (transform maps B's points into A's frame)",
+    )
 
     p = sub.add_parser("sources", help="print every source kind, what it reads and its options")
-    p.add_argument("--markdown", action="store_true", help="print Markdown (the reference in docs/SOURCES.md)")
+    p.add_argument(
+        "--markdown", action="store_true", help="print Markdown (the reference in docs/SOURCES.md)"
+    )
 
     p = sub.add_parser("bench", help="benchmarks")
     bsub = p.add_subparsers(dest="bench", required=True)
@@ -127,30 +219,53 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--json", type=Path, required=True)
     b.add_argument("--shared-data", type=Path, default=None)
     b.add_argument("--repeats", type=int, default=3)
-    b.add_argument("--only", action="append", metavar="SCENARIO",
-                   help="run this scenario (repeatable; also opt-in ones such as lidar3d_64x1024_0.05)")
+    b.add_argument(
+        "--only",
+        action="append",
+        metavar="SCENARIO",
+        help="run this scenario (repeatable; also opt-in ones such as lidar3d_64x1024_0.05)",
+    )
     b = bsub.add_parser("wire", help="wire-format benchmark")
     b.add_argument("--json", type=Path, required=True)
     b.add_argument("--shared-data", type=Path, default=None)
-    b = bsub.add_parser("align", help="map alignment: real laser halves, OctoMap crops, negatives, vs map_merge's ORB")
+    b = bsub.add_parser(
+        "align",
+        help="map alignment: real laser halves, OctoMap crops, negatives, vs map_merge's ORB",
+    )
     b.add_argument("--json", type=Path, required=True)
     b.add_argument("--shared-data", type=Path, default=None)
     b.add_argument("--seeds", type=int, default=20, help="random moves of the CARMEN halves")
-    b.add_argument("--octomap-seeds", type=int, default=10, help="random moves of the OctoMap crops")
-    b.add_argument("--negative-seeds", type=int, default=5, help="random moves of each negative pair")
+    b.add_argument(
+        "--octomap-seeds", type=int, default=10, help="random moves of the OctoMap crops"
+    )
+    b.add_argument(
+        "--negative-seeds", type=int, default=5, help="random moves of each negative pair"
+    )
     b.add_argument("--carmen-step", type=int, default=1, help="map every step-th scan of each half")
-    b.add_argument("--work-dir", type=Path, default=None, help="keep the maps here (default: a temporary folder)")
+    b.add_argument(
+        "--work-dir",
+        type=Path,
+        default=None,
+        help="keep the maps here (default: a temporary folder)",
+    )
     b = bsub.add_parser("colony", help="N daemons on loopback: propagation, catch-up, idle cost")
     b.add_argument("--json", type=Path, required=True)
     b.add_argument("--daemons", type=int, default=4)
     b.add_argument("--duration", type=float, default=10.0, help="seconds of 2 Hz gossip")
     b.add_argument("--catchup-voxels", type=int, default=1_000_000)
-    b = bsub.add_parser("faults", help="real daemons under faults: crash, partition, freeze, disk, "
-                        "busy CPU, flood, hostile input (scale with --only scale)")
+    b = bsub.add_parser(
+        "faults",
+        help="real daemons under faults: crash, partition, freeze, disk, "
+        "busy CPU, flood, hostile input (scale with --only scale)",
+    )
     b.add_argument("--json", type=Path, required=True)
-    b.add_argument("--only", action="append", metavar="SCENARIO",
-                   help="run this scenario (repeatable): crash, freeze, hostile, disk, partition, "
-                        "busy, flood, scale")
+    b.add_argument(
+        "--only",
+        action="append",
+        metavar="SCENARIO",
+        help="run this scenario (repeatable): crash, freeze, hostile, disk, partition, "
+        "busy, flood, scale",
+    )
     b.add_argument("--kills", type=int, default=20, help="SIGKILLs in the crash scenario")
     b.add_argument("--duration", type=float, default=10.0, help="seconds of 2 Hz gossip (busy)")
 
@@ -173,10 +288,14 @@ def main(argv: list[str] | None = None) -> int:
             from colonyd.logs import setup_logging
 
             setup_logging("warning")
-            frame, files = export_maps(config, args.export_out, layer=args.export_layer,
-                                       agent=args.export_agent)
-            sys.stdout.write(f"fused map in frame {frame}; wrote "
-                             + ", ".join(str(p) for p in files.values()) + "\n")
+            frame, files = export_maps(
+                config, args.export_out, layer=args.export_layer, agent=args.export_agent
+            )
+            sys.stdout.write(
+                f"fused map in frame {frame}; wrote "
+                + ", ".join(str(p) for p in files.values())
+                + "\n"
+            )
             return EXIT_OK
         if cmd == "identity":
             from colonyd.identity import identity_path, load_signer
@@ -230,14 +349,25 @@ def main(argv: list[str] | None = None) -> int:
     if cmd == "localize":
         from colonyd.localize import localize_source
 
-        s = localize_source(args.loc_source, args.out, resolution=args.resolution,
-                            odometry_noise=args.odometry_noise, seed=args.seed, max_frames=args.max_frames,
-                            progress=args.progress)
+        s = localize_source(
+            args.loc_source,
+            args.out,
+            resolution=args.resolution,
+            odometry_noise=args.odometry_noise,
+            seed=args.seed,
+            max_frames=args.max_frames,
+            progress=args.progress,
+        )
         odo = "no odometry" if s.ate_odometry is None else f"odometry {s.ate_odometry:.3f} m"
-        ate = (f"ATE {s.ate_estimate:.3f} m ({odo})"
-               if s.ate_estimate is not None else "no reference: ATE not measured")
-        sys.stdout.write(f"{s.spec}: {s.frames} frames by {s.estimator} in {s.seconds:.1f} s; {ate}\n"
-                         f"wrote {', '.join(str(p) for p in s.files.values())}\n")
+        ate = (
+            f"ATE {s.ate_estimate:.3f} m ({odo})"
+            if s.ate_estimate is not None
+            else "no reference: ATE not measured"
+        )
+        sys.stdout.write(
+            f"{s.spec}: {s.frames} frames by {s.estimator} in {s.seconds:.1f} s; {ate}\n"
+            f"wrote {', '.join(str(p) for p in s.files.values())}\n"
+        )
         return EXIT_OK
     if cmd == "align":
         return _align(args)
@@ -261,7 +391,8 @@ def _align(args: argparse.Namespace) -> int:
         sys.stdout.write(
             f"aligned (confidence {result['confidence']:.2f}): x {result['x']:.3f} y {result['y']:.3f} "
             f"z {result['z']:.3f} m, yaw {result['yaw_deg']:.2f} deg, {result['inliers']} inliers, "
-            f"RMS {result['rmse_m']} m, in {result['seconds']:.2f} s\nwrote {args.json}\n")
+            f"RMS {result['rmse_m']} m, in {result['seconds']:.2f} s\nwrote {args.json}\n"
+        )
     else:
         sys.stdout.write(f"not aligned: {result['reason']}\nwrote {args.json}\n")
     return EXIT_OK
@@ -275,9 +406,15 @@ def _bench(args: argparse.Namespace) -> int:
     elif args.bench == "align":
         from colonyd.bench.align import run_align_bench
 
-        result = run_align_bench(args.json, args.shared_data, seeds=args.seeds, octomap_seeds=args.octomap_seeds,
-                                 negative_seeds=args.negative_seeds, carmen_step=args.carmen_step,
-                                 work_dir=args.work_dir)
+        result = run_align_bench(
+            args.json,
+            args.shared_data,
+            seeds=args.seeds,
+            octomap_seeds=args.octomap_seeds,
+            negative_seeds=args.negative_seeds,
+            carmen_step=args.carmen_step,
+            work_dir=args.work_dir,
+        )
         result = {"summary": result["summary"], "json": str(args.json)}
     elif args.bench == "wire":
         from colonyd.bench.wire import run_wire_bench
@@ -286,13 +423,18 @@ def _bench(args: argparse.Namespace) -> int:
     elif args.bench == "faults":
         from colonyd.bench.faults import run_faults_bench
 
-        result = run_faults_bench(args.json, only=args.only, kills=args.kills,
-                                  duration=args.duration)
+        result = run_faults_bench(
+            args.json, only=args.only, kills=args.kills, duration=args.duration
+        )
     else:
         from colonyd.bench.colony import run_colony_bench
 
-        result = run_colony_bench(args.json, daemons=args.daemons, duration=args.duration,
-                                  catchup_voxels=args.catchup_voxels)
+        result = run_colony_bench(
+            args.json,
+            daemons=args.daemons,
+            duration=args.duration,
+            catchup_voxels=args.catchup_voxels,
+        )
     if result is not None:
         sys.stdout.write(json.dumps(result, indent=1, default=str) + "\n")
     return EXIT_OK

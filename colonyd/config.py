@@ -97,33 +97,53 @@ class Config(BaseSettings):
     sources: list[str] = Field(default_factory=list, description="source specs")
     resolution: float = Field(0.1, gt=0, le=10, description="voxel size in metres")
     block_shape: Literal["cube", "planar"] = Field(
-        "cube", description="own layer's voxel blocks: planar (8x8x1) when mapping with 2D scanners only")
+        "cube",
+        description="own layer's voxel blocks: planar (8x8x1) when mapping with 2D scanners only",
+    )
     publish_hz: float = Field(2.0, gt=0, le=100, description="own-delta publish rate")
     heartbeat_s: float = Field(1.0, gt=0, le=60, description="status heartbeat period")
     snapshot_s: float = Field(30.0, gt=0, description="own-layer snapshot period")
     inbox_size: int = Field(256, ge=8, description="bounded queue of received messages")
     inbox_mb: float = Field(128.0, gt=0, description="bytes the received-message queue may hold")
     max_layers: int = Field(256, ge=1, description="most peer layers held (hostile origins)")
-    max_peer_blocks: int = Field(100_000, ge=1, description="voxel blocks (64 voxels each) in peer layers")
-    align_s: float = Field(5.0, ge=0, description="seconds between alignment attempts with peers (0: none)")
-    align_dof: Literal[3, 4, 6] = Field(4, description="alignment degrees of freedom: 3 planar, 4 + z, 6 full")
-    anchor: str | None = Field(None, description="agent whose frame is the site frame (a surveyed CCTV)")
-    objects_s: float = Field(2.0, ge=0, description="seconds between object-list refreshes (0: no objects)")
+    max_peer_blocks: int = Field(
+        100_000, ge=1, description="voxel blocks (64 voxels each) in peer layers"
+    )
+    align_s: float = Field(
+        5.0, ge=0, description="seconds between alignment attempts with peers (0: none)"
+    )
+    align_dof: Literal[3, 4, 6] = Field(
+        4, description="alignment degrees of freedom: 3 planar, 4 + z, 6 full"
+    )
+    anchor: str | None = Field(
+        None, description="agent whose frame is the site frame (a surveyed CCTV)"
+    )
+    objects_s: float = Field(
+        2.0, ge=0, description="seconds between object-list refreshes (0: no objects)"
+    )
     structure_classes: list[int] = Field(
-        [1, 2], description="class ids that are structure (walls, floors), never objects; the sim's")
+        [1, 2], description="class ids that are structure (walls, floors), never objects; the sim's"
+    )
     ring_size: int = Field(64, ge=1, description="recent deltas kept per layer for gap repair")
     max_message_mb: float = Field(64.0, gt=0, description="largest accepted decoded message")
     query_timeout_s: float = Field(5.0, gt=0, description="range/snapshot query timeout")
     snapshot_chunk_voxels: int = Field(250_000, ge=1000, description="voxels per snapshot reply")
     colony_key: str | None = Field(None, description="shared secret; unauthenticated dropped")
     trust: Literal["off", "tofu", "list"] = Field(
-        "tofu", description="peers' identities: off, pinned on first use, or trusted_keys only")
+        "tofu", description="peers' identities: off, pinned on first use, or trusted_keys only"
+    )
     trusted_keys: dict[str, str] = Field(
-        default_factory=dict, description="agent id -> Ed25519 public key (64 hex digits) pinned in advance")
+        default_factory=dict,
+        description="agent id -> Ed25519 public key (64 hex digits) pinned in advance",
+    )
     identity_file: Path | None = Field(
-        None, description="this agent's Ed25519 key (default <state_dir>/identity.key, made on first start)")
+        None,
+        description="this agent's Ed25519 key (default <state_dir>/identity.key, made on first start)",
+    )
     export_dir: Path | None = Field(None, description="write the fused map here on shutdown")
-    drop_rate: float = Field(0.0, ge=0, lt=1, description="testing: drop this share of received deltas")
+    drop_rate: float = Field(
+        0.0, ge=0, lt=1, description="testing: drop this share of received deltas"
+    )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
     @classmethod
@@ -248,5 +268,7 @@ def _toml_value(value: Any) -> str:
     if isinstance(value, list):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
     if isinstance(value, dict):
-        return "{" + ", ".join(f"{json.dumps(k)} = {_toml_value(v)}" for k, v in value.items()) + "}"
+        return (
+            "{" + ", ".join(f"{json.dumps(k)} = {_toml_value(v)}" for k, v in value.items()) + "}"
+        )
     return json.dumps(str(value))

@@ -53,15 +53,18 @@ def get_store(config: Config) -> StateStore:
 def get_sources(config: Config, stop: threading.Event) -> list[Source]:
     """The configured sources; those whose spec sets no seed take one derived from the agent id."""
     seed = zlib.crc32(config.agent_id.encode()) % (1 << 16)
-    return [open_source(spec, resolution=config.resolution, seed=seed + i, stop=stop)
-            for i, spec in enumerate(config.sources)]
+    return [
+        open_source(spec, resolution=config.resolution, seed=seed + i, stop=stop)
+        for i, spec in enumerate(config.sources)
+    ]
 
 
 class Daemon:
     """One colony member. `run()` reads as the table of contents of its life."""
 
-    def __init__(self, config: Config, config_path: Path | None = None,
-                 flags: dict[str, Any] | None = None) -> None:
+    def __init__(
+        self, config: Config, config_path: Path | None = None, flags: dict[str, Any] | None = None
+    ) -> None:
         self.config = config
         self._config_path = config_path
         self._flags = flags or {}
@@ -88,16 +91,25 @@ class Daemon:
         cfg = self.config
         self.store = get_store(cfg)
         try:
-            self._sources = get_sources(cfg, self.stop)  # bad specs fail before the network is touched
+            self._sources = get_sources(
+                cfg, self.stop
+            )  # bad specs fail before the network is touched
             self._recover()
             self.session = get_session(cfg)
             try:
                 self._refuse_duplicate()
                 self._declare()
                 self._start_threads()
-                self.notifier.ready(f"colony {cfg.colony} agent {cfg.agent_id} seq {self.layers.own.seq}")
-                log.info("ready: colony %s, agent %s, epoch %d, seq %d", cfg.colony, cfg.agent_id,
-                         self.epoch, self.layers.own.seq)
+                self.notifier.ready(
+                    f"colony {cfg.colony} agent {cfg.agent_id} seq {self.layers.own.seq}"
+                )
+                log.info(
+                    "ready: colony %s, agent %s, epoch %d, seq %d",
+                    cfg.colony,
+                    cfg.agent_id,
+                    self.epoch,
+                    self.layers.own.seq,
+                )
                 self._main_loop()
                 self.notifier.stopping()
                 log.info("stopping")
@@ -124,22 +136,41 @@ class Daemon:
         self.epoch = rec.epoch
         cfg = self.config
         signer = load_signer(identity_path(cfg.identity_file, cfg.state_dir))
-        self.sender = Sender(cfg.agent_id, rec.epoch, key=colony_key(cfg.colony_key), signer=signer,
-                             first_seq=rec.frame_seq, reserve=self.store.reserve_frames)
-        self.layers = Layers(cfg.agent_id, cfg.resolution, ring_size=cfg.ring_size,
-                             max_layers=cfg.max_layers, max_peer_blocks=cfg.max_peer_blocks)
+        self.sender = Sender(
+            cfg.agent_id,
+            rec.epoch,
+            key=colony_key(cfg.colony_key),
+            signer=signer,
+            first_seq=rec.frame_seq,
+            reserve=self.store.reserve_frames,
+        )
+        self.layers = Layers(
+            cfg.agent_id,
+            cfg.resolution,
+            ring_size=cfg.ring_size,
+            max_layers=cfg.max_layers,
+            max_peer_blocks=cfg.max_peer_blocks,
+        )
         own = self.layers.own
         own.grid, own.epoch, own.seq = rec.grid, rec.epoch, rec.seq
         self._published_local = rec.published  # changes after it were never logged: send them
-        log.info("state %s: %s, epoch %d, seq %d, %d log records replayed, layer digest %s",
-                 self.config.state_dir, "fresh" if rec.fresh else "recovered", rec.epoch, rec.seq,
-                 rec.wal_records, own.digest())
+        log.info(
+            "state %s: %s, epoch %d, seq %d, %d log records replayed, layer digest %s",
+            self.config.state_dir,
+            "fresh" if rec.fresh else "recovered",
+            rec.epoch,
+            rec.seq,
+            rec.wal_records,
+            own.digest(),
+        )
 
     def _duplicate(self, detail: str) -> str:
         cfg = self.config
-        return (f"agent id {cfg.agent_id!r} is already in use in colony {cfg.colony!r} "
-                f"(namespace {cfg.key_namespace!r}): {detail}; expected every daemon to have "
-                "its own agent_id")
+        return (
+            f"agent id {cfg.agent_id!r} is already in use in colony {cfg.colony!r} "
+            f"(namespace {cfg.key_namespace!r}): {detail}; expected every daemon to have "
+            "its own agent_id"
+        )
 
     def _refuse_duplicate(self) -> None:
         """Refuse to start (before anything is declared or sent) if our agent id is taken."""
@@ -167,19 +198,30 @@ class Daemon:
         cfg = self.config
         ns = cfg.key_namespace
         self.gossip = Gossip(
-            self.session, ns, self.layers, self.sender,
-            get_receiver(cfg.colony_key, cfg.max_message_mb, cfg.agent_id,
-                         get_trust(cfg.trust, cfg.trusted_keys, cfg.state_dir)), self.metrics,
-            epoch=self.epoch, on_own_origin=self._on_own_origin,
-            inbox_size=cfg.inbox_size, inbox_bytes=int(cfg.inbox_mb * (1 << 20)),
+            self.session,
+            ns,
+            self.layers,
+            self.sender,
+            get_receiver(
+                cfg.colony_key,
+                cfg.max_message_mb,
+                cfg.agent_id,
+                get_trust(cfg.trust, cfg.trusted_keys, cfg.state_dir),
+            ),
+            self.metrics,
+            epoch=self.epoch,
+            on_own_origin=self._on_own_origin,
+            inbox_size=cfg.inbox_size,
+            inbox_bytes=int(cfg.inbox_mb * (1 << 20)),
             drop_rate=cfg.drop_rate,
             query_timeout_s=cfg.query_timeout_s,
             chunk_voxels=cfg.snapshot_chunk_voxels,
         )
         self.membership = Membership(self.session, ns, cfg.agent_id, self.gossip.on_member_event)
         self.status_server = StatusServer(self.session, ns, cfg.agent_id, self.report)
-        self.export_server = StatusServer(self.session, ns, cfg.agent_id, self.export_map,
-                                          report="export")
+        self.export_server = StatusServer(
+            self.session, ns, cfg.agent_id, self.export_map, report="export"
+        )
         self.gossip.start(self.membership)
 
     def _start_threads(self) -> None:
@@ -189,10 +231,12 @@ class Daemon:
         ]
         if self.config.objects_s > 0:
             self._threads.append(
-                threading.Thread(target=self._objects_loop, name="objects", daemon=True))
+                threading.Thread(target=self._objects_loop, name="objects", daemon=True)
+            )
         if self.config.align_s > 0:
             self._threads.append(
-                threading.Thread(target=self._align_loop, name="alignment", daemon=True))
+                threading.Thread(target=self._align_loop, name="alignment", daemon=True)
+            )
         for t in self._threads:
             t.start()
 
@@ -244,11 +288,16 @@ class Daemon:
     def _export(self, directory: Path) -> None:
         try:
             directory.mkdir(parents=True, exist_ok=True)
-            keys, lo = fused(self.layers.all(), self.config.resolution,
-                             self.colony_frame().transforms)
+            keys, lo = fused(
+                self.layers.all(), self.config.resolution, self.colony_frame().transforms
+            )
             write_fused(directory / self.config.agent_id, keys, lo, self.config.resolution)
-            log.info("fused map of %d layers (%d voxels) written to %s", len(self.layers.all()),
-                     len(keys), directory)
+            log.info(
+                "fused map of %d layers (%d voxels) written to %s",
+                len(self.layers.all()),
+                len(keys),
+                directory,
+            )
         except OSError as exc:
             log.error("cannot write the fused map to %s: %s", directory, exc)
 
@@ -264,11 +313,16 @@ class Daemon:
         live = {"publish_hz", "heartbeat_s", "snapshot_s", "log_level", "kind", "query_timeout_s"}
         changed = [k for k in type(new).model_fields if getattr(new, k) != getattr(self.config, k)]
         restart = [k for k in changed if k not in live]
-        self.config = self.config.model_copy(update={k: getattr(new, k) for k in changed if k in live})
+        self.config = self.config.model_copy(
+            update={k: getattr(new, k) for k in changed if k in live}
+        )
         logging.getLogger().setLevel(self.config.log_level.upper())
         self.gossip.catchup.query_timeout_s = self.config.query_timeout_s
-        log.info("reloaded: %s%s", ", ".join(k for k in changed if k in live) or "nothing changed",
-                 f"; restart needed for {', '.join(restart)}" if restart else "")
+        log.info(
+            "reloaded: %s%s",
+            ", ".join(k for k in changed if k in live) or "nothing changed",
+            f"; restart needed for {', '.join(restart)}" if restart else "",
+        )
         self.notifier.ready()
 
     # -- mapping (never waits on the network) ---------------------------------------------
@@ -296,8 +350,13 @@ class Daemon:
 
     def _integrate(self, own: Any, obs: Observation, source: Source) -> None:
         with own.lock:
-            integrate_observation(own.grid, obs, sensor=source.adapter.sensor_model,
-                                  reliability=source.adapter.reliability, agent=self.config.agent_id)
+            integrate_observation(
+                own.grid,
+                obs,
+                sensor=source.adapter.sensor_model,
+                reliability=source.adapter.reliability,
+                agent=self.config.agent_id,
+            )
         self.objects.observe(obs)
         self.pose = [float(v) for v in obs.origin]
 
@@ -306,8 +365,11 @@ class Daemon:
         attempted: dict[str, int] = {}  # peer -> own seq + its seq at our last attempt
         while not self.stop.wait(self.config.align_s):
             own = self.layers.own
-            grown = {layer.origin: own.seq + layer.seq - attempted.get(layer.origin, 0)
-                     for layer in self.layers.all() if layer.origin != own.origin and layer.seq}
+            grown = {
+                layer.origin: own.seq + layer.seq - attempted.get(layer.origin, 0)
+                for layer in self.layers.all()
+                if layer.origin != own.origin and layer.seq
+            }
             if own.seq == 0 or not grown or max(grown.values()) <= 0:
                 continue
             origin = max(grown, key=lambda o: (grown[o], o))  # the pair with most new data
@@ -364,7 +426,11 @@ class Daemon:
         own = self.layers.own
         with own.lock:
             version = int(own.grid.version)
-            delta = own.grid.delta_since(self._published_local) if version != self._published_local else None
+            delta = (
+                own.grid.delta_since(self._published_local)
+                if version != self._published_local
+                else None
+            )
         wrote = False
         if delta is not None and len(delta):
             created = time.time()
@@ -373,7 +439,8 @@ class Daemon:
             # disk flushes); if the log cannot take it (disk full), nothing is published and
             # the same changes are tried again next time.
             encoded = self.store.append(
-                seq, delta, meanwhile=lambda: self.gossip.encode_own(prev, seq, delta, created))
+                seq, delta, meanwhile=lambda: self.gossip.encode_own(prev, seq, delta, created)
+            )
             wrote = True
             logged = time.time()
             self.gossip.publish_own(prev, seq, delta, created, encoded)
@@ -396,8 +463,11 @@ class Daemon:
         now = time.monotonic()
         if str(exc) != self.state_error or now - self._state_error_logged > 10.0:
             self._state_error_logged = now
-            log.error("%s; mapping and replicas go on, own deltas wait until the state "
-                      "directory takes writes again", exc)
+            log.error(
+                "%s; mapping and replicas go on, own deltas wait until the state "
+                "directory takes writes again",
+                exc,
+            )
         self.state_error = str(exc)
 
     # -- export (a live map for `colonyd export`) -----------------------------------------
@@ -411,17 +481,28 @@ class Daemon:
                 return None
             full = layer.full()
             known = ~np.isnan(full.logodds)
-            return encode_map(agent, layer_id, frame_of(layer_id), layer.resolution,
-                              full.keys[known], full.logodds[known], [])
+            return encode_map(
+                agent,
+                layer_id,
+                frame_of(layer_id),
+                layer.resolution,
+                full.keys[known],
+                full.logodds[known],
+                [],
+            )
         frame = self.colony_frame()
         keys, lo = fused(self.layers.all(), res, frame.transforms)
-        return encode_map(agent, None, frame_of(frame.root), res, keys, lo, sorted(frame.transforms))
+        return encode_map(
+            agent, None, frame_of(frame.root), res, keys, lo, sorted(frame.transforms)
+        )
 
     # -- status ---------------------------------------------------------------------------
     def _colony_report(self) -> dict[str, Any]:
         frame = self.colony_frame()
-        return {"root": frame.root,
-                "agents": {a: np.round(t, 6).tolist() for a, t in sorted(frame.transforms.items())}}
+        return {
+            "root": frame.root,
+            "agents": {a: np.round(t, 6).tolist() for a, t in sorted(frame.transforms.items())},
+        }
 
     def report(self, params: dict[str, str]) -> dict[str, Any]:
         want_digest = params.get("digest") == "1"
@@ -429,9 +510,13 @@ class Daemon:
         for layer in self.layers.all():
             if layer.seq == 0 and layer.origin != self.config.agent_id:
                 continue
-            entry: dict[str, Any] = {"epoch": layer.epoch, "seq": layer.seq,
-                                     "voxels": layer.voxels(), "updated": layer.updated,
-                                     "pending": len(layer.pending)}
+            entry: dict[str, Any] = {
+                "epoch": layer.epoch,
+                "seq": layer.seq,
+                "voxels": layer.voxels(),
+                "updated": layer.updated,
+                "pending": len(layer.pending),
+            }
             if want_digest:
                 entry["digest"] = layer.digest()
             layers[layer.origin] = entry
@@ -455,18 +540,30 @@ class Daemon:
             "state_error": self.state_error,
             "layers": layers,
             "objects": [
-                {"id": o.object_id, "class": o.class_id, "position": [float(x) for x in o.position],
-                 "voxels": o.voxel_count}
+                {
+                    "id": o.object_id,
+                    "class": o.class_id,
+                    "position": [float(x) for x in o.position],
+                    "voxels": o.voxel_count,
+                }
                 for o in self.objects.current
             ],
             "peer_objects": {
-                origin: [{"id": o.object_id, "class": o.class_id, "position": list(o.position)}
-                         for o in self.gossip.peer_objects.get(origin)]
+                origin: [
+                    {"id": o.object_id, "class": o.class_id, "position": list(o.position)}
+                    for o in self.gossip.peer_objects.get(origin)
+                ]
                 for origin in self.gossip.peer_objects.origins()
             },
             "members": [
-                {"agent": m.agent, "alive": m.alive, "kind": m.kind, "last_seen": m.last_seen,
-                 "pose": m.pose, "layers": {o: list(v) for o, v in m.layers.items()}}
+                {
+                    "agent": m.agent,
+                    "alive": m.alive,
+                    "kind": m.kind,
+                    "last_seen": m.last_seen,
+                    "pose": m.pose,
+                    "layers": {o: list(v) for o, v in m.layers.items()},
+                }
                 for m in self.membership.table()
             ],
             "metrics": self.metrics.snapshot(samples=params.get("samples") == "1"),
@@ -478,8 +575,9 @@ def _pose_text(t: Any) -> str:
     return f"x {t[0, 3]:.2f} y {t[1, 3]:.2f} z {t[2, 3]:.2f} m, yaw {yaw:.1f} deg"
 
 
-def run_daemon(config: Config, config_path: Path | None = None,
-               flags: dict[str, Any] | None = None) -> int:
+def run_daemon(
+    config: Config, config_path: Path | None = None, flags: dict[str, Any] | None = None
+) -> int:
     """Run until SIGTERM/SIGINT; returns the exit code."""
     setup_logging(config.log_level, agent=config.agent_id)
     # A thread waiting for the GIL (a Zenoh callback, the inbox, the publisher) gets it within

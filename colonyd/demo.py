@@ -32,24 +32,34 @@ def run_demo(out: Path, *, daemons: int = 3, timeout: float = 45.0) -> int:
     try:
         agents = [f"robot-{i + 1}" for i in range(daemons)]
         for i, agent in enumerate(agents):
-            colony.add(agent, demo_sources(i), extra=["--export-dir", str(out)])  # waits for the hub
+            colony.add(
+                agent, demo_sources(i), extra=["--export-dir", str(out)]
+            )  # waits for the hub
         colony.wait_members(daemons, timeout=20)
         started = time.monotonic()
         colony.wait_converged(timeout, agents)
         converged_s = time.monotonic() - started
         reports = colony.status(digest=True)
-        lines = [(f"colony 'demo' (namespace {colony.namespace}): {len(reports)} members, "
-                  f"converged {converged_s:.1f} s after all joined")]
+        lines = [
+            (
+                f"colony 'demo' (namespace {colony.namespace}): {len(reports)} members, "
+                f"converged {converged_s:.1f} s after all joined"
+            )
+        ]
         total_bytes = 0
         for r in reports:
             counts = r["metrics"]["counts"]
             sent = int(counts.get("bytes_published", 0)) + int(counts.get("bytes_served", 0))
             total_bytes += sent
-            layers = ", ".join(f"{o}: {v['voxels']} voxels @ seq {v['seq']}"
-                               for o, v in sorted(r["layers"].items()))
+            layers = ", ".join(
+                f"{o}: {v['voxels']} voxels @ seq {v['seq']}"
+                for o, v in sorted(r["layers"].items())
+            )
             lines.append(f"  {r['agent']:<9} sent {sent / 1024:8.1f} KiB  layers {layers}")
-        lines.append(f"  gossiped {total_bytes / 1024:.1f} KiB in total; every replica equals its "
-                     "origin (digests match)")
+        lines.append(
+            f"  gossiped {total_bytes / 1024:.1f} KiB in total; every replica equals its "
+            "origin (digests match)"
+        )
         colony.close()  # each daemon writes its fused view into `out` as it stops
         written = sorted(p.name for p in out.iterdir() if p.suffix in (".ply", ".bt"))
         lines.append(f"  maps written to {out}: {', '.join(written)}")
@@ -59,4 +69,3 @@ def run_demo(out: Path, *, daemons: int = 3, timeout: float = 45.0) -> int:
     finally:
         colony.close()
         shutil.rmtree(work, ignore_errors=True)
-

@@ -36,14 +36,29 @@ class MapReply:
     layers: list[str] = field(default_factory=list)
 
 
-def encode_map(agent: str, layer: str | None, frame: str, resolution: float, keys: np.ndarray,
-               logodds: np.ndarray, layers: list[str]) -> bytes:
+def encode_map(
+    agent: str,
+    layer: str | None,
+    frame: str,
+    resolution: float,
+    keys: np.ndarray,
+    logodds: np.ndarray,
+    layers: list[str],
+) -> bytes:
     """The bytes a daemon answers an export query with."""
-    return msgpack.packb({
-        "agent": agent, "layer": layer, "frame": frame, "resolution": float(resolution),
-        "n": len(keys), "keys": np.ascontiguousarray(keys, "<i4").tobytes(),
-        "logodds": np.ascontiguousarray(logodds, "<f4").tobytes(), "layers": layers,
-    }, use_bin_type=True)
+    return msgpack.packb(
+        {
+            "agent": agent,
+            "layer": layer,
+            "frame": frame,
+            "resolution": float(resolution),
+            "n": len(keys),
+            "keys": np.ascontiguousarray(keys, "<i4").tobytes(),
+            "logodds": np.ascontiguousarray(logodds, "<f4").tobytes(),
+            "layers": layers,
+        },
+        use_bin_type=True,
+    )
 
 
 def decode_map(data: bytes) -> MapReply:
@@ -51,19 +66,30 @@ def decode_map(data: bytes) -> MapReply:
     try:
         d = msgpack.unpackb(data, raw=False, max_bin_len=MAX_EXPORT_VOXELS * 12)
         n = int(d["n"])
-        if not 0 <= n <= MAX_EXPORT_VOXELS or len(d["keys"]) != 12 * n or len(d["logodds"]) != 4 * n:
+        if (
+            not 0 <= n <= MAX_EXPORT_VOXELS
+            or len(d["keys"]) != 12 * n
+            or len(d["logodds"]) != 4 * n
+        ):
             msg = f"expected {n} voxels of 12 key and 4 log-odds bytes, found other sizes"
             raise ValueError(msg)
         resolution = float(d["resolution"])
         if not 0 < resolution <= 10:
             raise ValueError(f"expected a resolution in (0, 10] m, found {resolution}")
         layers = [str(x) for x in d.get("layers", [])]
-        return MapReply(str(d["agent"]), None if d["layer"] is None else str(d["layer"]),
-                        str(d["frame"]), resolution,
-                        np.frombuffer(d["keys"], "<i4").reshape(n, 3).astype(np.int64),
-                        np.frombuffer(d["logodds"], "<f4").astype(np.float32), layers)
+        return MapReply(
+            str(d["agent"]),
+            None if d["layer"] is None else str(d["layer"]),
+            str(d["frame"]),
+            resolution,
+            np.frombuffer(d["keys"], "<i4").reshape(n, 3).astype(np.int64),
+            np.frombuffer(d["logodds"], "<f4").astype(np.float32),
+            layers,
+        )
     except (ValueError, KeyError, TypeError, msgpack.exceptions.ExtraData) as exc:
-        msg = f"export reply: expected a map (agent, frame, resolution, keys, log-odds), found: {exc}"
+        msg = (
+            f"export reply: expected a map (agent, frame, resolution, keys, log-odds), found: {exc}"
+        )
         raise StatusError(msg) from None
 
 
@@ -77,19 +103,31 @@ def write_maps(reply: MapReply, out: Path, stem: str) -> dict[str, Path]:
     write_ply(files[f"{stem}.ply"], vk.keys_to_centers(reply.keys[occupied], reply.resolution))
     z = reply.keys[occupied, 2]
     if stem == "fused" and z.size and z.min() == z.max():
-        files.update(write_floor_plan(out, reply.keys[occupied], reply.keys[~occupied], int(z[0]),
-                                      reply.resolution))
+        files.update(
+            write_floor_plan(
+                out, reply.keys[occupied], reply.keys[~occupied], int(z[0]), reply.resolution
+            )
+        )
     return files
 
 
 def _ask(session: zenoh.Session, namespace: str, params: str, timeout: float) -> list[MapReply]:
-    replies = session.get(status_selector(namespace, EXPORT) + (f"?{params}" if params else ""),
-                          consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout)
+    replies = session.get(
+        status_selector(namespace, EXPORT) + (f"?{params}" if params else ""),
+        consolidation=zenoh.ConsolidationMode.NONE,
+        timeout=timeout,
+    )
     return [decode_map(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
 
 
-def export_maps(config: Config, out: Path, *, layer: str | None = None, agent: str | None = None,
-                wait_s: float = 5.0) -> tuple[str, dict[str, Path]]:
+def export_maps(
+    config: Config,
+    out: Path,
+    *,
+    layer: str | None = None,
+    agent: str | None = None,
+    wait_s: float = 5.0,
+) -> tuple[str, dict[str, Path]]:
     """Fetch the fused map in the colony frame and every layer's map (or one `layer`) from a
     running colony (the daemon `agent`, or the first to answer) and write them into `out`;
     returns the fused map's frame and the files."""
@@ -105,16 +143,24 @@ def export_maps(config: Config, out: Path, *, layer: str | None = None, agent: s
     if out.exists() and not out.is_dir():
         msg = f"--out: expected a directory, found a file: {out}"
         raise StatusError(msg)
-    conf = zenoh_config(mode="peer", listen=config.listen or ["tcp/127.0.0.1:0"],
-                        connect=config.connect, multicast=config.multicast,
-                        multicast_port=config.multicast_port,
-                        multicast_interface=config.multicast_interface, gossip=True)
+    conf = zenoh_config(
+        mode="peer",
+        listen=config.listen or ["tcp/127.0.0.1:0"],
+        connect=config.connect,
+        multicast=config.multicast,
+        multicast_port=config.multicast_port,
+        multicast_interface=config.multicast_interface,
+        gossip=True,
+    )
     session = open_session(conf)
     try:
         deadline = time.monotonic() + wait_s
         while True:
-            fused = [r for r in _ask(session, config.key_namespace, "", 5.0)
-                     if agent is None or r.agent == agent]
+            fused = [
+                r
+                for r in _ask(session, config.key_namespace, "", 5.0)
+                if agent is None or r.agent == agent
+            ]
             if fused or time.monotonic() >= deadline:
                 break
             time.sleep(0.3)
@@ -128,8 +174,11 @@ def export_maps(config: Config, out: Path, *, layer: str | None = None, agent: s
         if layer is None:
             files.update(write_maps(source, out, "fused"))
         for name in wanted:
-            got = [r for r in _ask(session, config.key_namespace, f"layer={name}", 10.0)
-                   if r.agent == source.agent]
+            got = [
+                r
+                for r in _ask(session, config.key_namespace, f"layer={name}", 10.0)
+                if r.agent == source.agent
+            ]
             if not got:
                 msg = f"daemon {source.agent!r} holds no layer {name!r}"
                 raise StatusError(msg)
@@ -137,4 +186,3 @@ def export_maps(config: Config, out: Path, *, layer: str | None = None, agent: s
         return source.frame, files
     finally:
         session.close()
-

@@ -54,12 +54,12 @@ def get_limits(max_message_mb: float) -> Limits:
     return Limits(max_message_bytes=size, max_body_bytes=size)
 
 
-def get_receiver(secret: str | None, max_message_mb: float, own: str,
-                 trust: Trust | None = None) -> Receiver:
+def get_receiver(
+    secret: str | None, max_message_mb: float, own: str, trust: Trust | None = None
+) -> Receiver:
     """The daemon's one decoding front door (key, limits, replay window, key-vs-origin check,
     frames claiming our own origin `own` refused, peers' signatures checked by `trust`)."""
-    return Receiver(key=colony_key(secret), limits=get_limits(max_message_mb), own=own,
-                    trust=trust)
+    return Receiver(key=colony_key(secret), limits=get_limits(max_message_mb), own=own, trust=trust)
 
 
 def expect(msg: Message, cls: type[Message], what: str) -> Any:

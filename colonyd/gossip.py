@@ -54,20 +54,48 @@ class Gossip:
         replicas = Replicas(layers, metrics)
         self.peer_objects = PeerObjects(layers.max_layers)
         self.alignments = Alignments(layers.max_layers)
-        self.publisher = Publisher(session, namespace, layers, sender, metrics, epoch=epoch,
-                                   part_bytes=part_bytes)
-        self.catchup = CatchUp(session, namespace, replicas, sender, receiver, metrics,
-                               query_timeout_s=query_timeout_s, part_bytes=part_bytes,
-                               stop=self.stop)
-        self.inbox = Inbox(session, namespace, replicas, receiver, metrics, self.peer_objects,
-                           self.alignments,
-                           request_repair=self.catchup.request,
-                           send_heartbeat=self.publisher.hb_now.set, on_own_origin=on_own_origin,
-                           size=inbox_size, max_bytes=inbox_bytes, drop_rate=drop_rate,
-                           stop=self.stop)
-        self.server = LayerServer(session, namespace, layers, sender, receiver, metrics,
-                                  epoch=epoch, chunk_voxels=chunk_voxels, part_bytes=part_bytes,
-                                  stop=self.stop)
+        self.publisher = Publisher(
+            session, namespace, layers, sender, metrics, epoch=epoch, part_bytes=part_bytes
+        )
+        self.catchup = CatchUp(
+            session,
+            namespace,
+            replicas,
+            sender,
+            receiver,
+            metrics,
+            query_timeout_s=query_timeout_s,
+            part_bytes=part_bytes,
+            stop=self.stop,
+        )
+        self.inbox = Inbox(
+            session,
+            namespace,
+            replicas,
+            receiver,
+            metrics,
+            self.peer_objects,
+            self.alignments,
+            request_repair=self.catchup.request,
+            send_heartbeat=self.publisher.hb_now.set,
+            on_own_origin=on_own_origin,
+            size=inbox_size,
+            max_bytes=inbox_bytes,
+            drop_rate=drop_rate,
+            stop=self.stop,
+        )
+        self.server = LayerServer(
+            session,
+            namespace,
+            layers,
+            sender,
+            receiver,
+            metrics,
+            epoch=epoch,
+            chunk_voxels=chunk_voxels,
+            part_bytes=part_bytes,
+            stop=self.stop,
+        )
         self.hb_now = self.publisher.hb_now  # set on a join: send our heartbeat without waiting
 
     def start(self, membership: Membership) -> None:
@@ -86,12 +114,20 @@ class Gossip:
         """Liveliness join or leave (on a Zenoh thread: only enqueues)."""
         self.inbox.on_member_event(agent, event)
 
-    def publish_own(self, prev: int, seq: int, delta: Delta, created: float,
-                    encoded: tuple[Delta, list[bytes]] | None = None) -> int:
+    def publish_own(
+        self,
+        prev: int,
+        seq: int,
+        delta: Delta,
+        created: float,
+        encoded: tuple[Delta, list[bytes]] | None = None,
+    ) -> int:
         """Publish an own delta (already logged); returns the bytes sent."""
         return self.publisher.publish_own(prev, seq, delta, created, encoded)
 
-    def encode_own(self, prev: int, seq: int, delta: Delta, created: float) -> tuple[Delta, list[bytes]]:
+    def encode_own(
+        self, prev: int, seq: int, delta: Delta, created: float
+    ) -> tuple[Delta, list[bytes]]:
         """Frames of an own delta, made before it is logged (nothing sent)."""
         return self.publisher.encode_own(prev, seq, delta, created)
 

@@ -55,7 +55,9 @@ class Pins:
             return {}
         try:
             data = json.loads(self.path.read_text())
-            return {str(a): parse_public(str(k), f"{self.path} entry {a!r}") for a, k in data.items()}
+            return {
+                str(a): parse_public(str(k), f"{self.path} entry {a!r}") for a, k in data.items()
+            }
         except (OSError, ValueError, AttributeError, IdentityError) as exc:
             msg = f"{self.path}: expected a JSON object of agent -> hex public key, found: {exc}"
             raise PersistenceError(msg) from None
@@ -70,8 +72,12 @@ class Pins:
             except OSError as exc:
                 log.error("cannot pin %s's key in %s: %s", agent, self.path, exc.strerror)
                 return
-        log.warning("pinned the identity of %s on first use: %s (a different key for it is "
-                    "refused from now on)", agent, key.hex())
+        log.warning(
+            "pinned the identity of %s on first use: %s (a different key for it is "
+            "refused from now on)",
+            agent,
+            key.hex(),
+        )
 
 
 def get_trust(mode: TrustMode, trusted_keys: dict[str, str], state_dir: Path) -> Trust:
@@ -89,4 +95,3 @@ def get_trust(mode: TrustMode, trusted_keys: dict[str, str], state_dir: Path) ->
 def identity_path(identity_file: Path | None, state_dir: Path) -> Path:
     """Where this agent's private key lives: `identity_file`, else the state directory's."""
     return identity_file if identity_file is not None else state_dir / IDENTITY
-

@@ -65,9 +65,14 @@ class Inbox:
         self._drop_rate = drop_rate
         self._rng = random.Random()
         self._worker: Worker[Item] = Worker(
-            "gossip-inbox", self._handle, Bounded(size, max_bytes, weigh=lambda item: len(item[2])),
-            metrics=metrics, hostile=True, drops="inbox_dropped",
-            describe=lambda item: f"{item[0]} on {item[1]}", stop=stop,
+            "gossip-inbox",
+            self._handle,
+            Bounded(size, max_bytes, weigh=lambda item: len(item[2])),
+            metrics=metrics,
+            hostile=True,
+            drops="inbox_dropped",
+            describe=lambda item: f"{item[0]} on {item[1]}",
+            stop=stop,
         )
         remote = zenoh.Locality.REMOTE
         self._subs = [
@@ -145,7 +150,9 @@ class Inbox:
             raise WireError("inexact", "expected an exact delta, found a free-space summary")
         d = msg.delta
         self.replicas.admit(msg.origin, msg.epoch, [d])
-        accept(self.receiver, self.metrics, msg, raw)  # only now: a frame refused above moved no window
+        accept(
+            self.receiver, self.metrics, msg, raw
+        )  # only now: a frame refused above moved no window
         delta = self.parts.add(
             (msg.origin, msg.epoch, d.from_version, d.to_version), msg.part, msg.parts, d
         )
@@ -153,7 +160,9 @@ class Inbox:
             return
         if self.replicas.offer(msg.origin, msg.epoch, delta, admitted=msg.parts == 1):
             self._request_repair(msg.origin, [msg.origin])
-        self.metrics.stage("in", msg.origin, delta.to_version, queued, dequeued, decoded, time.time())
+        self.metrics.stage(
+            "in", msg.origin, delta.to_version, queued, dequeued, decoded, time.time()
+        )
 
     def _handle_hb(self, key: str, raw: bytes) -> None:
         msg = expect(self.receiver.decode(raw, key_expr=key), Heartbeat, f"on {key}")

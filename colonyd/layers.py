@@ -39,7 +39,9 @@ def relabel(delta: Delta, from_version: int, to_version: int, time: float | None
 def delta_nbytes(delta: Delta) -> int:
     """Bytes held by the arrays of a delta."""
     return int(
-        delta.keys.nbytes + delta.logodds.nbytes + delta.last_time.nbytes
+        delta.keys.nbytes
+        + delta.logodds.nbytes
+        + delta.last_time.nbytes
         + sum(v.nbytes for v in delta.channels.values())
     )
 
@@ -102,8 +104,10 @@ class Layer:
                 return Applied("duplicate")
             if prev > self.seq:
                 held = sum(delta_nbytes(v[2]) for v in self.pending.values())
-                if (len(self.pending) >= self.pending_size
-                        or held + delta_nbytes(delta) > self.ring_max_bytes):
+                if (
+                    len(self.pending) >= self.pending_size
+                    or held + delta_nbytes(delta) > self.ring_max_bytes
+                ):
                     self.pending.clear()  # bounded: a range query or a snapshot repairs it
                 self.pending[seq] = (prev, created, delta)
                 return Applied("reset" if reset else "gap", missing=(self.seq, prev))
@@ -167,7 +171,9 @@ class Layer:
                 return 0
             pending = self.pending if epoch == self.epoch else {}
             self._reset(epoch)
-            self._fit_blocks(np.concatenate([c.keys for c in chunks]) if chunks else np.empty((0, 3)))
+            self._fit_blocks(
+                np.concatenate([c.keys for c in chunks]) if chunks else np.empty((0, 3))
+            )
             n = 0
             for chunk in chunks:
                 if len(chunk):
@@ -290,7 +296,9 @@ class Layers:
         a snapshot): not our own layer, room for a new layer, the layer's resolution, and the
         peer block budget counted in the block shape the replica will use. Changes nothing."""
         if origin == self.own_id:
-            raise WireError("own-origin", f"expected another agent's layer, found our own {origin!r}")
+            raise WireError(
+                "own-origin", f"expected another agent's layer, found our own {origin!r}"
+            )
         layer = self.find(origin)
         resolutions = {float(d.resolution) for d in deltas}
         if layer is None:
@@ -299,26 +307,34 @@ class Layers:
                 raise WireError("too-many-layers", text)
             bad = [r for r in resolutions if not 0 < r <= 10]
             if bad:
-                raise WireError("bad-resolution", f"expected a resolution in (0, 10] m, found {bad[0]}")
+                raise WireError(
+                    "bad-resolution", f"expected a resolution in (0, 10] m, found {bad[0]}"
+                )
             layer = Layer(origin, deltas[0].resolution if deltas else self.resolution)
         bad = [r for r in resolutions if abs(r - layer.resolution) > 1e-12]
         if bad:
-            raise WireError("bad-resolution", f"expected resolution {layer.resolution}, found {bad[0]}")
+            raise WireError(
+                "bad-resolution", f"expected resolution {layer.resolution}, found {bad[0]}"
+            )
         used = sum(p.blocks() for p in self.all() if p.origin != self.own_id)
         keys = [d.keys for d in deltas]
         if replace:
             used -= layer.blocks()
             voxels = sum(len(k) for k in keys)
             if voxels > (self.max_peer_blocks - used) * BLOCK_VOXELS:  # too many to count blocks
-                text = (f"expected peer layers within {self.max_peer_blocks} blocks, found {used} "
-                        f"held + a snapshot of {voxels} voxels for {origin!r}")
+                text = (
+                    f"expected peer layers within {self.max_peer_blocks} blocks, found {used} "
+                    f"held + a snapshot of {voxels} voxels for {origin!r}"
+                )
                 raise WireError("over-budget", text)
             new = layer.new_blocks(np.concatenate(keys) if keys else np.empty((0, 3)), replace=True)
         else:
             new = sum(layer.new_blocks(k) for k in keys)
         if used + new > self.max_peer_blocks:
-            text = (f"expected peer layers within {self.max_peer_blocks} blocks, "
-                    f"found {used} held + {new} new for {origin!r}")
+            text = (
+                f"expected peer layers within {self.max_peer_blocks} blocks, "
+                f"found {used} held + {new} new for {origin!r}"
+            )
             raise WireError("over-budget", text)
 
     def get(self, origin: str, resolution: float | None = None) -> Layer:
@@ -372,8 +388,9 @@ def fused(
         keys, lo = full.keys[known], full.logodds[known].astype(np.float64)
         if t is not None:
             centres = vk.keys_to_centers(keys, layer.resolution) @ t[:3, :3].T + t[:3, 3]
-            packed, inv = np.unique(vk.pack(vk.points_to_keys(centres, resolution)),
-                                    return_inverse=True)
+            packed, inv = np.unique(
+                vk.pack(vk.points_to_keys(centres, resolution)), return_inverse=True
+            )
             lo = np.bincount(inv, weights=lo) / np.bincount(inv)
         else:
             packed = vk.pack(keys)

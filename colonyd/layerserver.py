@@ -10,7 +10,7 @@ from typing import Any
 import zenoh
 
 from colonyd.errors import WireError
-from colonyd.frames import frame_of, Sender, accept, expect
+from colonyd.frames import Sender, accept, expect, frame_of
 from colonyd.layers import Layer, Layers
 from colonyd.metrics import Metrics
 from colonyd.runtime import undeclare
@@ -26,8 +26,8 @@ from protocol import (
 )
 from protocol.codec import FRAME_OVERHEAD
 from protocol.deltacodec import MIN_PART_BODY
-from voxel.delta import Delta
 from protocol.keyexpr import parse_key, query_declaration
+from voxel.delta import Delta
 
 
 class LayerServer:
@@ -57,8 +57,14 @@ class LayerServer:
         self.chunk_voxels = chunk_voxels
         self.part_bytes = part_bytes
         self._worker: Worker[zenoh.Query] = Worker(
-            "gossip-serve", self._answer, Bounded(64), metrics=metrics, drops="queries_dropped",
-            describe=lambda q: f"a query on {q.key_expr}", done=lambda q: q.drop(), stop=stop,
+            "gossip-serve",
+            self._answer,
+            Bounded(64),
+            metrics=metrics,
+            drops="queries_dropped",
+            describe=lambda q: f"a query on {q.key_expr}",
+            done=lambda q: q.drop(),
+            stop=stop,
         )
         self._queryables = [
             session.declare_queryable(query_declaration(namespace, self.own, q), self._worker.put)
@@ -97,17 +103,16 @@ class LayerServer:
     def _layer_epoch(self, layer: Layer) -> int:
         return self.epoch if layer.origin == self.own else layer.epoch
 
-    def _fit(self, request: Any, chunks: list[Delta],
-             make: Callable[[int, int, Delta], Message]) -> list[bytes]:
+    def _fit(
+        self, request: Any, chunks: list[Delta], make: Callable[[int, int, Delta], Message]
+    ) -> list[bytes]:
         """Reply frames `make(part, parts, chunk)` of `chunks`, each frame within the request's
         `max_part_bytes` (and ours): parts that come out too large are cut finer and re-encoded
         (one encoding per part in the common case)."""
         max_frame = min(self.part_bytes, request.max_part_bytes)
         limit = max_frame - FRAME_OVERHEAD - 128  # >= 640: max_part_bytes is at least 1024
         while True:
-            frames = self.sender.encode_all(
-                [make(i, len(chunks), c) for i, c in enumerate(chunks)]
-            )
+            frames = self.sender.encode_all([make(i, len(chunks), c) for i, c in enumerate(chunks)])
             big = [i for i, f in enumerate(frames) if len(f) > max_frame]
             if not big:
                 return frames
@@ -115,7 +120,7 @@ class LayerServer:
                 text = f"expected parts within {max_frame} bytes, found a voxel too large for one"
                 raise WireError("oversized", text)
             for i in reversed(big):
-                chunks[i:i + 1] = split_delta(chunks[i], limit)
+                chunks[i : i + 1] = split_delta(chunks[i], limit)
             limit //= 2  # still too large next time: the frame around a body grew, cut finer
 
     def _reply(self, query: zenoh.Query, key: str, frames: list[bytes]) -> None:
@@ -127,10 +132,18 @@ class LayerServer:
         epoch, _seq, chunks = layer.snapshot(self.chunk_voxels)
         if layer.origin == self.own:
             epoch = self.epoch
-        common = {"origin": self.own, "layer": layer.origin, "request_id": request.request_id,
-                  "frame_id": frame_of(layer.origin), "layer_epoch": epoch}
-        frames = self._fit(request, chunks, lambda i, n, c: SnapshotReply(
-            **common, time=time.time(), part=i, parts=n, delta=c))
+        common = {
+            "origin": self.own,
+            "layer": layer.origin,
+            "request_id": request.request_id,
+            "frame_id": frame_of(layer.origin),
+            "layer_epoch": epoch,
+        }
+        frames = self._fit(
+            request,
+            chunks,
+            lambda i, n, c: SnapshotReply(**common, time=time.time(), part=i, parts=n, delta=c),
+        )
         self._reply(query, key, frames)
         self.metrics.add("snapshots_served")
 
@@ -142,13 +155,21 @@ class LayerServer:
         if layer is not None and layer.seq > 0:
             epoch = self._layer_epoch(layer)
             deltas = layer.range(request.from_version, request.to_version)
-        common = {"origin": self.own, "layer": request.layer, "request_id": request.request_id,
-                  "frame_id": frame_of(request.layer), "layer_epoch": epoch}
+        common = {
+            "origin": self.own,
+            "layer": request.layer,
+            "request_id": request.request_id,
+            "frame_id": frame_of(request.layer),
+            "layer_epoch": epoch,
+        }
         if not deltas:
             msg = DeltaRangeReply(**common, time=time.time(), complete=deltas is not None)
             self._reply(query, key, self.sender.encode_all([msg]))
             return
-        frames = self._fit(request, list(deltas), lambda i, n, c: DeltaRangeReply(
-            **common, time=time.time(), part=i, parts=n, delta=c))
+        frames = self._fit(
+            request,
+            list(deltas),
+            lambda i, n, c: DeltaRangeReply(**common, time=time.time(), part=i, parts=n, delta=c),
+        )
         self._reply(query, key, frames)
         self.metrics.add("ranges_served")

@@ -78,13 +78,23 @@ def _reference(source: object, obs: Observation) -> np.ndarray | None:
     """The reference sensor pose of an observation, for evaluation only: simulator truth or a recording's reference."""
     if obs.truth is not None:
         return obs.truth
-    if isinstance(source, RgbdSource) or (isinstance(source, CarmenSource) and source.poses == "reference"):
+    if isinstance(source, RgbdSource) or (
+        isinstance(source, CarmenSource) and source.poses == "reference"
+    ):
         return obs.pose
     return None
 
 
-def localize_source(spec: str, out_dir: Path, *, resolution: float = 0.1, odometry_noise: str | None = None,
-                    seed: int | None = None, max_frames: int | None = None, progress: bool = True) -> LocalizeSummary:
+def localize_source(
+    spec: str,
+    out_dir: Path,
+    *,
+    resolution: float = 0.1,
+    odometry_noise: str | None = None,
+    seed: int | None = None,
+    max_frames: int | None = None,
+    progress: bool = True,
+) -> LocalizeSummary:
     """Estimate the poses of the agent of `spec` and write estimate.tum, odometry.tum, groundtruth.tum,
     the map from the estimated poses (grid.npz, map.bt, map.ply) and results.json into `out_dir`."""
     began = clock.monotonic()
@@ -115,8 +125,12 @@ def localize_source(spec: str, out_dir: Path, *, resolution: float = 0.1, odomet
                 else:
                     estimator = _Visual()
             pose = estimator(obs)
-            integrate_observation(grid, replace(obs, pose=pose), sensor=adapter.sensor_model,
-                                  reliability=adapter.reliability)
+            integrate_observation(
+                grid,
+                replace(obs, pose=pose),
+                sensor=adapter.sensor_model,
+                reliability=adapter.reliability,
+            )
             times.append(obs.time)
             est.append(pose)
             if obs.odometry is not None:
@@ -139,19 +153,37 @@ def localize_source(spec: str, out_dir: Path, *, resolution: float = 0.1, odomet
             ate_odo = absolute_trajectory_error(np.array(ref), np.array(odo)).rmse
     seconds = clock.monotonic() - began
     recording = float(times[-1] - times[0]) if times else 0.0
-    summary = LocalizeSummary(spec=spec, estimator=estimator.name if estimator else "none", frames=len(times),
-                              seconds=seconds, ate_estimate=ate_est, ate_odometry=ate_odo,
-                              recording_seconds=recording, files=files)
+    summary = LocalizeSummary(
+        spec=spec,
+        estimator=estimator.name if estimator else "none",
+        frames=len(times),
+        seconds=seconds,
+        ate_estimate=ate_est,
+        ate_odometry=ate_odo,
+        recording_seconds=recording,
+        files=files,
+    )
     files["results"] = out_dir / "results.json"
-    files["results"].write_text(json.dumps({
-        "spec": spec, "estimator": summary.estimator,
-        "ate_rmse_m": {"estimate": ate_est, "odometry": ate_odo},
-        "frames": len(times), "seconds": round(seconds, 3),
-        "frames_per_second": round(len(times) / max(seconds, 1e-9), 2),
-        "recording_seconds": round(recording, 3),
-        "faster_than_real_time": round(recording / max(seconds, 1e-9), 2) if recording else None,
-        "skipped": source.stats.skipped,
-    }, indent=1) + "\n", encoding="ascii")
+    files["results"].write_text(
+        json.dumps(
+            {
+                "spec": spec,
+                "estimator": summary.estimator,
+                "ate_rmse_m": {"estimate": ate_est, "odometry": ate_odo},
+                "frames": len(times),
+                "seconds": round(seconds, 3),
+                "frames_per_second": round(len(times) / max(seconds, 1e-9), 2),
+                "recording_seconds": round(recording, 3),
+                "faster_than_real_time": round(recording / max(seconds, 1e-9), 2)
+                if recording
+                else None,
+                "skipped": source.stats.skipped,
+            },
+            indent=1,
+        )
+        + "\n",
+        encoding="ascii",
+    )
     return summary
 
 

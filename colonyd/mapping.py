@@ -95,29 +95,51 @@ def get_progress(enabled: bool) -> Progress:
     return BarProgress() if enabled else NullProgress()
 
 
-def integrate_observation(grid: VoxelGrid, obs: Observation, *, sensor: SensorModel, reliability: float,
-                          agent: str = "self") -> None:
+def integrate_observation(
+    grid: VoxelGrid,
+    obs: Observation,
+    *,
+    sensor: SensorModel,
+    reliability: float,
+    agent: str = "self",
+) -> None:
     """Integrate one observation, with its pose guess, into `grid`; a ready-made delta is applied as the grid's next version."""
     if obs.delta is not None:
         v, d = int(grid.version), obs.delta
-        grid.apply(Delta(d.resolution, v, v + 1, d.keys, d.logodds, d.last_time, d.channels, d.time))
+        grid.apply(
+            Delta(d.resolution, v, v + 1, d.keys, d.logodds, d.last_time, d.channels, d.time)
+        )
         return
     if len(obs) == 0:
         return
-    grid.integrate(obs.points_world(), obs.origin, time=obs.time, sensor=sensor, agent=agent,
-                   reliability=reliability, colours=obs.colours, normals=obs.normals_world(),
-                   class_ids=obs.class_ids, class_probs=obs.class_probs,
-                   scalars=obs.scalars or None, no_return=obs.no_return)
+    grid.integrate(
+        obs.points_world(),
+        obs.origin,
+        time=obs.time,
+        sensor=sensor,
+        agent=agent,
+        reliability=reliability,
+        colours=obs.colours,
+        normals=obs.normals_world(),
+        class_ids=obs.class_ids,
+        class_probs=obs.class_probs,
+        scalars=obs.scalars or None,
+        no_return=obs.no_return,
+    )
 
 
 def tum_line(time: float, pose: np.ndarray) -> str:
     """One TUM trajectory line: timestamp tx ty tz qx qy qz qw."""
     q = matrix_to_quaternion(pose[:3, :3])
     t = pose[:3, 3]
-    return f"{time:.6f} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
+    return (
+        f"{time:.6f} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
+    )
 
 
-def floor_plan(occupied: np.ndarray, free: np.ndarray, layer: int, margin: int | None = 20) -> tuple[np.ndarray, np.ndarray]:
+def floor_plan(
+    occupied: np.ndarray, free: np.ndarray, layer: int, margin: int | None = 20
+) -> tuple[np.ndarray, np.ndarray]:
     """Grey image of the voxel layer z = `layer` (+x right, +y up) and the key of its lower-left pixel.
 
     occupied, free: voxel keys (N, 3). Occupied 0, free 254, unknown 205. With a margin (cells),
@@ -141,8 +163,9 @@ def floor_plan(occupied: np.ndarray, free: np.ndarray, layer: int, margin: int |
     return image, lo
 
 
-def write_floor_plan(out_dir: Path, occupied: np.ndarray, free: np.ndarray, layer: int,
-                     resolution: float) -> dict[str, Path]:
+def write_floor_plan(
+    out_dir: Path, occupied: np.ndarray, free: np.ndarray, layer: int, resolution: float
+) -> dict[str, Path]:
     """`floorplan.png` of voxel layer z = `layer` and its ROS map_server `floorplan.yaml`."""
     image, lo = floor_plan(occupied, free, layer)
     files = {"floorplan": out_dir / "floorplan.png", "floorplan_yaml": out_dir / "floorplan.yaml"}
@@ -152,12 +175,20 @@ def write_floor_plan(out_dir: Path, occupied: np.ndarray, free: np.ndarray, laye
     files["floorplan_yaml"].write_text(
         f"image: floorplan.png\nresolution: {resolution}\n"
         f"origin: [{lo[0] * resolution}, {lo[1] * resolution}, 0.0]\n"
-        f"layer: {layer}\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n", encoding="ascii")
+        f"layer: {layer}\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n",
+        encoding="ascii",
+    )
     return files
 
 
-def map_source(spec: str, resolution: float, out_dir: Path, *, max_frames: int | None = None,
-               progress: bool = True) -> MapSummary:
+def map_source(
+    spec: str,
+    resolution: float,
+    out_dir: Path,
+    *,
+    max_frames: int | None = None,
+    progress: bool = True,
+) -> MapSummary:
     """Map the source `spec` at `resolution` metres and write grid.npz, map.bt, map.ply,
     trajectory.tum (and floorplan.png for 2D scanners) into `out_dir`."""
     began = clock.monotonic()
@@ -175,7 +206,9 @@ def map_source(spec: str, resolution: float, out_dir: Path, *, max_frames: int |
         for obs in source:
             if max_frames is not None and frames >= max_frames:
                 break
-            integrate_observation(grid, obs, sensor=adapter.sensor_model, reliability=adapter.reliability)
+            integrate_observation(
+                grid, obs, sensor=adapter.sensor_model, reliability=adapter.reliability
+            )
             trajectory.append(tum_line(obs.time, obs.pose))
             heights.append(float(obs.pose[2, 3]))
             frames += 1
@@ -186,18 +219,31 @@ def map_source(spec: str, resolution: float, out_dir: Path, *, max_frames: int |
     files = write_map(grid, out_dir, trajectory)
     if adapter.kind == "lidar2d" and heights:
         layer = int(vk.points_to_keys(np.array([[0.0, 0.0, np.median(heights)]]), resolution)[0, 2])
-        files.update(write_floor_plan(out_dir, grid.occupied_keys(), grid.free_keys(), layer,
-                                      resolution))
-    return MapSummary(spec=spec, resolution=resolution, frames=frames, skipped=source.stats.skipped,
-                      points=points, occupied=len(grid.occupied_keys()), free=len(grid.free_keys()),
-                      seconds=clock.monotonic() - began, files=files,
-                      skip_reasons=dict(source.stats.reasons))
+        files.update(
+            write_floor_plan(out_dir, grid.occupied_keys(), grid.free_keys(), layer, resolution)
+        )
+    return MapSummary(
+        spec=spec,
+        resolution=resolution,
+        frames=frames,
+        skipped=source.stats.skipped,
+        points=points,
+        occupied=len(grid.occupied_keys()),
+        free=len(grid.free_keys()),
+        seconds=clock.monotonic() - began,
+        files=files,
+        skip_reasons=dict(source.stats.reasons),
+    )
 
 
 def write_map(grid: VoxelGrid, out_dir: Path, trajectory: list[str]) -> dict[str, Path]:
     """Snapshot, OctoMap .bt, PLY of occupied voxel centres (with colour) and TUM trajectory."""
-    files = {"snapshot": out_dir / "grid.npz", "bt": out_dir / "map.bt", "ply": out_dir / "map.ply",
-             "trajectory": out_dir / "trajectory.tum"}
+    files = {
+        "snapshot": out_dir / "grid.npz",
+        "bt": out_dir / "map.bt",
+        "ply": out_dir / "map.ply",
+        "trajectory": out_dir / "trajectory.tum",
+    }
     grid.save(files["snapshot"])
     occupied, free = grid.occupied_keys(), grid.free_keys()
     keys = np.concatenate([occupied, free]).astype(np.int64)

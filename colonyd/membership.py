@@ -18,7 +18,9 @@ from protocol.keyexpr import alive_key, alive_subscription, parse_key
 PROBE_S = 0.3
 
 
-def agent_alive(session: zenoh.Session, namespace: str, agent: str, seconds: float = PROBE_S) -> bool:
+def agent_alive(
+    session: zenoh.Session, namespace: str, agent: str, seconds: float = PROBE_S
+) -> bool:
     """True if a daemon with agent id `agent` holds its liveliness token in the colony now.
 
     Asked repeatedly for `seconds`, since `zenoh.open` returns before gossip completes the mesh.

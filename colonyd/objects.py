@@ -38,8 +38,15 @@ class OwnObjects:
     tracked so that ids stay stable as the map grows. `refresh` gives the list when it changed.
     """
 
-    def __init__(self, structure: frozenset[int], *, min_voxels: int = 20, link: float = 3.0,
-                 gate: float = 0.75, tolerance: float = 0.05) -> None:
+    def __init__(
+        self,
+        structure: frozenset[int],
+        *,
+        min_voxels: int = 20,
+        link: float = 3.0,
+        gate: float = 0.75,
+        tolerance: float = 0.05,
+    ) -> None:
         self.structure = structure
         self.min_voxels = min_voxels
         self.link = link
@@ -59,8 +66,9 @@ class OwnObjects:
                 p = obs.pose[:3, :3] @ det.position + obs.pose[:3, 3]
                 s = self._sightings.get(det.object_id)
                 if s is None:
-                    self._sightings[det.object_id] = _Sighting(det.class_id, 1, p, np.zeros((3, 3)),
-                                                               obs.time)
+                    self._sightings[det.object_id] = _Sighting(
+                        det.class_id, 1, p, np.zeros((3, 3)), obs.time
+                    )
                     continue
                 s.count += 1
                 step = p - s.mean
@@ -72,16 +80,25 @@ class OwnObjects:
         """The object list if it changed since the last refresh (`grid` at `version`), else None."""
         found: list[ObjectCentroid] = []
         if version != self._version:
-            found = extract_objects(grid, exclude=self.structure, min_voxels=self.min_voxels,
-                                    link=self.link)
+            found = extract_objects(
+                grid, exclude=self.structure, min_voxels=self.min_voxels, link=self.link
+            )
         with self._lock:
-            tracked = self._tracker.update(found) if version != self._version else self._tracker.objects
+            tracked = (
+                self._tracker.update(found) if version != self._version else self._tracker.objects
+            )
             self._version = version
             identified = [
-                ObjectCentroid(object_id=oid, class_id=s.class_id, position=s.mean,
-                               covariance=(s.m2 / s.count / s.count if s.count > 1
-                                           else np.eye(3) * 0.01) + np.eye(3) * 1e-4,
-                               voxel_count=0, probability=1.0, time=s.time)
+                ObjectCentroid(
+                    object_id=oid,
+                    class_id=s.class_id,
+                    position=s.mean,
+                    covariance=(s.m2 / s.count / s.count if s.count > 1 else np.eye(3) * 0.01)
+                    + np.eye(3) * 1e-4,
+                    voxel_count=0,
+                    probability=1.0,
+                    time=s.time,
+                )
                 for oid, s in sorted(self._sightings.items())
             ]
         objects = identified + tracked
@@ -94,10 +111,14 @@ class OwnObjects:
 def to_wire(objects: list[ObjectCentroid]) -> list[WireObject]:
     """Objects as the protocol's Objects list."""
     return [
-        WireObject(object_id=o.object_id, class_id=o.class_id,
-                   position=tuple(float(x) for x in o.position),
-                   covariance=[float(x) for x in np.asarray(o.covariance).ravel()],
-                   voxel_count=o.voxel_count, time=float(o.time))
+        WireObject(
+            object_id=o.object_id,
+            class_id=o.class_id,
+            position=tuple(float(x) for x in o.position),
+            covariance=[float(x) for x in np.asarray(o.covariance).ravel()],
+            voxel_count=o.voxel_count,
+            time=float(o.time),
+        )
         for o in objects
     ]
 

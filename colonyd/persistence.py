@@ -74,7 +74,9 @@ def _fsync_dir(path: Path) -> None:
 class StateStore:
     """Own layer on disk: `meta.json`, `snapshot.json` + grid file, and `wal.log`."""
 
-    def __init__(self, state_dir: Path, agent_id: str, resolution: float, block_shape: str = "cube") -> None:
+    def __init__(
+        self, state_dir: Path, agent_id: str, resolution: float, block_shape: str = "cube"
+    ) -> None:
         self.dir = Path(state_dir)
         self.agent_id = agent_id
         self.resolution = resolution
@@ -147,9 +149,15 @@ class StateStore:
         frame_seq = int(frames.get("next", 0))
         if lost:
             old, epoch = epoch, _new_epoch(epoch)
-            log.warning("state %s: %s; continuing with what was recovered (seq %d) in a new "
-                        "epoch %d (was %d), so no layer version or frame number is reused",
-                        self.dir, lost, seq, epoch, old)
+            log.warning(
+                "state %s: %s; continuing with what was recovered (seq %d) in a new "
+                "epoch %d (was %d), so no layer version or frame number is reused",
+                self.dir,
+                lost,
+                seq,
+                epoch,
+                old,
+            )
             self._write_meta(epoch)
             self.reserve_frames(0)
             frame_seq = 0
@@ -162,12 +170,16 @@ class StateStore:
     def _check_meta(self, meta: dict[str, Any]) -> int:
         """The epoch of a state directory's meta.json, after checking it is ours."""
         if meta.get("agent_id") != self.agent_id:
-            msg = (f"state directory {self.dir} belongs to agent {meta.get('agent_id')!r}, "
-                   f"expected {self.agent_id!r}")
+            msg = (
+                f"state directory {self.dir} belongs to agent {meta.get('agent_id')!r}, "
+                f"expected {self.agent_id!r}"
+            )
             raise PersistenceError(msg)
         if abs(float(meta.get("resolution", 0)) - self.resolution) > 1e-12:
-            msg = (f"state directory {self.dir} holds a map at resolution "
-                   f"{meta.get('resolution')}, expected {self.resolution}")
+            msg = (
+                f"state directory {self.dir} holds a map at resolution "
+                f"{meta.get('resolution')}, expected {self.resolution}"
+            )
             raise PersistenceError(msg)
         return int(meta["epoch"])
 
@@ -231,22 +243,28 @@ class StateStore:
             if end > len(data) or (zlib.crc32(body) != crc and end == len(data)):
                 break  # a torn write at the tail: everything before it was acknowledged
             if zlib.crc32(body) != crc:
-                msg = (f"write-ahead log {path}: the record at offset {pos} fails its CRC and "
-                       f"{len(data) - end} bytes follow it: expected damage only at the end "
-                       "(a torn append), found it inside the log; the file is left as it was")
+                msg = (
+                    f"write-ahead log {path}: the record at offset {pos} fails its CRC and "
+                    f"{len(data) - end} bytes follow it: expected damage only at the end "
+                    "(a torn append), found it inside the log; the file is left as it was"
+                )
                 raise PersistenceError(msg)
             rec = _decode_wal_record(body, path, pos)
             if "base" in rec:
                 if pos != 0:
-                    msg = (f"write-ahead log {path}: expected its header only at offset 0, "
-                           f"found another at offset {pos}; the file is left as it was")
+                    msg = (
+                        f"write-ahead log {path}: expected its header only at offset 0, "
+                        f"found another at offset {pos}; the file is left as it was"
+                    )
                     raise PersistenceError(msg)
                 header = rec
             else:
                 out.append(rec)
             pos = end
         if pos != len(data):
-            log.warning("write-ahead log %s: dropped a torn tail of %d bytes", path, len(data) - pos)
+            log.warning(
+                "write-ahead log %s: dropped a torn tail of %d bytes", path, len(data) - pos
+            )
             with open(path, "r+b") as fh:
                 fh.truncate(pos)
                 os.fsync(fh.fileno())
@@ -283,7 +301,7 @@ class StateStore:
             start = self.wal_bytes
             view = memoryview(record)
             while view:
-                view = view[self._wal.write(view):]
+                view = view[self._wal.write(view) :]
             result, failure = self._flush(self._wal.fileno(), meanwhile)
         except OSError as exc:
             msg = f"cannot append seq {seq} to the write-ahead log in {self.dir}: {exc.strerror}"
@@ -324,8 +342,10 @@ class StateStore:
             os.ftruncate(self._wal.fileno(), self.wal_bytes)
             os.fsync(self._wal.fileno())
         except OSError as exc:
-            self.broken = (f"{why}; the partial record could not be removed ({exc.strerror}), "
-                           "so nothing more is logged or published until colonyd restarts")
+            self.broken = (
+                f"{why}; the partial record could not be removed ({exc.strerror}), "
+                "so nothing more is logged or published until colonyd restarts"
+            )
             log.error("%s", self.broken)
 
     def snapshot(self, grid: VoxelGrid, seq: int, published: int | None = None) -> None:
@@ -351,7 +371,10 @@ class StateStore:
             with open(tmp, "rb") as fh:
                 os.fsync(fh.fileno())
             os.replace(tmp, self.dir / name)
-            atomic_write(self.dir / SNAPSHOT, json.dumps({"seq": int(seq), "file": name, "published": published}).encode())
+            atomic_write(
+                self.dir / SNAPSHOT,
+                json.dumps({"seq": int(seq), "file": name, "published": published}).encode(),
+            )
             pointed = True
             # The old log stays in use until the new one is in place (its records up to `seq`
             # are skipped at recovery, as they are in the snapshot).
@@ -410,9 +433,11 @@ def _decode_wal_record(body: bytes, path: Path, offset: int) -> dict[str, Any]:
         rec["delta"] = _unpack_wal_delta(rec["delta"])
         return rec
     except Exception as exc:
-        msg = (f"write-ahead log {path}: the record at offset {offset} (seq {seq}) passes its "
-               f"CRC but cannot be decoded ({type(exc).__name__}: {exc}); expected a record of "
-               "this colonyd version (a newer one may have written it); the file is left as it was")
+        msg = (
+            f"write-ahead log {path}: the record at offset {offset} (seq {seq}) passes its "
+            f"CRC but cannot be decoded ({type(exc).__name__}: {exc}); expected a record of "
+            "this colonyd version (a newer one may have written it); the file is left as it was"
+        )
         raise PersistenceError(msg) from None
 
 
@@ -449,9 +474,12 @@ def _unpack_wal_delta(d: dict[str, Any]) -> Delta:
         dtype, _ = channel_spec(str(name))
         channels[str(name)] = _wal_array(raw, dtype, (n, *(int(x) for x in tail)), name)
     return Delta(
-        float(d["r"]), int(d["f"]), int(d["v"]),
+        float(d["r"]),
+        int(d["f"]),
+        int(d["v"]),
         _wal_array(d["k"], np.dtype(np.int64), (n, 3), "keys"),
         _wal_array(d["l"], np.dtype(np.float32), (n,), "logodds"),
         _wal_array(d["lt"], np.dtype(np.float64), (n,), "last_time"),
-        channels, float(d["tm"]),
+        channels,
+        float(d["tm"]),
     )

@@ -57,8 +57,14 @@ class Publisher:
             topic_key(namespace, self.own, "align"), congestion_control=drop
         )
 
-    def publish_own(self, prev: int, seq: int, delta: Delta, created: float,
-                    encoded: tuple[Delta, list[bytes]] | None = None) -> int:
+    def publish_own(
+        self,
+        prev: int,
+        seq: int,
+        delta: Delta,
+        created: float,
+        encoded: tuple[Delta, list[bytes]] | None = None,
+    ) -> int:
         """Publish an own delta (already logged) as VoxelDelta parts; returns the bytes sent.
 
         `encoded` is what `encode_own` made of it (while the log flushed), else it is made here.
@@ -76,7 +82,9 @@ class Publisher:
         self.metrics.add("bytes_published", sent)
         return sent
 
-    def encode_own(self, prev: int, seq: int, delta: Delta, created: float) -> tuple[Delta, list[bytes]]:
+    def encode_own(
+        self, prev: int, seq: int, delta: Delta, created: float
+    ) -> tuple[Delta, list[bytes]]:
         """The delta as labelled on the wire and its frames (one, or parts when large); sends
         nothing and changes no layer (so it may run before the delta is logged)."""
         wire = relabel(delta, prev, seq, time=created)
@@ -84,8 +92,13 @@ class Publisher:
         payloads = self.sender.encode_all([whole])  # one encoding in the common case
         if len(payloads[0]) > self.part_bytes:  # too large for one frame: cut into parts
             msgs = delta_messages(
-                origin=self.own, epoch=self.epoch, seq=0, time=created, frame_id=frame_of(self.own),
-                delta=wire, max_bytes=self.part_bytes,
+                origin=self.own,
+                epoch=self.epoch,
+                seq=0,
+                time=created,
+                frame_id=frame_of(self.own),
+                delta=wire,
+                max_bytes=self.part_bytes,
             )
             payloads = self.sender.encode_all(msgs)
         return wire, payloads
@@ -98,7 +111,10 @@ class Publisher:
         ]
         position = tuple(float(x) for x in pose[:3])
         msg = Heartbeat(
-            **self.sender.header(), kind=kind, frame_id=frame_of(self.own), layers=layers,
+            **self.sender.header(),
+            kind=kind,
+            frame_id=frame_of(self.own),
+            layers=layers,
             identity=self.sender.identity,
             position=position if len(position) == 3 and all(map(math.isfinite, position)) else None,
         )
@@ -124,4 +140,3 @@ class Publisher:
 
     def close(self) -> None:
         undeclare(self._deltas, self._heartbeats, self._objects, self._align)
-

@@ -104,7 +104,6 @@ def get_session(config: Config) -> zenoh.Session:
     return session
 
 
-
 def undeclare(*entities: object) -> None:
     """Undeclare Zenoh publishers, subscribers, queryables or tokens; quietly for any the
     session has already closed."""

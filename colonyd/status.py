@@ -22,16 +22,24 @@ class StatusServer:
     the map bytes `answer(params)` returns; None: no reply), one at a time on a worker."""
 
     def __init__(
-        self, session: zenoh.Session, namespace: str, agent: str,
-        answer: Callable[[dict[str, str]], Any], report: str = "status",
+        self,
+        session: zenoh.Session,
+        namespace: str,
+        agent: str,
+        answer: Callable[[dict[str, str]], Any],
+        report: str = "status",
     ) -> None:
         self._answer_params = answer
         self._worker: Worker[zenoh.Query] = Worker(
-            report, self._answer, Bounded(16),
-            describe=lambda q: f"a {report} query on {q.key_expr}", done=lambda q: q.drop(),
+            report,
+            self._answer,
+            Bounded(16),
+            describe=lambda q: f"a {report} query on {q.key_expr}",
+            done=lambda q: q.drop(),
         )
-        self._queryable = session.declare_queryable(status_key(namespace, agent, report),
-                                                    self._worker.put)
+        self._queryable = session.declare_queryable(
+            status_key(namespace, agent, report), self._worker.put
+        )
         self._worker.start()
 
     def _answer(self, query: zenoh.Query) -> None:
@@ -49,7 +57,11 @@ class StatusServer:
 
 
 def query_status(
-    session: zenoh.Session, namespace: str, *, digest: bool = False, samples: bool = False,
+    session: zenoh.Session,
+    namespace: str,
+    *,
+    digest: bool = False,
+    samples: bool = False,
     timeout: float = 3.0,
 ) -> list[dict[str, Any]]:
     """One status report per daemon reachable in the namespace, sorted by agent id."""
@@ -61,7 +73,8 @@ def query_status(
     selector = status_selector(namespace) + ("?" + ";".join(params) if params else "")
     replies = session.get(
         selector,
-        consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout,
+        consolidation=zenoh.ConsolidationMode.NONE,
+        timeout=timeout,
     )
     out = []
     for reply in replies:
@@ -88,16 +101,21 @@ def alive_members(session: zenoh.Session, namespace: str, timeout: float = 2.0) 
     return sorted(agents)
 
 
-def collect_status(config: Config, *, digest: bool = False, samples: bool = False,
-                   wait_s: float = 3.0) -> list[dict[str, Any]]:
+def collect_status(
+    config: Config, *, digest: bool = False, samples: bool = False, wait_s: float = 3.0
+) -> list[dict[str, Any]]:
     """Open a short-lived session, wait until every live member answers, return their reports."""
     if not config.connect and not config.multicast:
         msg = "status needs --connect ENDPOINT (a daemon's listen endpoint) or multicast"
         raise StatusError(msg)
     conf = zenoh_config(
-        mode="peer", listen=config.listen or ["tcp/127.0.0.1:0"], connect=config.connect,
-        multicast=config.multicast, multicast_port=config.multicast_port,
-        multicast_interface=config.multicast_interface, gossip=True,
+        mode="peer",
+        listen=config.listen or ["tcp/127.0.0.1:0"],
+        connect=config.connect,
+        multicast=config.multicast,
+        multicast_port=config.multicast_port,
+        multicast_interface=config.multicast_interface,
+        gossip=True,
     )
     session = open_session(conf)
     try:
@@ -105,8 +123,13 @@ def collect_status(config: Config, *, digest: bool = False, samples: bool = Fals
         reports: list[dict[str, Any]] = []
         while True:
             expected = set(alive_members(session, config.key_namespace, timeout=1.0))
-            reports = query_status(session, config.key_namespace, digest=digest, samples=samples,
-                                   timeout=max(0.5, min(3.0, deadline - time.monotonic())))
+            reports = query_status(
+                session,
+                config.key_namespace,
+                digest=digest,
+                samples=samples,
+                timeout=max(0.5, min(3.0, deadline - time.monotonic())),
+            )
             for r in reports:
                 expected |= {m["agent"] for m in r.get("members", []) if m.get("alive")}
             if expected and {r["agent"] for r in reports} >= expected:
@@ -152,8 +175,10 @@ def format_status(reports: list[dict[str, Any]]) -> str:
         seen[r["agent"]] = max(seen.get(r["agent"], 0.0), float(r.get("time", now)))
         for m in r.get("members", []):
             seen[m["agent"]] = max(seen.get(m["agent"], 0.0), float(m.get("last_seen", 0.0)))
-    lines = [f"{'agent':<16} {'kind':<8} {'last seen':>9} {'pose':<22} {'behind':>6} "
-             f"{'objects':>7}  layers"]
+    lines = [
+        f"{'agent':<16} {'kind':<8} {'last seen':>9} {'pose':<22} {'behind':>6} "
+        f"{'objects':>7}  layers"
+    ]
     for r in reports:
         pose = ",".join(f"{x:.2f}" for x in r.get("pose", [])[:3]) or "-"
         ago = f"{max(0.0, now - seen.get(r['agent'], now)):.1f}s"
@@ -169,8 +194,15 @@ def format_status(reports: list[dict[str, Any]]) -> str:
         )
     answered = {r["agent"] for r in reports}
     for agent in sorted(set(seen) - answered):  # known to peers but not answering (frozen, gone)
-        kind = next((m.get("kind", "?") for r in reports for m in r.get("members", [])
-                     if m["agent"] == agent), "?")
+        kind = next(
+            (
+                m.get("kind", "?")
+                for r in reports
+                for m in r.get("members", [])
+                if m["agent"] == agent
+            ),
+            "?",
+        )
         ago = f"{max(0.0, now - seen[agent]):.1f}s"
         lines.append(f"{agent:<16} {kind:<8} {ago:>9} {'-':<22} {'?':>6} {'?':>7}  (not answering)")
     return "\n".join(lines)

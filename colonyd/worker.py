@@ -23,7 +23,9 @@ POLL_S = 0.2
 class Bounded(Generic[T]):
     """A queue bounded in count and, with `weigh`, in bytes: `put` refuses rather than grows."""
 
-    def __init__(self, size: int, max_bytes: int = 0, weigh: Callable[[T], int] | None = None) -> None:
+    def __init__(
+        self, size: int, max_bytes: int = 0, weigh: Callable[[T], int] | None = None
+    ) -> None:
         self._q: queue.Queue[T] = queue.Queue(maxsize=size)
         self._weigh = weigh
         self._max = max_bytes

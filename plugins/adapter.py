@@ -25,8 +25,15 @@ class SensorAdapter(Protocol):
     noise: float  # range noise, standard deviation in metres
     reliability: float  # default trust in (0, 1]
 
-    def observe(self, reading: Any, *, pose: np.ndarray | None = None, time: float = 0.0,
-                odometry: np.ndarray | None = None, frame: str = "") -> Observation:
+    def observe(
+        self,
+        reading: Any,
+        *,
+        pose: np.ndarray | None = None,
+        time: float = 0.0,
+        odometry: np.ndarray | None = None,
+        frame: str = "",
+    ) -> Observation:
         """Observation of `reading`; `pose` is the agent body's pose guess (world frame)."""
         ...
 

@@ -21,15 +21,19 @@ class BulkOptions(Options):
     """Options of `bulk:`."""
 
     voxels: int = Field(1_000_000, description="occupied voxels in the layer, a cube of them (> 0)")
-    seed: int | None = Field(None, description="seed of the log-odds values and of the cube's place; "
-                                               "none: the daemon's per-agent seed (0 in `colonyd map`)")
+    seed: int | None = Field(
+        None,
+        description="seed of the log-odds values and of the cube's place; "
+        "none: the daemon's per-agent seed (0 in `colonyd map`)",
+    )
 
 
 class BulkSource:
     """One observation carrying a delta of `voxels` voxels with random log-odds, on the grid's 1/32 steps."""
 
-    def __init__(self, *, voxels: int = 1_000_000, resolution: float = 0.1, seed: int = 0,
-                 spec: str = "") -> None:
+    def __init__(
+        self, *, voxels: int = 1_000_000, resolution: float = 0.1, seed: int = 0, spec: str = ""
+    ) -> None:
         if voxels <= 0:
             msg = f"bulk: expected voxels > 0, found {voxels}"
             raise SourceSpecError(msg)
@@ -55,8 +59,14 @@ class BulkSource:
 
     def __iter__(self) -> Iterator[Observation]:
         delta = self.delta()
-        obs = Observation(sensor=self.adapter.name, time=delta.time, points=np.empty((0, 3)), pose=np.eye(4),
-                          delta=delta, frame=f"{self.spec}#0")
+        obs = Observation(
+            sensor=self.adapter.name,
+            time=delta.time,
+            points=np.empty((0, 3)),
+            pose=np.eye(4),
+            delta=delta,
+            frame=f"{self.spec}#0",
+        )
         self.stats.delivered += 1
         yield obs
 
@@ -65,4 +75,6 @@ def open_bulk(spec: SourceSpec, context: SourceContext) -> BulkSource:
     """The `bulk:` source of a parsed spec; the context gives the grid's resolution and the default seed."""
     options = parse_options(BulkOptions, spec.options, spec.text)
     seed = context.seed if options.seed is None else options.seed
-    return BulkSource(voxels=options.voxels, resolution=context.resolution, seed=seed, spec=spec.text)
+    return BulkSource(
+        voxels=options.voxels, resolution=context.resolution, seed=seed, spec=spec.text
+    )

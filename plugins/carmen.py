@@ -42,7 +42,9 @@ def parse_flaser(text: str, path: str | Path, line: int) -> FlaserRecord:
     fields = text.split()
     where = f"{path}:{line}"
     if not fields or fields[0] != "FLASER":
-        msg = f"{where}: expected a FLASER record, found {fields[0] if fields else 'an empty line'!r}"
+        msg = (
+            f"{where}: expected a FLASER record, found {fields[0] if fields else 'an empty line'!r}"
+        )
         raise ParseError(msg)
     try:
         n = int(fields[1])
@@ -57,19 +59,29 @@ def parse_flaser(text: str, path: str | Path, line: int) -> FlaserRecord:
         msg = f"{where}: expected {want} fields for {n} beams (ranges, x y theta, odom x y theta, ipc_timestamp hostname logger_timestamp), found {len(fields)}"
         raise ParseError(msg)
     try:
-        values = np.array(fields[2:2 + n + 7], dtype=np.float64)
+        values = np.array(fields[2 : 2 + n + 7], dtype=np.float64)
     except ValueError:
-        for i, token in enumerate(fields[2:2 + n + 7]):
+        for i, token in enumerate(fields[2 : 2 + n + 7]):
             try:
                 float(token)
             except ValueError:
-                name = f"range {i + 1}" if i < n else ["x", "y", "theta", "odom_x", "odom_y", "odom_theta", "ipc_timestamp"][i - n]
+                name = (
+                    f"range {i + 1}"
+                    if i < n
+                    else ["x", "y", "theta", "odom_x", "odom_y", "odom_theta", "ipc_timestamp"][
+                        i - n
+                    ]
+                )
                 msg = f"{where}: field {i + 3} ({name}): expected a number, found {token!r}"
                 raise ParseError(msg) from None
         raise
     if not np.all(np.isfinite(values)):
         i = int(np.flatnonzero(~np.isfinite(values))[0])
-        name = f"range {i + 1}" if i < n else ["x", "y", "theta", "odom_x", "odom_y", "odom_theta", "ipc_timestamp"][i - n]
+        name = (
+            f"range {i + 1}"
+            if i < n
+            else ["x", "y", "theta", "odom_x", "odom_y", "odom_theta", "ipc_timestamp"][i - n]
+        )
         msg = f"{where}: field {i + 3} ({name}): expected a finite number, found {fields[2 + i]!r}"
         raise ParseError(msg)
     ranges = values[:n]
@@ -78,7 +90,9 @@ def parse_flaser(text: str, path: str | Path, line: int) -> FlaserRecord:
         msg = f"{where}: field {i + 3} (range {i + 1}): expected a non-negative range, found {fields[2 + i]!r}"
         raise ParseError(msg)
     x, y, th, ox, oy, oth, stamp = values[n:]
-    return FlaserRecord(ranges=ranges, pose=(x, y, th), odometry=(ox, oy, oth), time=float(stamp), line=line)
+    return FlaserRecord(
+        ranges=ranges, pose=(x, y, th), odometry=(ox, oy, oth), time=float(stamp), line=line
+    )
 
 
 def read_lines(path: Path) -> Iterator[tuple[int, str]]:
@@ -97,24 +111,35 @@ def read_lines(path: Path) -> Iterator[tuple[int, str]]:
 class CarmenOptions(Options):
     """Options of `replay:` for a CARMEN log."""
 
-    poses: str = Field("reference", description="pose of each scan: reference (the corrected pose) or "
-                                                "odometry")
-    max_range: float = Field(NO_RETURN, description="sensor range, metres; readings at 80 m or more are "
-                                                    "no-return beams")
+    poses: str = Field(
+        "reference", description="pose of each scan: reference (the corrected pose) or odometry"
+    )
+    max_range: float = Field(
+        NO_RETURN, description="sensor range, metres; readings at 80 m or more are no-return beams"
+    )
     start: int = Field(0, description="first scan (index among FLASER lines)")
     stop: int | None = Field(None, description="scan index to stop before; none: the end")
     step: int = Field(1, description="take every step-th scan (>= 1)")
-    strict: bool = Field(False, description="fail on the first bad line instead of skipping and counting it")
-    odometry_noise: str | None = Field(None, description="replace the log's odometry by odometry synthesised "
-                                       "from the reference poses with this wheel noise model: none, low, "
-                                       "realistic, high or trans/rot/rot_per_m/scale_bias/yaw_bias "
-                                       "(docs/LOCALISATION.md); default: the log's own odometry")
+    strict: bool = Field(
+        False, description="fail on the first bad line instead of skipping and counting it"
+    )
+    odometry_noise: str | None = Field(
+        None,
+        description="replace the log's odometry by odometry synthesised "
+        "from the reference poses with this wheel noise model: none, low, "
+        "realistic, high or trans/rot/rot_per_m/scale_bias/yaw_bias "
+        "(docs/LOCALISATION.md); default: the log's own odometry",
+    )
     seed: int = Field(0, description="seed of the synthesised odometry noise")
-    move_x: float = Field(0.0, description="moves every scan pose: x shift, metres (after the rotation "
-                                                "move_yaw)")
+    move_x: float = Field(
+        0.0, description="moves every scan pose: x shift, metres (after the rotation move_yaw)"
+    )
     move_y: float = Field(0.0, description="moves every scan pose: y shift, metres")
-    move_yaw: float = Field(0.0, description="moves every scan pose: rotation about z through the "
-                                                  "origin, degrees (then the shift)")
+    move_yaw: float = Field(
+        0.0,
+        description="moves every scan pose: rotation about z through the "
+        "origin, degrees (then the shift)",
+    )
 
 
 class CarmenSource:
@@ -125,10 +150,23 @@ class CarmenSource:
     every delivered pose by one rigid transform, as if the robot had started elsewhere.
     """
 
-    def __init__(self, path: str | Path, *, poses: str = "reference", max_range: float = NO_RETURN,
-                 start: int = 0, stop: int | None = None, step: int = 1, strict: bool = False,
-                 move_x: float = 0.0, move_y: float = 0.0, move_yaw: float = 0.0,
-                 odometry_noise: str | None = None, seed: int = 0, spec: str = "") -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        poses: str = "reference",
+        max_range: float = NO_RETURN,
+        start: int = 0,
+        stop: int | None = None,
+        step: int = 1,
+        strict: bool = False,
+        move_x: float = 0.0,
+        move_y: float = 0.0,
+        move_yaw: float = 0.0,
+        odometry_noise: str | None = None,
+        seed: int = 0,
+        spec: str = "",
+    ) -> None:
         self.path = Path(path)
         if not self.path.is_file():
             msg = f"carmen log: expected a file, found nothing at {self.path}"
@@ -149,8 +187,13 @@ class CarmenSource:
         self.seed = seed
         self.spec = spec or f"replay:{self.path}"
         self.adapter: SensorAdapter = load_adapter(
-            "lidar2d", beams=None, angle_min=-math.pi / 2, angle_increment=math.pi / 360,
-            range_max=max_range, no_return_range=NO_RETURN)
+            "lidar2d",
+            beams=None,
+            angle_min=-math.pi / 2,
+            angle_increment=math.pi / 360,
+            range_max=max_range,
+            no_return_range=NO_RETURN,
+        )
         self.stats = StreamStats()
         self._count: int | None = None
 
@@ -162,7 +205,9 @@ class CarmenSource:
                     total += text.startswith("FLASER")
             except SourceError:
                 pass  # counted when the scans are read
-            self._count = len(range(self.start, total if self.stop is None else min(self.stop, total), self.step))
+            self._count = len(
+                range(self.start, total if self.stop is None else min(self.stop, total), self.step)
+            )
         return self._count
 
     def records(self) -> Iterator[FlaserRecord]:
@@ -197,8 +242,15 @@ class CarmenSource:
                 odometer = odometer or WheelOdometer(np.array(record.pose), self.noise, self.seed)
                 ox, oy, oth = odometer.step(np.array(record.pose))
             obs = self.adapter.observe(
-                Scan(ranges=record.ranges, angle_min=-math.pi / 2, angle_increment=math.pi / len(record.ranges)),
-                pose=self.move @ pose_matrix(x, y, 0.0, th), time=record.time,
-                odometry=pose_matrix(ox, oy, 0.0, oth), frame=f"{self.path}:{record.line}")
+                Scan(
+                    ranges=record.ranges,
+                    angle_min=-math.pi / 2,
+                    angle_increment=math.pi / len(record.ranges),
+                ),
+                pose=self.move @ pose_matrix(x, y, 0.0, th),
+                time=record.time,
+                odometry=pose_matrix(ox, oy, 0.0, oth),
+                frame=f"{self.path}:{record.line}",
+            )
             self.stats.delivered += 1
             yield obs

@@ -52,17 +52,32 @@ class CctvCamera:
     name = "cctv"
     kind = "cctv"
 
-    def __init__(self, *, pose: np.ndarray | None = None, K: np.ndarray | None = None,
-                 fov: float | None = None, width: int = 640, height: int = 480,
-                 distortion: np.ndarray | None = None, dictionary: str = "DICT_4X4_50",
-                 marker_length: float = 0.2, marker_classes: dict[int, int] | None = None,
-                 default_class: int = 0, depth_scale: float = 0.001, max_range: float = 10.0,
-                 reliability: float = 1.0, prob_hit: float = 0.7, prob_miss: float = 0.4,
-                 noise: float = 0.0) -> None:
+    def __init__(
+        self,
+        *,
+        pose: np.ndarray | None = None,
+        K: np.ndarray | None = None,
+        fov: float | None = None,
+        width: int = 640,
+        height: int = 480,
+        distortion: np.ndarray | None = None,
+        dictionary: str = "DICT_4X4_50",
+        marker_length: float = 0.2,
+        marker_classes: dict[int, int] | None = None,
+        default_class: int = 0,
+        depth_scale: float = 0.001,
+        max_range: float = 10.0,
+        reliability: float = 1.0,
+        prob_hit: float = 0.7,
+        prob_miss: float = 0.4,
+        noise: float = 0.0,
+    ) -> None:
         if K is None and fov is None:
             msg = "cctv camera: expected intrinsics K or a horizontal field of view fov, found neither"
             raise SensorInputError(msg)
-        self.K = as_intrinsics(K) if K is not None else intrinsics_from_fov(width, height, float(fov))
+        self.K = (
+            as_intrinsics(K) if K is not None else intrinsics_from_fov(width, height, float(fov))
+        )
         self.pose = np.eye(4) if pose is None else as_pose(pose, "pose")
         self.distortion = np.zeros(5) if distortion is None else np.asarray(distortion, np.float64)
         if marker_length <= 0:
@@ -76,16 +91,28 @@ class CctvCamera:
         self.detector = cv2.aruco.ArucoDetector(aruco_dictionary(dictionary), parameters)
         self.reliability = float(reliability)
         self.noise = float(noise)
-        self.sensor_model = SensorModel(prob_hit=prob_hit, prob_miss=prob_miss, max_range=max_range, kind="cctv")
+        self.sensor_model = SensorModel(
+            prob_hit=prob_hit, prob_miss=prob_miss, max_range=max_range, kind="cctv"
+        )
         self.camera = DepthCamera(K=self.K, depth_scale=depth_scale, max_range=max_range)
 
     def detect(self, image: np.ndarray) -> list[ObjectDetection]:
         """ArUco markers in `image` with their pose in the camera frame (solvePnP, IPPE square)."""
         image = np.asarray(image)
-        if image.dtype != np.uint8 or image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3)):
+        if (
+            image.dtype != np.uint8
+            or image.ndim not in (2, 3)
+            or (image.ndim == 3 and image.shape[2] not in (1, 3))
+        ):
             msg = f"image: expected (H, W) or (H, W, 3) uint8, found shape {image.shape} dtype {image.dtype}"
             raise SensorInputError(msg)
-        grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.shape[2] == 3 else image[:, :, 0]
+        grey = (
+            image
+            if image.ndim == 2
+            else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+            if image.shape[2] == 3
+            else image[:, :, 0]
+        )
         corners, ids, _ = self.detector.detectMarkers(grey)
         if ids is None:
             return []
@@ -93,7 +120,9 @@ class CctvCamera:
         found = []
         for quad, marker in zip(corners, ids.reshape(-1), strict=True):
             quad = quad.reshape(4, 2).astype(np.float64)
-            ok, rvec, tvec = cv2.solvePnP(model, quad, self.K, self.distortion, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+            ok, rvec, tvec = cv2.solvePnP(
+                model, quad, self.K, self.distortion, flags=cv2.SOLVEPNP_IPPE_SQUARE
+            )
             if not ok:
                 continue
             projected, _ = cv2.projectPoints(model, rvec, tvec, self.K, self.distortion)
@@ -102,22 +131,42 @@ class CctvCamera:
             pose = np.eye(4)
             pose[:3, :3] = cv2.Rodrigues(rvec)[0]
             pose[:3, 3] = tvec.reshape(3)
-            found.append(ObjectDetection(
-                object_id=int(marker), class_id=self.marker_classes.get(int(marker), self.default_class),
-                pose=pose, probability=confidence(side, error),
-                label=f"aruco:{int(marker)}", corners=quad))
+            found.append(
+                ObjectDetection(
+                    object_id=int(marker),
+                    class_id=self.marker_classes.get(int(marker), self.default_class),
+                    pose=pose,
+                    probability=confidence(side, error),
+                    label=f"aruco:{int(marker)}",
+                    corners=quad,
+                )
+            )
         return found
 
-    def observe(self, reading: CctvFrame | np.ndarray, *, pose: np.ndarray | None = None,
-                time: float = 0.0, odometry: np.ndarray | None = None, frame: str = "") -> Observation:
+    def observe(
+        self,
+        reading: CctvFrame | np.ndarray,
+        *,
+        pose: np.ndarray | None = None,
+        time: float = 0.0,
+        odometry: np.ndarray | None = None,
+        frame: str = "",
+    ) -> Observation:
         """Objects seen in the image; with depth, also the view's points coloured and labelled by marker."""
         if not isinstance(reading, CctvFrame):
             reading = CctvFrame(image=reading)
         objects = tuple(self.detect(reading.image))
         camera_pose = self.pose if pose is None else as_pose(pose, "pose")
         if reading.depth is None:
-            return Observation(sensor=self.name, time=time, points=np.empty((0, 3)), pose=camera_pose,
-                               objects=objects, odometry=odometry, frame=frame)
+            return Observation(
+                sensor=self.name,
+                time=time,
+                points=np.empty((0, 3)),
+                pose=camera_pose,
+                objects=objects,
+                odometry=odometry,
+                frame=frame,
+            )
         depth = np.asarray(reading.depth)
         image = np.asarray(reading.image)
         if depth.shape != image.shape[:2]:
@@ -130,9 +179,25 @@ class CctvCamera:
             cv2.fillConvexPoly(labels, quad, obj.class_id)
             cv2.fillConvexPoly(probs, quad, obj.probability)
         colour = image if image.ndim == 3 else np.repeat(image[:, :, None], 3, axis=2)
-        frame_in = DepthFrame(depth=depth, colour=as_array(colour, "image", shape=(*depth.shape, 3), dtype=np.uint8),
-                              labels=labels, label_probs=probs)
-        view = self.camera.observe(frame_in, pose=camera_pose, time=time, odometry=odometry, frame=frame)
-        return Observation(sensor=self.name, time=time, points=view.points, pose=camera_pose,
-                           colours=view.colours, class_ids=view.class_ids, class_probs=view.class_probs,
-                           objects=objects, depth=view.depth, odometry=odometry, frame=frame)
+        frame_in = DepthFrame(
+            depth=depth,
+            colour=as_array(colour, "image", shape=(*depth.shape, 3), dtype=np.uint8),
+            labels=labels,
+            label_probs=probs,
+        )
+        view = self.camera.observe(
+            frame_in, pose=camera_pose, time=time, odometry=odometry, frame=frame
+        )
+        return Observation(
+            sensor=self.name,
+            time=time,
+            points=view.points,
+            pose=camera_pose,
+            colours=view.colours,
+            class_ids=view.class_ids,
+            class_probs=view.class_probs,
+            objects=objects,
+            depth=view.depth,
+            odometry=odometry,
+            frame=frame,
+        )

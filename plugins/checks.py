@@ -8,8 +8,14 @@ from plugins.errors import SensorInputError
 from voxel import rotation
 
 
-def as_array(value: object, field: str, *, shape: tuple[int | None, ...], dtype: type = np.float64,
-             finite: bool = True) -> np.ndarray:
+def as_array(
+    value: object,
+    field: str,
+    *,
+    shape: tuple[int | None, ...],
+    dtype: type = np.float64,
+    finite: bool = True,
+) -> np.ndarray:
     """`value` as an array of `shape` (None = any length); raise SensorInputError naming `field`."""
     try:
         array = np.asarray(value, dtype=dtype)
@@ -64,9 +70,18 @@ def intrinsics_from_fov(width: int, height: int, fov: float) -> np.ndarray:
     return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
 
 
-def pose_matrix(x: float, y: float, z: float, yaw: float, pitch: float = 0.0, roll: float = 0.0) -> np.ndarray:
+def pose_matrix(
+    x: float, y: float, z: float, yaw: float, pitch: float = 0.0, roll: float = 0.0
+) -> np.ndarray:
     """4x4 transform from a position and ZYX Euler angles (radians)."""
-    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    cy, sy, cp, sp, cr, sr = (
+        np.cos(yaw),
+        np.sin(yaw),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(roll),
+        np.sin(roll),
+    )
     pose = np.eye(4)
     pose[:3, :3] = [
         [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],

@@ -31,25 +31,46 @@ class DepthCamera:
     name = "depth"
     kind = "depth"
 
-    def __init__(self, *, K: np.ndarray | None = None, fov: float | None = None, width: int = 640,
-                 height: int = 480, depth_scale: float = 0.001, invalid: tuple[int, ...] = (0, 65535),
-                 min_range: float = 0.0, max_range: float = 10.0, stride: int = 1,
-                 mount: np.ndarray | None = None, reliability: float = 1.0, prob_hit: float = 0.7,
-                 prob_miss: float = 0.4, noise: float = 0.0) -> None:
+    def __init__(
+        self,
+        *,
+        K: np.ndarray | None = None,
+        fov: float | None = None,
+        width: int = 640,
+        height: int = 480,
+        depth_scale: float = 0.001,
+        invalid: tuple[int, ...] = (0, 65535),
+        min_range: float = 0.0,
+        max_range: float = 10.0,
+        stride: int = 1,
+        mount: np.ndarray | None = None,
+        reliability: float = 1.0,
+        prob_hit: float = 0.7,
+        prob_miss: float = 0.4,
+        noise: float = 0.0,
+    ) -> None:
         if K is None and fov is None:
             msg = "depth camera: expected intrinsics K or a horizontal field of view fov, found neither"
             raise SensorInputError(msg)
-        self.K = as_intrinsics(K) if K is not None else intrinsics_from_fov(width, height, float(fov))
+        self.K = (
+            as_intrinsics(K) if K is not None else intrinsics_from_fov(width, height, float(fov))
+        )
         self.width, self.height = int(width), int(height)
         if stride < 1:
             msg = f"stride: expected an integer >= 1, found {stride!r}"
             raise SensorInputError(msg)
-        self.depth_scale, self.invalid, self.stride = float(depth_scale), tuple(invalid), int(stride)
+        self.depth_scale, self.invalid, self.stride = (
+            float(depth_scale),
+            tuple(invalid),
+            int(stride),
+        )
         self.min_range, self.max_range = float(min_range), float(max_range)
         self.mount = np.eye(4) if mount is None else as_pose(mount, "mount")
         self.reliability = float(reliability)
         self.noise = float(noise)
-        self.sensor_model = SensorModel(prob_hit=prob_hit, prob_miss=prob_miss, max_range=max_range, kind="depth")
+        self.sensor_model = SensorModel(
+            prob_hit=prob_hit, prob_miss=prob_miss, max_range=max_range, kind="depth"
+        )
 
     def metres(self, depth: np.ndarray, field: str = "depth") -> np.ndarray:
         """Depth in metres (float32), NaN where there is no reading or it is out of range."""
@@ -69,8 +90,15 @@ class DepthCamera:
             out[(out <= self.min_range) | (out > self.max_range) | (out <= 0)] = np.nan
         return out
 
-    def observe(self, reading: DepthFrame | np.ndarray, *, pose: np.ndarray | None = None,
-                time: float = 0.0, odometry: np.ndarray | None = None, frame: str = "") -> Observation:
+    def observe(
+        self,
+        reading: DepthFrame | np.ndarray,
+        *,
+        pose: np.ndarray | None = None,
+        time: float = 0.0,
+        odometry: np.ndarray | None = None,
+        frame: str = "",
+    ) -> Observation:
         """Observation of one depth frame; `pose` is the body pose (camera pose = pose @ mount)."""
         if not isinstance(reading, DepthFrame):
             reading = DepthFrame(depth=reading)
@@ -84,17 +112,33 @@ class DepthCamera:
             extras["colours"] = colour.reshape(-1, 3)[index]
         if reading.labels is not None:
             labels = as_array(reading.labels, "labels", shape=(h, w), dtype=np.int32)
-            extras["class_ids"] = np.where(labels.reshape(-1)[index] < 0, -1, labels.reshape(-1)[index])
-            probs = np.ones(h * w, np.float32) if reading.label_probs is None else as_array(
-                reading.label_probs, "label_probs", shape=(h, w), dtype=np.float32).reshape(-1)
+            extras["class_ids"] = np.where(
+                labels.reshape(-1)[index] < 0, -1, labels.reshape(-1)[index]
+            )
+            probs = (
+                np.ones(h * w, np.float32)
+                if reading.label_probs is None
+                else as_array(
+                    reading.label_probs, "label_probs", shape=(h, w), dtype=np.float32
+                ).reshape(-1)
+            )
             extras["class_probs"] = probs[index]
         if reading.normals is not None:
-            normals = as_array(reading.normals, "normals", shape=(h, w, 3), dtype=np.float32, finite=False)
+            normals = as_array(
+                reading.normals, "normals", shape=(h, w, 3), dtype=np.float32, finite=False
+            )
             extras["normals"] = np.nan_to_num(normals.reshape(-1, 3)[index])
         body = np.eye(4) if pose is None else as_pose(pose, "pose")
-        return Observation(sensor=self.name, time=time, points=points, pose=body @ self.mount,
-                           odometry=odometry, depth=DepthView(depth=depth, K=self.K, image=colour), frame=frame,
-                           **extras)
+        return Observation(
+            sensor=self.name,
+            time=time,
+            points=points,
+            pose=body @ self.mount,
+            odometry=odometry,
+            depth=DepthView(depth=depth, K=self.K, image=colour),
+            frame=frame,
+            **extras,
+        )
 
 
 def fov_of(K: np.ndarray, width: int) -> float:

@@ -42,11 +42,21 @@ class Lidar2D:
     name = "lidar2d"
     kind = "lidar2d"
 
-    def __init__(self, *, beams: int | None = None, angle_min: float = -math.pi / 2,
-                 angle_increment: float = math.pi / 360, range_min: float = 0.0,
-                 range_max: float = 30.0, no_return_range: float | None = None,
-                 mount: np.ndarray | None = None, reliability: float = 1.0, prob_hit: float = 0.7,
-                 prob_miss: float = 0.4, noise: float = 0.0) -> None:
+    def __init__(
+        self,
+        *,
+        beams: int | None = None,
+        angle_min: float = -math.pi / 2,
+        angle_increment: float = math.pi / 360,
+        range_min: float = 0.0,
+        range_max: float = 30.0,
+        no_return_range: float | None = None,
+        mount: np.ndarray | None = None,
+        reliability: float = 1.0,
+        prob_hit: float = 0.7,
+        prob_miss: float = 0.4,
+        noise: float = 0.0,
+    ) -> None:
         if angle_increment == 0 or not math.isfinite(angle_increment):
             msg = f"angle_increment: expected a finite non-zero angle, found {angle_increment!r}"
             raise SensorInputError(msg)
@@ -60,11 +70,19 @@ class Lidar2D:
         self.mount = np.eye(4) if mount is None else as_pose(mount, "mount")
         self.reliability = float(reliability)
         self.noise = float(noise)
-        self.sensor_model = SensorModel(prob_hit=prob_hit, prob_miss=prob_miss, max_range=range_max,
-                                        kind="lidar2d")
+        self.sensor_model = SensorModel(
+            prob_hit=prob_hit, prob_miss=prob_miss, max_range=range_max, kind="lidar2d"
+        )
 
-    def observe(self, reading: Scan | np.ndarray, *, pose: np.ndarray | None = None,
-                time: float = 0.0, odometry: np.ndarray | None = None, frame: str = "") -> Observation:
+    def observe(
+        self,
+        reading: Scan | np.ndarray,
+        *,
+        pose: np.ndarray | None = None,
+        time: float = 0.0,
+        odometry: np.ndarray | None = None,
+        frame: str = "",
+    ) -> Observation:
         """Observation of one scan: points in the sensor's z = 0 plane, no-return beams flagged."""
         if not isinstance(reading, Scan):
             reading = Scan(ranges=reading)
@@ -76,7 +94,11 @@ class Lidar2D:
             msg = "ranges: expected non-negative ranges or +inf, found -inf"
             raise SensorInputError(msg)
         a0 = self.angle_min if reading.angle_min is None else float(reading.angle_min)
-        da = self.angle_increment if reading.angle_increment is None else float(reading.angle_increment)
+        da = (
+            self.angle_increment
+            if reading.angle_increment is None
+            else float(reading.angle_increment)
+        )
         angles = a0 + da * np.arange(ranges.shape[0])
         with np.errstate(invalid="ignore"):
             no_return = (ranges >= self.no_return_range) | (ranges > self.range_max)
@@ -86,11 +108,21 @@ class Lidar2D:
         points = np.column_stack([r * np.cos(angles), r * np.sin(angles), np.zeros_like(r)])
         scalars = {}
         if reading.intensities is not None:
-            intensity = as_array(reading.intensities, "intensities", shape=ranges.shape, finite=False)
+            intensity = as_array(
+                reading.intensities, "intensities", shape=ranges.shape, finite=False
+            )
             scalars["intensity"] = intensity[keep]
         body = np.eye(4) if pose is None else as_pose(pose, "pose")
-        return Observation(sensor=self.name, time=time, points=points, pose=body @ self.mount,
-                           no_return=no_return[keep], scalars=scalars, odometry=odometry, frame=frame)
+        return Observation(
+            sensor=self.name,
+            time=time,
+            points=points,
+            pose=body @ self.mount,
+            no_return=no_return[keep],
+            scalars=scalars,
+            odometry=odometry,
+            frame=frame,
+        )
 
 
 class Lidar3D:
@@ -99,9 +131,17 @@ class Lidar3D:
     name = "lidar3d"
     kind = "lidar3d"
 
-    def __init__(self, *, range_min: float = 0.0, range_max: float = 100.0,
-                 mount: np.ndarray | None = None, reliability: float = 1.0, prob_hit: float = 0.7,
-                 prob_miss: float = 0.4, noise: float = 0.0) -> None:
+    def __init__(
+        self,
+        *,
+        range_min: float = 0.0,
+        range_max: float = 100.0,
+        mount: np.ndarray | None = None,
+        reliability: float = 1.0,
+        prob_hit: float = 0.7,
+        prob_miss: float = 0.4,
+        noise: float = 0.0,
+    ) -> None:
         if not 0 <= range_min < range_max:
             msg = f"range: expected 0 <= range_min < range_max, found {range_min!r}, {range_max!r}"
             raise SensorInputError(msg)
@@ -109,11 +149,19 @@ class Lidar3D:
         self.mount = np.eye(4) if mount is None else as_pose(mount, "mount")
         self.reliability = float(reliability)
         self.noise = float(noise)
-        self.sensor_model = SensorModel(prob_hit=prob_hit, prob_miss=prob_miss, max_range=range_max,
-                                        kind="lidar3d")
+        self.sensor_model = SensorModel(
+            prob_hit=prob_hit, prob_miss=prob_miss, max_range=range_max, kind="lidar3d"
+        )
 
-    def observe(self, reading: Cloud | np.ndarray, *, pose: np.ndarray | None = None,
-                time: float = 0.0, odometry: np.ndarray | None = None, frame: str = "") -> Observation:
+    def observe(
+        self,
+        reading: Cloud | np.ndarray,
+        *,
+        pose: np.ndarray | None = None,
+        time: float = 0.0,
+        odometry: np.ndarray | None = None,
+        frame: str = "",
+    ) -> Observation:
         """Observation of one cloud; NaN points and points outside [range_min, range_max] are dropped."""
         if not isinstance(reading, Cloud):
             reading = Cloud(points=reading)
@@ -123,8 +171,17 @@ class Lidar3D:
             keep = np.isfinite(r) & (r >= self.range_min) & (r <= self.range_max) & (r > 0)
         scalars = {}
         if reading.intensity is not None:
-            intensity = as_array(reading.intensity, "intensity", shape=(points.shape[0],), finite=False)
+            intensity = as_array(
+                reading.intensity, "intensity", shape=(points.shape[0],), finite=False
+            )
             scalars["intensity"] = intensity[keep]
         body = np.eye(4) if pose is None else as_pose(pose, "pose")
-        return Observation(sensor=self.name, time=time, points=points[keep], pose=body @ self.mount,
-                           scalars=scalars, odometry=odometry, frame=frame)
+        return Observation(
+            sensor=self.name,
+            time=time,
+            points=points[keep],
+            pose=body @ self.mount,
+            scalars=scalars,
+            odometry=odometry,
+            frame=frame,
+        )

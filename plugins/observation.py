@@ -86,7 +86,9 @@ class Observation:
                 object.__setattr__(self, name, as_array(value, name, shape=shape, dtype=dtype))
         scalars = {}
         for name, value in self.scalars.items():
-            scalars[name] = as_array(value, f"scalars[{name!r}]", shape=(n,), dtype=np.float32, finite=False)
+            scalars[name] = as_array(
+                value, f"scalars[{name!r}]", shape=(n,), dtype=np.float32, finite=False
+            )
         object.__setattr__(self, "scalars", scalars)
         for name in ("odometry", "truth"):
             value = getattr(self, name)

@@ -20,9 +20,17 @@ class PointsAdapter:
         self.reliability = float(reliability)
         self.noise = float(noise)
 
-    def observe(self, reading: np.ndarray, *, pose: np.ndarray | None = None, time: float = 0.0,
-                odometry: np.ndarray | None = None, frame: str = "") -> Observation:
+    def observe(
+        self,
+        reading: np.ndarray,
+        *,
+        pose: np.ndarray | None = None,
+        time: float = 0.0,
+        odometry: np.ndarray | None = None,
+        frame: str = "",
+    ) -> Observation:
         """Observation of points (N, 3) in the sensor frame; `pose` is the sensor's pose guess."""
         body = np.eye(4) if pose is None else as_pose(pose, "pose")
-        return Observation(sensor=self.name, time=time, points=reading, pose=body, odometry=odometry,
-                           frame=frame)
+        return Observation(
+            sensor=self.name, time=time, points=reading, pose=body, odometry=odometry, frame=frame
+        )

@@ -19,7 +19,11 @@ from plugins.stream import Source, SourceContext
 def detect_format(path: Path) -> str:
     """The recording format of `path`: carmen, 7scenes, tum or rosbag."""
     if path.is_dir():
-        if (path / "metadata.yaml").is_file() or any(path.glob("*.db3")) or any(path.glob("*.mcap")):
+        if (
+            (path / "metadata.yaml").is_file()
+            or any(path.glob("*.db3"))
+            or any(path.glob("*.mcap"))
+        ):
             return "rosbag"
         if (path / "depth.txt").is_file():
             return "tum"
@@ -49,7 +53,9 @@ class ReplayOptions(Options):
     """Options of `replay:` whatever the recording."""
 
     format: Literal["auto", "carmen", "7scenes", "tum", "rosbag"] = Field(
-        "auto", description="recording format; auto: from the path (folder contents, file suffix, first lines)")
+        "auto",
+        description="recording format; auto: from the path (folder contents, file suffix, first lines)",
+    )
 
 
 class CarmenReplay(ReplayOptions, CarmenOptions):

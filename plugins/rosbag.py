@@ -75,8 +75,14 @@ def cloud_points(msg: Any, field: str = "PointCloud2") -> tuple[np.ndarray, np.n
         if fields[name].datatype not in POINT_TYPES:
             msg_ = f"{field}.{name}: expected a datatype in {sorted(POINT_TYPES)}, found {fields[name].datatype}"
             raise SensorInputError(msg_)
-    dtype = np.dtype({"names": names, "formats": [order + POINT_TYPES[fields[k].datatype] for k in names],
-                      "offsets": [fields[k].offset for k in names], "itemsize": int(msg.point_step)})
+    dtype = np.dtype(
+        {
+            "names": names,
+            "formats": [order + POINT_TYPES[fields[k].datatype] for k in names],
+            "offsets": [fields[k].offset for k in names],
+            "itemsize": int(msg.point_step),
+        }
+    )
     rows = data[: n * int(msg.point_step)].view(dtype)
     xyz = np.column_stack([rows[k].astype(np.float64) for k in ("x", "y", "z")])
     intensity = rows["intensity"].astype(np.float32) if "intensity" in names else None
@@ -106,20 +112,37 @@ def depth_image(msg: Any, field: str = "Image") -> np.ndarray:
 class RosbagOptions(Options):
     """Options of `replay:` for a ROS 1 or ROS 2 bag."""
 
-    topic: str | None = Field(None, description="sensor topic (LaserScan, PointCloud2 or depth Image); "
-                                                "none: the first LaserScan, else PointCloud2, else Image")
-    odom: str | None = Field(None, description="Odometry topic giving the poses; none: the first one, if any")
-    info: str | None = Field(None, description="CameraInfo topic for depth images; none: the first one")
+    topic: str | None = Field(
+        None,
+        description="sensor topic (LaserScan, PointCloud2 or depth Image); "
+        "none: the first LaserScan, else PointCloud2, else Image",
+    )
+    odom: str | None = Field(
+        None, description="Odometry topic giving the poses; none: the first one, if any"
+    )
+    info: str | None = Field(
+        None, description="CameraInfo topic for depth images; none: the first one"
+    )
     max_range: float = Field(30.0, description="sensor range, metres")
-    strict: bool = Field(False, description="fail on the first bad message instead of skipping and counting it")
+    strict: bool = Field(
+        False, description="fail on the first bad message instead of skipping and counting it"
+    )
 
 
 class RosbagSource:
     """Observations from one sensor topic of a ROS 1 or ROS 2 bag; poses from an Odometry topic."""
 
-    def __init__(self, path: str | Path, *, topic: str | None = None, odom: str | None = None,
-                 info: str | None = None, max_range: float = 30.0, strict: bool = False,
-                 spec: str = "") -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        topic: str | None = None,
+        odom: str | None = None,
+        info: str | None = None,
+        max_range: float = 30.0,
+        strict: bool = False,
+        spec: str = "",
+    ) -> None:
         self.path = Path(path)
         if not self.path.exists():
             msg = f"ROS bag: expected a bag file or folder, found nothing at {self.path}"
@@ -146,10 +169,20 @@ class RosbagSource:
             msg = f"{self.path}: expected a LaserScan, PointCloud2 or Image topic, found {topic!r} among {found}"
             raise SourceSpecError(msg)
         self.topic, self.kind = topic, types[topic]
-        self.odom = odom if odom is not None else next((t for t, m in sorted(types.items()) if m == ODOM), None)
-        self.info = info if info is not None else next((t for t, m in sorted(types.items()) if m == INFO), None)
+        self.odom = (
+            odom
+            if odom is not None
+            else next((t for t, m in sorted(types.items()) if m == ODOM), None)
+        )
+        self.info = (
+            info
+            if info is not None
+            else next((t for t, m in sorted(types.items()) if m == INFO), None)
+        )
         if self.kind == IMAGE and self.info is None:
-            msg = f"{self.path}: expected a CameraInfo topic for depth images on {topic}, found none"
+            msg = (
+                f"{self.path}: expected a CameraInfo topic for depth images on {topic}, found none"
+            )
             raise SourceSpecError(msg)
         self.count = counts[topic]
         self.adapter: SensorAdapter = self._adapter()
@@ -197,13 +230,24 @@ class RosbagSource:
 
     def _observe(self, msg: Any, body: np.ndarray | None, time: float, where: str) -> Observation:
         if self.kind == SCAN:
-            scan = Scan(ranges=np.asarray(msg.ranges, np.float64), angle_min=float(msg.angle_min),
-                        angle_increment=float(msg.angle_increment),
-                        intensities=np.asarray(msg.intensities) if len(msg.intensities) == len(msg.ranges) else None)
+            scan = Scan(
+                ranges=np.asarray(msg.ranges, np.float64),
+                angle_min=float(msg.angle_min),
+                angle_increment=float(msg.angle_increment),
+                intensities=np.asarray(msg.intensities)
+                if len(msg.intensities) == len(msg.ranges)
+                else None,
+            )
             return self.adapter.observe(scan, pose=body, time=time, odometry=body, frame=where)
         if self.kind == CLOUD:
             xyz, intensity = cloud_points(msg)
-            return self.adapter.observe(Cloud(points=xyz, intensity=intensity), pose=body, time=time,
-                                        odometry=body, frame=where)
-        return self.adapter.observe(DepthFrame(depth=depth_image(msg)), pose=body, time=time,
-                                    odometry=body, frame=where)
+            return self.adapter.observe(
+                Cloud(points=xyz, intensity=intensity),
+                pose=body,
+                time=time,
+                odometry=body,
+                frame=where,
+            )
+        return self.adapter.observe(
+            DepthFrame(depth=depth_image(msg)), pose=body, time=time, odometry=body, frame=where
+        )

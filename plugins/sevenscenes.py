@@ -103,8 +103,14 @@ def seven_scenes_frames(root: Path) -> list[RgbdFrame]:
         colour = folder / f"{stem}.color.png"
         if not colour.is_file():
             colour = folder / f"{stem}.color.jpg"
-        frames.append(RgbdFrame(depth=depth, pose=folder / f"{stem}.pose.txt", time=index / 30.0,
-                                colour=colour if colour.is_file() else None))
+        frames.append(
+            RgbdFrame(
+                depth=depth,
+                pose=folder / f"{stem}.pose.txt",
+                time=index / 30.0,
+                colour=colour if colour.is_file() else None,
+            )
+        )
     return frames
 
 
@@ -154,7 +160,11 @@ def tum_frames(root: Path, max_dt: float = 0.02) -> list[RgbdFrame]:
             msg = f"{root / 'depth.txt'}: at time {stamp}: expected 'timestamp filename', found no filename"
             raise ParseError(msg)
         i = bisect.bisect_left(stamps, stamp)
-        best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - stamp), default=None)
+        best = min(
+            (j for j in (i - 1, i) if 0 <= j < len(stamps)),
+            key=lambda j: abs(stamps[j] - stamp),
+            default=None,
+        )
         if best is None or abs(stamps[best] - stamp) > max_dt:
             continue  # no reference pose close enough
         frames.append(RgbdFrame(depth=root / fields[0], pose=truth[best][1], time=stamp))
@@ -169,15 +179,27 @@ class RgbdOptions(Options):
     step: int = Field(1, description="take every step-th frame (>= 1)")
     stride: int = Field(1, description="take every stride-th pixel on each image axis")
     max_range: float = Field(10.0, description="depth range, metres; farther readings are dropped")
-    strict: bool = Field(False, description="fail on the first bad frame instead of skipping and counting it")
+    strict: bool = Field(
+        False, description="fail on the first bad frame instead of skipping and counting it"
+    )
 
 
 class RgbdSource:
     """Depth frames of a 7-Scenes or TUM RGB-D folder with their reference poses."""
 
-    def __init__(self, root: str | Path, *, layout: str = "auto", start: int = 0, stop: int | None = None,
-                 step: int = 1, stride: int = 1, max_range: float = 10.0, strict: bool = False,
-                 spec: str = "") -> None:
+    def __init__(
+        self,
+        root: str | Path,
+        *,
+        layout: str = "auto",
+        start: int = 0,
+        stop: int | None = None,
+        step: int = 1,
+        stride: int = 1,
+        max_range: float = 10.0,
+        strict: bool = False,
+        spec: str = "",
+    ) -> None:
         self.root = Path(root)
         if not self.root.is_dir():
             msg = f"rgb-d folder: expected a directory, found nothing at {self.root}"
@@ -205,8 +227,9 @@ class RgbdSource:
         self.frames = frames[start:stop:step]
         self.strict = strict
         self.spec = spec or f"replay:{self.root}"
-        self.adapter: SensorAdapter = load_adapter("depth", K=K, depth_scale=scale, invalid=(0, 65535),
-                                                   max_range=max_range, stride=stride)
+        self.adapter: SensorAdapter = load_adapter(
+            "depth", K=K, depth_scale=scale, invalid=(0, 65535), max_range=max_range, stride=stride
+        )
         self.stats = StreamStats()
 
     def __len__(self) -> int:
@@ -215,10 +238,19 @@ class RgbdSource:
     def __iter__(self) -> Iterator[Observation]:
         for frame in self.frames:
             try:
-                pose = read_matrix(frame.pose, (4, 4)) if isinstance(frame.pose, Path) else frame.pose
+                pose = (
+                    read_matrix(frame.pose, (4, 4)) if isinstance(frame.pose, Path) else frame.pose
+                )
                 depth = read_depth_png(frame.depth)
-                colour = read_colour(frame.colour, depth.shape) if frame.colour is not None else None
-                obs = self.adapter.observe(DepthFrame(depth=depth, colour=colour), pose=pose, time=frame.time, frame=str(frame.depth))
+                colour = (
+                    read_colour(frame.colour, depth.shape) if frame.colour is not None else None
+                )
+                obs = self.adapter.observe(
+                    DepthFrame(depth=depth, colour=colour),
+                    pose=pose,
+                    time=frame.time,
+                    frame=str(frame.depth),
+                )
             except (ParseError, SensorInputError) as exc:
                 if self.strict:
                     raise

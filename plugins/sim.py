@@ -26,7 +26,9 @@ from voxel.depth import pixel_rays
 from voxel.localisation.odometry import WheelOdometer
 
 #: Camera optical frame (x right, y down, z forward) in a body frame (x forward, y left, z up).
-OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+OPTICAL = np.array(
+    [[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+)
 
 SENSORS = ("depth", "lidar2d", "lidar3d", "cctv")
 
@@ -44,7 +46,9 @@ class AgentSpec:
     rate: float = 10.0  # frames per second
 
 
-def look_at(eye: tuple[float, float, float], target: tuple[float, float, float]) -> tuple[float, float, float, float, float]:
+def look_at(
+    eye: tuple[float, float, float], target: tuple[float, float, float]
+) -> tuple[float, float, float, float, float]:
     """(x, y, z, yaw, pitch) of a camera at `eye` looking at `target` (pitch > 0 looks down)."""
     d = np.subtract(target, eye)
     return (*eye, math.atan2(d[1], d[0]), math.atan2(-d[2], math.hypot(d[0], d[1])))
@@ -52,17 +56,39 @@ def look_at(eye: tuple[float, float, float], target: tuple[float, float, float])
 
 AGENTS: dict[str, dict[str, AgentSpec]] = {
     "room": {
-        "depth-1": AgentSpec("depth-1", "depth", ((-2.0, -2.0), (2.0, -2.0), (2.0, 0.5), (-2.0, 0.0))),
-        "lidar-1": AgentSpec("lidar-1", "lidar2d", ((-2.2, -2.2), (2.2, -2.2), (2.2, 2.2), (-2.2, 2.2))),
-        "lidar3d-1": AgentSpec("lidar3d-1", "lidar3d", ((0.0, -2.0), (2.0, 0.0), (0.0, 2.3), (-2.3, 0.0))),
-        "cctv-1": AgentSpec("cctv-1", "cctv", fixed=look_at((-2.8, -2.8, 2.3), (1.5, 1.5, 0.8)), rate=1.0),
+        "depth-1": AgentSpec(
+            "depth-1", "depth", ((-2.0, -2.0), (2.0, -2.0), (2.0, 0.5), (-2.0, 0.0))
+        ),
+        "lidar-1": AgentSpec(
+            "lidar-1", "lidar2d", ((-2.2, -2.2), (2.2, -2.2), (2.2, 2.2), (-2.2, 2.2))
+        ),
+        "lidar3d-1": AgentSpec(
+            "lidar3d-1", "lidar3d", ((0.0, -2.0), (2.0, 0.0), (0.0, 2.3), (-2.3, 0.0))
+        ),
+        "cctv-1": AgentSpec(
+            "cctv-1", "cctv", fixed=look_at((-2.8, -2.8, 2.3), (1.5, 1.5, 0.8)), rate=1.0
+        ),
     },
     "office": {
-        "depth-1": AgentSpec("depth-1", "depth", ((-5.0, -3.0), (-1.0, -1.0), (-1.0, 0.0), (3.0, 0.0), (5.0, 2.0), (-5.0, 0.0))),
-        "lidar-1": AgentSpec("lidar-1", "lidar2d", ((-5.0, 0.0), (-1.0, 0.0), (2.5, 0.0), (5.0, -3.0), (5.0, 3.0), (-5.0, 3.5))),
-        "lidar3d-1": AgentSpec("lidar3d-1", "lidar3d", ((-4.0, -3.0), (-0.8, 0.0), (2.5, -2.0), (5.0, 1.5), (0.8, 0.0))),
-        "cctv-1": AgentSpec("cctv-1", "cctv", fixed=look_at((-5.8, -3.8, 2.5), (-2.0, -1.0, 0.8)), rate=1.0),
-        "cctv-2": AgentSpec("cctv-2", "cctv", fixed=look_at((5.8, 3.8, 2.5), (2.0, 1.0, 0.8)), rate=1.0),
+        "depth-1": AgentSpec(
+            "depth-1",
+            "depth",
+            ((-5.0, -3.0), (-1.0, -1.0), (-1.0, 0.0), (3.0, 0.0), (5.0, 2.0), (-5.0, 0.0)),
+        ),
+        "lidar-1": AgentSpec(
+            "lidar-1",
+            "lidar2d",
+            ((-5.0, 0.0), (-1.0, 0.0), (2.5, 0.0), (5.0, -3.0), (5.0, 3.0), (-5.0, 3.5)),
+        ),
+        "lidar3d-1": AgentSpec(
+            "lidar3d-1", "lidar3d", ((-4.0, -3.0), (-0.8, 0.0), (2.5, -2.0), (5.0, 1.5), (0.8, 0.0))
+        ),
+        "cctv-1": AgentSpec(
+            "cctv-1", "cctv", fixed=look_at((-5.8, -3.8, 2.5), (-2.0, -1.0, 0.8)), rate=1.0
+        ),
+        "cctv-2": AgentSpec(
+            "cctv-2", "cctv", fixed=look_at((5.8, 3.8, 2.5), (2.0, 1.0, 0.8)), rate=1.0
+        ),
     },
 }
 
@@ -70,11 +96,15 @@ AGENTS: dict[str, dict[str, AgentSpec]] = {
 class Path:
     """Body pose (x, y, yaw) along a looped waypoint path: turn in place, then drive straight."""
 
-    def __init__(self, waypoints: tuple[tuple[float, float], ...], speed: float, turn_rate: float) -> None:
+    def __init__(
+        self, waypoints: tuple[tuple[float, float], ...], speed: float, turn_rate: float
+    ) -> None:
         if len(waypoints) < 2:
             msg = f"waypoints: expected at least 2, found {len(waypoints)}"
             raise SourceSpecError(msg)
-        pts = [np.asarray(p, np.float64) for p in waypoints] + [np.asarray(waypoints[0], np.float64)]
+        pts = [np.asarray(p, np.float64) for p in waypoints] + [
+            np.asarray(waypoints[0], np.float64)
+        ]
         times, poses = [0.0], []
         yaw = math.atan2(*(pts[1] - pts[0])[::-1])
         poses.append((*pts[0], yaw))
@@ -95,14 +125,22 @@ class Path:
         """(x, y, yaw) at time t (seconds), looping."""
         lap, s = divmod(t, self.period)
         x, y = (np.interp(s, self.times, self.poses[:, i]) for i in range(2))
-        yaw = np.interp(s, self.times, self.poses[:, 2]) + lap * (self.poses[-1, 2] - self.poses[0, 2])
+        yaw = np.interp(s, self.times, self.poses[:, 2]) + lap * (
+            self.poses[-1, 2] - self.poses[0, 2]
+        )
         return float(x), float(y), float(yaw)
 
 
 class Odometer:
     """Dead reckoning from noisy body-frame increments: scale noise, heading noise, heading drift."""
 
-    def __init__(self, start: tuple[float, float, float], noise: float, drift: float, rng: np.random.Generator) -> None:
+    def __init__(
+        self,
+        start: tuple[float, float, float],
+        noise: float,
+        drift: float,
+        rng: np.random.Generator,
+    ) -> None:
         self.truth = start
         self.estimate = np.array(start, np.float64)
         self.noise, self.drift, self.rng = noise, drift, rng
@@ -139,30 +177,51 @@ class Rig:
 def make_rig(sensor: str) -> tuple[Rig, dict]:
     """Ray directions, mount and adapter parameters of a simulated sensor."""
     if sensor in ("depth", "cctv"):
-        w, h, fov = (160, 120, math.radians(70)) if sensor == "depth" else (640, 480, math.radians(75))
+        w, h, fov = (
+            (160, 120, math.radians(70)) if sensor == "depth" else (640, 480, math.radians(75))
+        )
         K = intrinsics_from_fov(w, h, fov)
         d = pixel_rays(K, w, h)
         if sensor == "depth":
-            return Rig(d, pose_matrix(0.1, 0.0, 0.5, 0.0) @ OPTICAL, (h, w), K), {"K": K, "max_range": 8.0}
+            return Rig(d, pose_matrix(0.1, 0.0, 0.5, 0.0) @ OPTICAL, (h, w), K), {
+                "K": K,
+                "max_range": 8.0,
+            }
         return Rig(d, OPTICAL, (h, w), K), {"K": K, "max_range": 10.0}
     if sensor == "lidar2d":
         n, span = 360, math.radians(270)
         a = -span / 2 + span / (n - 1) * np.arange(n)
         d = np.column_stack([np.cos(a), np.sin(a), np.zeros(n)])
-        params = {"beams": n, "angle_min": -span / 2, "angle_increment": span / (n - 1), "range_max": 12.0}
+        params = {
+            "beams": n,
+            "angle_min": -span / 2,
+            "angle_increment": span / (n - 1),
+            "range_max": 12.0,
+        }
         return Rig(d, pose_matrix(0.0, 0.0, 0.3, 0.0), (n,)), params
     if sensor == "lidar3d":
         rings, cols = 16, 512
         el = np.radians(np.linspace(-15, 15, rings))[:, None]
         az = np.linspace(-math.pi, math.pi, cols, endpoint=False)[None, :]
-        d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], axis=-1)
-        return Rig(d.reshape(-1, 3), pose_matrix(0.0, 0.0, 0.8, 0.0), (rings, cols)), {"range_max": 30.0}
+        d = np.stack(
+            [np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)],
+            axis=-1,
+        )
+        return Rig(d.reshape(-1, 3), pose_matrix(0.0, 0.0, 0.8, 0.0), (rings, cols)), {
+            "range_max": 30.0
+        }
     msg = f"sensor: expected one of {list(SENSORS)}, found {sensor!r}"
     raise SourceSpecError(msg)
 
 
-def render(world: World, sensor: str, rig: Rig, pose: np.ndarray, rng: np.random.Generator,
-           range_noise: float) -> Scan | Cloud | DepthFrame | CctvFrame:
+def render(
+    world: World,
+    sensor: str,
+    rig: Rig,
+    pose: np.ndarray,
+    rng: np.random.Generator,
+    range_noise: float,
+) -> Scan | Cloud | DepthFrame | CctvFrame:
     """A raw reading of `sensor` at sensor pose `pose` (world frame), rendered by ray casting."""
     directions = rig.directions @ pose[:3, :3].T
     hits = world.cast(pose[:3, 3], directions)
@@ -173,10 +232,14 @@ def render(world: World, sensor: str, rig: Rig, pose: np.ndarray, rng: np.random
         return Scan(ranges=np.where(np.isfinite(t), t, np.inf))
     if sensor == "lidar3d":
         keep = np.isfinite(t)
-        incidence = np.abs(np.einsum("ij,ij->i", hits.normal[keep], directions[keep]))  # Lambertian return
+        incidence = np.abs(
+            np.einsum("ij,ij->i", hits.normal[keep], directions[keep])
+        )  # Lambertian return
         return Cloud(points=rig.directions[keep] * t[keep, None], intensity=incidence)
     h, w = rig.shape
-    depth = np.where(np.isfinite(t), t, np.nan).reshape(h, w).astype(np.float32)  # z = t for z = 1 rays
+    depth = (
+        np.where(np.isfinite(t), t, np.nan).reshape(h, w).astype(np.float32)
+    )  # z = t for z = 1 rays
     colour = world.render_colour(rig.K, pose, (h, w), directions, hits)
     if sensor == "depth":
         labels = hits.class_id.reshape(h, w)
@@ -189,18 +252,31 @@ class SimOptions(Options):
     """Options of `sim:`."""
 
     world: str = Field("office", description=f"simulated world: {', '.join(sorted(WORLDS))}")
-    agent: str = Field("lidar-1", description="agent, with its sensor and path: "
-                       + "; ".join(f"{w}: {', '.join(sorted(a))}" for w, a in sorted(AGENTS.items())))
+    agent: str = Field(
+        "lidar-1",
+        description="agent, with its sensor and path: "
+        + "; ".join(f"{w}: {', '.join(sorted(a))}" for w, a in sorted(AGENTS.items())),
+    )
     seed: int = Field(0, description="seed of the odometry and range noise")
-    frames: int = Field(100, description="frames to deliver (>= 0), at the agent's rate in simulated time")
+    frames: int = Field(
+        100, description="frames to deliver (>= 0), at the agent's rate in simulated time"
+    )
     noise: float = Field(0.02, description="odometry noise, relative to the distance travelled")
     drift: float = Field(0.0, description="odometry heading drift, radians per metre")
-    odometry_noise: str | None = Field(None, description="wheel odometry noise model instead of noise and "
-                                       "drift: none, low, realistic, high or trans/rot/rot_per_m/scale_bias/"
-                                       "yaw_bias (docs/LOCALISATION.md)")
-    range_noise: float = Field(0.01, description="range noise of the sensor, metres (standard deviation)")
-    start: str = Field("origin", description="where pose guesses start: origin (the identity) or "
-                                             "world (the true start pose)")
+    odometry_noise: str | None = Field(
+        None,
+        description="wheel odometry noise model instead of noise and "
+        "drift: none, low, realistic, high or trans/rot/rot_per_m/scale_bias/"
+        "yaw_bias (docs/LOCALISATION.md)",
+    )
+    range_noise: float = Field(
+        0.01, description="range noise of the sensor, metres (standard deviation)"
+    )
+    start: str = Field(
+        "origin",
+        description="where pose guesses start: origin (the identity) or "
+        "world (the true start pose)",
+    )
     realtime: bool = Field(False, description="pace frames at the agent's rate in wall-clock time")
 
 
@@ -210,10 +286,21 @@ class SimSource:
     Options: `SimOptions` (`colonyd sources`).
     """
 
-    def __init__(self, *, world: str = "office", agent: str = "lidar-1", seed: int = 0,
-                 frames: int = 100, noise: float = 0.02, drift: float = 0.0, range_noise: float = 0.01,
-                 start: str = "origin", realtime: bool = False, odometry_noise: str | None = None,
-                 spec: str = "") -> None:
+    def __init__(
+        self,
+        *,
+        world: str = "office",
+        agent: str = "lidar-1",
+        seed: int = 0,
+        frames: int = 100,
+        noise: float = 0.02,
+        drift: float = 0.0,
+        range_noise: float = 0.01,
+        start: str = "origin",
+        realtime: bool = False,
+        odometry_noise: str | None = None,
+        spec: str = "",
+    ) -> None:
         self.world = get_world(world)
         agents = AGENTS[self.world.name]
         if agent not in agents:
@@ -233,8 +320,13 @@ class SimSource:
         self.rig, params = make_rig(self.agent.sensor)
         params["noise"] = range_noise
         if self.agent.sensor == "cctv":
-            params["pose"] = pose_matrix(*self.agent.fixed[:3], self.agent.fixed[3], self.agent.fixed[4]) @ OPTICAL
-            params["marker_classes"] = {m.marker_id: CLASSES["landmark"] for m in self.world.markers}
+            params["pose"] = (
+                pose_matrix(*self.agent.fixed[:3], self.agent.fixed[3], self.agent.fixed[4])
+                @ OPTICAL
+            )
+            params["marker_classes"] = {
+                m.marker_id: CLASSES["landmark"] for m in self.world.markers
+            }
             params["dictionary"] = self.world.dictionary
             if self.world.markers:
                 params["marker_length"] = self.world.markers[0].length
@@ -253,9 +345,16 @@ class SimSource:
         fixed = agent.sensor == "cctv"
         path = None if fixed else Path(agent.waypoints, agent.speed, agent.turn_rate)
         start = (0.0, 0.0, 0.0) if fixed else path(0.0)
-        odometer = (Odometer(start, self.noise, self.drift, rng) if self.odometry_noise is None
-                    else WheelOdometer(np.array(start), self.odometry_noise, rng))
-        to_agent = np.eye(4) if self.start == "world" or fixed else np.linalg.inv(pose_matrix(start[0], start[1], 0.0, start[2]))
+        odometer = (
+            Odometer(start, self.noise, self.drift, rng)
+            if self.odometry_noise is None
+            else WheelOdometer(np.array(start), self.odometry_noise, rng)
+        )
+        to_agent = (
+            np.eye(4)
+            if self.start == "world" or fixed
+            else np.linalg.inv(pose_matrix(start[0], start[1], 0.0, start[2]))
+        )
         self.ground_truth = []
         began = clock.monotonic()
         for i in range(self.frames):
@@ -271,8 +370,12 @@ class SimSource:
                 truth_sensor = body_truth @ self.rig.mount
                 body_guess = to_agent @ pose_matrix(estimate[0], estimate[1], 0.0, estimate[2])
                 odometry = body_guess
-            reading = render(self.world, agent.sensor, self.rig, truth_sensor, rng, self.range_noise)
-            obs = self.adapter.observe(reading, pose=body_guess, time=t, odometry=odometry, frame=f"{self.spec}#{i}")
+            reading = render(
+                self.world, agent.sensor, self.rig, truth_sensor, rng, self.range_noise
+            )
+            obs = self.adapter.observe(
+                reading, pose=body_guess, time=t, odometry=odometry, frame=f"{self.spec}#{i}"
+            )
             obs = _with_truth(obs, truth_sensor)
             self.ground_truth.append((t, truth_sensor))
             self.stats.delivered += 1
@@ -289,4 +392,6 @@ def _with_truth(obs: Observation, truth: np.ndarray) -> Observation:
 
 def open_sim(spec: SourceSpec, context: SourceContext) -> SimSource:
     """The `sim:` source of a parsed spec."""
-    return SimSource(**parse_options(SimOptions, spec.options, spec.text).model_dump(), spec=spec.text)
+    return SimSource(
+        **parse_options(SimOptions, spec.options, spec.text).model_dump(), spec=spec.text
+    )

@@ -33,32 +33,51 @@ class SourceKind:
     takes_path: bool = False
 
 
-SOURCE_KINDS: dict[str, SourceKind] = {kind.name: kind for kind in (
-    SourceKind(
-        "sim", "sim:key=value,...",
-        "an agent of a simulated world: a depth camera, 2D or 3D LiDAR or CCTV camera rendered by ray "
-        "casting along the agent's path, pose guesses from noisy odometry, ground truth kept; "
-        "deterministic for a seed",
-        (("", SimOptions),), open_sim),
-    SourceKind(
-        "replay", "replay:PATH[,key=value...]",
-        "a real recording at PATH: a CARMEN laser log (.log, .log.gz), a 7-Scenes or TUM RGB-D folder, "
-        "or a ROS 1/2 bag (.bag, .db3, .mcap, or a folder with metadata.yaml; needs the [ros] extra); "
-        "bad frames are skipped and counted unless strict",
-        (("", ReplayOptions), ("carmen", CarmenOptions), ("7scenes, tum", RgbdOptions),
-         ("rosbag", RosbagOptions)),
-        open_replay, takes_path=True),
-    SourceKind(
-        "synthetic", "synthetic:key=value,...",
-        "nothing: a 2.5D scanner walking an empty square room, horizontal beams to the walls with "
-        "returns at random heights, paced in real time (daemon tests and benchmarks)",
-        (("", SyntheticOptions),), open_synthetic),
-    SourceKind(
-        "bulk", "bulk:key=value,...",
-        "nothing: one ready-made layer of occupied voxels with random log-odds, at the grid's "
-        "resolution, integrated at once (benchmarks of catch-up)",
-        (("", BulkOptions),), open_bulk),
-)}
+SOURCE_KINDS: dict[str, SourceKind] = {
+    kind.name: kind
+    for kind in (
+        SourceKind(
+            "sim",
+            "sim:key=value,...",
+            "an agent of a simulated world: a depth camera, 2D or 3D LiDAR or CCTV camera rendered by ray "
+            "casting along the agent's path, pose guesses from noisy odometry, ground truth kept; "
+            "deterministic for a seed",
+            (("", SimOptions),),
+            open_sim,
+        ),
+        SourceKind(
+            "replay",
+            "replay:PATH[,key=value...]",
+            "a real recording at PATH: a CARMEN laser log (.log, .log.gz), a 7-Scenes or TUM RGB-D folder, "
+            "or a ROS 1/2 bag (.bag, .db3, .mcap, or a folder with metadata.yaml; needs the [ros] extra); "
+            "bad frames are skipped and counted unless strict",
+            (
+                ("", ReplayOptions),
+                ("carmen", CarmenOptions),
+                ("7scenes, tum", RgbdOptions),
+                ("rosbag", RosbagOptions),
+            ),
+            open_replay,
+            takes_path=True,
+        ),
+        SourceKind(
+            "synthetic",
+            "synthetic:key=value,...",
+            "nothing: a 2.5D scanner walking an empty square room, horizontal beams to the walls with "
+            "returns at random heights, paced in real time (daemon tests and benchmarks)",
+            (("", SyntheticOptions),),
+            open_synthetic,
+        ),
+        SourceKind(
+            "bulk",
+            "bulk:key=value,...",
+            "nothing: one ready-made layer of occupied voxels with random log-odds, at the grid's "
+            "resolution, integrated at once (benchmarks of catch-up)",
+            (("", BulkOptions),),
+            open_bulk,
+        ),
+    )
+}
 
 
 def parse_spec(spec: str) -> SourceSpec:
@@ -68,15 +87,18 @@ def parse_spec(spec: str) -> SourceSpec:
     return split_spec(spec, usages, with_path)
 
 
-def open_source(spec: str, *, resolution: float = 0.1, seed: int = 0,
-                stop: threading.Event | None = None) -> Source:
+def open_source(
+    spec: str, *, resolution: float = 0.1, seed: int = 0, stop: threading.Event | None = None
+) -> Source:
     """Open the source described by `spec` (`colonyd sources` lists them).
 
     `resolution` is the voxel size of the grid it feeds, `seed` the seed of sources whose spec
     sets none, `stop` ends paced or endless sources between frames.
     """
     parsed = parse_spec(spec)
-    context = SourceContext(resolution=resolution, seed=seed, stop=stop if stop is not None else threading.Event())
+    context = SourceContext(
+        resolution=resolution, seed=seed, stop=stop if stop is not None else threading.Event()
+    )
     return SOURCE_KINDS[parsed.kind].open(parsed, context)
 
 
@@ -88,7 +110,10 @@ def describe_sources(*, markdown: bool = False) -> str:
 def _sections(kind: SourceKind) -> list[tuple[str, list]]:
     """(heading, option docs) of a kind; later sections leave out the options of the first."""
     own = tuple(kind.options[0][1].model_fields)
-    return [(heading, option_docs(model, exclude=own if i else ())) for i, (heading, model) in enumerate(kind.options)]
+    return [
+        (heading, option_docs(model, exclude=own if i else ()))
+        for i, (heading, model) in enumerate(kind.options)
+    ]
 
 
 def _text(kind: SourceKind) -> str:
@@ -98,7 +123,9 @@ def _text(kind: SourceKind) -> str:
         width = max((len(d.name) for d in docs), default=0)
         tw = max((len(d.type) for d in docs), default=0)
         dw = max((len(d.default) for d in docs), default=0)
-        lines += [f"    {d.name:<{width}}  {d.type:<{tw}}  {d.default:<{dw}}  {d.help}" for d in docs]
+        lines += [
+            f"    {d.name:<{width}}  {d.type:<{tw}}  {d.default:<{dw}}  {d.help}" for d in docs
+        ]
     return "\n".join(lines) + "\n"
 
 

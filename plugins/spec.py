@@ -13,8 +13,16 @@ from plugins.errors import SourceSpecError
 #: Option texts that mean "no value" for an option that may be None.
 _NONE = ("none", "")
 #: pydantic error types that mean "not of the option's type" (the rest are range or choice errors).
-_TYPE_ERRORS = ("int_parsing", "int_from_float", "float_parsing", "bool_parsing", "int_type", "float_type",
-                "bool_type", "string_type")
+_TYPE_ERRORS = (
+    "int_parsing",
+    "int_from_float",
+    "float_parsing",
+    "bool_parsing",
+    "int_type",
+    "float_type",
+    "bool_type",
+    "string_type",
+)
 
 
 class Options(BaseModel):
@@ -36,7 +44,9 @@ class SourceSpec:
     text: str = ""
 
 
-def split_spec(spec: str, usages: dict[str, str], with_path: frozenset[str] = frozenset()) -> SourceSpec:
+def split_spec(
+    spec: str, usages: dict[str, str], with_path: frozenset[str] = frozenset()
+) -> SourceSpec:
     """Split `spec` into kind, path and `key=value` options.
 
     `usages` maps every known kind to its usage line (for the error message); kinds in
@@ -98,8 +108,13 @@ class OptionDoc:
 
 def option_docs(model: type[Options], exclude: tuple[str, ...] = ()) -> list[OptionDoc]:
     """The options of `model` (but `exclude`), in declaration order, as documented."""
-    return [OptionDoc(name, type_name(info.annotation), default_text(info.default), info.description or "")
-            for name, info in model.model_fields.items() if name not in exclude]
+    return [
+        OptionDoc(
+            name, type_name(info.annotation), default_text(info.default), info.description or ""
+        )
+        for name, info in model.model_fields.items()
+        if name not in exclude
+    ]
 
 
 def default_text(value: object) -> str:

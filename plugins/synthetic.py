@@ -27,19 +27,33 @@ class SyntheticOptions(Options):
     scans: int = Field(0, description="scans to take; 0 (or less) scans until the daemon stops")
     rate: float = Field(2.0, description="scans per second, paced in real time (> 0)")
     points: int = Field(360, description="beams per scan, evenly spread over a full turn (> 0)")
-    seed: int | None = Field(None, description="seed of the walk and the return heights; none: the "
-                                               "daemon's per-agent seed (0 in `colonyd map`)")
+    seed: int | None = Field(
+        None,
+        description="seed of the walk and the return heights; none: the "
+        "daemon's per-agent seed (0 in `colonyd map`)",
+    )
     room: float = Field(8.0, description="side of the square room, metres (> 1)")
-    step: float = Field(0.3, description="distance walked in a random direction between scans, metres")
+    step: float = Field(
+        0.3, description="distance walked in a random direction between scans, metres"
+    )
 
 
 class SyntheticSource:
     """Horizontal beams from 1 m above the floor to the walls of a square room; each return lands at
     a random height in [0.1, 2.0) m. Scan times are wall-clock times."""
 
-    def __init__(self, *, scans: int = 0, rate: float = 2.0, points: int = 360, seed: int = 0,
-                 room: float = 8.0, step: float = 0.3, spec: str = "",
-                 stop: threading.Event | None = None) -> None:
+    def __init__(
+        self,
+        *,
+        scans: int = 0,
+        rate: float = 2.0,
+        points: int = 360,
+        seed: int = 0,
+        room: float = 8.0,
+        step: float = 0.3,
+        spec: str = "",
+        stop: threading.Event | None = None,
+    ) -> None:
         if rate <= 0 or points <= 0 or room <= 1:
             msg = f"synthetic: expected rate > 0, points > 0 and room > 1, found rate={rate}, points={points}, room={room}"
             raise SourceSpecError(msg)
@@ -59,8 +73,11 @@ class SyntheticSource:
     def scan(self, t: float) -> Observation:
         """Walk one step, then scan at time `t`."""
         angle = self.rng.uniform(0, 2 * math.pi)
-        self.pos = np.clip(self.pos + self.step * np.array([math.cos(angle), math.sin(angle)]),
-                           0.5, self.room - 0.5)
+        self.pos = np.clip(
+            self.pos + self.step * np.array([math.cos(angle), math.sin(angle)]),
+            0.5,
+            self.room - 0.5,
+        )
         a = np.linspace(0, 2 * math.pi, self.points, endpoint=False) + self.rng.uniform(0, 0.01)
         d = np.stack([np.cos(a), np.sin(a)], axis=1)
         origin = np.array([self.pos[0], self.pos[1], HEIGHT])
@@ -68,8 +85,12 @@ class SyntheticSource:
         z = self.rng.uniform(0.1, 2.0, size=self.points)
         pose = np.eye(4)
         pose[:3, 3] = origin
-        return self.adapter.observe(np.column_stack([d * r[:, None], z - HEIGHT]), pose=pose, time=t,
-                                    frame=f"{self.spec}#{self.stats.delivered}")
+        return self.adapter.observe(
+            np.column_stack([d * r[:, None], z - HEIGHT]),
+            pose=pose,
+            time=t,
+            frame=f"{self.spec}#{self.stats.delivered}",
+        )
 
     def __iter__(self) -> Iterator[Observation]:
         n = 0
@@ -88,4 +109,6 @@ def open_synthetic(spec: SourceSpec, context: SourceContext) -> SyntheticSource:
     """The `synthetic:` source of a parsed spec; the context gives the default seed and the stop event."""
     options = parse_options(SyntheticOptions, spec.options, spec.text)
     seed = context.seed if options.seed is None else options.seed
-    return SyntheticSource(**options.model_dump(exclude={"seed"}), seed=seed, spec=spec.text, stop=context.stop)
+    return SyntheticSource(
+        **options.model_dump(exclude={"seed"}), seed=seed, spec=spec.text, stop=context.stop
+    )

@@ -114,8 +114,16 @@ class World:
         """First hit of rays origin + t * directions (M, 3); all rays at once, in chunks."""
         directions = np.asarray(directions, np.float64).reshape(-1, 3)
         origin = np.asarray(origin, np.float64).reshape(3)
-        parts = [self._cast(origin, directions[i:i + chunk]) for i in range(0, max(len(directions), 1), chunk)]
-        return Hits(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("t", "normal", "class_id", "object_id", "colour")))
+        parts = [
+            self._cast(origin, directions[i : i + chunk])
+            for i in range(0, max(len(directions), 1), chunk)
+        ]
+        return Hits(
+            *(
+                np.concatenate([getattr(p, f) for p in parts])
+                for f in ("t", "normal", "class_id", "object_id", "colour")
+            )
+        )
 
     def _cast(self, o: np.ndarray, d: np.ndarray) -> Hits:
         m = d.shape[0]
@@ -125,7 +133,9 @@ class World:
         obj = np.full(m, -1, np.int32)
         colour = np.zeros((m, 3), np.uint8)
 
-        def take(tc: np.ndarray, nc: np.ndarray, c: np.ndarray, oid: np.ndarray, col: np.ndarray) -> None:
+        def take(
+            tc: np.ndarray, nc: np.ndarray, c: np.ndarray, oid: np.ndarray, col: np.ndarray
+        ) -> None:
             better = tc < t
             t[better] = tc[better]
             normal[better] = nc[better] if nc.ndim == 2 else nc
@@ -138,8 +148,13 @@ class World:
                 tf = (self.floor - o[2]) / d[:, 2]
             tf = np.where(np.isfinite(tf) & (tf > _EPS), tf, np.inf)
             up = 1.0 if o[2] >= self.floor else -1.0
-            take(tf, np.array([0.0, 0.0, up]), np.int32(CLASSES["floor"]), np.int32(-1),
-                 np.array(self.floor_colour, np.uint8))
+            take(
+                tf,
+                np.array([0.0, 0.0, up]),
+                np.int32(CLASSES["floor"]),
+                np.int32(-1),
+                np.array(self.floor_colour, np.uint8),
+            )
 
         if len(self.boxes):
             safe = np.where(np.abs(d) < 1e-12, 1e-12, d)
@@ -167,8 +182,14 @@ class World:
         return Hits(t=t, normal=normal, class_id=cls, object_id=obj, colour=colour)
 
     # appearance -----------------------------------------------------------------------------
-    def render_colour(self, K: np.ndarray, pose: np.ndarray, size: tuple[int, int], directions: np.ndarray,
-                      hits: Hits) -> np.ndarray:
+    def render_colour(
+        self,
+        K: np.ndarray,
+        pose: np.ndarray,
+        size: tuple[int, int],
+        directions: np.ndarray,
+        hits: Hits,
+    ) -> np.ndarray:
         """BGR image (H, W, 3) of a pinhole camera's hits: shaded surfaces with markers warped on.
 
         `directions` are the world-frame rays of the pixels (row-major, as cast). Markers are drawn
@@ -190,8 +211,12 @@ class World:
             if (frame[:3, 3] - pose[:3, 3]) @ frame[:3, 2] >= 0:
                 continue  # seen from behind
             half = marker.length * (0.5 + marker.margin)
-            corners = np.array([[-half, half, 0], [half, half, 0], [half, -half, 0], [-half, -half, 0]])
-            cam = (corners @ frame[:3, :3].T + frame[:3, 3]) @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
+            corners = np.array(
+                [[-half, half, 0], [half, half, 0], [half, -half, 0], [-half, -half, 0]]
+            )
+            cam = (corners @ frame[:3, :3].T + frame[:3, 3]) @ world_to_cam[
+                :3, :3
+            ].T + world_to_cam[:3, 3]
             if np.any(cam[:, 2] <= 0.05):
                 continue
             uv = cam[:, :2] / cam[:, 2:] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
@@ -200,10 +225,14 @@ class World:
             if np.any(hi <= lo):
                 continue
             # pixels of the tag's bounding box whose ray hits the marker's face (occlusion test)
-            rows, cols = np.mgrid[lo[1]:hi[1], lo[0]:hi[0]]
+            rows, cols = np.mgrid[lo[1] : hi[1], lo[0] : hi[0]]
             index = (rows * w + cols).reshape(-1)
             local = (points[index] - frame[:3, 3]) @ frame[:3, :3]
-            face = hit[index] & (np.abs(local[:, 2]) < 1e-4) & (hits.normal[index] @ frame[:3, 2] > 0.5)
+            face = (
+                hit[index]
+                & (np.abs(local[:, 2]) < 1e-4)
+                & (hits.normal[index] @ frame[:3, 2] > 0.5)
+            )
             if not face.any():
                 continue
             tag = self._tag(marker)
@@ -212,14 +241,22 @@ class World:
                 size = max(round(side * 2), 8)
                 tag = cv2.resize(tag, (size, size), interpolation=cv2.INTER_AREA)
             s = tag.shape[0]
-            src = np.array([[-0.5, -0.5], [s - 0.5, -0.5], [s - 0.5, s - 0.5], [-0.5, s - 0.5]], np.float32)
+            src = np.array(
+                [[-0.5, -0.5], [s - 0.5, -0.5], [s - 0.5, s - 0.5], [-0.5, s - 0.5]], np.float32
+            )
             H = cv2.getPerspectiveTransform(src, (uv - lo).astype(np.float32))
             box = (int(hi[0] - lo[0]), int(hi[1] - lo[1]))
-            warped = cv2.warpPerspective(tag, H, box, flags=cv2.INTER_AREA, borderValue=0).reshape(-1)
-            cover = cv2.warpPerspective(np.full_like(tag, 255), H, box, flags=cv2.INTER_AREA, borderValue=0).reshape(-1)
+            warped = cv2.warpPerspective(tag, H, box, flags=cv2.INTER_AREA, borderValue=0).reshape(
+                -1
+            )
+            cover = cv2.warpPerspective(
+                np.full_like(tag, 255), H, box, flags=cv2.INTER_AREA, borderValue=0
+            ).reshape(-1)
             alpha = cover.astype(np.float32) / 255.0 * face
             shade = lit[index, None]
-            base[index] = base[index] * (1 - alpha[:, None]) + (warped[:, None] * shade) * alpha[:, None]
+            base[index] = (
+                base[index] * (1 - alpha[:, None]) + (warped[:, None] * shade) * alpha[:, None]
+            )
         return np.clip(base, 0, 255).astype(np.uint8).reshape(h, w, 3)
 
     def _tag(self, marker: Marker) -> np.ndarray:
@@ -228,9 +265,13 @@ class World:
             dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
             cells = dictionary.markerSize + 2
             px = 16
-            inner = cv2.aruco.generateImageMarker(dictionary, marker.marker_id, cells * px, borderBits=1)
+            inner = cv2.aruco.generateImageMarker(
+                dictionary, marker.marker_id, cells * px, borderBits=1
+            )
             pad = round(marker.margin * cells * px)
-            self._bitmaps[marker.marker_id] = cv2.copyMakeBorder(inner, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=255)
+            self._bitmaps[marker.marker_id] = cv2.copyMakeBorder(
+                inner, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=255
+            )
         return self._bitmaps[marker.marker_id]
 
 
@@ -240,7 +281,7 @@ def _cylinder(o: np.ndarray, d: np.ndarray, c: Cylinder) -> tuple[np.ndarray, np
     ox, oy = o[0] - c.centre[0], o[1] - c.centre[1]
     a = d[:, 0] ** 2 + d[:, 1] ** 2
     b = 2.0 * (ox * d[:, 0] + oy * d[:, 1])
-    cc = ox * ox + oy * oy - c.radius ** 2
+    cc = ox * ox + oy * oy - c.radius**2
     disc = b * b - 4 * a * cc
     with np.errstate(divide="ignore", invalid="ignore"):
         ts = (-b - np.sqrt(disc)) / (2 * a)
@@ -255,7 +296,12 @@ def _cylinder(o: np.ndarray, d: np.ndarray, c: Cylinder) -> tuple[np.ndarray, np
     with np.errstate(divide="ignore", invalid="ignore"):
         tc = (cap_z - o[2]) / d[:, 2]
         xc, yc = ox + tc * d[:, 0], oy + tc * d[:, 1]
-        cap_ok = np.isfinite(tc) & (tc > _EPS) & (xc * xc + yc * yc <= c.radius ** 2) & (o[2] > c.z1 or o[2] < c.z0)
+        cap_ok = (
+            np.isfinite(tc)
+            & (tc > _EPS)
+            & (xc * xc + yc * yc <= c.radius**2)
+            & (o[2] > c.z1 or o[2] < c.z0)
+        )
     t_cap = np.where(cap_ok, tc, np.inf)
     n_cap = np.zeros((m, 3))
     n_cap[:, 2] = 1.0 if o[2] > c.z1 else -1.0
@@ -265,7 +311,10 @@ def _cylinder(o: np.ndarray, d: np.ndarray, c: Cylinder) -> tuple[np.ndarray, np
 
 # worlds -------------------------------------------------------------------------------------
 
-def _walls(x0: float, y0: float, x1: float, y1: float, height: float, thick: float = 0.1) -> list[Box]:
+
+def _walls(
+    x0: float, y0: float, x1: float, y1: float, height: float, thick: float = 0.1
+) -> list[Box]:
     """Four walls whose inner faces bound [x0, x1] x [y0, y1]."""
     w, cls, col = thick, CLASSES["wall"], (200, 200, 205)
     return [
@@ -276,14 +325,30 @@ def _walls(x0: float, y0: float, x1: float, y1: float, height: float, thick: flo
     ]
 
 
-def _landmark(object_id: int, x: float, y: float, first_marker: int, side: float = 0.5,
-              height: float = 1.4, length: float = 0.3) -> tuple[Box, list[Marker]]:
+def _landmark(
+    object_id: int,
+    x: float,
+    y: float,
+    first_marker: int,
+    side: float = 0.5,
+    height: float = 1.4,
+    length: float = 0.3,
+) -> tuple[Box, list[Marker]]:
     """A square pillar with one ArUco marker on each vertical face, at 1.0 m height."""
     h = side / 2
-    box = Box((x - h, y - h, 0.0), (x + h, y + h, height), CLASSES["landmark"], object_id, (170, 170, 170))
-    faces = [((1, 0, 0), (x + h, y, 1.0)), ((-1, 0, 0), (x - h, y, 1.0)),
-             ((0, 1, 0), (x, y + h, 1.0)), ((0, -1, 0), (x, y - h, 1.0))]
-    markers = [Marker(first_marker + i, centre, normal, length, object_id) for i, (normal, centre) in enumerate(faces)]
+    box = Box(
+        (x - h, y - h, 0.0), (x + h, y + h, height), CLASSES["landmark"], object_id, (170, 170, 170)
+    )
+    faces = [
+        ((1, 0, 0), (x + h, y, 1.0)),
+        ((-1, 0, 0), (x - h, y, 1.0)),
+        ((0, 1, 0), (x, y + h, 1.0)),
+        ((0, -1, 0), (x, y - h, 1.0)),
+    ]
+    markers = [
+        Marker(first_marker + i, centre, normal, length, object_id)
+        for i, (normal, centre) in enumerate(faces)
+    ]
     return box, markers
 
 
@@ -292,9 +357,11 @@ def room_world() -> World:
     landmark, markers = _landmark(3, 1.5, 1.5, 0)
     return World(
         name="room",
-        boxes=[*_walls(-3.0, -3.0, 3.0, 3.0, 2.5),
-               Box((-2.0, 1.0, 0.0), (-1.4, 1.6, 0.8), CLASSES["box"], 1, (40, 90, 160)),
-               landmark],
+        boxes=[
+            *_walls(-3.0, -3.0, 3.0, 3.0, 2.5),
+            Box((-2.0, 1.0, 0.0), (-1.4, 1.6, 0.8), CLASSES["box"], 1, (40, 90, 160)),
+            landmark,
+        ],
         cylinders=[Cylinder((1.5, -1.5), 0.25, 0.0, 1.2, CLASSES["cylinder"], 2)],
         markers=markers,
     )
@@ -303,20 +370,24 @@ def room_world() -> World:
 def office_world() -> World:
     """A 12 x 8 m office: two rooms joined by a 1.2 m doorway, boxes, bins and four tagged landmarks."""
     cls, col = CLASSES["wall"], (200, 200, 205)
-    boxes = [*_walls(-6.0, -4.0, 6.0, 4.0, 2.7),
-             Box((-0.05, -4.0, 0.0), (0.05, -0.6, 2.7), cls, colour=col),
-             Box((-0.05, 0.6, 0.0), (0.05, 4.0, 2.7), cls, colour=col),
-             Box((-4.5, 2.5, 0.0), (-3.3, 3.3, 0.75), CLASSES["box"], 1, (40, 90, 160)),
-             Box((3.0, -3.4, 0.0), (3.8, -2.6, 1.0), CLASSES["box"], 2, (60, 160, 60)),
-             Box((4.4, 2.2, 0.0), (5.2, 3.0, 0.5), CLASSES["box"], 3, (160, 60, 60))]
+    boxes = [
+        *_walls(-6.0, -4.0, 6.0, 4.0, 2.7),
+        Box((-0.05, -4.0, 0.0), (0.05, -0.6, 2.7), cls, colour=col),
+        Box((-0.05, 0.6, 0.0), (0.05, 4.0, 2.7), cls, colour=col),
+        Box((-4.5, 2.5, 0.0), (-3.3, 3.3, 0.75), CLASSES["box"], 1, (40, 90, 160)),
+        Box((3.0, -3.4, 0.0), (3.8, -2.6, 1.0), CLASSES["box"], 2, (60, 160, 60)),
+        Box((4.4, 2.2, 0.0), (5.2, 3.0, 0.5), CLASSES["box"], 3, (160, 60, 60)),
+    ]
     markers: list[Marker] = []
     for i, (x, y) in enumerate([(-3.0, -2.0), (-1.5, 1.5), (2.0, 1.0), (4.0, -1.0)]):
         box, ms = _landmark(10 + i, x, y, 4 * i)
         boxes.append(box)
         markers += ms
-    cylinders = [Cylinder((-4.8, -3.2), 0.2, 0.0, 0.9, CLASSES["cylinder"], 20),
-                 Cylinder((1.2, -2.5), 0.3, 0.0, 1.1, CLASSES["cylinder"], 21),
-                 Cylinder((5.2, 0.5), 0.25, 0.0, 1.0, CLASSES["cylinder"], 22)]
+    cylinders = [
+        Cylinder((-4.8, -3.2), 0.2, 0.0, 0.9, CLASSES["cylinder"], 20),
+        Cylinder((1.2, -2.5), 0.3, 0.0, 1.1, CLASSES["cylinder"], 21),
+        Cylinder((5.2, 0.5), 0.25, 0.0, 1.0, CLASSES["cylinder"], 22),
+    ]
     return World(name="office", boxes=boxes, cylinders=cylinders, markers=markers)
 
 
@@ -341,7 +412,9 @@ def furnished_room(thick: float = 0.1) -> World:
     for axis in range(3):
         for side in (lo, hi):
             a, b = lo - thick, hi + thick
-            a[axis], b[axis] = (side[axis] - thick, side[axis]) if side is lo else (side[axis], side[axis] + thick)
+            a[axis], b[axis] = (
+                (side[axis] - thick, side[axis]) if side is lo else (side[axis], side[axis] + thick)
+            )
             slabs.append(Box(tuple(a.tolist()), tuple(b.tolist()), CLASSES["wall"], colour=col))
     furniture = [
         ((1.0, -1.0, 0.0), (2.2, 0.2, 0.75)),  # table
@@ -350,8 +423,14 @@ def furnished_room(thick: float = 0.1) -> World:
         ((-0.4, -2.6, 0.0), (0.3, -1.9, 1.1)),  # chair
         ((-3.2, -1.0, 0.8), (-2.9, 0.5, 1.6)),  # shelf on the wall
     ]
-    boxes = [Box(tuple((np.array(a) + shift).tolist()), tuple((np.array(b) + shift).tolist()), CLASSES["box"])
-             for a, b in furniture]
+    boxes = [
+        Box(
+            tuple((np.array(a) + shift).tolist()),
+            tuple((np.array(b) + shift).tolist()),
+            CLASSES["box"],
+        )
+        for a, b in furniture
+    ]
     return World(name="furnished", boxes=[*slabs, *boxes], floor=None)
 
 

@@ -204,7 +204,8 @@ def _envelope_end(data: bytes | memoryview, flags: int) -> int:
     end = len(data) - tail
     if end <= PREFIX_BYTES:
         what = " and ".join(
-            w for w, f in (("a 64-byte signature", FLAG_SIGNED), ("a 32-byte tag", FLAG_AUTH))
+            w
+            for w, f in (("a 64-byte signature", FLAG_SIGNED), ("a 32-byte tag", FLAG_AUTH))
             if flags & f
         )
         msg = (
@@ -341,7 +342,9 @@ def verify_identity(data: bytes, message: Message, trust: Trust) -> None:
         return
     _, flags, _ = _prefix(data, DEFAULT_LIMITS)
     if not flags & FLAG_SIGNED:
-        msg = f"frame: expected {message.origin!r}'s signature on a {message.KIND} frame, found none"
+        msg = (
+            f"frame: expected {message.origin!r}'s signature on a {message.KIND} frame, found none"
+        )
         raise IdentityError(msg)
     end = _envelope_end(data, flags)
     public = trust.key_for(message.origin, getattr(message, "identity", None))

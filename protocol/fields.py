@@ -64,12 +64,12 @@ _SIZED = {
 _CONTAINER = {0xDC: (2, 1), 0xDD: (4, 1), 0xDE: (2, 2), 0xDF: (4, 2)}
 
 
-
 def _need_field(what: str, field: str, pos: int, width: int, n: int) -> None:
     """Raise TruncatedError unless a `width`-byte msgpack `field` field fits at `pos` of n bytes."""
     if pos + width > n:
         msg = f"{what}: msgpack {field} field at byte {pos} needs {width} bytes, found {n - pos}"
         raise TruncatedError(msg)
+
 
 def scan_msgpack(
     data: bytes, what: str, max_objects: int = MAX_OBJECTS, max_depth: int = MAX_DEPTH
@@ -180,7 +180,7 @@ def field(obj: dict[str, Any], name: str, kind: type[T] | tuple[type, ...], what
         msg = f"{what}: expected field {name!r}, found fields {sorted(map(str, obj))[:16]}"
         raise MalformedError(msg)
     value = obj[name]
-    if isinstance(value, bool) and kind in (int, float) or not isinstance(value, kind):
+    if (isinstance(value, bool) and kind in (int, float)) or not isinstance(value, kind):
         expected = kind.__name__ if isinstance(kind, type) else "/".join(k.__name__ for k in kind)
         msg = f"{what}: field {name!r} must be {expected}, found {type(value).__name__}"
         raise MalformedError(msg)

@@ -8,8 +8,12 @@ from typing import Literal
 
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
-from cryptography.hazmat.primitives.serialization import Encoding, PrivateFormat, PublicFormat
-from cryptography.hazmat.primitives.serialization import NoEncryption
+from cryptography.hazmat.primitives.serialization import (
+    Encoding,
+    NoEncryption,
+    PrivateFormat,
+    PublicFormat,
+)
 
 from protocol.errors import IdentityError, UnknownIdentityError
 
@@ -49,14 +53,17 @@ class Signer:
         return self._key.sign(data)
 
 
-def verify_signature(public: bytes, data: bytes | memoryview, signature: bytes | memoryview,
-                     origin: str) -> None:
+def verify_signature(
+    public: bytes, data: bytes | memoryview, signature: bytes | memoryview, origin: str
+) -> None:
     """Raise IdentityError unless `signature` is `public`'s Ed25519 signature of `data`."""
     try:
         Ed25519PublicKey.from_public_bytes(bytes(public)).verify(bytes(signature), bytes(data))
     except (InvalidSignature, ValueError):
-        msg = (f"signature: expected {origin!r}'s Ed25519 signature by key "
-               f"{bytes(public).hex()[:16]}…, found one that does not verify")
+        msg = (
+            f"signature: expected {origin!r}'s Ed25519 signature by key "
+            f"{bytes(public).hex()[:16]}…, found one that does not verify"
+        )
         raise IdentityError(msg) from None
 
 
@@ -81,8 +88,12 @@ class Trust:
     for a pinned agent is refused: that is how impersonation by another key holder shows.
     """
 
-    def __init__(self, mode: TrustMode = "tofu", pins: Mapping[str, bytes] | None = None,
-                 on_pin: Callable[[str, bytes], None] | None = None) -> None:
+    def __init__(
+        self,
+        mode: TrustMode = "tofu",
+        pins: Mapping[str, bytes] | None = None,
+        on_pin: Callable[[str, bytes], None] | None = None,
+    ) -> None:
         if mode not in TRUST_MODES:
             msg = f"trust mode must be one of {TRUST_MODES}, found {mode!r}"
             raise IdentityError(msg)
@@ -105,9 +116,11 @@ class Trust:
             pinned = self._pins.get(origin)
         if pinned is not None:
             if offered is not None and offered != pinned:
-                msg = (f"identity of {origin!r}: expected its pinned key {pinned.hex()[:16]}…, "
-                       f"found {offered.hex()[:16]}… (another key holder impersonating it, or "
-                       "a reinstalled agent whose pin must be removed)")
+                msg = (
+                    f"identity of {origin!r}: expected its pinned key {pinned.hex()[:16]}…, "
+                    f"found {offered.hex()[:16]}… (another key holder impersonating it, or "
+                    "a reinstalled agent whose pin must be removed)"
+                )
                 raise IdentityError(msg)
             return pinned
         if self.mode == "tofu" and offered is not None:

@@ -5,4 +5,13 @@ from voxel.errors import VoxelError
 from voxel.grid import FREE_STATE, OCCUPIED, UNKNOWN, IntegrationReport, VoxelGrid
 from voxel.sensor import SensorModel
 
-__all__ = ["FREE_STATE", "OCCUPIED", "UNKNOWN", "Delta", "IntegrationReport", "SensorModel", "VoxelError", "VoxelGrid"]
+__all__ = [
+    "FREE_STATE",
+    "OCCUPIED",
+    "UNKNOWN",
+    "Delta",
+    "IntegrationReport",
+    "SensorModel",
+    "VoxelError",
+    "VoxelGrid",
+]

@@ -40,13 +40,17 @@ def block_shifts(shape: str | tuple[int, int, int]) -> tuple[int, int, int]:
             raise InputError(msg)
         return BLOCK_SHAPES[shape]
     sides = tuple(shape)
-    if len(sides) != 3 or any(not isinstance(x, (int, np.integer)) or x not in (1, 2, 4, 8) for x in sides):
+    if len(sides) != 3 or any(
+        not isinstance(x, (int, np.integer)) or x not in (1, 2, 4, 8) for x in sides
+    ):
         msg = f"block sides must be three of 1, 2, 4, 8 voxels, found {shape!r}"
         raise InputError(msg)
     return tuple(int(x).bit_length() - 1 for x in sides)  # type: ignore[return-value]
 
 
-def split_keys(keys: np.ndarray, shifts: tuple[int, int, int] = CUBE) -> tuple[np.ndarray, np.ndarray]:
+def split_keys(
+    keys: np.ndarray, shifts: tuple[int, int, int] = CUBE
+) -> tuple[np.ndarray, np.ndarray]:
     """Packed block keys (N,) and in-block offsets (N,) of voxel keys (N, 3)."""
     k = np.asarray(keys, dtype=np.int64)
     sx, sy, sz = shifts
@@ -56,7 +60,9 @@ def split_keys(keys: np.ndarray, shifts: tuple[int, int, int] = CUBE) -> tuple[n
     return blocks, offsets
 
 
-def join_keys(blocks: np.ndarray, offsets: np.ndarray, shifts: tuple[int, int, int] = CUBE) -> np.ndarray:
+def join_keys(
+    blocks: np.ndarray, offsets: np.ndarray, shifts: tuple[int, int, int] = CUBE
+) -> np.ndarray:
     """Voxel keys (N, 3) from packed block keys (N,) and offsets (N,)."""
     sx, sy, sz = shifts
     base = vk.unpack(blocks)
@@ -70,7 +76,9 @@ def join_keys(blocks: np.ndarray, offsets: np.ndarray, shifts: tuple[int, int, i
 class BlockStore:
     """Slots of one block of voxels each, with per-channel arrays of shape (capacity, block voxels, ...)."""
 
-    def __init__(self, class_k: int = 3, capacity: int = 64, shifts: tuple[int, int, int] = CUBE) -> None:
+    def __init__(
+        self, class_k: int = 3, capacity: int = 64, shifts: tuple[int, int, int] = CUBE
+    ) -> None:
         self.class_k = class_k
         self.shifts: tuple[int, int, int] = (int(shifts[0]), int(shifts[1]), int(shifts[2]))
         self.block_voxels = 1 << sum(self.shifts)
@@ -192,7 +200,11 @@ class BlockStore:
 
     def nbytes(self) -> int:
         """Bytes held by the channel arrays of used slots plus the index."""
-        index = (self.sorted_keys.itemsize + self.sorted_slots.itemsize + self.slot_keys.itemsize
-                 + self.slot_version.itemsize)
+        index = (
+            self.sorted_keys.itemsize
+            + self.sorted_slots.itemsize
+            + self.slot_keys.itemsize
+            + self.slot_version.itemsize
+        )
         per_slot = sum(int(arr[0].nbytes) for arr in self.channels.values()) + index
         return per_slot * len(self.sorted_slots)

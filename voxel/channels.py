@@ -27,25 +27,43 @@ class PointChannels:
     @property
     def any(self) -> bool:
         """True when some channel needs to know which voxel each hit point fell in."""
-        return any(x is not None for x in (self.colours, self.normals, self.class_ids, self.object_ids)) or bool(
-            self.scalars)
+        return any(
+            x is not None for x in (self.colours, self.normals, self.class_ids, self.object_ids)
+        ) or bool(self.scalars)
 
     @property
     def fused(self) -> bool:
         """True when some channel is folded into voxel channels (object ids and probabilities alone are not)."""
-        return any(x is not None for x in (self.colours, self.normals, self.class_ids)) or bool(self.scalars)
+        return any(x is not None for x in (self.colours, self.normals, self.class_ids)) or bool(
+            self.scalars
+        )
 
     def select(self, rows: np.ndarray) -> PointChannels:
         """The channels of the points at `rows` (index array)."""
+
         def pick(values: np.ndarray | None) -> np.ndarray | None:
             return None if values is None else values[rows]
 
-        return PointChannels(pick(self.colours), pick(self.normals), pick(self.class_ids), pick(self.class_probs),
-                             pick(self.object_ids), {k: v[rows] for k, v in self.scalars.items()})
+        return PointChannels(
+            pick(self.colours),
+            pick(self.normals),
+            pick(self.class_ids),
+            pick(self.class_probs),
+            pick(self.object_ids),
+            {k: v[rows] for k, v in self.scalars.items()},
+        )
 
 
-def fuse_channels(store: BlockStore, hit_keys: np.ndarray, inverse: np.ndarray | None, channels: PointChannels,
-                  *, statistics: bool, version: int, stamp: np.ndarray) -> bool:
+def fuse_channels(
+    store: BlockStore,
+    hit_keys: np.ndarray,
+    inverse: np.ndarray | None,
+    channels: PointChannels,
+    *,
+    statistics: bool,
+    version: int,
+    stamp: np.ndarray,
+) -> bool:
     """Fold the channels of one scan's hit points into the running means and top-k of their voxels.
 
     `hit_keys` (U, 3) are the hit voxels, `inverse` (H,) each hit point's row in them and
@@ -68,21 +86,27 @@ def fuse_channels(store: BlockStore, hit_keys: np.ndarray, inverse: np.ndarray |
 
     def mean_of(values: np.ndarray) -> np.ndarray:
         v = values.reshape(values.shape[0], -1).astype(np.float64)
-        out = np.stack([np.bincount(inverse, weights=v[:, j], minlength=m) for j in range(v.shape[1])], axis=1)
+        out = np.stack(
+            [np.bincount(inverse, weights=v[:, j], minlength=m) for j in range(v.shape[1])], axis=1
+        )
         return out / counts[:, None]
 
     if channels.colours is not None:
         arr = store.channel("colour")
         frame = mean_of(channels.colours)
         cur = arr[slots, offsets].astype(np.float64)
-        arr[slots, offsets] = np.clip(np.rint(cur + (frame - cur) * frac[:, None]), 0, 255).astype(np.uint8)
+        arr[slots, offsets] = np.clip(np.rint(cur + (frame - cur) * frac[:, None]), 0, 255).astype(
+            np.uint8
+        )
     if channels.normals is not None:
         arr = store.channel("normal")
         frame = mean_of(channels.normals)
         cur = arr[slots, offsets].astype(np.float64)
         mixed = cur + (frame - cur) * frac[:, None]
         norm = np.linalg.norm(mixed, axis=1, keepdims=True)
-        arr[slots, offsets] = np.where(norm > 0, mixed / np.where(norm > 0, norm, 1), 0).astype(np.float32)
+        arr[slots, offsets] = np.where(norm > 0, mixed / np.where(norm > 0, norm, 1), 0).astype(
+            np.float32
+        )
     for name, values in channels.scalars.items():
         arr = store.channel(SCALAR_PREFIX + name)
         frame = mean_of(np.asarray(values, dtype=np.float64))[:, 0]
@@ -92,7 +116,9 @@ def fuse_channels(store: BlockStore, hit_keys: np.ndarray, inverse: np.ndarray |
     if channels.class_ids is not None:
         probs = channels.class_probs
         probs = np.ones(inverse.size) if probs is None else np.asarray(probs, dtype=np.float64)
-        _fuse_classes(store, slots, offsets, inverse, np.asarray(channels.class_ids, dtype=np.int64), probs)
+        _fuse_classes(
+            store, slots, offsets, inverse, np.asarray(channels.class_ids, dtype=np.int64), probs
+        )
     v = np.uint32(version)
     store.channels["version"][slots, offsets] = v
     store.channels["last_time"][slots, offsets] = stamp
@@ -100,8 +126,14 @@ def fuse_channels(store: BlockStore, hit_keys: np.ndarray, inverse: np.ndarray |
     return True
 
 
-def _fuse_classes(store: BlockStore, slots: np.ndarray, offsets: np.ndarray, inverse: np.ndarray, cls: np.ndarray,
-                  prob: np.ndarray) -> None:
+def _fuse_classes(
+    store: BlockStore,
+    slots: np.ndarray,
+    offsets: np.ndarray,
+    inverse: np.ndarray,
+    cls: np.ndarray,
+    prob: np.ndarray,
+) -> None:
     """Per voxel: the frame's majority class and its mean probability enter a bounded top-k."""
     labelled = cls >= 0
     if not labelled.any():

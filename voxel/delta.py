@@ -75,8 +75,10 @@ class Delta:
         for name, values in list(self.channels.items()):
             dtype, tail = channel_spec(name)
             arr = np.asarray(values, dtype=dtype)
-            if arr.shape[:1] != (n,) or len(arr.shape) != 1 + len(tail) or any(
-                t not in (-1, s) for t, s in zip(tail, arr.shape[1:], strict=True)
+            if (
+                arr.shape[:1] != (n,)
+                or len(arr.shape) != 1 + len(tail)
+                or any(t not in (-1, s) for t, s in zip(tail, arr.shape[1:], strict=True))
             ):
                 msg = f"delta channel {name!r} must have shape ({n}, {tail}), found {arr.shape}"
                 raise DeltaError(msg)
@@ -105,8 +107,15 @@ class Delta:
         )
 
 
-def delta_of(store: BlockStore, times: TimeBase, version: int, *, resolution: float, to_version: int,
-             time: float) -> Delta:
+def delta_of(
+    store: BlockStore,
+    times: TimeBase,
+    version: int,
+    *,
+    resolution: float,
+    to_version: int,
+    time: float,
+) -> Delta:
     """Every voxel of `store` changed after `version`, with its absolute current values."""
     slots = store.used_slots()
     slots = slots[store.slot_version[slots] > version]
@@ -114,7 +123,9 @@ def delta_of(store: BlockStore, times: TimeBase, version: int, *, resolution: fl
     b, o = np.nonzero(ver > version)
     s = slots[b]
     keys = store.join(store.slot_keys[s], o)
-    channels = {name: arr[s, o] for name, arr in store.channels.items() if name not in CORE_CHANNELS}
+    channels = {
+        name: arr[s, o] for name, arr in store.channels.items() if name not in CORE_CHANNELS
+    }
     return Delta(
         resolution=resolution,
         from_version=int(version),
@@ -135,8 +146,10 @@ def merge_delta(store: BlockStore, times: TimeBase, delta: Delta) -> np.ndarray:
     if len(delta) == 0:
         return np.empty(0)
     if not vk.in_range(delta.keys).all():
-        msg = (f"delta keys must lie in [{vk.KEY_MIN}, {vk.KEY_MAX}] on every axis, "
-               f"found [{delta.keys.min()}, {delta.keys.max()}]")
+        msg = (
+            f"delta keys must lie in [{vk.KEY_MIN}, {vk.KEY_MAX}] on every axis, "
+            f"found [{delta.keys.min()}, {delta.keys.max()}]"
+        )
         raise DeltaError(msg)
     blocks, offsets = store.split(delta.keys)
     ub, inv = np.unique(blocks, return_inverse=True)
@@ -168,7 +181,10 @@ def same_content(a: Delta, b: Delta) -> bool:
     ia, ib = ia[ma], ib[mb]
     if not np.array_equal(ka[ia], kb[ib]):
         return False
-    if not (np.array_equal(a.logodds[ia], b.logodds[ib]) and np.array_equal(a.last_time[ia], b.last_time[ib])):
+    if not (
+        np.array_equal(a.logodds[ia], b.logodds[ib])
+        and np.array_equal(a.last_time[ia], b.last_time[ib])
+    ):
         return False
     for name in set(a.channels) | set(b.channels):
         if name not in a.channels or name not in b.channels:

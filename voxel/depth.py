@@ -23,11 +23,15 @@ def pixel_rays(intrinsics: np.ndarray, width: int, height: int) -> np.ndarray:
     """Camera-frame rays (H * W, 3) through every pixel, row-major, scaled to z = 1 (a point at depth d is d * ray)."""
     k = intrinsics
     v, u = np.mgrid[0:height, 0:width]
-    rays = np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones((height, width))], axis=-1)
+    rays = np.stack(
+        [(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones((height, width))], axis=-1
+    )
     return rays.reshape(-1, 3)
 
 
-def camera_points(depth: np.ndarray, intrinsics: np.ndarray, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def camera_points(
+    depth: np.ndarray, intrinsics: np.ndarray, stride: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
     """Camera-frame points (M, 3) float64 of the valid pixels (finite, > 0), row-major, and their flat pixel indices.
 
     Pinhole model, OpenCV axes (x right, y down, z forward); every `stride`-th row and column.
@@ -45,8 +49,14 @@ def camera_points(depth: np.ndarray, intrinsics: np.ndarray, stride: int = 1) ->
     return np.column_stack([x, y, z]), index
 
 
-def back_project(depth: np.ndarray, intrinsics: np.ndarray, pose: np.ndarray, *, colour: np.ndarray | None = None,
-                 labels: np.ndarray | None = None) -> DepthPoints:
+def back_project(
+    depth: np.ndarray,
+    intrinsics: np.ndarray,
+    pose: np.ndarray,
+    *,
+    colour: np.ndarray | None = None,
+    labels: np.ndarray | None = None,
+) -> DepthPoints:
     """Pixels of a depth image (metres, 0/NaN = no reading) in the world, from camera-to-world `pose`."""
     depth = np.asarray(depth, dtype=np.float64)
     if depth.ndim != 2:

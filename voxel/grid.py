@@ -39,8 +39,19 @@ from voxel.snapshot import load_grid, save_grid
 from voxel.timebase import TIME_SPAN_MS, TimeBase, quantise_time
 
 __all__ = [
-    "CLASS_RATE", "CLEAR_SUBDIVISION", "DEFAULT_SENSOR", "FORGET_EPSILON", "FREE_STATE", "LOGODDS_QUANTUM",
-    "OCCUPIED", "TIME_SPAN_MS", "UNKNOWN", "UPDATE_CHUNK", "IntegrationReport", "VoxelGrid", "quantise_logodds",
+    "CLASS_RATE",
+    "CLEAR_SUBDIVISION",
+    "DEFAULT_SENSOR",
+    "FORGET_EPSILON",
+    "FREE_STATE",
+    "LOGODDS_QUANTUM",
+    "OCCUPIED",
+    "TIME_SPAN_MS",
+    "UNKNOWN",
+    "UPDATE_CHUNK",
+    "IntegrationReport",
+    "VoxelGrid",
+    "quantise_logodds",
     "quantise_time",
 ]
 
@@ -82,7 +93,9 @@ class VoxelGrid:
         history_per_voxel: int = 16,
         block_shape: str | tuple[int, int, int] = "cube",
     ) -> None:
-        if not (isinstance(resolution, (int, float)) and math.isfinite(resolution) and resolution > 0):
+        if not (
+            isinstance(resolution, (int, float)) and math.isfinite(resolution) and resolution > 0
+        ):
             msg = f"resolution must be a positive number of metres, found {resolution!r}"
             raise InputError(msg)
         if half_life is not None and not half_life > 0:
@@ -132,27 +145,67 @@ class VoxelGrid:
         each voxel is updated once per scan, hits win over misses). Points beyond the sensor's
         max range and beams flagged `no_return` clear up to max range and hit nothing.
         """
-        scan = Scan.of(points, origin, time=time, reliability=reliability, colours=colours, normals=normals,
-                       class_ids=class_ids, class_probs=class_probs, object_ids=object_ids, scalars=scalars,
-                       no_return=no_return)
+        scan = Scan.of(
+            points,
+            origin,
+            time=time,
+            reliability=reliability,
+            colours=colours,
+            normals=normals,
+            class_ids=class_ids,
+            class_probs=class_probs,
+            object_ids=object_ids,
+            scalars=scalars,
+            no_return=no_return,
+        )
         return self.integrate_scan(scan, sensor, agent=agent, experience=experience, bias=bias)
 
-    def integrate_scan(self, scan: Scan, sensor: SensorModel = DEFAULT_SENSOR, *, agent: str = "self",
-                       experience: float = 0.0, bias: float = 0.0) -> IntegrationReport:
+    def integrate_scan(
+        self,
+        scan: Scan,
+        sensor: SensorModel = DEFAULT_SENSOR,
+        *,
+        agent: str = "self",
+        experience: float = 0.0,
+        bias: float = 0.0,
+    ) -> IntegrationReport:
         """Integrate a validated scan: traverse, update occupancy, fuse channels, record history, bump version."""
         beams = sort_beams(scan, sensor, self.resolution)
-        traversal = trace(scan.origin, beams.hit_keys, beams.clear_ends, self.resolution, self.store.shifts,
-                          scan.channels.any)
-        hit_channels = scan.channels.select(np.flatnonzero(beams.hit_mask)) if scan.channels.any else scan.channels
+        traversal = trace(
+            scan.origin,
+            beams.hit_keys,
+            beams.clear_ends,
+            self.resolution,
+            self.store.shifts,
+            scan.channels.any,
+        )
+        hit_channels = (
+            scan.channels.select(np.flatnonzero(beams.hit_mask))
+            if scan.channels.any
+            else scan.channels
+        )
         time = quantise_time(scan.time)
-        observer = Observer(time, self.history.agent_code(agent), sensor.kind_code, scan.reliability, experience,
-                            bias)
+        observer = Observer(
+            time,
+            self.history.agent_code(agent),
+            sensor.kind_code,
+            scan.reliability,
+            experience,
+            bias,
+        )
         stamp = self.times.stamp(time)
         version = self.version + 1
         rule = UpdateRule(Evidence.of(sensor, scan.reliability), self.half_life, self.statistics)
         update = update_occupancy(self.store, traversal, rule, version, time, stamp, self.times)
-        fused = fuse_channels(self.store, traversal.hit_keys, traversal.inverse, hit_channels,
-                              statistics=self.statistics, version=version, stamp=stamp)
+        fused = fuse_channels(
+            self.store,
+            traversal.hit_keys,
+            traversal.inverse,
+            hit_channels,
+            statistics=self.statistics,
+            version=version,
+            stamp=stamp,
+        )
         objects = ObjectTags.of(traversal.hit_keys, traversal.inverse, hit_channels.object_ids)
         self.history.record(update.chunks, observer, rule.evidence, objects)
         if update.changed or fused:
@@ -211,7 +264,9 @@ class VoxelGrid:
         out = np.full(keys.shape[0], np.nan, dtype=np.float32)
         s, o = slots[found], offsets[found]
         lo = self.store.channels["logodds"][s, o]
-        out[found] = self._decayed(lo, self.store.channels["last_time"][s, o], self.now if now is None else now)
+        out[found] = self._decayed(
+            lo, self.store.channels["last_time"][s, o], self.now if now is None else now
+        )
         return out
 
     def occupancy(self, points: np.ndarray, now: float | None = None) -> np.ndarray:
@@ -250,7 +305,9 @@ class VoxelGrid:
 
     def known_count(self) -> int:
         """Number of voxels that are not unknown."""
-        return int(np.count_nonzero(~np.isnan(self.store.channels["logodds"][self.store.used_slots()])))
+        return int(
+            np.count_nonzero(~np.isnan(self.store.channels["logodds"][self.store.used_slots()]))
+        )
 
     def occupied_in_box(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Centres (M, 3) of occupied voxels whose centre lies in the box [lo, hi]."""
@@ -260,7 +317,9 @@ class VoxelGrid:
         inside = np.all((centres >= lo) & (centres <= hi), axis=1)
         return centres[inside]
 
-    def cast_ray(self, origin: np.ndarray, direction: np.ndarray, max_range: float) -> np.ndarray | None:
+    def cast_ray(
+        self, origin: np.ndarray, direction: np.ndarray, max_range: float
+    ) -> np.ndarray | None:
         """Centre of the first occupied voxel along a ray, or None within max_range."""
         o = np.asarray(origin, dtype=np.float64).reshape(3)
         dvec = np.asarray(direction, dtype=np.float64).reshape(3)
@@ -291,7 +350,9 @@ class VoxelGrid:
             lo = np.full(found.size, np.nan, dtype=np.float32)
             last = np.full(found.size, np.inf)
             lo[found] = self.store.channels["logodds"][slots[found], offsets[found]]
-            last[found] = self.times.seconds(self.store.channels["last_time"][slots[found], offsets[found]])
+            last[found] = self.times.seconds(
+                self.store.channels["last_time"][slots[found], offsets[found]]
+            )
             with np.errstate(invalid="ignore"):
                 free_then = (lo < 0) & (last <= t)
             out[np.flatnonzero(none)[free_then]] = FREE_STATE
@@ -333,8 +394,14 @@ class VoxelGrid:
     # ----------------------------------------------------------------------------------- deltas
     def delta_since(self, version: int) -> Delta:
         """Every voxel changed after `version`, with its absolute current values."""
-        return delta_of(self.store, self.times, version, resolution=self.resolution, to_version=self.version,
-                        time=self.now)
+        return delta_of(
+            self.store,
+            self.times,
+            version,
+            resolution=self.resolution,
+            to_version=self.version,
+            time=self.now,
+        )
 
     def apply(self, delta: Delta) -> int:
         """Apply a delta: each voxel takes the delta's values unless it already holds a newer version.
@@ -382,7 +449,11 @@ class VoxelGrid:
         """A grid holding an OctoMap .bt map: occupied voxels at the hit clamp, free at the miss one."""
         bt = read_bt(path)
         grid = cls(bt.resolution)
-        lo = np.where(bt.occupied, quantise_logodds(DEFAULT_SENSOR.log_max), quantise_logodds(DEFAULT_SENSOR.log_min))
+        lo = np.where(
+            bt.occupied,
+            quantise_logodds(DEFAULT_SENSOR.log_max),
+            quantise_logodds(DEFAULT_SENSOR.log_min),
+        )
         grid.apply(Delta(bt.resolution, 0, 1, bt.keys, lo, np.full(len(lo), time)))
         return grid
 

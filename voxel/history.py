@@ -50,7 +50,9 @@ class ObjectTags(NamedTuple):
     ids: np.ndarray  # (U,) int64 object id per key, -1 none
 
     @classmethod
-    def of(cls, hit_keys: np.ndarray, inverse: np.ndarray | None, object_ids: np.ndarray | None) -> ObjectTags | None:
+    def of(
+        cls, hit_keys: np.ndarray, inverse: np.ndarray | None, object_ids: np.ndarray | None
+    ) -> ObjectTags | None:
         """Tags of hit voxel keys (U, 3) in packed order from each hit point's row and object id."""
         if object_ids is None or inverse is None or hit_keys.shape[0] == 0:
             return None
@@ -103,7 +105,10 @@ class History:
             if self.size + n > self.capacity:
                 self._compact(incoming=n)
             if self.size + n > self._buf.shape[0]:
-                grown = np.zeros(min(max(self._buf.shape[0] * 2, self.size + n), max(self.capacity, n)), dtype=RECORD_DTYPE)
+                grown = np.zeros(
+                    min(max(self._buf.shape[0] * 2, self.size + n), max(self.capacity, n)),
+                    dtype=RECORD_DTYPE,
+                )
                 grown[: self.size] = self._buf[: self.size]
                 self._buf = grown
         block = self._buf[self.size : self.size + n]
@@ -113,8 +118,13 @@ class History:
             block[name] = value
         self.size += n
 
-    def record(self, changes: list[Changes], observer: Observer, evidence: Evidence,
-               objects: ObjectTags | None) -> None:
+    def record(
+        self,
+        changes: list[Changes],
+        observer: Observer,
+        evidence: Evidence,
+        objects: ObjectTags | None,
+    ) -> None:
         """Append one scan's records: every hit voxel and every voxel whose state flipped.
 
         `changes` are the occupancy update's chunks (appended one by one, as the update made

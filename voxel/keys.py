@@ -48,7 +48,12 @@ def in_range(keys: np.ndarray) -> np.ndarray:
     return inside
 
 
-_HASH_MULTIPLIERS = (-7046029254386353131, -4658895280553007687, 7640891576956012809, -8350542686271633251)
+_HASH_MULTIPLIERS = (
+    -7046029254386353131,
+    -4658895280553007687,
+    7640891576956012809,
+    -8350542686271633251,
+)
 
 
 def one_per_key(keys: np.ndarray) -> np.ndarray:

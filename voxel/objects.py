@@ -123,9 +123,10 @@ class ObjectTracker:
             a = np.array([o.position for o in prev])
             b = np.array([o.position for o in found])
             dist = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=2)
-            same = np.array([o.class_id for o in prev])[:, None] == np.array(
-                [o.class_id for o in found]
-            )[None, :]
+            same = (
+                np.array([o.class_id for o in prev])[:, None]
+                == np.array([o.class_id for o in found])[None, :]
+            )
             dist = np.where(same & (dist <= self.gate), dist, np.inf)
             used = np.zeros(len(prev), bool)
             for flat in np.argsort(dist, axis=None):  # nearest pairs first
@@ -149,5 +150,7 @@ def moved(a: list[ObjectCentroid], b: list[ObjectCentroid], tolerance: float) ->
     """True if `b` differs from `a`: other ids or classes, or an object moved over `tolerance` m."""
     if [(o.object_id, o.class_id) for o in a] != [(o.object_id, o.class_id) for o in b]:
         return True
-    return any(float(np.linalg.norm(x.position - y.position)) > tolerance
-               for x, y in zip(a, b, strict=True))
+    return any(
+        float(np.linalg.norm(x.position - y.position)) > tolerance
+        for x, y in zip(a, b, strict=True)
+    )

@@ -38,10 +38,14 @@ def quantise_logodds(values: npt.ArrayLike) -> np.ndarray:
 def states(lo: np.ndarray) -> np.ndarray:
     """UNKNOWN (NaN), FREE_STATE (< 0) or OCCUPIED (>= 0) of log-odds, as int8."""
     with np.errstate(invalid="ignore"):
-        return np.where(np.isnan(lo), UNKNOWN, np.where(lo >= 0, OCCUPIED, FREE_STATE)).astype(np.int8)
+        return np.where(np.isnan(lo), UNKNOWN, np.where(lo >= 0, OCCUPIED, FREE_STATE)).astype(
+            np.int8
+        )
 
 
-def decayed(lo: np.ndarray, last: np.ndarray, now: float, half_life: float | None, times: TimeBase) -> np.ndarray:
+def decayed(
+    lo: np.ndarray, last: np.ndarray, now: float, half_life: float | None, times: TimeBase
+) -> np.ndarray:
     """Log-odds `lo` stored at times `last` (stored form), decayed to `now` (unchanged without a half-life)."""
     if half_life is None:
         return lo
@@ -63,8 +67,12 @@ class Evidence(NamedTuple):
         raw = np.zeros(3, dtype=np.float32)
         raw[FREE] = sensor.log_miss * reliability
         raw[HIT] = sensor.log_hit * reliability
-        return cls(raw, quantise_logodds(raw), quantise_logodds(np.float32(sensor.log_min)),
-                   quantise_logodds(np.float32(sensor.log_max)))
+        return cls(
+            raw,
+            quantise_logodds(raw),
+            quantise_logodds(np.float32(sensor.log_min)),
+            quantise_logodds(np.float32(sensor.log_max)),
+        )
 
 
 class Changes(NamedTuple):
@@ -95,7 +103,12 @@ class UpdateRule:
 
 
 def update_occupancy(
-    store: BlockStore, traversal: Traversal, rule: UpdateRule, version: int, time: float, stamp: np.ndarray,
+    store: BlockStore,
+    traversal: Traversal,
+    rule: UpdateRule,
+    version: int,
+    time: float,
+    stamp: np.ndarray,
     times: TimeBase,
 ) -> OccupancyUpdate:
     """Apply one scan's hits and misses to `store` in chunks of blocks (OctoMap's rule, one update
@@ -113,8 +126,15 @@ def update_occupancy(
 
 
 def _update_chunk(
-    store: BlockStore, slots: np.ndarray, cells: np.ndarray, rule: UpdateRule, v: np.uint32, time: float,
-    stamp: np.ndarray, times: TimeBase, update: OccupancyUpdate,
+    store: BlockStore,
+    slots: np.ndarray,
+    cells: np.ndarray,
+    rule: UpdateRule,
+    v: np.uint32,
+    time: float,
+    stamp: np.ndarray,
+    times: TimeBase,
+    update: OccupancyUpdate,
 ) -> None:
     ev = rule.evidence
     lo_arr = store.channels["logodds"]
@@ -148,7 +168,9 @@ def _update_chunk(
     update.chunks.append(_worth_recording(store, slots, old, new, changed, cells))
 
 
-def _count(store: BlockStore, slots: np.ndarray, cells: np.ndarray, first_seen: np.ndarray, time: float) -> None:
+def _count(
+    store: BlockStore, slots: np.ndarray, cells: np.ndarray, first_seen: np.ndarray, time: float
+) -> None:
     """Statistics: first observation time, hit and miss counts (saturating)."""
     hit = cells == HIT
     first = store.channel("first_time")
@@ -156,11 +178,18 @@ def _count(store: BlockStore, slots: np.ndarray, cells: np.ndarray, first_seen: 
     hits = store.channel("hits")
     misses = store.channel("misses")
     hits[slots] = np.minimum(hits[slots].astype(np.int32) + hit, 65535).astype(np.uint16)
-    misses[slots] = np.minimum(misses[slots].astype(np.int32) + (cells == FREE), 65535).astype(np.uint16)
+    misses[slots] = np.minimum(misses[slots].astype(np.int32) + (cells == FREE), 65535).astype(
+        np.uint16
+    )
 
 
 def _worth_recording(
-    store: BlockStore, slots: np.ndarray, old: np.ndarray, new: np.ndarray, changed: np.ndarray, cells: np.ndarray
+    store: BlockStore,
+    slots: np.ndarray,
+    old: np.ndarray,
+    new: np.ndarray,
+    changed: np.ndarray,
+    cells: np.ndarray,
 ) -> Changes:
     """Changed voxels that are hit, occupied now or were occupied (see `History.record`).
 
@@ -172,5 +201,7 @@ def _worth_recording(
     keep |= cells == HIT
     keep &= changed
     b, o = np.nonzero(keep)
-    keys = vk.pack(store.join(store.slot_keys[slots[b]], o)) if b.size else np.empty(0, dtype=np.int64)
+    keys = (
+        vk.pack(store.join(store.slot_keys[slots[b]], o)) if b.size else np.empty(0, dtype=np.int64)
+    )
     return Changes(keys, old[b, o], new[b, o], cells[b, o] == HIT)

@@ -87,18 +87,22 @@ def _sequences(o: np.ndarray, e: np.ndarray, strides: np.ndarray) -> tuple[np.nd
         fixed = stays[sel, c_ax]
         fixed_b = stays[sel, b_ax]  # only with z fixed too (a ray along one axis)
         # A fixed axis contributes a constant: fold it into the plane term.
-        plane += np.where(fixed, ko[c_ax] * strides[c_ax], 0) + np.where(fixed_b, ko[b_ax] * strides[b_ax], 0)
-        parts.append([
-            counts[sel, a],
-            plane,
-            step,
-            np.where(fixed_b, 0.5, o[b_ax] + dist0 * rb),
-            np.where(fixed_b, 0.0, sgn * rb),
-            np.where(fixed, 0.5, o[c_ax] + dist0 * rc),
-            np.where(fixed, 0.0, sgn * rc),
-            np.where(fixed_b, 0, strides[b_ax]),
-            np.where(fixed, 0, strides[c_ax]),
-        ])
+        plane += np.where(fixed, ko[c_ax] * strides[c_ax], 0) + np.where(
+            fixed_b, ko[b_ax] * strides[b_ax], 0
+        )
+        parts.append(
+            [
+                counts[sel, a],
+                plane,
+                step,
+                np.where(fixed_b, 0.5, o[b_ax] + dist0 * rb),
+                np.where(fixed_b, 0.0, sgn * rb),
+                np.where(fixed, 0.5, o[c_ax] + dist0 * rc),
+                np.where(fixed, 0.0, sgn * rc),
+                np.where(fixed_b, 0, strides[b_ax]),
+                np.where(fixed, 0, strides[c_ax]),
+            ]
+        )
     if not parts:
         return ()
     cols = [np.concatenate(x) for x in zip(*parts)]
@@ -108,7 +112,9 @@ def _sequences(o: np.ndarray, e: np.ndarray, strides: np.ndarray) -> tuple[np.nd
     return tuple(x[order] for x in cols)
 
 
-def _sweep(o: np.ndarray, e: np.ndarray, strides: np.ndarray, visit: Callable[[np.ndarray], None]) -> None:
+def _sweep(
+    o: np.ndarray, e: np.ndarray, strides: np.ndarray, visit: Callable[[np.ndarray], None]
+) -> None:
     """Visit the linear indices of the voxels rays o -> e enter, end voxel excluded.
 
     o and e are in local voxel units (>= 0). A ray enters a new voxel exactly where it crosses a
@@ -131,10 +137,23 @@ def _sweep(o: np.ndarray, e: np.ndarray, strides: np.ndarray, visit: Callable[[n
             left = m[:n] - k
             ends = np.cumsum(left)
             # Chunks of about FLAT_CHUNK crossings keep the temporaries in cache.
-            cuts = np.unique(np.searchsorted(ends, np.arange(FLAT_CHUNK, int(ends[-1]), FLAT_CHUNK), side="right"))
+            cuts = np.unique(
+                np.searchsorted(
+                    ends, np.arange(FLAT_CHUNK, int(ends[-1]), FLAT_CHUNK), side="right"
+                )
+            )
             for lo, hi in zip([0, *cuts.tolist()], [*cuts.tolist(), n]):
                 if hi > lo:
-                    runs = (plane[lo:hi], step[lo:hi], y[lo:hi], inc_y[lo:hi], z[lo:hi], inc_z[lo:hi], sy[lo:hi], sz[lo:hi])
+                    runs = (
+                        plane[lo:hi],
+                        step[lo:hi],
+                        y[lo:hi],
+                        inc_y[lo:hi],
+                        z[lo:hi],
+                        inc_z[lo:hi],
+                        sy[lo:hi],
+                        sz[lo:hi],
+                    )
                     visit(_enumerate(left[lo:hi], runs, z_moves))
             return
         lin = y[:n].astype(np.int64)
@@ -158,12 +177,16 @@ def _enumerate(left: np.ndarray, runs: tuple[np.ndarray, ...], z_moves: bool) ->
     jf = j.astype(np.float64)
     lin += (np.repeat(y, left) + jf * np.repeat(inc_y, left)).astype(np.int64) * np.repeat(sy, left)
     if z_moves:
-        lin += (np.repeat(z, left) + jf * np.repeat(inc_z, left)).astype(np.int64) * np.repeat(sz, left)
+        lin += (np.repeat(z, left) + jf * np.repeat(inc_z, left)).astype(np.int64) * np.repeat(
+            sz, left
+        )
     out: np.ndarray = lin
     return out
 
 
-def _box(origin_key: np.ndarray, *key_rows: np.ndarray, shifts: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+def _box(
+    origin_key: np.ndarray, *key_rows: np.ndarray, shifts: tuple[int, int, int]
+) -> tuple[np.ndarray, np.ndarray]:
     """Block-aligned lower corner and dims of a box holding the origin key and key rows (3, N)."""
     lo = origin_key.copy()
     hi = origin_key.copy()
@@ -209,7 +232,9 @@ def trace(
         packed, inverse = np.unique(vk.pack(hk.T.astype(np.int64)), return_inverse=True)
         uniq = vk.unpack(packed)
         blocks, cells = _split(origin, uniq, clear, resolution, shifts)
-        return Traversal(blocks=blocks, cells=cells, hit_keys=uniq, inverse=inverse if want_inverse else None)
+        return Traversal(
+            blocks=blocks, cells=cells, hit_keys=uniq, inverse=inverse if want_inverse else None
+        )
 
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
     buf = np.zeros(-(-total // 8) * 8, dtype=np.uint8)  # whole 8-byte words, for `_marked`
@@ -287,7 +312,11 @@ def _blocks_of(
 
 
 def _split(
-    origin: np.ndarray, uniq: np.ndarray, clear: np.ndarray, resolution: float, shifts: tuple[int, int, int]
+    origin: np.ndarray,
+    uniq: np.ndarray,
+    clear: np.ndarray,
+    resolution: float,
+    shifts: tuple[int, int, int],
 ) -> tuple[np.ndarray, np.ndarray]:
     """Blocks and cells of rays to unique hit voxels `uniq` (U, 3) and to `clear` ends whose box is
     too large for one dense scratch volume: the rays are split into wedges around the origin (by
@@ -316,7 +345,11 @@ def _split(
 
 
 def _trace_sparse(
-    origin: np.ndarray, uniq: np.ndarray, clear: np.ndarray, resolution: float, shifts: tuple[int, int, int]
+    origin: np.ndarray,
+    uniq: np.ndarray,
+    clear: np.ndarray,
+    resolution: float,
+    shifts: tuple[int, int, int],
 ) -> tuple[np.ndarray, np.ndarray]:
     """Blocks and cells of a few rays with a huge box: visited keys are collected and sorted."""
     o_scaled = origin * (1.0 / resolution)
@@ -340,7 +373,9 @@ def group_cells(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Packed block keys and cells (B, block voxels) of explicit free and hit voxel keys (hits win)."""
     keys = np.concatenate([free_keys, hit_keys]).astype(np.int64)
-    vals = np.concatenate([np.full(len(free_keys), FREE), np.full(len(hit_keys), HIT)]).astype(np.uint8)
+    vals = np.concatenate([np.full(len(free_keys), FREE), np.full(len(hit_keys), HIT)]).astype(
+        np.uint8
+    )
     blocks, offsets = split_keys(keys, shifts)
     ub, inv = np.unique(blocks, return_inverse=True)
     cells = np.zeros((ub.size, 1 << sum(shifts)), dtype=np.uint8)

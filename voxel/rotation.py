@@ -19,5 +19,7 @@ def quaternion_to_matrix(q: np.ndarray | tuple[float, float, float, float]) -> n
 
 def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
     """Unit quaternion (x, y, z, w) float64, w >= 0, of a rotation matrix (3, 3)."""
-    q: np.ndarray = Rotation.from_matrix(np.asarray(rotation, dtype=np.float64)).as_quat(canonical=True)
+    q: np.ndarray = Rotation.from_matrix(np.asarray(rotation, dtype=np.float64)).as_quat(
+        canonical=True
+    )
     return q

@@ -30,7 +30,9 @@ def as_points(points: np.ndarray, name: str = "points") -> np.ndarray:
     return arr.astype(np.float64, copy=False)
 
 
-def per_point(values: np.ndarray | None, n: int, name: str, tail: tuple[int, ...] = ()) -> np.ndarray | None:
+def per_point(
+    values: np.ndarray | None, n: int, name: str, tail: tuple[int, ...] = ()
+) -> np.ndarray | None:
     """`values` as an array of one row per point (shape (n, *tail)), or None when not given."""
     return None if values is None else rows_of(values, n, name, tail)
 
@@ -57,10 +59,19 @@ class Scan:
 
     @classmethod
     def of(
-        cls, points: np.ndarray, origin: np.ndarray, *, time: float, reliability: float,
-        colours: np.ndarray | None = None, normals: np.ndarray | None = None, class_ids: np.ndarray | None = None,
-        class_probs: np.ndarray | None = None, object_ids: np.ndarray | None = None,
-        scalars: dict[str, np.ndarray] | None = None, no_return: np.ndarray | None = None,
+        cls,
+        points: np.ndarray,
+        origin: np.ndarray,
+        *,
+        time: float,
+        reliability: float,
+        colours: np.ndarray | None = None,
+        normals: np.ndarray | None = None,
+        class_ids: np.ndarray | None = None,
+        class_probs: np.ndarray | None = None,
+        object_ids: np.ndarray | None = None,
+        scalars: dict[str, np.ndarray] | None = None,
+        no_return: np.ndarray | None = None,
     ) -> Scan:
         """Check every input against the points; InputError says what was expected and what was found."""
         pts = as_points(points)
@@ -82,15 +93,23 @@ class Scan:
         object_ids = per_point(object_ids, n, "object_ids")
         nr = per_point(no_return, n, "no_return")
         checked = {k: rows_of(v, n, f"scalars[{k!r}]") for k, v in (scalars or {}).items()}
-        return cls(pts, org, time, reliability, np.zeros(n, dtype=bool) if nr is None else nr.astype(bool),
-                   PointChannels(colours, normals, class_ids, class_probs, object_ids, checked))
+        return cls(
+            pts,
+            org,
+            time,
+            reliability,
+            np.zeros(n, dtype=bool) if nr is None else nr.astype(bool),
+            PointChannels(colours, normals, class_ids, class_probs, object_ids, checked),
+        )
 
 
 @dataclass(frozen=True)
 class Beams:
     """A scan's beams sorted by what they do to the map."""
 
-    hit_keys: np.ndarray  # (3, H) float64 voxel keys (floored) of the points that hit, one row per axis
+    hit_keys: (
+        np.ndarray
+    )  # (3, H) float64 voxel keys (floored) of the points that hit, one row per axis
     hit_mask: np.ndarray  # (N,) bool: the points that hit
     clear_ends: np.ndarray  # (M, 3) ends of the rays that only clear (one per fine cell)
     cleared: int  # beams without a hit (no return or beyond max range) that clear free space
@@ -106,7 +125,9 @@ def sort_beams(scan: Scan, sensor: SensorModel, resolution: float) -> Beams:
     """Hits end within max range; beams beyond it or without a return clear up to max range."""
     n = scan.points.shape[0]
     org, nr = scan.origin, scan.no_return
-    rows = np.ascontiguousarray(scan.points.T, dtype=np.float64)  # (3, N): per-axis passes are contiguous
+    rows = np.ascontiguousarray(
+        scan.points.T, dtype=np.float64
+    )  # (3, N): per-axis passes are contiguous
     r2 = rows[0] - org[0]
     r2 *= r2
     for axis in (1, 2):
@@ -145,8 +166,14 @@ def sort_beams(scan: Scan, sensor: SensorModel, resolution: float) -> Beams:
     return Beams(hit_keys, hit_mask, clear_ends, cleared, invalid, dropped)
 
 
-def _clear_ends(rows: np.ndarray, org: np.ndarray, r2: np.ndarray, clear_mask: np.ndarray, max_range: float,
-                resolution: float) -> np.ndarray:
+def _clear_ends(
+    rows: np.ndarray,
+    org: np.ndarray,
+    r2: np.ndarray,
+    clear_mask: np.ndarray,
+    max_range: float,
+    resolution: float,
+) -> np.ndarray:
     """End points (M, 3) of the rays of beams without a hit; drops unusable beams from clear_mask.
 
     Beams are truncated at max range and cast once per 1/CLEAR_SUBDIVISION-voxel cell of their

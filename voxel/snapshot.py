@@ -92,7 +92,9 @@ def load_grid(path: Path, make_grid: Callable[..., G]) -> G:
         with open(path, "rb") as fh:
             raw = fh.read(4)
             if raw != ZSTD_MAGIC:
-                msg = f"{path}: expected a zstd-compressed {FORMAT} file, found leading bytes {raw!r}"
+                msg = (
+                    f"{path}: expected a zstd-compressed {FORMAT} file, found leading bytes {raw!r}"
+                )
                 raise FileFormatError(msg)
             fh.seek(0)
             payload = zstandard.ZstdDecompressor().stream_reader(fh).read()
@@ -103,8 +105,10 @@ def load_grid(path: Path, make_grid: Callable[..., G]) -> G:
                 raise FileFormatError(msg)
             meta = json.loads(bytes(data["meta"]).decode())
             if meta.get("format") != FORMAT or meta.get("version") not in READABLE_VERSIONS:
-                msg = (f"{path}: expected format {FORMAT} v{'/'.join(map(str, READABLE_VERSIONS))}, "
-                       f"found {meta.get('format')!r} v{meta.get('version')!r}")
+                msg = (
+                    f"{path}: expected format {FORMAT} v{'/'.join(map(str, READABLE_VERSIONS))}, "
+                    f"found {meta.get('format')!r} v{meta.get('version')!r}"
+                )
                 raise FileFormatError(msg)
             grid = make_grid(
                 meta["resolution"],
@@ -136,7 +140,15 @@ def load_grid(path: Path, make_grid: Callable[..., G]) -> G:
             return grid
     except FileFormatError:
         raise
-    except (OSError, ValueError, TypeError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, EOFError,
-            zstandard.ZstdError) as exc:
+    except (
+        OSError,
+        ValueError,
+        TypeError,
+        KeyError,
+        zipfile.BadZipFile,
+        json.JSONDecodeError,
+        EOFError,
+        zstandard.ZstdError,
+    ) as exc:
         msg = f"{path}: not a readable {FORMAT} file ({type(exc).__name__}: {exc})"
         raise FileFormatError(msg) from None

@@ -43,8 +43,13 @@ def propagation_ms(reports: list[dict[str, Any]], agents: list[str]) -> list[flo
     return [max(v) * 1000 for v in applied.values() if len(v) >= need]
 
 
-def run_colony_bench(out_json: Path | str, *, daemons: int = 4, duration: float = 10.0,
-                     catchup_voxels: int = 1_000_000) -> dict[str, Any]:
+def run_colony_bench(
+    out_json: Path | str,
+    *,
+    daemons: int = 4,
+    duration: float = 10.0,
+    catchup_voxels: int = 1_000_000,
+) -> dict[str, Any]:
     """Run the three phases and write the result JSON; returns it."""
     work = Path(tempfile.mkdtemp(prefix="colonyd-bench-"))
     result: dict[str, Any] = {"daemons": daemons}
@@ -65,8 +70,9 @@ def _propagation_and_idle(base: Path, daemons: int, duration: float) -> dict[str
     try:
         agents = [f"d{i}" for i in range(daemons)]
         for i, agent in enumerate(agents):
-            colony.add(agent, [f"synthetic:scans={scans},rate=2,points=120,seed={i + 1}"],
-                       start=False)
+            colony.add(
+                agent, [f"synthetic:scans={scans},rate=2,points=120,seed={i + 1}"], start=False
+            )
         # The hub first, so the others have someone to connect to.
         for i, agent in enumerate(agents):
             colony.daemons[agent].start()
@@ -123,8 +129,11 @@ def _catchup(base: Path, voxels: int) -> dict[str, Any]:
         rep = next(r for r in colony.status() if r["agent"] == "newcomer")
         catchups = [c for c in rep["metrics"]["catchups"] if c[0] == "big"]
         got, seconds = (int(catchups[-1][1]), float(catchups[-1][2])) if catchups else (0, wall)
-        return {"catchup_voxels": got, "catchup_s": round(seconds, 3),
-                "catchup_wall_s_incl_process_start": round(wall, 2)}
+        return {
+            "catchup_voxels": got,
+            "catchup_s": round(seconds, 3),
+            "catchup_wall_s_incl_process_start": round(wall, 2),
+        }
     except Exception:
         log.error("catch-up benchmark failed; daemon logs:\n%s", colony.logs())
         raise

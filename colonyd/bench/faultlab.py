@@ -59,8 +59,9 @@ class Spinner:
         self.proc: subprocess.Popen | None = None
 
     def __enter__(self) -> Self:
-        self.proc = subprocess.Popen([sys.executable, "-c", "while True: pass"],
-                                     stdin=subprocess.DEVNULL)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", "while True: pass"], stdin=subprocess.DEVNULL
+        )
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -81,7 +82,9 @@ class Tmpfs:
 
     def __enter__(self) -> Self:
         self.path.mkdir(parents=True, exist_ok=True)
-        _run("mount", "-t", "tmpfs", "-o", f"size={self.size_kb}k,mode=0755", "tmpfs", str(self.path))
+        _run(
+            "mount", "-t", "tmpfs", "-o", f"size={self.size_kb}k,mode=0755", "tmpfs", str(self.path)
+        )
         return self
 
     def fill(self, leave_kb: int = 0) -> Path:
@@ -108,9 +111,13 @@ class Tmpfs:
         _run("mount", "-o", f"remount,{'ro' if read_only else 'rw'}", str(self.path))
 
     def __exit__(self, *exc: object) -> None:
-        out = subprocess.run(["umount", str(self.path)], check=False, capture_output=True, timeout=20)
+        out = subprocess.run(
+            ["umount", str(self.path)], check=False, capture_output=True, timeout=20
+        )
         if out.returncode != 0:
-            subprocess.run(["umount", "-l", str(self.path)], check=False, capture_output=True, timeout=20)
+            subprocess.run(
+                ["umount", "-l", str(self.path)], check=False, capture_output=True, timeout=20
+            )
 
 
 # --------------------------------------------------------------------------------- network
@@ -192,9 +199,13 @@ class NetLab:
     def close(self) -> None:
         for made in reversed(self.made):
             if made == self.root_leg:
-                subprocess.run(["ip", "link", "del", made], check=False, capture_output=True, timeout=20)
+                subprocess.run(
+                    ["ip", "link", "del", made], check=False, capture_output=True, timeout=20
+                )
             else:
-                subprocess.run(["ip", "netns", "del", made], check=False, capture_output=True, timeout=20)
+                subprocess.run(
+                    ["ip", "netns", "del", made], check=False, capture_output=True, timeout=20
+                )
         self.made.clear()
 
     def __exit__(self, *exc: object) -> None:

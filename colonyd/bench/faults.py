@@ -20,7 +20,15 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from colonyd.bench.faultlab import DeltaWatch, NetLab, Spinner, Tmpfs, delta_digest, need_root, peak_rss_mb
+from colonyd.bench.faultlab import (
+    DeltaWatch,
+    NetLab,
+    Spinner,
+    Tmpfs,
+    delta_digest,
+    need_root,
+    peak_rss_mb,
+)
 from colonyd.bench.launcher import LocalColony, LocalDaemon, free_port
 from colonyd.runtime import open_session, zenoh_config
 
@@ -37,8 +45,14 @@ def src(seed: int, n: int, rate: float = 4, points: int = 200) -> list[str]:
     return [SCANS.format(n=n, rate=rate, points=points, seed=seed)]
 
 
-def run_faults_bench(out_json: Path | str, *, only: list[str] | None = None, kills: int = 20,
-                     duration: float = 10.0, scale_sizes: tuple[int, ...] = (4, 8, 16)) -> dict[str, Any]:
+def run_faults_bench(
+    out_json: Path | str,
+    *,
+    only: list[str] | None = None,
+    kills: int = 20,
+    duration: float = 10.0,
+    scale_sizes: tuple[int, ...] = (4, 8, 16),
+) -> dict[str, Any]:
     """Run the scenarios (all default ones, or `only`) and write one JSON object of figures."""
     names = list(only or SCENARIOS)
     unknown = [n for n in names if n not in SCENARIOS + OPT_IN]
@@ -106,17 +120,26 @@ def wait_for(what: str, check: Callable[[], bool], timeout: float, every: float 
     raise TimeoutError(f"{what}: not within {timeout:.0f} s")
 
 
-def wait_holding(colony: LocalColony, want: dict[str, int], holders: list[str], timeout: float,
-                 status_timeout: float = 1.0) -> float:
+def wait_holding(
+    colony: LocalColony,
+    want: dict[str, int],
+    holders: list[str],
+    timeout: float,
+    status_timeout: float = 1.0,
+) -> float:
     """Seconds until every holder has every origin of `want` at least at its seq."""
+
     def ok() -> bool:
         reports = by_agent(colony, timeout=status_timeout)
         return all(seq_of(reports, h, o) >= s for h in holders for o, s in want.items() if o != h)
+
     return wait_for(f"{holders} holding {want}", ok, timeout, every=0.2)
 
 
 def _ready_count(d: LocalDaemon) -> int:
-    return d.log_path.read_text(errors="replace").count("daemon: ready:") if d.log_path.exists() else 0
+    return (
+        d.log_path.read_text(errors="replace").count("daemon: ready:") if d.log_path.exists() else 0
+    )
 
 
 def _digest_lines(d: LocalDaemon) -> list[str]:
@@ -160,8 +183,15 @@ def crash(base: Path, *, kills: int = 20, seed: int = 7) -> dict[str, Any]:
     time.sleep(0.3)
     mapping = src(1, 0, rate=8, points=200) + ["--publish-hz", "8"]
     a = colony.add("a", start=False, extra=["--source", mapping[0], *mapping[1:]])
-    watch_session = open_session(zenoh_config(mode="peer", listen=["tcp/127.0.0.1:0"],
-                                              connect=[b.endpoint], multicast=False, gossip=True))
+    watch_session = open_session(
+        zenoh_config(
+            mode="peer",
+            listen=["tcp/127.0.0.1:0"],
+            connect=[b.endpoint],
+            multicast=False,
+            gossip=True,
+        )
+    )
     figures: dict[str, Any] = {}
     try:
         watch = DeltaWatch(watch_session, colony.namespace, "a")
@@ -224,7 +254,8 @@ def crash(base: Path, *, kills: int = 20, seed: int = 7) -> dict[str, Any]:
             "crash_new_epochs": new_epochs,
             "crash_final_seq": seq_of(reports, "a", "a"),
             "crash_converge_s": round(converge, 2),
-            "crash_peer_equal": reports["a"]["layers"]["a"]["digest"] == reports["b"]["layers"]["a"]["digest"],
+            "crash_peer_equal": reports["a"]["layers"]["a"]["digest"]
+            == reports["b"]["layers"]["a"]["digest"],
         }
         watch.close()
     except Exception:
@@ -239,7 +270,9 @@ def crash(base: Path, *, kills: int = 20, seed: int = 7) -> dict[str, Any]:
 # ------------------------------------------------------------------------------------ freeze
 
 
-def freeze(base: Path, *, lease_ms: int = 1000, frozen_s: float = 3.0, scans: int = 40) -> dict[str, Any]:
+def freeze(
+    base: Path, *, lease_ms: int = 1000, frozen_s: float = 3.0, scans: int = 40
+) -> dict[str, Any]:
     """SIGSTOP one of three mapping daemons past the lease: the others map and converge between
     themselves; after SIGCONT it catches up (`freeze_catchup_s`: to the others' seqs at SIGCONT)."""
     colony = LocalColony(base, colony="freeze", lease_ms=lease_ms, heartbeat_s=0.5)
@@ -300,21 +333,43 @@ def hostile_frames(target: str, other: str, seed: int = 3) -> list[tuple[str, by
     hb = forger.encode(Heartbeat(**forger.header(), kind="robot", frame_id="map"))
 
     def frame(mtype: int, envelope: object, flags: int = 0, version: int = 1) -> bytes:
-        return PREFIX.pack(MAGIC, version, mtype, flags, 0) + msgpack.packb(envelope, use_bin_type=True)
+        return PREFIX.pack(MAGIC, version, mtype, flags, 0) + msgpack.packb(
+            envelope, use_bin_type=True
+        )
 
     bomb = zstandard.ZstdCompressor(level=19).compress(b"\0" * (200 << 20))
     out: list[tuple[str, bytes]] = []
     for topic, good, mtype in (("delta", delta, 3), ("heartbeat", hb, 2)):
         out += [
-            (topic, b""), (topic, b"\x00"), (topic, rng.bytes(7)), (topic, rng.bytes(4096)),
+            (topic, b""),
+            (topic, b"\x00"),
+            (topic, rng.bytes(7)),
+            (topic, rng.bytes(4096)),
             (topic, good[:8] + rng.bytes(200)),  # a valid prefix, garbage after it
-            (topic, good[:len(good) // 2]),  # truncated
+            (topic, good[: len(good) // 2]),  # truncated
             (topic, good[:4] + b"\x09" + good[5:]),  # a future protocol version
             (topic, good[:5] + b"\x77" + good[6:]),  # an unknown message type
             (topic, frame(mtype, ["evil", 1, 2, 3.0, bomb], flags=1 << 1)),  # decompression bomb
-            (topic, frame(mtype, ["evil", 1, 2, 3.0, msgpack.packb([[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[0]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]])])),
+            (
+                topic,
+                frame(
+                    mtype,
+                    [
+                        "evil",
+                        1,
+                        2,
+                        3.0,
+                        msgpack.packb(
+                            [[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[0]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]
+                        ),
+                    ],
+                ),
+            ),
             (topic, frame(mtype, ["evil", -1, -2, float("nan"), b""])),  # bad envelope fields
-            (topic, frame(mtype, ["evil", 1, 2, 3.0, msgpack.packb({"frame_id": 7, "layers": "x"})])),
+            (
+                topic,
+                frame(mtype, ["evil", 1, 2, 3.0, msgpack.packb({"frame_id": 7, "layers": "x"})]),
+            ),
         ]
     bad_fields = [
         Delta(0.37, 0, 1, [[0, 0, 0]], [0.5], [1.0]),  # another resolution
@@ -323,14 +378,18 @@ def hostile_frames(target: str, other: str, seed: int = 3) -> list[tuple[str, by
     ]
     for d in bad_fields:
         try:
-            out.append(("delta", forger.encode(VoxelDelta(**forger.header(), frame_id="map", delta=d))))
+            out.append(
+                ("delta", forger.encode(VoxelDelta(**forger.header(), frame_id="map", delta=d)))
+            )
         except Exception as exc:  # noqa: BLE001 - the encoder itself refuses it: nothing to send
             log.debug("hostile frame not encodable: %s", exc)
     zero = Sender("evil", 0)  # epoch 0 is not a layer epoch
     out.append(("delta", zero.encode(VoxelDelta(**zero.header(), frame_id="map", delta=ok_delta))))
     # Another agent's origin on evil's key, and the target's own origin sent to it.
     mimic = Sender(other, 1)
-    out.append(("delta", mimic.encode(VoxelDelta(**mimic.header(), frame_id="map", delta=ok_delta))))
+    out.append(
+        ("delta", mimic.encode(VoxelDelta(**mimic.header(), frame_id="map", delta=ok_delta)))
+    )
     # (An hour old: a fresh one of another epoch would be a live twin, which a young daemon
     # gives way to, by design; see DAEMON.md.)
     own = Sender(target, 1)
@@ -346,7 +405,9 @@ def hostile(base: Path) -> dict[str, Any]:
     figures: dict[str, Any] = {}
     for closed in (False, True):
         figures.update(_hostile_round(base / ("closed" if closed else "open"), closed))
-    figures["rejected"] = dict(Counter(figures.pop("rejected_open")) + Counter(figures.pop("rejected_closed")))
+    figures["rejected"] = dict(
+        Counter(figures.pop("rejected_open")) + Counter(figures.pop("rejected_closed"))
+    )
     return figures
 
 
@@ -357,8 +418,12 @@ def _hostile_round(base: Path, closed: bool) -> dict[str, Any]:
 
     secret = "correct horse battery staple"
     label = "closed" if closed else "open"
-    colony = LocalColony(base, colony=f"hostile-{label}", heartbeat_s=0.5,
-                         extra=["--colony-key", secret] if closed else [])
+    colony = LocalColony(
+        base,
+        colony=f"hostile-{label}",
+        heartbeat_s=0.5,
+        extra=["--colony-key", secret] if closed else [],
+    )
     colony.add("a", src(1, 6))
     time.sleep(0.3)
     colony.add("b", src(2, 6))
@@ -386,8 +451,11 @@ def _hostile_round(base: Path, closed: bool) -> dict[str, Any]:
             if topic == "heartbeat:own":  # the target's own origin, to the target
                 s.put(topic_key(ns, "a", "heartbeat"), raw)
             else:  # (blocking: a huge frame is not dropped on the way by congestion control)
-                s.put(topic_key(ns, "evil", topic), raw,
-                      congestion_control=zenoh.CongestionControl.BLOCK)
+                s.put(
+                    topic_key(ns, "evil", topic),
+                    raw,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                )
             sent += 1
             time.sleep(0.01)
         # Queries: hostile request payloads on every queryable of both daemons.
@@ -397,8 +465,13 @@ def _hostile_round(base: Path, closed: bool) -> dict[str, Any]:
         # Valid requests that do not match the key they are sent on (another layer), and a
         # message of another type as a request.
         junk.append(forger.encode(SnapshotRequest(**forger.header(), layer="b", request_id=1)))
-        junk.append(forger.encode(DeltaRangeRequest(**forger.header(), layer="zz", request_id=2,
-                                                    from_version=1, to_version=5)))
+        junk.append(
+            forger.encode(
+                DeltaRangeRequest(
+                    **forger.header(), layer="zz", request_id=2, from_version=1, to_version=5
+                )
+            )
+        )
         junk.append(frames[-3][1])  # a VoxelDelta of b as a request
         for server in ("a", "b"):
             for q in ("snapshot", "deltas"):
@@ -411,14 +484,18 @@ def _hostile_round(base: Path, closed: bool) -> dict[str, Any]:
         per_daemon = {}
         for agent in ("a", "b"):
             c0, c1 = before[agent]["metrics"]["counts"], after[agent]["metrics"]["counts"]
-            counted = sum(c1.get(k, 0) - c0.get(k, 0)
-                          for k in ("rejected", "inbox_dropped", "duplicates"))
+            counted = sum(
+                c1.get(k, 0) - c0.get(k, 0) for k in ("rejected", "inbox_dropped", "duplicates")
+            )
             per_daemon[agent] = counted
         rejected = rejected_total(after)
         for r in before.values():
             rejected.subtract(r["metrics"]["rejected"])
-        unchanged = all(after[h]["layers"][o]["digest"] == before[h]["layers"][o]["digest"]
-                        for h in ("a", "b") for o in ("a", "b"))
+        unchanged = all(
+            after[h]["layers"][o]["digest"] == before[h]["layers"][o]["digest"]
+            for h in ("a", "b")
+            for o in ("a", "b")
+        )
         foreign = sorted({o for r in after.values() for o in r["layers"]} - {"a", "b"})
         alive = all(d.alive() for d in colony.daemons.values())
         # Every hostile frame reaches both daemons, every query one: each must be counted (the
@@ -476,8 +553,9 @@ def disk(base: Path, *, size_mb: float = 6.0) -> dict[str, Any]:
             r0 = by_agent(colony)
             time.sleep(3.0)  # several publish and snapshot attempts fail meanwhile
             r1 = by_agent(colony)
-            frames = (r1["a"]["metrics"]["counts"].get("frames", 0)
-                      - r0["a"]["metrics"]["counts"].get("frames", 0))
+            frames = r1["a"]["metrics"]["counts"].get("frames", 0) - r0["a"]["metrics"][
+                "counts"
+            ].get("frames", 0)
             snap = json.loads((a.state_dir / "snapshot.json").read_text())
             grid = load_grid(a.state_dir / snap["file"])
             intact = grid is not None and int(snap["seq"]) >= 1
@@ -485,7 +563,9 @@ def disk(base: Path, *, size_mb: float = 6.0) -> dict[str, Any]:
             a_seq_full = seq_of(r1, "a", "a")
             mount.free()
             t_free = time.monotonic()
-            wait_for("a publishes again", lambda: seq_of(by_agent(colony), "b", "a") > a_seq_full, 30)
+            wait_for(
+                "a publishes again", lambda: seq_of(by_agent(colony), "b", "a") > a_seq_full, 30
+            )
             resume = time.monotonic() - t_free
             cleared = not by_agent(colony)["a"].get("state_error")
             return {
@@ -510,7 +590,9 @@ def disk(base: Path, *, size_mb: float = 6.0) -> dict[str, Any]:
 # --------------------------------------------------------------------------------- partition
 
 
-def partition(base: Path, *, lease_ms: int = 1500, cut_s: float = 4.0, scans: int = 48) -> dict[str, Any]:
+def partition(
+    base: Path, *, lease_ms: int = 1500, cut_s: float = 4.0, scans: int = 48
+) -> dict[str, Any]:
     """Three daemons in their own network namespaces on a bridge; c's link is cut during
     mapping and restored: both sides keep mapping, every replica converges after the heal."""
     reason = need_root("the partition scenario (network namespaces)")
@@ -538,7 +620,10 @@ def partition(base: Path, *, lease_ms: int = 1500, cut_s: float = 4.0, scans: in
             a_side = seq_of(r1, "a", "a") - seq_of(r_cut, "a", "a")
             b_lag = seq_of(r1, "a", "a") - seq_of(r1, "b", "a")
             saw_c = max(seq_of(r1, h, "c") - seq_of(r_cut, h, "c") for h in ("a", "b"))
-            log.info("partition: during the cut %s", {h: {o: seq_of(r1, h, o) for o in names} for h in r1})
+            log.info(
+                "partition: during the cut %s",
+                {h: {o: seq_of(r1, h, o) for o in names} for h in r1},
+            )
             lab.heal("c")
             cut = time.monotonic() - t_cut
             t_heal = time.monotonic()
@@ -580,22 +665,33 @@ def stage_breakdown(reports: list[dict[str, Any]]) -> dict[str, dict[str, float 
         for st in r["metrics"].get("stages", []):
             if st[0] == "out":
                 out_side[(st[1], int(st[2]))] = (float(st[3]), float(st[4]), float(st[5]))
-    parts: dict[str, list[float]] = {k: [] for k in ("log", "encode", "transport", "queue", "decode", "apply", "total")}
+    parts: dict[str, list[float]] = {
+        k: [] for k in ("log", "encode", "transport", "queue", "decode", "apply", "total")
+    }
     for r in reports:
         for st in r["metrics"].get("stages", []):
             if st[0] != "in" or (st[1], int(st[2])) not in out_side:
                 continue
             created, logged, sent = out_side[(st[1], int(st[2]))]
             queued, dequeued, decoded, applied = (float(x) for x in st[3:7])
-            for name, value in (("log", logged - created), ("encode", sent - logged),
-                                ("transport", queued - sent), ("queue", dequeued - queued),
-                                ("decode", decoded - dequeued), ("apply", applied - decoded),
-                                ("total", applied - created)):
+            for name, value in (
+                ("log", logged - created),
+                ("encode", sent - logged),
+                ("transport", queued - sent),
+                ("queue", dequeued - queued),
+                ("decode", decoded - dequeued),
+                ("apply", applied - decoded),
+                ("total", applied - created),
+            ):
                 parts[name].append(value * 1000)
     out: dict[str, dict[str, float | None]] = {
-        k: {"p50": percentile(v, 50), "p99": percentile(v, 99),
-            "mean": round(float(np.mean(v)), 2) if v else None}
-        for k, v in parts.items()}
+        k: {
+            "p50": percentile(v, 50),
+            "p99": percentile(v, 99),
+            "mean": round(float(np.mean(v)), 2) if v else None,
+        }
+        for k, v in parts.items()
+    }
     # The tail: what each stage contributes, on average, to the slowest 10 % of deliveries.
     total = np.asarray(parts["total"])
     if len(total):
@@ -616,8 +712,9 @@ def propagation_ms(reports: list[dict[str, Any]], agents: list[str]) -> list[flo
     return [max(v) * 1000 for v in applied.values() if len(v) >= len(agents) - 1]
 
 
-def propagation(base: Path, *, daemons: int = 4, duration: float = 10.0,
-                extra: list[str] | None = None) -> dict[str, Any]:
+def propagation(
+    base: Path, *, daemons: int = 4, duration: float = 10.0, extra: list[str] | None = None
+) -> dict[str, Any]:
     """N daemons mapping at 2 deltas/s: propagation (creation to application on the last other
     peer) p50 / p99, and the stage breakdown."""
     scans = max(2, int(duration * 2))
@@ -632,8 +729,12 @@ def propagation(base: Path, *, daemons: int = 4, duration: float = 10.0,
         colony.wait_converged(duration + 60, agents)
         reports = colony.status(samples=True)
         lat = propagation_ms(reports, agents)
-        return {"p50_ms": percentile(lat, 50), "p99_ms": percentile(lat, 99), "samples": len(lat),
-                "stages_ms": stage_breakdown(reports)}
+        return {
+            "p50_ms": percentile(lat, 50),
+            "p99_ms": percentile(lat, 99),
+            "samples": len(lat),
+            "stages_ms": stage_breakdown(reports),
+        }
     except Exception:
         log.error("propagation run failed; daemon logs:\n%s", colony.logs())
         raise
@@ -647,17 +748,23 @@ def busy(base: Path, *, duration: float = 10.0) -> dict[str, Any]:
     with Spinner():
         loaded = propagation(base / "busy", duration=duration)
     return {
-        "quiet_p50_ms": quiet["p50_ms"], "quiet_p99_ms": quiet["p99_ms"],
-        "busy_p50_ms": loaded["p50_ms"], "busy_p99_ms": loaded["p99_ms"],
-        "busy_samples": loaded["samples"], "quiet_samples": quiet["samples"],
-        "quiet_stages_ms": quiet["stages_ms"], "busy_stages_ms": loaded["stages_ms"],
+        "quiet_p50_ms": quiet["p50_ms"],
+        "quiet_p99_ms": quiet["p99_ms"],
+        "busy_p50_ms": loaded["p50_ms"],
+        "busy_p99_ms": loaded["p99_ms"],
+        "busy_samples": loaded["samples"],
+        "quiet_samples": quiet["samples"],
+        "quiet_stages_ms": quiet["stages_ms"],
+        "busy_stages_ms": loaded["stages_ms"],
     }
 
 
 # ------------------------------------------------------------------------------------- flood
 
 
-def flood(base: Path, *, flooders: int = 3, rate_x: int = 10, seconds: float = 8.0) -> dict[str, Any]:
+def flood(
+    base: Path, *, flooders: int = 3, rate_x: int = 10, seconds: float = 8.0
+) -> dict[str, Any]:
     """Several peers at `rate_x` times the normal delta rate (2/s) into one mapping daemon:
     its peak RSS, its own mapping rate, the deltas/s it applies; nothing crashes."""
     hz = 2 * rate_x
@@ -667,8 +774,11 @@ def flood(base: Path, *, flooders: int = 3, rate_x: int = 10, seconds: float = 8
     try:
         colony.wait_members(1, timeout=20)
         for i in range(flooders):
-            colony.add(f"f{i}", src(10 + i, int(seconds * hz), rate=hz, points=400),
-                       extra=["--publish-hz", str(hz)])
+            colony.add(
+                f"f{i}",
+                src(10 + i, int(seconds * hz), rate=hz, points=400),
+                extra=["--publish-hz", str(hz)],
+            )
         colony.wait_members(1 + flooders, timeout=30)
         assert target.proc is not None
         rss_start = peak_rss_mb(target.proc.pid)
@@ -679,8 +789,12 @@ def flood(base: Path, *, flooders: int = 3, rate_x: int = 10, seconds: float = 8
         dt = time.monotonic() - t0
         c0, c1 = r0["t"]["metrics"]["counts"], r1["t"]["metrics"]["counts"]
         applied = (c1.get("deltas_applied", 0) - c0.get("deltas_applied", 0)) / dt
-        offered = sum(seq_of(r1, f"f{i}", f"f{i}") - seq_of(r0, f"f{i}", f"f{i}")
-                      for i in range(flooders)) / dt
+        offered = (
+            sum(
+                seq_of(r1, f"f{i}", f"f{i}") - seq_of(r0, f"f{i}", f"f{i}") for i in range(flooders)
+            )
+            / dt
+        )
         own_rate = (c1.get("frames", 0) - c0.get("frames", 0)) / dt
         peak = peak_rss_mb(target.proc.pid)
         converge = colony.wait_converged(90)
@@ -705,8 +819,14 @@ def flood(base: Path, *, flooders: int = 3, rate_x: int = 10, seconds: float = 8
         colony.close()
 
 
-def saturate(colony: LocalColony, target: LocalDaemon, *, origins: int = 4, frames: int = 250,
-             rate: float = 400.0) -> dict[str, Any]:
+def saturate(
+    colony: LocalColony,
+    target: LocalDaemon,
+    *,
+    origins: int = 4,
+    frames: int = 250,
+    rate: float = 400.0,
+) -> dict[str, Any]:
     """The delta rate one daemon sustains: `origins` signed peers put real-sized deltas (a
     synthetic scan's, ~4.5k voxels) at `rate` deltas/s in all, more than it can take; the
     deltas it applied per second until its inbox was worked through, its drops, peak RSS."""
@@ -721,21 +841,31 @@ def saturate(colony: LocalColony, target: LocalDaemon, *, origins: int = 4, fram
     from protocol.identity import Signer
     from protocol.keyexpr import topic_key
 
-    scan = open_source("synthetic:scans=1,points=120,seed=5,room=6", resolution=0.1, seed=5,
-                       stop=threading.Event())
+    scan = open_source(
+        "synthetic:scans=1,points=120,seed=5,room=6", resolution=0.1, seed=5, stop=threading.Event()
+    )
     grid = new_grid(0.1)
     for obs in scan:
-        integrate_observation(grid, obs, sensor=scan.adapter.sensor_model, reliability=1.0, agent="s")
+        integrate_observation(
+            grid, obs, sensor=scan.adapter.sensor_model, reliability=1.0, agent="s"
+        )
     delta = grid.delta_since(0)
     s = colony.session()
     epoch = 1
     streams = []
     for i in range(origins):
         snd = Sender(f"sat{i}", epoch, signer=Signer.generate())
-        hb = snd.encode(Heartbeat(**snd.header(), kind="robot", frame_id="map", identity=snd.identity))
-        msgs = [snd.encode(VoxelDelta(**snd.header(), frame_id="map",
-                                      delta=relabel(delta, k, k + 1, time=time.time())))
-                for k in range(frames)]
+        hb = snd.encode(
+            Heartbeat(**snd.header(), kind="robot", frame_id="map", identity=snd.identity)
+        )
+        msgs = [
+            snd.encode(
+                VoxelDelta(
+                    **snd.header(), frame_id="map", delta=relabel(delta, k, k + 1, time=time.time())
+                )
+            )
+            for k in range(frames)
+        ]
         streams.append((f"sat{i}", hb, msgs))
     for name, hb, _ in streams:
         s.put(topic_key(colony.namespace, name, "heartbeat"), hb)
@@ -793,7 +923,9 @@ finally:
 def _colony_run(base: Path, n: int, *, router: str | None, seconds: float) -> dict[str, Any]:
     """n daemons (peers, or clients of `router`) mapping 4 scans each; convergence time and
     traffic per daemon (all bytes and heartbeat bytes per second)."""
-    colony = LocalColony(base, colony=f"scale{n}", heartbeat_s=1.0, extra=["--log-level", "warning"])
+    colony = LocalColony(
+        base, colony=f"scale{n}", heartbeat_s=1.0, extra=["--log-level", "warning"]
+    )
     agents = [f"r{i:02d}" for i in range(n)]
     try:
         t0 = time.monotonic()
@@ -802,16 +934,18 @@ def _colony_run(base: Path, n: int, *, router: str | None, seconds: float) -> di
             if router is not None:
                 d.args = [x for x in d.args]
                 cut = d.args.index("--listen")
-                del d.args[cut:cut + 2]
+                del d.args[cut : cut + 2]
                 if "--connect" in d.args:
                     j = d.args.index("--connect")
-                    del d.args[j:j + 2]
+                    del d.args[j : j + 2]
                 d.args += ["--mode", "client", "--connect", router]
             d.start()
             if i == 0 and router is None:
                 time.sleep(0.3)
         if router is not None:
-            colony._session = open_session(zenoh_config(mode="client", connect=[router], multicast=False))
+            colony._session = open_session(
+                zenoh_config(mode="client", connect=[router], multicast=False)
+            )
             colony._session_endpoints = [d.endpoint for d in colony.daemons.values() if d.alive()]
         colony.wait_members(n, timeout=60)
         converge = colony.wait_converged(120, agents)
@@ -819,15 +953,30 @@ def _colony_run(base: Path, n: int, *, router: str | None, seconds: float) -> di
         r0 = by_agent(colony, timeout=3.0)
         time.sleep(seconds)  # idle: heartbeats only
         r1 = by_agent(colony, timeout=3.0)
-        hb = [(r1[a]["metrics"]["counts"].get("bytes_heartbeat", 0)
-               - r0[a]["metrics"]["counts"].get("bytes_heartbeat", 0)) / seconds for a in agents]
-        rx = [(r1[a]["metrics"]["counts"].get("bytes_received", 0)
-               - r0[a]["metrics"]["counts"].get("bytes_received", 0)) / seconds for a in agents]
+        hb = [
+            (
+                r1[a]["metrics"]["counts"].get("bytes_heartbeat", 0)
+                - r0[a]["metrics"]["counts"].get("bytes_heartbeat", 0)
+            )
+            / seconds
+            for a in agents
+        ]
+        rx = [
+            (
+                r1[a]["metrics"]["counts"].get("bytes_received", 0)
+                - r0[a]["metrics"]["counts"].get("bytes_received", 0)
+            )
+            / seconds
+            for a in agents
+        ]
         total = [r1[a]["metrics"]["counts"].get("bytes_published", 0) for a in agents]
-        return {"converge_s": round(converge, 2), "start_to_converged_s": round(start_to_converged, 2),
-                "heartbeat_bytes_per_s_per_daemon": round(float(np.mean(hb)), 1),
-                "received_bytes_per_s_per_daemon_idle": round(float(np.mean(rx)), 1),
-                "published_bytes_per_daemon": int(np.mean(total))}
+        return {
+            "converge_s": round(converge, 2),
+            "start_to_converged_s": round(start_to_converged, 2),
+            "heartbeat_bytes_per_s_per_daemon": round(float(np.mean(hb)), 1),
+            "received_bytes_per_s_per_daemon_idle": round(float(np.mean(rx)), 1),
+            "published_bytes_per_daemon": int(np.mean(total)),
+        }
     except Exception:
         log.error("scale run failed; daemon logs:\n%s", colony.logs(tail=800))
         raise
@@ -835,20 +984,27 @@ def _colony_run(base: Path, n: int, *, router: str | None, seconds: float) -> di
         colony.close()
 
 
-def scale(base: Path, *, sizes: tuple[int, ...] = (4, 8, 16), seconds: float = 5.0) -> dict[str, Any]:
+def scale(
+    base: Path, *, sizes: tuple[int, ...] = (4, 8, 16), seconds: float = 5.0
+) -> dict[str, Any]:
     """Colonies of each size in peer mode, and the largest as clients of a Zenoh router."""
     out: dict[str, Any] = {"scale_peer": {}, "scale_client": {}}
     for n in sizes:
         out["scale_peer"][str(n)] = _colony_run(base / f"peer{n}", n, router=None, seconds=seconds)
     port = free_port()
-    router = subprocess.Popen([sys.executable, "-c", ROUTER, str(port)], stdout=subprocess.PIPE,
-                              stdin=subprocess.DEVNULL, text=True)
+    router = subprocess.Popen(
+        [sys.executable, "-c", ROUTER, str(port)],
+        stdout=subprocess.PIPE,
+        stdin=subprocess.DEVNULL,
+        text=True,
+    )
     try:
         assert router.stdout is not None
         router.stdout.readline()
         n = max(sizes)
-        out["scale_client"][str(n)] = _colony_run(base / f"client{n}", n,
-                                                  router=f"tcp/127.0.0.1:{port}", seconds=seconds)
+        out["scale_client"][str(n)] = _colony_run(
+            base / f"client{n}", n, router=f"tcp/127.0.0.1:{port}", seconds=seconds
+        )
     finally:
         router.terminate()
         try:

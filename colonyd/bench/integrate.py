@@ -76,7 +76,9 @@ def _carmen(shared_data: Path) -> Callable[[], Iterator[Frame]]:
         log = shared_data / "carmen" / "freiburg-079-corrected.log.gz"
         for obs in CarmenSource(log, max_range=CARMEN_RANGE, stop=400, step=4):
             pose = obs.pose
-            yield Frame(obs.points @ pose[:3, :3].T + pose[:3, 3], pose[:3, 3].copy(), obs.no_return)
+            yield Frame(
+                obs.points @ pose[:3, :3].T + pose[:3, 3], pose[:3, 3].copy(), obs.no_return
+            )
 
     return frames
 
@@ -96,8 +98,13 @@ def scenarios(shared_data: Path | None) -> list[Scenario]:
     ]
     if shared_data is not None and (shared_data / "redkitchen-50" / "frames").is_dir():
         out.append(Scenario("redkitchen50_0.05", 0.05, 5.0, _redkitchen(shared_data)))
-    if shared_data is not None and (shared_data / "carmen" / "freiburg-079-corrected.log.gz").is_file():
-        out.append(Scenario("carmen079_100x360_0.05", 0.05, CARMEN_RANGE, _carmen(shared_data), "planar"))
+    if (
+        shared_data is not None
+        and (shared_data / "carmen" / "freiburg-079-corrected.log.gz").is_file()
+    ):
+        out.append(
+            Scenario("carmen079_100x360_0.05", 0.05, CARMEN_RANGE, _carmen(shared_data), "planar")
+        )
     return out
 
 
@@ -126,8 +133,9 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
     return 1.0 if union == 0 else inter / union
 
 
-def _time_ours(frames: list[Frame], resolution: float, sensor: SensorModel,
-               block_shape: str = "cube") -> tuple[VoxelGrid, list[float]]:
+def _time_ours(
+    frames: list[Frame], resolution: float, sensor: SensorModel, block_shape: str = "cube"
+) -> tuple[VoxelGrid, list[float]]:
     grid = VoxelGrid(resolution, block_shape=block_shape)
     times = []
     for i, f in enumerate(frames):
@@ -170,7 +178,9 @@ def run_scenario(sc: Scenario, repeats: int) -> dict:
         True: lambda: _time_octomap(frames, sc.resolution, sc.max_range, True),
     }
     samples: dict[object, list[float]] = {key: [] for key in sides}
-    maps: dict[object, tuple[np.ndarray, np.ndarray, float]] = {}  # OctoMap: occupied, free, bytes/node
+    maps: dict[
+        object, tuple[np.ndarray, np.ndarray, float]
+    ] = {}  # OctoMap: occupied, free, bytes/node
     grid: VoxelGrid | None = None
     # Rounds alternate the sides so a slow spell of a shared machine slows both alike. In a round
     # each side runs as it would in a running process: a fast single frame gets one untimed run
@@ -227,14 +237,17 @@ def run_scenario(sc: Scenario, repeats: int) -> dict:
     }
 
 
-def run_integrate_bench(out_json: Path, shared_data: Path | None, repeats: int = 5,
-                        only: list[str] | None = None) -> list[dict]:
+def run_integrate_bench(
+    out_json: Path, shared_data: Path | None, repeats: int = 5, only: list[str] | None = None
+) -> list[dict]:
     """Run the default scenarios (or those named in `only`), write the JSON list to out_json and return it."""
     known = scenarios(shared_data_dir(shared_data))
     unknown = sorted(set(only or ()) - {sc.name for sc in known})
     if unknown:
         msg = f"unknown scenario(s) {unknown}; expected some of {[sc.name for sc in known]}"
         raise ConfigError(msg)
-    results = [run_scenario(sc, repeats) for sc in known if (sc.name in only if only else sc.default)]
+    results = [
+        run_scenario(sc, repeats) for sc in known if (sc.name in only if only else sc.default)
+    ]
     write_results(out_json, results)
     return results

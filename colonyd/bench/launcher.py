@@ -58,7 +58,9 @@ class LocalDaemon:
         try:
             self.proc = subprocess.Popen(
                 [*self.prefix, sys.executable, "-m", "colonyd", "run", *self.args],
-                stdin=subprocess.DEVNULL, stdout=log, stderr=log,
+                stdin=subprocess.DEVNULL,
+                stdout=log,
+                stderr=log,
                 env={**os.environ, **self.env},
             )
         finally:
@@ -120,10 +122,19 @@ class LocalDaemon:
 class LocalColony:
     """Daemons on 127.0.0.1 with multicast off and a fresh namespace; the first is the hub."""
 
-    def __init__(self, base: Path, *, colony: str = "local", namespace: str | None = None,
-                 lease_ms: int | None = None, heartbeat_s: float = 0.5,
-                 extra: list[str] | None = None, multicast: bool = False,
-                 transport: str = "tcp", zenoh_config: Path | None = None) -> None:
+    def __init__(
+        self,
+        base: Path,
+        *,
+        colony: str = "local",
+        namespace: str | None = None,
+        lease_ms: int | None = None,
+        heartbeat_s: float = 0.5,
+        extra: list[str] | None = None,
+        multicast: bool = False,
+        transport: str = "tcp",
+        zenoh_config: Path | None = None,
+    ) -> None:
         self.base = Path(base)
         self.base.mkdir(parents=True, exist_ok=True)
         self.colony = colony
@@ -138,15 +149,33 @@ class LocalColony:
         self._session: zenoh.Session | None = None
         self._session_endpoints: list[str] = []
 
-    def add(self, agent: str, sources: list[str] | None = None, *, start: bool = True,
-            extra: list[str] | None = None, host: str = "127.0.0.1",
-            prefix: list[str] | None = None) -> LocalDaemon:
+    def add(
+        self,
+        agent: str,
+        sources: list[str] | None = None,
+        *,
+        start: bool = True,
+        extra: list[str] | None = None,
+        host: str = "127.0.0.1",
+        prefix: list[str] | None = None,
+    ) -> LocalDaemon:
         port = free_port()
         hub = next((d for d in self.daemons.values() if d.alive()), None)
         hub = hub or next(iter(self.daemons.values()), None)
-        args = ["--colony", self.colony, "--namespace", self.namespace, "--agent-id", agent,
-                "--state-dir", str(self.base / agent),
-                "--listen", f"{self.transport}/{host}:{port}", "--heartbeat-s", str(self.heartbeat_s)]
+        args = [
+            "--colony",
+            self.colony,
+            "--namespace",
+            self.namespace,
+            "--agent-id",
+            agent,
+            "--state-dir",
+            str(self.base / agent),
+            "--listen",
+            f"{self.transport}/{host}:{port}",
+            "--heartbeat-s",
+            str(self.heartbeat_s),
+        ]
         if not self.multicast:
             args.append("--no-multicast")
         if hub is not None and not self.multicast:
@@ -158,8 +187,16 @@ class LocalColony:
         for spec in sources or []:
             args += ["--source", spec]
         args += self.extra + list(extra or [])
-        d = LocalDaemon(agent, port, self.base / agent, self.base / f"{agent}.log", args,
-                        host=host, prefix=list(prefix or []), transport=self.transport)
+        d = LocalDaemon(
+            agent,
+            port,
+            self.base / agent,
+            self.base / f"{agent}.log",
+            args,
+            host=host,
+            prefix=list(prefix or []),
+            transport=self.transport,
+        )
         if self.zenoh_config is not None:
             d.env["COLONYD_ZENOH_CONFIG"] = str(self.zenoh_config)
         self.daemons[agent] = d
@@ -176,18 +213,25 @@ class LocalColony:
             self._session.close()
             self._session = None
         if self._session is None:
-            conf = zenoh_config(mode="peer", listen=[f"{self.transport}/127.0.0.1:0"],
-                                connect=endpoints, multicast=False, gossip=True,
-                                extra_file=self.zenoh_config)
+            conf = zenoh_config(
+                mode="peer",
+                listen=[f"{self.transport}/127.0.0.1:0"],
+                connect=endpoints,
+                multicast=False,
+                gossip=True,
+                extra_file=self.zenoh_config,
+            )
             self._session = open_session(conf)
             self._session_endpoints = endpoints
             time.sleep(0.2)  # let the links come up before the first query
         return self._session
 
-    def status(self, *, digest: bool = False, samples: bool = False,
-               timeout: float = 2.0) -> list[dict[str, Any]]:
-        return query_status(self.session(), self.namespace, digest=digest, samples=samples,
-                            timeout=timeout)
+    def status(
+        self, *, digest: bool = False, samples: bool = False, timeout: float = 2.0
+    ) -> list[dict[str, Any]]:
+        return query_status(
+            self.session(), self.namespace, digest=digest, samples=samples, timeout=timeout
+        )
 
     def members(self) -> list[str]:
         return alive_members(self.session(), self.namespace)
@@ -241,8 +285,9 @@ class LocalColony:
             time.sleep(0.3)
         raise TimeoutError(f"colony did not converge in {timeout:.0f} s: {reason}")
 
-    def wait_status(self, until: Callable[[list[dict[str, Any]]], bool], within: float = 15.0,
-                    **query: Any) -> list[dict[str, Any]]:
+    def wait_status(
+        self, until: Callable[[list[dict[str, Any]]], bool], within: float = 15.0, **query: Any
+    ) -> list[dict[str, Any]]:
         """Status reports once `until(reports)` holds, or the last ones after `within` seconds (the
         caller's assertions then say what is missing); `query` goes to `status`."""
         deadline = time.monotonic() + within

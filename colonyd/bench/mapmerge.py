@@ -58,7 +58,9 @@ def occupancy_image(cloud: MapCloud, margin: int = 20) -> tuple[np.ndarray, np.n
 
 def _pixel_to_world(lo: np.ndarray, height: int, res: float) -> np.ndarray:
     """3x3 matrix taking pixel (u, v, 1) to world (x, y, 1) at the pixel centre."""
-    return np.array([[res, 0.0, lo[0] + 0.5 * res], [0.0, -res, lo[1] + (height - 0.5) * res], [0.0, 0.0, 1.0]])
+    return np.array(
+        [[res, 0.0, lo[0] + 0.5 * res], [0.0, -res, lo[1] + (height - 0.5) * res], [0.0, 0.0, 1.0]]
+    )
 
 
 def estimate(a: MapCloud, b: MapCloud, seed: int = 0) -> BaselineResult:
@@ -84,20 +86,30 @@ def estimate(a: MapCloud, b: MapCloud, seed: int = 0) -> BaselineResult:
         return _timed(BaselineResult(False, np.eye(4), 0.0, len(pairs), 0, 0.0), began)
     src = np.float32([kp_b[i].pt for i, _ in pairs])
     dst = np.float32([kp_a[j].pt for _, j in pairs])
-    affine, mask = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=3.0)
+    affine, mask = cv2.estimateAffinePartial2D(
+        src, dst, method=cv2.RANSAC, ransacReprojThreshold=3.0
+    )
     if affine is None:
         return _timed(BaselineResult(False, np.eye(4), 0.0, len(pairs), 0, 0.0), began)
     inliers = int(mask.sum())
     confidence = inliers / (8.0 + 0.3 * len(pairs))
     pix = np.vstack([affine, [0.0, 0.0, 1.0]])
-    world = _pixel_to_world(lo_a, img_a.shape[0], a.resolution) @ pix @ np.linalg.inv(
-        _pixel_to_world(lo_b, img_b.shape[0], b.resolution))
+    world = (
+        _pixel_to_world(lo_a, img_a.shape[0], a.resolution)
+        @ pix
+        @ np.linalg.inv(_pixel_to_world(lo_b, img_b.shape[0], b.resolution))
+    )
     t = np.eye(4)
     t[:2, :2] = world[:2, :2]
     t[:2, 3] = world[:2, 2]
     t[2, 3] = float(np.median(a.occupied[:, 2]) - np.median(b.occupied[:, 2]))
-    return _timed(BaselineResult(confidence >= ACCEPT_CONFIDENCE, t, confidence, len(pairs), inliers, 0.0), began)
+    return _timed(
+        BaselineResult(confidence >= ACCEPT_CONFIDENCE, t, confidence, len(pairs), inliers, 0.0),
+        began,
+    )
 
 
 def _timed(r: BaselineResult, began: float) -> BaselineResult:
-    return BaselineResult(r.merged, r.transform, r.confidence, r.matches, r.inliers, time.perf_counter() - began)
+    return BaselineResult(
+        r.merged, r.transform, r.confidence, r.matches, r.inliers, time.perf_counter() - began
+    )

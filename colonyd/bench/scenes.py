@@ -34,8 +34,15 @@ def camera_pose(position: np.ndarray, target: np.ndarray) -> np.ndarray:
     return pose
 
 
-def depth_frame(pose: np.ndarray, k: np.ndarray = KINECT, w: int = 640, h: int = 480, max_depth: float = 5.0,
-                noise: float = 0.0, seed: int = 0) -> np.ndarray:
+def depth_frame(
+    pose: np.ndarray,
+    k: np.ndarray = KINECT,
+    w: int = 640,
+    h: int = 480,
+    max_depth: float = 5.0,
+    noise: float = 0.0,
+    seed: int = 0,
+) -> np.ndarray:
     """A synthetic depth image (metres, 0 = no reading beyond max_depth) of the room."""
     world_dirs = pixel_rays(k, w, h) @ pose[:3, :3].T
     norms = np.linalg.norm(world_dirs, axis=1)
@@ -47,8 +54,9 @@ def depth_frame(pose: np.ndarray, k: np.ndarray = KINECT, w: int = 640, h: int =
     return z.reshape(h, w)
 
 
-def lidar2d_scan(origin: np.ndarray, beams: int = 1081, fov: float = math.radians(270),
-                 max_range: float = 30.0) -> tuple[np.ndarray, np.ndarray]:
+def lidar2d_scan(
+    origin: np.ndarray, beams: int = 1081, fov: float = math.radians(270), max_range: float = 30.0
+) -> tuple[np.ndarray, np.ndarray]:
     """A planar scan; returns (endpoints, no_return mask); no-return beams point at max range."""
     a = np.linspace(-fov / 2, fov / 2, beams)
     dirs = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=1)
@@ -58,8 +66,14 @@ def lidar2d_scan(origin: np.ndarray, beams: int = 1081, fov: float = math.radian
     return origin + dirs * r[:, None], nr
 
 
-def lidar3d_scan(origin: np.ndarray, rings: int = 64, cols: int = 1024, max_range: float = 30.0,
-                 fov_up: float = 2.0, fov_down: float = -24.8) -> tuple[np.ndarray, np.ndarray]:
+def lidar3d_scan(
+    origin: np.ndarray,
+    rings: int = 64,
+    cols: int = 1024,
+    max_range: float = 30.0,
+    fov_up: float = 2.0,
+    fov_down: float = -24.8,
+) -> tuple[np.ndarray, np.ndarray]:
     """A spinning 3D LiDAR scan in an open courtyard made of the room scaled x6 (points within 30 m)."""
     el = np.radians(np.linspace(fov_down, fov_up, rings))
     az = np.linspace(-math.pi, math.pi, cols, endpoint=False)

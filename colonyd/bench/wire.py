@@ -220,7 +220,10 @@ def run_wire_bench(
 
     Without `shared_data`, the checkout's sibling `../shared/data` is used when it exists.
     """
-    results = [run_scenario(sc, repeats) for sc in scenarios(shared_data_dir(shared_data))
-               if not only or sc.name in only]
+    results = [
+        run_scenario(sc, repeats)
+        for sc in scenarios(shared_data_dir(shared_data))
+        if not only or sc.name in only
+    ]
     write_results(out_json, results)
     return results

@@ -15,7 +15,9 @@ _COLONIES = "_colonies_made"
 
 
 @pytest.fixture
-def make_colony(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Callable[..., LocalColony]]:
+def make_colony(
+    tmp_path: Path, request: pytest.FixtureRequest
+) -> Iterator[Callable[..., LocalColony]]:
     """Factory of LocalColony objects; every daemon is stopped at teardown, whatever happens, and a
     failed test's report carries the logs of every daemon it started."""
     made: list[LocalColony] = []
@@ -34,7 +36,9 @@ def make_colony(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Call
 
 
 @pytest.hookimpl(hookwrapper=True)
-def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Generator[None, Any, None]:
+def pytest_runtest_makereport(
+    item: pytest.Item, call: pytest.CallInfo[None]
+) -> Generator[None, Any, None]:
     """Attach the daemon logs of the colonies a failed test made to its report."""
     outcome = yield
     report = outcome.get_result()

@@ -18,8 +18,10 @@ def main() -> int:
         print(f"refusing to run multicast outside a private network namespace: {interfaces}")
         return 2
     os.environ["COLONYD_MULTICAST_INTERFACE"] = "lo"
-    with tempfile.TemporaryDirectory() as tmp, LocalColony(Path(tmp), colony="mcast",
-                                                           multicast=True) as colony:
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        LocalColony(Path(tmp), colony="mcast", multicast=True) as colony,
+    ):
         colony.add("a", ["synthetic:scans=3,rate=4,points=100,seed=1"])
         colony.add("b", ["synthetic:scans=3,rate=4,points=100,seed=2"])
         seconds = colony.wait_converged(30)

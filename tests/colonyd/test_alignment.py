@@ -25,7 +25,12 @@ def _edge(a: str, b: str, t: np.ndarray, conf: float = 0.9) -> Edge:
 
 def test_colony_frame_is_the_same_whoever_computes_it():
     # true poses of each agent's frame in a site frame
-    site = {"a": _rigid(0, 0, 0), "b": _rigid(3, 1, 90), "c": _rigid(-2, 4, 200), "d": _rigid(9, 9, 0)}
+    site = {
+        "a": _rigid(0, 0, 0),
+        "b": _rigid(3, 1, 90),
+        "c": _rigid(-2, 4, 200),
+        "d": _rigid(9, 9, 0),
+    }
     rel = {(x, y): np.linalg.inv(site[x]) @ site[y] for x in site for y in site}
     one, two = Alignments(), Alignments()
     one.put(_edge("a", "b", rel["a", "b"]))
@@ -37,8 +42,9 @@ def test_colony_frame_is_the_same_whoever_computes_it():
     assert f1.root == f2.root == "a" and set(f1.transforms) == {"a", "b", "c"}  # d: not aligned
     for agent in "abc":
         np.testing.assert_allclose(f1.transforms[agent], f2.transforms[agent], atol=1e-9)
-        np.testing.assert_allclose(f1.transforms[agent], np.linalg.inv(site["a"]) @ site[agent],
-                                   atol=1e-9)
+        np.testing.assert_allclose(
+            f1.transforms[agent], np.linalg.inv(site["a"]) @ site[agent], atol=1e-9
+        )
     anchored = one.colony(agents, anchor="c")
     assert anchored.root == "c"
     np.testing.assert_allclose(anchored.transforms["a"], rel["c", "a"], atol=1e-9)
@@ -76,8 +82,10 @@ def test_offers_reach_the_colony_frame_and_bad_ones_are_refused(make_colony):
     s = colony.session()
     ns = colony.namespace
     p = Sender("p", 1, signer=Signer.generate())  # a peer that aligned a's map to its own
-    s.put(topic_key(ns, "p", "heartbeat"),
-          p.encode(Heartbeat(**p.header(), kind="robot", frame_id="p.odom", identity=p.identity)))
+    s.put(
+        topic_key(ns, "p", "heartbeat"),
+        p.encode(Heartbeat(**p.header(), kind="robot", frame_id="p.odom", identity=p.identity)),
+    )
     t = _rigid(2.0, -1.0, 35.0)  # a's frame into p's
     good = offer_of(_edge("p", "a", t), p.header())
     bad_frames = offer_of(_edge("p", "a", t), p.header()).model_copy(update={"source_frame": "map"})

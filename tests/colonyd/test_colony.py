@@ -31,18 +31,38 @@ def test_three_converge_late_joiner_and_garbage(make_colony):
     # A peer sending garbage is ignored and counted, by reason.
     s = colony.session()
     ns = colony.namespace
-    evil = encode(VoxelDelta(origin="evil", epoch=1, seq=1, time=1.0, frame_id="map",
-                             delta=Delta(0.1, 0, 1, [[0, 0, 0]], [0.5], [1.0])))
-    bad = [b"\x00", b"garbage", b"CLNY\x01\x03\x02\x00" + b"\x28\xb5\x2f\xfd" + b"\x00" * 20,
-           b"CLNY\x09\x03\x00\x00xx", evil[:-3]]
+    evil = encode(
+        VoxelDelta(
+            origin="evil",
+            epoch=1,
+            seq=1,
+            time=1.0,
+            frame_id="map",
+            delta=Delta(0.1, 0, 1, [[0, 0, 0]], [0.5], [1.0]),
+        )
+    )
+    bad = [
+        b"\x00",
+        b"garbage",
+        b"CLNY\x01\x03\x02\x00" + b"\x28\xb5\x2f\xfd" + b"\x00" * 20,
+        b"CLNY\x09\x03\x00\x00xx",
+        evil[:-3],
+    ]
     for payload in bad:
         s.put(topic_key(ns, "evil", "delta"), payload)
         s.put(topic_key(ns, "evil", "heartbeat"), payload)
     s.put(topic_key(ns, "c", "delta"), evil)  # a frame of one origin on another's key
-    reports = colony.wait_status(lambda rs: len(rs) == 3 and all(
-        r["metrics"]["counts"].get("rejected", 0) >= len(bad)
-        and {"truncated", "malformed", "version"} <= set(r["metrics"]["rejected"]) for r in rs)
-        and any("keyexpr" in r["metrics"]["rejected"] for r in rs))
+    reports = colony.wait_status(
+        lambda rs: (
+            len(rs) == 3
+            and all(
+                r["metrics"]["counts"].get("rejected", 0) >= len(bad)
+                and {"truncated", "malformed", "version"} <= set(r["metrics"]["rejected"])
+                for r in rs
+            )
+            and any("keyexpr" in r["metrics"]["rejected"] for r in rs)
+        )
+    )
     for r in reports:
         assert r["metrics"]["counts"].get("rejected", 0) >= len(bad), r["metrics"]
         assert {"truncated", "malformed", "version"} <= set(r["metrics"]["rejected"])
@@ -56,8 +76,19 @@ def test_three_converge_late_joiner_and_garbage(make_colony):
     assert d["metrics"]["counts"].get("snapshots_installed", 0) >= 3
     # `colonyd status` (the console command) sees all four, none behind.
     hub = colony.daemons["a"].endpoint
-    base = [sys.executable, "-m", "colonyd", "status", "--colony", "conv", "--namespace",
-            colony.namespace, "--no-multicast", "--connect", hub]
+    base = [
+        sys.executable,
+        "-m",
+        "colonyd",
+        "status",
+        "--colony",
+        "conv",
+        "--namespace",
+        colony.namespace,
+        "--no-multicast",
+        "--connect",
+        hub,
+    ]
     out = subprocess.run([*base, "--json"], check=False, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     listed = {r["agent"]: r for r in json.loads(out.stdout)}
@@ -122,13 +153,20 @@ def test_frozen_daemon_does_not_stall_others(make_colony):
     c = colony.add("c", src(3, 3))
     try:
         colony.wait_members(3)
-        colony.wait_status(lambda rs: any(r["agent"] == "c" and "a" in r["layers"] for r in rs), within=10)
+        colony.wait_status(
+            lambda rs: any(r["agent"] == "c" and "a" in r["layers"] for r in rs), within=10
+        )
         c.signal(signal.SIGSTOP)
-        frozen_at = {r["agent"]: r["layers"]["a"]["seq"] for r in colony.status(timeout=1.0)
-                     if "a" in r["layers"]}
+        frozen_at = {
+            r["agent"]: r["layers"]["a"]["seq"]
+            for r in colony.status(timeout=1.0)
+            if "a" in r["layers"]
+        }
         # a and b keep mapping and gossiping while c is frozen, and converge between themselves.
         colony.wait_converged(40, ["a", "b"])
-        seq_a = next(r for r in colony.status(timeout=1.0) if r["agent"] == "a")["layers"]["a"]["seq"]
+        seq_a = next(r for r in colony.status(timeout=1.0) if r["agent"] == "a")["layers"]["a"][
+            "seq"
+        ]
         assert seq_a > frozen_at.get("a", 0)
         c.signal(signal.SIGCONT)
         colony.wait_converged(40)
@@ -162,15 +200,19 @@ def test_flood_is_bounded_and_counted(make_colony):
     keys = np.unique(rng.integers(-500, 500, (60_000, 3)), axis=0)
     n_keys = len(keys)
     big = Delta(0.1, 0, 1, keys, np.zeros(n_keys, np.float32), np.zeros(n_keys))
-    frames = [encode(VoxelDelta(origin=f"flood{i}", epoch=1, seq=1, time=1.0, frame_id="map",
-                                delta=big)) for i in range(4)]
+    frames = [
+        encode(VoxelDelta(origin=f"flood{i}", epoch=1, seq=1, time=1.0, frame_id="map", delta=big))
+        for i in range(4)
+    ]
     junk = rng.bytes(256 << 10)
     t0 = time.monotonic()
     n = 0
     while time.monotonic() - t0 < 4.0:
         for i in range(50):
-            s.put(topic_key(colony.namespace, f"flood{n % 400}", "delta"), frames[n % 4][:5] + junk
-                  if n % 2 else frames[n % 4])
+            s.put(
+                topic_key(colony.namespace, f"flood{n % 400}", "delta"),
+                frames[n % 4][:5] + junk if n % 2 else frames[n % 4],
+            )
             n += 1
 
     def counted(reports: list[dict]) -> bool:
@@ -182,10 +224,20 @@ def test_flood_is_bounded_and_counted(make_colony):
     counts = r["metrics"]["counts"]
     assert counts.get("rejected", 0) + counts.get("inbox_dropped", 0) > 0
     assert len(r["layers"]) <= 1 + 256 + 1
-    rss = int(next(line.split()[1] for line in Path(f"/proc/{a.proc.pid}/status").read_text().splitlines()
-                   if line.startswith("VmRSS:"))) / 1024
-    print(f"flood: {n} messages, RSS {rss:.0f} MB, layers {len(r['layers'])}, {counts}, "
-          f"{r['metrics']['rejected']}")
+    rss = (
+        int(
+            next(
+                line.split()[1]
+                for line in Path(f"/proc/{a.proc.pid}/status").read_text().splitlines()
+                if line.startswith("VmRSS:")
+            )
+        )
+        / 1024
+    )
+    print(
+        f"flood: {n} messages, RSS {rss:.0f} MB, layers {len(r['layers'])}, {counts}, "
+        f"{r['metrics']['rejected']}"
+    )
     assert rss < 900, f"RSS {rss:.0f} MB after a flood of {n} messages"
     assert a.alive()
 
@@ -208,7 +260,9 @@ def test_store_and_forward_through_a_third_peer(make_colony):
     a = colony.add("a", src(1, 4))
     colony.add("b")
     colony.wait_converged(30)
-    digest = next(r for r in colony.status(digest=True) if r["agent"] == "a")["layers"]["a"]["digest"]
+    digest = next(r for r in colony.status(digest=True) if r["agent"] == "a")["layers"]["a"][
+        "digest"
+    ]
     a.stop()  # a leaves before c ever arrives
     colony.add("c")
     deadline = time.monotonic() + 20

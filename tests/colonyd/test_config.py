@@ -13,7 +13,9 @@ from colonyd.errors import ConfigError
 
 def test_precedence_flags_over_env_over_toml(tmp_path, monkeypatch):
     toml = tmp_path / "c.toml"
-    toml.write_text('colony = "file"\nagent_id = "file-agent"\npublish_hz = 1.0\nconnect = ["tcp/127.0.0.1:1"]\n')
+    toml.write_text(
+        'colony = "file"\nagent_id = "file-agent"\npublish_hz = 1.0\nconnect = ["tcp/127.0.0.1:1"]\n'
+    )
     monkeypatch.setenv("COLONYD_AGENT_ID", "env-agent")
     monkeypatch.setenv("COLONYD_PUBLISH_HZ", "3")
     cfg = load_config(toml, publish_hz=5.0)
@@ -78,13 +80,17 @@ def test_dump_config_round_trips(tmp_path):
 def test_cli_dump_config_and_config_error_exit_code(tmp_path):
     out = subprocess.run(
         [sys.executable, "-m", "colonyd", "dump-config", "--colony", "cli", "--no-multicast"],
-        capture_output=True, text=True, timeout=60,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert out.returncode == 0, out.stderr
     assert 'colony = "cli"' in out.stdout and "multicast = false" in out.stdout
     bad = subprocess.run(
         [sys.executable, "-m", "colonyd", "dump-config", "--resolution", "-1"],
-        capture_output=True, text=True, timeout=60,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert bad.returncode == 3
     assert "resolution" in bad.stderr and "greater than 0" in bad.stderr
@@ -111,8 +117,16 @@ def test_trusted_keys_from_toml_and_dump_config(tmp_path):
 def test_identity_command_prints_a_stable_public_key(tmp_path):
     from protocol.identity import Signer
 
-    cmd = [sys.executable, "-m", "colonyd", "identity", "--agent-id", "r1", "--state-dir",
-           str(tmp_path)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "colonyd",
+        "identity",
+        "--agent-id",
+        "r1",
+        "--state-dir",
+        str(tmp_path),
+    ]
     first = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     assert first.returncode == 0, first.stderr
     key = tmp_path / "identity.key"
@@ -123,4 +137,6 @@ def test_identity_command_prints_a_stable_public_key(tmp_path):
     assert again.stdout == first.stdout
     key.write_bytes(b"short")
     bad = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
-    assert bad.returncode == 1 and "expected 32 raw Ed25519 private key bytes, found 5" in bad.stderr
+    assert (
+        bad.returncode == 1 and "expected 32 raw Ed25519 private key bytes, found 5" in bad.stderr
+    )

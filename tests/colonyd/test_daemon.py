@@ -20,7 +20,9 @@ from plugins.synthetic import SyntheticSource
 
 def test_plugin_specs_go_to_the_plugins():
     stop = threading.Event()
-    config = load_config(None, agent_id="robot-1", sources=["sim:world=office,agent=lidar-1,frames=2"])
+    config = load_config(
+        None, agent_id="robot-1", sources=["sim:world=office,agent=lidar-1,frames=2"]
+    )
     (source,) = get_sources(config, stop)
     frames = list(source)
     assert isinstance(source, SimSource) and len(frames) == 2 and isinstance(frames[0], Observation)
@@ -30,8 +32,12 @@ def test_plugin_specs_go_to_the_plugins():
 
 def test_sources_take_the_agents_seed_the_resolution_and_the_stop_event():
     stop = threading.Event()
-    config = load_config(None, agent_id="robot-7", resolution=0.05,
-                         sources=["synthetic:scans=1,rate=1000", "bulk:voxels=64", "synthetic:seed=3,scans=1"])
+    config = load_config(
+        None,
+        agent_id="robot-7",
+        resolution=0.05,
+        sources=["synthetic:scans=1,rate=1000", "bulk:voxels=64", "synthetic:seed=3,scans=1"],
+    )
     synthetic, bulk, seeded = get_sources(config, stop)
     assert isinstance(synthetic, SyntheticSource) and isinstance(bulk, BulkSource)
     seed = zlib.crc32(b"robot-7") % (1 << 16)
@@ -39,7 +45,9 @@ def test_sources_take_the_agents_seed_the_resolution_and_the_stop_event():
     np.testing.assert_array_equal(next(iter(synthetic)).points, expected.points)
     assert bulk.seed == seed + 1 and bulk.resolution == 0.05
     assert seeded.stop is stop and synthetic.stop is stop
-    np.testing.assert_array_equal(next(iter(seeded)).origin, next(iter(open_source("synthetic:scans=1", seed=3))).origin)
+    np.testing.assert_array_equal(
+        next(iter(seeded)).origin, next(iter(open_source("synthetic:scans=1", seed=3))).origin
+    )
 
 
 def test_a_bad_spec_fails_before_anything_runs():

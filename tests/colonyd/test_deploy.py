@@ -17,9 +17,16 @@ DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 
 def test_unit_has_the_required_settings():
     text = (DEPLOY / "colonyd.service").read_text()
-    for line in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "StateDirectory=colonyd",
-                 "ConfigurationDirectory=colonyd", "NoNewPrivileges=yes", "ProtectSystem=strict",
-                 "ExecReload=/bin/kill -HUP $MAINPID"):
+    for line in (
+        "Type=notify",
+        "WatchdogSec=",
+        "Restart=on-failure",
+        "StateDirectory=colonyd",
+        "ConfigurationDirectory=colonyd",
+        "NoNewPrivileges=yes",
+        "ProtectSystem=strict",
+        "ExecReload=/bin/kill -HUP $MAINPID",
+    ):
         assert line in text
 
 
@@ -30,9 +37,12 @@ def test_systemd_analyze_verify(tmp_path):
     if not script.exists():
         script = Path(shutil.which("colonyd") or "/bin/true")
     unit = tmp_path / "colonyd.service"
-    unit.write_text((DEPLOY / "colonyd.service").read_text().replace("/usr/bin/colonyd", str(script)))
-    out = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True,
-                         timeout=60)
+    unit.write_text(
+        (DEPLOY / "colonyd.service").read_text().replace("/usr/bin/colonyd", str(script))
+    )
+    out = subprocess.run(
+        ["systemd-analyze", "verify", str(unit)], capture_output=True, text=True, timeout=60
+    )
     assert out.returncode == 0, out.stderr
     assert "colonyd.service" not in out.stderr, out.stderr
 

@@ -15,11 +15,23 @@ def test_export_fetches_the_fused_map_and_layers(make_colony, tmp_path):
     colony.add("a", ["synthetic:scans=4,rate=8,points=200,seed=1"])
     colony.add("b")
     colony.wait_converged(30)
-    base = [sys.executable, "-m", "colonyd", "export", "--colony", "export", "--namespace",
-            colony.namespace, "--no-multicast", "--connect", colony.daemons["b"].endpoint]
+    base = [
+        sys.executable,
+        "-m",
+        "colonyd",
+        "export",
+        "--colony",
+        "export",
+        "--namespace",
+        colony.namespace,
+        "--no-multicast",
+        "--connect",
+        colony.daemons["b"].endpoint,
+    ]
     out = tmp_path / "maps"
-    run = subprocess.run([*base, "--out", str(out), "--from", "b"], capture_output=True,
-                         text=True, timeout=60)
+    run = subprocess.run(
+        [*base, "--out", str(out), "--from", "b"], capture_output=True, text=True, timeout=60
+    )
     assert run.returncode == 0, run.stderr
     assert "fused map in frame a.odom" in run.stdout  # a's frame is the colony frame (root)
     fused, layer = read_bt(out / "fused.bt"), read_bt(out / "a.bt")
@@ -28,10 +40,12 @@ def test_export_fetches_the_fused_map_and_layers(make_colony, tmp_path):
     assert np.array_equal(fused.keys[order_f], layer.keys[order_l])
     assert np.array_equal(fused.occupied[order_f], layer.occupied[order_l])
     assert (out / "fused.ply").stat().st_size > 0 and (out / "a.ply").exists()
-    missing = subprocess.run([*base, "--out", str(out), "--layer", "nobody"], capture_output=True,
-                             text=True, timeout=60)
+    missing = subprocess.run(
+        [*base, "--out", str(out), "--layer", "nobody"], capture_output=True, text=True, timeout=60
+    )
     assert missing.returncode == 1 and "holds no layer 'nobody'" in missing.stderr
     (tmp_path / "file").write_text("x")
-    bad = subprocess.run([*base, "--out", str(tmp_path / "file")], capture_output=True, text=True,
-                         timeout=60)
+    bad = subprocess.run(
+        [*base, "--out", str(tmp_path / "file")], capture_output=True, text=True, timeout=60
+    )
     assert bad.returncode == 1 and "expected a directory, found a file" in bad.stderr

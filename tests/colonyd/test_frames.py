@@ -35,8 +35,12 @@ def grid_deltas(n: int = 4, points: int = 400) -> tuple[object, list[Delta]]:
     rng = np.random.default_rng(3)
     for i in range(n):
         pts = rng.uniform(-3, 3, (points, 3))
-        grid.integrate(pts, np.zeros(3), time=1_700_000_000.0 + i * 0.25 + 0.0004,
-                       colours=rng.integers(0, 256, (points, 3), dtype=np.uint8))
+        grid.integrate(
+            pts,
+            np.zeros(3),
+            time=1_700_000_000.0 + i * 0.25 + 0.0004,
+            colours=rng.integers(0, 256, (points, 3), dtype=np.uint8),
+        )
         out.append(relabel(grid.delta_since(v), i, i + 1, time=1_700_000_001.5))
         v = grid.version
     return grid, out
@@ -58,17 +62,24 @@ def test_replica_through_protocol_frames_is_identical_to_origin() -> None:
     assembler = Assembler()
     key = topic_key("site", "a", "delta")
     for d in deltas:
-        msgs = delta_messages(origin="a", epoch=sender.epoch, seq=0, time=1.0, frame_id="map",
-                              delta=d, max_bytes=4096)  # small parts: exercise reassembly
+        msgs = delta_messages(
+            origin="a", epoch=sender.epoch, seq=0, time=1.0, frame_id="map", delta=d, max_bytes=4096
+        )  # small parts: exercise reassembly
         frames = sender.encode_all(msgs)
         for frame in reversed(frames):  # parts in any order
             msg = receiver.decode(frame, key_expr=key)
             assert isinstance(msg, VoxelDelta) and msg.epoch == 1_700_000_000_123_456
-            whole = assembler.add((msg.origin, msg.epoch, msg.delta.from_version,
-                                   msg.delta.to_version), msg.part, msg.parts, msg.delta)
+            whole = assembler.add(
+                (msg.origin, msg.epoch, msg.delta.from_version, msg.delta.to_version),
+                msg.part,
+                msg.parts,
+                msg.delta,
+            )
             if whole is not None:
-                assert replica.offer(msg.epoch, whole.from_version, whole.to_version,
-                                     whole).outcome == "applied"
+                assert (
+                    replica.offer(msg.epoch, whole.from_version, whole.to_version, whole).outcome
+                    == "applied"
+                )
     assert replica.seq == len(deltas)
     assert replica.grid.content_equal(origin)  # bit for bit: log-odds, times, channels
     own = Layer("a", 0.1)
@@ -89,9 +100,15 @@ def test_frame_numbers_are_shared_and_reserved_ahead() -> None:
 def test_heartbeat_round_trip_and_replay_rejected() -> None:
     s = Sender("b", 7, key=colony_key(SECRET))
     r = get_receiver(SECRET, 64, "me")
-    frame = s.encode(Heartbeat(**s.header(), kind="robot", frame_id="map",
-                               position=(1.0, 2.0, 0.0),
-                               layers=[LayerVersion(origin="a", epoch=3, version=9)]))
+    frame = s.encode(
+        Heartbeat(
+            **s.header(),
+            kind="robot",
+            frame_id="map",
+            position=(1.0, 2.0, 0.0),
+            layers=[LayerVersion(origin="a", epoch=3, version=9)],
+        )
+    )
     msg = r.receive(frame, key_expr=topic_key("site", "b", "heartbeat"))
     assert isinstance(msg, Heartbeat) and msg.layers[0].version == 9
     with pytest.raises(ReplayError):
@@ -168,8 +185,7 @@ def test_encoding_from_many_threads_at_once() -> None:
     def work() -> None:
         try:
             for _ in range(20):
-                msg = r.receive(s.encode(VoxelDelta(**s.header(), frame_id="map",
-                                                   delta=deltas[0])))
+                msg = r.receive(s.encode(VoxelDelta(**s.header(), frame_id="map", delta=deltas[0])))
                 assert len(msg.delta) == len(deltas[0])
         except Exception as exc:  # pragma: no cover - reported below
             errors.append(exc)

@@ -24,8 +24,11 @@ def test_forged_frames_neither_freeze_replication_nor_impersonate(make_colony):
     # A key holder forges a frame of a's origin, far ahead in a's sequence, on b's key: it
     # is refused (keyexpr) and must not move b's replay window for a.
     forger = Sender("a", a_epoch, key=colony_key(SECRET), first_seq=10**9)
-    forged = forger.encode(VoxelDelta(**forger.header(), frame_id="map",
-                                      delta=Delta(0.1, 0, 1, [[0, 0, 0]], [0.5], [1.0])))
+    forged = forger.encode(
+        VoxelDelta(
+            **forger.header(), frame_id="map", delta=Delta(0.1, 0, 1, [[0, 0, 0]], [0.5], [1.0])
+        )
+    )
     s.put(topic_key(ns, "b", "delta"), forged)
     # A replay of a's own heartbeat, sent back to it, must not make a list itself.
     heard: list[bytes] = []
@@ -74,8 +77,10 @@ def test_a_young_daemon_gives_way_to_a_live_twin_it_hears_later(make_colony):
     colony.wait_members(1)
     s = colony.session()
     twin = Sender("a", 12345)  # another process running as 'a', in its own epoch
-    s.put(topic_key(colony.namespace, "a", "heartbeat"),
-          twin.encode(Heartbeat(**twin.header(), kind="robot", frame_id="map")))
+    s.put(
+        topic_key(colony.namespace, "a", "heartbeat"),
+        twin.encode(Heartbeat(**twin.header(), kind="robot", frame_id="map")),
+    )
     assert a.proc is not None and a.proc.wait(20) == 3
     assert "heard a heartbeat of epoch 12345" in a.log_path.read_text()
 
@@ -94,14 +99,20 @@ def test_a_key_holder_cannot_forge_another_agents_layer(make_colony):
     before = {r["agent"]: r for r in colony.status(digest=True)}
     layer = before["b"]["layers"]["a"]
     s = colony.session()
-    mallory = Sender("a", before["a"]["epoch"], key=colony_key(SECRET),
-                     signer=Signer.generate(), first_seq=10**9)
+    mallory = Sender(
+        "a", before["a"]["epoch"], key=colony_key(SECRET), signer=Signer.generate(), first_seq=10**9
+    )
     delta = Delta(0.1, layer["seq"], layer["seq"] + 1, [[7, 7, 7]], [3.0], [1.0])
-    s.put(topic_key(colony.namespace, "a", "delta"),
-          mallory.encode(VoxelDelta(**mallory.header(), frame_id="map", delta=delta)))
-    s.put(topic_key(colony.namespace, "a", "heartbeat"),
-          mallory.encode(Heartbeat(**mallory.header(), kind="robot", frame_id="map",
-                                   identity=mallory.identity)))
+    s.put(
+        topic_key(colony.namespace, "a", "delta"),
+        mallory.encode(VoxelDelta(**mallory.header(), frame_id="map", delta=delta)),
+    )
+    s.put(
+        topic_key(colony.namespace, "a", "heartbeat"),
+        mallory.encode(
+            Heartbeat(**mallory.header(), kind="robot", frame_id="map", identity=mallory.identity)
+        ),
+    )
 
     def refused(reports: list[dict]) -> bool:
         b = next(r for r in reports if r["agent"] == "b")

@@ -40,8 +40,10 @@ class Peer:
     def frame(self, mtype: int, body: dict) -> bytes:
         self.seq += 1
         prefix = b"CLNY" + bytes([1, mtype, 0x01, 0])  # authenticated, uncompressed
-        envelope = msgpack.packb(["peer", 1, self.seq, time.time(),
-                                  msgpack.packb(body, use_bin_type=True)], use_bin_type=True)
+        envelope = msgpack.packb(
+            ["peer", 1, self.seq, time.time(), msgpack.packb(body, use_bin_type=True)],
+            use_bin_type=True,
+        )
         data = prefix + envelope
         return data + hmac.new(self.key, data, hashlib.sha256).digest()
 
@@ -49,8 +51,12 @@ class Peer:
         """(reply key, frame size, decoded envelope and body) of every reply."""
         key = f"colony/{self.ns}/{server}/{query}/{layer}"
         out = []
-        for reply in self.session.get(key, payload=self.frame(mtype, body), timeout=5.0,
-                                      consolidation=zenoh.ConsolidationMode.NONE):
+        for reply in self.session.get(
+            key,
+            payload=self.frame(mtype, body),
+            timeout=5.0,
+            consolidation=zenoh.ConsolidationMode.NONE,
+        ):
             assert reply.ok is not None
             raw = reply.ok.payload.to_bytes()
             rtype, header, decoded = peer_decode_frame(raw, self.key, self.identities[server])
@@ -96,9 +102,13 @@ def test_a_peer_from_the_document_talks_to_a_daemon(make_colony):
         epoch, version = mine["epoch"], mine["version"]
         assert version >= 2
         # an empty range: one complete reply with no delta, on the query's key, from 'a'
-        replies = peer.ask("a", "deltas", "a", RANGE_REQUEST,
-                           {"layer": "a", "request_id": 7, "from_version": version,
-                            "to_version": version})
+        replies = peer.ask(
+            "a",
+            "deltas",
+            "a",
+            RANGE_REQUEST,
+            {"layer": "a", "request_id": 7, "from_version": version, "to_version": version},
+        )
         assert len(replies) == 1
         key, _, rtype, header, body = replies[0]
         assert key == f"colony/{colony.namespace}/a/deltas/a" and header[0] == "a"
@@ -107,23 +117,34 @@ def test_a_peer_from_the_document_talks_to_a_daemon(make_colony):
         assert body["layer_epoch"] == epoch
         # a range reaching beyond the newest version ends at it; applied in order from 0,
         # it gives the layer the snapshot holds
-        replies = peer.ask("a", "deltas", "a", RANGE_REQUEST,
-                           {"layer": "a", "request_id": 8, "from_version": 0,
-                            "to_version": version + 1000})
+        replies = peer.ask(
+            "a",
+            "deltas",
+            "a",
+            RANGE_REQUEST,
+            {"layer": "a", "request_id": 8, "from_version": 0, "to_version": version + 1000},
+        )
         parts = sorted((b.get("part", 0), b) for *_, b in replies)
         assert [p for p, _ in parts] == list(range(len(parts)))
         assert all(b.get("parts", 1) == len(parts) and b.get("complete", True) for _, b in parts)
         deltas = [peer_delta(b["delta"]) for _, b in parts]
-        versions = [(msgpack.unpackb(b["delta"])["from"], msgpack.unpackb(b["delta"])["to"])
-                    for _, b in parts]
+        versions = [
+            (msgpack.unpackb(b["delta"])["from"], msgpack.unpackb(b["delta"])["to"])
+            for _, b in parts
+        ]
         assert versions[0][0] == 0 and versions[-1][1] == version
         assert all(a[1] == b[0] for a, b in itertools.pairwise(versions))  # contiguous
         from_ranges: dict = {}
         for d in deltas:
             apply(from_ranges, d)
         # a snapshot in parts of at most 1024 bytes (the smallest max_part_bytes)
-        replies = peer.ask("a", "snapshot", "a", SNAPSHOT_REQUEST,
-                           {"layer": "a", "request_id": 9, "max_part_bytes": 1024})
+        replies = peer.ask(
+            "a",
+            "snapshot",
+            "a",
+            SNAPSHOT_REQUEST,
+            {"layer": "a", "request_id": 9, "max_part_bytes": 1024},
+        )
         assert len(replies) > 1 and all(size <= 1024 for _, size, *_ in replies)
         bodies = [b for *_, b in replies]
         assert sorted(b.get("part", 0) for b in bodies) == list(range(len(bodies)))
@@ -146,23 +167,34 @@ def test_unknown_voxels_and_missing_channels_as_the_document_says() -> None:
     from voxel.grid import VoxelGrid
 
     keys = np.array([[1, 2, 3], [4, 5, 6]])
-    first = Delta(0.1, 0, 1, keys, np.array([0.5, -0.25], np.float32), np.array([1.0, 1.0]),
-                  {"hits": np.array([3, 0], np.uint16)}, 1.0)
+    first = Delta(
+        0.1,
+        0,
+        1,
+        keys,
+        np.array([0.5, -0.25], np.float32),
+        np.array([1.0, 1.0]),
+        {"hits": np.array([3, 0], np.uint16)},
+        1.0,
+    )
     second = Delta(0.1, 1, 2, keys[:1], np.array([np.nan], np.float32), np.array([2.0]), {}, 2.0)
     grid = VoxelGrid(0.1)
     peer: dict = {}
     hits: dict = {}
     for d in (first, second):
         grid.apply(d)
-        _, _, body = peer_decode_frame(encode(VoxelDelta(origin="r", time=d.time, frame_id="map",
-                                                         delta=d)), None)
+        _, _, body = peer_decode_frame(
+            encode(VoxelDelta(origin="r", time=d.time, frame_id="map", delta=d)), None
+        )
         decoded = peer_delta(body["delta"])
         apply(peer, decoded)
         hits.update(zip(decoded["keys"], decoded["channels"].get("hits", []), strict=False))
     ref = grid.delta_since(0)
     known = ~np.isnan(ref.logodds)
-    assert peer == {tuple(k): float(lo) for k, lo in zip(ref.keys[known].tolist(),
-                                                         ref.logodds[known], strict=True)}
+    assert peer == {
+        tuple(k): float(lo)
+        for k, lo in zip(ref.keys[known].tolist(), ref.logodds[known], strict=True)
+    }
     assert peer == {(4, 5, 6): -0.25}
     row = int(np.flatnonzero((ref.keys == [4, 5, 6]).all(1))[0])
     assert ref.channels["hits"][row] == hits[(4, 5, 6)] == 0

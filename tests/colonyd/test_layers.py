@@ -48,7 +48,9 @@ def test_out_of_order_duplicates_and_gaps_converge():
 def _same(a, b) -> bool:
     da, db = a.delta_since(0), b.delta_since(0)
     ia, ib = np.lexsort(da.keys.T), np.lexsort(db.keys.T)
-    return np.array_equal(da.keys[ia], db.keys[ib]) and np.array_equal(da.logodds[ia], db.logodds[ib])
+    return np.array_equal(da.keys[ia], db.keys[ib]) and np.array_equal(
+        da.logodds[ia], db.logodds[ib]
+    )
 
 
 def test_snapshot_install_then_newer_epoch_resets():

@@ -45,11 +45,19 @@ def test_colony_key_closes_the_colony(make_colony):
     colony.add("a", ["synthetic:scans=3,rate=4,points=100,seed=1"])
     colony.add("b", ["synthetic:scans=3,rate=4,points=100,seed=2"])
     intruder = colony.add("x", ["synthetic:scans=3,rate=4,points=100,seed=3"], start=False)
-    intruder.args = [a for a in intruder.args if a not in ("--colony-key", "correct horse battery staple")]
+    intruder.args = [
+        a for a in intruder.args if a not in ("--colony-key", "correct horse battery staple")
+    ]
     intruder.start()
     colony.wait_converged(30, ["a", "b"])
-    reports = {r["agent"]: r for r in colony.wait_status(lambda rs: all(
-        r["metrics"]["rejected"].get("auth", 0) > 0 for r in rs if r["agent"] in ("a", "b")))}
+    reports = {
+        r["agent"]: r
+        for r in colony.wait_status(
+            lambda rs: all(
+                r["metrics"]["rejected"].get("auth", 0) > 0 for r in rs if r["agent"] in ("a", "b")
+            )
+        )
+    }
     for agent in ("a", "b"):
         assert "x" not in reports[agent]["layers"]
         assert reports[agent]["metrics"]["rejected"].get("auth", 0) > 0
@@ -57,8 +65,10 @@ def test_colony_key_closes_the_colony(make_colony):
     # (reserved on disk), so the others' replay windows accept it.
     a = colony.daemons["a"]
     a.stop()
-    a.args = [x if not x.startswith("synthetic:") else
-              "synthetic:scans=2,rate=4,points=100,seed=4" for x in a.args]
+    a.args = [
+        x if not x.startswith("synthetic:") else "synthetic:scans=2,rate=4,points=100,seed=4"
+        for x in a.args
+    ]
     a.start()
     colony.wait_converged(30, ["a", "b"])
     b = next(r for r in colony.status() if r["agent"] == "b")
@@ -68,8 +78,13 @@ def test_colony_key_closes_the_colony(make_colony):
 def test_demo_runs_and_writes_maps(tmp_path):
     out = tmp_path / "demo-out"
     t0 = time.monotonic()
-    run = subprocess.run([sys.executable, "-m", "colonyd", "demo", "--out", str(out)],
-                         check=False, capture_output=True, text=True, timeout=120)
+    run = subprocess.run(
+        [sys.executable, "-m", "colonyd", "demo", "--out", str(out)],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert run.returncode == 0, run.stdout + run.stderr
     assert time.monotonic() - t0 < 60
     assert "every replica equals its origin" in run.stdout
@@ -99,7 +114,13 @@ def test_multicast_discovery_in_a_private_network_namespace():
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[2]
-    run = subprocess.run(["unshare", "-n", "sh", "-c", script], check=False, capture_output=True, text=True,
-                         timeout=90, cwd=root)
+    run = subprocess.run(
+        ["unshare", "-n", "sh", "-c", script],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=90,
+        cwd=root,
+    )
     assert run.returncode == 0, run.stdout + run.stderr
     assert "converged by multicast discovery" in run.stdout

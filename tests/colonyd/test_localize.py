@@ -24,8 +24,10 @@ def _evo_ate(gt: Path, est: Path) -> float:
     from evo.core import metrics, sync
     from evo.tools import file_interface
 
-    ref, traj = sync.associate_trajectories(file_interface.read_tum_trajectory_file(str(gt)),
-                                            file_interface.read_tum_trajectory_file(str(est)))
+    ref, traj = sync.associate_trajectories(
+        file_interface.read_tum_trajectory_file(str(gt)),
+        file_interface.read_tum_trajectory_file(str(est)),
+    )
     traj.align(ref, correct_scale=False)
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, traj))
@@ -33,19 +35,56 @@ def _evo_ate(gt: Path, est: Path) -> float:
 
 
 def test_sim_lidar_agent_estimate_beats_its_odometry(tmp_path: Path) -> None:
-    assert main(["localize", "--source", "sim:world=room,agent=lidar-1,frames=200", "--odometry-noise", "high",
-                 "--seed", "3", "--out", str(tmp_path), "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "localize",
+                "--source",
+                "sim:world=room,agent=lidar-1,frames=200",
+                "--odometry-noise",
+                "high",
+                "--seed",
+                "3",
+                "--out",
+                str(tmp_path),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     r = _results(tmp_path)
     assert r["frames"] == 200 and r["estimator"] == "ekf+scan-to-map"
     assert r["ate_rmse_m"]["estimate"] < 0.5 * r["ate_rmse_m"]["odometry"]
-    for name in ("estimate.tum", "odometry.tum", "groundtruth.tum", "map.bt", "map.ply", "grid.npz"):
+    for name in (
+        "estimate.tum",
+        "odometry.tum",
+        "groundtruth.tum",
+        "map.bt",
+        "map.ply",
+        "grid.npz",
+    ):
         assert (tmp_path / name).is_file(), name
 
 
 @pytest.mark.skipif(not LOG.is_file(), reason=f"real CARMEN log not found at {LOG}")
 def test_real_laser_log_with_synthesised_odometry(tmp_path: Path) -> None:
-    assert main(["localize", "--source", f"replay:{LOG},stop=300", "--odometry-noise", "realistic",
-                 "--seed", "1", "--out", str(tmp_path), "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "localize",
+                "--source",
+                f"replay:{LOG},stop=300",
+                "--odometry-noise",
+                "realistic",
+                "--seed",
+                "1",
+                "--out",
+                str(tmp_path),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     r = _results(tmp_path)
     assert r["frames"] == 300
     assert r["ate_rmse_m"]["estimate"] < 0.3 * r["ate_rmse_m"]["odometry"]
@@ -60,8 +99,19 @@ def test_real_laser_log_with_synthesised_odometry(tmp_path: Path) -> None:
 
 @pytest.mark.skipif(not KITCHEN.is_dir(), reason=f"real 7-Scenes sequence not found at {KITCHEN}")
 def test_real_rgbd_frames_visual_odometry(tmp_path: Path) -> None:
-    assert main(["localize", "--source", f"replay:{KITCHEN},stop=40,stride=4", "--out", str(tmp_path),
-                 "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "localize",
+                "--source",
+                f"replay:{KITCHEN},stop=40,stride=4",
+                "--out",
+                str(tmp_path),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     r = _results(tmp_path)
     assert r["frames"] == 40 and r["estimator"] == "rgbd-visual-odometry"
     assert r["ate_rmse_m"]["odometry"] is None and not (tmp_path / "odometry.tum").exists()
@@ -71,9 +121,24 @@ def test_real_rgbd_frames_visual_odometry(tmp_path: Path) -> None:
     assert r["ate_rmse_m"]["estimate"] == pytest.approx(theirs, abs=1e-3)
 
 
-def test_bad_odometry_noise_is_a_config_error(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+def test_bad_odometry_noise_is_a_config_error(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
     with pytest.raises(SystemExit) as exit_info:
-        launch(["localize", "--source", "sim:frames=2", "--odometry-noise", "loud", "--out", str(tmp_path),
-                "--no-progress"])
+        launch(
+            [
+                "localize",
+                "--source",
+                "sim:frames=2",
+                "--odometry-noise",
+                "loud",
+                "--out",
+                str(tmp_path),
+                "--no-progress",
+            ]
+        )
     assert exit_info.value.code == EXIT_CONFIG
-    assert "odometry_noise: odometry noise: expected one of ['high', 'low', 'none', 'realistic']" in capfd.readouterr().err
+    assert (
+        "odometry_noise: odometry noise: expected one of ['high', 'low', 'none', 'realistic']"
+        in capfd.readouterr().err
+    )

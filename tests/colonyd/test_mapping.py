@@ -29,7 +29,9 @@ KITCHEN = DATA / "redkitchen-50"
 LOG = DATA / "carmen" / "freiburg-079-corrected.log.gz"
 
 
-def octomap_occupied(spec: str, resolution: float, tmp: Path, *, max_range: float | None = None) -> np.ndarray:
+def octomap_occupied(
+    spec: str, resolution: float, tmp: Path, *, max_range: float | None = None
+) -> np.ndarray:
     """Occupied voxel keys of OctoMap (pyoctomap) fed the same scans and poses as map_source."""
     pyoctomap = pytest.importorskip("pyoctomap")
     tree = pyoctomap.OcTree(resolution)
@@ -37,9 +39,13 @@ def octomap_occupied(spec: str, resolution: float, tmp: Path, *, max_range: floa
     for obs in source:
         points = obs.points.copy()
         if obs.no_return is not None and max_range is not None:
-            points[obs.no_return] *= (max_range + 1.0) / max_range  # beyond max range: cleared, not hit
+            points[obs.no_return] *= (
+                max_range + 1.0
+            ) / max_range  # beyond max range: cleared, not hit
         world = points @ obs.pose[:3, :3].T + obs.pose[:3, 3]
-        tree.insertPointCloud(world, obs.origin, max_range=-1.0 if max_range is None else max_range, discretize=True)
+        tree.insertPointCloud(
+            world, obs.origin, max_range=-1.0 if max_range is None else max_range, discretize=True
+        )
     path = tmp / "octomap.bt"
     tree.writeBinary(str(path))
     bt = read_bt(path)
@@ -69,7 +75,9 @@ def test_redkitchen_occupied_set_agrees_with_octomap(tmp_path: Path) -> None:
     # trajectory: one TUM line per frame, first one the first frame's pose
     lines = (tmp_path / "map" / "trajectory.tum").read_text().splitlines()
     assert len(lines) == 50
-    np.testing.assert_allclose([float(v) for v in lines[0].split()[1:4]], [-0.91287065, -0.34388667, 0.75986093], atol=1e-6)
+    np.testing.assert_allclose(
+        [float(v) for v in lines[0].split()[1:4]], [-0.91287065, -0.34388667, 0.75986093], atol=1e-6
+    )
 
 
 @pytest.mark.skipif(not LOG.is_file(), reason=f"real CARMEN log not found at {LOG}")
@@ -79,10 +87,15 @@ def test_carmen_floor_plan_is_sharp_and_matches_octomap(tmp_path: Path) -> None:
     assert summary.frames == 80
     image = cv2.imread(str(tmp_path / "map" / "floorplan.png"), cv2.IMREAD_GRAYSCALE)
     assert image is not None and set(np.unique(image)) <= {OCCUPIED_GREY, FREE_GREY, UNKNOWN_GREY}
-    meta = dict(line.split(": ", 1) for line in (tmp_path / "map" / "floorplan.yaml").read_text().splitlines())
+    meta = dict(
+        line.split(": ", 1)
+        for line in (tmp_path / "map" / "floorplan.yaml").read_text().splitlines()
+    )
     ox, oy, _ = (float(v) for v in meta["origin"].strip("[]").split(","))
     rows, cols = np.nonzero(image == OCCUPIED_GREY)
-    ours = np.column_stack([cols + round(ox / 0.05), image.shape[0] - 1 - rows + round(oy / 0.05), np.zeros_like(rows)])
+    ours = np.column_stack(
+        [cols + round(ox / 0.05), image.shape[0] - 1 - rows + round(oy / 0.05), np.zeros_like(rows)]
+    )
     reference = octomap_occupied(spec, 0.05, tmp_path, max_range=40.0)
     reference = reference[reference[:, 2] == 0]
     agreement = iou(ours, reference)
@@ -93,9 +106,18 @@ def test_carmen_floor_plan_is_sharp_and_matches_octomap(tmp_path: Path) -> None:
 
 
 def test_sim_run_writes_every_file(tmp_path: Path) -> None:
-    summary = map_source("sim:world=room,agent=lidar-1,frames=20,start=world", 0.1, tmp_path, progress=False)
+    summary = map_source(
+        "sim:world=room,agent=lidar-1,frames=20,start=world", 0.1, tmp_path, progress=False
+    )
     assert summary.frames == 20 and summary.occupied > 50
-    for name in ("grid.npz", "map.bt", "map.ply", "trajectory.tum", "floorplan.png", "floorplan.yaml"):
+    for name in (
+        "grid.npz",
+        "map.bt",
+        "map.ply",
+        "trajectory.tum",
+        "floorplan.png",
+        "floorplan.yaml",
+    ):
         assert (tmp_path / name).is_file(), name
     ply = (tmp_path / "map.ply").read_bytes()
     assert ply.startswith(b"ply")
@@ -126,7 +148,10 @@ def test_floor_plan_image_orientation() -> None:
 def test_tum_line() -> None:
     pose = np.eye(4)
     pose[:3, 3] = [1, 2, 3]
-    assert tum_line(1.5, pose) == "1.500000 1.000000 2.000000 3.000000 0.000000000 0.000000000 0.000000000 1.000000000"
+    assert (
+        tum_line(1.5, pose)
+        == "1.500000 1.000000 2.000000 3.000000 0.000000000 0.000000000 0.000000000 1.000000000"
+    )
 
 
 def test_a_bulk_observation_is_applied_as_the_next_version() -> None:
@@ -135,8 +160,12 @@ def test_a_bulk_observation_is_applied_as_the_next_version() -> None:
     before = int(grid.version)
     (obs,) = list(open_source("bulk:voxels=27", resolution=0.1))
     integrate_observation(grid, obs, sensor=SensorModel(), reliability=1.0)
-    assert int(grid.version) == before + 1 and len(grid.occupied_keys()) + len(grid.free_keys()) >= 27
-    np.testing.assert_array_equal(grid.channel_at_keys("logodds", obs.delta.keys), obs.delta.logodds)
+    assert (
+        int(grid.version) == before + 1 and len(grid.occupied_keys()) + len(grid.free_keys()) >= 27
+    )
+    np.testing.assert_array_equal(
+        grid.channel_at_keys("logodds", obs.delta.keys), obs.delta.logodds
+    )
 
 
 def test_colonyd_map_maps_a_synthetic_source(tmp_path: Path) -> None:

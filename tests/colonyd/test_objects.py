@@ -15,8 +15,12 @@ from protocol.keyexpr import topic_key
 
 def test_object_lists_reach_peers_and_hostile_ones_are_refused(make_colony):
     colony = make_colony("objects")
-    depth = colony.add("depth", ["sim:world=room,agent=depth-1,frames=40,start=world,noise=0"],
-                       start=False, extra=["--resolution", "0.05"])
+    depth = colony.add(
+        "depth",
+        ["sim:world=room,agent=depth-1,frames=40,start=world,noise=0"],
+        start=False,
+        extra=["--resolution", "0.05"],
+    )
     depth.env = {"COLONYD_OBJECTS_S": "0.5"}
     depth.start()
     colony.add("b", extra=["--resolution", "0.05"])
@@ -35,19 +39,27 @@ def test_object_lists_reach_peers_and_hostile_ones_are_refused(make_colony):
     truth = get_world("room").objects()  # evaluation only: the daemon never reads it
     for o in own:
         assert o["class"] not in (1, 2)  # walls and floors are structure, not objects
-        err = min(np.linalg.norm(np.subtract(o["position"], c)) for cl, c in truth.values()
-                  if cl == o["class"])
+        err = min(
+            np.linalg.norm(np.subtract(o["position"], c))
+            for cl, c in truth.values()
+            if cl == o["class"]
+        )
         assert err < 0.5, (o, err)  # surface voxels only: the centroid leans to the camera
     # hostile lists: on another origin's key, unsigned, too long; none is kept
     s = colony.session()
     ns = colony.namespace
     liar = Sender("liar", 1, signer=Signer.generate())
-    item = ObjectCentroid(object_id=1, class_id=3, position=(0.0, 0.0, 0.0), voxel_count=5,
-                          time=1.0)
+    item = ObjectCentroid(
+        object_id=1, class_id=3, position=(0.0, 0.0, 0.0), voxel_count=5, time=1.0
+    )
     frame = liar.encode(Objects(**liar.header(), frame_id="liar.odom", objects=[item]))
     s.put(topic_key(ns, "depth", "objects"), frame)  # liar's frame on depth's key
-    s.put(topic_key(ns, "liar", "objects"), Sender("liar", 1).encode(  # unsigned
-        Objects(origin="liar", epoch=1, seq=5, time=1.0, frame_id="liar.odom", objects=[item])))
+    s.put(
+        topic_key(ns, "liar", "objects"),
+        Sender("liar", 1).encode(  # unsigned
+            Objects(origin="liar", epoch=1, seq=5, time=1.0, frame_id="liar.odom", objects=[item])
+        ),
+    )
     s.put(topic_key(ns, "liar", "objects"), frame[:40])  # truncated
     time.sleep(1.0)
     b = next(r for r in colony.status() if r["agent"] == "b")

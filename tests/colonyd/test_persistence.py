@@ -66,8 +66,10 @@ def test_state_dir_guards(tmp_path):
     with pytest.raises(PersistenceError, match="in use by another colonyd"):
         StateStore(tmp_path, "a", 0.1)
     store.close()
-    for agent, res, match in (("b", 0.1, "belongs to agent 'a', expected 'b'"),
-                              ("a", 0.2, "resolution 0.1, expected 0.2")):
+    for agent, res, match in (
+        ("b", 0.1, "belongs to agent 'a', expected 'b'"),
+        ("a", 0.2, "resolution 0.1, expected 0.2"),
+    ):
         other = StateStore(tmp_path, agent, res)
         try:
             with pytest.raises(PersistenceError, match=match):
@@ -153,8 +155,11 @@ def test_undecodable_record_stops_recovery_and_leaves_the_log_as_it_was(tmp_path
     wal.write_bytes(damaged)
     store = StateStore(tmp_path, "a", 0.1)
     try:
-        with pytest.raises(PersistenceError, match=rf"wal.log: the record at offset {first} "
-                                                   r"\(seq 1\) passes its CRC but cannot be decoded"):
+        with pytest.raises(
+            PersistenceError,
+            match=rf"wal.log: the record at offset {first} "
+            r"\(seq 1\) passes its CRC but cannot be decoded",
+        ):
             store.recover()
     finally:
         store.close()
@@ -170,8 +175,11 @@ def test_crc_damage_inside_the_log_is_not_a_torn_tail(tmp_path):
     wal.write_bytes(bytes(data))
     store = StateStore(tmp_path, "a", 0.1)
     try:
-        with pytest.raises(PersistenceError, match=rf"offset {second} fails its CRC and \d+ bytes "
-                                                   "follow it"):
+        with pytest.raises(
+            PersistenceError,
+            match=rf"offset {second} fails its CRC and \d+ bytes "
+            "follow it",
+        ):
             store.recover()
     finally:
         store.close()
@@ -190,8 +198,9 @@ def test_zero_filled_last_record_is_a_torn_tail(tmp_path):
     store.close()
 
 
-@pytest.mark.parametrize("damage", ["wal-deleted", "wal-emptied", "gap", "frames-deleted",
-                                    "old-snapshot"])
+@pytest.mark.parametrize(
+    "damage", ["wal-deleted", "wal-emptied", "gap", "frames-deleted", "old-snapshot"]
+)
 def test_lost_records_start_a_new_epoch_never_a_reused_version(tmp_path, damage):
     epoch, grid = _logged(tmp_path, 4, snapshot_at=2)
     wal = tmp_path / WAL
@@ -202,7 +211,7 @@ def test_lost_records_start_a_new_epoch_never_a_reused_version(tmp_path, damage)
     elif damage == "gap":  # the record of seq 3 vanished
         data = wal.read_bytes()
         offsets = _offsets(data)
-        wal.write_bytes(data[: offsets[1]] + data[offsets[2]:])
+        wal.write_bytes(data[: offsets[1]] + data[offsets[2] :])
     elif damage == "frames-deleted":
         (tmp_path / "frames.json").unlink()
     elif damage == "old-snapshot":  # snapshot.json replaced by an older copy

@@ -34,9 +34,19 @@ def test_two_sessions_on_loopback_carry_a_frame_and_a_query() -> None:
     a, b = _pair()
     try:
         got: queue.Queue[bytes] = queue.Queue()
-        sub = a.declare_subscriber(topic_key(ns, "r1", "delta"), lambda s: got.put(s.payload.to_bytes()))
-        frame = encode(VoxelDelta(origin="r1", epoch=1, seq=1, time=1.0, frame_id="map",
-                                  delta=Delta(0.1, 0, 1, [[1, 2, 3]], [0.5], [1.0])))
+        sub = a.declare_subscriber(
+            topic_key(ns, "r1", "delta"), lambda s: got.put(s.payload.to_bytes())
+        )
+        frame = encode(
+            VoxelDelta(
+                origin="r1",
+                epoch=1,
+                seq=1,
+                time=1.0,
+                frame_id="map",
+                delta=Delta(0.1, 0, 1, [[1, 2, 3]], [0.5], [1.0]),
+            )
+        )
         deadline = time.monotonic() + 10
         received = None
         while received is None and time.monotonic() < deadline:  # the link may still be coming up
@@ -53,8 +63,11 @@ def test_two_sessions_on_loopback_carry_a_frame_and_a_query() -> None:
         answer = a.declare_queryable(f"{ns}/status/a", lambda q: q.reply(q.key_expr, b"a is here"))
         replies: list[bytes] = []
         while not replies and time.monotonic() < deadline + 10:  # the declaration travels too
-            replies = [r.ok.payload.to_bytes() for r in b.get(f"{ns}/status/**", timeout=1.0)
-                       if r.ok is not None]
+            replies = [
+                r.ok.payload.to_bytes()
+                for r in b.get(f"{ns}/status/**", timeout=1.0)
+                if r.ok is not None
+            ]
         assert replies == [b"a is here"]
         answer.undeclare()
     finally:

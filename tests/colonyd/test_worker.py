@@ -35,8 +35,9 @@ def test_bounded_refuses_over_count_and_bytes_and_frees_on_get() -> None:
 def test_a_full_queue_drops_counts_and_finishes_the_item() -> None:
     metrics = Metrics()
     done: list[int] = []
-    w: Worker[int] = Worker("t", lambda _: None, Bounded(1), metrics=metrics, drops="t_dropped",
-                            done=done.append)
+    w: Worker[int] = Worker(
+        "t", lambda _: None, Bounded(1), metrics=metrics, drops="t_dropped", done=done.append
+    )
     assert w.put(1)
     assert not w.put(2)  # not started: the queue holds one
     assert metrics.counts["t_dropped"] == 1 and done == [2]
@@ -71,7 +72,9 @@ def test_refusals_are_counted_by_reason_and_the_worker_survives() -> None:
 
     calm = Metrics()
     handled.clear()
-    w: Worker[str] = Worker("c", handle, Bounded(8), metrics=calm)  # not hostile: bugs are logged only
+    w: Worker[str] = Worker(
+        "c", handle, Bounded(8), metrics=calm
+    )  # not hostile: bugs are logged only
     w.start()
     for item in ("wire", "value", "bug", "fine"):
         w.put(item)

@@ -20,9 +20,15 @@ def test_builtins_are_registered_as_entry_points() -> None:
         assert name in names
 
 
-@pytest.mark.parametrize(("name", "params"), [
-    ("depth", {"fov": 1.0}), ("lidar2d", {}), ("lidar3d", {}), ("cctv", {"fov": 1.0}),
-])
+@pytest.mark.parametrize(
+    ("name", "params"),
+    [
+        ("depth", {"fov": 1.0}),
+        ("lidar2d", {}),
+        ("lidar3d", {}),
+        ("cctv", {"fov": 1.0}),
+    ],
+)
 def test_builtins_satisfy_the_protocol(name: str, params: dict) -> None:
     adapter = load_adapter(name, **params)
     assert isinstance(adapter, SensorAdapter)
@@ -37,7 +43,9 @@ def test_unknown_adapter_names_the_known_ones() -> None:
 
 
 def test_bad_parameters_are_reported() -> None:
-    with pytest.raises(PluginError, match=r"sensor adapter 'lidar2d': bad parameters \['rnage_max'\]"):
+    with pytest.raises(
+        PluginError, match=r"sensor adapter 'lidar2d': bad parameters \['rnage_max'\]"
+    ):
         load_adapter("lidar2d", rnage_max=3.0)
 
 
@@ -97,7 +105,8 @@ def test_third_party_adapter_installed_as_its_own_distribution_is_found(tmp_path
     tag = f"{os.getpid()}"
     dist, module, name = f"colony-sonar-test-{tag}", f"colony_sonar_test_{tag}", f"sonar{tag}"
     (tmp_path / f"{module}.py").write_text(SONAR.format(name=name))
-    (tmp_path / "pyproject.toml").write_text(textwrap.dedent(f"""
+    (tmp_path / "pyproject.toml").write_text(
+        textwrap.dedent(f"""
         [build-system]
         requires = ["setuptools>=61"]
         build-backend = "setuptools.build_meta"
@@ -111,15 +120,26 @@ def test_third_party_adapter_installed_as_its_own_distribution_is_found(tmp_path
 
         [tool.setuptools]
         py-modules = ["{module}"]
-    """))
+    """)
+    )
     pip = [sys.executable, "-m", "pip", "--disable-pip-version-check", "-q"]
-    built = subprocess.run([*pip, "install", "--no-deps", "--no-build-isolation", str(tmp_path)],
-                           capture_output=True, text=True, cwd=tmp_path, check=False)
+    built = subprocess.run(
+        [*pip, "install", "--no-deps", "--no-build-isolation", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        check=False,
+    )
     if built.returncode != 0:
         # an old setuptools without `wheel` cannot build in place: build the same wheel by hand
         assert "bdist_wheel" in built.stderr + built.stdout, built.stderr
         wheel = build_wheel(tmp_path, dist, module, name)
-        subprocess.run([*pip, "install", "--no-deps", str(wheel)], check=True, capture_output=True, cwd=tmp_path)
+        subprocess.run(
+            [*pip, "install", "--no-deps", str(wheel)],
+            check=True,
+            capture_output=True,
+            cwd=tmp_path,
+        )
     try:
         probe = textwrap.dedent(f"""
             from plugins.adapter import available_adapters, load_adapter
@@ -128,18 +148,25 @@ def test_third_party_adapter_installed_as_its_own_distribution_is_found(tmp_path
             obs = sonar.observe(2.5, time=1.0)
             print(type(sonar).__module__, sonar.cone, obs.points.tolist(), sonar.sensor_model.prob_hit)
         """)
-        done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path,
-                              check=False)
+        done = subprocess.run(
+            [sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path, check=False
+        )
         assert done.returncode == 0, done.stderr
         assert done.stdout.split() == [module, "0.5", "[[2.5,", "0.0,", "0.0]]", "0.6"]
     finally:
         subprocess.run([*pip, "uninstall", "-y", dist], check=False, capture_output=True)
-    after = subprocess.run([sys.executable, "-c", "from plugins.adapter import available_adapters as a; print(a())"],
-                           capture_output=True, text=True, check=True)
+    after = subprocess.run(
+        [sys.executable, "-c", "from plugins.adapter import available_adapters as a; print(a())"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     assert name not in after.stdout
 
 
-def test_load_adapter_rejects_objects_that_are_not_adapters(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_load_adapter_rejects_objects_that_are_not_adapters(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     from importlib.metadata import EntryPoint
 
     import plugins.adapter as registry

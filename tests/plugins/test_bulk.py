@@ -31,11 +31,17 @@ def test_seed_moves_the_cube_and_changes_the_values() -> None:
     assert not np.array_equal(a.delta.keys, c.delta.keys)
 
 
-@pytest.mark.parametrize(("spec", "match"), [
-    ("bulk:voxels=0", r"bulk: expected voxels > 0, found 0"),
-    ("bulk:voxels=many", r"option 'voxels': expected int, found 'many'"),
-    ("bulk:resolution=0.1", r"option 'resolution': expected one of \['seed', 'voxels'\], found unknown option"),
-])
+@pytest.mark.parametrize(
+    ("spec", "match"),
+    [
+        ("bulk:voxels=0", r"bulk: expected voxels > 0, found 0"),
+        ("bulk:voxels=many", r"option 'voxels': expected int, found 'many'"),
+        (
+            "bulk:resolution=0.1",
+            r"option 'resolution': expected one of \['seed', 'voxels'\], found unknown option",
+        ),
+    ],
+)
 def test_bad_specs(spec: str, match: str) -> None:
     with pytest.raises(SourceSpecError, match=match):
         open_source(spec)

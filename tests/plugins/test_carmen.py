@@ -52,7 +52,9 @@ def test_parse_errors_name_file_line_and_field(tmp_path: Path) -> None:
     line = "FLASER 3 1.0 2.0 3.0 0 0 0 0 0 0 12.5 host 12.5"
     record = parse_flaser(line, "x.log", 7)
     np.testing.assert_allclose(record.ranges, [1.0, 2.0, 3.0])
-    with pytest.raises(ParseError, match=r"x\.log:7: field 4 \(range 2\): expected a number, found 'abc'"):
+    with pytest.raises(
+        ParseError, match=r"x\.log:7: field 4 \(range 2\): expected a number, found 'abc'"
+    ):
         parse_flaser(line.replace(" 2.0 ", " abc "), "x.log", 7)
     with pytest.raises(ParseError, match=r"x\.log:7: expected 14 fields for 3 beams .* found 10"):
         parse_flaser("FLASER 3 1.0 2.0 3.0 0 0 0 0 0", "x.log", 7)
@@ -60,14 +62,21 @@ def test_parse_errors_name_file_line_and_field(tmp_path: Path) -> None:
         parse_flaser("FLASER x", "x.log", 7)
     with pytest.raises(ParseError, match=r"field 6 \(x\): expected a finite number, found 'nan'"):
         parse_flaser("FLASER 3 1.0 2.0 3.0 nan 0 0 0 0 0 12.5 host 12.5", "x.log", 7)
-    with pytest.raises(ParseError, match=r"field 3 \(range 1\): expected a non-negative range, found '-1.0'"):
+    with pytest.raises(
+        ParseError, match=r"field 3 \(range 1\): expected a non-negative range, found '-1.0'"
+    ):
         parse_flaser(line.replace(" 1.0 ", " -1.0 "), "x.log", 7)
 
 
 def test_bad_lines_are_skipped_and_counted(tmp_path: Path) -> None:
     good = "FLASER 3 1.0 2.0 3.0 0 0 0 0 0 0 {t} host {t}\n"
     log = tmp_path / "bad.log"
-    log.write_text("PARAM a b\n" + good.format(t=1) + "FLASER 3 1.0 oops 3.0 0 0 0 0 0 0 2 h 2\n" + good.format(t=3))
+    log.write_text(
+        "PARAM a b\n"
+        + good.format(t=1)
+        + "FLASER 3 1.0 oops 3.0 0 0 0 0 0 0 2 h 2\n"
+        + good.format(t=3)
+    )
     source = CarmenSource(log)
     scans = list(source)
     assert [obs.time for obs in scans] == [1.0, 3.0]
@@ -86,7 +95,10 @@ def test_truncated_gzip_keeps_the_scans_before_the_cut(tmp_path: Path) -> None:
     assert 10 < len(scans) < 4791
     assert source.stats.reasons["SourceError"] == 1
     assert "truncated or corrupt after line" in " ".join(source.stats.first_errors)
-    with pytest.raises(SourceError, match=r"cut\.log\.gz: truncated or corrupt after line \d+: expected a complete gzip stream"):
+    with pytest.raises(
+        SourceError,
+        match=r"cut\.log\.gz: truncated or corrupt after line \d+: expected a complete gzip stream",
+    ):
         list(read_lines(cut))
 
 
@@ -95,7 +107,9 @@ def test_bad_options(tmp_path: Path) -> None:
         CarmenSource(tmp_path / "missing.log")
     log = tmp_path / "a.log"
     log.write_text("")
-    with pytest.raises(SourceSpecError, match="poses: expected 'reference' or 'odometry', found 'gps'"):
+    with pytest.raises(
+        SourceSpecError, match="poses: expected 'reference' or 'odometry', found 'gps'"
+    ):
         CarmenSource(log, poses="gps")
     assert math.isfinite(CarmenSource(log).adapter.sensor_model.max_range)
 
@@ -107,8 +121,11 @@ def test_move_options_move_every_pose_rigidly() -> None:
     for a, b in zip(plain, moved, strict=True):
         expect = np.array([-a.pose[1, 3] + 5.0, a.pose[0, 3] - 2.0])
         np.testing.assert_allclose(b.pose[:2, 3], expect, atol=1e-9)
-        np.testing.assert_allclose(b.points_world()[:, :2], np.column_stack(
-            [-a.points_world()[:, 1] + 5.0, a.points_world()[:, 0] - 2.0]), atol=1e-9)
+        np.testing.assert_allclose(
+            b.points_world()[:, :2],
+            np.column_stack([-a.points_world()[:, 1] + 5.0, a.points_world()[:, 0] - 2.0]),
+            atol=1e-9,
+        )
 
 
 def test_move_options_must_be_finite(tmp_path: Path) -> None:

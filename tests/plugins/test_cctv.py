@@ -16,7 +16,14 @@ from plugins.world import CLASSES, Box, Marker, World
 
 def camera_rig(camera: CctvCamera, w: int = 640, h: int = 480) -> Rig:
     v, u = np.mgrid[0:h, 0:w]
-    d = np.stack([(u - camera.K[0, 2]) / camera.K[0, 0], (v - camera.K[1, 2]) / camera.K[1, 1], np.ones((h, w))], -1)
+    d = np.stack(
+        [
+            (u - camera.K[0, 2]) / camera.K[0, 0],
+            (v - camera.K[1, 2]) / camera.K[1, 1],
+            np.ones((h, w)),
+        ],
+        -1,
+    )
     return Rig(d.reshape(-1, 3), OPTICAL, (h, w), camera.K)
 
 
@@ -68,11 +75,19 @@ def test_depth_channel_maps_the_view_and_labels_marker_pixels() -> None:
 def test_image_without_markers_and_bad_images() -> None:
     camera = CctvCamera(fov=1.0)
     assert camera.observe(np.full((120, 160, 3), 128, np.uint8)).objects == ()
-    with pytest.raises(SensorInputError, match=r"image: expected \(H, W\) or \(H, W, 3\) uint8, found shape \(4, 4\) dtype float64"):
+    with pytest.raises(
+        SensorInputError,
+        match=r"image: expected \(H, W\) or \(H, W, 3\) uint8, found shape \(4, 4\) dtype float64",
+    ):
         camera.observe(np.zeros((4, 4)))
-    with pytest.raises(SensorInputError, match=r"depth: expected the image's shape \(4, 4\), found \(3, 4\)"):
+    with pytest.raises(
+        SensorInputError, match=r"depth: expected the image's shape \(4, 4\), found \(3, 4\)"
+    ):
         camera.observe(CctvFrame(image=np.zeros((4, 4), np.uint8), depth=np.ones((3, 4))))
-    with pytest.raises(SensorInputError, match="dictionary: expected an ArUco dictionary name like 'DICT_4X4_50', found 'DICT_9X9'"):
+    with pytest.raises(
+        SensorInputError,
+        match="dictionary: expected an ArUco dictionary name like 'DICT_4X4_50', found 'DICT_9X9'",
+    ):
         aruco_dictionary("DICT_9X9")
     with pytest.raises(SensorInputError, match="marker_length: expected a positive length"):
         CctvCamera(fov=1.0, marker_length=0.0)

@@ -29,7 +29,12 @@ def test_scan_of_a_square_room_gives_its_walls() -> None:
     assert len(obs) == 360 and not obs.no_return.any()
     assert np.abs(np.maximum(np.abs(pts[:, 0]), np.abs(pts[:, 1])) - 3.0).max() < 1e-3
     np.testing.assert_allclose(pts[:, 2], 0.3, atol=1e-9)
-    on = {"x=+3": pts[:, 0] > 2.999, "x=-3": pts[:, 0] < -2.999, "y=+3": pts[:, 1] > 2.999, "y=-3": pts[:, 1] < -2.999}
+    on = {
+        "x=+3": pts[:, 0] > 2.999,
+        "x=-3": pts[:, 0] < -2.999,
+        "y=+3": pts[:, 1] > 2.999,
+        "y=-3": pts[:, 1] < -2.999,
+    }
     for wall, mask in on.items():
         assert mask.sum() > 20, wall
         # each wall is seen along a stretch (the 270 degree scanner sees the wall behind it only in part)
@@ -40,7 +45,9 @@ def test_scan_of_a_square_room_gives_its_walls() -> None:
 def test_no_return_beams_are_flagged_and_reach_max_range() -> None:
     rig, params = make_rig("lidar2d")
     lidar = Lidar2D(**params)
-    reading = render(square_room(open_side=True), "lidar2d", rig, rig.mount, np.random.default_rng(0), 0.0)
+    reading = render(
+        square_room(open_side=True), "lidar2d", rig, rig.mount, np.random.default_rng(0), 0.0
+    )
     obs = lidar.observe(reading)
     assert obs.no_return.sum() > 50
     np.testing.assert_allclose(np.linalg.norm(obs.points[obs.no_return], axis=1), lidar.range_max)
@@ -48,8 +55,16 @@ def test_no_return_beams_are_flagged_and_reach_max_range() -> None:
 
 
 def test_laser_scan_semantics() -> None:
-    lidar = Lidar2D(angle_min=0.0, angle_increment=math.pi / 2, range_min=0.1, range_max=10.0, no_return_range=8.0)
-    obs = lidar.observe(Scan(ranges=np.array([1.0, np.inf, np.nan, 0.05, 9.0]), intensities=np.arange(5.0)))
+    lidar = Lidar2D(
+        angle_min=0.0,
+        angle_increment=math.pi / 2,
+        range_min=0.1,
+        range_max=10.0,
+        no_return_range=8.0,
+    )
+    obs = lidar.observe(
+        Scan(ranges=np.array([1.0, np.inf, np.nan, 0.05, 9.0]), intensities=np.arange(5.0))
+    )
     # NaN and below range_min dropped; inf and >= no_return_range flagged
     assert len(obs) == 3
     np.testing.assert_array_equal(obs.no_return, [False, True, True])
@@ -63,7 +78,9 @@ def test_scan_errors_are_named() -> None:
         Lidar2D(beams=360).observe(np.ones(359))
     with pytest.raises(SensorInputError, match=r"ranges: expected shape \(N\), found \(2, 2\)"):
         Lidar2D().observe(np.ones((2, 2)))
-    with pytest.raises(SensorInputError, match="ranges: expected non-negative ranges or \\+inf, found -inf"):
+    with pytest.raises(
+        SensorInputError, match="ranges: expected non-negative ranges or \\+inf, found -inf"
+    ):
         Lidar2D().observe(np.array([1.0, -np.inf]))
     with pytest.raises(SensorInputError, match="range: expected 0 <= range_min < range_max"):
         Lidar2D(range_min=5.0, range_max=1.0)

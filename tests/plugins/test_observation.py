@@ -13,7 +13,9 @@ from voxel.rotation import matrix_to_quaternion
 
 def test_points_world_applies_the_pose() -> None:
     pose = pose_matrix(1.0, 2.0, 3.0, np.pi / 2)
-    obs = Observation(sensor="x", time=0.0, points=[[1.0, 0.0, 0.0]], pose=pose, normals=[[1.0, 0.0, 0.0]])
+    obs = Observation(
+        sensor="x", time=0.0, points=[[1.0, 0.0, 0.0]], pose=pose, normals=[[1.0, 0.0, 0.0]]
+    )
     np.testing.assert_allclose(obs.points_world(), [[1.0, 3.0, 3.0]], atol=1e-12)
     np.testing.assert_allclose(obs.normals_world(), [[0.0, 1.0, 0.0]], atol=1e-6)
     np.testing.assert_allclose(obs.origin, [1.0, 2.0, 3.0])
@@ -31,9 +33,15 @@ def test_nan_points_are_rejected() -> None:
 
 def test_per_point_channels_must_match_the_points() -> None:
     with pytest.raises(SensorInputError, match=r"colours: expected shape \(2, 3\), found \(3, 3\)"):
-        Observation(sensor="x", time=0.0, points=np.zeros((2, 3)), pose=np.eye(4), colours=np.zeros((3, 3)))
-    with pytest.raises(SensorInputError, match=r"scalars\['temp'\]: expected shape \(2\), found \(1,\)"):
-        Observation(sensor="x", time=0.0, points=np.zeros((2, 3)), pose=np.eye(4), scalars={"temp": [1.0]})
+        Observation(
+            sensor="x", time=0.0, points=np.zeros((2, 3)), pose=np.eye(4), colours=np.zeros((3, 3))
+        )
+    with pytest.raises(
+        SensorInputError, match=r"scalars\['temp'\]: expected shape \(2\), found \(1,\)"
+    ):
+        Observation(
+            sensor="x", time=0.0, points=np.zeros((2, 3)), pose=np.eye(4), scalars={"temp": [1.0]}
+        )
 
 
 def test_pose_must_be_rigid() -> None:

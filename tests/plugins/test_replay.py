@@ -32,11 +32,15 @@ def test_layouts_by_marker_files(tmp_path: Path) -> None:
 
 
 def test_unknown_recordings_say_what_was_expected(tmp_path: Path) -> None:
-    with pytest.raises(SourceError, match="replay: expected a recording file or folder, found nothing at"):
+    with pytest.raises(
+        SourceError, match="replay: expected a recording file or folder, found nothing at"
+    ):
         detect_format(tmp_path / "missing")
     with pytest.raises(SourceError, match="expected a 7-Scenes folder"):
         detect_format(tmp_path)
     text = tmp_path / "notes.txt"
     text.write_text("hello\n")
-    with pytest.raises(SourceError, match=r"notes\.txt: expected a CARMEN log \(FLASER lines\) or a ROS bag"):
+    with pytest.raises(
+        SourceError, match=r"notes\.txt: expected a CARMEN log \(FLASER lines\) or a ROS bag"
+    ):
         detect_format(text)

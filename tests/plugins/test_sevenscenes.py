@@ -15,7 +15,9 @@ from voxel.rotation import matrix_to_quaternion
 
 DATA = SHARED_DATA
 KITCHEN = DATA / "redkitchen-50"
-needs_kitchen = pytest.mark.skipif(not KITCHEN.is_dir(), reason=f"real 7-Scenes frames not found at {KITCHEN}")
+needs_kitchen = pytest.mark.skipif(
+    not KITCHEN.is_dir(), reason=f"real 7-Scenes frames not found at {KITCHEN}"
+)
 
 
 @needs_kitchen
@@ -57,7 +59,10 @@ def test_truncated_png_and_bad_pose_are_skipped_and_counted(tmp_path: Path) -> N
     scans = list(source)
     assert len(scans) == 1 and source.stats.skipped == 2
     text = " ".join(source.stats.first_errors)
-    assert "frame-000151.depth.png: expected a readable 16-bit PNG, found an unreadable or truncated file" in text
+    assert (
+        "frame-000151.depth.png: expected a readable 16-bit PNG, found an unreadable or truncated file"
+        in text
+    )
     assert "frame-000152.pose.txt:3: field 4: expected a number, found 'zero'" in text
     with pytest.raises(ParseError, match="frame-000151.depth.png: expected a readable 16-bit PNG"):
         list(RgbdSource(tmp_path, strict=True))
@@ -69,7 +74,9 @@ def test_tum_layout(tmp_path: Path) -> None:
     for i in range(150, 155):
         stamp = 1000.0 + (i - 150) / 30
         raw = read_depth_png(KITCHEN / "frames" / f"frame-000{i}.depth.png")
-        tum = np.where((raw > 0) & (raw < 65535), raw.astype(np.uint32) * 5, 0).astype(np.uint16)  # 5000 per metre
+        tum = np.where((raw > 0) & (raw < 65535), raw.astype(np.uint32) * 5, 0).astype(
+            np.uint16
+        )  # 5000 per metre
         (tmp_path / "depth").mkdir(exist_ok=True)
         import cv2
 
@@ -84,10 +91,15 @@ def test_tum_layout(tmp_path: Path) -> None:
     source = RgbdSource(tmp_path)
     assert source.layout == "tum" and len(source) == 5
     obs = next(iter(source))
-    np.testing.assert_allclose(obs.origin, read_matrix(KITCHEN / "frames" / "frame-000150.pose.txt", (4, 4))[:3, 3])
+    np.testing.assert_allclose(
+        obs.origin, read_matrix(KITCHEN / "frames" / "frame-000150.pose.txt", (4, 4))[:3, 3]
+    )
     assert obs.points[:, 2].max() < 6.0  # millimetres * 5 read back as metres
     (tmp_path / "groundtruth.txt").write_text("1000.0 1 2 3\n")
-    with pytest.raises(ParseError, match=r"groundtruth\.txt: at time 1000\.0: expected 'timestamp tx ty tz qx qy qz qw', found 4 fields"):
+    with pytest.raises(
+        ParseError,
+        match=r"groundtruth\.txt: at time 1000\.0: expected 'timestamp tx ty tz qx qy qz qw', found 4 fields",
+    ):
         RgbdSource(tmp_path)
 
 
@@ -96,7 +108,9 @@ def test_missing_and_empty_folders(tmp_path: Path) -> None:
         RgbdSource(tmp_path / "nope")
     with pytest.raises(SourceError, match=r"expected depth frames \(7scenes layout\), found none"):
         RgbdSource(tmp_path)
-    with pytest.raises(SourceSpecError, match="layout: expected 'auto', '7scenes' or 'tum', found 'kinect'"):
+    with pytest.raises(
+        SourceSpecError, match="layout: expected 'auto', '7scenes' or 'tum', found 'kinect'"
+    ):
         RgbdSource(tmp_path, layout="kinect")
     bad = tmp_path / "K.txt"
     bad.write_text("585 0 320\n0 585 240\n")

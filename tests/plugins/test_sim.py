@@ -22,7 +22,9 @@ def test_same_seed_same_stream_other_seed_other_noise() -> None:
 
 
 def test_without_noise_the_pose_guess_is_the_truth() -> None:
-    source = SimSource(world="office", agent="depth-1", frames=30, noise=0.0, range_noise=0.0, start="world")
+    source = SimSource(
+        world="office", agent="depth-1", frames=30, noise=0.0, range_noise=0.0, start="world"
+    )
     for obs in source:
         np.testing.assert_allclose(obs.pose, obs.truth, atol=1e-9)
     assert len(source.ground_truth) == 30 and source.stats.delivered == 30
@@ -36,7 +38,9 @@ def test_agents_start_at_their_own_origin() -> None:
 
 def test_drift_makes_dead_reckoning_wander() -> None:
     def final_error(drift: float) -> float:
-        source = SimSource(world="room", agent="lidar-1", frames=150, noise=0.0, drift=drift, start="world")
+        source = SimSource(
+            world="room", agent="lidar-1", frames=150, noise=0.0, drift=drift, start="world"
+        )
         obs = list(source)[-1]
         return float(np.linalg.norm(obs.pose[:3, 3] - obs.truth[:3, 3]))
 
@@ -58,7 +62,9 @@ def test_cctv_reports_landmarks_at_their_true_place() -> None:
 
 
 def test_rendered_depth_agrees_with_ground_truth_geometry() -> None:
-    source = SimSource(world="room", agent="lidar3d-1", frames=3, range_noise=0.0, noise=0.0, start="world")
+    source = SimSource(
+        world="room", agent="lidar3d-1", frames=3, range_noise=0.0, noise=0.0, start="world"
+    )
     for obs in source:
         pts = obs.points_world()
         assert (np.abs(pts[:, 2]) < 1e-6).sum() > 300  # the floor at z = 0
@@ -70,13 +76,18 @@ def test_rendered_depth_agrees_with_ground_truth_geometry() -> None:
 def test_several_agents_run_in_real_time() -> None:
     began = time.process_time()  # CPU time: not inflated by other processes on a busy machine
     for name, agent in AGENTS["room"].items():
-        for _ in SimSource(world="room", agent=name, frames=int(agent.rate)):  # one simulated second each
+        for _ in SimSource(
+            world="room", agent=name, frames=int(agent.rate)
+        ):  # one simulated second each
             pass
     assert time.process_time() - began < 2.0  # one second of four agents within two cores' time
 
 
 def test_bad_sim_options() -> None:
-    with pytest.raises(SourceSpecError, match=r"agent: expected one of \['cctv-1', 'depth-1', 'lidar-1', 'lidar3d-1'\] in world 'room', found 'x'"):
+    with pytest.raises(
+        SourceSpecError,
+        match=r"agent: expected one of \['cctv-1', 'depth-1', 'lidar-1', 'lidar3d-1'\] in world 'room', found 'x'",
+    ):
         SimSource(world="room", agent="x")
     with pytest.raises(SourceSpecError, match="start: expected 'origin' or 'world', found 'moon'"):
         SimSource(start="moon")

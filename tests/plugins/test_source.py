@@ -23,19 +23,36 @@ DATA = SHARED_DATA
 
 def test_parse_spec() -> None:
     spec = parse_spec("sim:world=office,agent=lidar-1")
-    assert (spec.kind, spec.path, spec.options) == ("sim", None, {"world": "office", "agent": "lidar-1"})
+    assert (spec.kind, spec.path, spec.options) == (
+        "sim",
+        None,
+        {"world": "office", "agent": "lidar-1"},
+    )
     spec = parse_spec("replay:../data/log.gz,step=2,poses=odometry")
-    assert (spec.kind, spec.path, spec.options) == ("replay", "../data/log.gz", {"step": "2", "poses": "odometry"})
+    assert (spec.kind, spec.path, spec.options) == (
+        "replay",
+        "../data/log.gz",
+        {"step": "2", "poses": "odometry"},
+    )
     assert parse_spec("sim:").options == {}
 
 
-@pytest.mark.parametrize(("spec", "message"), [
-    ("office", r"expected 'sim:key=value,...', 'replay:PATH\[,key=value...\]', 'synthetic:key=value,...' or 'bulk:key=value,...', found 'office'"),
-    ("lidar:x", r"expected 'sim:key=value,...', 'replay:PATH\[,key=value...\]', .* found 'lidar:x'"),
-    ("replay:", r"expected 'replay:PATH\[,key=value...\]', found 'replay:'"),
-    ("sim:world", r"expected key=value, found 'world'"),
-    ("sim:seed=1,seed=2", r"expected each option once, found 'seed' twice"),
-])
+@pytest.mark.parametrize(
+    ("spec", "message"),
+    [
+        (
+            "office",
+            r"expected 'sim:key=value,...', 'replay:PATH\[,key=value...\]', 'synthetic:key=value,...' or 'bulk:key=value,...', found 'office'",
+        ),
+        (
+            "lidar:x",
+            r"expected 'sim:key=value,...', 'replay:PATH\[,key=value...\]', .* found 'lidar:x'",
+        ),
+        ("replay:", r"expected 'replay:PATH\[,key=value...\]', found 'replay:'"),
+        ("sim:world", r"expected key=value, found 'world'"),
+        ("sim:seed=1,seed=2", r"expected each option once, found 'seed' twice"),
+    ],
+)
 def test_bad_specs(spec: str, message: str) -> None:
     with pytest.raises(SourceSpecError, match=message):
         parse_spec(spec)
@@ -50,7 +67,10 @@ def test_open_sim_with_typed_options() -> None:
 
 
 def test_unknown_and_mistyped_options() -> None:
-    with pytest.raises(SourceSpecError, match=r"option 'sede': expected one of \[.*'seed'.*\], found unknown option"):
+    with pytest.raises(
+        SourceSpecError,
+        match=r"option 'sede': expected one of \[.*'seed'.*\], found unknown option",
+    ):
         open_source("sim:sede=1")
     with pytest.raises(SourceSpecError, match=r"option 'frames': expected int, found 'many'"):
         open_source("sim:frames=many")
@@ -60,14 +80,19 @@ def test_unknown_and_mistyped_options() -> None:
 
 @pytest.mark.skipif(not DATA.is_dir(), reason=f"real data not found at {DATA}")
 def test_open_replays() -> None:
-    carmen = open_source(f"replay:{DATA}/carmen/freiburg-079-corrected.log.gz,step=1000,max_range=40")
+    carmen = open_source(
+        f"replay:{DATA}/carmen/freiburg-079-corrected.log.gz,step=1000,max_range=40"
+    )
     assert isinstance(carmen, CarmenSource) and len(carmen) == 5
     assert carmen.adapter.sensor_model.max_range == 40.0
     kitchen = open_source(f"replay:{DATA}/redkitchen-50,start=10,stop=20,stride=2")
     assert isinstance(kitchen, RgbdSource) and len(kitchen) == 10
     with pytest.raises(SourceSpecError, match=r"option 'poses': expected one of"):
         open_source(f"replay:{DATA}/redkitchen-50,poses=odometry")
-    with pytest.raises(SourceSpecError, match=r"option 'format': expected 'auto', 'carmen', '7scenes', 'tum' or 'rosbag', found 'pcd'"):
+    with pytest.raises(
+        SourceSpecError,
+        match=r"option 'format': expected 'auto', 'carmen', '7scenes', 'tum' or 'rosbag', found 'pcd'",
+    ):
         open_source(f"replay:{DATA}/redkitchen-50,format=pcd")
 
 
@@ -75,7 +100,11 @@ def test_every_kind_opens_from_its_spec() -> None:
     assert set(SOURCE_KINDS) == {"sim", "replay", "synthetic", "bulk"}
     assert isinstance(open_source("synthetic:scans=1"), SyntheticSource)
     assert isinstance(open_source("bulk:voxels=8"), BulkSource)
-    for source in (open_source("synthetic:scans=1"), open_source("bulk:voxels=8"), open_source("sim:frames=1")):
+    for source in (
+        open_source("synthetic:scans=1"),
+        open_source("bulk:voxels=8"),
+        open_source("sim:frames=1"),
+    ):
         assert isinstance(source, Source)
         assert source.adapter.sensor_model is not None and 0 < source.adapter.reliability <= 1
 
@@ -85,7 +114,10 @@ def test_replay_options_depend_on_the_format(tmp_path: Path) -> None:
     log.write_text("PARAM robot_name test\n")
     source = open_source(f"replay:{log},format=carmen,stop=none,poses=odometry")
     assert isinstance(source, CarmenSource) and source.stop is None and source.poses == "odometry"
-    with pytest.raises(SourceSpecError, match=r"option 'stride': expected one of \['format', 'max_range', 'move_x', 'move_y', 'move_yaw', 'odometry_noise', 'poses', 'seed', 'start', 'step', 'stop', 'strict'\], found unknown option"):
+    with pytest.raises(
+        SourceSpecError,
+        match=r"option 'stride': expected one of \['format', 'max_range', 'move_x', 'move_y', 'move_yaw', 'odometry_noise', 'poses', 'seed', 'start', 'step', 'stop', 'strict'\], found unknown option",
+    ):
         open_source(f"replay:{log},stride=2")
     with pytest.raises(SourceSpecError, match=r"option 'stop': expected int or None, found 'end'"):
         open_source(f"replay:{log},stop=end")
@@ -93,11 +125,20 @@ def test_replay_options_depend_on_the_format(tmp_path: Path) -> None:
 
 def test_model_defaults_are_the_sources_defaults() -> None:
     """What `colonyd sources` prints as a default is what a source gets when the option is left out."""
-    pairs = [(SimOptions, SimSource), (CarmenOptions, CarmenSource), (RgbdOptions, RgbdSource),
-             (RosbagOptions, RosbagSource), (SyntheticOptions, SyntheticSource), (BulkOptions, BulkSource)]
+    pairs = [
+        (SimOptions, SimSource),
+        (CarmenOptions, CarmenSource),
+        (RgbdOptions, RgbdSource),
+        (RosbagOptions, RosbagSource),
+        (SyntheticOptions, SyntheticSource),
+        (BulkOptions, BulkSource),
+    ]
     for model, source in pairs:
-        params = {name: p.default for name, p in inspect.signature(source).parameters.items()
-                  if p.kind is inspect.Parameter.KEYWORD_ONLY}
+        params = {
+            name: p.default
+            for name, p in inspect.signature(source).parameters.items()
+            if p.kind is inspect.Parameter.KEYWORD_ONLY
+        }
         for name, info in model.model_fields.items():
             assert name in params, (model.__name__, name)
             if info.default is not None or params[name] is None:  # none: the caller's value (seed)
@@ -113,4 +154,7 @@ def test_describe_sources_lists_every_option_of_every_kind() -> None:
                 assert name in text and str(info.description) in text
     assert "int or None" in text and "80.0" in text
     markdown = describe_sources(markdown=True)
-    assert "### `replay:PATH[,key=value...]`" in markdown and "| `max_range` | float | `10.0` |" in markdown
+    assert (
+        "### `replay:PATH[,key=value...]`" in markdown
+        and "| `max_range` | float | `10.0` |" in markdown
+    )

@@ -27,10 +27,16 @@ def test_synthetic_and_bulk_sources():
 @pytest.mark.parametrize(
     ("spec", "match"),
     [
-        ("synthetic:bogus=1", r"option 'bogus': expected one of \['points', 'rate', 'room', 'scans', 'seed', 'step'\], found unknown option"),
+        (
+            "synthetic:bogus=1",
+            r"option 'bogus': expected one of \['points', 'rate', 'room', 'scans', 'seed', 'step'\], found unknown option",
+        ),
         ("synthetic:rate=fast", r"option 'rate': expected float, found 'fast'"),
         ("synthetic:points", r"expected key=value, found 'points'"),
-        ("synthetic:rate=0", r"synthetic: expected rate > 0, points > 0 and room > 1, found rate=0.0"),
+        (
+            "synthetic:rate=0",
+            r"synthetic: expected rate > 0, points > 0 and room > 1, found rate=0.0",
+        ),
         ("bulk:voxels=-1", r"bulk: expected voxels > 0, found -1"),
     ],
 )
@@ -77,8 +83,12 @@ def test_the_seed_comes_from_the_caller_unless_the_spec_sets_one():
     def first(spec: str, seed: int) -> np.ndarray:
         return next(iter(open_source(spec, seed=seed))).origin
 
-    np.testing.assert_array_equal(first("synthetic:rate=1000", 5), first("synthetic:rate=1000,seed=5", 0))
-    np.testing.assert_array_equal(first("synthetic:rate=1000,seed=none", 5), first("synthetic:rate=1000", 5))
+    np.testing.assert_array_equal(
+        first("synthetic:rate=1000", 5), first("synthetic:rate=1000,seed=5", 0)
+    )
+    np.testing.assert_array_equal(
+        first("synthetic:rate=1000,seed=none", 5), first("synthetic:rate=1000", 5)
+    )
     assert not np.array_equal(first("synthetic:rate=1000", 5), first("synthetic:rate=1000", 6))
 
 

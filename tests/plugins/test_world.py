@@ -17,17 +17,32 @@ def test_box_cylinder_and_floor_distances() -> None:
         floor=0.0,
     )
     origin = np.array([0.0, 0.0, 1.0])
-    dirs = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.5], [0, 0, 1.0]])
+    dirs = np.array(
+        [
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, -1.0],
+            [0.0, -1.0, 0.0],
+            [-1.0, 0.0, 0.5],
+            [0, 0, 1.0],
+        ]
+    )
     hits = world.cast(origin, dirs)
     np.testing.assert_allclose(hits.t[:4], [3.0, 4.5, 1.0, np.inf])
     np.testing.assert_allclose(hits.t[4], np.inf)
-    np.testing.assert_array_equal(hits.class_id[:4], [CLASSES["box"], CLASSES["cylinder"], CLASSES["floor"], -1])
+    np.testing.assert_array_equal(
+        hits.class_id[:4], [CLASSES["box"], CLASSES["cylinder"], CLASSES["floor"], -1]
+    )
     np.testing.assert_array_equal(hits.object_id[:3], [1, 2, -1])
     np.testing.assert_allclose(hits.normal[:3], [[-1, 0, 0], [0, -1, 0], [0, 0, 1]], atol=1e-12)
 
 
 def test_nearest_of_overlapping_objects_wins() -> None:
-    world = World(name="t", boxes=[Box((5.0, -1, -1), (6.0, 1, 1), 1), Box((2.0, -1, -1), (2.5, 1, 1), 2)], floor=None)
+    world = World(
+        name="t",
+        boxes=[Box((5.0, -1, -1), (6.0, 1, 1), 1), Box((2.0, -1, -1), (2.5, 1, 1), 2)],
+        floor=None,
+    )
     hits = world.cast(np.zeros(3), np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]))
     np.testing.assert_allclose(hits.t, [2.0, np.inf])
     assert hits.class_id[0] == 2
@@ -47,7 +62,9 @@ def test_builtin_worlds_and_objects() -> None:
     objects = office.objects()
     assert {10, 11, 12, 13} <= set(objects) and len(office.markers) == 16
     assert all(objects[m.object_id][0] == CLASSES["landmark"] for m in office.markers)
-    with pytest.raises(SourceSpecError, match=r"world: expected one of \['office', 'room'\], found 'mars'"):
+    with pytest.raises(
+        SourceSpecError, match=r"world: expected one of \['office', 'room'\], found 'mars'"
+    ):
         get_world("mars")
 
 
@@ -57,7 +74,11 @@ def test_furnished_room_walls_and_furniture_at_known_distances() -> None:
     room = furnished_room()
     sx, sy, sz = FURNISHED_SHIFT
     origin = np.array([0.0, 0.0, 1.0])
-    dirs = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0, 0, -1.0], [0.0, -1.0, 0.0]])
+    dirs = np.array(
+        [[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0, 0, -1.0], [0.0, -1.0, 0.0]]
+    )
     t = room.cast(origin, dirs).t
     # +x wall, the shelf on the -x wall (x = -2.9), +y wall, ceiling, floor, the chair (y = -1.9)
-    np.testing.assert_allclose(t, [4.0 + sx, 2.9 - sx, 3.0 + sy, 1.8 + sz, 1.0 - sz, 1.9 - sy], atol=1e-12)
+    np.testing.assert_allclose(
+        t, [4.0 + sx, 2.9 - sx, 3.0 + sy, 1.8 + sz, 1.0 - sz, 1.9 - sy], atol=1e-12
+    )

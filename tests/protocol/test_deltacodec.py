@@ -209,8 +209,15 @@ def test_times_are_integer_milliseconds_from_the_rounded_reference() -> None:
     assert reference_ms(1_700_000_000.0004) == 1_700_000_000_000
     assert reference_ms(-2.5) == -2500
     times = np.array([1_700_000_000.001, 1_699_999_999.999, 1_700_000_000.0004, np.nan])
-    delta = Delta(0.1, 0, 1, np.arange(12).reshape(4, 3), np.zeros(4, np.float32), times,
-                  time=1_700_000_000.0004)
+    delta = Delta(
+        0.1,
+        0,
+        1,
+        np.arange(12).reshape(4, 3),
+        np.zeros(4, np.float32),
+        times,
+        time=1_700_000_000.0004,
+    )
     out = decode_delta(encode_delta(delta))
     order = np.argsort(pack(out.keys))
     want = [1_700_000_000.001, 1_699_999_999.999, 1_700_000_000.0]

@@ -15,14 +15,24 @@ A, B = Signer.generate(), Signer.generate()
 
 
 def _hb(seq: int, signer: Signer | None, origin: str = "a", identity: bytes | None = None) -> bytes:
-    msg = Heartbeat(origin=origin, epoch=1, seq=seq, time=1.0, kind="robot", frame_id="map",
-                    identity=identity if identity is not None else (signer.public if signer else None))
+    msg = Heartbeat(
+        origin=origin,
+        epoch=1,
+        seq=seq,
+        time=1.0,
+        kind="robot",
+        frame_id="map",
+        identity=identity if identity is not None else (signer.public if signer else None),
+    )
     return encode(msg, key=KEY, signer=signer)
 
 
 def _pose(seq: int, signer: Signer | None, origin: str = "a") -> bytes:
-    return encode(Pose(origin=origin, epoch=1, seq=seq, time=1.0, frame_id="map",
-                       position=(0.0, 0.0, 0.0)), key=KEY, signer=signer)
+    return encode(
+        Pose(origin=origin, epoch=1, seq=seq, time=1.0, frame_id="map", position=(0.0, 0.0, 0.0)),
+        key=KEY,
+        signer=signer,
+    )
 
 
 def test_signatures_verify_and_tampering_is_caught() -> None:
@@ -58,8 +68,16 @@ def test_trust_on_first_use_pins_at_accept_and_refuses_another_key() -> None:
 
 def test_requests_need_no_signature_and_off_checks_nothing() -> None:
     rx = Receiver(key=KEY, trust=Trust("list", {}))
-    request = DeltaRangeRequest(origin="peer", epoch=1, seq=1, time=1.0, layer="a", request_id=1,
-                                from_version=0, to_version=3)
+    request = DeltaRangeRequest(
+        origin="peer",
+        epoch=1,
+        seq=1,
+        time=1.0,
+        layer="a",
+        request_id=1,
+        from_version=0,
+        to_version=3,
+    )
     rx.receive(encode(request, key=KEY))
     with pytest.raises(UnknownIdentityError, match="trust list"):
         rx.decode(_hb(1, A))  # a list admits only the agents on it, heartbeat or not

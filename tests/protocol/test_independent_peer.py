@@ -20,8 +20,9 @@ from protocol.messages import VoxelDelta
 from tests.protocol.helpers import KEY, make_delta
 
 
-def peer_decode_frame(frame: bytes, key: bytes | None,
-                      identity: bytes | None = None) -> tuple[int, list, dict]:
+def peer_decode_frame(
+    frame: bytes, key: bytes | None, identity: bytes | None = None
+) -> tuple[int, list, dict]:
     """§2-§4: prefix, tag, signature (verified when the origin's `identity` key is given, or
     the key a Heartbeat carries), envelope, body."""
     magic, version, mtype, flags, reserved = struct.unpack_from("<4sBBBB", frame)

@@ -12,8 +12,9 @@ from tests.protocol.helpers import KEY
 
 
 def _pose(seq: int, origin: str = "r1", epoch: int = 1) -> Pose:
-    return Pose(origin=origin, epoch=epoch, seq=seq, time=1.0, frame_id="map",
-                position=(0.0, 0.0, 0.0))
+    return Pose(
+        origin=origin, epoch=epoch, seq=seq, time=1.0, frame_id="map", position=(0.0, 0.0, 0.0)
+    )
 
 
 def test_receiver_counts_accepted_and_rejected() -> None:

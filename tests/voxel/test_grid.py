@@ -117,16 +117,22 @@ def test_rich_channels_colour_classes_normals_scalars():
     pts, origin = wall_scan(n=3)
     n = pts.shape[0]
     grid.integrate(
-        pts, origin, time=0.0,
+        pts,
+        origin,
+        time=0.0,
         colours=np.tile([200, 100, 0], (n, 1)).astype(np.uint8),
         normals=np.tile([-1.0, 0.0, 0.0], (n, 1)),
-        class_ids=np.full(n, 7), class_probs=np.full(n, 0.9),
+        class_ids=np.full(n, 7),
+        class_probs=np.full(n, 0.9),
         scalars={"temperature": np.full(n, 20.0)},
     )
     grid.integrate(
-        pts, origin, time=1.0,
+        pts,
+        origin,
+        time=1.0,
         colours=np.tile([100, 100, 100], (n, 1)).astype(np.uint8),
-        class_ids=np.full(n, 3), class_probs=np.full(n, 0.5),
+        class_ids=np.full(n, 3),
+        class_probs=np.full(n, 0.5),
         scalars={"temperature": np.full(n, 30.0)},
     )
     k = vk.points_to_keys(pts[:1], RES)
@@ -246,7 +252,9 @@ def _grid_with_deltas(seed: int, n: int) -> tuple[VoxelGrid, list]:
     deltas = []
     for i, (pts, origin) in enumerate(_random_scans(seed, n)):
         v = grid.version
-        grid.integrate(pts, origin, time=float(i), colours=np.full((len(pts), 3), 10 * i, dtype=np.uint8))
+        grid.integrate(
+            pts, origin, time=float(i), colours=np.full((len(pts), 3), 10 * i, dtype=np.uint8)
+        )
         deltas.append(grid.delta_since(v))
     return grid, deltas
 
@@ -408,5 +416,7 @@ def test_times_are_exact_across_a_moved_time_base():
     replica = VoxelGrid(RES)
     replica.apply(d)
     assert replica.content_equal(grid)
-    per_voxel = sum(a.dtype.itemsize * int(np.prod(a.shape[2:])) for a in grid.store.channels.values())
+    per_voxel = sum(
+        a.dtype.itemsize * int(np.prod(a.shape[2:])) for a in grid.store.channels.values()
+    )
     assert per_voxel == 12  # log-odds, version, time

@@ -33,8 +33,19 @@ def grid_digest(grid: VoxelGrid) -> str:
     h = hashlib.sha256()
     st = grid.store
     slots = st.used_slots()
-    _update(h, grid.resolution, grid.half_life, grid.statistics, grid.version, grid.now, grid.time_base_ms,
-            tuple(st.shifts), st.class_k, st.slot_keys[slots], st.slot_version[slots])
+    _update(
+        h,
+        grid.resolution,
+        grid.half_life,
+        grid.statistics,
+        grid.version,
+        grid.now,
+        grid.time_base_ms,
+        tuple(st.shifts),
+        st.class_k,
+        st.slot_keys[slots],
+        st.slot_version[slots],
+    )
     for name in sorted(st.channels):
         _update(h, name, st.channels[name][slots])
     _update(h, grid.history.view(), grid.history.agents, grid.history.dropped)
@@ -50,7 +61,9 @@ def delta_digest(grid: VoxelGrid, version: int) -> str:
     return h.hexdigest()[:20]
 
 
-def _scans(seed: int, n: int, points: int = 300, spread: float = 1.5) -> list[tuple[np.ndarray, np.ndarray]]:
+def _scans(
+    seed: int, n: int, points: int = 300, spread: float = 1.5
+) -> list[tuple[np.ndarray, np.ndarray]]:
     rng = np.random.default_rng(seed)
     out = []
     for _ in range(n):
@@ -76,8 +89,18 @@ def scenario_plain() -> list[str]:
     bad = np.vstack([pts, [[np.nan, 0, 0], [np.inf, 1, 1], origin, [1e9, 0, 0]]])
     nr = np.zeros(len(bad), dtype=bool)
     nr[::7] = True
-    _log(out, grid, grid.integrate(bad, origin, time=3.0, sensor=SensorModel(max_range=1.2, kind="lidar3d"),
-                                   no_return=nr, reliability=0.77))
+    _log(
+        out,
+        grid,
+        grid.integrate(
+            bad,
+            origin,
+            time=3.0,
+            sensor=SensorModel(max_range=1.2, kind="lidar3d"),
+            no_return=nr,
+            reliability=0.77,
+        ),
+    )
     _log(out, grid, grid.integrate(bad, origin, time=3.5, no_return=nr))  # no max range: dropped
     out.append(delta_digest(grid, 0))
     return out
@@ -102,14 +125,24 @@ def scenario_rich() -> list[str]:
             if i == 3:
                 kwargs.pop("class_probs")
             v = grid.version
-            report = grid.integrate(pts, origin, time=float(i) + 0.25, agent=f"robot-{i % 2}",
-                                    experience=0.5 * i, bias=-0.1 * i, reliability=1.0 - 0.1 * i, **kwargs)
+            report = grid.integrate(
+                pts,
+                origin,
+                time=float(i) + 0.25,
+                agent=f"robot-{i % 2}",
+                experience=0.5 * i,
+                bias=-0.1 * i,
+                reliability=1.0 - 0.1 * i,
+                **kwargs,
+            )
             _log(out, grid, report)
             out.append(delta_digest(grid, v))
         # The same scan again: log-odds clamp or stay, rich channels still move.
         pts, origin = _scans(22, 1, points=400, spread=0.8)[0]
         v = grid.version
-        _log(out, grid, grid.integrate(pts, origin, time=9.0, colours=np.full((400, 3), 7, np.uint8)))
+        _log(
+            out, grid, grid.integrate(pts, origin, time=9.0, colours=np.full((400, 3), 7, np.uint8))
+        )
         out.append(delta_digest(grid, v))
         replica = VoxelGrid(0.1, statistics=statistics)
         replica.apply(grid.delta_since(0))
@@ -121,14 +154,28 @@ def scenario_forgetting() -> list[str]:
     out: list[str] = []
     grid = VoxelGrid(0.1, half_life=4.0, history_capacity=3000, history_per_voxel=3)
     for i, (pts, origin) in enumerate(_scans(31, 6)):
-        _log(out, grid, grid.integrate(pts, origin, time=2.0 * i + 0.001, colours=np.full((300, 3), i, np.uint8)))
+        _log(
+            out,
+            grid,
+            grid.integrate(
+                pts, origin, time=2.0 * i + 0.001, colours=np.full((300, 3), i, np.uint8)
+            ),
+        )
     out.append(repr(grid.forget()))
     _log(out, grid)
     out.append(repr(grid.forget(now=30.0)))
     _log(out, grid)
     probe = np.random.default_rng(32).normal(size=(500, 3))
-    _update(h := hashlib.sha256(), grid.occupancy(probe), grid.state(probe), grid.state_at(probe, 5.0),
-            grid.changed_between(0.0, 6.0), grid.occupied_keys(), grid.free_keys(), grid.known_count())
+    _update(
+        h := hashlib.sha256(),
+        grid.occupancy(probe),
+        grid.state(probe),
+        grid.state_at(probe, 5.0),
+        grid.changed_between(0.0, 6.0),
+        grid.occupied_keys(),
+        grid.free_keys(),
+        grid.known_count(),
+    )
     out.append(h.hexdigest()[:20])
     return out
 
@@ -157,8 +204,12 @@ def scenario_planar_and_big() -> list[str]:
     for i in range(3):
         r = rng.uniform(0.5, 35.0, ang.size)
         origin = np.array([0.1 * i + 0.013, 0.007, 0.2])
-        pts = origin + np.stack([r * np.cos(ang + 0.1 * i), r * np.sin(ang + 0.1 * i), np.zeros_like(r)], axis=1)
-        _log(out, grid, grid.integrate(pts, origin, time=float(i), sensor=sensor, no_return=r > 33.0))
+        pts = origin + np.stack(
+            [r * np.cos(ang + 0.1 * i), r * np.sin(ang + 0.1 * i), np.zeros_like(r)], axis=1
+        )
+        _log(
+            out, grid, grid.integrate(pts, origin, time=float(i), sensor=sensor, no_return=r > 33.0)
+        )
     # A 3D scan touching more than one update chunk of blocks.
     big = VoxelGrid(0.05)
     d = rng.normal(size=(30000, 3))
@@ -183,8 +234,19 @@ def scenario_depth() -> list[str]:
     pose = np.eye(4)
     pose[:3, 3] = [0.1, -0.05, 0.2]
     _log(out, grid, grid.integrate_depth(depth, k, pose, time=0.0, colour=colour, labels=labels))
-    _log(out, grid, grid.integrate_depth(depth * 0.9, k, pose, time=1.0, colour=colour, agent="cam",
-                                         sensor=SensorModel(kind="depth")))
+    _log(
+        out,
+        grid,
+        grid.integrate_depth(
+            depth * 0.9,
+            k,
+            pose,
+            time=1.0,
+            colour=colour,
+            agent="cam",
+            sensor=SensorModel(kind="depth"),
+        ),
+    )
     return out
 
 
@@ -192,8 +254,13 @@ def scenario_files(tmp: Path) -> list[str]:
     out: list[str] = []
     grid = VoxelGrid(0.1, statistics=True)
     for i, (pts, origin) in enumerate(_scans(71, 3)):
-        grid.integrate(pts, origin, time=float(i), colours=np.full((300, 3), 40 * i, np.uint8),
-                       scalars={"t": np.full(300, float(i))})
+        grid.integrate(
+            pts,
+            origin,
+            time=float(i),
+            colours=np.full((300, 3), 40 * i, np.uint8),
+            scalars={"t": np.full(300, float(i))},
+        )
     grid.save(tmp / "g.npz")
     _log(out, VoxelGrid.load(tmp / "g.npz"))
     grid.write_bt(tmp / "m.bt")

@@ -32,23 +32,51 @@ def test_unknown_to_free_and_unchanged_hits_are_not_recorded() -> None:
 def test_record_writes_one_row_per_change_with_the_observer_columns() -> None:
     history = History(capacity=100)
     keys = vk.pack(np.array([[1, 2, 3], [4, 5, 6], [7, 8, 9]]))
-    changes = [Changes(keys, np.array([np.nan, 0.4, -0.4], np.float32), np.array([0.85, -0.01, 0.4], np.float32),
-                       np.array([True, False, True]))]
-    observer = Observer(time=2.5, agent=history.agent_code("robot-a"), sensor=3, reliability=0.5, experience=1.0,
-                        bias=-0.25)
-    tags = ObjectTags.of(np.array([[4, 5, 6], [7, 8, 9]]), np.array([0, 1, 1]), np.array([11, -1, 12]))
+    changes = [
+        Changes(
+            keys,
+            np.array([np.nan, 0.4, -0.4], np.float32),
+            np.array([0.85, -0.01, 0.4], np.float32),
+            np.array([True, False, True]),
+        )
+    ]
+    observer = Observer(
+        time=2.5,
+        agent=history.agent_code("robot-a"),
+        sensor=3,
+        reliability=0.5,
+        experience=1.0,
+        bias=-0.25,
+    )
+    tags = ObjectTags.of(
+        np.array([[4, 5, 6], [7, 8, 9]]), np.array([0, 1, 1]), np.array([11, -1, 12])
+    )
     history.record(changes, observer, Evidence.of(SensorModel(), 0.5), tags)
     rec = history.view()
     assert rec["key"].tolist() == keys.tolist()
     assert rec["state"].tolist() == [OCCUPIED, FREE_STATE, OCCUPIED]
     assert rec["flip"].tolist() == [True, True, True]
-    assert rec["object_id"].tolist() == [-1, 11, 12] and rec["object_prob"].tolist() == [0.0, 1.0, 1.0]
-    np.testing.assert_allclose(rec["evidence"], [0.5 * np.log(0.7 / 0.3), 0.5 * np.log(0.4 / 0.6), 0.5 * np.log(0.7 / 0.3)],
-                               rtol=1e-6)
-    assert set(rec["time"]) == {2.5} and set(rec["bias"]) == {-0.25} and set(rec["reliability"]) == {0.5}
+    assert rec["object_id"].tolist() == [-1, 11, 12] and rec["object_prob"].tolist() == [
+        0.0,
+        1.0,
+        1.0,
+    ]
+    np.testing.assert_allclose(
+        rec["evidence"],
+        [0.5 * np.log(0.7 / 0.3), 0.5 * np.log(0.4 / 0.6), 0.5 * np.log(0.7 / 0.3)],
+        rtol=1e-6,
+    )
+    assert (
+        set(rec["time"]) == {2.5}
+        and set(rec["bias"]) == {-0.25}
+        and set(rec["reliability"]) == {0.5}
+    )
     assert history.agents == ["robot-a"]
 
 
 def test_no_object_tags_without_object_ids_or_hits() -> None:
     assert ObjectTags.of(np.zeros((2, 3), np.int64), np.array([0, 1]), None) is None
-    assert ObjectTags.of(np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)) is None
+    assert (
+        ObjectTags.of(np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
+        is None
+    )

@@ -8,12 +8,17 @@ import pytest
 from voxel import keys as vk
 
 
-@pytest.mark.parametrize(("n", "span"), [(1, 1), (50, 2), (20_000, 15), (20_000, 3000), (5000, 2**20)])
+@pytest.mark.parametrize(
+    ("n", "span"), [(1, 1), (50, 2), (20_000, 15), (20_000, 3000), (5000, 2**20)]
+)
 def test_one_per_key_picks_exactly_one_row_of_every_distinct_key(n, span):
     rng = np.random.default_rng(n + span)
     keys = rng.integers(-span, span, size=(3, n))
     distinct = set(map(tuple, keys.T.tolist()))
-    for rows in (keys, keys.astype(np.float64)):  # float rows of exact integers: floored coordinates
+    for rows in (
+        keys,
+        keys.astype(np.float64),
+    ):  # float rows of exact integers: floored coordinates
         chosen = vk.one_per_key(rows)
         picked = [tuple(k) for k in keys[:, chosen].T.tolist()]
         assert len(picked) == len(set(picked)) == len(distinct)

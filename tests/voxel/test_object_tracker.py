@@ -10,8 +10,15 @@ from voxel.objects import ObjectCentroid, ObjectTracker, moved
 
 
 def _obj(cls: int, x: float, y: float) -> ObjectCentroid:
-    return ObjectCentroid(object_id=0, class_id=cls, position=np.array([x, y, 0.5]),
-                          covariance=np.eye(3) * 0.01, voxel_count=30, probability=0.9, time=1.0)
+    return ObjectCentroid(
+        object_id=0,
+        class_id=cls,
+        position=np.array([x, y, 0.5]),
+        covariance=np.eye(3) * 0.01,
+        voxel_count=30,
+        probability=0.9,
+        time=1.0,
+    )
 
 
 def test_ids_follow_objects_and_new_ones_count_up():
@@ -27,6 +34,10 @@ def test_ids_follow_objects_and_new_ones_count_up():
     assert moved(first, again, 0.05)
     nudged = [_obj(5, 0.15, 0.05)]
     nudged = [ObjectCentroid(**{**vars(nudged[0]), "object_id": 102})]
-    assert moved(nudged, [ObjectCentroid(**{**vars(nudged[0]), "position": np.array([0.25, 0.05, 0.5])})], 0.05)
+    assert moved(
+        nudged,
+        [ObjectCentroid(**{**vars(nudged[0]), "position": np.array([0.25, 0.05, 0.5])})],
+        0.05,
+    )
     with pytest.raises(InputError, match="need gate > 0"):
         ObjectTracker(gate=0.0)

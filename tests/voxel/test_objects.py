@@ -16,7 +16,10 @@ def box_surface(centre: np.ndarray, size: float, n: int = 30) -> np.ndarray:
     a, b = np.meshgrid(u, u)
     a, b = a.ravel(), b.ravel()
     h = np.full_like(a, size / 2)
-    faces = [np.stack(f, 1) for f in ((h, a, b), (-h, a, b), (a, h, b), (a, -h, b), (a, b, h), (a, b, -h))]
+    faces = [
+        np.stack(f, 1)
+        for f in ((h, a, b), (-h, a, b), (a, h, b), (a, -h, b), (a, b, h), (a, b, -h))
+    ]
     return np.concatenate(faces) + centre
 
 
@@ -26,10 +29,22 @@ def test_two_labelled_boxes_give_two_centroids():
     for t, (cls, centre) in enumerate(boxes.items()):
         pts = box_surface(centre, 0.4)
         for origin in (np.array([0.01, 0.02, 0.03]), centre + np.array([0.0, 0.0, 1.5])):
-            grid.integrate(pts, origin, time=float(t), class_ids=np.full(len(pts), cls),
-                           class_probs=np.full(len(pts), 0.9))
+            grid.integrate(
+                pts,
+                origin,
+                time=float(t),
+                class_ids=np.full(len(pts), cls),
+                class_probs=np.full(len(pts), 0.9),
+            )
     # an unlabelled wall must not become an object
-    wall = np.stack([np.full(400, 4.013), np.repeat(np.linspace(-1, 1, 20), 20), np.tile(np.linspace(0, 1, 20), 20)], 1)
+    wall = np.stack(
+        [
+            np.full(400, 4.013),
+            np.repeat(np.linspace(-1, 1, 20), 20),
+            np.tile(np.linspace(0, 1, 20), 20),
+        ],
+        1,
+    )
     grid.integrate(wall, np.zeros(3), time=5.0)
     objects = extract_objects(grid, min_probability=0.2)
     assert sorted(o.class_id for o in objects) == [3, 9]

@@ -37,7 +37,9 @@ def _traced(origin, hits, clear_ends, shifts) -> tuple[set, set]:
 @pytest.mark.parametrize("shifts", [(2, 2, 2), (3, 3, 0), (0, 1, 3)])
 def test_trace_visits_exactly_the_voxels_of_each_ray(shifts):
     rng = np.random.default_rng(11)
-    origin = rng.uniform(-0.05, 0.05, size=3)  # irrational-looking: no ray passes exactly through an edge
+    origin = rng.uniform(
+        -0.05, 0.05, size=3
+    )  # irrational-looking: no ray passes exactly through an edge
     # Long and short rays in every direction, some ending in the origin voxel, several per voxel.
     hits = origin + rng.normal(size=(4000, 3)) * rng.choice([0.05, 0.5, 3.0], size=(4000, 1))
     dirs = rng.normal(size=(300, 3))
@@ -51,7 +53,11 @@ def test_trace_visits_exactly_the_voxels_of_each_ray(shifts):
 def test_trace_of_a_planar_scan_stays_in_its_layer():
     origin = np.array([0.21, -0.33, 0.3123])
     a = np.linspace(-2.3, 2.3, 1081)
-    hits = origin + np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1) * np.linspace(0.5, 6.0, a.size)[:, None]
+    hits = (
+        origin
+        + np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1)
+        * np.linspace(0.5, 6.0, a.size)[:, None]
+    )
     free, hit = _traced(origin, hits, np.empty((0, 3)), (3, 3, 0))
     ref_free, ref_hit = _reference(origin, hits, np.empty((0, 3)))
     assert (free, hit) == (ref_free, ref_hit)
@@ -78,9 +84,13 @@ def test_planar_blocks_hold_the_same_map_in_less_memory(tmp_path):
     cube, planar = VoxelGrid(RES), VoxelGrid(RES, block_shape="planar")
     for i, (pts, origin, colours) in enumerate(_scans(4)):
         for g in (cube, planar):
-            g.integrate(pts, origin, time=float(i), colours=colours, no_return=np.arange(len(pts)) % 7 == 0)
+            g.integrate(
+                pts, origin, time=float(i), colours=colours, no_return=np.arange(len(pts)) % 7 == 0
+            )
     assert planar.content_equal(cube) and cube.content_equal(planar)
-    np.testing.assert_array_equal(np.sort(planar.history.view()["key"]), np.sort(cube.history.view()["key"]))
+    np.testing.assert_array_equal(
+        np.sort(planar.history.view()["key"]), np.sort(cube.history.view()["key"])
+    )
     # a planar scan: one layer of voxels fills flat blocks, a quarter of cubes at best
     flat_cube, flat = VoxelGrid(0.05), VoxelGrid(0.05, block_shape="planar")
     origin = np.array([0.0, 0.0, 0.3123])

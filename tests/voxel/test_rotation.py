@@ -37,7 +37,9 @@ def test_quaternions_from_matrices_have_w_non_negative() -> None:
 
 
 def test_protocol_transform_uses_the_same_convention() -> None:
-    pose = Pose(origin="r1", time=1.0, frame_id="map", position=(1.0, 2.0, 3.0), orientation=QUARTER_Z)
+    pose = Pose(
+        origin="r1", time=1.0, frame_id="map", position=(1.0, 2.0, 3.0), orientation=QUARTER_Z
+    )
     np.testing.assert_allclose(pose.matrix()[:3, :3], QUARTER_Z_MATRIX, atol=1e-12)
     t = np.eye(4)
     t[:3, :3] = QUARTER_Z_MATRIX
@@ -45,13 +47,22 @@ def test_protocol_transform_uses_the_same_convention() -> None:
 
 
 def test_sensor_inputs_use_the_same_convention() -> None:
-    np.testing.assert_allclose(checked_quaternion_to_matrix(*QUARTER_Z), QUARTER_Z_MATRIX, atol=1e-12)
+    np.testing.assert_allclose(
+        checked_quaternion_to_matrix(*QUARTER_Z), QUARTER_Z_MATRIX, atol=1e-12
+    )
     # unnormalised input is normalised first, as before
-    np.testing.assert_allclose(checked_quaternion_to_matrix(*(2 * np.array(QUARTER_Z))), QUARTER_Z_MATRIX,
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        checked_quaternion_to_matrix(*(2 * np.array(QUARTER_Z))), QUARTER_Z_MATRIX, atol=1e-12
+    )
     x, y, z, w = QUARTER_Z
-    msg = SimpleNamespace(pose=SimpleNamespace(pose=SimpleNamespace(
-        position=SimpleNamespace(x=1.0, y=2.0, z=3.0), orientation=SimpleNamespace(x=x, y=y, z=z, w=w))))
+    msg = SimpleNamespace(
+        pose=SimpleNamespace(
+            pose=SimpleNamespace(
+                position=SimpleNamespace(x=1.0, y=2.0, z=3.0),
+                orientation=SimpleNamespace(x=x, y=y, z=z, w=w),
+            )
+        )
+    )
     np.testing.assert_allclose(pose_of_odometry(msg)[:3, :3], QUARTER_Z_MATRIX, atol=1e-12)
     with pytest.raises(SensorInputError, match="expected a non-zero finite quaternion"):
         checked_quaternion_to_matrix(0.0, 0.0, 0.0, 0.0)

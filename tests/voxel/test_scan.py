@@ -18,7 +18,9 @@ def test_errors_say_what_was_expected_and_what_was_found() -> None:
         Scan.of(pts, np.zeros(3), time=float("nan"), reliability=1.0)
     with pytest.raises(InputError, match=r"reliability must be in \(0, 1\], found 1.5"):
         Scan.of(pts, np.zeros(3), time=0.0, reliability=1.5)
-    with pytest.raises(InputError, match=r"no_return must have shape \(2,\) \(one row per point\), found \(3,\)"):
+    with pytest.raises(
+        InputError, match=r"no_return must have shape \(2,\) \(one row per point\), found \(3,\)"
+    ):
         Scan.of(pts, np.zeros(3), time=0.0, reliability=1.0, no_return=np.zeros(3, dtype=bool))
     with pytest.raises(InputError, match=r"scalars\['t'\] must have shape \(2,\) .*found \(\)"):
         Scan.of(pts, np.zeros(3), time=0.0, reliability=1.0, scalars={"t": None})  # type: ignore[dict-item]
@@ -26,10 +28,18 @@ def test_errors_say_what_was_expected_and_what_was_found() -> None:
 
 def test_beams_are_sorted_by_what_they_do() -> None:
     origin = np.array([0.01, 0.02, 0.03])
-    pts = np.array([[1.0, 0, 0], [5.0, 0, 0], [0, 1.0, 0], [np.nan, 0, 0], [0.01, 0.02, 0.03], [1e9, 0, 0]])
+    pts = np.array(
+        [[1.0, 0, 0], [5.0, 0, 0], [0, 1.0, 0], [np.nan, 0, 0], [0.01, 0.02, 0.03], [1e9, 0, 0]]
+    )
     no_return = np.array([False, False, True, False, False, False])
-    scan = Scan.of(pts, origin, time=0.0, reliability=1.0, no_return=no_return,
-                   colours=np.arange(18).reshape(6, 3))
+    scan = Scan.of(
+        pts,
+        origin,
+        time=0.0,
+        reliability=1.0,
+        no_return=no_return,
+        colours=np.arange(18).reshape(6, 3),
+    )
     beams = sort_beams(scan, SensorModel(max_range=2.0), 0.1)
     assert (beams.hits, beams.cleared, beams.invalid, beams.dropped) == (1, 3, 2, 0)
     assert beams.hit_mask.tolist() == [True, False, False, False, False, False]
@@ -38,4 +48,9 @@ def test_beams_are_sorted_by_what_they_do() -> None:
     assert scan.channels.select(np.flatnonzero(beams.hit_mask)).colours.tolist() == [[0, 1, 2]]  # type: ignore[union-attr]
     # Without a finite max range, no-return and far beams cannot clear: dropped.
     beams = sort_beams(scan, SensorModel(), 0.1)
-    assert (beams.hits, beams.cleared, beams.invalid, beams.dropped) == (2, 0, 3, 1)  # 1e9 m: off the key space
+    assert (beams.hits, beams.cleared, beams.invalid, beams.dropped) == (
+        2,
+        0,
+        3,
+        1,
+    )  # 1e9 m: off the key space

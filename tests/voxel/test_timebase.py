@@ -29,7 +29,9 @@ def test_base_moves_and_stored_times_follow() -> None:
     assert times.seconds(store.channels["last_time"][slot, 0])[0] == times.base_ms / 1000.0
     times.stamp(500.0)  # earlier than the base: it moves back to a whole hour
     assert times.base_ms == 0
-    assert times.seconds(store.channels["last_time"][slot, 0])[0] == later - TIME_SPAN_MS // 2 / 1000.0
+    assert (
+        times.seconds(store.channels["last_time"][slot, 0])[0] == later - TIME_SPAN_MS // 2 / 1000.0
+    )
 
 
 def test_seconds_without_a_base_count_from_zero() -> None:

@@ -55,12 +55,20 @@ class _Filter(ExtendedKalmanFilter):
 class PlanarEkf:
     """Pose (x, y, yaw) and covariance of one ground agent."""
 
-    def __init__(self, pose: np.ndarray, covariance: np.ndarray | None = None,
-                 motion: MotionNoise | None = None) -> None:
+    def __init__(
+        self,
+        pose: np.ndarray,
+        covariance: np.ndarray | None = None,
+        motion: MotionNoise | None = None,
+    ) -> None:
         self.motion = motion or MotionNoise()
         self.kf = _Filter(dim_x=3, dim_z=3)
         self.kf.x = np.asarray(pose, np.float64).reshape(3, 1).copy()
-        self.kf.P = np.diag([1e-6, 1e-6, 1e-6]) if covariance is None else np.asarray(covariance, np.float64).copy()
+        self.kf.P = (
+            np.diag([1e-6, 1e-6, 1e-6])
+            if covariance is None
+            else np.asarray(covariance, np.float64).copy()
+        )
         self.accepted = self.rejected = 0
 
     @property
@@ -89,7 +97,9 @@ class PlanarEkf:
             q_u = np.diag([var_t, var_t, m.rot**2 * abs(u[2]) + m.rot_per_m**2 * d + m.still])
         yaw = float(self.kf.x[2, 0])
         c, s = math.cos(yaw), math.sin(yaw)
-        self.kf.F = np.array([[1.0, 0.0, -s * u[0] - c * u[1]], [0.0, 1.0, c * u[0] - s * u[1]], [0.0, 0.0, 1.0]])
+        self.kf.F = np.array(
+            [[1.0, 0.0, -s * u[0] - c * u[1]], [0.0, 1.0, c * u[0] - s * u[1]], [0.0, 0.0, 1.0]]
+        )
         g = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         self.kf.Q = g @ q_u @ g.T
         self.kf.predict(u)
@@ -100,11 +110,17 @@ class PlanarEkf:
         s = self.kf.P + covariance
         return float((y.T @ np.linalg.solve(s, y))[0, 0])
 
-    def update(self, pose: np.ndarray, covariance: np.ndarray, gate: float | None = GATE_3DOF) -> bool:
+    def update(
+        self, pose: np.ndarray, covariance: np.ndarray, gate: float | None = GATE_3DOF
+    ) -> bool:
         """Fuse a measured pose (x, y, yaw) with its covariance; False (and no change) when gated out."""
         z = np.asarray(pose, np.float64).reshape(3, 1)
         r = np.asarray(covariance, np.float64)
-        if z.shape != (3, 1) or r.shape != (3, 3) or not (np.all(np.isfinite(z)) and np.all(np.isfinite(r))):
+        if (
+            z.shape != (3, 1)
+            or r.shape != (3, 3)
+            or not (np.all(np.isfinite(z)) and np.all(np.isfinite(r)))
+        ):
             msg = f"pose measurement: expected (x, y, yaw) and a finite 3x3 covariance, found {z.ravel()} and shape {r.shape}"
             raise LocalisationError(msg)
         if gate is not None and self.innovation(z, r) > gate:

@@ -46,11 +46,18 @@ class ScanLocaliser:
     Reads only odometry and the scan: never a reference pose.
     """
 
-    def __init__(self, *, planar: bool, params: ScanParams | None = None, motion: MotionNoise | None = None) -> None:
+    def __init__(
+        self, *, planar: bool, params: ScanParams | None = None, motion: MotionNoise | None = None
+    ) -> None:
         self.params = params or ScanParams()
         p = self.params
-        self.local = LocalMap(planar=planar, keyframes=p.keyframes, cell=p.map_cell, key_distance=p.key_distance,
-                              key_angle=p.key_angle)
+        self.local = LocalMap(
+            planar=planar,
+            keyframes=p.keyframes,
+            cell=p.map_cell,
+            key_distance=p.key_distance,
+            key_angle=p.key_angle,
+        )
         self.motion = motion
         self.ekf: PlanarEkf | None = None
         self.last_odometry: np.ndarray | None = None
@@ -74,8 +81,16 @@ class ScanLocaliser:
             if odometry is not None and self.last_odometry is not None:
                 increment = se2.relative(self.last_odometry, np.asarray(odometry, np.float64))
             self.ekf.predict(increment)
-            result = match(pts, self.local, se2.to_matrix(self.ekf.pose), dof=3, max_distance=p.max_distance,
-                           final_distance=p.final_distance, iterations=p.iterations, inflation=p.inflation)
+            result = match(
+                pts,
+                self.local,
+                se2.to_matrix(self.ekf.pose),
+                dof=3,
+                max_distance=p.max_distance,
+                final_distance=p.final_distance,
+                iterations=p.iterations,
+                inflation=p.inflation,
+            )
             if result.ok:
                 fused = self.ekf.update(se2.from_matrix(result.pose), result.covariance)
         self.last_odometry = None if odometry is None else np.asarray(odometry, np.float64).copy()

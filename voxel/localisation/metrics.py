@@ -91,8 +91,9 @@ class TrajectoryError:
         return float(np.max(self.errors))
 
 
-def absolute_trajectory_error(reference: np.ndarray, estimate: np.ndarray, *, align: bool = True,
-                              with_scale: bool = False) -> TrajectoryError:
+def absolute_trajectory_error(
+    reference: np.ndarray, estimate: np.ndarray, *, align: bool = True, with_scale: bool = False
+) -> TrajectoryError:
     """ATE of `estimate` against `reference` (positions (N, 3) or poses (N, 4, 4), pose i with pose i).
 
     `align` (evo's `-a`) first moves the estimate by the rigid Umeyama fit onto the reference;

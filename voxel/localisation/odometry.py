@@ -66,8 +66,10 @@ def parse_noise(text: str) -> OdometryNoise:
     except ValueError:
         values = []
     if len(values) != 5:
-        msg = (f"odometry noise: expected one of {sorted(PRESETS)} or five numbers "
-               f"trans/rot/rot_per_m/scale_bias/yaw_bias, found {text!r}")
+        msg = (
+            f"odometry noise: expected one of {sorted(PRESETS)} or five numbers "
+            f"trans/rot/rot_per_m/scale_bias/yaw_bias, found {text!r}"
+        )
         raise LocalisationError(msg)
     return OdometryNoise(*values)
 
@@ -75,7 +77,9 @@ def parse_noise(text: str) -> OdometryNoise:
 class WheelOdometer:
     """Dead reckoning of a ground robot from noisy readings of its true planar motion (seeded)."""
 
-    def __init__(self, start: np.ndarray, noise: OdometryNoise, seed: int | np.random.Generator = 0) -> None:
+    def __init__(
+        self, start: np.ndarray, noise: OdometryNoise, seed: int | np.random.Generator = 0
+    ) -> None:
         self.truth = np.asarray(start, np.float64)[:3].copy()
         self.pose = self.truth.copy()
         self.noise = noise
@@ -89,8 +93,13 @@ class WheelOdometer:
         n = self.rng.normal(size=3)
         sd_t = m.trans * math.sqrt(d)
         sd_a = math.sqrt(m.rot**2 * abs(da) + m.rot_per_m**2 * d)
-        return np.array([(1 + m.scale_bias) * dx + sd_t * n[0], (1 + m.scale_bias) * dy + sd_t * n[1],
-                         da + m.yaw_bias * d + sd_a * n[2]])
+        return np.array(
+            [
+                (1 + m.scale_bias) * dx + sd_t * n[0],
+                (1 + m.scale_bias) * dy + sd_t * n[1],
+                da + m.yaw_bias * d + sd_a * n[2],
+            ]
+        )
 
     def step(self, truth: np.ndarray) -> np.ndarray:
         """Advance to the true pose `truth` (x, y, yaw); returns the odometry pose (x, y, yaw)."""

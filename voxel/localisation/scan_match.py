@@ -21,8 +21,9 @@ def thin(points: np.ndarray, cell: float) -> np.ndarray:
     return points[np.sort(first)]
 
 
-def surface_normals(where: np.ndarray, points: np.ndarray, tree: cKDTree, k: int,
-                    planar: bool) -> tuple[np.ndarray, np.ndarray]:
+def surface_normals(
+    where: np.ndarray, points: np.ndarray, tree: cKDTree, k: int, planar: bool
+) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (M, 3) at `where` from the covariance of their k nearest `points` (indexed by `tree`),
     and a flatness in [0, 1] (1: a clean line or plane).
 
@@ -38,7 +39,9 @@ def surface_normals(where: np.ndarray, points: np.ndarray, tree: cKDTree, k: int
     normals = np.zeros((len(where), 3))
     normals[:, :dim] = vectors[:, :, 0]
     spread = values[:, -1] + 1e-12
-    flatness = 1.0 - values[:, 0] / spread if planar else 1.0 - values[:, 0] / (values[:, 1] + 1e-12)
+    flatness = (
+        1.0 - values[:, 0] / spread if planar else 1.0 - values[:, 0] / (values[:, 1] + 1e-12)
+    )
     return normals, np.clip(flatness, 0.0, 1.0)
 
 
@@ -49,8 +52,16 @@ class LocalMap:
     radians since the last one.
     """
 
-    def __init__(self, *, planar: bool, keyframes: int = 30, cell: float = 0.05, k: int = 8,
-                 key_distance: float = 0.25, key_angle: float = 0.15) -> None:
+    def __init__(
+        self,
+        *,
+        planar: bool,
+        keyframes: int = 30,
+        cell: float = 0.05,
+        k: int = 8,
+        key_distance: float = 0.25,
+        key_angle: float = 0.15,
+    ) -> None:
         if keyframes < 1 or cell <= 0 or k < 3:
             msg = f"local map: expected keyframes >= 1, cell > 0, k >= 3, found {keyframes}, {cell}, {k}"
             raise LocalisationError(msg)
@@ -87,8 +98,12 @@ class LocalMap:
             normals, flat = surface_normals(new, both, cKDTree(both), self.k, self.planar)
             keep = flat > 0.7  # corners and clutter have no reliable normal
             self.frames.append((new[keep], normals[keep]))
-        self.points = np.concatenate([f[0] for f in self.frames]) if self.frames else np.zeros((0, 3))
-        self.normals = np.concatenate([f[1] for f in self.frames]) if self.frames else np.zeros((0, 3))
+        self.points = (
+            np.concatenate([f[0] for f in self.frames]) if self.frames else np.zeros((0, 3))
+        )
+        self.normals = (
+            np.concatenate([f[1] for f in self.frames]) if self.frames else np.zeros((0, 3))
+        )
         self.tree = cKDTree(self.points) if len(self.points) >= self.k else None
 
 
@@ -97,7 +112,9 @@ class Match:
     """Result of matching a scan to a map: the refined pose and how much to trust it."""
 
     pose: np.ndarray  # (4, 4) body pose in the map frame
-    covariance: np.ndarray  # (dof, dof): x y yaw (dof 3) or x y z rx ry rz (dof 6), rotations about the pose
+    covariance: (
+        np.ndarray
+    )  # (dof, dof): x y yaw (dof 3) or x y z rx ry rz (dof 6), rotations about the pose
     matched: int
     rmse: float
     iterations: int
@@ -124,9 +141,19 @@ def _increment(delta: np.ndarray, centre: np.ndarray, dof: int) -> np.ndarray:
     return m
 
 
-def match(points_body: np.ndarray, local: LocalMap, init: np.ndarray, *, dof: int = 3,
-          max_distance: float = 0.5, final_distance: float = 0.15, iterations: int = 20,
-          robust_scale: float = 0.05, min_matched: int = 30, inflation: float = 10.0) -> Match:
+def match(
+    points_body: np.ndarray,
+    local: LocalMap,
+    init: np.ndarray,
+    *,
+    dof: int = 3,
+    max_distance: float = 0.5,
+    final_distance: float = 0.15,
+    iterations: int = 20,
+    robust_scale: float = 0.05,
+    min_matched: int = 30,
+    inflation: float = 10.0,
+) -> Match:
     """Refine the body pose `init` (4x4) so the scan `points_body` (N, 3, body frame) lies on the local map.
 
     Gauss-Newton on point-to-plane distances (point-to-line for 2D maps) with Cauchy weights;
@@ -155,8 +182,15 @@ def match(points_body: np.ndarray, local: LocalMap, init: np.ndarray, *, dof: in
         ok = np.isfinite(d)
         matched = int(ok.sum())
         if matched < min_matched:
-            return Match(t, np.eye(dof) * 1e6, matched, math.inf, it, False,
-                         f"{matched} correspondences, expected at least {min_matched}")
+            return Match(
+                t,
+                np.eye(dof) * 1e6,
+                matched,
+                math.inf,
+                it,
+                False,
+                f"{matched} correspondences, expected at least {min_matched}",
+            )
         p, q, n = moved[ok], local.points[idx[ok]], local.normals[idx[ok]]
         r = np.einsum("ij,ij->i", p - q, n)
         w = 1.0 / (1.0 + (r / robust_scale) ** 2)

@@ -44,7 +44,7 @@ class VisualStep:
 
 def _back_project(depth: np.ndarray, K: np.ndarray, stride: int, max_depth: float) -> np.ndarray:
     z = depth[::stride, ::stride]
-    v, u = np.mgrid[0:depth.shape[0]:stride, 0:depth.shape[1]:stride]
+    v, u = np.mgrid[0 : depth.shape[0] : stride, 0 : depth.shape[1] : stride]
     ok = np.isfinite(z) & (z > 0) & (z < max_depth)
     z = z[ok].astype(np.float64)
     return np.column_stack([(u[ok] - K[0, 2]) * z / K[0, 0], (v[ok] - K[1, 2]) * z / K[1, 1], z])
@@ -61,14 +61,24 @@ class VisualOdometry:
         self.params = p = params or VisualParams()
         self.orb = cv2.ORB_create(nfeatures=p.features)
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
-        self.local = LocalMap(planar=False, keyframes=p.keyframes, cell=p.map_cell, k=10,
-                              key_distance=p.key_distance, key_angle=p.key_angle)
+        self.local = LocalMap(
+            planar=False,
+            keyframes=p.keyframes,
+            cell=p.map_cell,
+            k=10,
+            key_distance=p.key_distance,
+            key_angle=p.key_angle,
+        )
         self.pose: np.ndarray | None = None
         self.velocity = np.eye(4)
-        self.previous: tuple[np.ndarray, np.ndarray] | None = None  # 3D points (camera frame), descriptors
+        self.previous: tuple[np.ndarray, np.ndarray] | None = (
+            None  # 3D points (camera frame), descriptors
+        )
         self.rng = np.random.default_rng(0)
 
-    def features(self, gray: np.ndarray | None, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def features(
+        self, gray: np.ndarray | None, depth: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """ORB keypoints (pixels), their camera-frame 3D points and descriptors, keeping those with valid depth."""
         empty = (np.zeros((0, 2)), np.zeros((0, 3)), np.zeros((0, 32), np.uint8))
         if gray is None:
@@ -82,7 +92,13 @@ class VisualOdometry:
         z = depth[v, u].astype(np.float64)
         ok = np.isfinite(z) & (z > 0) & (z < self.params.max_depth)
         z = z[ok]
-        xyz = np.column_stack([(px[ok, 0] - self.K[0, 2]) * z / self.K[0, 0], (px[ok, 1] - self.K[1, 2]) * z / self.K[1, 1], z])
+        xyz = np.column_stack(
+            [
+                (px[ok, 0] - self.K[0, 2]) * z / self.K[0, 0],
+                (px[ok, 1] - self.K[1, 2]) * z / self.K[1, 1],
+                z,
+            ]
+        )
         return px[ok], xyz, desc[ok]
 
     def _pnp(self, px: np.ndarray, desc: np.ndarray) -> tuple[np.ndarray | None, int]:
@@ -95,13 +111,22 @@ class VisualOdometry:
         a = np.array([m.queryIdx for m in pairs])
         b = np.array([m.trainIdx for m in pairs])
         ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-            self.previous[0][a], px[b], self.K, None, iterationsCount=self.params.ransac_iterations,
-            reprojectionError=self.params.reprojection_px, confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+            self.previous[0][a],
+            px[b],
+            self.K,
+            None,
+            iterationsCount=self.params.ransac_iterations,
+            reprojectionError=self.params.reprojection_px,
+            confidence=0.999,
+            flags=cv2.SOLVEPNP_EPNP,
+        )
         count = 0 if inliers is None else len(inliers)
         if not ok or count < self.params.min_inliers:
             return None, count
         idx = inliers.ravel()
-        rvec, tvec = cv2.solvePnPRefineLM(self.previous[0][a[idx]], px[b[idx]], self.K, None, rvec, tvec)
+        rvec, tvec = cv2.solvePnPRefineLM(
+            self.previous[0][a[idx]], px[b[idx]], self.K, None, rvec, tvec
+        )
         cur_from_prev = np.eye(4)
         cur_from_prev[:3, :3] = cv2.Rodrigues(rvec)[0]
         cur_from_prev[:3, 3] = tvec.ravel()
@@ -122,10 +147,22 @@ class VisualOdometry:
             return VisualStep(self.pose.copy(), "first", 0, None)
         motion, inliers = self._pnp(px, desc)
         predicted = self.pose @ (self.velocity if motion is None else motion)
-        source = cloud if len(cloud) <= p.icp_points else cloud[self.rng.choice(len(cloud), p.icp_points, replace=False)]
-        result = match(source, self.local, predicted, dof=6, max_distance=p.max_distance,
-                       final_distance=p.final_distance, iterations=p.iterations, robust_scale=0.02,
-                       min_matched=100)
+        source = (
+            cloud
+            if len(cloud) <= p.icp_points
+            else cloud[self.rng.choice(len(cloud), p.icp_points, replace=False)]
+        )
+        result = match(
+            source,
+            self.local,
+            predicted,
+            dof=6,
+            max_distance=p.max_distance,
+            final_distance=p.final_distance,
+            iterations=p.iterations,
+            robust_scale=0.02,
+            min_matched=100,
+        )
         if result.ok:
             pose, method = result.pose, "icp" if motion is None else "orb+icp"
         else:
@@ -135,7 +172,14 @@ class VisualOdometry:
         self._keep(px, xyz, desc, cloud)
         return VisualStep(pose.copy(), method, inliers, result)
 
-    def _keep(self, px: np.ndarray, xyz: np.ndarray, desc: np.ndarray, cloud: np.ndarray, first: bool = False) -> None:
+    def _keep(
+        self,
+        px: np.ndarray,
+        xyz: np.ndarray,
+        desc: np.ndarray,
+        cloud: np.ndarray,
+        first: bool = False,
+    ) -> None:
         self.previous = (xyz, desc)
         if first or self.local.wants(self.pose):
             self.local.add(cloud @ self.pose[:3, :3].T + self.pose[:3, 3], self.pose)

@@ -74,17 +74,28 @@ class Alignment:
         """The JSON record `colonyd align` writes (angles in degrees, transform 4x4 row-major)."""
         roll, pitch, yaw = (math.degrees(v) for v in euler(self.transform))
         out = {
-            "aligned": self.aligned, "transform": np.round(self.transform, 9).tolist(),
-            "x": float(self.transform[0, 3]), "y": float(self.transform[1, 3]), "z": float(self.transform[2, 3]),
-            "roll_deg": roll, "pitch_deg": pitch, "yaw_deg": yaw,
-            "confidence": round(self.confidence, 4), "inliers": self.inliers,
+            "aligned": self.aligned,
+            "transform": np.round(self.transform, 9).tolist(),
+            "x": float(self.transform[0, 3]),
+            "y": float(self.transform[1, 3]),
+            "z": float(self.transform[2, 3]),
+            "roll_deg": roll,
+            "pitch_deg": pitch,
+            "yaw_deg": yaw,
+            "confidence": round(self.confidence, 4),
+            "inliers": self.inliers,
             "rmse_m": None if not math.isfinite(self.rmse_m) else round(self.rmse_m, 5),
-            "overlap": round(self.overlap, 4), "inlier_ratio": round(self.inlier_ratio, 4),
+            "overlap": round(self.overlap, 4),
+            "inlier_ratio": round(self.inlier_ratio, 4),
             "conflict": round(self.conflict, 4),
-            "agreement": round(self.agreement, 4), "ambiguity": round(self.ambiguity, 4),
+            "agreement": round(self.agreement, 4),
+            "ambiguity": round(self.ambiguity, 4),
             "z_ambiguity": round(self.z_ambiguity, 4),
-            "covariance": np.round(self.covariance, 12).tolist(), "covariance_params": self.covariance_params,
-            "hypotheses": self.hypotheses, "dof": self.dof, "method": self.method,
+            "covariance": np.round(self.covariance, 12).tolist(),
+            "covariance_params": self.covariance_params,
+            "hypotheses": self.hypotheses,
+            "dof": self.dof,
+            "method": self.method,
             "seconds": round(self.seconds, 3),
         }
         if not self.aligned:
@@ -99,7 +110,9 @@ class _Candidate:
     evidence: Evidence
 
 
-def align_maps(path_a: str | PathLike[str], path_b: str | PathLike[str], params: AlignParams | None = None) -> Alignment:
+def align_maps(
+    path_a: str | PathLike[str], path_b: str | PathLike[str], params: AlignParams | None = None
+) -> Alignment:
     """Align the map file B to the map file A (.bt, grid .npz, .ply); time includes reading."""
     began = time.perf_counter()
     a, b = load_map(path_a), load_map(path_b)
@@ -130,30 +143,70 @@ def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) ->
     a_check = _sample_masked(a.occupied, a_wall, p.coarse_samples, rng)
 
     hypotheses = _global_hypotheses(a, b, a_walls, b_walls, a_side, cell, res, p, both_planar)
-    candidates = [_refine_coarse(h, a_coarse, a_coarse_tree, a_side, b_side, b_coarse, b_check, a_check,
-                                 icp_dof, cell, res, inlier_m) for h in hypotheses]
+    candidates = [
+        _refine_coarse(
+            h,
+            a_coarse,
+            a_coarse_tree,
+            a_side,
+            b_side,
+            b_coarse,
+            b_check,
+            a_check,
+            icp_dof,
+            cell,
+            res,
+            inlier_m,
+        )
+        for h in hypotheses
+    ]
     ranked, z_ambiguity = _distinct(candidates, b.occupied, p.distinct_m)
     if not ranked:
-        return _not_aligned(p.dof, len(hypotheses), time.perf_counter() - began,
-                            "the global search found no pose that puts any of B on A")
+        return _not_aligned(
+            p.dof,
+            len(hypotheses),
+            time.perf_counter() - began,
+            "the global search found no pose that puts any of B on A",
+        )
     best = ranked[0]
     ambiguity = _ambiguity(ranked)
 
     b_fine = _sample(b.occupied, p.fine_samples, rng)
-    fine = icp(b_fine, a_tree, a.occupied, best.transform, icp_dof, start_m=3.0 * res, end_m=1.5 * res,
-               iterations=30)
+    fine = icp(
+        b_fine,
+        a_tree,
+        a.occupied,
+        best.transform,
+        icp_dof,
+        start_m=3.0 * res,
+        end_m=1.5 * res,
+        iterations=30,
+    )
     b_eval = _sample_masked(b.occupied, b_wall, p.eval_samples, rng)
     a_eval = _sample_masked(a.occupied, a_wall, p.eval_samples, rng)
     evidence = evaluate(fine.transform, a_side, *b_eval, b_side, *a_eval, inlier_m)
     cov, names = _covariance(fine.transform, b_fine, a, a_tree, inlier_m, icp_dof, both_planar)
     verdict = judge(evidence, ambiguity, z_ambiguity, cov, names, p.limits)
     return Alignment(
-        aligned=verdict.aligned, transform=fine.transform, confidence=verdict.confidence,
-        inliers=evidence.inliers, rmse_m=evidence.rmse, overlap=evidence.overlap,
-        inlier_ratio=evidence.inlier_ratio, conflict=evidence.conflict_ratio,
-        agreement=evidence.agreement, ambiguity=ambiguity, z_ambiguity=z_ambiguity,
-        covariance=cov, covariance_params=names, hypotheses=len(hypotheses), dof=p.dof,
-        seconds=time.perf_counter() - began, reason=verdict.reason, failed_checks=verdict.failed)
+        aligned=verdict.aligned,
+        transform=fine.transform,
+        confidence=verdict.confidence,
+        inliers=evidence.inliers,
+        rmse_m=evidence.rmse,
+        overlap=evidence.overlap,
+        inlier_ratio=evidence.inlier_ratio,
+        conflict=evidence.conflict_ratio,
+        agreement=evidence.agreement,
+        ambiguity=ambiguity,
+        z_ambiguity=z_ambiguity,
+        covariance=cov,
+        covariance_params=names,
+        hypotheses=len(hypotheses),
+        dof=p.dof,
+        seconds=time.perf_counter() - began,
+        reason=verdict.reason,
+        failed_checks=verdict.failed,
+    )
 
 
 def _check(a: MapCloud, b: MapCloud, p: AlignParams) -> None:
@@ -172,16 +225,33 @@ def _check(a: MapCloud, b: MapCloud, p: AlignParams) -> None:
 def _side(m: MapCloud, tree: cKDTree, walls: np.ndarray, cell: float) -> Side:
     """Evidence's view of a map: walls, and the columns it observed (with free space: every column
     with a known voxel; without: columns with occupied voxels)."""
-    observed = observed_columns(m.known, m.resolution, cell) if m.known is not None else m.occupied[:, :2]
+    observed = (
+        observed_columns(m.known, m.resolution, cell) if m.known is not None else m.occupied[:, :2]
+    )
     return Side.build(tree, walls, observed, cell)
 
 
-def _global_hypotheses(a: MapCloud, b: MapCloud, a_walls: np.ndarray, b_walls: np.ndarray, a_side: Side,
-                       cell: float, res: float, p: AlignParams, both_planar: bool) -> list[Hypothesis]:
+def _global_hypotheses(
+    a: MapCloud,
+    b: MapCloud,
+    a_walls: np.ndarray,
+    b_walls: np.ndarray,
+    a_side: Side,
+    cell: float,
+    res: float,
+    p: AlignParams,
+    both_planar: bool,
+) -> list[Hypothesis]:
     """Distinct planar poses from the yaw search, each with its best vertical offsets (dof 4, 6)."""
     a_free = (vk.unpack(a_side.observed)[:, :2] + 0.5) * cell
-    planar_hyps = yaw_search(a_walls[:, :2], b_walls[:, :2], cell, a_free_xy=a_free,
-                             yaw_step_deg=p.yaw_step_deg, keep=p.hypotheses)
+    planar_hyps = yaw_search(
+        a_walls[:, :2],
+        b_walls[:, :2],
+        cell,
+        a_free_xy=a_free,
+        yaw_step_deg=p.yaw_step_deg,
+        keep=p.hypotheses,
+    )
     if p.dof == 3 and not both_planar:
         return planar_hyps
     a_thin = _thin(a.occupied, res, xy_cell=cell)
@@ -196,17 +266,39 @@ def _global_hypotheses(a: MapCloud, b: MapCloud, a_walls: np.ndarray, b_walls: n
     return out
 
 
-def _refine_coarse(h: Hypothesis, a_coarse: np.ndarray, a_coarse_tree: cKDTree, a_side: Side, b_side: Side,
-                   b_coarse: np.ndarray, b_check: tuple[np.ndarray, np.ndarray],
-                   a_check: tuple[np.ndarray, np.ndarray], dof: int, cell: float,
-                   res: float, inlier_m: float) -> _Candidate:
+def _refine_coarse(
+    h: Hypothesis,
+    a_coarse: np.ndarray,
+    a_coarse_tree: cKDTree,
+    a_side: Side,
+    b_side: Side,
+    b_coarse: np.ndarray,
+    b_check: tuple[np.ndarray, np.ndarray],
+    a_check: tuple[np.ndarray, np.ndarray],
+    dof: int,
+    cell: float,
+    res: float,
+    inlier_m: float,
+) -> _Candidate:
     """ICP from a global hypothesis against a thinned A; evidence counted on both maps' walls."""
-    fit = icp(b_coarse, a_coarse_tree, a_coarse, h.transform, dof, start_m=2.0 * cell, end_m=2.5 * res,
-              iterations=24)
-    return _Candidate(fit.transform, evaluate(fit.transform, a_side, *b_check, b_side, *a_check, inlier_m))
+    fit = icp(
+        b_coarse,
+        a_coarse_tree,
+        a_coarse,
+        h.transform,
+        dof,
+        start_m=2.0 * cell,
+        end_m=2.5 * res,
+        iterations=24,
+    )
+    return _Candidate(
+        fit.transform, evaluate(fit.transform, a_side, *b_check, b_side, *a_check, inlier_m)
+    )
 
 
-def _distinct(candidates: list[_Candidate], b_points: np.ndarray, distinct_m: float) -> tuple[list[_Candidate], float]:
+def _distinct(
+    candidates: list[_Candidate], b_points: np.ndarray, distinct_m: float
+) -> tuple[list[_Candidate], float]:
     """Distinct candidates best first, and the z ambiguity of the best.
 
     Candidates whose planar poses move B's extent less than `distinct_m` apart are one planar
@@ -254,14 +346,25 @@ def _planar_moved(t1: np.ndarray, t2: np.ndarray, corners: np.ndarray) -> float:
     return float(np.max(np.linalg.norm(p1 - p2, axis=1)))
 
 
-def _covariance(t: np.ndarray, b_points: np.ndarray, a: MapCloud, a_tree: cKDTree, inlier_m: float,
-                dof: int, both_planar: bool) -> tuple[np.ndarray, list[str]]:
+def _covariance(
+    t: np.ndarray,
+    b_points: np.ndarray,
+    a: MapCloud,
+    a_tree: cKDTree,
+    inlier_m: float,
+    dof: int,
+    both_planar: bool,
+) -> tuple[np.ndarray, list[str]]:
     moved = apply(t, b_points)
     d, idx = a_tree.query(moved, distance_upper_bound=inlier_m)
     ok = np.isfinite(d)
     if ok.sum() < 10:
         n = {3: 3, 4: 4, 6: 6}[dof]
-        names = {3: ["x", "y", "yaw"], 4: ["x", "y", "z", "yaw"], 6: ["x", "y", "z", "roll", "pitch", "yaw"]}[dof]
+        names = {
+            3: ["x", "y", "yaw"],
+            4: ["x", "y", "z", "yaw"],
+            6: ["x", "y", "z", "roll", "pitch", "yaw"],
+        }[dof]
         return np.eye(n) * 1e6, names
     n = normals(a.occupied, a_tree, a.occupied[idx[ok]], both_planar)
     return covariance(moved[ok], a.occupied[idx[ok]], n, dof)
@@ -273,8 +376,9 @@ def _sample(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndar
     return points[np.sort(rng.choice(len(points), count, replace=False))]
 
 
-def _sample_masked(points: np.ndarray, mask: np.ndarray, count: int,
-                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def _sample_masked(
+    points: np.ndarray, mask: np.ndarray, count: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     if len(points) <= count:
         return points, mask
     pick = np.sort(rng.choice(len(points), count, replace=False))
@@ -290,9 +394,31 @@ def _thin(points: np.ndarray, cell: float, xy_cell: float | None = None) -> np.n
 
 
 def _not_aligned(dof: int, hypotheses: int, seconds: float, reason: str) -> Alignment:
-    names = {3: ["x", "y", "yaw"], 4: ["x", "y", "z", "yaw"], 6: ["x", "y", "z", "roll", "pitch", "yaw"]}[dof]
-    return Alignment(False, np.eye(4), 0.0, 0, math.inf, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, np.eye(len(names)) * 1e6, names,
-                     hypotheses, dof, seconds, reason, ("search",))
+    names = {
+        3: ["x", "y", "yaw"],
+        4: ["x", "y", "z", "yaw"],
+        6: ["x", "y", "z", "roll", "pitch", "yaw"],
+    }[dof]
+    return Alignment(
+        False,
+        np.eye(4),
+        0.0,
+        0,
+        math.inf,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        1.0,
+        0.0,
+        np.eye(len(names)) * 1e6,
+        names,
+        hypotheses,
+        dof,
+        seconds,
+        reason,
+        ("search",),
+    )
 
 
 def _with_seconds(result: Alignment, seconds: float) -> Alignment:

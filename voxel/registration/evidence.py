@@ -96,12 +96,18 @@ class Evidence:
     @property
     def worst_inlier_ratio(self) -> float:
         """The lower of the two directions' confirmed shares."""
-        return min(self.inliers / max(self.overlapping, 1), self.back_inliers / max(self.back_overlapping, 1))
+        return min(
+            self.inliers / max(self.overlapping, 1),
+            self.back_inliers / max(self.back_overlapping, 1),
+        )
 
     @property
     def worst_conflict_ratio(self) -> float:
         """The higher of the two directions' contradicted shares."""
-        return max(self.conflicts / max(self.overlapping, 1), self.back_conflicts / max(self.back_overlapping, 1))
+        return max(
+            self.conflicts / max(self.overlapping, 1),
+            self.back_conflicts / max(self.back_overlapping, 1),
+        )
 
     @property
     def worst_near_miss_ratio(self) -> float:
@@ -109,11 +115,14 @@ class Evidence:
         the other map neither confirms nor contradicts (a wall of it within CLEAR_M, not within
         the inlier distance). A right pose puts walls on walls or where the other map saw none;
         a pose slid along repeated structure puts many next to them."""
+
         def share(inl: int, over: int, conf: int) -> float:
             return (over - inl - conf) / over if over else 0.0
 
-        return max(share(self.inliers, self.overlapping, self.conflicts),
-                   share(self.back_inliers, self.back_overlapping, self.back_conflicts))
+        return max(
+            share(self.inliers, self.overlapping, self.conflicts),
+            share(self.back_inliers, self.back_overlapping, self.back_conflicts),
+        )
 
     @property
     def agreement(self) -> float:
@@ -133,8 +142,9 @@ class Evidence:
         return float((self.inliers + self.back_inliers) * self.agreement**4)
 
 
-def _one_way(moved: np.ndarray, wall: np.ndarray, target: Side,
-             inlier_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _one_way(
+    moved: np.ndarray, wall: np.ndarray, target: Side, inlier_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Distances, inlier, overlap and conflict masks of points moved into `target`'s frame
     (`wall`: which of them are wall points; only those can contradict)."""
     d, _ = target.tree.query(moved, distance_upper_bound=CLEAR_M)
@@ -148,15 +158,32 @@ def _one_way(moved: np.ndarray, wall: np.ndarray, target: Side,
     return d, inlier, seen | inlier, conflict
 
 
-def evaluate(t: np.ndarray, a: Side, b_sample: np.ndarray, b_wall: np.ndarray, b: Side,
-             a_sample: np.ndarray, a_wall: np.ndarray, inlier_m: float) -> Evidence:
+def evaluate(
+    t: np.ndarray,
+    a: Side,
+    b_sample: np.ndarray,
+    b_wall: np.ndarray,
+    b: Side,
+    a_sample: np.ndarray,
+    a_wall: np.ndarray,
+    inlier_m: float,
+) -> Evidence:
     """Evidence for the transform `t` (B into A) on samples of both maps (with wall masks)."""
     d, inlier, overlapping, conflict = _one_way(apply(t, b_sample), b_wall, a, inlier_m)
-    _, inlier_back, ov_back, conflict_back = _one_way(apply(np.linalg.inv(t), a_sample), a_wall, b, inlier_m)
+    _, inlier_back, ov_back, conflict_back = _one_way(
+        apply(np.linalg.inv(t), a_sample), a_wall, b, inlier_m
+    )
     wall_in = inlier & b_wall
     rmse = float(np.sqrt(np.mean(d[wall_in] ** 2))) if wall_in.any() else float("inf")
-    return Evidence(samples=int(b_wall.sum()), inliers=int(wall_in.sum()), rmse=rmse,
-                    overlapping=int((overlapping & b_wall).sum()), conflicts=int(conflict.sum()),
-                    back_inliers=int((inlier_back & a_wall).sum()),
-                    back_overlapping=int((ov_back & a_wall).sum()), back_conflicts=int(conflict_back.sum()),
-                    support=int(inlier.sum()), support_overlapping=int(overlapping.sum()))
+    return Evidence(
+        samples=int(b_wall.sum()),
+        inliers=int(wall_in.sum()),
+        rmse=rmse,
+        overlapping=int((overlapping & b_wall).sum()),
+        conflicts=int(conflict.sum()),
+        back_inliers=int((inlier_back & a_wall).sum()),
+        back_overlapping=int((ov_back & a_wall).sum()),
+        back_conflicts=int(conflict_back.sum()),
+        support=int(inlier.sum()),
+        support_overlapping=int(overlapping.sum()),
+    )

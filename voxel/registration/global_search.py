@@ -56,8 +56,12 @@ def observed_columns(known: np.ndarray, resolution: float, cell: float) -> np.nd
     if known.size == 0:
         return np.empty((0, 2))
     scale = resolution / cell
-    cx = np.floor((((known >> (2 * vk.AXIS_BITS)) & vk.AXIS_MASK) - vk.AXIS_OFFSET + 0.5) * scale).astype(np.int64)
-    cy = np.floor((((known >> vk.AXIS_BITS) & vk.AXIS_MASK) - vk.AXIS_OFFSET + 0.5) * scale).astype(np.int64)
+    cx = np.floor(
+        (((known >> (2 * vk.AXIS_BITS)) & vk.AXIS_MASK) - vk.AXIS_OFFSET + 0.5) * scale
+    ).astype(np.int64)
+    cy = np.floor((((known >> vk.AXIS_BITS) & vk.AXIS_MASK) - vk.AXIS_OFFSET + 0.5) * scale).astype(
+        np.int64
+    )
     x0, y0 = int(cx.min()), int(cy.min())
     shape = (int(cx.max()) - x0 + 1, int(cy.max()) - y0 + 1)
     if shape[0] * shape[1] > 50_000_000:  # absurd extent: sort instead
@@ -69,8 +73,15 @@ def observed_columns(known: np.ndarray, resolution: float, cell: float) -> np.nd
     return (np.column_stack([ix + x0, iy + y0]) + 0.5) * cell
 
 
-def score_field(xy: np.ndarray, cell: float, pad: int, sigma: float = 1.0, free_xy: np.ndarray | None = None,
-                free_penalty: float = 1.0, near: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+def score_field(
+    xy: np.ndarray,
+    cell: float,
+    pad: int,
+    sigma: float = 1.0,
+    free_xy: np.ndarray | None = None,
+    free_penalty: float = 1.0,
+    near: float = 1.5,
+) -> tuple[np.ndarray, np.ndarray]:
     """Score image indexed [ix, iy] and the world xy of cell (0, 0)'s lower corner.
 
     exp(-d^2 / 2 sigma^2) within `near` cells of the points (d: cells to the nearest occupied
@@ -95,9 +106,17 @@ def score_field(xy: np.ndarray, cell: float, pad: int, sigma: float = 1.0, free_
     return field, lo
 
 
-def yaw_search(a_xy: np.ndarray, b_xy: np.ndarray, cell: float, *, a_free_xy: np.ndarray | None = None,
-               yaw_step_deg: float = 1.0, peaks_per_yaw: int = 3, keep: int = 8,
-               separation_m: float = 1.0) -> list[Hypothesis]:
+def yaw_search(
+    a_xy: np.ndarray,
+    b_xy: np.ndarray,
+    cell: float,
+    *,
+    a_free_xy: np.ndarray | None = None,
+    yaw_step_deg: float = 1.0,
+    peaks_per_yaw: int = 3,
+    keep: int = 8,
+    separation_m: float = 1.0,
+) -> list[Hypothesis]:
     """Best distinct planar transforms (B into A) by correlating B's rotated occupancy image with
     A's score field over every yaw step (FFT over translations); best first.
 
@@ -115,8 +134,10 @@ def yaw_search(a_xy: np.ndarray, b_xy: np.ndarray, cell: float, *, a_free_xy: np
     radius = float(np.max(np.linalg.norm(q, axis=1))) if len(q) else 0.0
     half = math.ceil(radius / cell) + 2
     side = 2 * half + 1
-    shape = (fft.next_fast_len(field.shape[0] + side, real=True),
-             fft.next_fast_len(field.shape[1] + side, real=True))
+    shape = (
+        fft.next_fast_len(field.shape[0] + side, real=True),
+        fft.next_fast_len(field.shape[1] + side, real=True),
+    )
     fa = fft.rfft2(field, s=shape)
     suppress = max(1, round(separation_m / cell))
     cand_yaw: list[float] = []
@@ -135,9 +156,15 @@ def yaw_search(a_xy: np.ndarray, b_xy: np.ndarray, cell: float, *, a_free_xy: np
             u, v = divmod(int(np.argmax(corr)), shape[1])
             cand_yaw.append(yaw)
             cand_score.append(float(corr[u, v]))
-            cand_shift.append((u if u < shape[0] - side else u - shape[0],
-                               v if v < shape[1] - side else v - shape[1]))
-            corr[max(0, u - suppress):u + suppress + 1, max(0, v - suppress):v + suppress + 1] = -np.inf
+            cand_shift.append(
+                (
+                    u if u < shape[0] - side else u - shape[0],
+                    v if v < shape[1] - side else v - shape[1],
+                )
+            )
+            corr[
+                max(0, u - suppress) : u + suppress + 1, max(0, v - suppress) : v + suppress + 1
+            ] = -np.inf
 
     # Coarse to fine: every other yaw step first, then the steps next to the best coarse yaws.
     step = math.radians(yaw_step_deg)
@@ -180,8 +207,16 @@ def _moved(t1: np.ndarray, t2: np.ndarray, xy: np.ndarray) -> float:
     return float(np.max(np.linalg.norm(p1 - p2, axis=1)))
 
 
-def z_offsets(a_points: np.ndarray, b_points: np.ndarray, cell: float, resolution: float, *,
-              count: int = 2, separation_m: float = 1.0, max_votes: int = 2_000_000) -> list[tuple[float, float]]:
+def z_offsets(
+    a_points: np.ndarray,
+    b_points: np.ndarray,
+    cell: float,
+    resolution: float,
+    *,
+    count: int = 2,
+    separation_m: float = 1.0,
+    max_votes: int = 2_000_000,
+) -> list[tuple[float, float]]:
     """Best vertical offsets (dz, votes) moving B (already placed in xy) onto A, best first.
 
     Every B point votes for z_A - z_B with each A point in the same xy cell; the histogram (bins
@@ -220,5 +255,5 @@ def z_offsets(a_points: np.ndarray, b_points: np.ndarray, cell: float, resolutio
         if hist[i] <= 0:
             break
         out.append((lo + i * resolution, float(hist[i])))
-        hist[max(0, i - width):i + width + 1] = 0.0
+        hist[max(0, i - width) : i + width + 1] = 0.0
     return out

@@ -35,15 +35,27 @@ def fit_rigid(p: np.ndarray, q: np.ndarray, dof: int) -> np.ndarray:
         t[:3, :3] = r
         t[:3, 3] = cq - r @ cp
         return t
-    yaw = math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])),
-                     float(np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])))
+    yaw = math.atan2(
+        float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])),
+        float(np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])),
+    )
     c, s = math.cos(yaw), math.sin(yaw)
     txy = cq[:2] - np.array([c * cp[0] - s * cp[1], s * cp[0] + c * cp[1]])
     return planar(yaw, float(txy[0]), float(txy[1]), float(cq[2] - cp[2]) if dof == 4 else 0.0)
 
 
-def icp(source: np.ndarray, tree: cKDTree, target: np.ndarray, init: np.ndarray, dof: int, *,
-        start_m: float, end_m: float, iterations: int = 30, tol_m: float = 1e-4) -> IcpResult:
+def icp(
+    source: np.ndarray,
+    tree: cKDTree,
+    target: np.ndarray,
+    init: np.ndarray,
+    dof: int,
+    *,
+    start_m: float,
+    end_m: float,
+    iterations: int = 30,
+    tol_m: float = 1e-4,
+) -> IcpResult:
     """Refine `init` so `source` (B's points) lands on `target` (A's points, indexed by `tree`).
 
     Correspondences are nearest neighbours within a distance that shrinks geometrically from
@@ -65,13 +77,23 @@ def icp(source: np.ndarray, tree: cKDTree, target: np.ndarray, init: np.ndarray,
         rmse = float(np.sqrt(np.mean(d[ok] ** 2)))
         step = fit_rigid(moved[ok], target[idx[ok]], dof)
         t = step @ t
-        shift = float(np.max(np.linalg.norm(apply(step, moved[ok][:: max(1, matched // 200)]) - moved[ok][:: max(1, matched // 200)], axis=1)))
+        shift = float(
+            np.max(
+                np.linalg.norm(
+                    apply(step, moved[ok][:: max(1, matched // 200)])
+                    - moved[ok][:: max(1, matched // 200)],
+                    axis=1,
+                )
+            )
+        )
         if it > half and shift < tol_m:
             break
     return IcpResult(t, matched, rmse, it)
 
 
-def normals(points: np.ndarray, tree: cKDTree, where: np.ndarray, planar_map: bool, k: int = 10) -> np.ndarray:
+def normals(
+    points: np.ndarray, tree: cKDTree, where: np.ndarray, planar_map: bool, k: int = 10
+) -> np.ndarray:
     """Unit surface normals (M, 3) of the map `points` (indexed by `tree`) at points `where` (M, 3),
     from the smallest principal axis of k neighbours; in-plane (xy) normals for a planar map."""
     _, idx = tree.query(where, k=min(k, len(points)))
@@ -87,7 +109,9 @@ def normals(points: np.ndarray, tree: cKDTree, where: np.ndarray, planar_map: bo
     return n
 
 
-def covariance(moved: np.ndarray, target: np.ndarray, normal: np.ndarray, dof: int) -> tuple[np.ndarray, list[str]]:
+def covariance(
+    moved: np.ndarray, target: np.ndarray, normal: np.ndarray, dof: int
+) -> tuple[np.ndarray, list[str]]:
     """Covariance of the transform parameters from point-to-plane residuals of matched pairs
     (moved B points, their A points, A's normals): sigma^2 (J^T J)^-1, with parameter names.
 
@@ -96,13 +120,25 @@ def covariance(moved: np.ndarray, target: np.ndarray, normal: np.ndarray, dof: i
     """
     r = np.einsum("ij,ij->i", moved - target, normal)
     rot = np.cross(moved - moved.mean(axis=0), normal)
-    cols = {"x": normal[:, 0], "y": normal[:, 1], "z": normal[:, 2],
-            "roll": rot[:, 0], "pitch": rot[:, 1], "yaw": rot[:, 2]}
-    names = {3: ["x", "y", "yaw"], 4: ["x", "y", "z", "yaw"], 6: ["x", "y", "z", "roll", "pitch", "yaw"]}[dof]
+    cols = {
+        "x": normal[:, 0],
+        "y": normal[:, 1],
+        "z": normal[:, 2],
+        "roll": rot[:, 0],
+        "pitch": rot[:, 1],
+        "yaw": rot[:, 2],
+    }
+    names = {
+        3: ["x", "y", "yaw"],
+        4: ["x", "y", "z", "yaw"],
+        6: ["x", "y", "z", "roll", "pitch", "yaw"],
+    }[dof]
     jac = np.column_stack([cols[n] for n in names])
     sigma2 = float(np.mean(r * r)) if len(r) > len(names) else 1.0
     info = jac.T @ jac
     w, v = np.linalg.eigh(info)
-    inv_w = np.where(w > 1e-9 * max(float(w.max()), 1e-12), 1.0 / np.maximum(w, 1e-300), 1e6 / max(sigma2, 1e-12))
+    inv_w = np.where(
+        w > 1e-9 * max(float(w.max()), 1e-12), 1.0 / np.maximum(w, 1e-300), 1e6 / max(sigma2, 1e-12)
+    )
     cov = (v * inv_w) @ v.T * sigma2
     return np.minimum(cov, 1e6), names

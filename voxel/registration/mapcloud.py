@@ -32,7 +32,9 @@ class MapCloud:
     name: str = "map"
 
     @classmethod
-    def from_keys(cls, resolution: float, keys: np.ndarray, occupied: np.ndarray, name: str = "map") -> MapCloud:
+    def from_keys(
+        cls, resolution: float, keys: np.ndarray, occupied: np.ndarray, name: str = "map"
+    ) -> MapCloud:
         """A map from voxel keys (N, 3) and their occupied mask (N,); the others are free."""
         keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
         occupied = np.asarray(occupied, dtype=bool).reshape(-1)
@@ -61,7 +63,9 @@ class MapCloud:
         packed = vk.pack(np.where(ok[:, None], keys, 0))
         idx = np.minimum(np.searchsorted(self.known, packed), self.known.size - 1)
         hit = ok & (self.known[idx] == packed)
-        return np.where(hit, np.where(self.known_occupied[idx], OCCUPIED, FREE), UNKNOWN).astype(np.int8)
+        return np.where(hit, np.where(self.known_occupied[idx], OCCUPIED, FREE), UNKNOWN).astype(
+            np.int8
+        )
 
 
 def load_map(path: str | PathLike[str]) -> MapCloud:
@@ -83,7 +87,9 @@ def load_map(path: str | PathLike[str]) -> MapCloud:
         occ, free = grid.occupied_keys(), grid.free_keys()
         mask = np.zeros(len(occ) + len(free), bool)
         mask[: len(occ)] = True
-        cloud = MapCloud.from_keys(grid.resolution, np.concatenate([occ, free]), mask, name=str(path))
+        cloud = MapCloud.from_keys(
+            grid.resolution, np.concatenate([occ, free]), mask, name=str(path)
+        )
     elif suffix == ".ply":
         from voxel.ply import read_ply
 

@@ -7,15 +7,29 @@ import math
 import numpy as np
 
 
-def rigid(x: float = 0.0, y: float = 0.0, z: float = 0.0, roll: float = 0.0, pitch: float = 0.0,
-          yaw: float = 0.0) -> np.ndarray:
+def rigid(
+    x: float = 0.0,
+    y: float = 0.0,
+    z: float = 0.0,
+    roll: float = 0.0,
+    pitch: float = 0.0,
+    yaw: float = 0.0,
+) -> np.ndarray:
     """4x4 transform with rotation Rz(yaw) Ry(pitch) Rx(roll) (radians) and translation (x, y, z)."""
-    cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
-                              math.cos(yaw), math.sin(yaw))
+    cr, sr, cp, sp, cy, sy = (
+        math.cos(roll),
+        math.sin(roll),
+        math.cos(pitch),
+        math.sin(pitch),
+        math.cos(yaw),
+        math.sin(yaw),
+    )
     t = np.eye(4)
-    t[:3, :3] = [[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                 [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                 [-sp, cp * sr, cp * cr]]
+    t[:3, :3] = [
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ]
     t[:3, 3] = (x, y, z)
     return t
 
@@ -24,7 +38,11 @@ def euler(t: np.ndarray) -> tuple[float, float, float]:
     """(roll, pitch, yaw) in radians of a transform built as Rz(yaw) Ry(pitch) Rx(roll)."""
     r = np.asarray(t)[:3, :3]
     pitch = math.asin(max(-1.0, min(1.0, -float(r[2, 0]))))
-    return math.atan2(float(r[2, 1]), float(r[2, 2])), pitch, math.atan2(float(r[1, 0]), float(r[0, 0]))
+    return (
+        math.atan2(float(r[2, 1]), float(r[2, 2])),
+        pitch,
+        math.atan2(float(r[1, 0]), float(r[0, 0])),
+    )
 
 
 def apply(t: np.ndarray, points: np.ndarray) -> np.ndarray:

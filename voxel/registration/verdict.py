@@ -16,10 +16,18 @@ class Thresholds:
     """Limits a trusted alignment must meet."""
 
     min_inliers: int = 150  # matching B sample points
-    min_agreement: float = 0.3  # confirmed minus contradicted share of overlapping wall points, both ways
-    min_inlier_ratio: float = 0.45  # confirmed share of overlapping wall points, in the worse direction
-    max_conflict: float = 0.3  # contradicted share (in the other map's open space), in the worse direction
-    max_near_miss: float = 0.3  # walls next to (not on) the other map's walls, in the worse direction
+    min_agreement: float = (
+        0.3  # confirmed minus contradicted share of overlapping wall points, both ways
+    )
+    min_inlier_ratio: float = (
+        0.45  # confirmed share of overlapping wall points, in the worse direction
+    )
+    max_conflict: float = (
+        0.3  # contradicted share (in the other map's open space), in the worse direction
+    )
+    max_near_miss: float = (
+        0.3  # walls next to (not on) the other map's walls, in the worse direction
+    )
     min_support_ratio: float = 0.45  # confirmed share of all overlapping B points, floors included
     max_ambiguity: float = 0.5  # second-best distinct planar pose's score over the best's
     max_z_ambiguity: float = 0.7  # support of the best other height over the best height's
@@ -38,8 +46,14 @@ class Verdict:
     failed: tuple[str, ...] = ()  # names of every check that failed (reason: the first's message)
 
 
-def judge(best: Evidence, ambiguity: float, z_ambiguity: float, cov: np.ndarray, names: list[str],
-          limits: Thresholds) -> Verdict:
+def judge(
+    best: Evidence,
+    ambiguity: float,
+    z_ambiguity: float,
+    cov: np.ndarray,
+    names: list[str],
+    limits: Thresholds,
+) -> Verdict:
     """The verdict on the best pose given its evidence, the ambiguity ratios (planar and in
     height) and its covariance."""
     var = dict(zip(names, np.diag(cov), strict=True))
@@ -59,38 +73,84 @@ def judge(best: Evidence, ambiguity: float, z_ambiguity: float, cov: np.ndarray,
     )
     confidence = float(np.prod(factors)) ** (1.0 / len(factors))
     checks = [
-        ("inliers", best.inliers >= limits.min_inliers,
-         f"too few matching voxels: expected at least {limits.min_inliers}, found {best.inliers}"),
-        ("agreement", best.agreement >= limits.min_agreement,
-         (f"the maps disagree where they overlap: expected confirmed minus contradicted walls of at "
-          f"least {limits.min_agreement:.0%}, found {best.agreement:.0%} ({best.inlier_ratio:.0%} "
-          f"confirmed, {best.conflict_ratio:.0%} in the other map's open space)")),
-        ("confirmed", best.worst_inlier_ratio >= limits.min_inlier_ratio,
-         (f"one map's walls are not confirmed by the other: expected at least "
-          f"{limits.min_inlier_ratio:.0%} in each direction, found {best.worst_inlier_ratio:.0%}")),
-        ("contradicted", best.worst_conflict_ratio <= limits.max_conflict,
-         (f"walls land in the other map's open space: expected at most {limits.max_conflict:.0%} in "
-          f"each direction, found {best.worst_conflict_ratio:.0%}")),
-        ("near_miss", best.worst_near_miss_ratio <= limits.max_near_miss,
-         (f"walls land next to the other map's walls, not on them: expected at most "
-          f"{limits.max_near_miss:.0%} near misses in each direction, found {best.worst_near_miss_ratio:.0%} "
-          f"(a pose slid along repeated structure?)")),
-        ("support", best.support_ratio >= limits.min_support_ratio,
-         (f"walls agree but floors and ceilings do not: expected at least {limits.min_support_ratio:.0%} "
-          f"of all overlapping voxels to match, found {best.support_ratio:.0%} (a height offset "
-          f"--dof 3 cannot model?)")),
-        ("ambiguity", ambiguity <= limits.max_ambiguity,
-         (f"ambiguous: a distinct pose scores {ambiguity:.0%} of the best (expected at most "
-          f"{limits.max_ambiguity:.0%}); e.g. a symmetric corridor, repeated rooms or maps of different places")),
-        ("z_ambiguity", z_ambiguity <= limits.max_z_ambiguity,
-         (f"ambiguous in height: another height is supported {z_ambiguity:.0%} as well as the best "
-          f"(expected at most {limits.max_z_ambiguity:.0%})")),
-        ("constrained", t_std <= limits.max_translation_std_m and yaw_std <= limits.max_yaw_std_deg,
-         (f"the geometry does not constrain every direction: expected standard deviations within "
-          f"{limits.max_translation_std_m} m and {limits.max_yaw_std_deg} deg, found {t_std:.3g} m and "
-          f"{yaw_std:.3g} deg")),
-        ("confidence", confidence >= limits.min_confidence,
-         f"confidence {confidence:.2f} below {limits.min_confidence}"),
+        (
+            "inliers",
+            best.inliers >= limits.min_inliers,
+            f"too few matching voxels: expected at least {limits.min_inliers}, found {best.inliers}",
+        ),
+        (
+            "agreement",
+            best.agreement >= limits.min_agreement,
+            (
+                f"the maps disagree where they overlap: expected confirmed minus contradicted walls of at "
+                f"least {limits.min_agreement:.0%}, found {best.agreement:.0%} ({best.inlier_ratio:.0%} "
+                f"confirmed, {best.conflict_ratio:.0%} in the other map's open space)"
+            ),
+        ),
+        (
+            "confirmed",
+            best.worst_inlier_ratio >= limits.min_inlier_ratio,
+            (
+                f"one map's walls are not confirmed by the other: expected at least "
+                f"{limits.min_inlier_ratio:.0%} in each direction, found {best.worst_inlier_ratio:.0%}"
+            ),
+        ),
+        (
+            "contradicted",
+            best.worst_conflict_ratio <= limits.max_conflict,
+            (
+                f"walls land in the other map's open space: expected at most {limits.max_conflict:.0%} in "
+                f"each direction, found {best.worst_conflict_ratio:.0%}"
+            ),
+        ),
+        (
+            "near_miss",
+            best.worst_near_miss_ratio <= limits.max_near_miss,
+            (
+                f"walls land next to the other map's walls, not on them: expected at most "
+                f"{limits.max_near_miss:.0%} near misses in each direction, found {best.worst_near_miss_ratio:.0%} "
+                f"(a pose slid along repeated structure?)"
+            ),
+        ),
+        (
+            "support",
+            best.support_ratio >= limits.min_support_ratio,
+            (
+                f"walls agree but floors and ceilings do not: expected at least {limits.min_support_ratio:.0%} "
+                f"of all overlapping voxels to match, found {best.support_ratio:.0%} (a height offset "
+                f"--dof 3 cannot model?)"
+            ),
+        ),
+        (
+            "ambiguity",
+            ambiguity <= limits.max_ambiguity,
+            (
+                f"ambiguous: a distinct pose scores {ambiguity:.0%} of the best (expected at most "
+                f"{limits.max_ambiguity:.0%}); e.g. a symmetric corridor, repeated rooms or maps of different places"
+            ),
+        ),
+        (
+            "z_ambiguity",
+            z_ambiguity <= limits.max_z_ambiguity,
+            (
+                f"ambiguous in height: another height is supported {z_ambiguity:.0%} as well as the best "
+                f"(expected at most {limits.max_z_ambiguity:.0%})"
+            ),
+        ),
+        (
+            "constrained",
+            t_std <= limits.max_translation_std_m and yaw_std <= limits.max_yaw_std_deg,
+            (
+                f"the geometry does not constrain every direction: expected standard deviations within "
+                f"{limits.max_translation_std_m} m and {limits.max_yaw_std_deg} deg, found {t_std:.3g} m and "
+                f"{yaw_std:.3g} deg"
+            ),
+        ),
+        (
+            "confidence",
+            confidence >= limits.min_confidence,
+            f"confidence {confidence:.2f} below {limits.min_confidence}",
+        ),
     ]
     failed = [(name, reason) for name, ok, reason in checks if not ok]
     if len(failed) > 1:  # the confidence check only speaks when every other check passed

@@ -41,8 +41,19 @@ def test_hostile_input_on_every_key_is_rejected_and_counted(tmp_path):
         assert got[f"hostile_{label}_foreign_layers"] == [], got
         assert got[f"hostile_{label}_alive"], got
     reasons = got["rejected"]
-    for reason in ("truncated", "malformed", "version", "unknown_type", "decompression_bomb",
-                   "oversized", "keyexpr", "own_origin", "bad-query", "auth", "replay"):
+    for reason in (
+        "truncated",
+        "malformed",
+        "version",
+        "unknown_type",
+        "decompression_bomb",
+        "oversized",
+        "keyexpr",
+        "own_origin",
+        "bad-query",
+        "auth",
+        "replay",
+    ):
         assert reasons.get(reason, 0) > 0, (reason, reasons)
 
 
@@ -141,9 +152,24 @@ def test_an_unwritable_state_directory_fails_with_a_clear_error(tmp_path):
     with Tmpfs(tmp_path / "ro", 1) as mount:
         mount.remount(read_only=True)
         run = subprocess.run(
-            [sys.executable, "-m", "colonyd", "run", "--agent-id", "a", "--no-multicast",
-             "--state-dir", str(tmp_path / "ro" / "state"), "--listen", "tcp/127.0.0.1:0"],
-            capture_output=True, text=True, timeout=60, check=False)
+            [
+                sys.executable,
+                "-m",
+                "colonyd",
+                "run",
+                "--agent-id",
+                "a",
+                "--no-multicast",
+                "--state-dir",
+                str(tmp_path / "ro" / "state"),
+                "--listen",
+                "tcp/127.0.0.1:0",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
     assert run.returncode == 1, run.stderr
     assert "is not writable: Read-only file system" in run.stderr
 
@@ -158,4 +184,3 @@ def test_a_partition_in_network_namespaces_heals(tmp_path):
     assert got["partition_minority_progress"] > 0, got  # so did c, alone
     assert got["partition_majority_saw_c"] == 0, got  # the cut really separated them
     assert got["partition_heal_s"] < 30, got
-

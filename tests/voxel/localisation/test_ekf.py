@@ -35,7 +35,9 @@ def test_update_with_equal_covariance_lands_halfway_and_wraps() -> None:
     f = PlanarEkf(np.array([0.0, 0.0, math.pi - 0.05]), covariance=np.eye(3) * 0.01)
     assert f.update(np.array([0.2, -0.2, -math.pi + 0.05]), np.eye(3) * 0.01)
     np.testing.assert_allclose(f.pose[:2], [0.1, -0.1], atol=1e-9)
-    assert abs(f.pose[2]) == pytest.approx(math.pi, abs=1e-9)  # halfway across the wrap, not through 0
+    assert abs(f.pose[2]) == pytest.approx(
+        math.pi, abs=1e-9
+    )  # halfway across the wrap, not through 0
     np.testing.assert_allclose(f.covariance, np.eye(3) * 0.005, atol=1e-12)
 
 

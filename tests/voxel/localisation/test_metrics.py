@@ -46,7 +46,9 @@ def test_ate_is_zero_for_a_moved_copy_and_known_for_an_offset() -> None:
 
 
 def test_ate_errors_say_what_was_expected() -> None:
-    with pytest.raises(LocalisationError, match=r"expected the same number of poses, found 3 and 4"):
+    with pytest.raises(
+        LocalisationError, match=r"expected the same number of poses, found 3 and 4"
+    ):
         absolute_trajectory_error(np.zeros((3, 3)), np.zeros((4, 3)))
     with pytest.raises(LocalisationError, match=r"expected positions \(N, 3\) or poses"):
         absolute_trajectory_error(np.zeros((3, 2)), np.zeros((3, 2)))
@@ -67,7 +69,9 @@ def test_ate_equals_evo_ape_with_alignment(tmp_path: Path) -> None:
     est[:, :3, 3] += rng.normal(scale=0.05, size=(200, 3)) + np.linspace(0, 0.3, 200)[:, None]
     times = np.arange(200) * 0.1
     for name, poses in (("gt", ref), ("est", est)):
-        (tmp_path / f"{name}.tum").write_text("".join(tum_line(t, p) + "\n" for t, p in zip(times, poses)))
+        (tmp_path / f"{name}.tum").write_text(
+            "".join(tum_line(t, p) + "\n" for t, p in zip(times, poses))
+        )
     traj_ref = file_interface.read_tum_trajectory_file(str(tmp_path / "gt.tum"))
     traj_est = file_interface.read_tum_trajectory_file(str(tmp_path / "est.tum"))
     traj_ref, traj_est = evo_sync.associate_trajectories(traj_ref, traj_est)

@@ -49,8 +49,12 @@ def test_random_walk_does_not_depend_on_the_sampling_rate() -> None:
 
 def test_seeded() -> None:
     ref = _straight(50, 0.2)
-    np.testing.assert_array_equal(synthesise(ref, PRESETS["realistic"], 7), synthesise(ref, PRESETS["realistic"], 7))
-    assert not np.array_equal(synthesise(ref, PRESETS["realistic"], 7), synthesise(ref, PRESETS["realistic"], 8))
+    np.testing.assert_array_equal(
+        synthesise(ref, PRESETS["realistic"], 7), synthesise(ref, PRESETS["realistic"], 7)
+    )
+    assert not np.array_equal(
+        synthesise(ref, PRESETS["realistic"], 7), synthesise(ref, PRESETS["realistic"], 8)
+    )
     odometer = WheelOdometer(np.zeros(3), PRESETS["none"])
     np.testing.assert_allclose(odometer.step(np.array([1.0, 0.0, 0.5])), [1.0, 0.0, 0.5])
 
@@ -59,7 +63,9 @@ def test_parse_noise() -> None:
     assert parse_noise("realistic") == OdometryNoise()
     assert parse_noise("0.1/0.2/0.03/0/0.001") == OdometryNoise(0.1, 0.2, 0.03, 0.0, 0.001)
     assert parse_noise(OdometryNoise().text) == OdometryNoise()
-    with pytest.raises(LocalisationError, match=r"expected one of .* or five numbers .* found 'loud'"):
+    with pytest.raises(
+        LocalisationError, match=r"expected one of .* or five numbers .* found 'loud'"
+    ):
         parse_noise("loud")
     with pytest.raises(LocalisationError, match=r"trans: expected a finite number \(>= 0"):
         parse_noise("-1/0/0/0/0")

@@ -14,8 +14,13 @@ from voxel.localisation.odometry import OdometryNoise, synthesise
 from voxel.localisation.scan_match import LocalMap, match
 
 
-def _segments_scan(pose: np.ndarray, walls: list[tuple[tuple[float, float], tuple[float, float]]],
-                   beams: int = 360, noise: float = 0.0, rng: np.random.Generator | None = None) -> np.ndarray:
+def _segments_scan(
+    pose: np.ndarray,
+    walls: list[tuple[tuple[float, float], tuple[float, float]]],
+    beams: int = 360,
+    noise: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> np.ndarray:
     """Body-frame points of a 360-degree 2D scan from planar `pose` against wall segments (vectorised)."""
     a = pose[2] + np.linspace(-math.pi, math.pi, beams, endpoint=False)
     d = np.column_stack([np.cos(a), np.sin(a)])
@@ -36,8 +41,15 @@ def _segments_scan(pose: np.ndarray, walls: list[tuple[tuple[float, float], tupl
     return np.column_stack([r * np.cos(local), r * np.sin(local), np.zeros(keep.sum())])
 
 
-ROOM = [((-4, -3), (4, -3)), ((4, -3), (4, 3)), ((4, 3), (-4, 3)), ((-4, 3), (-4, -3)),
-        ((-1, -1), (0.5, -1)), ((0.5, -1), (0.5, 0.2)), ((2, 1.5), (3, 2.5))]
+ROOM = [
+    ((-4, -3), (4, -3)),
+    ((4, -3), (4, 3)),
+    ((4, 3), (-4, 3)),
+    ((-4, 3), (-4, -3)),
+    ((-1, -1), (0.5, -1)),
+    ((0.5, -1), (0.5, 0.2)),
+    ((2, 1.5), (3, 2.5)),
+]
 CORRIDOR = [((-20, -1), (20, -1)), ((-20, 1), (20, 1))]
 
 
@@ -66,7 +78,9 @@ def test_corridor_leaves_its_length_unconstrained() -> None:
     result = match(_segments_scan(truth, CORRIDOR), local, se2.to_matrix(truth + [0.0, 0.08, 0.03]))
     assert result.ok
     pose = se2.from_matrix(result.pose)
-    assert pose[1:] == pytest.approx(truth[1:], abs=5e-3)  # across the corridor and the heading are found
+    assert pose[1:] == pytest.approx(
+        truth[1:], abs=5e-3
+    )  # across the corridor and the heading are found
     sd = np.sqrt(np.diag(result.covariance))
     assert sd[0] > 20 * sd[1]  # along the corridor: no information
 
@@ -88,7 +102,9 @@ def test_scan_localiser_beats_biased_odometry_in_a_room() -> None:
     truth[:, 2] = heading
     odo = synthesise(truth, OdometryNoise(0.05, 0.05, 0.01, 0.03, 0.02), seed=1)
     loc = ScanLocaliser(planar=True)
-    est = np.array([loc.step(_segments_scan(p, ROOM, noise=0.01, rng=rng), o).pose for p, o in zip(truth, odo)])
+    est = np.array(
+        [loc.step(_segments_scan(p, ROOM, noise=0.01, rng=rng), o).pose for p, o in zip(truth, odo)]
+    )
     err_est = np.linalg.norm(est[:, :2] - truth[:, :2], axis=1).max()
     err_odo = np.linalg.norm(odo[:, :2] - truth[:, :2], axis=1).max()
     assert err_odo > 0.3

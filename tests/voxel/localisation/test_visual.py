@@ -18,14 +18,23 @@ K = np.array([[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]])
 KITCHEN = SHARED_DATA / "redkitchen-seq01-a"
 
 #: A room (inside of a box) with a block in it: planes n . x = c.
-PLANES = [((1, 0, 0), 2.0), ((-1, 0, 0), 2.5), ((0, 1, 0), 0.6), ((0, -1, 0), 0.8), ((0, 0, 1), 3.0), ((0, 0, -1), 1.0)]
+PLANES = [
+    ((1, 0, 0), 2.0),
+    ((-1, 0, 0), 2.5),
+    ((0, 1, 0), 0.6),
+    ((0, -1, 0), 0.8),
+    ((0, 0, 1), 3.0),
+    ((0, 0, -1), 1.0),
+]
 
 
 def _render(pose: np.ndarray, shape: tuple[int, int] = (240, 320)) -> np.ndarray:
     """Depth image (metres) of the room and an axis-aligned block, seen by a camera at `pose` (camera-to-world)."""
     h, w = shape
     v, u = np.mgrid[0:h, 0:w]
-    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((h, w))], axis=-1).reshape(-1, 3)
+    rays = np.stack(
+        [(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((h, w))], axis=-1
+    ).reshape(-1, 3)
     d = rays @ pose[:3, :3].T
     o = pose[:3, 3]
     best = np.full(len(d), np.inf)
@@ -57,9 +66,13 @@ def test_depth_only_alignment_recovers_a_known_motion() -> None:
 
 
 def test_bad_inputs_say_what_was_expected() -> None:
-    with pytest.raises(LocalisationError, match=r"K: expected 3x3 intrinsics, found shape \(2, 2\)"):
+    with pytest.raises(
+        LocalisationError, match=r"K: expected 3x3 intrinsics, found shape \(2, 2\)"
+    ):
         VisualOdometry(np.eye(2))
-    with pytest.raises(LocalisationError, match=r"depth: expected a \(H, W\) image in metres, found shape \(4,\)"):
+    with pytest.raises(
+        LocalisationError, match=r"depth: expected a \(H, W\) image in metres, found shape \(4,\)"
+    ):
         VisualOdometry(K).step(None, np.zeros(4))
 
 

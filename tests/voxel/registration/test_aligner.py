@@ -31,8 +31,22 @@ def test_planar_map_moved_by_known_transform_is_recovered(plan, dof: int, yaw_de
     assert result.confidence > 0.1 and result.inliers > 100 and result.rmse_m < RES
     assert result.covariance.shape == (3, 3) and np.all(np.diag(result.covariance) < 1e-3)
     record = result.to_json()
-    assert {"aligned", "transform", "x", "y", "z", "roll_deg", "pitch_deg", "yaw_deg", "confidence", "inliers",
-            "rmse_m", "overlap", "method", "seconds"} <= set(record)
+    assert {
+        "aligned",
+        "transform",
+        "x",
+        "y",
+        "z",
+        "roll_deg",
+        "pitch_deg",
+        "yaw_deg",
+        "confidence",
+        "inliers",
+        "rmse_m",
+        "overlap",
+        "method",
+        "seconds",
+    } <= set(record)
     assert "reason" not in record
     assert np.allclose(np.array(record["transform"]), result.transform, atol=1e-8)
 
@@ -72,7 +86,9 @@ def test_halves_that_do_not_overlap_are_not_aligned(plan) -> None:
 def test_symmetric_corridor_is_not_aligned() -> None:
     """Two straight walls: sliding along the corridor or turning round fits as well, so no pose."""
     x = np.arange(0, 300)
-    walls = np.concatenate([np.column_stack([x, np.zeros_like(x)]), np.column_stack([x, np.full_like(x, 20)])])
+    walls = np.concatenate(
+        [np.column_stack([x, np.zeros_like(x)]), np.column_stack([x, np.full_like(x, 20)])]
+    )
     free = np.array([[i, j] for i in x for j in range(1, 20)])
     keys, mask = plan_map(walls, free)
     a = crop_and_move(keys, mask, 0.0, 20.0)
@@ -87,7 +103,9 @@ def test_bad_dof_and_tiny_maps_raise() -> None:
     cloud = MapCloud(0.1, pts)
     with pytest.raises(AlignmentError, match=r"dof: expected 3 \(x, y, yaw\), 4 .* or 6, found 5"):
         align_clouds(cloud, cloud, AlignParams(dof=5))
-    with pytest.raises(AlignmentError, match=r"map B .*expected at least 10 occupied voxels .*found shape \(3, 3\)"):
+    with pytest.raises(
+        AlignmentError, match=r"map B .*expected at least 10 occupied voxels .*found shape \(3, 3\)"
+    ):
         align_clouds(cloud, MapCloud(0.1, pts[:3]))
     bad = pts.copy()
     bad[0, 0] = np.nan

@@ -21,8 +21,11 @@ def test_euler_round_trip_and_wrap() -> None:
 @pytest.mark.parametrize("dof", [3, 4, 6])
 def test_fit_rigid_recovers_a_transform_within_its_degrees_of_freedom(dof: int) -> None:
     p = np.random.default_rng(1).uniform(-5, 5, (200, 3))
-    truth = {3: rigid(1.0, 2.0, 0.0, yaw=0.7), 4: rigid(1.0, 2.0, -0.5, yaw=-2.0),
-             6: rigid(1.0, 2.0, 0.3, roll=0.2, pitch=-0.1, yaw=1.0)}[dof]
+    truth = {
+        3: rigid(1.0, 2.0, 0.0, yaw=0.7),
+        4: rigid(1.0, 2.0, -0.5, yaw=-2.0),
+        6: rigid(1.0, 2.0, 0.3, roll=0.2, pitch=-0.1, yaw=1.0),
+    }[dof]
     np.testing.assert_allclose(fit_rigid(p, apply(truth, p), dof), truth, atol=1e-9)
 
 
