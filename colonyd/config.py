@@ -109,6 +109,8 @@ class Config(BaseSettings):
     max_peer_blocks: int = Field(
         100_000, ge=1, description="voxel blocks (64 voxels each) in peer layers"
     )
+    localise: bool = Field(
+        True, description="estimate the pose of sources with odometry (EKF + scan matching) and map from it")
     align_s: float = Field(
         5.0, ge=0, description="seconds between alignment attempts with peers (0: none)"
     )

@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 import zlib
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,7 @@ import numpy as np
 from colonyd.alignment import ColonyFrame, align_layers, edge_of
 from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError, DuplicateAgentError, PersistenceError
+from colonyd.estimator import Estimator, PoseError, get_estimator
 from colonyd.export import encode_map
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
@@ -78,6 +80,8 @@ class Daemon:
         self._last_snapshot = time.monotonic()
         self._sources_done = threading.Event()
         self.objects = OwnObjects(frozenset(config.structure_classes))
+        self._estimators: dict[str, Estimator] = {}  # per source spec
+        self.pose_error = PoseError()
         self.attempts: dict[str, dict[str, Any]] = {}  # peer -> last alignment attempt (JSON)
         self.conflict = ""  # set when another live daemon has our agent id and we give way
         self._conflict_logged = 0.0
@@ -349,6 +353,12 @@ class Daemon:
         self._sources_done.set()
 
     def _integrate(self, own: Any, obs: Observation, source: Source) -> None:
+        if self.config.localise and obs.odometry is not None:  # map from the estimate
+            estimator = self._estimators.get(source.spec)
+            if estimator is None:
+                estimator = self._estimators[source.spec] = get_estimator(source.adapter, obs)
+            obs = replace(obs, pose=estimator(obs))
+        self.pose_error.update(obs.pose, obs.truth)  # evaluation only: never fed back
         with own.lock:
             integrate_observation(
                 own.grid,
@@ -532,6 +542,7 @@ class Daemon:
             "time": time.time(),
             "uptime": time.time() - self.started,
             "pose": self.pose,
+            "pose_error_m": self.pose_error.last,
             "sources_done": self._sources_done.is_set() or not self.config.sources,
             "unpublished": unpublished,
             "frame": frame_of(self.config.agent_id),

@@ -9,16 +9,14 @@ from pathlib import Path
 
 import numpy as np
 
+from colonyd.estimator import Estimator, get_estimator
 from colonyd.mapping import get_progress, integrate_observation, tum_line, write_map
 from plugins.carmen import CarmenSource
 from plugins.observation import Observation
 from plugins.sevenscenes import RgbdSource
 from plugins.source import open_source
 from voxel.grid import VoxelGrid
-from voxel.localisation import se2
-from voxel.localisation.localiser import ScanLocaliser
 from voxel.localisation.metrics import absolute_trajectory_error
-from voxel.localisation.visual import VisualOdometry
 
 
 @dataclass(frozen=True)
@@ -33,45 +31,6 @@ class LocalizeSummary:
     ate_odometry: float | None
     recording_seconds: float
     files: dict[str, Path]
-
-
-class _Scan:
-    """Adapter of `ScanLocaliser` to observations: body-frame points in, sensor pose out."""
-
-    name = "ekf+scan-to-map"
-
-    def __init__(self, planar: bool, mount: np.ndarray) -> None:
-        self.localiser = ScanLocaliser(planar=planar)
-        self.mount = mount
-
-    def __call__(self, obs: Observation) -> np.ndarray:
-        points = obs.points if obs.no_return is None else obs.points[~obs.no_return]
-        body = points @ self.mount[:3, :3].T + self.mount[:3, 3]
-        odometry = None if obs.odometry is None else se2.from_matrix(obs.odometry)
-        return se2.to_matrix(self.localiser.step(body, odometry).pose) @ self.mount
-
-
-class _Visual:
-    """Adapter of `VisualOdometry` to depth observations (colour image when there is one)."""
-
-    name = "rgbd-visual-odometry"
-
-    def __init__(self) -> None:
-        self.odometry: VisualOdometry | None = None
-
-    def __call__(self, obs: Observation) -> np.ndarray:
-        import cv2
-
-        view = obs.depth
-        if view is None:
-            from voxel.errors import LocalisationError
-
-            msg = f"{obs.frame}: expected a depth image for visual odometry, found none"
-            raise LocalisationError(msg)
-        if self.odometry is None:
-            self.odometry = VisualOdometry(view.K)
-        gray = None if view.image is None else cv2.cvtColor(view.image, cv2.COLOR_RGB2GRAY)
-        return self.odometry.step(gray, view.depth).pose
 
 
 def _reference(source: object, obs: Observation) -> np.ndarray | None:
@@ -109,7 +68,7 @@ def localize_source(
     out_dir.mkdir(parents=True, exist_ok=True)
     total = len(source) if max_frames is None else min(len(source), max_frames)
     bar = get_progress(progress)
-    estimator: _Scan | _Visual | None = None
+    estimator: Estimator | None = None
     times: list[float] = []
     est: list[np.ndarray] = []
     odo: list[np.ndarray] = []
@@ -119,11 +78,7 @@ def localize_source(
             if max_frames is not None and len(times) >= max_frames:
                 break
             if estimator is None:
-                mount = getattr(adapter, "mount", np.eye(4))
-                if adapter.kind in ("lidar2d", "lidar3d") or obs.odometry is not None:
-                    estimator = _Scan(adapter.kind == "lidar2d", mount)
-                else:
-                    estimator = _Visual()
+                estimator = get_estimator(adapter, obs)
             pose = estimator(obs)
             integrate_observation(
                 grid,

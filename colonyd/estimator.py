@@ -1,0 +1,89 @@
+"""Estimator: an agent's sensor pose from its observations (EKF + scan matching, or VO)."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from plugins.adapter import SensorAdapter
+from plugins.observation import Observation
+from voxel.localisation import se2
+from voxel.localisation.localiser import ScanLocaliser
+from voxel.localisation.visual import VisualOdometry
+
+
+class Estimator(Protocol):
+    """Turns each observation into the estimated sensor pose (4x4) in the agent's own frame."""
+
+    name: str
+
+    def __call__(self, obs: Observation) -> np.ndarray: ...
+
+
+class ScanEstimator:
+    """Adapter of `ScanLocaliser` to observations: body-frame points in, sensor pose out."""
+
+    name = "ekf+scan-to-map"
+
+    def __init__(self, planar: bool, mount: np.ndarray) -> None:
+        self.localiser = ScanLocaliser(planar=planar)
+        self.mount = mount
+
+    def __call__(self, obs: Observation) -> np.ndarray:
+        points = obs.points if obs.no_return is None else obs.points[~obs.no_return]
+        body = points @ self.mount[:3, :3].T + self.mount[:3, 3]
+        odometry = None if obs.odometry is None else se2.from_matrix(obs.odometry)
+        return se2.to_matrix(self.localiser.step(body, odometry).pose) @ self.mount
+
+
+class VisualEstimator:
+    """Adapter of `VisualOdometry` to depth observations (colour image when there is one)."""
+
+    name = "rgbd-visual-odometry"
+
+    def __init__(self) -> None:
+        self.odometry: VisualOdometry | None = None
+
+    def __call__(self, obs: Observation) -> np.ndarray:
+        import cv2
+
+        view = obs.depth
+        if view is None:
+            from voxel.errors import LocalisationError
+
+            msg = f"{obs.frame}: expected a depth image for visual odometry, found none"
+            raise LocalisationError(msg)
+        if self.odometry is None:
+            self.odometry = VisualOdometry(view.K)
+        gray = None if view.image is None else cv2.cvtColor(view.image, cv2.COLOR_RGB2GRAY)
+        return self.odometry.step(gray, view.depth).pose
+
+
+def get_estimator(adapter: SensorAdapter, first: Observation) -> Estimator:
+    """The estimator for a source: scan matching for range sensors and for any agent with
+    odometry (depth points serve as a scan), visual odometry for a camera without it."""
+    mount = getattr(adapter, "mount", np.eye(4))
+    if adapter.kind in ("lidar2d", "lidar3d") or first.odometry is not None:
+        return ScanEstimator(adapter.kind == "lidar2d", mount)
+    return VisualEstimator()
+
+
+class PoseError:
+    """Evaluation only (a simulator's truth): how far the estimate has drifted from the truth
+    since the first frame, where the agent's frame and the truth are put together."""
+
+    def __init__(self) -> None:
+        self._first: tuple[np.ndarray, np.ndarray] | None = None
+        self.last: float | None = None
+
+    def update(self, estimate: np.ndarray, truth: np.ndarray | None) -> float | None:
+        """Translation error (m) of the estimate's motion since the first frame, or None."""
+        if truth is None:
+            return self.last
+        if self._first is None:
+            self._first = (np.linalg.inv(estimate), np.linalg.inv(truth))
+        est = self._first[0] @ estimate
+        ref = self._first[1] @ truth
+        self.last = float(np.linalg.norm(est[:3, 3] - ref[:3, 3]))
+        return self.last
