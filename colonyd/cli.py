@@ -269,10 +269,17 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--kills", type=int, default=20, help="SIGKILLs in the crash scenario")
     b.add_argument("--duration", type=float, default=10.0, help="seconds of 2 Hz gossip (busy)")
 
-    p = sub.add_parser("demo", help="a 3-daemon colony on loopback with simulated sources")
-    p.add_argument("--out", type=Path, default=Path("demo-out"))
-    p.add_argument("--daemons", type=int, default=3)
-    p.add_argument("--timeout", type=float, default=45.0)
+    p = sub.add_parser(
+        "demo",
+        help="a depth-camera robot, a 2D-LiDAR robot and a CCTV map the sim office as a colony on "
+        "loopback; a 3D-LiDAR robot joins halfway",
+    )
+    p.add_argument("--out", type=Path, default=Path("demo-out"),
+                   help="where maps, pictures and summary.json go (default demo-out)")
+    p.add_argument("--duration", type=float, default=40.0,
+                   help="seconds of mapping, in simulated real time (default 40)")
+    p.add_argument("--timeout", type=float, default=150.0,
+                   help="give up waiting for the colony after this many seconds (default 150)")
     return parser
 
 
@@ -376,7 +383,7 @@ def main(argv: list[str] | None = None) -> int:
     if cmd == "demo":
         from colonyd.demo import run_demo
 
-        return run_demo(args.out, daemons=args.daemons, timeout=args.timeout)
+        return run_demo(args.out, duration=args.duration, timeout=args.timeout)
     return EXIT_USAGE
 
 

@@ -81,6 +81,8 @@ class Daemon:
         self._sources_done = threading.Event()
         self.objects = OwnObjects(frozenset(config.structure_classes))
         self._estimators: dict[str, Estimator] = {}  # per source spec
+        self.pose_matrix: np.ndarray | None = None  # the latest sensor pose estimate (own frame)
+        self.truth_matrix: np.ndarray | None = None
         self.pose_error = PoseError()
         self.attempts: dict[str, dict[str, Any]] = {}  # peer -> last alignment attempt (JSON)
         self.conflict = ""  # set when another live daemon has our agent id and we give way
@@ -369,6 +371,8 @@ class Daemon:
             )
         self.objects.observe(obs)
         self.pose = [float(v) for v in obs.origin]
+        self.pose_matrix = obs.pose
+        self.truth_matrix = obs.truth  # evaluation only (a simulator's truth): reported, never used
 
     # -- alignment (own layer against each peer's, one pair per round) ---------------------
     def _align_loop(self) -> None:
@@ -543,6 +547,8 @@ class Daemon:
             "uptime": time.time() - self.started,
             "pose": self.pose,
             "pose_error_m": self.pose_error.last,
+            "pose_matrix": None if self.pose_matrix is None else self.pose_matrix.tolist(),
+            "truth_matrix": None if self.truth_matrix is None else self.truth_matrix.tolist(),
             "sources_done": self._sources_done.is_set() or not self.config.sources,
             "unpublished": unpublished,
             "frame": frame_of(self.config.agent_id),

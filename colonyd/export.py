@@ -120,6 +120,39 @@ def _ask(session: zenoh.Session, namespace: str, params: str, timeout: float) ->
     return [decode_map(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
 
 
+def fetch_maps(
+    session: zenoh.Session,
+    namespace: str,
+    *,
+    layer: str | None = None,
+    agent: str | None = None,
+    wait_s: float = 5.0,
+) -> tuple[MapReply, dict[str, MapReply]]:
+    """The fused map of the daemon `agent` (or the first to answer, by agent id) and its layers'
+    maps (every layer of the colony frame, or only `layer`)."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        fused = [r for r in _ask(session, namespace, "", 5.0) if agent is None or r.agent == agent]
+        if fused or time.monotonic() >= deadline:
+            break
+        time.sleep(0.3)
+    if not fused:
+        who = f"daemon {agent!r}" if agent else "no daemon"
+        msg = f"{who} of colony namespace {namespace!r} answered an export query"
+        raise StatusError(msg)
+    source = min(fused, key=lambda r: r.agent)
+    layers: dict[str, MapReply] = {}
+    for name in [layer] if layer is not None else source.layers:
+        got = [
+            r for r in _ask(session, namespace, f"layer={name}", 10.0) if r.agent == source.agent
+        ]
+        if not got:
+            msg = f"daemon {source.agent!r} holds no layer {name!r}"
+            raise StatusError(msg)
+        layers[name] = got[0]
+    return source, layers
+
+
 def export_maps(
     config: Config,
     out: Path,
@@ -154,35 +187,14 @@ def export_maps(
     )
     session = open_session(conf)
     try:
-        deadline = time.monotonic() + wait_s
-        while True:
-            fused = [
-                r
-                for r in _ask(session, config.key_namespace, "", 5.0)
-                if agent is None or r.agent == agent
-            ]
-            if fused or time.monotonic() >= deadline:
-                break
-            time.sleep(0.3)
-        if not fused:
-            who = f"daemon {agent!r}" if agent else "no daemon"
-            msg = f"{who} of colony namespace {config.key_namespace!r} answered an export query"
-            raise StatusError(msg)
-        source = min(fused, key=lambda r: r.agent)
-        files: dict[str, Path] = {}
-        wanted = [layer] if layer is not None else source.layers
-        if layer is None:
-            files.update(write_maps(source, out, "fused"))
-        for name in wanted:
-            got = [
-                r
-                for r in _ask(session, config.key_namespace, f"layer={name}", 10.0)
-                if r.agent == source.agent
-            ]
-            if not got:
-                msg = f"daemon {source.agent!r} holds no layer {name!r}"
-                raise StatusError(msg)
-            files.update(write_maps(got[0], out, name))
-        return source.frame, files
+        fused, layers = fetch_maps(
+            session, config.key_namespace, layer=layer, agent=agent, wait_s=wait_s
+        )
     finally:
         session.close()
+    files: dict[str, Path] = {}
+    if layer is None:
+        files.update(write_maps(fused, out, "fused"))
+    for name, reply in layers.items():
+        files.update(write_maps(reply, out, name))
+    return fused.frame, files

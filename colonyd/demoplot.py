@@ -1,0 +1,154 @@
+"""Demo pictures: the fused map from above with every robot's paths and objects, and pose errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+
+from voxel import keys as vk
+
+if TYPE_CHECKING:
+    from colonyd.demo import Track
+    from colonyd.export import MapReply
+
+#: BGR colour per member, in order of appearance.
+COLOURS = ((40, 110, 230), (60, 170, 60), (200, 80, 40), (160, 60, 170), (30, 170, 200))
+PIXELS_PER_M = 40
+MARGIN_M = 1.0
+
+
+def _colour(i: int) -> tuple[int, int, int]:
+    return COLOURS[i % len(COLOURS)]
+
+
+class _Canvas:
+    """A top-down image of the colony frame's x (right) and y (up) around given points."""
+
+    def __init__(self, xy: np.ndarray) -> None:
+        lo, hi = xy.min(axis=0) - MARGIN_M, xy.max(axis=0) + MARGIN_M
+        self.lo = lo
+        w, h = ((hi - lo) * PIXELS_PER_M).astype(int) + 1
+        self.image = np.full((h, w, 3), 255, np.uint8)
+        self.h = h
+
+    def px(self, xy: np.ndarray) -> np.ndarray:
+        p = (np.asarray(xy)[..., :2] - self.lo) * PIXELS_PER_M
+        return np.rint(np.stack([p[..., 0], self.h - 1 - p[..., 1]], axis=-1)).astype(np.int32)
+
+
+def _world_to_colony(tracks: dict[str, Track], root: str) -> np.ndarray | None:
+    """Evaluation only: the colony frame is the root's own frame, which began at its first pose."""
+    track = tracks.get(root)
+    if track is None or not track.truth:
+        return None
+    world_from_colony = track.truth[0] @ np.linalg.inv(track.estimate[0])
+    return np.linalg.inv(world_from_colony)
+
+
+def draw_colony(
+    path: Path,
+    fused: MapReply,
+    tracks: dict[str, Track],
+    colony_tf: dict[str, np.ndarray],
+    peer_objects: dict[str, list[dict[str, Any]]],
+    own_objects: list[dict[str, Any]],
+) -> None:
+    """The fused occupancy from above (free light, occupied dark), each robot's estimated path
+    (solid, in the colony frame) and true path (thin grey-tinted), objects and the CCTV's view."""
+    centres = vk.keys_to_centers(fused.keys, fused.resolution)
+    occupied = fused.logodds >= 0
+    if not len(centres):
+        centres = np.zeros((1, 3))
+        occupied = np.zeros(1, bool)
+    canvas = _Canvas(centres[:, :2])
+    img = canvas.image
+    # a floor plan: a column is occupied if it has an occupied voxel between 0.15 and 2.0 m
+    # (not the floor, not the ceiling), free if it has known voxels only
+    body = (centres[:, 2] > 0.15) & (centres[:, 2] < 2.0)
+    cell = max(1, int(round(fused.resolution * PIXELS_PER_M)))
+    for mask, colour in ((np.ones(len(centres), bool), (235, 235, 235)), (occupied & body, (40, 40, 40))):
+        px = canvas.px(centres[mask])
+        for dx in range(cell):
+            for dy in range(cell):
+                x = np.clip(px[:, 0] - cell // 2 + dx, 0, img.shape[1] - 1)
+                y = np.clip(px[:, 1] - cell // 2 + dy, 0, img.shape[0] - 1)
+                img[y, x] = colour
+    root = next((a for a, t in colony_tf.items() if np.allclose(t, np.eye(4))), None)
+    to_colony = _world_to_colony(tracks, root) if root else None
+    legend: list[tuple[str, tuple[int, int, int]]] = []
+    for i, (agent, track) in enumerate(tracks.items()):
+        colour = _colour(i)
+        legend.append((f"{agent} ({track.carries})", colour))
+        if not track.estimate:
+            continue
+        if to_colony is not None:
+            truth = np.array([to_colony @ t for t in track.truth])[:, :3, 3]
+            faint = tuple(int(c + (255 - c) * 0.6) for c in colour)
+            cv2.polylines(img, [canvas.px(truth)], False, faint, 1, cv2.LINE_AA)
+        tf = colony_tf.get(agent)
+        if tf is not None:
+            est = np.array([tf @ e for e in track.estimate])[:, :3, 3]
+            cv2.polylines(img, [canvas.px(est)], False, colour, 2, cv2.LINE_AA)
+            if "CCTV" in track.carries:
+                pose = tf @ track.estimate[-1]
+                _view(img, canvas, pose, colour)
+    for agent, objects in [(fused.agent, own_objects), *peer_objects.items()]:
+        tf = colony_tf.get(agent)
+        if tf is None:
+            continue
+        for o in objects:
+            p = tf[:3, :3] @ np.asarray(o["position"], float) + tf[:3, 3]
+            cv2.circle(img, tuple(int(v) for v in canvas.px(p)), 6, (0, 140, 255), 2, cv2.LINE_AA)
+    for j, (text, colour) in enumerate(legend):
+        cv2.putText(img, text, (10, 20 + 18 * j), cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1,
+                    cv2.LINE_AA)
+    cv2.putText(img, f"colony frame: {root or '?'}; thick: estimate, thin: truth; "
+                     "orange: objects", (10, img.shape[0] - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                (90, 90, 90), 1, cv2.LINE_AA)
+    if not cv2.imwrite(str(path), img):
+        msg = f"{path}: cannot write the colony picture"
+        raise OSError(msg)
+
+
+def _view(img: np.ndarray, canvas: _Canvas, pose: np.ndarray, colour: tuple[int, int, int]) -> None:
+    """A camera's field of view from above: its optical axis (z) projected, +-30 deg, 4 m."""
+    axis = pose[:3, 2][:2]
+    if np.linalg.norm(axis) < 1e-6:
+        return
+    heading = np.arctan2(axis[1], axis[0])
+    fan = [pose[:2, 3]] + [pose[:2, 3] + 4.0 * np.array([np.cos(a), np.sin(a)])
+                           for a in np.linspace(heading - 0.52, heading + 0.52, 9)]
+    cv2.polylines(img, [canvas.px(np.array(fan))], True, colour, 1, cv2.LINE_AA)
+
+
+def draw_errors(path: Path, tracks: dict[str, Track]) -> None:
+    """Pose error over time per robot (evaluation), a tick where each first aligned."""
+    w, h, pad = 800, 400, 50
+    img = np.full((h, w, 3), 255, np.uint8)
+    series = [(a, t) for a, t in tracks.items() if t.errors]
+    t_max = max((t.errors[-1][0] for _, t in series), default=1.0)
+    e_max = max((max(e for _, e in t.errors) for _, t in series), default=0.1) * 1.1 or 0.1
+    cv2.rectangle(img, (pad, pad), (w - pad, h - pad), (180, 180, 180), 1)
+
+    def px(t: float, e: float) -> tuple[int, int]:
+        return (int(pad + (w - 2 * pad) * t / t_max), int(h - pad - (h - 2 * pad) * e / e_max))
+
+    for i, (agent, track) in enumerate(tracks.items()):
+        colour = _colour(i)
+        if track.errors:
+            pts = np.array([px(t, e) for t, e in track.errors], np.int32)
+            cv2.polylines(img, [pts], False, colour, 2, cv2.LINE_AA)
+        if track.aligned_at is not None:
+            x = px(track.aligned_at, 0.0)[0]
+            cv2.line(img, (x, pad), (x, h - pad), colour, 1, cv2.LINE_AA)
+        cv2.putText(img, agent, (pad + 10, pad + 18 * (i + 1)), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                    colour, 1, cv2.LINE_AA)
+    cv2.putText(img, f"pose error (m, 0-{e_max:.2f}) over time (0-{t_max:.0f} s); "
+                     "vertical: first aligned", (pad, pad - 15), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                (60, 60, 60), 1, cv2.LINE_AA)
+    if not cv2.imwrite(str(path), img):
+        msg = f"{path}: cannot write the pose-error plot"
+        raise OSError(msg)
