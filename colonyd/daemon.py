@@ -41,6 +41,9 @@ from plugins.stream import Source
 
 log = logging.getLogger(__name__)
 
+#: The own object list is published again every this many refreshes, changed or not.
+OBJECTS_REPEAT = 5
+
 #: A heartbeat claiming our origin with another epoch is from a live duplicate when its time is
 #: within this many seconds of ours (older ones are replays).
 FRESH_S = 30.0
@@ -82,6 +85,7 @@ class Daemon:
         self.objects = OwnObjects(frozenset(config.structure_classes))
         self._estimators: dict[str, Estimator] = {}  # per source spec
         self.pose_matrix: np.ndarray | None = None  # the latest sensor pose estimate (own frame)
+        self.pose_covariance: np.ndarray | None = None
         self.truth_matrix: np.ndarray | None = None
         self.pose_error = PoseError()
         self.attempts: dict[str, dict[str, Any]] = {}  # peer -> last alignment attempt (JSON)
@@ -259,6 +263,8 @@ class Daemon:
                 self.gossip.hb_now.clear()
                 try:
                     self.gossip.heartbeat(self.config.kind, self.pose)
+                    if self.pose_matrix is not None:
+                        self.gossip.publisher.publish_pose(self.pose_matrix, self.pose_covariance)
                 except PersistenceError as exc:  # no frame numbers could be reserved
                     self._state_failed(exc)
                 next_hb = now + self.config.heartbeat_s
@@ -360,6 +366,7 @@ class Daemon:
             if estimator is None:
                 estimator = self._estimators[source.spec] = get_estimator(source.adapter, obs)
             obs = replace(obs, pose=estimator(obs))
+            self.pose_covariance = estimator.covariance()
         self.pose_error.update(obs.pose, obs.truth)  # evaluation only: never fed back
         with own.lock:
             integrate_observation(
@@ -411,13 +418,18 @@ class Daemon:
 
     # -- objects (own list refreshed and published when it changes) -----------------------
     def _objects_loop(self) -> None:
+        """Refresh the own object list; publish it when it changed, and again every
+        `OBJECTS_REPEAT` refreshes so that members that missed it (joined late, dropped a
+        frame) get it too."""
         own = self.layers.own
+        rounds = 0
         while not self.stop.wait(self.config.objects_s):
             try:
                 with own.lock:
                     changed = self.objects.refresh(own.grid, int(own.grid.version))
-                if changed is not None:
-                    self.gossip.publish_objects(to_wire(changed))
+                rounds += 1
+                if changed is not None or (self.objects.current and rounds % OBJECTS_REPEAT == 0):
+                    self.gossip.publish_objects(to_wire(self.objects.current))
             except Exception:
                 log.exception("object refresh failed")
 
@@ -579,6 +591,7 @@ class Daemon:
                     "kind": m.kind,
                     "last_seen": m.last_seen,
                     "pose": m.pose,
+                    "pose_std_m": m.pose_std_m,
                     "layers": {o: list(v) for o, v in m.layers.items()},
                 }
                 for m in self.membership.table()

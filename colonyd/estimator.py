@@ -20,6 +20,10 @@ class Estimator(Protocol):
 
     def __call__(self, obs: Observation) -> np.ndarray: ...
 
+    def covariance(self) -> np.ndarray | None:
+        """The latest estimate's 6x6 covariance (x y z roll pitch yaw), if the estimator has one."""
+        ...
+
 
 class ScanEstimator:
     """Adapter of `ScanLocaliser` to observations: body-frame points in, sensor pose out."""
@@ -35,6 +39,15 @@ class ScanEstimator:
         body = points @ self.mount[:3, :3].T + self.mount[:3, 3]
         odometry = None if obs.odometry is None else se2.from_matrix(obs.odometry)
         return se2.to_matrix(self.localiser.step(body, odometry).pose) @ self.mount
+
+    def covariance(self) -> np.ndarray | None:
+        ekf = self.localiser.ekf
+        if ekf is None:
+            return None
+        planar = ekf.covariance  # x, y, yaw
+        cov = np.zeros((6, 6))
+        cov[np.ix_([0, 1, 5], [0, 1, 5])] = planar
+        return cov
 
 
 class VisualEstimator:
@@ -58,6 +71,9 @@ class VisualEstimator:
             self.odometry = VisualOdometry(view.K)
         gray = None if view.image is None else cv2.cvtColor(view.image, cv2.COLOR_RGB2GRAY)
         return self.odometry.step(gray, view.depth).pose
+
+    def covariance(self) -> np.ndarray | None:
+        return None  # visual odometry alone keeps no covariance
 
 
 def get_estimator(adapter: SensorAdapter, first: Observation) -> Estimator:

@@ -12,19 +12,19 @@ import zenoh
 
 from colonyd.alignment import Alignments, edge_from_offer
 from colonyd.errors import WireError
-from colonyd.frames import Assembler, accept, expect
+from colonyd.frames import Assembler, accept, expect, frame_of
 from colonyd.membership import Membership
 from colonyd.metrics import Metrics
 from colonyd.objects import PeerObjects
 from colonyd.replicas import Replicas
 from colonyd.runtime import undeclare
 from colonyd.worker import Bounded, Worker
-from protocol import AlignOffer, Heartbeat, Objects, OwnOriginError, Receiver, VoxelDelta
+from protocol import AlignOffer, Heartbeat, Objects, OwnOriginError, Pose, Receiver, VoxelDelta
 from protocol.keyexpr import topic_subscription
 
 log = logging.getLogger(__name__)
 
-#: An inbox item: (kind "delta" | "hb" | "objects" | "align" | "join", key expression or agent,
+#: An inbox item: (kind "delta" | "hb" | "objects" | "align" | "pose" | "join", key expression or agent,
 #: raw frame, time queued).
 Item = tuple[str, str, bytes, float]
 
@@ -88,6 +88,9 @@ class Inbox:
             session.declare_subscriber(
                 topic_subscription(namespace, "align"), self._on_align, allowed_origin=remote
             ),
+            session.declare_subscriber(
+                topic_subscription(namespace, "pose"), self._on_pose, allowed_origin=remote
+            ),
         ]
 
     # -- zenoh callbacks: enqueue only ----------------------------------------------------
@@ -105,6 +108,9 @@ class Inbox:
 
     def _on_align(self, sample: zenoh.Sample) -> None:
         self._worker.put(("align", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
+
+    def _on_pose(self, sample: zenoh.Sample) -> None:
+        self._worker.put(("pose", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
 
     def on_member_event(self, agent: str, event: str) -> None:
         """Liveliness join: ask the newcomer (or returning peer) what it holds."""
@@ -133,6 +139,8 @@ class Inbox:
                 self._handle_objects(key, raw)
             elif kind == "align":
                 self._handle_align(key, raw)
+            elif kind == "pose":
+                self._handle_pose(key, raw)
             elif kind == "join":
                 self._handle_join(key)
         except OwnOriginError as exc:
@@ -186,6 +194,16 @@ class Inbox:
         accept(self.receiver, self.metrics, msg, raw)
         self.alignments.put(edge)
         self.metrics.add("align_received")
+
+    def _handle_pose(self, key: str, raw: bytes) -> None:
+        msg = expect(self.receiver.decode(raw, key_expr=key), Pose, f"on {key}")
+        if msg.frame_id != frame_of(msg.origin):
+            text = f"expected a pose in {frame_of(msg.origin)!r}, found frame {msg.frame_id!r}"
+            raise WireError("bad-pose", text)
+        if self.membership is None or self.membership.find(msg.origin) is None:
+            raise WireError("unknown-member", f"expected a pose of a member, found {msg.origin!r}")
+        accept(self.receiver, self.metrics, msg, raw)
+        self.membership.posed(msg.origin, msg)
 
     def _handle_join(self, agent: str) -> None:
         """A member joined (or came back): tell it what we hold right away."""

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import zenoh
 
 from colonyd.runtime import undeclare
-from protocol import Heartbeat, KeyExprError
+from protocol import Heartbeat, KeyExprError, Pose
 from protocol.keyexpr import alive_key, alive_subscription, parse_key
 
 #: How long a starting daemon looks for a live member with its own agent id (peers reached
@@ -46,6 +46,7 @@ class Member:
     joined: float = field(default_factory=time.time)
     last_seen: float = field(default_factory=time.time)
     pose: list[float] = field(default_factory=list)
+    pose_std_m: float | None = None  # position standard deviation of its last Pose message
     layers: dict[str, tuple[int, int]] = field(default_factory=dict)
 
 
@@ -97,6 +98,24 @@ class Membership:
             m.pose = list(hb.position) if hb.position is not None else []
             m.layers = {entry.origin: (entry.epoch, entry.version) for entry in hb.layers}
             return m
+
+    def find(self, agent: str) -> Member | None:
+        """A copy of what is known of `agent`, or None."""
+        with self._lock:
+            m = self.members.get(agent)
+            return None if m is None else Member(**vars(m))
+
+    def posed(self, agent: str, msg: Pose) -> bool:
+        """Record a (validated) Pose of a known member; False if the agent is not a member."""
+        with self._lock:
+            m = self.members.get(agent)
+            if m is None:
+                return False
+            m.last_seen = time.time()
+            m.pose = list(msg.position)
+            cov = msg.covariance
+            m.pose_std_m = float(max(0.0, cov[0] + cov[7] + cov[14]) ** 0.5)
+            return True
 
     def alive(self) -> list[str]:
         with self._lock:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import threading
 
+import numpy as np
 import zenoh
 
 from colonyd.alignment import Edge, offer_of
@@ -12,7 +13,7 @@ from colonyd.frames import Sender, frame_of
 from colonyd.layers import Layers, relabel
 from colonyd.metrics import Metrics
 from colonyd.runtime import undeclare
-from protocol import Heartbeat, LayerVersion, ObjectCentroid, Objects, VoxelDelta, delta_messages
+from protocol import Heartbeat, Pose, LayerVersion, ObjectCentroid, Objects, VoxelDelta, delta_messages
 from protocol.keyexpr import topic_key
 from voxel.delta import Delta
 
@@ -55,6 +56,9 @@ class Publisher:
         )
         self._align = session.declare_publisher(
             topic_key(namespace, self.own, "align"), congestion_control=drop
+        )
+        self._pose = session.declare_publisher(
+            topic_key(namespace, self.own, "pose"), congestion_control=drop
         )
 
     def publish_own(
@@ -138,5 +142,18 @@ class Publisher:
         self.metrics.add("align_published")
         self.metrics.add("bytes_published", len(payload))
 
+    def publish_pose(self, pose: np.ndarray, covariance: np.ndarray | None) -> None:
+        """Publish the own pose estimate (sensor pose in our frame) with its 6x6 covariance."""
+        cov = np.zeros(36) if covariance is None else np.asarray(covariance, float).ravel()
+        msg = Pose(
+            **self.sender.header(),
+            frame_id=frame_of(self.own),
+            **Pose.split_matrix(pose),
+            covariance=[float(x) for x in cov],
+        )
+        payload = self.sender.encode(msg)
+        self._pose.put(payload)
+        self.metrics.add("bytes_published", len(payload))
+
     def close(self) -> None:
-        undeclare(self._deltas, self._heartbeats, self._objects, self._align)
+        undeclare(self._deltas, self._heartbeats, self._objects, self._align, self._pose)

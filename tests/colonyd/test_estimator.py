@@ -32,3 +32,7 @@ def test_a_daemon_that_estimates_drifts_less_than_one_that_does_not(make_colony)
     assert dead is not None and est is not None
     assert dead > 0.05 and est < 0.5 * dead, (est, dead)
     assert estimating.alive()
+    # the estimate travels as Pose messages with its covariance: raw knows est's uncertainty
+    seen = {m["agent"]: m for m in reports["raw"]["members"]}
+    assert seen["est"]["pose_std_m"] is not None and 0 < seen["est"]["pose_std_m"] < 0.5, seen
+    assert reports["raw"]["metrics"]["rejected"] == {}
