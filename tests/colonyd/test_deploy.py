@@ -38,7 +38,7 @@ def test_systemd_analyze_verify(tmp_path):
         script = Path(shutil.which("colonyd") or "/bin/true")
     unit = tmp_path / "colonyd.service"
     unit.write_text(
-        (DEPLOY / "colonyd.service").read_text().replace("/usr/bin/colonyd", str(script))
+        (DEPLOY / "colonyd.service").read_text().replace("/opt/colonyd/bin/colonyd", str(script))
     )
     out = subprocess.run(
         ["systemd-analyze", "verify", str(unit)], capture_output=True, text=True, timeout=60
