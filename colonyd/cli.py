@@ -101,10 +101,20 @@ def _flags(args: argparse.Namespace) -> dict[str, Any]:
     return {k: getattr(args, k, None) for k in _FLAG_NAMES if getattr(args, k, None) is not None}
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("colony")
+    except PackageNotFoundError:  # running from a checkout that is not installed
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="colonyd", description="colony daemon: peer-to-peer voxel mapping over Zenoh"
     )
+    parser.add_argument("--version", action="version", version=f"colonyd {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("run", help="run the daemon until SIGTERM")

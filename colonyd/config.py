@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import socket
 import tomllib
@@ -14,6 +15,7 @@ from typing import Any, Literal
 from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic.fields import FieldInfo
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+from pydantic_settings.exceptions import SettingsError
 
 from colonyd.errors import ConfigError
 
@@ -223,8 +225,6 @@ class Config(BaseSettings):
 
 def load_config(path: Path | str | None = None, **flags: Any) -> Config:
     """Config from defaults < TOML file < `COLONYD_*` environment < flags (None flags ignored)."""
-    import os
-
     if path is None and os.environ.get("COLONYD_CONFIG"):
         path = os.environ["COLONYD_CONFIG"]
     token = _TOML_PATH.set(Path(path) if path is not None else None)
@@ -232,6 +232,12 @@ def load_config(path: Path | str | None = None, **flags: Any) -> Config:
         return Config(**{k: v for k, v in flags.items() if v is not None})
     except ValidationError as exc:
         raise ConfigError(_explain(exc)) from None
+    except SettingsError as exc:  # an environment variable that is not the JSON a list needs
+        field = str(exc).split('"')[1] if '"' in str(exc) else "?"
+        name = f"COLONYD_{field.upper()}"
+        msg = (f"environment variable {name}: expected JSON for a list or table (e.g. "
+               f"{name}='[\"tcp/10.0.0.1:7447\"]'), found {os.environ.get(name, '')!r}")
+        raise ConfigError(msg) from None
     finally:
         _TOML_PATH.reset(token)
 

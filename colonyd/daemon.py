@@ -31,6 +31,7 @@ from colonyd.mapping import integrate_observation
 from colonyd.membership import Membership, agent_alive
 from colonyd.metrics import Metrics
 from colonyd.notify import Notifier
+from colonyd.outdir import output_dir
 from colonyd.objects import OwnObjects, to_wire
 from colonyd.persistence import StateStore
 from colonyd.runtime import get_session
@@ -99,6 +100,8 @@ class Daemon:
     def run(self) -> int:
         self._install_signals()
         cfg = self.config
+        if cfg.export_dir is not None:  # found unwritable now, not at shutdown
+            output_dir(cfg.export_dir, "export_dir")
         self.store = get_store(cfg)
         try:
             self._sources = get_sources(

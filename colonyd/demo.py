@@ -17,6 +17,7 @@ from colonyd.bench.launcher import LocalColony
 from colonyd.demoplot import draw_colony, draw_errors
 from colonyd.export import MapReply, fetch_maps, write_maps
 from colonyd.mapping import tum_line
+from colonyd.outdir import output_dir
 
 #: The colony: (agent, what it carries, frames per second of simulated time). The 3D LiDAR robot
 #: joins halfway and catches up.
@@ -129,7 +130,7 @@ def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> in
     from rich.live import Live
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    output_dir(out, "--out")
     console = Console(file=sys.stdout)
     work = Path(tempfile.mkdtemp(prefix="colonyd-demo-"))
     colony = LocalColony(work, colony="demo", heartbeat_s=0.5)

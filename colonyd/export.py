@@ -13,6 +13,7 @@ import zenoh
 from colonyd.config import Config
 from colonyd.errors import StatusError
 from colonyd.mapping import write_floor_plan
+from colonyd.outdir import output_dir
 from colonyd.runtime import open_session, zenoh_config
 from protocol.keyexpr import EXPORT, NAME_PATTERN, status_selector
 from voxel import keys as vk
@@ -173,9 +174,7 @@ def export_maps(
         if value is not None and not re.fullmatch(NAME_PATTERN, value):
             msg = f"--{name}: expected a name matching {NAME_PATTERN}, found {value!r}"
             raise StatusError(msg)
-    if out.exists() and not out.is_dir():
-        msg = f"--out: expected a directory, found a file: {out}"
-        raise StatusError(msg)
+    output_dir(out, "--out")
     conf = zenoh_config(
         mode="peer",
         listen=config.listen or ["tcp/127.0.0.1:0"],

@@ -11,6 +11,7 @@ import numpy as np
 
 from colonyd.estimator import Estimator, get_estimator
 from colonyd.mapping import get_progress, integrate_observation, tum_line, write_map
+from colonyd.outdir import output_dir
 from plugins.carmen import CarmenSource
 from plugins.observation import Observation
 from plugins.sevenscenes import RgbdSource
@@ -65,7 +66,7 @@ def localize_source(
     adapter = source.adapter
     grid = VoxelGrid(resolution, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    output_dir(out_dir, "--out")
     total = len(source) if max_frames is None else min(len(source), max_frames)
     bar = get_progress(progress)
     estimator: Estimator | None = None

@@ -11,6 +11,7 @@ from typing import Protocol, TextIO
 import cv2
 import numpy as np
 
+from colonyd.outdir import output_dir
 from plugins.observation import Observation
 from plugins.source import open_source
 from voxel import keys as vk
@@ -196,7 +197,7 @@ def map_source(
     adapter = source.adapter
     grid = VoxelGrid(resolution, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    output_dir(out_dir, "--out")
     total = len(source) if max_frames is None else min(len(source), max_frames)
     bar = get_progress(progress)
     trajectory: list[str] = []

@@ -48,4 +48,4 @@ def test_export_fetches_the_fused_map_and_layers(make_colony, tmp_path):
     bad = subprocess.run(
         [*base, "--out", str(tmp_path / "file")], capture_output=True, text=True, timeout=60
     )
-    assert bad.returncode == 1 and "expected a directory, found a file" in bad.stderr
+    assert bad.returncode == 3 and "expected a directory, found a file" in bad.stderr
