@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from colonyd.outdir import output_dir
+from plugins.errors import SourceError
 from plugins.observation import Observation
 from plugins.source import open_source
 from voxel import keys as vk
@@ -217,6 +218,11 @@ def map_source(
             bar.update(frames, total)
     finally:
         bar.close()
+    if frames == 0:
+        reasons = "; ".join(f"{n} x {r}" for r, n in source.stats.reasons.items()) or "none given"
+        msg = (f"{spec}: expected at least one readable frame, found none "
+               f"({source.stats.skipped} skipped: {reasons}); no map written")
+        raise SourceError(msg)
     files = write_map(grid, out_dir, trajectory)
     if adapter.kind == "lidar2d" and heights:
         layer = int(vk.points_to_keys(np.array([[0.0, 0.0, np.median(heights)]]), resolution)[0, 2])

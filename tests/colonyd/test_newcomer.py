@@ -25,3 +25,12 @@ def test_version_and_clear_config_errors(tmp_path):
     export_dir = _colonyd("run", "--agent-id", "a", "--state-dir", str(tmp_path / "s"),
                           "--no-multicast", "--export-dir", str(tmp_path / "file"))
     assert export_dir.returncode == 3 and "export_dir: expected a directory" in export_dir.stderr
+
+
+def test_map_of_a_source_whose_every_frame_fails_is_an_error(tmp_path):
+    log = tmp_path / "bad.log"
+    log.write_text("FLASER 3 1.0 2.0\nFLASER x y z\n")
+    run = _colonyd("map", "--source", f"replay:{log},format=carmen", "--out", str(tmp_path / "o"))
+    assert run.returncode == 4, run.stderr
+    assert "expected at least one readable frame, found none (2 skipped" in run.stderr
+    assert not (tmp_path / "o" / "map.bt").exists()
