@@ -22,56 +22,45 @@ EXIT_DATA = 4  # voxel / protocol / plugin input errors
 EXIT_INTERRUPTED = 130
 
 
-def _config_flags(p: argparse.ArgumentParser) -> None:
+#: Configuration flags: (dest, flag, argparse keywords). `_config_flags` adds all or some.
+_CONFIG_FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
+    ("config", "--config", {"type": Path, "help": "TOML config file (also COLONYD_CONFIG)"}),
+    ("colony", "--colony", {"help": "colony name"}),
+    ("namespace", "--namespace", {"help": "key-expression namespace (default: the colony name)"}),
+    ("agent_id", "--agent-id", {"help": "this agent's unique id"}),
+    ("kind", "--kind", {"help": "agent kind shown in status"}),
+    ("state_dir", "--state-dir", {"type": Path, "help": "state directory"}),
+    ("mode", "--mode", {"choices": ["peer", "client"], "help": "Zenoh mode"}),
+    ("listen", "--listen", {"action": "append", "metavar": "ENDPOINT", "help": "listen endpoint"}),
+    ("connect", "--connect",
+     {"action": "append", "metavar": "ENDPOINT", "help": "connect endpoint"}),
+    ("multicast", "--no-multicast",
+     {"action": "store_const", "const": False, "help": "disable multicast scouting"}),
+    ("sources", "--source",
+     {"action": "append", "metavar": "SPEC", "help": "data source, repeatable (sim:..., "
+      "replay:PATH, synthetic:..., bulk:...; see `colonyd sources`)"}),
+    ("resolution", "--resolution", {"type": float, "help": "voxel size in metres"}),
+    ("block_shape", "--block-shape",
+     {"choices": ["cube", "planar"], "help": "own layer's voxel blocks (planar: 2D scanners only)"}),
+    ("publish_hz", "--publish-hz", {"type": float, "help": "own-delta publish rate"}),
+    ("heartbeat_s", "--heartbeat-s", {"type": float, "help": "heartbeat period"}),
+    ("lease_ms", "--lease-ms", {"type": int, "help": "Zenoh transport lease"}),
+    ("colony_key", "--colony-key", {"help": "shared secret for authentication"}),
+    ("export_dir", "--export-dir",
+     {"type": Path, "help": "write the fused map (.ply, .bt) here on shutdown"}),
+    ("drop_rate", "--drop-rate",
+     {"type": float, "help": "testing: drop this share of received deltas (exercises gap repair)"}),
+    ("log_level", "--log-level", {"choices": ["debug", "info", "warning", "error"]}),
+)
+#: The flags of commands that only talk to a running colony.
+_CLIENT_FLAGS = ("config", "colony", "namespace", "mode", "listen", "connect", "multicast")
+
+
+def _config_flags(p: argparse.ArgumentParser, only: tuple[str, ...] | None = None) -> None:
     g = p.add_argument_group(f"configuration (precedence: {' > '.join(PRECEDENCE)})")
-    g.add_argument("--config", type=Path, help="TOML config file (also COLONYD_CONFIG)")
-    g.add_argument("--colony", help="colony name")
-    g.add_argument("--namespace", help="key-expression namespace (default: the colony name)")
-    g.add_argument("--agent-id", dest="agent_id", help="this agent's unique id")
-    g.add_argument("--kind", help="agent kind shown in status")
-    g.add_argument("--state-dir", dest="state_dir", type=Path, help="state directory")
-    g.add_argument("--mode", choices=["peer", "client"], help="Zenoh mode")
-    g.add_argument("--listen", action="append", metavar="ENDPOINT", help="listen endpoint")
-    g.add_argument("--connect", action="append", metavar="ENDPOINT", help="connect endpoint")
-    g.add_argument(
-        "--no-multicast",
-        dest="multicast",
-        action="store_const",
-        const=False,
-        help="disable multicast scouting",
-    )
-    g.add_argument(
-        "--source",
-        dest="sources",
-        action="append",
-        metavar="SPEC",
-        help="data source, repeatable (sim:..., replay:PATH, synthetic:..., bulk:...; "
-        "see `colonyd sources`)",
-    )
-    g.add_argument("--resolution", type=float, help="voxel size in metres")
-    g.add_argument(
-        "--block-shape",
-        dest="block_shape",
-        choices=["cube", "planar"],
-        help="own layer's voxel blocks (planar: 2D scanners only)",
-    )
-    g.add_argument("--publish-hz", dest="publish_hz", type=float, help="own-delta publish rate")
-    g.add_argument("--heartbeat-s", dest="heartbeat_s", type=float, help="heartbeat period")
-    g.add_argument("--lease-ms", dest="lease_ms", type=int, help="Zenoh transport lease")
-    g.add_argument("--colony-key", dest="colony_key", help="shared secret for authentication")
-    g.add_argument(
-        "--export-dir",
-        dest="export_dir",
-        type=Path,
-        help="write the fused map (.ply, .bt) here on shutdown",
-    )
-    g.add_argument(
-        "--drop-rate",
-        dest="drop_rate",
-        type=float,
-        help="testing: drop this share of received deltas (exercises gap repair)",
-    )
-    g.add_argument("--log-level", dest="log_level", choices=["debug", "info", "warning", "error"])
+    for dest, flag, kwargs in _CONFIG_FLAGS:
+        if only is None or dest in only:
+            g.add_argument(flag, dest=dest, **kwargs)
 
 
 _FLAG_NAMES = (
@@ -121,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     _config_flags(p)
 
     p = sub.add_parser("status", help="print the members of a running colony")
-    _config_flags(p)
+    _config_flags(p, _CLIENT_FLAGS)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--digest", action="store_true", help="include layer digests")
     p.add_argument("--wait", type=float, default=3.0, help="seconds to wait for all members")
@@ -134,7 +123,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="fetch the live fused map (colony frame) and the layers' maps "
         "from a running colony into .bt/.ply files (and a floor plan for 2D maps)",
     )
-    _config_flags(p)
+    _config_flags(p, _CLIENT_FLAGS)
     p.add_argument("--out", dest="export_out", type=Path, required=True, help="output directory")
     p.add_argument(
         "--layer",
@@ -156,7 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="print this agent's public identity key (made if missing), "
         "for other agents' trusted_keys",
     )
-    _config_flags(p)
+    _config_flags(p, ("config", "agent_id", "state_dir"))
 
     p = sub.add_parser("map", help="map a source offline into a directory of map files")
     p.add_argument(
