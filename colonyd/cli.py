@@ -32,24 +32,52 @@ _CONFIG_FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
     ("state_dir", "--state-dir", {"type": Path, "help": "state directory"}),
     ("mode", "--mode", {"choices": ["peer", "client"], "help": "Zenoh mode"}),
     ("listen", "--listen", {"action": "append", "metavar": "ENDPOINT", "help": "listen endpoint"}),
-    ("connect", "--connect",
-     {"action": "append", "metavar": "ENDPOINT", "help": "connect endpoint"}),
-    ("multicast", "--no-multicast",
-     {"action": "store_const", "const": False, "help": "disable multicast scouting"}),
-    ("sources", "--source",
-     {"action": "append", "metavar": "SPEC", "help": "data source, repeatable (sim:..., "
-      "replay:PATH, synthetic:..., bulk:...; see `colonyd sources`)"}),
+    (
+        "connect",
+        "--connect",
+        {"action": "append", "metavar": "ENDPOINT", "help": "connect endpoint"},
+    ),
+    (
+        "multicast",
+        "--no-multicast",
+        {"action": "store_const", "const": False, "help": "disable multicast scouting"},
+    ),
+    (
+        "sources",
+        "--source",
+        {
+            "action": "append",
+            "metavar": "SPEC",
+            "help": "data source, repeatable (sim:..., "
+            "replay:PATH, synthetic:..., bulk:...; see `colonyd sources`)",
+        },
+    ),
     ("resolution", "--resolution", {"type": float, "help": "voxel size in metres"}),
-    ("block_shape", "--block-shape",
-     {"choices": ["cube", "planar"], "help": "own layer's voxel blocks (planar: 2D scanners only)"}),
+    (
+        "block_shape",
+        "--block-shape",
+        {
+            "choices": ["cube", "planar"],
+            "help": "own layer's voxel blocks (planar: 2D scanners only)",
+        },
+    ),
     ("publish_hz", "--publish-hz", {"type": float, "help": "own-delta publish rate"}),
     ("heartbeat_s", "--heartbeat-s", {"type": float, "help": "heartbeat period"}),
     ("lease_ms", "--lease-ms", {"type": int, "help": "Zenoh transport lease"}),
     ("colony_key", "--colony-key", {"help": "shared secret for authentication"}),
-    ("export_dir", "--export-dir",
-     {"type": Path, "help": "write the fused map (.ply, .bt) here on shutdown"}),
-    ("drop_rate", "--drop-rate",
-     {"type": float, "help": "testing: drop this share of received deltas (exercises gap repair)"}),
+    (
+        "export_dir",
+        "--export-dir",
+        {"type": Path, "help": "write the fused map (.ply, .bt) here on shutdown"},
+    ),
+    (
+        "drop_rate",
+        "--drop-rate",
+        {
+            "type": float,
+            "help": "testing: drop this share of received deltas (exercises gap repair)",
+        },
+    ),
     ("log_level", "--log-level", {"choices": ["debug", "info", "warning", "error"]}),
 )
 #: The flags of commands that only talk to a running colony.
@@ -155,7 +183,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SPEC",
         help="source spec (sim:..., replay:PATH, ...; see `colonyd sources`)",
     )
-    p.add_argument("--resolution", type=float, default=0.1)
+    p.add_argument(
+        "--resolution", type=float, default=0.1, help="voxel size in metres (default 0.1)"
+    )
     p.add_argument("--out", type=Path, required=True, help="output directory")
 
     p = sub.add_parser(
@@ -171,7 +201,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="source spec (sim:..., replay:CARMEN_LOG, replay:RGBD_FOLDER, replay:BAG)",
     )
     p.add_argument("--out", type=Path, required=True, help="output directory")
-    p.add_argument("--resolution", type=float, default=0.1)
+    p.add_argument(
+        "--resolution", type=float, default=0.1, help="voxel size in metres (default 0.1)"
+    )
     p.add_argument(
         "--odometry-noise",
         dest="odometry_noise",
@@ -181,7 +213,13 @@ def build_parser() -> argparse.ArgumentParser:
         "trans/rot/rot_per_m/scale_bias/yaw_bias (docs/LOCALISATION.md)",
     )
     p.add_argument("--seed", type=int, default=None, help="seed of the odometry noise")
-    p.add_argument("--max-frames", dest="max_frames", type=int, default=None)
+    p.add_argument(
+        "--max-frames",
+        dest="max_frames",
+        type=int,
+        default=None,
+        help="stop after this many frames (default: all)",
+    )
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
 
     p = sub.add_parser("align", help="align map B to map A by their geometry (offline)")
@@ -215,9 +253,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="benchmarks")
     bsub = p.add_subparsers(dest="bench", required=True)
     b = bsub.add_parser("integrate", help="voxel integration benchmark")
-    b.add_argument("--json", type=Path, required=True)
-    b.add_argument("--shared-data", type=Path, default=None)
-    b.add_argument("--repeats", type=int, default=3)
+    b.add_argument("--json", type=Path, required=True, help="write the results here (JSON)")
+    b.add_argument(
+        "--shared-data",
+        type=Path,
+        default=None,
+        help="the real recordings (default: ../shared/data beside the checkout)",
+    )
+    b.add_argument("--repeats", type=int, default=3, help="timed runs per scenario (default 3)")
     b.add_argument(
         "--only",
         action="append",
@@ -225,14 +268,24 @@ def build_parser() -> argparse.ArgumentParser:
         help="run this scenario (repeatable; also opt-in ones such as lidar3d_64x1024_0.05)",
     )
     b = bsub.add_parser("wire", help="wire-format benchmark")
-    b.add_argument("--json", type=Path, required=True)
-    b.add_argument("--shared-data", type=Path, default=None)
+    b.add_argument("--json", type=Path, required=True, help="write the results here (JSON)")
+    b.add_argument(
+        "--shared-data",
+        type=Path,
+        default=None,
+        help="the real recordings (default: ../shared/data beside the checkout)",
+    )
     b = bsub.add_parser(
         "align",
         help="map alignment: real laser halves, OctoMap crops, negatives, vs map_merge's ORB",
     )
-    b.add_argument("--json", type=Path, required=True)
-    b.add_argument("--shared-data", type=Path, default=None)
+    b.add_argument("--json", type=Path, required=True, help="write the results here (JSON)")
+    b.add_argument(
+        "--shared-data",
+        type=Path,
+        default=None,
+        help="the real recordings (default: ../shared/data beside the checkout)",
+    )
     b.add_argument("--seeds", type=int, default=20, help="random moves of the CARMEN halves")
     b.add_argument(
         "--octomap-seeds", type=int, default=10, help="random moves of the OctoMap crops"
@@ -248,16 +301,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="keep the maps here (default: a temporary folder)",
     )
     b = bsub.add_parser("colony", help="N daemons on loopback: propagation, catch-up, idle cost")
-    b.add_argument("--json", type=Path, required=True)
-    b.add_argument("--daemons", type=int, default=4)
+    b.add_argument("--json", type=Path, required=True, help="write the results here (JSON)")
+    b.add_argument("--daemons", type=int, default=4, help="daemons on loopback (default 4)")
     b.add_argument("--duration", type=float, default=10.0, help="seconds of 2 Hz gossip")
-    b.add_argument("--catchup-voxels", type=int, default=1_000_000)
+    b.add_argument(
+        "--catchup-voxels",
+        type=int,
+        default=1_000_000,
+        help="voxels of the layer a newcomer catches up with (default 1,000,000)",
+    )
     b = bsub.add_parser(
         "faults",
         help="real daemons under faults: crash, partition, freeze, disk, "
         "busy CPU, flood, hostile input (scale with --only scale)",
     )
-    b.add_argument("--json", type=Path, required=True)
+    b.add_argument("--json", type=Path, required=True, help="write the results here (JSON)")
     b.add_argument(
         "--only",
         action="append",
@@ -273,12 +331,24 @@ def build_parser() -> argparse.ArgumentParser:
         help="a depth-camera robot, a 2D-LiDAR robot and a CCTV map the sim office as a colony on "
         "loopback; a 3D-LiDAR robot joins halfway",
     )
-    p.add_argument("--out", type=Path, default=Path("demo-out"),
-                   help="where maps, pictures and summary.json go (default demo-out)")
-    p.add_argument("--duration", type=float, default=40.0,
-                   help="seconds of mapping, in simulated real time (default 40)")
-    p.add_argument("--timeout", type=float, default=150.0,
-                   help="give up waiting for the colony after this many seconds (default 150)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("demo-out"),
+        help="where maps, pictures and summary.json go (default demo-out)",
+    )
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=40.0,
+        help="seconds of mapping, in simulated real time (default 40)",
+    )
+    p.add_argument(
+        "--timeout",
+        type=float,
+        default=150.0,
+        help="give up waiting for the colony after this many seconds (default 150)",
+    )
     return parser
 
 
