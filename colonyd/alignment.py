@@ -1,4 +1,4 @@
-"""Alignments: transforms between agents' frames (own estimates and peers' offers) and the colony frame."""
+"""Alignments: transforms between agents' frames (own and offered) and the colony frame."""
 
 from __future__ import annotations
 

@@ -112,7 +112,9 @@ class Config(BaseSettings):
         100_000, ge=1, description="voxel blocks (64 voxels each) in peer layers"
     )
     localise: bool = Field(
-        True, description="estimate the pose of sources with odometry (EKF + scan matching) and map from it")
+        True,
+        description="estimate the pose of sources with odometry (EKF + scan matching) and map from it",
+    )
     align_s: float = Field(
         5.0, ge=0, description="seconds between alignment attempts with peers (0: none)"
     )
@@ -235,8 +237,10 @@ def load_config(path: Path | str | None = None, **flags: Any) -> Config:
     except SettingsError as exc:  # an environment variable that is not the JSON a list needs
         field = str(exc).split('"')[1] if '"' in str(exc) else "?"
         name = f"COLONYD_{field.upper()}"
-        msg = (f"environment variable {name}: expected JSON for a list or table (e.g. "
-               f"{name}='[\"tcp/10.0.0.1:7447\"]'), found {os.environ.get(name, '')!r}")
+        msg = (
+            f"environment variable {name}: expected JSON for a list or table (e.g. "
+            f"{name}='[\"tcp/10.0.0.1:7447\"]'), found {os.environ.get(name, '')!r}"
+        )
         raise ConfigError(msg) from None
     finally:
         _TOML_PATH.reset(token)

@@ -31,8 +31,8 @@ from colonyd.mapping import integrate_observation
 from colonyd.membership import Membership, agent_alive
 from colonyd.metrics import Metrics
 from colonyd.notify import Notifier
-from colonyd.outdir import output_dir
 from colonyd.objects import OwnObjects, to_wire
+from colonyd.outdir import output_dir
 from colonyd.persistence import StateStore
 from colonyd.runtime import get_session
 from colonyd.status import StatusServer

@@ -21,7 +21,11 @@ from colonyd.outdir import output_dir
 
 #: The colony: (agent, what it carries, frames per second of simulated time). The 3D LiDAR robot
 #: joins halfway and catches up.
-MEMBERS = (("depth-1", "depth camera", 10.0), ("lidar-1", "2D LiDAR", 10.0), ("cctv-1", "CCTV", 1.0))
+MEMBERS = (
+    ("depth-1", "depth camera", 10.0),
+    ("lidar-1", "2D LiDAR", 10.0),
+    ("cctv-1", "CCTV", 1.0),
+)
 LATE = ("lidar3d-1", "3D LiDAR", 10.0)
 
 
@@ -52,8 +56,16 @@ def _table(reports: list[dict[str, Any]], tracks: dict[str, Track], now: float) 
     from rich.table import Table
 
     table = Table(title=f"colony 'demo' at {now:5.1f} s", expand=False)
-    for name in ("member", "carries", "aligned", "pose error", "own seq", "replicas", "sent",
-                 "received"):
+    for name in (
+        "member",
+        "carries",
+        "aligned",
+        "pose error",
+        "own seq",
+        "replicas",
+        "sent",
+        "received",
+    ):
         table.add_column(name, justify="right" if name in ("sent", "received") else "left")
     for r in reports:
         agent = r["agent"]
@@ -87,17 +99,19 @@ def _record(reports: list[dict[str, Any]], tracks: dict[str, Track], now: float)
         counts = r["metrics"]["counts"]
         track.sent = int(counts.get("bytes_published", 0)) + int(counts.get("bytes_served", 0))
         track.received = int(counts.get("bytes_received", 0))
-        if r.get("pose_matrix") is not None and r.get("truth_matrix") is not None:
-            if not track.times or now - track.times[-1] >= 0.2:
-                track.times.append(now)
-                track.estimate.append(np.array(r["pose_matrix"]))
-                track.truth.append(np.array(r["truth_matrix"]))
+        posed = r.get("pose_matrix") is not None and r.get("truth_matrix") is not None
+        if posed and (not track.times or now - track.times[-1] >= 0.2):
+            track.times.append(now)
+            track.estimate.append(np.array(r["pose_matrix"]))
+            track.truth.append(np.array(r["truth_matrix"]))
         if r.get("pose_error_m") is not None:
             track.errors.append((now, float(r["pose_error_m"])))
         frame = r.get("colony_frame", {})
-        if track.aligned_at is None and r["agent"] in frame.get("agents", {}) and len(
-            frame.get("agents", {})
-        ) > 1:
+        if (
+            track.aligned_at is None
+            and r["agent"] in frame.get("agents", {})
+            and len(frame.get("agents", {})) > 1
+        ):
             track.aligned_at = now
 
 
@@ -162,8 +176,10 @@ def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> in
                 if late and late.caught_up_at is None and _caught_up(reports, LATE[0]):
                     late.caught_up_at = now
                 live.update(_table(reports, tracks, now))
-                if late_started and colony.converged()[0] and all(
-                    t.aligned_at is not None for t in tracks.values()
+                if (
+                    late_started
+                    and colony.converged()[0]
+                    and all(t.aligned_at is not None for t in tracks.values())
                 ):
                     break
                 if late_started and now > duration + 15 and colony.converged()[0]:
@@ -198,10 +214,14 @@ def _write_outputs(
     for agent, track in tracks.items():
         if track.estimate:
             (trajectories / f"{agent}.estimate.tum").write_text(
-                "".join(tum_line(t, p) + "\n" for t, p in zip(track.times, track.estimate, strict=True))
+                "".join(
+                    tum_line(t, p) + "\n" for t, p in zip(track.times, track.estimate, strict=True)
+                )
             )
             (trajectories / f"{agent}.groundtruth.tum").write_text(
-                "".join(tum_line(t, p) + "\n" for t, p in zip(track.times, track.truth, strict=True))
+                "".join(
+                    tum_line(t, p) + "\n" for t, p in zip(track.times, track.truth, strict=True)
+                )
             )
         alive = max(seconds - track.joined, 1e-9)
         per_robot[agent] = {
@@ -226,35 +246,53 @@ def _write_outputs(
         else round(late.caught_up_at - late.joined, 2),
         "map": {
             "frame": fused.frame,
-            "voxels": int(len(fused.keys)),
+            "voxels": len(fused.keys),
             "occupied": int((fused.logodds >= 0).sum()),
             "layers_fused": fused.layers,
         },
         "files": sorted(str(p.relative_to(out)) for p in files.values()),
     }
-    draw_colony(out / "colony.png", fused, tracks, colony_tf, report.get("peer_objects", {}),
-                report.get("objects", []))
+    draw_colony(
+        out / "colony.png",
+        fused,
+        tracks,
+        colony_tf,
+        report.get("peer_objects", {}),
+        report.get("objects", []),
+    )
     draw_errors(out / "pose-error.png", tracks)
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     return summary
 
 
 def _summary_text(summary: dict[str, Any], out: Path) -> str:
-    lines = [f"colony 'demo': {len(summary['robots'])} members, {summary['seconds']} s; "
-             f"colony frame: {summary['colony_frame']}"]
+    lines = [
+        f"colony 'demo': {len(summary['robots'])} members, {summary['seconds']} s; "
+        f"colony frame: {summary['colony_frame']}"
+    ]
     for agent, r in summary["robots"].items():
         ate = "-" if r["ate_m"] is None else f"{r['ate_m']:.3f} m"
-        align = (f"aligned after {r['time_to_align_s']} s" if r["aligned"] and
-                 r["time_to_align_s"] is not None else "not aligned")
-        lines.append(f"  {agent:<10} {r['carries']:<13} ATE {ate:>9}  {align:<22} "
-                     f"sent {r['bytes_sent_per_s'] / 1024:.1f} KiB/s")
+        align = (
+            f"aligned after {r['time_to_align_s']} s"
+            if r["aligned"] and r["time_to_align_s"] is not None
+            else "not aligned"
+        )
+        lines.append(
+            f"  {agent:<10} {r['carries']:<13} ATE {ate:>9}  {align:<22} "
+            f"sent {r['bytes_sent_per_s'] / 1024:.1f} KiB/s"
+        )
     catch = summary["late_joiner_catch_up_s"]
-    lines.append(f"  {summary['late_joiner']} joined halfway and caught up in "
-                 f"{'-' if catch is None else f'{catch} s'}")
+    lines.append(
+        f"  {summary['late_joiner']} joined halfway and caught up in "
+        f"{'-' if catch is None else f'{catch} s'}"
+    )
     m = summary["map"]
-    lines.append(f"  fused map ({m['frame']}, layers {', '.join(m['layers_fused'])}): "
-                 f"{m['occupied']} occupied of {m['voxels']} voxels")
-    lines.append(f"  wrote {out}: map.bt, map.ply, colony.png, pose-error.png, summary.json, "
-                 "trajectories/, layers/")
+    lines.append(
+        f"  fused map ({m['frame']}, layers {', '.join(m['layers_fused'])}): "
+        f"{m['occupied']} occupied of {m['voxels']} voxels"
+    )
+    lines.append(
+        f"  wrote {out}: map.bt, map.ply, colony.png, pose-error.png, summary.json, "
+        "trajectories/, layers/"
+    )
     return "\n".join(lines)
-

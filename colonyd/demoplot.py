@@ -68,8 +68,11 @@ def draw_colony(
     # a floor plan: a column is occupied if it has an occupied voxel between 0.15 and 2.0 m
     # (not the floor, not the ceiling), free if it has known voxels only
     body = (centres[:, 2] > 0.15) & (centres[:, 2] < 2.0)
-    cell = max(1, int(round(fused.resolution * PIXELS_PER_M)))
-    for mask, colour in ((np.ones(len(centres), bool), (235, 235, 235)), (occupied & body, (40, 40, 40))):
+    cell = max(1, round(fused.resolution * PIXELS_PER_M))
+    for mask, colour in (
+        (np.ones(len(centres), bool), (235, 235, 235)),
+        (occupied & body, (40, 40, 40)),
+    ):
         px = canvas.px(centres[mask])
         for dx in range(cell):
             for dy in range(cell):
@@ -103,11 +106,19 @@ def draw_colony(
             p = tf[:3, :3] @ np.asarray(o["position"], float) + tf[:3, 3]
             cv2.circle(img, tuple(int(v) for v in canvas.px(p)), 6, (0, 140, 255), 2, cv2.LINE_AA)
     for j, (text, colour) in enumerate(legend):
-        cv2.putText(img, text, (10, 20 + 18 * j), cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1,
-                    cv2.LINE_AA)
-    cv2.putText(img, f"colony frame: {root or '?'}; thick: estimate, thin: truth; "
-                     "orange: objects", (10, img.shape[0] - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
-                (90, 90, 90), 1, cv2.LINE_AA)
+        cv2.putText(
+            img, text, (10, 20 + 18 * j), cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1, cv2.LINE_AA
+        )
+    cv2.putText(
+        img,
+        f"colony frame: {root or '?'}; thick: estimate, thin: truth; orange: objects",
+        (10, img.shape[0] - 10),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.45,
+        (90, 90, 90),
+        1,
+        cv2.LINE_AA,
+    )
     if not cv2.imwrite(str(path), img):
         msg = f"{path}: cannot write the colony picture"
         raise OSError(msg)
@@ -119,8 +130,10 @@ def _view(img: np.ndarray, canvas: _Canvas, pose: np.ndarray, colour: tuple[int,
     if np.linalg.norm(axis) < 1e-6:
         return
     heading = np.arctan2(axis[1], axis[0])
-    fan = [pose[:2, 3]] + [pose[:2, 3] + 4.0 * np.array([np.cos(a), np.sin(a)])
-                           for a in np.linspace(heading - 0.52, heading + 0.52, 9)]
+    fan = [pose[:2, 3]] + [
+        pose[:2, 3] + 4.0 * np.array([np.cos(a), np.sin(a)])
+        for a in np.linspace(heading - 0.52, heading + 0.52, 9)
+    ]
     cv2.polylines(img, [canvas.px(np.array(fan))], True, colour, 1, cv2.LINE_AA)
 
 
@@ -144,11 +157,26 @@ def draw_errors(path: Path, tracks: dict[str, Track]) -> None:
         if track.aligned_at is not None:
             x = px(track.aligned_at, 0.0)[0]
             cv2.line(img, (x, pad), (x, h - pad), colour, 1, cv2.LINE_AA)
-        cv2.putText(img, agent, (pad + 10, pad + 18 * (i + 1)), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
-                    colour, 1, cv2.LINE_AA)
-    cv2.putText(img, f"pose error (m, 0-{e_max:.2f}) over time (0-{t_max:.0f} s); "
-                     "vertical: first aligned", (pad, pad - 15), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
-                (60, 60, 60), 1, cv2.LINE_AA)
+        cv2.putText(
+            img,
+            agent,
+            (pad + 10, pad + 18 * (i + 1)),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.5,
+            colour,
+            1,
+            cv2.LINE_AA,
+        )
+    cv2.putText(
+        img,
+        f"pose error (m, 0-{e_max:.2f}) over time (0-{t_max:.0f} s); vertical: first aligned",
+        (pad, pad - 15),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.5,
+        (60, 60, 60),
+        1,
+        cv2.LINE_AA,
+    )
     if not cv2.imwrite(str(path), img):
         msg = f"{path}: cannot write the pose-error plot"
         raise OSError(msg)

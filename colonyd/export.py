@@ -1,4 +1,4 @@
-"""Export: a daemon serves its fused (colony frame) or per-layer map; `colonyd export` writes files."""
+"""Export: a daemon serves its fused or per-layer map; `colonyd export` writes them as files."""
 
 from __future__ import annotations
 

@@ -220,8 +220,10 @@ def map_source(
         bar.close()
     if frames == 0:
         reasons = "; ".join(f"{n} x {r}" for r, n in source.stats.reasons.items()) or "none given"
-        msg = (f"{spec}: expected at least one readable frame, found none "
-               f"({source.stats.skipped} skipped: {reasons}); no map written")
+        msg = (
+            f"{spec}: expected at least one readable frame, found none "
+            f"({source.stats.skipped} skipped: {reasons}); no map written"
+        )
         raise SourceError(msg)
     files = write_map(grid, out_dir, trajectory)
     if adapter.kind == "lidar2d" and heights:

@@ -13,7 +13,15 @@ from colonyd.frames import Sender, frame_of
 from colonyd.layers import Layers, relabel
 from colonyd.metrics import Metrics
 from colonyd.runtime import undeclare
-from protocol import Heartbeat, Pose, LayerVersion, ObjectCentroid, Objects, VoxelDelta, delta_messages
+from protocol import (
+    Heartbeat,
+    LayerVersion,
+    ObjectCentroid,
+    Objects,
+    Pose,
+    VoxelDelta,
+    delta_messages,
+)
 from protocol.keyexpr import topic_key
 from voxel.delta import Delta
 

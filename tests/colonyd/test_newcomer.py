@@ -8,8 +8,14 @@ import sys
 
 
 def _colonyd(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "colonyd", *args], capture_output=True, text=True,
-                          timeout=60, check=False, env={**os.environ, **(env or {})})
+    return subprocess.run(
+        [sys.executable, "-m", "colonyd", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        env={**os.environ, **(env or {})},
+    )
 
 
 def test_version_and_clear_config_errors(tmp_path):
@@ -19,11 +25,22 @@ def test_version_and_clear_config_errors(tmp_path):
     assert bad_env.returncode == 3 and "Traceback" not in bad_env.stderr
     assert "COLONYD_CONNECT: expected JSON" in bad_env.stderr
     (tmp_path / "file").write_text("x")
-    out_file = _colonyd("map", "--source", "sim:world=room,agent=lidar-1,frames=1", "--out",
-                        str(tmp_path / "file"))
-    assert out_file.returncode == 3 and "--out: expected a directory, found a file" in out_file.stderr
-    export_dir = _colonyd("run", "--agent-id", "a", "--state-dir", str(tmp_path / "s"),
-                          "--no-multicast", "--export-dir", str(tmp_path / "file"))
+    out_file = _colonyd(
+        "map", "--source", "sim:world=room,agent=lidar-1,frames=1", "--out", str(tmp_path / "file")
+    )
+    assert (
+        out_file.returncode == 3 and "--out: expected a directory, found a file" in out_file.stderr
+    )
+    export_dir = _colonyd(
+        "run",
+        "--agent-id",
+        "a",
+        "--state-dir",
+        str(tmp_path / "s"),
+        "--no-multicast",
+        "--export-dir",
+        str(tmp_path / "file"),
+    )
     assert export_dir.returncode == 3 and "export_dir: expected a directory" in export_dir.stderr
 
 
