@@ -29,7 +29,8 @@ class BulkOptions(Options):
 
 
 class BulkSource:
-    """One observation carrying a delta of `voxels` voxels with random log-odds, on the grid's 1/32 steps."""
+    """One observation carrying a delta of `voxels` voxels with random log-odds, on the grid's 1/32
+    steps."""
 
     def __init__(
         self, *, voxels: int = 1_000_000, resolution: float = 0.1, seed: int = 0, spec: str = ""
@@ -72,7 +73,8 @@ class BulkSource:
 
 
 def open_bulk(spec: SourceSpec, context: SourceContext) -> BulkSource:
-    """The `bulk:` source of a parsed spec; the context gives the grid's resolution and the default seed."""
+    """The `bulk:` source of a parsed spec; the context gives the grid's resolution and the default
+    seed."""
     options = parse_options(BulkOptions, spec.options, spec.text)
     seed = context.seed if options.seed is None else options.seed
     return BulkSource(

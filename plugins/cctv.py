@@ -16,7 +16,8 @@ from voxel.sensor import SensorModel
 
 @dataclass(frozen=True)
 class CctvFrame:
-    """One CCTV image (H, W, 3) BGR or (H, W) grey uint8, optionally with a registered depth image."""
+    """One CCTV image (H, W, 3) BGR or (H, W) grey uint8, optionally with a registered depth
+    image."""
 
     image: np.ndarray
     depth: np.ndarray | None = None
@@ -73,7 +74,10 @@ class CctvCamera:
         noise: float = 0.0,
     ) -> None:
         if K is None and fov is None:
-            msg = "cctv camera: expected intrinsics K or a horizontal field of view fov, found neither"
+            msg = (
+                "cctv camera: expected intrinsics K or a horizontal field of view fov, "
+                "found neither"
+            )
             raise SensorInputError(msg)
         self.K = (
             as_intrinsics(K) if K is not None else intrinsics_from_fov(width, height, float(fov))
@@ -104,7 +108,10 @@ class CctvCamera:
             or image.ndim not in (2, 3)
             or (image.ndim == 3 and image.shape[2] not in (1, 3))
         ):
-            msg = f"image: expected (H, W) or (H, W, 3) uint8, found shape {image.shape} dtype {image.dtype}"
+            msg = (
+                "image: expected (H, W) or (H, W, 3) uint8, "
+                f"found shape {image.shape} dtype {image.dtype}"
+            )
             raise SensorInputError(msg)
         grey = (
             image
@@ -118,8 +125,8 @@ class CctvCamera:
             return []
         model = marker_corners(self.marker_length)
         found = []
-        for quad, marker in zip(corners, ids.reshape(-1), strict=True):
-            quad = quad.reshape(4, 2).astype(np.float64)
+        for detected, marker in zip(corners, ids.reshape(-1), strict=True):
+            quad = detected.reshape(4, 2).astype(np.float64)
             ok, rvec, tvec = cv2.solvePnP(
                 model, quad, self.K, self.distortion, flags=cv2.SOLVEPNP_IPPE_SQUARE
             )
@@ -152,7 +159,8 @@ class CctvCamera:
         odometry: np.ndarray | None = None,
         frame: str = "",
     ) -> Observation:
-        """Objects seen in the image; with depth, also the view's points coloured and labelled by marker."""
+        """Objects seen in the image; with depth, also the view's points coloured and labelled by
+        marker."""
         if not isinstance(reading, CctvFrame):
             reading = CctvFrame(image=reading)
         objects = tuple(self.detect(reading.image))

@@ -1,4 +1,5 @@
-"""Depth camera adapter: depth image plus intrinsics (or field of view) to points, colour and labels."""
+"""Depth camera adapter: depth image plus intrinsics (or field of view) to points, colour and
+labels."""
 
 from __future__ import annotations
 
@@ -50,7 +51,10 @@ class DepthCamera:
         noise: float = 0.0,
     ) -> None:
         if K is None and fov is None:
-            msg = "depth camera: expected intrinsics K or a horizontal field of view fov, found neither"
+            msg = (
+                "depth camera: expected intrinsics K or a horizontal field of view fov, "
+                "found neither"
+            )
             raise SensorInputError(msg)
         self.K = (
             as_intrinsics(K) if K is not None else intrinsics_from_fov(width, height, float(fov))

@@ -1,4 +1,5 @@
-"""Observation: one sensor reading turned into points in the sensor frame plus everything known about it."""
+"""Observation: one sensor reading turned into points in the sensor frame plus everything known
+about it."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Simulated source: agents follow waypoint paths in a World; sensors are rendered by ray casting."""
+"""Simulated source: agents follow waypoint paths in a World; sensors are rendered by ray
+casting."""
 
 from __future__ import annotations
 
@@ -35,7 +36,8 @@ SENSORS = ("depth", "lidar2d", "lidar3d", "cctv")
 
 @dataclass(frozen=True)
 class AgentSpec:
-    """An agent: its sensor, its path (x, y waypoints, looped) or fixed pose, speed and frame rate."""
+    """An agent: its sensor, its path (x, y waypoints, looped) or fixed pose, speed and frame
+    rate."""
 
     name: str
     sensor: str
@@ -132,7 +134,8 @@ class Path:
 
 
 class Odometer:
-    """Dead reckoning from noisy body-frame increments: scale noise, heading noise, heading drift."""
+    """Dead reckoning from noisy body-frame increments: scale noise, heading noise, heading
+    drift."""
 
     def __init__(
         self,
@@ -166,7 +169,8 @@ class Odometer:
 
 @dataclass(frozen=True)
 class Rig:
-    """A sensor's rendering geometry: ray directions in the sensor frame and how to pack a reading."""
+    """A sensor's rendering geometry: ray directions in the sensor frame and how to pack a
+    reading."""
 
     directions: np.ndarray  # (M, 3) sensor frame, unnormalised for cameras (z = 1)
     mount: np.ndarray  # (4, 4) sensor in body frame

@@ -1,4 +1,5 @@
-"""Source kinds (`sim:`, `replay:`, `synthetic:`, `bulk:`): their registry, `open_source(spec)` and reference."""
+"""Source kinds (`sim:`, `replay:`, `synthetic:`, `bulk:`): their registry, `open_source(spec)` and
+reference."""
 
 from __future__ import annotations
 
@@ -39,18 +40,18 @@ SOURCE_KINDS: dict[str, SourceKind] = {
         SourceKind(
             "sim",
             "sim:key=value,...",
-            "an agent of a simulated world: a depth camera, 2D or 3D LiDAR or CCTV camera rendered by ray "
-            "casting along the agent's path, pose guesses from noisy odometry, ground truth kept; "
-            "deterministic for a seed",
+            "an agent of a simulated world: a depth camera, 2D or 3D LiDAR or CCTV camera "
+            "rendered by ray casting along the agent's path, pose guesses from noisy odometry, "
+            "ground truth kept; deterministic for a seed",
             (("", SimOptions),),
             open_sim,
         ),
         SourceKind(
             "replay",
             "replay:PATH[,key=value...]",
-            "a real recording at PATH: a CARMEN laser log (.log, .log.gz), a 7-Scenes or TUM RGB-D folder, "
-            "or a ROS 1/2 bag (.bag, .db3, .mcap, or a folder with metadata.yaml; needs the [ros] extra); "
-            "bad frames are skipped and counted unless strict",
+            "a real recording at PATH: a CARMEN laser log (.log, .log.gz), a 7-Scenes or TUM "
+            "RGB-D folder, or a ROS 1/2 bag (.bag, .db3, .mcap, or a folder with metadata.yaml; "
+            "needs the [ros] extra); bad frames are skipped and counted unless strict",
             (
                 ("", ReplayOptions),
                 ("carmen", CarmenOptions),
@@ -63,8 +64,8 @@ SOURCE_KINDS: dict[str, SourceKind] = {
         SourceKind(
             "synthetic",
             "synthetic:key=value,...",
-            "nothing: a 2.5D scanner walking an empty square room, horizontal beams to the walls with "
-            "returns at random heights, paced in real time (daemon tests and benchmarks)",
+            "nothing: a 2.5D scanner walking an empty square room, horizontal beams to the walls "
+            "with returns at random heights, paced in real time (daemon tests and benchmarks)",
             (("", SyntheticOptions),),
             open_synthetic,
         ),

@@ -1,4 +1,5 @@
-"""Synthetic source: a 2.5D scanner walking an empty square room, paced in real time until stopped."""
+"""Synthetic source: a 2.5D scanner walking an empty square room, paced in real time until
+stopped."""
 
 from __future__ import annotations
 
@@ -55,7 +56,10 @@ class SyntheticSource:
         stop: threading.Event | None = None,
     ) -> None:
         if rate <= 0 or points <= 0 or room <= 1:
-            msg = f"synthetic: expected rate > 0, points > 0 and room > 1, found rate={rate}, points={points}, room={room}"
+            msg = (
+                "synthetic: expected rate > 0, points > 0 and room > 1, "
+                f"found rate={rate}, points={points}, room={room}"
+            )
             raise SourceSpecError(msg)
         self.scans, self.rate, self.points = scans, rate, points
         self.room, self.step = room, step
@@ -106,7 +110,8 @@ class SyntheticSource:
 
 
 def open_synthetic(spec: SourceSpec, context: SourceContext) -> SyntheticSource:
-    """The `synthetic:` source of a parsed spec; the context gives the default seed and the stop event."""
+    """The `synthetic:` source of a parsed spec; the context gives the default seed and the stop
+    event."""
     options = parse_options(SyntheticOptions, spec.options, spec.text)
     seed = context.seed if options.seed is None else options.seed
     return SyntheticSource(

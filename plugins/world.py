@@ -41,7 +41,8 @@ class Cylinder:
 
 @dataclass(frozen=True)
 class Marker:
-    """An ArUco marker printed on a vertical box face: black square of side `length` on a white tag."""
+    """An ArUco marker printed on a vertical box face: black square of side `length` on a white
+    tag."""
 
     marker_id: int
     centre: tuple[float, float, float]
@@ -353,7 +354,8 @@ def _landmark(
 
 
 def room_world() -> World:
-    """A 6 x 6 m square room (inner wall faces at x, y = +-3), 2.5 m high, three labelled objects."""
+    """A 6 x 6 m square room (inner wall faces at x, y = +-3), 2.5 m high, three labelled
+    objects."""
     landmark, markers = _landmark(3, 1.5, 1.5, 0)
     return World(
         name="room",
@@ -368,7 +370,8 @@ def room_world() -> World:
 
 
 def office_world() -> World:
-    """A 12 x 8 m office: two rooms joined by a 1.2 m doorway, boxes, bins and four tagged landmarks."""
+    """A 12 x 8 m office: two rooms joined by a 1.2 m doorway, boxes, bins and four tagged
+    landmarks."""
     cls, col = CLASSES["wall"], (200, 200, 205)
     boxes = [
         *_walls(-6.0, -4.0, 6.0, 4.0, 2.7),
@@ -392,7 +395,8 @@ def office_world() -> World:
 
 
 def box_room(side: float, height: float = 2.5) -> World:
-    """An empty square room without a floor: inner wall faces at 0 and `side` on x and y (the synthetic scanner's)."""
+    """An empty square room without a floor: inner wall faces at 0 and `side` on x and y (the
+    synthetic scanner's)."""
     return World(name="box", boxes=_walls(0.0, 0.0, side, side, height), floor=None)
 
 
@@ -402,8 +406,8 @@ FURNISHED_SHIFT = (0.0131, 0.0217, 0.0093)
 
 
 def furnished_room(thick: float = 0.1) -> World:
-    """An 8 x 6 x 2.8 m closed room (floor and ceiling as boxes) with a table, cupboard, bed, chair and
-    wall shelf, unlabelled, shifted by FURNISHED_SHIFT: the benchmarks' scene."""
+    """An 8 x 6 x 2.8 m closed room (floor and ceiling as boxes) with a table, cupboard, bed, chair
+    and wall shelf, unlabelled, shifted by FURNISHED_SHIFT: the benchmarks' scene."""
     shift = np.array(FURNISHED_SHIFT)
     lo, hi = np.array([-4.0, -3.0, 0.0]) + shift, np.array([4.0, 3.0, 2.8]) + shift
     col = (200, 200, 205)
