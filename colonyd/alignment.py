@@ -1,4 +1,5 @@
-"""Alignments: transforms between agents' frames (own estimates and peers' offers) and the colony frame."""
+"""Alignments: transforms between agents' frames (own estimates and peers' offers) and the colony
+frame."""
 
 from __future__ import annotations
 

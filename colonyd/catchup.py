@@ -1,4 +1,5 @@
-"""Catch-up: the repair client that brings a peer's layer up to the best version the colony reports."""
+"""Catch-up: the repair client that brings a peer's layer up to the best version the colony
+reports."""
 
 from __future__ import annotations
 
@@ -105,7 +106,8 @@ class CatchUp:
         self._worker.close()
 
     def request(self, origin: str, servers: list[str]) -> None:
-        """Bring `origin`'s layer up to date, asking `servers` first; no-op while it is under way."""
+        """Bring `origin`'s layer up to date, asking `servers` first; no-op while it is under
+        way."""
         with self._lock:
             if origin in self._repairing:
                 return

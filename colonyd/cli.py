@@ -1,4 +1,5 @@
-"""Command line: `colonyd run|status|map|localize|align|sources|bench|demo|dump-config`; the one place errors become exit codes."""
+"""Command line: `colonyd run|status|map|localize|align|sources|bench|demo|dump-config`; the one
+place errors become exit codes."""
 
 from __future__ import annotations
 
@@ -389,8 +390,9 @@ def _align(args: argparse.Namespace) -> int:
     args.json.write_text(json.dumps(result, indent=1) + "\n")
     if result["aligned"]:
         sys.stdout.write(
-            f"aligned (confidence {result['confidence']:.2f}): x {result['x']:.3f} y {result['y']:.3f} "
-            f"z {result['z']:.3f} m, yaw {result['yaw_deg']:.2f} deg, {result['inliers']} inliers, "
+            f"aligned (confidence {result['confidence']:.2f}): "
+            f"x {result['x']:.3f} y {result['y']:.3f} z {result['z']:.3f} m, "
+            f"yaw {result['yaw_deg']:.2f} deg, {result['inliers']} inliers, "
             f"RMS {result['rmse_m']} m, in {result['seconds']:.2f} s\nwrote {args.json}\n"
         )
     else:
@@ -441,7 +443,8 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def _known_errors() -> list[tuple[type[BaseException], int, str]]:
-    """(error class, exit code, label) for every package that defines errors, most specific first."""
+    """(error class, exit code, label) for every package that defines errors, most specific
+    first."""
     known: list[tuple[type[BaseException], int, str]] = [(ConfigError, EXIT_CONFIG, "config")]
     try:
         from voxel.errors import VoxelError

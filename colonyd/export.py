@@ -1,4 +1,5 @@
-"""Export: a daemon serves its fused (colony frame) or per-layer map; `colonyd export` writes files."""
+"""Export: a daemon serves its fused (colony frame) or per-layer map; `colonyd export` writes
+files."""
 
 from __future__ import annotations
 

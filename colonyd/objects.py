@@ -1,4 +1,5 @@
-"""Objects: the own layer's object list (tracked clusters and sensor-identified objects) and peers'."""
+"""Objects: the own layer's object list (tracked clusters and sensor-identified objects) and
+peers'."""
 
 from __future__ import annotations
 
@@ -136,7 +137,10 @@ class PeerObjects:
         """Raise WireError unless a list of `origin` may be kept."""
         with self._lock:
             if origin not in self._lists and len(self._lists) >= self.max_origins:
-                text = f"expected object lists of at most {self.max_origins} peers, found another: {origin!r}"
+                text = (
+                    f"expected object lists of at most {self.max_origins} peers, "
+                    f"found another: {origin!r}"
+                )
                 raise WireError("too-many-layers", text)
 
     def put(self, origin: str, objects: list[WireObject]) -> None:

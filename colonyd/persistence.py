@@ -126,7 +126,7 @@ class StateStore:
             snap = self._read_json(snap_path)
             try:
                 grid = load_grid(self.dir / snap["file"])
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 - any unreadable snapshot becomes PersistenceError
                 msg = f"snapshot {snap['file']} in {self.dir} cannot be loaded: {exc}"
                 raise PersistenceError(msg) from None
             seq = int(snap["seq"])
@@ -432,7 +432,7 @@ def _decode_wal_record(body: bytes, path: Path, offset: int) -> dict[str, Any]:
         rec["seq"] = int(rec["seq"])
         rec["delta"] = _unpack_wal_delta(rec["delta"])
         return rec
-    except Exception as exc:
+    except Exception as exc:  # noqa: BLE001 - a record that fails to decode in any way
         msg = (
             f"write-ahead log {path}: the record at offset {offset} (seq {seq}) passes its "
             f"CRC but cannot be decoded ({type(exc).__name__}: {exc}); expected a record of "

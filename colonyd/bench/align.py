@@ -1,4 +1,5 @@
-"""Alignment benchmark: real laser halves, OctoMap crops, negatives, and map_merge's ORB method side by side."""
+"""Alignment benchmark: real laser halves, OctoMap crops, negatives, and map_merge's ORB method side
+by side."""
 
 from __future__ import annotations
 
@@ -48,7 +49,10 @@ def run_align_bench(
     """Run every case, write the JSON result (with its command) to `out_json` and return it."""
     data = shared_data_dir(shared_data)
     if data is None or not (data / CARMEN_LOG).is_file() or not (data / octomap).is_file():
-        msg = f"align benchmark: expected the shared recordings ({CARMEN_LOG}, {octomap}) under ../shared/data or --shared-data, found {data}"
+        msg = (
+            f"align benchmark: expected the shared recordings ({CARMEN_LOG}, {octomap}) under "
+            f"../shared/data or --shared-data, found {data}"
+        )
         raise ConfigError(msg)
     work = (
         Path(work_dir) if work_dir is not None else Path(tempfile.mkdtemp(prefix="colony-align-"))
@@ -98,7 +102,8 @@ class CarmenHalves:
         return self._map("a", f"stop={self.split_a}")
 
     def second(self, move: tuple[float, float, float]) -> tuple[MapCloud, float, np.ndarray]:
-        """Map B (last 60 %) with poses moved by (x, y, yaw degrees); load seconds; trajectory (N, 3)."""
+        """Map B (last 60 %) with poses moved by (x, y, yaw degrees); load seconds; trajectory (N,
+        3)."""
         x, y, yaw = move
         name = f"b_{x:.3f}_{y:.3f}_{yaw:.3f}"
         cloud, load_s = self._map(
@@ -364,7 +369,8 @@ def _baseline(
 
 
 def summarise(rows: list[dict]) -> list[dict]:
-    """One line per case: success rates, confident wrong answers, errors and times, ours and baseline."""
+    """One line per case: success rates, confident wrong answers, errors and times, ours and
+    baseline."""
     out = []
     for case in dict.fromkeys(r["case"] for r in rows):
         rs = [r for r in rows if r["case"] == case]

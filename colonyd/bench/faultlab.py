@@ -1,4 +1,5 @@
-"""Faults on one machine: network namespaces and veth links, a small tmpfs, a busy core, hostile frames.
+"""Faults on one machine: network namespaces and veth links, a small tmpfs, a busy core, hostile
+frames.
 
 Everything here needs no daemon internals: it acts on processes, links and mounts from outside,
 as an operator (or a failing robot) would. What needs root says so (`need_root`) and cleans up

@@ -1,4 +1,5 @@
-"""`colonyd bench faults`: real daemons under crashes, partitions, freezes, full disks, load, floods, hostile input."""
+"""`colonyd bench faults`: real daemons under crashes, partitions, freezes, full disks, load,
+floods, hostile input."""
 
 from __future__ import annotations
 
@@ -181,7 +182,7 @@ def crash(base: Path, *, kills: int = 20, seed: int = 7) -> dict[str, Any]:
     colony = LocalColony(base, colony="crash", heartbeat_s=0.5)
     b = colony.add("b")  # the hub: a restarts against it
     time.sleep(0.3)
-    mapping = src(1, 0, rate=8, points=200) + ["--publish-hz", "8"]
+    mapping = [*src(1, 0, rate=8, points=200), "--publish-hz", "8"]
     a = colony.add("a", start=False, extra=["--source", mapping[0], *mapping[1:]])
     watch_session = open_session(
         zenoh_config(
@@ -538,7 +539,7 @@ def disk(base: Path, *, size_mb: float = 6.0) -> dict[str, Any]:
         a.env["COLONYD_SNAPSHOT_S"] = "1"
         a.start()
         try:
-            wait_for("a snapshots", lambda: (a.state_dir / "snapshot.json").exists(), 30)
+            wait_for("a snapshots", (a.state_dir / "snapshot.json").exists, 30)
             wait_for("b holds a", lambda: seq_of(by_agent(colony), "b", "a") >= 3, 30)
             mount.fill()
             t_full = time.monotonic()

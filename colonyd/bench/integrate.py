@@ -240,7 +240,8 @@ def run_scenario(sc: Scenario, repeats: int) -> dict:
 def run_integrate_bench(
     out_json: Path, shared_data: Path | None, repeats: int = 5, only: list[str] | None = None
 ) -> list[dict]:
-    """Run the default scenarios (or those named in `only`), write the JSON list to out_json and return it."""
+    """Run the default scenarios (or those named in `only`), write the JSON list to out_json and
+    return it."""
     known = scenarios(shared_data_dir(shared_data))
     unknown = sorted(set(only or ()) - {sc.name for sc in known})
     if unknown:

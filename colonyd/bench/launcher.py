@@ -257,7 +257,8 @@ class LocalColony:
         return True, "converged"
 
     def _still_mapping(self, agents: list[str] | None) -> tuple[bool, str]:
-        """(True, why) while a listed daemon is missing, still mapping or has unpublished changes."""
+        """(True, why) while a listed daemon is missing, still mapping or has unpublished
+        changes."""
         agents = agents or [a for a, d in self.daemons.items() if d.alive()]
         reports = {r["agent"]: r for r in self.status()}
         for agent in agents:

@@ -1,4 +1,5 @@
-"""The peer's method for comparison: multirobot_map_merge's ORB features + RANSAC on occupancy images.
+"""The peer's method for comparison: multirobot_map_merge's ORB features + RANSAC on occupancy
+images.
 
 As m-explore's `combine_grids` does it (read, not copied): ORB features of each occupancy image
 (OpenCV stitching's ORB finder: 1500 features, scale 1.3, 5 levels), best-of-2-nearest matching

@@ -71,7 +71,7 @@ def _camera_path(frames: int = 50) -> Iterator[Frame]:
         v, u = np.divmod(index, depth.shape[1])
         z = local[:, 2]
         world_z = (local @ pose[:3, :3].T + pose[:3, 3])[:, 2]
-        colour = np.zeros(depth.shape + (3,), dtype=np.uint8)
+        colour = np.zeros((*depth.shape, 3), dtype=np.uint8)
         colour[v, u] = np.stack(
             [(world_z * 80) % 256, np.full_like(z, 120), (z * 40) % 256], 1
         ).astype(np.uint8)

@@ -62,7 +62,7 @@ def test_a_more_confident_offer_replaces_a_pair_and_bad_offers_are_refused():
     offer = offer_of(_edge("a", "b", _rigid(1.5, -2, 30)), header)
     back = edge_from_offer(offer)
     np.testing.assert_allclose(back.transform, _rigid(1.5, -2, 30), atol=1e-9)
-    with pytest.raises(WireError, match="expected frames 'a.odom' -> 'b.odom'"):
+    with pytest.raises(WireError, match=r"expected frames 'a\.odom' -> 'b\.odom'"):
         edge_from_offer(offer.model_copy(update={"target_frame": "map"}))
     with pytest.raises(WireError, match="for another agent"):
         edge_from_offer(offer.model_copy(update={"target": "a", "target_frame": "a.odom"}))

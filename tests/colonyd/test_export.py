@@ -30,7 +30,11 @@ def test_export_fetches_the_fused_map_and_layers(make_colony, tmp_path):
     ]
     out = tmp_path / "maps"
     run = subprocess.run(
-        [*base, "--out", str(out), "--from", "b"], capture_output=True, text=True, timeout=60
+        [*base, "--out", str(out), "--from", "b"],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert run.returncode == 0, run.stderr
     assert "fused map in frame a.odom" in run.stdout  # a's frame is the colony frame (root)
@@ -41,11 +45,19 @@ def test_export_fetches_the_fused_map_and_layers(make_colony, tmp_path):
     assert np.array_equal(fused.occupied[order_f], layer.occupied[order_l])
     assert (out / "fused.ply").stat().st_size > 0 and (out / "a.ply").exists()
     missing = subprocess.run(
-        [*base, "--out", str(out), "--layer", "nobody"], capture_output=True, text=True, timeout=60
+        [*base, "--out", str(out), "--layer", "nobody"],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert missing.returncode == 1 and "holds no layer 'nobody'" in missing.stderr
     (tmp_path / "file").write_text("x")
     bad = subprocess.run(
-        [*base, "--out", str(tmp_path / "file")], capture_output=True, text=True, timeout=60
+        [*base, "--out", str(tmp_path / "file")],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert bad.returncode == 1 and "expected a directory, found a file" in bad.stderr

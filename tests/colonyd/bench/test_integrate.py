@@ -41,6 +41,6 @@ def test_unknown_scenario_is_a_config_error(tmp_path: Path) -> None:
     from colonyd.errors import ConfigError
 
     with pytest.raises(
-        ConfigError, match="unknown scenario.*'nope'.*expected some of.*lidar3d_64x1024_0.05"
+        ConfigError, match=r"unknown scenario.*'nope'.*expected some of.*lidar3d_64x1024_0\.05"
     ):
         run_integrate_bench(tmp_path / "x.json", None, repeats=1, only=["nope"])
