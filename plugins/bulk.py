@@ -9,6 +9,7 @@ from collections.abc import Iterator
 import numpy as np
 from pydantic import Field
 
+from plugins.adapter import SensorAdapter
 from plugins.errors import SourceSpecError
 from plugins.observation import Observation
 from plugins.points import PointsAdapter
@@ -40,7 +41,7 @@ class BulkSource:
             raise SourceSpecError(msg)
         self.voxels, self.resolution, self.seed = voxels, resolution, seed
         self.spec = spec or "bulk:"
-        self.adapter = PointsAdapter("bulk")
+        self.adapter: SensorAdapter = PointsAdapter("bulk")
         self.stats = StreamStats()
 
     def __len__(self) -> int:

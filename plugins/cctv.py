@@ -73,15 +73,16 @@ class CctvCamera:
         prob_miss: float = 0.4,
         noise: float = 0.0,
     ) -> None:
-        if K is None and fov is None:
+        if K is not None:
+            self.K = as_intrinsics(K)
+        elif fov is not None:
+            self.K = intrinsics_from_fov(width, height, float(fov))
+        else:
             msg = (
                 "cctv camera: expected intrinsics K or a horizontal field of view fov, "
                 "found neither"
             )
             raise SensorInputError(msg)
-        self.K = (
-            as_intrinsics(K) if K is not None else intrinsics_from_fov(width, height, float(fov))
-        )
         self.pose = np.eye(4) if pose is None else as_pose(pose, "pose")
         self.distortion = np.zeros(5) if distortion is None else np.asarray(distortion, np.float64)
         if marker_length <= 0:
@@ -183,6 +184,7 @@ class CctvCamera:
         labels = np.full(depth.shape, -1, np.int32)
         probs = np.zeros(depth.shape, np.float32)
         for obj in objects:
+            assert obj.corners is not None  # detect() gives every marker its image corners
             quad = np.round(obj.corners).astype(np.int32)
             cv2.fillConvexPoly(labels, quad, obj.class_id)
             cv2.fillConvexPoly(probs, quad, obj.probability)

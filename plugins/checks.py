@@ -18,7 +18,7 @@ def as_array(
 ) -> np.ndarray:
     """`value` as an array of `shape` (None = any length); raise SensorInputError naming `field`."""
     try:
-        array = np.asarray(value, dtype=dtype)
+        array: np.ndarray = np.asarray(value, dtype=dtype)
     except (TypeError, ValueError):
         msg = f"{field}: expected an array of {np.dtype(dtype).name}, found {type(value).__name__}"
         raise SensorInputError(msg) from None

@@ -100,6 +100,7 @@ def depth_image(msg: Any, field: str = "Image") -> np.ndarray:
     """A depth Image message (16UC1 millimetres or 32FC1 metres) as float32 metres."""
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     data = np.asarray(msg.data, dtype=np.uint8)
+    dtype: np.dtype[Any]
     if msg.encoding in ("16UC1", "mono16"):
         dtype, scale = np.dtype(">u2" if msg.is_bigendian else "<u2"), 0.001
     elif msg.encoding == "32FC1":

@@ -103,7 +103,7 @@ def seven_scenes_frames(root: Path) -> list[RgbdFrame]:
     30 Hz."""
     folder = root / "frames" if (root / "frames").is_dir() else root
     depths = sorted(folder.glob("frame-*.depth.png"))
-    frames = []
+    frames: list[RgbdFrame] = []
     for depth in depths:
         stem = depth.name[: -len(".depth.png")]
         try:

@@ -13,7 +13,7 @@ from plugins.replay import ReplayOptions, open_replay
 from plugins.rosbag import RosbagOptions
 from plugins.sevenscenes import RgbdOptions
 from plugins.sim import SimOptions, open_sim
-from plugins.spec import Options, SourceSpec, option_docs, split_spec
+from plugins.spec import OptionDoc, Options, SourceSpec, option_docs, split_spec
 from plugins.stream import Source, SourceContext
 from plugins.synthetic import SyntheticOptions, open_synthetic
 
@@ -108,7 +108,7 @@ def describe_sources(*, markdown: bool = False) -> str:
     return "\n".join(_markdown(kind) if markdown else _text(kind) for kind in SOURCE_KINDS.values())
 
 
-def _sections(kind: SourceKind) -> list[tuple[str, list]]:
+def _sections(kind: SourceKind) -> list[tuple[str, list[OptionDoc]]]:
     """(heading, option docs) of a kind; later sections leave out the options of the first."""
     own = tuple(kind.options[0][1].model_fields)
     return [

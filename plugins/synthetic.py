@@ -11,6 +11,7 @@ from collections.abc import Iterator
 import numpy as np
 from pydantic import Field
 
+from plugins.adapter import SensorAdapter
 from plugins.errors import SourceSpecError
 from plugins.observation import Observation
 from plugins.points import PointsAdapter
@@ -66,7 +67,7 @@ class SyntheticSource:
         self.spec = spec or "synthetic:"
         self.stop = stop if stop is not None else threading.Event()
         self.world = box_room(room)
-        self.adapter = PointsAdapter("synthetic")
+        self.adapter: SensorAdapter = PointsAdapter("synthetic")
         self.stats = StreamStats()
         self.rng = np.random.default_rng(seed)
         self.pos = self.rng.uniform(1.0, room - 1.0, size=2)

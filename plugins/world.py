@@ -135,7 +135,11 @@ class World:
         colour = np.zeros((m, 3), np.uint8)
 
         def take(
-            tc: np.ndarray, nc: np.ndarray, c: np.ndarray, oid: np.ndarray, col: np.ndarray
+            tc: np.ndarray,
+            nc: np.ndarray,
+            c: np.ndarray,
+            oid: np.ndarray,
+            col: np.ndarray,
         ) -> None:
             better = tc < t
             t[better] = tc[better]
@@ -152,8 +156,8 @@ class World:
             take(
                 tf,
                 np.array([0.0, 0.0, up]),
-                np.int32(CLASSES["floor"]),
-                np.int32(-1),
+                np.array(CLASSES["floor"], np.int32),
+                np.array(-1, np.int32),
                 np.array(self.floor_colour, np.uint8),
             )
 
@@ -172,14 +176,20 @@ class World:
             k = tb.argmin(axis=1)  # best box per ray
             rows = np.arange(m)
             tk = tb[rows, k]
-            axis = np.where(near[0][rows, k] == tk, 0, np.where(near[1][rows, k] == tk, 1, 2))
+            hit_axis = np.where(near[0][rows, k] == tk, 0, np.where(near[1][rows, k] == tk, 1, 2))
             nb = np.zeros((m, 3))
-            nb[rows, axis] = -np.sign(d[rows, axis])
+            nb[rows, hit_axis] = -np.sign(d[rows, hit_axis])
             take(tk, nb, self._box_cls[k], self._box_obj[k], self._box_col[k])
 
         for c in self.cylinders:
             tc, nc = _cylinder(o, d, c)
-            take(tc, nc, np.int32(c.class_id), np.int32(c.object_id), np.array(c.colour, np.uint8))
+            take(
+                tc,
+                nc,
+                np.array(c.class_id, np.int32),
+                np.array(c.object_id, np.int32),
+                np.array(c.colour, np.uint8),
+            )
         return Hits(t=t, normal=normal, class_id=cls, object_id=obj, colour=colour)
 
     # appearance -----------------------------------------------------------------------------
@@ -239,8 +249,8 @@ class World:
             tag = self._tag(marker)
             side = float(np.linalg.norm(np.roll(uv, 1, axis=0) - uv, axis=1).max())
             if side < tag.shape[0] / 2:  # pre-filter: anti-aliased edges at the projected size
-                size = max(round(side * 2), 8)
-                tag = cv2.resize(tag, (size, size), interpolation=cv2.INTER_AREA)
+                tag_px = max(round(side * 2), 8)
+                tag = cv2.resize(tag, (tag_px, tag_px), interpolation=cv2.INTER_AREA)
             s = tag.shape[0]
             src = np.array(
                 [[-0.5, -0.5], [s - 0.5, -0.5], [s - 0.5, s - 0.5], [-0.5, s - 0.5]], np.float32

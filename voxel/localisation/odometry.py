@@ -20,6 +20,7 @@ import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from voxel.errors import LocalisationError
 from voxel.localisation import se2
@@ -106,11 +107,11 @@ class WheelOdometer:
             ]
         )
 
-    def step(self, truth: np.ndarray) -> np.ndarray:
+    def step(self, truth: npt.ArrayLike) -> np.ndarray:
         """Advance to the true pose `truth` (x, y, yaw); returns the odometry pose (x, y, yaw)."""
-        truth = np.asarray(truth, np.float64)[:3]
-        self.pose = se2.compose(self.pose, self.read(se2.relative(self.truth, truth)))
-        self.truth = truth.copy()
+        true_pose = np.asarray(truth, np.float64)[:3]
+        self.pose = se2.compose(self.pose, self.read(se2.relative(self.truth, true_pose)))
+        self.truth = true_pose.copy()
         return self.pose.copy()
 
 
