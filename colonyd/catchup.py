@@ -145,7 +145,12 @@ class CatchUp:
                 return
 
     def _ask(
-        self, server: str, query: str, layer: str, request: Any, cls: type[Message]
+        self,
+        server: str,
+        query: str,
+        layer: str,
+        request: SnapshotRequest | DeltaRangeRequest,
+        cls: type[SnapshotReply] | type[DeltaRangeReply],
     ) -> list[Any]:
         """Send a request frame to `server`'s queryable; the replies of type `cls` for `layer`
         and this request (every other reply is rejected and counted)."""
@@ -166,9 +171,9 @@ class CatchUp:
                 msg = self.receiver.decode(raw, key_expr=str(reply.ok.key_expr))
                 if not (
                     isinstance(msg, cls)
-                    and msg.layer == layer  # type: ignore[attr-defined]
+                    and msg.layer == layer
                     and msg.request_id == request.request_id
-                ):  # type: ignore[attr-defined]
+                ):
                     text = (
                         f"expected a {cls.KIND} for layer {layer!r}, request "
                         f"{request.request_id}, found a {msg.KIND}"

@@ -340,11 +340,11 @@ def main(argv: list[str] | None = None) -> int:
         from colonyd.mapping import map_source
 
         summary = map_source(args.map_source, args.resolution, args.out)
-        files = ", ".join(str(p) for p in getattr(summary, "files", {}).values())
+        written = ", ".join(str(p) for p in getattr(summary, "files", {}).values())
         sys.stdout.write(
             f"{summary.spec}: {summary.frames} frames ({summary.skipped} skipped), "
             f"{summary.points} points -> {summary.occupied} occupied, {summary.free} free voxels "
-            f"at {summary.resolution} m in {summary.seconds:.1f} s\nwrote {files}\n"
+            f"at {summary.resolution} m in {summary.seconds:.1f} s\nwrote {written}\n"
         )
         return EXIT_OK
     if cmd == "localize":
@@ -401,6 +401,7 @@ def _align(args: argparse.Namespace) -> int:
 
 
 def _bench(args: argparse.Namespace) -> int:
+    result: object  # what the benchmark returns, printed as JSON
     if args.bench == "integrate":
         from colonyd.bench.integrate import run_integrate_bench
 
@@ -408,7 +409,7 @@ def _bench(args: argparse.Namespace) -> int:
     elif args.bench == "align":
         from colonyd.bench.align import run_align_bench
 
-        result = run_align_bench(
+        report = run_align_bench(
             args.json,
             args.shared_data,
             seeds=args.seeds,
@@ -417,7 +418,7 @@ def _bench(args: argparse.Namespace) -> int:
             carmen_step=args.carmen_step,
             work_dir=args.work_dir,
         )
-        result = {"summary": result["summary"], "json": str(args.json)}
+        result = {"summary": report["summary"], "json": str(args.json)}
     elif args.bench == "wire":
         from colonyd.bench.wire import run_wire_bench
 
@@ -453,7 +454,7 @@ def _known_errors() -> list[tuple[type[BaseException], int, str]]:
     except ImportError:
         pass
     try:
-        from protocol.errors import ProtocolError  # type: ignore[attr-defined]
+        from protocol.errors import ProtocolError
 
         known.append((ProtocolError, EXIT_DATA, "protocol"))
     except ImportError:

@@ -49,7 +49,8 @@ class _Scan:
         points = obs.points if obs.no_return is None else obs.points[~obs.no_return]
         body = points @ self.mount[:3, :3].T + self.mount[:3, 3]
         odometry = None if obs.odometry is None else se2.from_matrix(obs.odometry)
-        return se2.to_matrix(self.localiser.step(body, odometry).pose) @ self.mount
+        sensor: np.ndarray = se2.to_matrix(self.localiser.step(body, odometry).pose) @ self.mount
+        return sensor
 
 
 class _Visual:

@@ -99,8 +99,9 @@ class Delta:
         with np.errstate(invalid="ignore"):
             return self.logodds >= 0.0
 
-    def select(self, mask: np.ndarray) -> Delta:
-        """The part of this delta at `mask` (a boolean mask or index array), same versions."""
+    def select(self, mask: np.ndarray | slice) -> Delta:
+        """The part of this delta at `mask` (a boolean mask, index array or slice), same
+        versions."""
         return Delta(
             resolution=self.resolution,
             from_version=self.from_version,

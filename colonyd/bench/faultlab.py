@@ -57,7 +57,7 @@ class Spinner:
     """Another process keeping one core busy (a pure-Python loop), stopped by its PID."""
 
     def __init__(self) -> None:
-        self.proc: subprocess.Popen | None = None
+        self.proc: subprocess.Popen[bytes] | None = None
 
     def __enter__(self) -> Self:
         self.proc = subprocess.Popen(

@@ -42,7 +42,7 @@ class LocalDaemon:
     state_dir: Path
     log_path: Path
     args: list[str]
-    proc: subprocess.Popen | None = None
+    proc: subprocess.Popen[bytes] | None = None
     env: dict[str, str] = field(default_factory=dict)
     host: str = "127.0.0.1"  # its address (another one inside a network namespace)
     prefix: list[str] = field(default_factory=list)  # e.g. ["ip", "netns", "exec", NS]

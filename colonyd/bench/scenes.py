@@ -53,7 +53,8 @@ def depth_frame(
     if noise:
         z = z + np.random.default_rng(seed).normal(scale=noise, size=z.shape) * z * z
     z[~np.isfinite(z) | (z > max_depth)] = 0.0
-    return z.reshape(h, w)
+    image: np.ndarray = z.reshape(h, w)
+    return image
 
 
 def lidar2d_scan(
