@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test fuzz bench clean
+.PHONY: demo test lint fuzz bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -17,6 +17,14 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q --durations=15 tests
+
+# Style: ruff's lint rules and formatting on the whole tree; mypy (strict on voxel and protocol,
+# as pyproject.toml configures it) on every package.
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/mypy voxel protocol
+	$(BIN)/mypy colonyd plugins
 
 fuzz: $(STAMP)
 	COLONY_FUZZ_CASES=100000 $(BIN)/python -m pytest -q tests/protocol/test_fuzz.py

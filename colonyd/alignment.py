@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from colonyd.errors import WireError
-from colonyd.frames import frame_of
+from colonyd.frames import Header, frame_of
 from colonyd.layers import Layer
 from protocol import AlignOffer
 from voxel.registration import Alignment, AlignParams, MapCloud, align_clouds
@@ -80,7 +80,7 @@ def edge_of(own: str, peer: str, result: Alignment) -> Edge:
     )
 
 
-def offer_of(edge: Edge, header: dict[str, object]) -> AlignOffer:
+def offer_of(edge: Edge, header: Header) -> AlignOffer:
     """The AlignOffer message of an own edge."""
     return AlignOffer(
         **header,
@@ -179,7 +179,8 @@ class Alignments:
         if anchor is not None and anchor in parent:
             root = anchor
         else:  # the largest group, the smallest id on a tie; its smallest id
-            root = min(min(groups.values(), key=lambda g: (-len(g), min(g))))
+            largest = min(groups.values(), key=lambda g: (-len(g), min(g)))
+            root = min(largest)
         transforms = {root: np.eye(4)}
         todo = [root]
         while todo:  # each edge (a -> b, T) takes b's frame into a's

@@ -1,4 +1,5 @@
-"""Catch-up: the repair client that brings a peer's layer up to the best version the colony reports."""
+"""Catch-up: the repair client that brings a peer's layer up to the best version the colony
+reports."""
 
 from __future__ import annotations
 
@@ -105,7 +106,8 @@ class CatchUp:
         self._worker.close()
 
     def request(self, origin: str, servers: list[str]) -> None:
-        """Bring `origin`'s layer up to date, asking `servers` first; no-op while it is under way."""
+        """Bring `origin`'s layer up to date, asking `servers` first; no-op while it is under
+        way."""
         with self._lock:
             if origin in self._repairing:
                 return
@@ -143,7 +145,12 @@ class CatchUp:
                 return
 
     def _ask(
-        self, server: str, query: str, layer: str, request: Any, cls: type[Message]
+        self,
+        server: str,
+        query: str,
+        layer: str,
+        request: SnapshotRequest | DeltaRangeRequest,
+        cls: type[SnapshotReply] | type[DeltaRangeReply],
     ) -> list[Any]:
         """Send a request frame to `server`'s queryable; the replies of type `cls` for `layer`
         and this request (every other reply is rejected and counted)."""
@@ -164,9 +171,9 @@ class CatchUp:
                 msg = self.receiver.decode(raw, key_expr=str(reply.ok.key_expr))
                 if not (
                     isinstance(msg, cls)
-                    and msg.layer == layer  # type: ignore[attr-defined]
+                    and msg.layer == layer
                     and msg.request_id == request.request_id
-                ):  # type: ignore[attr-defined]
+                ):
                     text = (
                         f"expected a {cls.KIND} for layer {layer!r}, request "
                         f"{request.request_id}, found a {msg.KIND}"

@@ -1,4 +1,5 @@
-"""Command line: `colonyd run|status|map|localize|align|sources|bench|demo|dump-config`; the one place errors become exit codes."""
+"""Command line: `colonyd run|status|map|localize|align|sources|bench|demo|dump-config`; the one
+place errors become exit codes."""
 
 from __future__ import annotations
 
@@ -415,11 +416,11 @@ def main(argv: list[str] | None = None) -> int:
         from colonyd.mapping import map_source
 
         summary = map_source(args.map_source, args.resolution, args.out)
-        files = ", ".join(str(p) for p in getattr(summary, "files", {}).values())
+        written = ", ".join(str(p) for p in getattr(summary, "files", {}).values())
         sys.stdout.write(
             f"{summary.spec}: {summary.frames} frames ({summary.skipped} skipped), "
             f"{summary.points} points -> {summary.occupied} occupied, {summary.free} free voxels "
-            f"at {summary.resolution} m in {summary.seconds:.1f} s\nwrote {files}\n"
+            f"at {summary.resolution} m in {summary.seconds:.1f} s\nwrote {written}\n"
         )
         return EXIT_OK
     if cmd == "localize":
@@ -465,8 +466,9 @@ def _align(args: argparse.Namespace) -> int:
     args.json.write_text(json.dumps(result, indent=1) + "\n")
     if result["aligned"]:
         sys.stdout.write(
-            f"aligned (confidence {result['confidence']:.2f}): x {result['x']:.3f} y {result['y']:.3f} "
-            f"z {result['z']:.3f} m, yaw {result['yaw_deg']:.2f} deg, {result['inliers']} inliers, "
+            f"aligned (confidence {result['confidence']:.2f}): "
+            f"x {result['x']:.3f} y {result['y']:.3f} z {result['z']:.3f} m, "
+            f"yaw {result['yaw_deg']:.2f} deg, {result['inliers']} inliers, "
             f"RMS {result['rmse_m']} m, in {result['seconds']:.2f} s\nwrote {args.json}\n"
         )
     else:
@@ -475,6 +477,7 @@ def _align(args: argparse.Namespace) -> int:
 
 
 def _bench(args: argparse.Namespace) -> int:
+    result: object  # what the benchmark returns, printed as JSON
     if args.bench == "integrate":
         from colonyd.bench.integrate import run_integrate_bench
 
@@ -482,7 +485,7 @@ def _bench(args: argparse.Namespace) -> int:
     elif args.bench == "align":
         from colonyd.bench.align import run_align_bench
 
-        result = run_align_bench(
+        report = run_align_bench(
             args.json,
             args.shared_data,
             seeds=args.seeds,
@@ -491,7 +494,7 @@ def _bench(args: argparse.Namespace) -> int:
             carmen_step=args.carmen_step,
             work_dir=args.work_dir,
         )
-        result = {"summary": result["summary"], "json": str(args.json)}
+        result = {"summary": report["summary"], "json": str(args.json)}
     elif args.bench == "wire":
         from colonyd.bench.wire import run_wire_bench
 
@@ -517,7 +520,8 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def _known_errors() -> list[tuple[type[BaseException], int, str]]:
-    """(error class, exit code, label) for every package that defines errors, most specific first."""
+    """(error class, exit code, label) for every package that defines errors, most specific
+    first."""
     known: list[tuple[type[BaseException], int, str]] = [(ConfigError, EXIT_CONFIG, "config")]
     try:
         from voxel.errors import VoxelError
@@ -526,7 +530,7 @@ def _known_errors() -> list[tuple[type[BaseException], int, str]]:
     except ImportError:
         pass
     try:
-        from protocol.errors import ProtocolError  # type: ignore[attr-defined]
+        from protocol.errors import ProtocolError
 
         known.append((ProtocolError, EXIT_DATA, "protocol"))
     except ImportError:

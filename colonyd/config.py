@@ -144,7 +144,9 @@ class Config(BaseSettings):
     )
     identity_file: Path | None = Field(
         None,
-        description="this agent's Ed25519 key (default <state_dir>/identity.key, made on first start)",
+        description=(
+            "this agent's Ed25519 key (default <state_dir>/identity.key, made on first start)"
+        ),
     )
     export_dir: Path | None = Field(None, description="write the fused map here on shutdown")
     drop_rate: float = Field(
@@ -167,7 +169,10 @@ class Config(BaseSettings):
     @classmethod
     def _name(cls, value: str) -> str:
         if not _NAME.match(value):
-            msg = f"expected 1-64 characters of [A-Za-z0-9_.-] starting with a letter or digit, found {value!r}"
+            msg = (
+                "expected 1-64 characters of [A-Za-z0-9_.-] starting with a letter or digit, "
+                f"found {value!r}"
+            )
             raise ValueError(msg)
         return value
 
@@ -175,7 +180,10 @@ class Config(BaseSettings):
     @classmethod
     def _not_reserved(cls, value: str) -> str:
         if value in ("alive", "colony"):
-            msg = f"expected an agent id other than the reserved words 'alive' and 'colony', found {value!r}"
+            msg = (
+                "expected an agent id other than the reserved words 'alive' and 'colony', "
+                f"found {value!r}"
+            )
             raise ValueError(msg)
         return value
 
@@ -183,7 +191,10 @@ class Config(BaseSettings):
     @classmethod
     def _namespace(cls, value: str | None) -> str | None:
         if value is not None and not _NAME.match(value):
-            msg = f"expected 1-64 characters of [A-Za-z0-9_.-] starting with a letter or digit, found {value!r}"
+            msg = (
+                "expected 1-64 characters of [A-Za-z0-9_.-] starting with a letter or digit, "
+                f"found {value!r}"
+            )
             raise ValueError(msg)
         return value
 

@@ -47,7 +47,7 @@ def encode_map(
     layers: list[str],
 ) -> bytes:
     """The bytes a daemon answers an export query with."""
-    return msgpack.packb(
+    answer: bytes = msgpack.packb(
         {
             "agent": agent,
             "layer": layer,
@@ -60,6 +60,7 @@ def encode_map(
         },
         use_bin_type=True,
     )
+    return answer
 
 
 def decode_map(data: bytes) -> MapReply:

@@ -13,9 +13,9 @@ import hashlib
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -29,6 +29,15 @@ from voxel.delta import Delta
 FRAME_SUFFIX = ".odom"
 #: Frame numbers reserved on disk at a time (see `Sender`).
 SEQ_BLOCK = 1 << 20
+
+
+class Header(TypedDict):
+    """The envelope fields every message takes from its sender."""
+
+    origin: str
+    epoch: int
+    seq: int
+    time: float
 
 
 def frame_of(agent: str) -> str:
@@ -122,7 +131,7 @@ class Sender:
                 self._reserved = self._next + SEQ_BLOCK
             return first
 
-    def header(self) -> dict[str, object]:
+    def header(self) -> Header:
         """Envelope fields of one new frame: origin, epoch, a fresh seq, the time now."""
         return {"origin": self.origin, "epoch": self.epoch, "seq": self.take(), "time": time.time()}
 
@@ -130,7 +139,7 @@ class Sender:
         """Frame bytes of `msg`: signed with our identity, authenticated with the colony key."""
         return encode(msg, key=self._key, signer=self._signer)
 
-    def encode_all(self, msgs: list[Message]) -> list[bytes]:
+    def encode_all(self, msgs: Sequence[Message]) -> list[bytes]:
         """Frames of `msgs` as this origin's, with consecutive fresh seqs (parts of one reply)."""
         first = self.take(len(msgs))
         head = {"origin": self.origin, "epoch": self.epoch}

@@ -30,8 +30,8 @@ Item = tuple[str, str, bytes, float]
 
 
 class Inbox:
-    """Subscribes to every peer's deltas, heartbeats, object lists and alignments; a bounded queue (count
-    and bytes: a flood drops, never grows memory) and one worker decode and fold them in."""
+    """Subscribes to every peer's deltas, heartbeats, object lists and alignments; a bounded queue
+    (count and bytes: a flood drops, never grows memory) and one worker decode and fold them in."""
 
     def __init__(
         self,

@@ -1,4 +1,5 @@
-"""Layer server: answers peers' snapshot and delta-range queries for every layer this daemon holds."""
+"""Layer server: answers peers' snapshot and delta-range queries for every layer this daemon
+holds."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Offline localisation: run one agent's estimator over a source, build the map from its poses, write trajectories, map and ATE."""
+"""Offline localisation: run one agent's estimator over a source, build the map from its poses,
+write trajectories, map and ATE."""
 
 from __future__ import annotations
 
@@ -35,7 +36,8 @@ class LocalizeSummary:
 
 
 def _reference(source: object, obs: Observation) -> np.ndarray | None:
-    """The reference sensor pose of an observation, for evaluation only: simulator truth or a recording's reference."""
+    """The reference sensor pose of an observation, for evaluation only: simulator truth or a
+    recording's reference."""
     if obs.truth is not None:
         return obs.truth
     if isinstance(source, RgbdSource) or (
@@ -55,8 +57,9 @@ def localize_source(
     max_frames: int | None = None,
     progress: bool = True,
 ) -> LocalizeSummary:
-    """Estimate the poses of the agent of `spec` and write estimate.tum, odometry.tum, groundtruth.tum,
-    the map from the estimated poses (grid.npz, map.bt, map.ply) and results.json into `out_dir`."""
+    """Estimate the poses of the agent of `spec` and write estimate.tum, odometry.tum,
+    groundtruth.tum, the map from the estimated poses (grid.npz, map.bt, map.ply) and results.json
+    into `out_dir`."""
     began = clock.monotonic()
     if odometry_noise is not None:
         spec += f",odometry_noise={odometry_noise}"
@@ -97,7 +100,7 @@ def localize_source(
             bar.update(len(times), total)
     finally:
         bar.close()
-    files = write_map(grid, out_dir, [tum_line(t, p) for t, p in zip(times, est)])
+    files = write_map(grid, out_dir, [tum_line(t, p) for t, p in zip(times, est, strict=True)])
     files["estimate"] = _write_tum(out_dir / "estimate.tum", times, est)
     ate_est = ate_odo = None
     if len(odo) == len(times) and odo:
@@ -144,5 +147,6 @@ def localize_source(
 
 
 def _write_tum(path: Path, times: list[float], poses: list[np.ndarray]) -> Path:
-    path.write_text("".join(tum_line(t, p) + "\n" for t, p in zip(times, poses)), encoding="ascii")
+    lines = "".join(tum_line(t, p) + "\n" for t, p in zip(times, poses, strict=True))
+    path.write_text(lines, encoding="ascii")
     return path

@@ -1,4 +1,5 @@
-"""Offline mapping: integrate every observation of one source into a VoxelGrid and write the map files."""
+"""Offline mapping: integrate every observation of one source into a VoxelGrid and write the map
+files."""
 
 from __future__ import annotations
 
@@ -105,7 +106,8 @@ def integrate_observation(
     reliability: float,
     agent: str = "self",
 ) -> None:
-    """Integrate one observation, with its pose guess, into `grid`; a ready-made delta is applied as the grid's next version."""
+    """Integrate one observation, with its pose guess, into `grid`; a ready-made delta is applied as
+    the grid's next version."""
     if obs.delta is not None:
         v, d = int(grid.version), obs.delta
         grid.apply(
@@ -142,7 +144,8 @@ def tum_line(time: float, pose: np.ndarray) -> str:
 def floor_plan(
     occupied: np.ndarray, free: np.ndarray, layer: int, margin: int | None = 20
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Grey image of the voxel layer z = `layer` (+x right, +y up) and the key of its lower-left pixel.
+    """Grey image of the voxel layer z = `layer` (+x right, +y up) and the key of its lower-left
+    pixel.
 
     occupied, free: voxel keys (N, 3). Occupied 0, free 254, unknown 205. With a margin (cells),
     the image is cropped to the occupied cells' extent plus the margin, so free space cleared by

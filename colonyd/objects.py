@@ -114,7 +114,7 @@ def to_wire(objects: list[ObjectCentroid]) -> list[WireObject]:
         WireObject(
             object_id=o.object_id,
             class_id=o.class_id,
-            position=tuple(float(x) for x in o.position),
+            position=(float(o.position[0]), float(o.position[1]), float(o.position[2])),
             covariance=[float(x) for x in np.asarray(o.covariance).ravel()],
             voxel_count=o.voxel_count,
             time=float(o.time),

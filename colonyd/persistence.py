@@ -14,7 +14,7 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import msgpack
 import numpy as np
@@ -126,7 +126,7 @@ class StateStore:
             snap = self._read_json(snap_path)
             try:
                 grid = load_grid(self.dir / snap["file"])
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 - any unreadable snapshot becomes PersistenceError
                 msg = f"snapshot {snap['file']} in {self.dir} cannot be loaded: {exc}"
                 raise PersistenceError(msg) from None
             seq = int(snap["seq"])
@@ -210,7 +210,8 @@ class StateStore:
 
     def _read_json(self, path: Path) -> dict[str, Any]:
         try:
-            return json.loads(path.read_text())
+            data: dict[str, Any] = json.loads(path.read_text())
+            return data
         except (OSError, ValueError) as exc:
             msg = f"{path} is unreadable or not JSON: {exc}"
             raise PersistenceError(msg) from None
@@ -325,6 +326,8 @@ class StateStore:
         if self._flusher is None:
             self._flusher = ThreadPoolExecutor(max_workers=1, thread_name_prefix="wal-overlap")
         done = self._flusher.submit(work)
+        result: T | None
+        failure: Exception | None
         try:
             os.fsync(fd)
         finally:
@@ -411,7 +414,7 @@ def _new_epoch(previous: int) -> int:
 
 def _record(fields: dict[str, Any]) -> bytes:
     """One framed log record: length, CRC32, msgpack body."""
-    body = msgpack.packb(fields, use_bin_type=True)
+    body: bytes = msgpack.packb(fields, use_bin_type=True)
     return _HEAD.pack(len(body), zlib.crc32(body)) + body
 
 
@@ -431,8 +434,8 @@ def _decode_wal_record(body: bytes, path: Path, offset: int) -> dict[str, Any]:
                 return {"base": int(rec["base"]), "epoch": int(rec["epoch"])}
         rec["seq"] = int(rec["seq"])
         rec["delta"] = _unpack_wal_delta(rec["delta"])
-        return rec
-    except Exception as exc:
+        return cast("dict[str, Any]", rec)  # indexed by name above: a map
+    except Exception as exc:  # noqa: BLE001 - a record that fails to decode in any way
         msg = (
             f"write-ahead log {path}: the record at offset {offset} (seq {seq}) passes its "
             f"CRC but cannot be decoded ({type(exc).__name__}: {exc}); expected a record of "

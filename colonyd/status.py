@@ -43,7 +43,8 @@ class StatusServer:
         self._worker.start()
 
     def _answer(self, query: zenoh.Query) -> None:
-        params = {str(k): str(v) for k, v in query.parameters}
+        # zenoh's stub types Parameters.__iter__ as returning a list, not an iterator
+        params = {str(k): str(v) for k, v in query.parameters}  # type: ignore[attr-defined]
         body = self._answer_params(params)
         if body is None:  # nothing to say (an export of a layer not held)
             return

@@ -1,4 +1,5 @@
-"""Sensor adapter protocol and the registry of adapters found through `colony.sensors` entry points."""
+"""Sensor adapter protocol and the registry of adapters found through `colony.sensors` entry
+points."""
 
 from __future__ import annotations
 
@@ -65,6 +66,9 @@ def load_adapter(name: str, **params: Any) -> SensorAdapter:
         msg = f"sensor adapter {name!r}: bad parameters {sorted(params)}: {exc}"
         raise PluginError(msg) from None
     if not isinstance(adapter, SensorAdapter):
-        msg = f"sensor adapter {name!r}: expected an object with name, kind, sensor_model, noise, reliability and observe(), found {type(adapter).__name__}"
+        msg = (
+            f"sensor adapter {name!r}: expected an object with name, kind, sensor_model, noise, "
+            f"reliability and observe(), found {type(adapter).__name__}"
+        )
         raise PluginError(msg)
     return adapter

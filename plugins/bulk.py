@@ -9,6 +9,7 @@ from collections.abc import Iterator
 import numpy as np
 from pydantic import Field
 
+from plugins.adapter import SensorAdapter
 from plugins.errors import SourceSpecError
 from plugins.observation import Observation
 from plugins.points import PointsAdapter
@@ -29,7 +30,8 @@ class BulkOptions(Options):
 
 
 class BulkSource:
-    """One observation carrying a delta of `voxels` voxels with random log-odds, on the grid's 1/32 steps."""
+    """One observation carrying a delta of `voxels` voxels with random log-odds, on the grid's 1/32
+    steps."""
 
     def __init__(
         self, *, voxels: int = 1_000_000, resolution: float = 0.1, seed: int = 0, spec: str = ""
@@ -39,7 +41,7 @@ class BulkSource:
             raise SourceSpecError(msg)
         self.voxels, self.resolution, self.seed = voxels, resolution, seed
         self.spec = spec or "bulk:"
-        self.adapter = PointsAdapter("bulk")
+        self.adapter: SensorAdapter = PointsAdapter("bulk")
         self.stats = StreamStats()
 
     def __len__(self) -> int:
@@ -72,7 +74,8 @@ class BulkSource:
 
 
 def open_bulk(spec: SourceSpec, context: SourceContext) -> BulkSource:
-    """The `bulk:` source of a parsed spec; the context gives the grid's resolution and the default seed."""
+    """The `bulk:` source of a parsed spec; the context gives the grid's resolution and the default
+    seed."""
     options = parse_options(BulkOptions, spec.options, spec.text)
     seed = context.seed if options.seed is None else options.seed
     return BulkSource(

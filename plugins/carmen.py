@@ -1,4 +1,5 @@
-"""CARMEN laser logs: FLASER lines (360 beams over 180 degrees) with reference and odometry poses."""
+"""CARMEN laser logs: FLASER lines (360 beams over 180 degrees) with reference and odometry
+poses."""
 
 from __future__ import annotations
 
@@ -49,14 +50,20 @@ def parse_flaser(text: str, path: str | Path, line: int) -> FlaserRecord:
     try:
         n = int(fields[1])
     except (IndexError, ValueError):
-        msg = f"{where}: field 2 (beam count): expected an integer, found {fields[1] if len(fields) > 1 else 'end of line'!r}"
+        msg = (
+            f"{where}: field 2 (beam count): expected an integer, found "
+            f"{fields[1] if len(fields) > 1 else 'end of line'!r}"
+        )
         raise ParseError(msg) from None
     if n <= 0 or n > 100000:
         msg = f"{where}: field 2 (beam count): expected 1..100000 beams, found {n}"
         raise ParseError(msg)
     want = 2 + n + 6 + 3
     if len(fields) < want:
-        msg = f"{where}: expected {want} fields for {n} beams (ranges, x y theta, odom x y theta, ipc_timestamp hostname logger_timestamp), found {len(fields)}"
+        msg = (
+            f"{where}: expected {want} fields for {n} beams (ranges, x y theta, odom x y theta, "
+            f"ipc_timestamp hostname logger_timestamp), found {len(fields)}"
+        )
         raise ParseError(msg)
     try:
         values = np.array(fields[2 : 2 + n + 7], dtype=np.float64)
@@ -87,7 +94,10 @@ def parse_flaser(text: str, path: str | Path, line: int) -> FlaserRecord:
     ranges = values[:n]
     if np.any(ranges < 0):
         i = int(np.flatnonzero(ranges < 0)[0])
-        msg = f"{where}: field {i + 3} (range {i + 1}): expected a non-negative range, found {fields[2 + i]!r}"
+        msg = (
+            f"{where}: field {i + 3} (range {i + 1}): expected a non-negative range, "
+            f"found {fields[2 + i]!r}"
+        )
         raise ParseError(msg)
     x, y, th, ox, oy, oth, stamp = values[n:]
     return FlaserRecord(
@@ -96,7 +106,8 @@ def parse_flaser(text: str, path: str | Path, line: int) -> FlaserRecord:
 
 
 def read_lines(path: Path) -> Iterator[tuple[int, str]]:
-    """(line number, text) of a plain or gzipped text file; a truncated gzip raises SourceError at the end."""
+    """(line number, text) of a plain or gzipped text file; a truncated gzip raises SourceError at
+    the end."""
     opener = gzip.open if path.suffix == ".gz" else open
     lineno = 0
     try:
@@ -104,7 +115,10 @@ def read_lines(path: Path) -> Iterator[tuple[int, str]]:
             for lineno, text in enumerate(f, start=1):
                 yield lineno, text
     except (EOFError, zlib.error, gzip.BadGzipFile) as exc:
-        msg = f"{path}: truncated or corrupt after line {lineno}: expected a complete gzip stream, found {exc}"
+        msg = (
+            f"{path}: truncated or corrupt after line {lineno}: expected a complete gzip stream, "
+            f"found {exc}"
+        )
         raise SourceError(msg) from None
 
 

@@ -16,7 +16,8 @@ from voxel.sensor import SensorModel
 
 @dataclass(frozen=True)
 class CctvFrame:
-    """One CCTV image (H, W, 3) BGR or (H, W) grey uint8, optionally with a registered depth image."""
+    """One CCTV image (H, W, 3) BGR or (H, W) grey uint8, optionally with a registered depth
+    image."""
 
     image: np.ndarray
     depth: np.ndarray | None = None
@@ -72,12 +73,16 @@ class CctvCamera:
         prob_miss: float = 0.4,
         noise: float = 0.0,
     ) -> None:
-        if K is None and fov is None:
-            msg = "cctv camera: expected intrinsics K or a horizontal field of view fov, found neither"
+        if K is not None:
+            self.K = as_intrinsics(K)
+        elif fov is not None:
+            self.K = intrinsics_from_fov(width, height, float(fov))
+        else:
+            msg = (
+                "cctv camera: expected intrinsics K or a horizontal field of view fov, "
+                "found neither"
+            )
             raise SensorInputError(msg)
-        self.K = (
-            as_intrinsics(K) if K is not None else intrinsics_from_fov(width, height, float(fov))
-        )
         self.pose = np.eye(4) if pose is None else as_pose(pose, "pose")
         self.distortion = np.zeros(5) if distortion is None else np.asarray(distortion, np.float64)
         if marker_length <= 0:
@@ -104,7 +109,10 @@ class CctvCamera:
             or image.ndim not in (2, 3)
             or (image.ndim == 3 and image.shape[2] not in (1, 3))
         ):
-            msg = f"image: expected (H, W) or (H, W, 3) uint8, found shape {image.shape} dtype {image.dtype}"
+            msg = (
+                "image: expected (H, W) or (H, W, 3) uint8, "
+                f"found shape {image.shape} dtype {image.dtype}"
+            )
             raise SensorInputError(msg)
         grey = (
             image
@@ -118,8 +126,8 @@ class CctvCamera:
             return []
         model = marker_corners(self.marker_length)
         found = []
-        for quad, marker in zip(corners, ids.reshape(-1), strict=True):
-            quad = quad.reshape(4, 2).astype(np.float64)
+        for detected, marker in zip(corners, ids.reshape(-1), strict=True):
+            quad = detected.reshape(4, 2).astype(np.float64)
             ok, rvec, tvec = cv2.solvePnP(
                 model, quad, self.K, self.distortion, flags=cv2.SOLVEPNP_IPPE_SQUARE
             )
@@ -152,7 +160,8 @@ class CctvCamera:
         odometry: np.ndarray | None = None,
         frame: str = "",
     ) -> Observation:
-        """Objects seen in the image; with depth, also the view's points coloured and labelled by marker."""
+        """Objects seen in the image; with depth, also the view's points coloured and labelled by
+        marker."""
         if not isinstance(reading, CctvFrame):
             reading = CctvFrame(image=reading)
         objects = tuple(self.detect(reading.image))
@@ -175,6 +184,7 @@ class CctvCamera:
         labels = np.full(depth.shape, -1, np.int32)
         probs = np.zeros(depth.shape, np.float32)
         for obj in objects:
+            assert obj.corners is not None  # detect() gives every marker its image corners
             quad = np.round(obj.corners).astype(np.int32)
             cv2.fillConvexPoly(labels, quad, obj.class_id)
             cv2.fillConvexPoly(probs, quad, obj.probability)

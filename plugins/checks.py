@@ -18,7 +18,7 @@ def as_array(
 ) -> np.ndarray:
     """`value` as an array of `shape` (None = any length); raise SensorInputError naming `field`."""
     try:
-        array = np.asarray(value, dtype=dtype)
+        array: np.ndarray = np.asarray(value, dtype=dtype)
     except (TypeError, ValueError):
         msg = f"{field}: expected an array of {np.dtype(dtype).name}, found {type(value).__name__}"
         raise SensorInputError(msg) from None
@@ -44,7 +44,10 @@ def as_pose(value: object, field: str) -> np.ndarray:
     rotation = pose[:3, :3]
     error = float(np.abs(rotation @ rotation.T - np.eye(3)).max())
     if error > 1e-2 or np.linalg.det(rotation) < 0:
-        msg = f"{field}: expected a rotation matrix (orthonormal, det +1), found deviation {error:.3g}"
+        msg = (
+            f"{field}: expected a rotation matrix (orthonormal, det +1), "
+            f"found deviation {error:.3g}"
+        )
         raise SensorInputError(msg)
     return pose
 
@@ -53,13 +56,17 @@ def as_intrinsics(value: object, field: str = "K") -> np.ndarray:
     """A 3x3 pinhole camera matrix with positive focal lengths."""
     K = as_array(value, field, shape=(3, 3))
     if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]):
-        msg = f"{field}: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, found {K.tolist()}"
+        msg = (
+            f"{field}: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, "
+            f"found {K.tolist()}"
+        )
         raise SensorInputError(msg)
     return K
 
 
 def intrinsics_from_fov(width: int, height: int, fov: float) -> np.ndarray:
-    """Pinhole K from a horizontal field of view in radians (the paper's Algorithm 1, square pixels)."""
+    """Pinhole K from a horizontal field of view in radians (the paper's Algorithm 1, square
+    pixels)."""
     if not 0.0 < fov < np.pi:
         msg = f"fov: expected a horizontal field of view in (0, pi) radians, found {fov!r}"
         raise SensorInputError(msg)

@@ -1,9 +1,11 @@
-"""Depth camera adapter: depth image plus intrinsics (or field of view) to points, colour and labels."""
+"""Depth camera adapter: depth image plus intrinsics (or field of view) to points, colour and
+labels."""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -49,12 +51,16 @@ class DepthCamera:
         prob_miss: float = 0.4,
         noise: float = 0.0,
     ) -> None:
-        if K is None and fov is None:
-            msg = "depth camera: expected intrinsics K or a horizontal field of view fov, found neither"
+        if K is not None:
+            self.K = as_intrinsics(K)
+        elif fov is not None:
+            self.K = intrinsics_from_fov(width, height, float(fov))
+        else:
+            msg = (
+                "depth camera: expected intrinsics K or a horizontal field of view fov, "
+                "found neither"
+            )
             raise SensorInputError(msg)
-        self.K = (
-            as_intrinsics(K) if K is not None else intrinsics_from_fov(width, height, float(fov))
-        )
         self.width, self.height = int(width), int(height)
         if stride < 1:
             msg = f"stride: expected an integer >= 1, found {stride!r}"
@@ -105,7 +111,7 @@ class DepthCamera:
         depth = self.metres(reading.depth)
         h, w = depth.shape
         points, index = camera_points(depth, self.K, self.stride)
-        extras: dict[str, np.ndarray] = {}
+        extras: dict[str, Any] = {}  # Observation fields: arrays, and a dict of scalar channels
         colour = None
         if reading.colour is not None:
             colour = as_array(reading.colour, "colour", shape=(h, w, 3), dtype=np.uint8)

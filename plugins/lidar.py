@@ -32,7 +32,8 @@ class Cloud:
 
 
 class Lidar2D:
-    """Planar laser scanner: beam i points at angle_min + i * angle_increment in the sensor's x-y plane.
+    """Planar laser scanner: beam i points at angle_min + i * angle_increment in the sensor's x-y
+    plane.
 
     A range at or beyond `no_return_range` (default: `range_max`), or +inf, is a beam without a
     return: it clears free space up to `range_max` and hits nothing. NaN and ranges below
@@ -162,7 +163,8 @@ class Lidar3D:
         odometry: np.ndarray | None = None,
         frame: str = "",
     ) -> Observation:
-        """Observation of one cloud; NaN points and points outside [range_min, range_max] are dropped."""
+        """Observation of one cloud; NaN points and points outside [range_min, range_max] are
+        dropped."""
         if not isinstance(reading, Cloud):
             reading = Cloud(points=reading)
         points = as_array(reading.points, "points", shape=(None, 3), finite=False)

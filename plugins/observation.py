@@ -1,4 +1,5 @@
-"""Observation: one sensor reading turned into points in the sensor frame plus everything known about it."""
+"""Observation: one sensor reading turned into points in the sensor frame plus everything known
+about it."""
 
 from __future__ import annotations
 
@@ -111,11 +112,13 @@ class Observation:
     def points_world(self, pose: np.ndarray | None = None) -> np.ndarray:
         """Points (N, 3) in the world frame, with `pose` (default: the observation's own guess)."""
         T = self.pose if pose is None else pose
-        return self.points @ T[:3, :3].T + T[:3, 3]
+        world: np.ndarray = self.points @ T[:3, :3].T + T[:3, 3]
+        return world
 
     def normals_world(self, pose: np.ndarray | None = None) -> np.ndarray | None:
         """Normals (N, 3) rotated into the world frame, or None."""
         if self.normals is None:
             return None
         T = self.pose if pose is None else pose
-        return (self.normals @ T[:3, :3].T).astype(np.float32)
+        world: np.ndarray = (self.normals @ T[:3, :3].T).astype(np.float32)
+        return world

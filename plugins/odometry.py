@@ -1,4 +1,5 @@
-"""The `odometry_noise=` source option: a named or numeric wheel odometry noise model (voxel.localisation.odometry)."""
+"""The `odometry_noise=` source option: a named or numeric wheel odometry noise model
+(voxel.localisation.odometry)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ from voxel.localisation.odometry import OdometryNoise, parse_noise
 
 
 def odometry_noise_of(text: str | None) -> OdometryNoise | None:
-    """The wheel odometry noise model named by a source option, or None; SourceSpecError when unknown."""
+    """The wheel odometry noise model named by a source option, or None; SourceSpecError when
+    unknown."""
     if text is None:
         return None
     try:

@@ -1,4 +1,5 @@
-"""Points adapter: readings that are already points in the sensor frame (the synthetic and bulk sources)."""
+"""Points adapter: readings that are already points in the sensor frame (the synthetic and bulk
+sources)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Replay of real recordings: picks the reader (CARMEN log, 7-Scenes/TUM RGB-D folder, ROS bag) for a path."""
+"""Replay of real recordings: picks the reader (CARMEN log, 7-Scenes/TUM RGB-D folder, ROS bag) for
+a path."""
 
 from __future__ import annotations
 
@@ -29,7 +30,10 @@ def detect_format(path: Path) -> str:
             return "tum"
         if any(path.glob("frame-*.depth.png")) or any((path / "frames").glob("frame-*.depth.png")):
             return "7scenes"
-        msg = f"{path}: expected a 7-Scenes folder (frame-*.depth.png), a TUM folder (depth.txt) or a ROS 2 bag (metadata.yaml), found none of them"
+        msg = (
+            f"{path}: expected a 7-Scenes folder (frame-*.depth.png), a TUM folder (depth.txt) or "
+            "a ROS 2 bag (metadata.yaml), found none of them"
+        )
         raise SourceError(msg)
     if not path.is_file():
         msg = f"replay: expected a recording file or folder, found nothing at {path}"
@@ -45,7 +49,10 @@ def detect_format(path: Path) -> str:
         raise SourceError(msg) from None
     if any(line.startswith(("FLASER", "ROBOTLASER1", "ODOM", "PARAM")) for line in head):
         return "carmen"
-    msg = f"{path}: expected a CARMEN log (FLASER lines) or a ROS bag (.bag, .db3, .mcap), found neither"
+    msg = (
+        f"{path}: expected a CARMEN log (FLASER lines) or a ROS bag (.bag, .db3, .mcap), "
+        "found neither"
+    )
     raise SourceError(msg)
 
 
@@ -54,7 +61,9 @@ class ReplayOptions(Options):
 
     format: Literal["auto", "carmen", "7scenes", "tum", "rosbag"] = Field(
         "auto",
-        description="recording format; auto: from the path (folder contents, file suffix, first lines)",
+        description=(
+            "recording format; auto: from the path (folder contents, file suffix, first lines)"
+        ),
     )
 
 

@@ -29,7 +29,8 @@ POINT_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8:
 
 
 def _any_reader() -> Any:
-    """A factory opening a bag with rosbags' AnyReader (ROS 2 Humble types for bags without definitions)."""
+    """A factory opening a bag with rosbags' AnyReader (ROS 2 Humble types for bags without
+    definitions)."""
     try:
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
@@ -42,7 +43,10 @@ def _any_reader() -> Any:
         try:
             return AnyReader(paths, default_typestore=typestore)
         except Exception as exc:  # noqa: BLE001 - rosbags raises its own error types for unreadable bags
-            msg = f"{paths[0]}: expected a readable ROS 1 or ROS 2 bag, found {type(exc).__name__}: {exc}"
+            msg = (
+                f"{paths[0]}: expected a readable ROS 1 or ROS 2 bag, "
+                f"found {type(exc).__name__}: {exc}"
+            )
             raise SourceError(msg) from None
 
     return open_bag
@@ -73,7 +77,10 @@ def cloud_points(msg: Any, field: str = "PointCloud2") -> tuple[np.ndarray, np.n
     names = [name for name in ("x", "y", "z", "intensity") if name in fields]
     for name in names:
         if fields[name].datatype not in POINT_TYPES:
-            msg_ = f"{field}.{name}: expected a datatype in {sorted(POINT_TYPES)}, found {fields[name].datatype}"
+            msg_ = (
+                f"{field}.{name}: expected a datatype in {sorted(POINT_TYPES)}, "
+                f"found {fields[name].datatype}"
+            )
             raise SensorInputError(msg_)
     dtype = np.dtype(
         {
@@ -93,6 +100,7 @@ def depth_image(msg: Any, field: str = "Image") -> np.ndarray:
     """A depth Image message (16UC1 millimetres or 32FC1 metres) as float32 metres."""
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     data = np.asarray(msg.data, dtype=np.uint8)
+    dtype: np.dtype[Any]
     if msg.encoding in ("16UC1", "mono16"):
         dtype, scale = np.dtype(">u2" if msg.is_bigendian else "<u2"), 0.001
     elif msg.encoding == "32FC1":
@@ -157,7 +165,10 @@ class RosbagSource:
         except SourceError:
             raise
         except Exception as exc:  # noqa: BLE001 - rosbags' errors for unreadable bags
-            msg = f"{self.path}: expected a readable ROS 1 or ROS 2 bag, found {type(exc).__name__}: {exc}"
+            msg = (
+                f"{self.path}: expected a readable ROS 1 or ROS 2 bag, "
+                f"found {type(exc).__name__}: {exc}"
+            )
             raise SourceError(msg) from None
         if topic is None:
             for kind in (SCAN, CLOUD, IMAGE):
@@ -166,7 +177,10 @@ class RosbagSource:
                     break
         if topic is None or topic not in types or types[topic] not in (SCAN, CLOUD, IMAGE):
             found = {t: m for t, m in types.items() if m in (SCAN, CLOUD, IMAGE)}
-            msg = f"{self.path}: expected a LaserScan, PointCloud2 or Image topic, found {topic!r} among {found}"
+            msg = (
+                f"{self.path}: expected a LaserScan, PointCloud2 or Image topic, "
+                f"found {topic!r} among {found}"
+            )
             raise SourceSpecError(msg)
         self.topic, self.kind = topic, types[topic]
         self.odom = (

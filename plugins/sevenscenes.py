@@ -1,4 +1,5 @@
-"""RGB-D folders: Microsoft 7-Scenes (frame-NNNNNN.depth.png + pose.txt) and TUM RGB-D (depth.txt + groundtruth.txt)."""
+"""RGB-D folders: Microsoft 7-Scenes (frame-NNNNNN.depth.png + pose.txt) and TUM RGB-D
+(depth.txt + groundtruth.txt)."""
 
 from __future__ import annotations
 
@@ -63,7 +64,8 @@ def read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
 
 
 def read_depth_png(path: Path) -> np.ndarray:
-    """A 16-bit single-channel depth PNG; ParseError names the file when it is missing, truncated or not 16-bit."""
+    """A 16-bit single-channel depth PNG; ParseError names the file when it is missing, truncated or
+    not 16-bit."""
     if not path.is_file():
         msg = f"{path}: expected a depth image, found no file"
         raise ParseError(msg)
@@ -72,28 +74,36 @@ def read_depth_png(path: Path) -> np.ndarray:
         msg = f"{path}: expected a readable 16-bit PNG, found an unreadable or truncated file"
         raise ParseError(msg)
     if image.dtype != np.uint16 or image.ndim != 2:
-        msg = f"{path}: expected a single-channel uint16 depth image, found {image.dtype} with shape {image.shape}"
+        msg = (
+            f"{path}: expected a single-channel uint16 depth image, "
+            f"found {image.dtype} with shape {image.shape}"
+        )
         raise ParseError(msg)
     return image
 
 
 def read_colour(path: Path, shape: tuple[int, int]) -> np.ndarray:
-    """An RGB colour image (PNG or JPEG) of the depth image's size; ParseError names the file otherwise."""
+    """An RGB colour image (PNG or JPEG) of the depth image's size; ParseError names the file
+    otherwise."""
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
         msg = f"{path}: expected a readable colour image, found an unreadable or truncated file"
         raise ParseError(msg)
     if image.shape[:2] != tuple(shape):
-        msg = f"{path}: expected a colour image of the depth image's size {shape[1]}x{shape[0]}, found {image.shape[1]}x{image.shape[0]}"
+        msg = (
+            f"{path}: expected a colour image of the depth image's size {shape[1]}x{shape[0]}, "
+            f"found {image.shape[1]}x{image.shape[0]}"
+        )
         raise ParseError(msg)
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
 def seven_scenes_frames(root: Path) -> list[RgbdFrame]:
-    """Frames of a 7-Scenes sequence folder (frames/ or the folder itself), in index order, 30 Hz."""
+    """Frames of a 7-Scenes sequence folder (frames/ or the folder itself), in index order,
+    30 Hz."""
     folder = root / "frames" if (root / "frames").is_dir() else root
     depths = sorted(folder.glob("frame-*.depth.png"))
-    frames = []
+    frames: list[RgbdFrame] = []
     for depth in depths:
         stem = depth.name[: -len(".depth.png")]
         try:
@@ -136,12 +146,16 @@ def read_tum_list(path: Path) -> list[tuple[float, list[str]]]:
 
 
 def tum_frames(root: Path, max_dt: float = 0.02) -> list[RgbdFrame]:
-    """Frames of a TUM RGB-D folder: depth.txt associated with groundtruth.txt by nearest timestamp."""
+    """Frames of a TUM RGB-D folder: depth.txt associated with groundtruth.txt by nearest
+    timestamp."""
     depth_rows = read_tum_list(root / "depth.txt")
     truth = []
     for stamp, fields in read_tum_list(root / "groundtruth.txt"):
         if len(fields) != 7:
-            msg = f"{root / 'groundtruth.txt'}: at time {stamp}: expected 'timestamp tx ty tz qx qy qz qw', found {len(fields) + 1} fields"
+            msg = (
+                f"{root / 'groundtruth.txt'}: at time {stamp}: "
+                f"expected 'timestamp tx ty tz qx qy qz qw', found {len(fields) + 1} fields"
+            )
             raise ParseError(msg)
         try:
             tx, ty, tz, qx, qy, qz, qw = (float(v) for v in fields)
@@ -157,7 +171,10 @@ def tum_frames(root: Path, max_dt: float = 0.02) -> list[RgbdFrame]:
     frames = []
     for stamp, fields in depth_rows:
         if not fields:
-            msg = f"{root / 'depth.txt'}: at time {stamp}: expected 'timestamp filename', found no filename"
+            msg = (
+                f"{root / 'depth.txt'}: at time {stamp}: expected 'timestamp filename', "
+                "found no filename"
+            )
             raise ParseError(msg)
         i = bisect.bisect_left(stamps, stamp)
         best = min(

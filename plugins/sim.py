@@ -1,4 +1,5 @@
-"""Simulated source: agents follow waypoint paths in a World; sensors are rendered by ray casting."""
+"""Simulated source: agents follow waypoint paths in a World; sensors are rendered by ray
+casting."""
 
 from __future__ import annotations
 
@@ -7,12 +8,13 @@ import math
 import time as clock
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
+from typing import Any, cast
 
 import numpy as np
 from pydantic import Field
 
 from plugins.adapter import SensorAdapter, load_adapter
-from plugins.cctv import CctvFrame
+from plugins.cctv import CctvCamera, CctvFrame
 from plugins.checks import intrinsics_from_fov, pose_matrix
 from plugins.depth import DepthFrame
 from plugins.errors import SourceSpecError
@@ -35,7 +37,8 @@ SENSORS = ("depth", "lidar2d", "lidar3d", "cctv")
 
 @dataclass(frozen=True)
 class AgentSpec:
-    """An agent: its sensor, its path (x, y waypoints, looped) or fixed pose, speed and frame rate."""
+    """An agent: its sensor, its path (x, y waypoints, looped) or fixed pose, speed and frame
+    rate."""
 
     name: str
     sensor: str
@@ -132,7 +135,8 @@ class Path:
 
 
 class Odometer:
-    """Dead reckoning from noisy body-frame increments: scale noise, heading noise, heading drift."""
+    """Dead reckoning from noisy body-frame increments: scale noise, heading noise, heading
+    drift."""
 
     def __init__(
         self,
@@ -166,7 +170,8 @@ class Odometer:
 
 @dataclass(frozen=True)
 class Rig:
-    """A sensor's rendering geometry: ray directions in the sensor frame and how to pack a reading."""
+    """A sensor's rendering geometry: ray directions in the sensor frame and how to pack a
+    reading."""
 
     directions: np.ndarray  # (M, 3) sensor frame, unnormalised for cameras (z = 1)
     mount: np.ndarray  # (4, 4) sensor in body frame
@@ -174,7 +179,7 @@ class Rig:
     K: np.ndarray | None = None  # cameras
 
 
-def make_rig(sensor: str) -> tuple[Rig, dict]:
+def make_rig(sensor: str) -> tuple[Rig, dict[str, Any]]:
     """Ray directions, mount and adapter parameters of a simulated sensor."""
     if sensor in ("depth", "cctv"):
         w, h, fov = (
@@ -240,6 +245,7 @@ def render(
     depth = (
         np.where(np.isfinite(t), t, np.nan).reshape(h, w).astype(np.float32)
     )  # z = t for z = 1 rays
+    assert rig.K is not None  # camera rigs carry their intrinsics
     colour = world.render_colour(rig.K, pose, (h, w), directions, hits)
     if sensor == "depth":
         labels = hits.class_id.reshape(h, w)
@@ -320,10 +326,9 @@ class SimSource:
         self.rig, params = make_rig(self.agent.sensor)
         params["noise"] = range_noise
         if self.agent.sensor == "cctv":
-            params["pose"] = (
-                pose_matrix(*self.agent.fixed[:3], self.agent.fixed[3], self.agent.fixed[4])
-                @ OPTICAL
-            )
+            assert self.agent.fixed is not None  # every cctv agent is defined with a fixed pose
+            x, y, z, yaw, pitch = self.agent.fixed
+            params["pose"] = pose_matrix(x, y, z, yaw, pitch) @ OPTICAL
             params["marker_classes"] = {
                 m.marker_id: CLASSES["landmark"] for m in self.world.markers
             }
@@ -344,7 +349,7 @@ class SimSource:
         agent = self.agent
         fixed = agent.sensor == "cctv"
         path = None if fixed else Path(agent.waypoints, agent.speed, agent.turn_rate)
-        start = (0.0, 0.0, 0.0) if fixed else path(0.0)
+        start = (0.0, 0.0, 0.0) if path is None else path(0.0)
         odometer = (
             Odometer(start, self.noise, self.drift, rng)
             if self.odometry_noise is None
@@ -359,8 +364,8 @@ class SimSource:
         began = clock.monotonic()
         for i in range(self.frames):
             t = i / agent.rate
-            if fixed:
-                truth_sensor = self.adapter.pose
+            if path is None:  # a fixed camera: the adapter loaded for "cctv" is a CctvCamera
+                truth_sensor = cast(CctvCamera, self.adapter).pose
                 body_guess = None
                 odometry = None
             else:

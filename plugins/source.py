@@ -1,4 +1,5 @@
-"""Source kinds (`sim:`, `replay:`, `synthetic:`, `bulk:`): their registry, `open_source(spec)` and reference."""
+"""Source kinds (`sim:`, `replay:`, `synthetic:`, `bulk:`): their registry, `open_source(spec)` and
+reference."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from plugins.replay import ReplayOptions, open_replay
 from plugins.rosbag import RosbagOptions
 from plugins.sevenscenes import RgbdOptions
 from plugins.sim import SimOptions, open_sim
-from plugins.spec import Options, SourceSpec, option_docs, split_spec
+from plugins.spec import OptionDoc, Options, SourceSpec, option_docs, split_spec
 from plugins.stream import Source, SourceContext
 from plugins.synthetic import SyntheticOptions, open_synthetic
 
@@ -39,18 +40,18 @@ SOURCE_KINDS: dict[str, SourceKind] = {
         SourceKind(
             "sim",
             "sim:key=value,...",
-            "an agent of a simulated world: a depth camera, 2D or 3D LiDAR or CCTV camera rendered by ray "
-            "casting along the agent's path, pose guesses from noisy odometry, ground truth kept; "
-            "deterministic for a seed",
+            "an agent of a simulated world: a depth camera, 2D or 3D LiDAR or CCTV camera "
+            "rendered by ray casting along the agent's path, pose guesses from noisy odometry, "
+            "ground truth kept; deterministic for a seed",
             (("", SimOptions),),
             open_sim,
         ),
         SourceKind(
             "replay",
             "replay:PATH[,key=value...]",
-            "a real recording at PATH: a CARMEN laser log (.log, .log.gz), a 7-Scenes or TUM RGB-D folder, "
-            "or a ROS 1/2 bag (.bag, .db3, .mcap, or a folder with metadata.yaml; needs the [ros] extra); "
-            "bad frames are skipped and counted unless strict",
+            "a real recording at PATH: a CARMEN laser log (.log, .log.gz), a 7-Scenes or TUM "
+            "RGB-D folder, or a ROS 1/2 bag (.bag, .db3, .mcap, or a folder with metadata.yaml; "
+            "needs the [ros] extra); bad frames are skipped and counted unless strict",
             (
                 ("", ReplayOptions),
                 ("carmen", CarmenOptions),
@@ -63,8 +64,8 @@ SOURCE_KINDS: dict[str, SourceKind] = {
         SourceKind(
             "synthetic",
             "synthetic:key=value,...",
-            "nothing: a 2.5D scanner walking an empty square room, horizontal beams to the walls with "
-            "returns at random heights, paced in real time (daemon tests and benchmarks)",
+            "nothing: a 2.5D scanner walking an empty square room, horizontal beams to the walls "
+            "with returns at random heights, paced in real time (daemon tests and benchmarks)",
             (("", SyntheticOptions),),
             open_synthetic,
         ),
@@ -107,7 +108,7 @@ def describe_sources(*, markdown: bool = False) -> str:
     return "\n".join(_markdown(kind) if markdown else _text(kind) for kind in SOURCE_KINDS.values())
 
 
-def _sections(kind: SourceKind) -> list[tuple[str, list]]:
+def _sections(kind: SourceKind) -> list[tuple[str, list[OptionDoc]]]:
     """(heading, option docs) of a kind; later sections leave out the options of the first."""
     own = tuple(kind.options[0][1].model_fields)
     return [

@@ -79,12 +79,16 @@ def split_spec(
 
 
 def parse_options(model: type[OptionsT], options: dict[str, str], spec: str) -> OptionsT:
-    """`options` validated by `model`: unknown options and values of the wrong type fail naming the option."""
+    """`options` validated by `model`: unknown options and values of the wrong type fail naming the
+    option."""
     allowed = sorted(model.model_fields)
     values: dict[str, Any] = {}
     for key, text in options.items():
         if key not in model.model_fields:
-            msg = f"source spec {spec!r}: option {key!r}: expected one of {allowed}, found unknown option"
+            msg = (
+                f"source spec {spec!r}: option {key!r}: expected one of {allowed}, "
+                "found unknown option"
+            )
             raise SourceSpecError(msg)
         nullable = type(None) in get_args(model.model_fields[key].annotation)
         values[key] = None if nullable and text.lower() in _NONE else text

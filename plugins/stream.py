@@ -1,4 +1,5 @@
-"""Source protocol, per-stream counters and what a caller gives every source: resolution, seed, stop."""
+"""Source protocol, per-stream counters and what a caller gives every source: resolution, seed,
+stop."""
 
 from __future__ import annotations
 

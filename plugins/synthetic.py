@@ -1,4 +1,5 @@
-"""Synthetic source: a 2.5D scanner walking an empty square room, paced in real time until stopped."""
+"""Synthetic source: a 2.5D scanner walking an empty square room, paced in real time until
+stopped."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from collections.abc import Iterator
 import numpy as np
 from pydantic import Field
 
+from plugins.adapter import SensorAdapter
 from plugins.errors import SourceSpecError
 from plugins.observation import Observation
 from plugins.points import PointsAdapter
@@ -55,14 +57,17 @@ class SyntheticSource:
         stop: threading.Event | None = None,
     ) -> None:
         if rate <= 0 or points <= 0 or room <= 1:
-            msg = f"synthetic: expected rate > 0, points > 0 and room > 1, found rate={rate}, points={points}, room={room}"
+            msg = (
+                "synthetic: expected rate > 0, points > 0 and room > 1, "
+                f"found rate={rate}, points={points}, room={room}"
+            )
             raise SourceSpecError(msg)
         self.scans, self.rate, self.points = scans, rate, points
         self.room, self.step = room, step
         self.spec = spec or "synthetic:"
         self.stop = stop if stop is not None else threading.Event()
         self.world = box_room(room)
-        self.adapter = PointsAdapter("synthetic")
+        self.adapter: SensorAdapter = PointsAdapter("synthetic")
         self.stats = StreamStats()
         self.rng = np.random.default_rng(seed)
         self.pos = self.rng.uniform(1.0, room - 1.0, size=2)
@@ -106,7 +111,8 @@ class SyntheticSource:
 
 
 def open_synthetic(spec: SourceSpec, context: SourceContext) -> SyntheticSource:
-    """The `synthetic:` source of a parsed spec; the context gives the default seed and the stop event."""
+    """The `synthetic:` source of a parsed spec; the context gives the default seed and the stop
+    event."""
     options = parse_options(SyntheticOptions, spec.options, spec.text)
     seed = context.seed if options.seed is None else options.seed
     return SyntheticSource(

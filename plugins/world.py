@@ -41,7 +41,8 @@ class Cylinder:
 
 @dataclass(frozen=True)
 class Marker:
-    """An ArUco marker printed on a vertical box face: black square of side `length` on a white tag."""
+    """An ArUco marker printed on a vertical box face: black square of side `length` on a white
+    tag."""
 
     marker_id: int
     centre: tuple[float, float, float]
@@ -134,7 +135,11 @@ class World:
         colour = np.zeros((m, 3), np.uint8)
 
         def take(
-            tc: np.ndarray, nc: np.ndarray, c: np.ndarray, oid: np.ndarray, col: np.ndarray
+            tc: np.ndarray,
+            nc: np.ndarray,
+            c: np.ndarray,
+            oid: np.ndarray,
+            col: np.ndarray,
         ) -> None:
             better = tc < t
             t[better] = tc[better]
@@ -151,8 +156,8 @@ class World:
             take(
                 tf,
                 np.array([0.0, 0.0, up]),
-                np.int32(CLASSES["floor"]),
-                np.int32(-1),
+                np.array(CLASSES["floor"], np.int32),
+                np.array(-1, np.int32),
                 np.array(self.floor_colour, np.uint8),
             )
 
@@ -171,14 +176,20 @@ class World:
             k = tb.argmin(axis=1)  # best box per ray
             rows = np.arange(m)
             tk = tb[rows, k]
-            axis = np.where(near[0][rows, k] == tk, 0, np.where(near[1][rows, k] == tk, 1, 2))
+            hit_axis = np.where(near[0][rows, k] == tk, 0, np.where(near[1][rows, k] == tk, 1, 2))
             nb = np.zeros((m, 3))
-            nb[rows, axis] = -np.sign(d[rows, axis])
+            nb[rows, hit_axis] = -np.sign(d[rows, hit_axis])
             take(tk, nb, self._box_cls[k], self._box_obj[k], self._box_col[k])
 
         for c in self.cylinders:
             tc, nc = _cylinder(o, d, c)
-            take(tc, nc, np.int32(c.class_id), np.int32(c.object_id), np.array(c.colour, np.uint8))
+            take(
+                tc,
+                nc,
+                np.array(c.class_id, np.int32),
+                np.array(c.object_id, np.int32),
+                np.array(c.colour, np.uint8),
+            )
         return Hits(t=t, normal=normal, class_id=cls, object_id=obj, colour=colour)
 
     # appearance -----------------------------------------------------------------------------
@@ -238,8 +249,8 @@ class World:
             tag = self._tag(marker)
             side = float(np.linalg.norm(np.roll(uv, 1, axis=0) - uv, axis=1).max())
             if side < tag.shape[0] / 2:  # pre-filter: anti-aliased edges at the projected size
-                size = max(round(side * 2), 8)
-                tag = cv2.resize(tag, (size, size), interpolation=cv2.INTER_AREA)
+                tag_px = max(round(side * 2), 8)
+                tag = cv2.resize(tag, (tag_px, tag_px), interpolation=cv2.INTER_AREA)
             s = tag.shape[0]
             src = np.array(
                 [[-0.5, -0.5], [s - 0.5, -0.5], [s - 0.5, s - 0.5], [-0.5, s - 0.5]], np.float32
@@ -353,7 +364,8 @@ def _landmark(
 
 
 def room_world() -> World:
-    """A 6 x 6 m square room (inner wall faces at x, y = +-3), 2.5 m high, three labelled objects."""
+    """A 6 x 6 m square room (inner wall faces at x, y = +-3), 2.5 m high, three labelled
+    objects."""
     landmark, markers = _landmark(3, 1.5, 1.5, 0)
     return World(
         name="room",
@@ -368,7 +380,8 @@ def room_world() -> World:
 
 
 def office_world() -> World:
-    """A 12 x 8 m office: two rooms joined by a 1.2 m doorway, boxes, bins and four tagged landmarks."""
+    """A 12 x 8 m office: two rooms joined by a 1.2 m doorway, boxes, bins and four tagged
+    landmarks."""
     cls, col = CLASSES["wall"], (200, 200, 205)
     boxes = [
         *_walls(-6.0, -4.0, 6.0, 4.0, 2.7),
@@ -392,7 +405,8 @@ def office_world() -> World:
 
 
 def box_room(side: float, height: float = 2.5) -> World:
-    """An empty square room without a floor: inner wall faces at 0 and `side` on x and y (the synthetic scanner's)."""
+    """An empty square room without a floor: inner wall faces at 0 and `side` on x and y (the
+    synthetic scanner's)."""
     return World(name="box", boxes=_walls(0.0, 0.0, side, side, height), floor=None)
 
 
@@ -402,8 +416,8 @@ FURNISHED_SHIFT = (0.0131, 0.0217, 0.0093)
 
 
 def furnished_room(thick: float = 0.1) -> World:
-    """An 8 x 6 x 2.8 m closed room (floor and ceiling as boxes) with a table, cupboard, bed, chair and
-    wall shelf, unlabelled, shifted by FURNISHED_SHIFT: the benchmarks' scene."""
+    """An 8 x 6 x 2.8 m closed room (floor and ceiling as boxes) with a table, cupboard, bed, chair
+    and wall shelf, unlabelled, shifted by FURNISHED_SHIFT: the benchmarks' scene."""
     shift = np.array(FURNISHED_SHIFT)
     lo, hi = np.array([-4.0, -3.0, 0.0]) + shift, np.array([4.0, 3.0, 2.8]) + shift
     col = (200, 200, 205)

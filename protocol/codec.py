@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 from pydantic import ValidationError
@@ -86,7 +86,7 @@ def _body(msg: Message) -> dict[str, Any]:
     skip = set(HEADER_FIELDS) | set(_DELTA_FIELDS)
     body = msg.model_dump(mode="python", exclude=skip)
     if "delta" in type(msg).model_fields:
-        delta = msg.delta
+        delta = cast("Delta | None", msg.__dict__["delta"])  # the field a message type declares
         summary = getattr(msg, "free_summary", None)
         body["delta"] = None if delta is None else encode_delta(delta, summary=summary)
     return body

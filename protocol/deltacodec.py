@@ -392,12 +392,12 @@ def encode_delta(
     if summary is not None and len(summary):
         _check_delta_keys(summary.keys, summary.level)
         order, comp = _block_sort(_composite(summary.keys, bs), bs)
-        order = slice(None) if order is None else order
+        logodds = summary.logodds if order is None else summary.logodds[order]
         rel = _relative_ms(np.array([summary.time]), delta.time)[0]
         body["sum"] = [
             int(summary.level),
             *_encode_keys(comp, bs),
-            quantise(summary.logodds[order], q).tobytes(),
+            quantise(logodds, q).tobytes(),
             int(rel),
         ]
     return fields.pack(body)
@@ -648,6 +648,7 @@ def _decode_keys(
             off = soff
             block_of = None
         else:
+            assert block_of is not None  # nd < m: some blocks are sparse (nd == m leaves none)
             pos = np.repeat(start[sidx] - sstart, scounts) + np.arange(nsparse)
             off[pos] = soff
             block_of[pos] = np.repeat(sidx, scounts)
@@ -697,7 +698,8 @@ def _decode_times(table_raw: Any, index_raw: Any, n: int, ref: float, what: str)
     if int(index.max()) >= t:
         msg = f"{what}: expected time indices below {t}, found {int(index.max())}"
         raise RangeError(msg)
-    return values[index]
+    times: np.ndarray = values[index]
+    return times
 
 
 def _decode_channel(entry: Any, n: int, ref: float, limits: Limits) -> tuple[str, np.ndarray]:

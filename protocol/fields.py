@@ -171,7 +171,8 @@ def unpack(data: bytes, what: str, limits: Limits) -> Any:
 
 def pack(obj: Any) -> bytes:
     """msgpack encoding of `obj` (binary strings as bin, floats as float64)."""
-    return msgpack.packb(obj, use_bin_type=True)
+    packed: bytes = msgpack.packb(obj, use_bin_type=True)
+    return packed
 
 
 def field(obj: dict[str, Any], name: str, kind: type[T] | tuple[type, ...], what: str) -> T:

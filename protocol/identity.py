@@ -1,4 +1,5 @@
-"""Agent identities: Ed25519 keys that sign an agent's frames, and the pins that say whose is whose."""
+"""Agent identities: Ed25519 keys that sign an agent's frames, and the pins that say whose is
+whose."""
 
 from __future__ import annotations
 

@@ -51,7 +51,7 @@ class FreeSummary:
     @property
     def expanded_count(self) -> int:
         """Number of voxels `expand` would produce before exclusions."""
-        return len(self) * 8**self.level
+        return len(self) << (3 * self.level)  # 8**level cells each
 
     def expand(self, exclude: np.ndarray | None = None, max_voxels: int | None = None) -> Delta:
         """The voxels of every cell as a Delta (minus keys in `exclude` (K, 3)), one value per cell.

@@ -1,4 +1,5 @@
-"""Sparse block storage: dense blocks of voxels addressed by integer block keys, one numpy array per channel."""
+"""Sparse block storage: dense blocks of voxels addressed by integer block keys, one numpy array per
+channel."""
 
 from __future__ import annotations
 
@@ -33,10 +34,14 @@ SCALAR_SPEC = (np.dtype(np.float32), (), np.nan)
 
 
 def block_shifts(shape: str | tuple[int, int, int]) -> tuple[int, int, int]:
-    """Per-axis shifts of a block shape: a name in BLOCK_SHAPES or side lengths (powers of two, 1-8)."""
+    """Per-axis shifts of a block shape: a name in BLOCK_SHAPES or side lengths (powers of two,
+    1-8)."""
     if isinstance(shape, str):
         if shape not in BLOCK_SHAPES:
-            msg = f"block shape must be one of {sorted(BLOCK_SHAPES)} or three side lengths, found {shape!r}"
+            msg = (
+                f"block shape must be one of {sorted(BLOCK_SHAPES)} or three side lengths, "
+                f"found {shape!r}"
+            )
             raise InputError(msg)
         return BLOCK_SHAPES[shape]
     sides = tuple(shape)
@@ -74,7 +79,8 @@ def join_keys(
 
 
 class BlockStore:
-    """Slots of one block of voxels each, with per-channel arrays of shape (capacity, block voxels, ...)."""
+    """Slots of one block of voxels each, with per-channel arrays of shape (capacity, block voxels,
+    ...)."""
 
     def __init__(
         self, class_k: int = 3, capacity: int = 64, shifts: tuple[int, int, int] = CUBE
@@ -137,7 +143,8 @@ class BlockStore:
         self.capacity = new_cap
 
     def split(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Packed block keys and in-block offsets of voxel keys (N, 3), in this store's block shape."""
+        """Packed block keys and in-block offsets of voxel keys (N, 3), in this store's block
+        shape."""
         return split_keys(keys, self.shifts)
 
     def join(self, blocks: np.ndarray, offsets: np.ndarray) -> np.ndarray:

@@ -33,7 +33,8 @@ class PointChannels:
 
     @property
     def fused(self) -> bool:
-        """True when some channel is folded into voxel channels (object ids and probabilities alone are not)."""
+        """True when some channel is folded into voxel channels (object ids and probabilities alone
+        are not)."""
         return any(x is not None for x in (self.colours, self.normals, self.class_ids)) or bool(
             self.scalars
         )

@@ -33,7 +33,10 @@ def channel_spec(name: str) -> tuple[np.dtype, tuple[int, ...]]:
     try:
         return CHANNEL_SPECS[name]
     except KeyError:
-        msg = f"unknown delta channel {name!r}; expected one of {sorted(CHANNEL_SPECS)} or 'scalar:NAME'"
+        msg = (
+            f"unknown delta channel {name!r}; expected one of {sorted(CHANNEL_SPECS)} or "
+            "'scalar:NAME'"
+        )
         raise DeltaError(msg) from None
 
 
@@ -70,7 +73,10 @@ class Delta:
             msg = f"delta resolution must be positive, found {self.resolution!r}"
             raise DeltaError(msg)
         if self.to_version < self.from_version:
-            msg = f"delta to_version must be >= from_version, found {self.from_version} -> {self.to_version}"
+            msg = (
+                "delta to_version must be >= from_version, "
+                f"found {self.from_version} -> {self.to_version}"
+            )
             raise DeltaError(msg)
         for name, values in list(self.channels.items()):
             dtype, tail = channel_spec(name)
@@ -93,8 +99,9 @@ class Delta:
         with np.errstate(invalid="ignore"):
             return self.logodds >= 0.0
 
-    def select(self, mask: np.ndarray) -> Delta:
-        """The part of this delta at `mask` (a boolean mask or index array), same versions."""
+    def select(self, mask: np.ndarray | slice) -> Delta:
+        """The part of this delta at `mask` (a boolean mask, index array or slice), same
+        versions."""
         return Delta(
             resolution=self.resolution,
             from_version=self.from_version,
@@ -165,7 +172,10 @@ def merge_delta(store: BlockStore, times: TimeBase, delta: Delta) -> np.ndarray:
     for name, values in delta.channels.items():
         arr = store.channel(name)
         if arr.shape[2:] != values.shape[1:]:
-            msg = f"delta channel {name!r} has shape {values.shape[1:]} per voxel, grid holds {arr.shape[2:]}"
+            msg = (
+                f"delta channel {name!r} has shape {values.shape[1:]} per voxel, grid holds "
+                f"{arr.shape[2:]}"
+            )
             raise DeltaError(msg)
         arr[s, o] = values[take]
     np.maximum.at(store.slot_version, s, incoming)
@@ -174,7 +184,8 @@ def merge_delta(store: BlockStore, times: TimeBase, delta: Delta) -> np.ndarray:
 
 
 def same_content(a: Delta, b: Delta) -> bool:
-    """True when two full deltas hold the same known voxels with the same values in every channel."""
+    """True when two full deltas hold the same known voxels with the same values in every
+    channel."""
     ka, kb = vk.pack(a.keys), vk.pack(b.keys)
     ia, ib = np.argsort(ka), np.argsort(kb)
     ma, mb = ~np.isnan(a.logodds[ia]), ~np.isnan(b.logodds[ib])

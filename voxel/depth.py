@@ -20,7 +20,8 @@ class DepthPoints(NamedTuple):
 
 
 def pixel_rays(intrinsics: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Camera-frame rays (H * W, 3) through every pixel, row-major, scaled to z = 1 (a point at depth d is d * ray)."""
+    """Camera-frame rays (H * W, 3) through every pixel, row-major, scaled to z = 1 (a point at
+    depth d is d * ray)."""
     k = intrinsics
     v, u = np.mgrid[0:height, 0:width]
     rays = np.stack(
@@ -32,7 +33,8 @@ def pixel_rays(intrinsics: np.ndarray, width: int, height: int) -> np.ndarray:
 def camera_points(
     depth: np.ndarray, intrinsics: np.ndarray, stride: int = 1
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-frame points (M, 3) float64 of the valid pixels (finite, > 0), row-major, and their flat pixel indices.
+    """Camera-frame points (M, 3) float64 of the valid pixels (finite, > 0), row-major, and their
+    flat pixel indices.
 
     Pinhole model, OpenCV axes (x right, y down, z forward); every `stride`-th row and column.
     """
@@ -57,7 +59,8 @@ def back_project(
     colour: np.ndarray | None = None,
     labels: np.ndarray | None = None,
 ) -> DepthPoints:
-    """Pixels of a depth image (metres, 0/NaN = no reading) in the world, from camera-to-world `pose`."""
+    """Pixels of a depth image (metres, 0/NaN = no reading) in the world, from camera-to-world
+    `pose`."""
     depth = np.asarray(depth, dtype=np.float64)
     if depth.ndim != 2:
         msg = f"depth must be an (H, W) image, found shape {depth.shape}"

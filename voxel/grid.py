@@ -169,7 +169,8 @@ class VoxelGrid:
         experience: float = 0.0,
         bias: float = 0.0,
     ) -> IntegrationReport:
-        """Integrate a validated scan: traverse, update occupancy, fuse channels, record history, bump version."""
+        """Integrate a validated scan: traverse, update occupancy, fuse channels, record history,
+        bump version."""
         beams = sort_beams(scan, sensor, self.resolution)
         traversal = trace(
             scan.origin,
@@ -258,7 +259,8 @@ class VoxelGrid:
         return decayed(lo, last, now, self.half_life, self.times)
 
     def logodds_at_keys(self, keys: np.ndarray, now: float | None = None) -> np.ndarray:
-        """Log-odds (decayed to `now`, default the latest observation) of voxel keys; NaN unknown."""
+        """Log-odds (decayed to `now`, default the latest observation) of voxel keys; NaN
+        unknown."""
         keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
         slots, offsets, found = self._lookup(keys)
         out = np.full(keys.shape[0], np.nan, dtype=np.float32)
@@ -281,7 +283,8 @@ class VoxelGrid:
         return states(lo)
 
     def _all(self) -> tuple[np.ndarray, np.ndarray]:
-        """Decayed log-odds (U, voxels per block) of the used blocks, and their packed block keys (U,)."""
+        """Decayed log-odds (U, voxels per block) of the used blocks, and their packed block keys
+        (U,)."""
         st = self.store
         slots = st.used_slots()
         lo = st.channels["logodds"][slots]
@@ -325,7 +328,10 @@ class VoxelGrid:
         dvec = np.asarray(direction, dtype=np.float64).reshape(3)
         norm = float(np.linalg.norm(dvec))
         if not norm > 0 or not max_range > 0:
-            msg = f"cast_ray needs a non-zero direction and positive max_range, found {dvec!r}, {max_range!r}"
+            msg = (
+                "cast_ray needs a non-zero direction and positive max_range, "
+                f"found {dvec!r}, {max_range!r}"
+            )
             raise InputError(msg)
         keys = ray_keys(o, o + dvec / norm * max_range, self.resolution)
         hit = np.flatnonzero(states(self.logodds_at_keys(keys)) == OCCUPIED)
@@ -375,7 +381,8 @@ class VoxelGrid:
 
     # ------------------------------------------------------------------------------- forgetting
     def forget(self, now: float | None = None) -> int:
-        """Voxels whose decayed evidence is ~0 become unknown; empty blocks are freed. Returns blocks freed."""
+        """Voxels whose decayed evidence is ~0 become unknown; empty blocks are freed. Returns
+        blocks freed."""
         if self.half_life is None:
             return 0
         now = self.now if now is None else now
@@ -404,7 +411,8 @@ class VoxelGrid:
         )
 
     def apply(self, delta: Delta) -> int:
-        """Apply a delta: each voxel takes the delta's values unless it already holds a newer version.
+        """Apply a delta: each voxel takes the delta's values unless it already holds a newer
+        version.
 
         Returns the number of voxels that took the delta's values.
         """
@@ -446,7 +454,8 @@ class VoxelGrid:
 
     @classmethod
     def from_bt(cls, path: str | Path, *, time: float = 0.0) -> VoxelGrid:
-        """A grid holding an OctoMap .bt map: occupied voxels at the hit clamp, free at the miss one."""
+        """A grid holding an OctoMap .bt map: occupied voxels at the hit clamp, free at the miss
+        one."""
         bt = read_bt(path)
         grid = cls(bt.resolution)
         lo = np.where(

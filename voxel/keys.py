@@ -13,7 +13,8 @@ KEY_MAX = AXIS_OFFSET - 1
 
 
 def points_to_keys(points: np.ndarray, resolution: float) -> np.ndarray:
-    """Voxel keys (N, 3) int64 of points (N, 3): floor(p * (1 / resolution)), as OctoMap computes them."""
+    """Voxel keys (N, 3) int64 of points (N, 3): floor(p * (1 / resolution)), as OctoMap computes
+    them."""
     scaled = np.asarray(points, dtype=np.float64) * (1.0 / resolution)
     return np.floor(scaled, out=scaled).astype(np.int64)
 

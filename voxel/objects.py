@@ -47,10 +47,13 @@ def extract_objects(
     plus the voxel quantisation. `object_id` is the class and the centroid's `id_cell` cell
     (`ObjectTracker` keeps ids stable as centroids move).
     """
-    from sklearn.cluster import DBSCAN  # type: ignore[import-untyped]
+    from sklearn.cluster import DBSCAN
 
     if min_voxels < 1 or not 0.0 <= min_probability <= 1.0:
-        msg = f"need min_voxels >= 1 and min_probability in [0, 1], found {min_voxels!r}, {min_probability!r}"
+        msg = (
+            "need min_voxels >= 1 and min_probability in [0, 1], "
+            f"found {min_voxels!r}, {min_probability!r}"
+        )
         raise InputError(msg)
     if "class_ids" not in grid.store.channels:
         return []
@@ -138,7 +141,8 @@ class ObjectTracker:
                 used[i] = True
                 ids[j] = prev[i].object_id
         out = []
-        for o, oid in zip(found, ids, strict=True):
+        for o, known in zip(found, ids, strict=True):
+            oid = known
             if oid is None:
                 oid, self._next = self._next, self._next + 1
             out.append(replace(o, object_id=oid))

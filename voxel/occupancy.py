@@ -46,7 +46,8 @@ def states(lo: np.ndarray) -> np.ndarray:
 def decayed(
     lo: np.ndarray, last: np.ndarray, now: float, half_life: float | None, times: TimeBase
 ) -> np.ndarray:
-    """Log-odds `lo` stored at times `last` (stored form), decayed to `now` (unchanged without a half-life)."""
+    """Log-odds `lo` stored at times `last` (stored form), decayed to `now` (unchanged without a
+    half-life)."""
     if half_life is None:
         return lo
     dt = np.maximum(now - times.seconds(last), 0.0)
@@ -87,7 +88,8 @@ class Changes(NamedTuple):
 
 @dataclass
 class OccupancyUpdate:
-    """What one scan's occupancy update did: voxels changed, and per chunk the changes worth a record."""
+    """What one scan's occupancy update did: voxels changed, and per chunk the changes worth a
+    record."""
 
     changed: int
     chunks: list[Changes]

@@ -1,4 +1,5 @@
-"""Ray traversal: the voxels each ray passes through (Amanatides-Woo, as OctoMap), vectorised over rays."""
+"""Ray traversal: the voxels each ray passes through (Amanatides-Woo, as OctoMap), vectorised over
+rays."""
 
 from __future__ import annotations
 
@@ -30,7 +31,8 @@ SPLIT_MIN_RAYS = 64
 
 @dataclass
 class Traversal:
-    """Voxels touched by one scan, grouped by block (0 untouched, 1 free, 2 hit), and its hit voxels."""
+    """Voxels touched by one scan, grouped by block (0 untouched, 1 free, 2 hit), and its hit
+    voxels."""
 
     blocks: np.ndarray  # (B,) packed block keys
     cells: np.ndarray  # (B, block voxels) uint8
@@ -105,7 +107,7 @@ def _sequences(o: np.ndarray, e: np.ndarray, strides: np.ndarray) -> tuple[np.nd
         )
     if not parts:
         return ()
-    cols = [np.concatenate(x) for x in zip(*parts)]
+    cols = [np.concatenate(x) for x in zip(*parts, strict=True)]
     longest = int(cols[0].max())
     # A stable sort of 16-bit integers is a radix sort: much faster than sorting int64.
     order = np.argsort(-(cols[0].astype(np.int16) if longest < 2**15 else cols[0]), kind="stable")
@@ -142,7 +144,7 @@ def _sweep(
                     ends, np.arange(FLAT_CHUNK, int(ends[-1]), FLAT_CHUNK), side="right"
                 )
             )
-            for lo, hi in zip([0, *cuts.tolist()], [*cuts.tolist(), n]):
+            for lo, hi in zip([0, *cuts.tolist()], [*cuts.tolist(), n], strict=True):
                 if hi > lo:
                     runs = (
                         plane[lo:hi],
@@ -371,7 +373,8 @@ def _trace_sparse(
 def group_cells(
     free_keys: np.ndarray, hit_keys: np.ndarray, shifts: tuple[int, int, int] = CUBE
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Packed block keys and cells (B, block voxels) of explicit free and hit voxel keys (hits win)."""
+    """Packed block keys and cells (B, block voxels) of explicit free and hit voxel keys (hits
+    win)."""
     keys = np.concatenate([free_keys, hit_keys]).astype(np.int64)
     vals = np.concatenate([np.full(len(free_keys), FREE), np.full(len(hit_keys), HIT)]).astype(
         np.uint8

@@ -1,4 +1,5 @@
-"""Rotations as unit quaternions (x, y, z, w), the protocol's order, and 3x3 matrices (scipy's `Rotation`).
+"""Rotations as unit quaternions (x, y, z, w), the protocol's order, and 3x3 matrices (scipy's
+`Rotation`).
 
 One convention everywhere: scalar last, Hamilton product, active rotation (a matrix maps points
 from the rotated frame into the reference frame: a quaternion (0, 0, sin(a/2), cos(a/2)) turns

@@ -1,4 +1,5 @@
-"""One scan's input, validated, and its beams sorted into hits, clearing beams, invalid and dropped ones."""
+"""One scan's input, validated, and its beams sorted into hits, clearing beams, invalid and dropped
+ones."""
 
 from __future__ import annotations
 
@@ -73,7 +74,8 @@ class Scan:
         scalars: dict[str, np.ndarray] | None = None,
         no_return: np.ndarray | None = None,
     ) -> Scan:
-        """Check every input against the points; InputError says what was expected and what was found."""
+        """Check every input against the points; InputError says what was expected and what was
+        found."""
         pts = as_points(points)
         n = pts.shape[0]
         org = np.asarray(origin, dtype=np.float64).reshape(-1)

@@ -16,9 +16,9 @@ def logodds(p: float) -> float:
     return math.log(p / (1.0 - p))
 
 
-def probability(l: float) -> float:
-    """Probability of log-odds l."""
-    return 1.0 / (1.0 + math.exp(-l))
+def probability(log_odds: float) -> float:
+    """Probability of a log-odds value."""
+    return 1.0 / (1.0 + math.exp(-log_odds))
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,10 @@ class SensorModel:
             msg = f"SensorModel.prob_miss must be below 0.5, found {self.prob_miss!r}"
             raise InputError(msg)
         if not self.clamp_min < 0.5 < self.clamp_max:
-            msg = f"SensorModel clamping must satisfy clamp_min < 0.5 < clamp_max, found {self.clamp_min!r}, {self.clamp_max!r}"
+            msg = (
+                "SensorModel clamping must satisfy clamp_min < 0.5 < clamp_max, found "
+                f"{self.clamp_min!r}, {self.clamp_max!r}"
+            )
             raise InputError(msg)
         if not self.max_range > 0:
             msg = f"SensorModel.max_range must be positive, found {self.max_range!r}"

@@ -1,4 +1,5 @@
-"""Lossless grid snapshots: an .npz archive wrapped in zstd, with metadata, block keys, channels, history."""
+"""Lossless grid snapshots: an .npz archive wrapped in zstd, with metadata, block keys, channels,
+history."""
 
 from __future__ import annotations
 
@@ -86,7 +87,8 @@ def save_grid(grid: SnapshotGrid, path: Path) -> None:
 
 
 def load_grid(path: Path, make_grid: Callable[..., G]) -> G:
-    """Read a snapshot written by `save_grid` into the grid `make_grid(resolution, **settings)` returns."""
+    """Read a snapshot written by `save_grid` into the grid `make_grid(resolution, **settings)`
+    returns."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
@@ -101,7 +103,10 @@ def load_grid(path: Path, make_grid: Callable[..., G]) -> G:
         with np.load(io.BytesIO(payload), allow_pickle=False) as data:
             files = set(data.files)
             if "meta" not in files:
-                msg = f"{path}: expected a {FORMAT} file with a 'meta' entry, found entries {sorted(files)[:5]}"
+                msg = (
+                    f"{path}: expected a {FORMAT} file with a 'meta' entry, "
+                    f"found entries {sorted(files)[:5]}"
+                )
                 raise FileFormatError(msg)
             meta = json.loads(bytes(data["meta"]).decode())
             if meta.get("format") != FORMAT or meta.get("version") not in READABLE_VERSIONS:
@@ -126,7 +131,10 @@ def load_grid(path: Path, make_grid: Callable[..., G]) -> G:
                 arr = data[f"ch/{name}"]
                 target = grid.store.channel(name)
                 if arr.shape[1:] != target.shape[1:] or arr.shape[0] != keys.shape[0]:
-                    msg = f"{path}: channel {name!r} expected shape ({keys.shape[0]}, {target.shape[1:]}), found {arr.shape}"
+                    msg = (
+                        f"{path}: channel {name!r} expected shape ({keys.shape[0]}, "
+                        f"{target.shape[1:]}), found {arr.shape}"
+                    )
                     raise FileFormatError(msg)
                 target[slots] = arr
             hist = data["history"]

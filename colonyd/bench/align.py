@@ -1,4 +1,5 @@
-"""Alignment benchmark: real laser halves, OctoMap crops, negatives, and map_merge's ORB method side by side."""
+"""Alignment benchmark: real laser halves, OctoMap crops, negatives, and map_merge's ORB method side
+by side."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -17,7 +19,7 @@ from colonyd.bench.files import shared_data_dir
 from colonyd.bench.mapmerge import estimate as baseline_estimate
 from colonyd.errors import ConfigError
 from voxel import keys as vk
-from voxel.octomap_io import read_bt, write_bt
+from voxel.octomap_io import BtMap, read_bt, write_bt
 from voxel.registration import Alignment, AlignParams, MapCloud, align_clouds, load_map
 from voxel.registration.transform import apply, rigid
 
@@ -44,18 +46,21 @@ def run_align_bench(
     octomap: str = OCTOMAP,
     work_dir: Path | None = None,
     command: str | None = None,
-) -> dict:
+) -> dict[str, Any]:
     """Run every case, write the JSON result (with its command) to `out_json` and return it."""
     data = shared_data_dir(shared_data)
     if data is None or not (data / CARMEN_LOG).is_file() or not (data / octomap).is_file():
-        msg = f"align benchmark: expected the shared recordings ({CARMEN_LOG}, {octomap}) under ../shared/data or --shared-data, found {data}"
+        msg = (
+            f"align benchmark: expected the shared recordings ({CARMEN_LOG}, {octomap}) under "
+            f"../shared/data or --shared-data, found {data}"
+        )
         raise ConfigError(msg)
     work = (
         Path(work_dir) if work_dir is not None else Path(tempfile.mkdtemp(prefix="colony-align-"))
     )
     began = time.perf_counter()
     try:
-        rows: list[dict] = []
+        rows: list[dict[str, Any]] = []
         halves = CarmenHalves(data / CARMEN_LOG, work, carmen_step)
         rows += carmen_cases(halves, seeds)
         rows += octomap_cases(data / octomap, work, octomap_seeds)
@@ -98,7 +103,8 @@ class CarmenHalves:
         return self._map("a", f"stop={self.split_a}")
 
     def second(self, move: tuple[float, float, float]) -> tuple[MapCloud, float, np.ndarray]:
-        """Map B (last 60 %) with poses moved by (x, y, yaw degrees); load seconds; trajectory (N, 3)."""
+        """Map B (last 60 %) with poses moved by (x, y, yaw degrees); load seconds; trajectory (N,
+        3)."""
         x, y, yaw = move
         name = f"b_{x:.3f}_{y:.3f}_{yaw:.3f}"
         cloud, load_s = self._map(
@@ -125,7 +131,7 @@ def random_move_2d(seed: int) -> tuple[float, float, float]:
     return float(rng.uniform(-20, 20)), float(rng.uniform(-20, 20)), float(rng.uniform(-180, 180))
 
 
-def carmen_cases(halves: CarmenHalves, seeds: int) -> list[dict]:
+def carmen_cases(halves: CarmenHalves, seeds: int) -> list[dict[str, Any]]:
     """Real laser data: both halves aligned, ours and the baseline, error over B's trajectory."""
     a, _ = halves.first()
     rows = []
@@ -155,7 +161,7 @@ def carmen_cases(halves: CarmenHalves, seeds: int) -> list[dict]:
     return rows
 
 
-def octomap_cases(path: Path, work: Path, seeds: int) -> list[dict]:
+def octomap_cases(path: Path, work: Path, seeds: int) -> list[dict[str, Any]]:
     """Two crops of an OctoMap map overlapping by 20 % of its extent, B moved in x, y, z and yaw,
     both written as .bt and aligned from the files (reading included in `seconds_with_io`)."""
     bt = read_bt(path)
@@ -190,7 +196,9 @@ def octomap_cases(path: Path, work: Path, seeds: int) -> list[dict]:
     return rows
 
 
-def _write_crop(path: Path, bt, lo_frac: float, hi_frac: float, move: np.ndarray | None) -> None:
+def _write_crop(
+    path: Path, bt: BtMap, lo_frac: float, hi_frac: float, move: np.ndarray | None
+) -> None:
     keys, occupied = crop_keys(bt.keys, bt.occupied, bt.resolution, lo_frac, hi_frac, move)
     write_bt(path, bt.resolution, keys, occupied)
 
@@ -216,7 +224,9 @@ def crop_keys(
     return vk.unpack(uniq), np.bincount(inv, weights=occupied, minlength=len(uniq)) > 0
 
 
-def negative_cases(halves: CarmenHalves, octomap: Path, work: Path, seeds: int) -> list[dict]:
+def negative_cases(
+    halves: CarmenHalves, octomap: Path, work: Path, seeds: int
+) -> list[dict[str, Any]]:
     """Pairs that must never align: a building against simulated other buildings, and halves of one
     map that do not overlap (2D and 3D); the baseline runs on the 2D ones."""
     from colonyd.mapping import map_source
@@ -230,6 +240,7 @@ def negative_cases(halves: CarmenHalves, octomap: Path, work: Path, seeds: int) 
                 f"sim:world={world},agent=lidar-1,frames=300", RESOLUTION_2D, out, progress=False
             )
         others[world] = load_map(out / "grid.npz")
+    assert a.known is not None  # a simulated grid knows its free voxels
     known_keys = vk.unpack(a.known)
     bt = read_bt(octomap)
     rows = []
@@ -288,6 +299,7 @@ def negative_cases(halves: CarmenHalves, octomap: Path, work: Path, seeds: int) 
 
 
 def _moved_cloud(cloud: MapCloud, move: np.ndarray) -> MapCloud:
+    assert cloud.known is not None and cloud.known_occupied is not None  # a grid or .bt map
     keys = vk.unpack(cloud.known)
     return _from_keys(keys, cloud.known_occupied, cloud.resolution, move)
 
@@ -295,11 +307,12 @@ def _moved_cloud(cloud: MapCloud, move: np.ndarray) -> MapCloud:
 def _crop_cloud(
     cloud: MapCloud, keys: np.ndarray, lo: float, hi: float, move: np.ndarray | None
 ) -> MapCloud:
+    assert cloud.known_occupied is not None  # a grid or .bt map
     k, o = crop_keys(keys, cloud.known_occupied, cloud.resolution, lo, hi, None)
     return _from_keys(k, o, cloud.resolution, move)
 
 
-def _bt_cloud(bt, lo: float, hi: float, move: np.ndarray | None) -> MapCloud:
+def _bt_cloud(bt: BtMap, lo: float, hi: float, move: np.ndarray | None) -> MapCloud:
     k, o = crop_keys(bt.keys, bt.occupied, bt.resolution, lo, hi, move)
     return MapCloud.from_keys(bt.resolution, k, o)
 
@@ -323,7 +336,7 @@ def _errors(t: np.ndarray, truth: np.ndarray, points: np.ndarray) -> tuple[float
     return rms, abs(math.degrees(math.atan2(rel[1, 0], rel[0, 0])))
 
 
-def _ours(result: Alignment, truth: np.ndarray, points: np.ndarray, tol_m: float) -> dict:
+def _ours(result: Alignment, truth: np.ndarray, points: np.ndarray, tol_m: float) -> dict[str, Any]:
     rms, yaw = _errors(result.transform, truth, points)
     within = rms <= tol_m and yaw <= YAW_DEG
     return {
@@ -346,7 +359,7 @@ def _ours(result: Alignment, truth: np.ndarray, points: np.ndarray, tol_m: float
 
 def _baseline(
     a: MapCloud, b: MapCloud, truth: np.ndarray, points: np.ndarray, tol_m: float, seed: int
-) -> dict:
+) -> dict[str, Any]:
     base = baseline_estimate(a, b, seed)
     rms, yaw = _errors(base.transform, truth, points)
     within = rms <= tol_m and yaw <= YAW_DEG
@@ -363,8 +376,9 @@ def _baseline(
     }
 
 
-def summarise(rows: list[dict]) -> list[dict]:
-    """One line per case: success rates, confident wrong answers, errors and times, ours and baseline."""
+def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One line per case: success rates, confident wrong answers, errors and times, ours and
+    baseline."""
     out = []
     for case in dict.fromkeys(r["case"] for r in rows):
         rs = [r for r in rows if r["case"] == case]

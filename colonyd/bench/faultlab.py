@@ -1,4 +1,5 @@
-"""Faults on one machine: network namespaces and veth links, a small tmpfs, a busy core, hostile frames.
+"""Faults on one machine: network namespaces and veth links, a small tmpfs, a busy core, hostile
+frames.
 
 Everything here needs no daemon internals: it acts on processes, links and mounts from outside,
 as an operator (or a failing robot) would. What needs root says so (`need_root`) and cleans up
@@ -56,7 +57,7 @@ class Spinner:
     """Another process keeping one core busy (a pure-Python loop), stopped by its PID."""
 
     def __init__(self) -> None:
-        self.proc: subprocess.Popen | None = None
+        self.proc: subprocess.Popen[bytes] | None = None
 
     def __enter__(self) -> Self:
         self.proc = subprocess.Popen(

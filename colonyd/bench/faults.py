@@ -1,4 +1,5 @@
-"""`colonyd bench faults`: real daemons under crashes, partitions, freezes, full disks, load, floods, hostile input."""
+"""`colonyd bench faults`: real daemons under crashes, partitions, freezes, full disks, load,
+floods, hostile input."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import zenoh
@@ -136,6 +137,11 @@ def wait_holding(
     return wait_for(f"{holders} holding {want}", ok, timeout, every=0.2)
 
 
+def _more_ready(d: LocalDaemon, before: int) -> Callable[[], bool]:
+    """A check that `d` has logged more ready lines than `before`."""
+    return lambda: _ready_count(d) > before
+
+
 def _ready_count(d: LocalDaemon) -> int:
     return (
         d.log_path.read_text(errors="replace").count("daemon: ready:") if d.log_path.exists() else 0
@@ -181,7 +187,7 @@ def crash(base: Path, *, kills: int = 20, seed: int = 7) -> dict[str, Any]:
     colony = LocalColony(base, colony="crash", heartbeat_s=0.5)
     b = colony.add("b")  # the hub: a restarts against it
     time.sleep(0.3)
-    mapping = src(1, 0, rate=8, points=200) + ["--publish-hz", "8"]
+    mapping = [*src(1, 0, rate=8, points=200), "--publish-hz", "8"]
     a = colony.add("a", start=False, extra=["--source", mapping[0], *mapping[1:]])
     watch_session = open_session(
         zenoh_config(
@@ -203,7 +209,7 @@ def crash(base: Path, *, kills: int = 20, seed: int = 7) -> dict[str, Any]:
             if not a.alive():
                 before = _ready_count(a)
                 a.start()
-                wait_for("a ready", lambda before=before: _ready_count(a) > before, 30, 0.02)
+                wait_for("a ready", _more_ready(a, before), 30, 0.02)
             delay = rng.uniform(0.15, 1.2)
             kill_ms.append(round(delay * 1000))
             time.sleep(delay)
@@ -237,7 +243,7 @@ def crash(base: Path, *, kills: int = 20, seed: int = 7) -> dict[str, Any]:
                 a.args = [x for x in a.args if x != mapping[0] and x != "--source"]
             before = _ready_count(a)
             a.start()
-            wait_for("a ready", lambda before=before: _ready_count(a) > before, 30, 0.02)
+            wait_for("a ready", _more_ready(a, before), 30, 0.02)
             got = _digest_lines(a)[-1]
             if got != want:
                 restart_mismatch += 1
@@ -328,14 +334,13 @@ def hostile_frames(target: str, other: str, seed: int = 3) -> list[tuple[str, by
 
     rng = np.random.default_rng(seed)
     forger = Sender("evil", 1)
-    ok_delta = Delta(0.1, 0, 1, [[0, 0, 0]], [0.5], [1.0])
+    ok_delta = Delta(0.1, 0, 1, np.array([[0, 0, 0]]), np.array([0.5]), np.array([1.0]))
     delta = forger.encode(VoxelDelta(**forger.header(), frame_id="map", delta=ok_delta))
     hb = forger.encode(Heartbeat(**forger.header(), kind="robot", frame_id="map"))
 
     def frame(mtype: int, envelope: object, flags: int = 0, version: int = 1) -> bytes:
-        return PREFIX.pack(MAGIC, version, mtype, flags, 0) + msgpack.packb(
-            envelope, use_bin_type=True
-        )
+        body: bytes = msgpack.packb(envelope, use_bin_type=True)
+        return PREFIX.pack(MAGIC, version, mtype, flags, 0) + body
 
     bomb = zstandard.ZstdCompressor(level=19).compress(b"\0" * (200 << 20))
     out: list[tuple[str, bytes]] = []
@@ -372,9 +377,12 @@ def hostile_frames(target: str, other: str, seed: int = 3) -> list[tuple[str, by
             ),
         ]
     bad_fields = [
-        Delta(0.37, 0, 1, [[0, 0, 0]], [0.5], [1.0]),  # another resolution
-        Delta(0.1, 0, 1, [[2**40, 0, 0]], [0.5], [1.0]),  # a key out of range
-        Delta(0.1, 0, 1, [[0, 0, 0]], [float("inf")], [1.0]),  # log-odds not finite
+        # another resolution
+        Delta(0.37, 0, 1, np.array([[0, 0, 0]]), np.array([0.5]), np.array([1.0])),
+        # a key out of range
+        Delta(0.1, 0, 1, np.array([[2**40, 0, 0]]), np.array([0.5]), np.array([1.0])),
+        # log-odds not finite
+        Delta(0.1, 0, 1, np.array([[0, 0, 0]]), np.array([np.inf]), np.array([1.0])),
     ]
     for d in bad_fields:
         try:
@@ -393,7 +401,8 @@ def hostile_frames(target: str, other: str, seed: int = 3) -> list[tuple[str, by
     # (An hour old: a fresh one of another epoch would be a live twin, which a young daemon
     # gives way to, by design; see DAEMON.md.)
     own = Sender(target, 1)
-    stale = {**own.header(), "time": time.time() - 3600}
+    stale = own.header()
+    stale["time"] = time.time() - 3600
     out.append(("heartbeat:own", own.encode(Heartbeat(**stale, kind="robot", frame_id="map"))))
     out.append(("delta", delta[:8] + rng.bytes(70 << 20)))  # huge: above max_message_mb
     return out
@@ -414,7 +423,7 @@ def hostile(base: Path) -> dict[str, Any]:
 def _hostile_round(base: Path, closed: bool) -> dict[str, Any]:
     from colonyd.frames import Sender
     from protocol import DeltaRangeRequest, SnapshotRequest
-    from protocol.keyexpr import query_key, topic_key
+    from protocol.keyexpr import Topic, query_key, topic_key
 
     secret = "correct horse battery staple"
     label = "closed" if closed else "open"
@@ -452,7 +461,7 @@ def _hostile_round(base: Path, closed: bool) -> dict[str, Any]:
                 s.put(topic_key(ns, "a", "heartbeat"), raw)
             else:  # (blocking: a huge frame is not dropped on the way by congestion control)
                 s.put(
-                    topic_key(ns, "evil", topic),
+                    topic_key(ns, "evil", cast(Topic, topic)),  # "delta" or "heartbeat"
                     raw,
                     congestion_control=zenoh.CongestionControl.BLOCK,
                 )
@@ -538,7 +547,7 @@ def disk(base: Path, *, size_mb: float = 6.0) -> dict[str, Any]:
         a.env["COLONYD_SNAPSHOT_S"] = "1"
         a.start()
         try:
-            wait_for("a snapshots", lambda: (a.state_dir / "snapshot.json").exists(), 30)
+            wait_for("a snapshots", (a.state_dir / "snapshot.json").exists, 30)
             wait_for("b holds a", lambda: seq_of(by_agent(colony), "b", "a") >= 3, 30)
             mount.fill()
             t_full = time.monotonic()

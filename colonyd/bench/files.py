@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 
 def shared_data_dir(given: Path | None) -> Path | None:
@@ -14,7 +15,7 @@ def shared_data_dir(given: Path | None) -> Path | None:
     return candidate if candidate.is_dir() else None
 
 
-def write_results(out_json: Path, results: list[dict]) -> None:
+def write_results(out_json: Path, results: list[dict[str, Any]]) -> None:
     """Write a benchmark's result list as indented JSON, creating the folder."""
     out_json = Path(out_json)
     out_json.parent.mkdir(parents=True, exist_ok=True)

@@ -7,6 +7,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -61,7 +62,11 @@ def _redkitchen(shared_data: Path) -> Callable[[], Iterator[Frame]]:
         folder = shared_data / "redkitchen-50" / "frames"
         k = np.array([[585.0, 0, 320.0], [0, 585.0, 240.0], [0, 0, 1]])
         for path in sorted(folder.glob("frame-*.depth.png")):
-            raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64)
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if image is None:
+                msg = f"{path}: expected a readable 16-bit depth PNG, found an unreadable file"
+                raise ConfigError(msg)
+            raw = image.astype(np.float64)
             raw[(raw == 0) | (raw == 65535)] = 0
             pose = np.loadtxt(str(path).replace(".depth.png", ".pose.txt"))
             yield Frame(back_project(raw / 1000.0, k, pose).points, pose[:3, 3].copy())
@@ -108,7 +113,7 @@ def scenarios(shared_data: Path | None) -> list[Scenario]:
     return out
 
 
-def octomap_sets(tree, resolution: float) -> tuple[np.ndarray, np.ndarray]:
+def octomap_sets(tree: Any, resolution: float) -> tuple[np.ndarray, np.ndarray]:
     """Finest-level keys of pyoctomap's occupied and free leaves (pruned leaves expanded)."""
     occ: list[np.ndarray] = []
     free: list[np.ndarray] = []
@@ -145,7 +150,9 @@ def _time_ours(
     return grid, times
 
 
-def _time_octomap(frames: list[Frame], resolution: float, max_range: float, discretize: bool):
+def _time_octomap(
+    frames: list[Frame], resolution: float, max_range: float, discretize: bool
+) -> tuple[Any, list[float]]:
     import pyoctomap
 
     tree = pyoctomap.OcTree(resolution)
@@ -168,11 +175,12 @@ BLOCK_RUNS = 3
 SLOW_RUN_MS = 1000.0
 
 
-def run_scenario(sc: Scenario, repeats: int) -> dict:
+def run_scenario(sc: Scenario, repeats: int) -> dict[str, Any]:
     frames = list(sc.frames())
     sensor = SensorModel(max_range=sc.max_range)
     per_frame = len(frames) > 1
-    sides: dict[object, Callable[[], tuple[object, list[float]]]] = {
+    # what a side builds: our VoxelGrid, or a pyoctomap tree (untyped)
+    sides: dict[object, Callable[[], tuple[Any, list[float]]]] = {
         "ours": lambda: _time_ours(frames, sc.resolution, sensor, sc.block_shape),
         False: lambda: _time_octomap(frames, sc.resolution, sc.max_range, False),
         True: lambda: _time_octomap(frames, sc.resolution, sc.max_range, True),
@@ -239,8 +247,9 @@ def run_scenario(sc: Scenario, repeats: int) -> dict:
 
 def run_integrate_bench(
     out_json: Path, shared_data: Path | None, repeats: int = 5, only: list[str] | None = None
-) -> list[dict]:
-    """Run the default scenarios (or those named in `only`), write the JSON list to out_json and return it."""
+) -> list[dict[str, Any]]:
+    """Run the default scenarios (or those named in `only`), write the JSON list to out_json and
+    return it."""
     known = scenarios(shared_data_dir(shared_data))
     unknown = sorted(set(only or ()) - {sc.name for sc in known})
     if unknown:

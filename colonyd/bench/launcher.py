@@ -42,7 +42,7 @@ class LocalDaemon:
     state_dir: Path
     log_path: Path
     args: list[str]
-    proc: subprocess.Popen | None = None
+    proc: subprocess.Popen[bytes] | None = None
     env: dict[str, str] = field(default_factory=dict)
     host: str = "127.0.0.1"  # its address (another one inside a network namespace)
     prefix: list[str] = field(default_factory=list)  # e.g. ["ip", "netns", "exec", NS]
@@ -257,7 +257,8 @@ class LocalColony:
         return True, "converged"
 
     def _still_mapping(self, agents: list[str] | None) -> tuple[bool, str]:
-        """(True, why) while a listed daemon is missing, still mapping or has unpublished changes."""
+        """(True, why) while a listed daemon is missing, still mapping or has unpublished
+        changes."""
         agents = agents or [a for a, d in self.daemons.items() if d.alive()]
         reports = {r["agent"]: r for r in self.status()}
         for agent in agents:

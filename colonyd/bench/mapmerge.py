@@ -1,4 +1,5 @@
-"""The peer's method for comparison: multirobot_map_merge's ORB features + RANSAC on occupancy images.
+"""The peer's method for comparison: multirobot_map_merge's ORB features + RANSAC on occupancy
+images.
 
 As m-explore's `combine_grids` does it (read, not copied): ORB features of each occupancy image
 (OpenCV stitching's ORB finder: 1500 features, scale 1.3, 5 levels), best-of-2-nearest matching
@@ -42,7 +43,7 @@ def occupancy_image(cloud: MapCloud, margin: int = 20) -> tuple[np.ndarray, np.n
     layer = math.floor(float(np.median(cloud.occupied[:, 2])) / res)
     occ = np.floor(cloud.occupied[:, :2] / res).astype(np.int64)
     free = np.empty((0, 2), np.int64)
-    if cloud.known is not None:
+    if cloud.known is not None and cloud.known_occupied is not None:
         from voxel import keys as vk
 
         keys = vk.unpack(cloud.known[~cloud.known_occupied])
@@ -69,7 +70,7 @@ def estimate(a: MapCloud, b: MapCloud, seed: int = 0) -> BaselineResult:
     cv2.setRNGSeed(seed)
     img_a, lo_a = occupancy_image(a)
     img_b, lo_b = occupancy_image(b)
-    orb = cv2.ORB_create(nfeatures=1500, scaleFactor=1.3, nlevels=5)
+    orb = cv2.ORB_create(nfeatures=1500, scaleFactor=1.3, nlevels=5)  # type: ignore[attr-defined]
     kp_a, des_a = orb.detectAndCompute(img_a, None)
     kp_b, des_b = orb.detectAndCompute(img_b, None)
     none = BaselineResult(False, np.eye(4), 0.0, 0, 0, 0.0)
@@ -84,8 +85,8 @@ def estimate(a: MapCloud, b: MapCloud, seed: int = 0) -> BaselineResult:
                 pairs[key] = None
     if len(pairs) < 6:
         return _timed(BaselineResult(False, np.eye(4), 0.0, len(pairs), 0, 0.0), began)
-    src = np.float32([kp_b[i].pt for i, _ in pairs])
-    dst = np.float32([kp_a[j].pt for _, j in pairs])
+    src = np.array([kp_b[i].pt for i, _ in pairs], np.float32)
+    dst = np.array([kp_a[j].pt for _, j in pairs], np.float32)
     affine, mask = cv2.estimateAffinePartial2D(
         src, dst, method=cv2.RANSAC, ransacReprojThreshold=3.0
     )

@@ -1,4 +1,5 @@
-"""Benchmark scenes: depth images and LiDAR scans of `plugins.world.furnished_room`, rendered by its ray caster."""
+"""Benchmark scenes: depth images and LiDAR scans of `plugins.world.furnished_room`, rendered by its
+ray caster."""
 
 from __future__ import annotations
 
@@ -16,7 +17,8 @@ KINECT = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
 
 
 def render(origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """Distance along each direction (in units of its length) from `origin` to the room's first surface."""
+    """Distance along each direction (in units of its length) from `origin` to the room's first
+    surface."""
     t: np.ndarray = ROOM.cast(origin, dirs).t
     return t
 
@@ -51,7 +53,8 @@ def depth_frame(
     if noise:
         z = z + np.random.default_rng(seed).normal(scale=noise, size=z.shape) * z * z
     z[~np.isfinite(z) | (z > max_depth)] = 0.0
-    return z.reshape(h, w)
+    image: np.ndarray = z.reshape(h, w)
+    return image
 
 
 def lidar2d_scan(
@@ -74,7 +77,8 @@ def lidar3d_scan(
     fov_up: float = 2.0,
     fov_down: float = -24.8,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """A spinning 3D LiDAR scan in an open courtyard made of the room scaled x6 (points within 30 m)."""
+    """A spinning 3D LiDAR scan in an open courtyard made of the room scaled x6 (points within
+    30 m)."""
     el = np.radians(np.linspace(fov_down, fov_up, rings))
     az = np.linspace(-math.pi, math.pi, cols, endpoint=False)
     e, a = np.meshgrid(el, az, indexing="ij")

@@ -6,13 +6,16 @@ import math
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
+from typing import Any, TypeVar
 
 import numpy as np
 import zstandard
 
 from colonyd.bench.files import shared_data_dir, write_results
 from colonyd.bench.scenes import KINECT, camera_pose, depth_frame, lidar3d_scan
+from colonyd.errors import ConfigError
 from protocol.codec import decode, encode
 from protocol.deltacodec import fit_delta
 from protocol.fields import DEFAULT_LEVEL
@@ -22,6 +25,8 @@ from voxel.delta import Delta
 from voxel.depth import camera_points
 from voxel.grid import VoxelGrid
 from voxel.sensor import SensorModel
+
+T = TypeVar("T")
 
 #: Decoder limits for the benchmark: a first LiDAR scan changes millions of voxels.
 BENCH_LIMITS = Limits(max_voxels=50_000_000, max_message_bytes=1 << 30, max_body_bytes=1 << 30)
@@ -71,12 +76,18 @@ def _camera_path(frames: int = 50) -> Iterator[Frame]:
         v, u = np.divmod(index, depth.shape[1])
         z = local[:, 2]
         world_z = (local @ pose[:3, :3].T + pose[:3, 3])[:, 2]
-        colour = np.zeros(depth.shape + (3,), dtype=np.uint8)
+        colour = np.zeros((*depth.shape, 3), dtype=np.uint8)
         colour[v, u] = np.stack(
             [(world_z * 80) % 256, np.full_like(z, 120), (z * 40) % 256], 1
         ).astype(np.uint8)
 
-        def integrate(grid: VoxelGrid, t: float, depth=depth, pose=pose, colour=colour) -> object:
+        def integrate(
+            grid: VoxelGrid,
+            t: float,
+            depth: np.ndarray = depth,
+            pose: np.ndarray = pose,
+            colour: np.ndarray = colour,
+        ) -> object:
             return grid.integrate_depth(depth, KINECT, pose, time=t, sensor=sensor, colour=colour)
 
         yield Frame(integrate, local)
@@ -90,7 +101,11 @@ def _lidar_sequence(scans: int = 8) -> Iterator[Frame]:
         points, no_return = lidar3d_scan(origin, rings=32, cols=1024)
 
         def integrate(
-            grid: VoxelGrid, t: float, points=points, origin=origin, no_return=no_return
+            grid: VoxelGrid,
+            t: float,
+            points: np.ndarray = points,
+            origin: np.ndarray = origin,
+            no_return: np.ndarray = no_return,
         ) -> object:
             return grid.integrate(points, origin, time=t, sensor=sensor, no_return=no_return)
 
@@ -104,13 +119,19 @@ def _redkitchen(shared_data: Path) -> Callable[[], Iterator[Frame]]:
         sensor = SensorModel(max_range=5.0, kind="depth")
         k = np.array([[585.0, 0, 320.0], [0, 585.0, 240.0], [0, 0, 1]])
         for path in sorted((shared_data / "redkitchen-50" / "frames").glob("frame-*.depth.png")):
-            raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64)
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if image is None:
+                msg = f"{path}: expected a readable 16-bit depth PNG, found an unreadable file"
+                raise ConfigError(msg)
+            raw = image.astype(np.float64)
             raw[(raw == 0) | (raw == 65535)] = 0
             depth = raw / 1000.0
             pose = np.loadtxt(str(path).replace(".depth.png", ".pose.txt"))
             local, _ = camera_points(depth, k)
 
-            def integrate(grid: VoxelGrid, t: float, depth=depth, pose=pose) -> object:
+            def integrate(
+                grid: VoxelGrid, t: float, depth: np.ndarray = depth, pose: np.ndarray = pose
+            ) -> object:
                 return grid.integrate_depth(depth, k, pose, time=t, sensor=sensor)
 
             yield Frame(integrate, local)
@@ -128,8 +149,8 @@ def scenarios(shared_data: Path | None) -> list[Scenario]:
     return out
 
 
-def _best_of(fn: Callable[[], object], repeats: int) -> tuple[float, object]:
-    best, out = math.inf, None
+def _best_of(fn: Callable[[], T], repeats: int) -> tuple[float, T]:
+    best = math.inf
     for _ in range(repeats):
         t0 = time.perf_counter()
         out = fn()
@@ -137,7 +158,7 @@ def _best_of(fn: Callable[[], object], repeats: int) -> tuple[float, object]:
     return best, out
 
 
-def run_scenario(sc: Scenario, repeats: int = 3, t0: float = 1_700_000_000.0) -> dict:
+def run_scenario(sc: Scenario, repeats: int = 3, t0: float = 1_700_000_000.0) -> dict[str, Any]:
     grid = VoxelGrid(sc.resolution)
     mirror = VoxelGrid(sc.resolution)  # a peer's replica: gives each voxel's previous value
     totals = {
@@ -161,8 +182,8 @@ def run_scenario(sc: Scenario, repeats: int = 3, t0: float = 1_700_000_000.0) ->
         prev = mirror.logodds_at_keys(delta.keys)
         mirror.apply(delta)
         msg = VoxelDelta(origin="bench", epoch=1, seq=i, time=t, frame_id="map", delta=delta)
-        enc_s, data = _best_of(lambda msg=msg: encode(msg), repeats)
-        dec_s, back = _best_of(lambda data=data: decode(data, limits=BENCH_LIMITS), repeats)
+        enc_s, data = _best_of(partial(encode, msg), repeats)
+        dec_s, back = _best_of(partial(decode, data, limits=BENCH_LIMITS), repeats)
         assert isinstance(back, VoxelDelta) and len(back.delta) == len(delta)
         raw = raw_scan_bytes(frame.local)
         exact, summary = fit_delta(delta, raw, prev_logodds=prev)
@@ -215,7 +236,7 @@ def run_scenario(sc: Scenario, repeats: int = 3, t0: float = 1_700_000_000.0) ->
 
 def run_wire_bench(
     out_json: Path, shared_data: Path | None, repeats: int = 3, only: list[str] | None = None
-) -> list[dict]:
+) -> list[dict[str, Any]]:
     """Run every wire scenario, write the JSON list to out_json and return it.
 
     Without `shared_data`, the checkout's sibling `../shared/data` is used when it exists.

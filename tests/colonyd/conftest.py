@@ -1,4 +1,5 @@
-"""Fixtures for daemon tests: local colonies of real `colonyd` processes on loopback; their logs on failure."""
+"""Fixtures for daemon tests: local colonies of real `colonyd` processes on loopback; their logs on
+failure."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""The command line as a user runs it: `colonyd map`, `colonyd sources` (and docs/SOURCES.md), exit codes."""
+"""The command line as a user runs it: `colonyd map`, `colonyd sources` (and docs/SOURCES.md), exit
+codes."""
 
 from __future__ import annotations
 
@@ -40,7 +41,8 @@ def test_docs_hold_the_generated_reference() -> None:
     assert BEGIN in text and END in text, f"{DOC}: expected the generated-reference markers"
     generated = text.split(BEGIN, 1)[1].split(END, 1)[0].strip()
     assert generated == describe_sources(markdown=True).strip(), (
-        f"{DOC} is out of date: replace its reference with the output of `colonyd sources --markdown`"
+        f"{DOC} is out of date: replace its reference with the output of "
+        "`colonyd sources --markdown`"
     )
     for kind in SOURCE_KINDS.values():
         for _, model in kind.options:
@@ -54,7 +56,10 @@ def test_docs_hold_the_generated_reference() -> None:
         (
             "sim:frames=many",
             EXIT_CONFIG,
-            "source error: source spec 'sim:frames=many': option 'frames': expected int, found 'many'",
+            (
+                "source error: source spec 'sim:frames=many': option 'frames': expected int, "
+                "found 'many'"
+            ),
         ),
         (
             "synthetic:bogus=1",

@@ -208,7 +208,7 @@ def test_flood_is_bounded_and_counted(make_colony):
     t0 = time.monotonic()
     n = 0
     while time.monotonic() - t0 < 4.0:
-        for i in range(50):
+        for _ in range(50):
             s.put(
                 topic_key(colony.namespace, f"flood{n % 400}", "delta"),
                 frames[n % 4][:5] + junk if n % 2 else frames[n % 4],

@@ -14,7 +14,8 @@ from colonyd.errors import ConfigError
 def test_precedence_flags_over_env_over_toml(tmp_path, monkeypatch):
     toml = tmp_path / "c.toml"
     toml.write_text(
-        'colony = "file"\nagent_id = "file-agent"\npublish_hz = 1.0\nconnect = ["tcp/127.0.0.1:1"]\n'
+        'colony = "file"\nagent_id = "file-agent"\n'
+        'publish_hz = 1.0\nconnect = ["tcp/127.0.0.1:1"]\n'
     )
     monkeypatch.setenv("COLONYD_AGENT_ID", "env-agent")
     monkeypatch.setenv("COLONYD_PUBLISH_HZ", "3")
@@ -80,6 +81,7 @@ def test_dump_config_round_trips(tmp_path):
 def test_cli_dump_config_and_config_error_exit_code(tmp_path):
     out = subprocess.run(
         [sys.executable, "-m", "colonyd", "dump-config", "--colony", "cli", "--no-multicast"],
+        check=False,
         capture_output=True,
         text=True,
         timeout=60,
@@ -88,6 +90,7 @@ def test_cli_dump_config_and_config_error_exit_code(tmp_path):
     assert 'colony = "cli"' in out.stdout and "multicast = false" in out.stdout
     bad = subprocess.run(
         [sys.executable, "-m", "colonyd", "dump-config", "--resolution", "-1"],
+        check=False,
         capture_output=True,
         text=True,
         timeout=60,
@@ -127,16 +130,16 @@ def test_identity_command_prints_a_stable_public_key(tmp_path):
         "--state-dir",
         str(tmp_path),
     ]
-    first = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    first = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=60)
     assert first.returncode == 0, first.stderr
     key = tmp_path / "identity.key"
     assert key.stat().st_mode & 0o777 == 0o600
     public = Signer.from_bytes(key.read_bytes()).public.hex()
     assert first.stdout == f'"r1" = "{public}"\n'  # a line for another agent's [trusted_keys]
-    again = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    again = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=60)
     assert again.stdout == first.stdout
     key.write_bytes(b"short")
-    bad = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    bad = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=60)
     assert (
         bad.returncode == 1 and "expected 32 raw Ed25519 private key bytes, found 5" in bad.stderr
     )

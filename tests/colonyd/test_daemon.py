@@ -1,4 +1,5 @@
-"""Tests of the daemon's sources: opened from the config, seeded per agent, stopped with the daemon."""
+"""Tests of the daemon's sources: opened from the config, seeded per agent, stopped with the
+daemon."""
 
 from __future__ import annotations
 

@@ -92,7 +92,7 @@ def test_replica_of_a_planar_layer_takes_planar_blocks():
     copy = Layer("p", 0.05)
     copy.install_snapshot(1, seq, chunks)
     assert copy.grid.store.shifts == (3, 3, 0) and copy.grid.content_equal(origin)
-    cube, ds = deltas(1)
+    _, ds = deltas(1)
     three_d = Layer("c", 0.1)
     three_d.offer(1, 0, 1, ds[0])
     assert three_d.grid.store.shifts == (2, 2, 2)
@@ -131,7 +131,7 @@ def test_admission_changes_nothing_and_refuses_our_own_layer():
         layers.admit("me", ds)
     layers.get("p").offer(1, 0, 1, ds[0])
     coarse = Delta(0.2, 1, 2, ds[0].keys, ds[0].logodds, ds[0].last_time)
-    with pytest.raises(WireError, match="expected resolution 0.1, found 0.2"):
+    with pytest.raises(WireError, match=r"expected resolution 0\.1, found 0\.2"):
         layers.admit("p", [coarse])
     with pytest.raises(WireError, match="at most 1 peer layers") as info:
         layers.admit("q", ds)

@@ -1,4 +1,5 @@
-"""`colonyd localize`: sim, real laser log and real RGB-D frames (subsets), results.json, evo agreement, bad specs."""
+"""`colonyd localize`: sim, real laser log and real RGB-D frames (subsets), results.json, evo
+agreement, bad specs."""
 
 from __future__ import annotations
 

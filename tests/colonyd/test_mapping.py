@@ -1,4 +1,5 @@
-"""Tests of offline mapping: real RGB-D and laser recordings against OctoMap, and a simulated run."""
+"""Tests of offline mapping: real RGB-D and laser recordings against OctoMap, and a simulated
+run."""
 
 from __future__ import annotations
 

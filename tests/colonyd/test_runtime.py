@@ -1,4 +1,5 @@
-"""Zenoh runtime in one process: two sessions on loopback, multicast off, a frame and a query between them."""
+"""Zenoh runtime in one process: two sessions on loopback, multicast off, a frame and a query
+between them."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ from voxel.delta import Delta
 
 
 def _pair() -> tuple[zenoh.Session, zenoh.Session]:
-    """A listening session and one connected to it, both on 127.0.0.1 with multicast scouting off."""
+    """A listening session and one connected to it, both on 127.0.0.1 with multicast scouting
+    off."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     conf_a = zenoh_config(listen=[endpoint])
     conf_b = zenoh_config(listen=["tcp/127.0.0.1:0"], connect=[endpoint])

@@ -84,7 +84,10 @@ def build_wheel(src: Path, dist: str, module: str, name: str) -> Path:
     files = {
         f"{module}.py": (src / f"{module}.py").read_bytes(),
         f"{info}/METADATA": f"Metadata-Version: 2.1\nName: {dist}\nVersion: 0.0.1\n".encode(),
-        f"{info}/WHEEL": b"Wheel-Version: 1.0\nGenerator: colony-test\nRoot-Is-Purelib: true\nTag: py3-none-any\n",
+        f"{info}/WHEEL": (
+            b"Wheel-Version: 1.0\nGenerator: colony-test\nRoot-Is-Purelib: true\n"
+            b"Tag: py3-none-any\n"
+        ),
         f"{info}/entry_points.txt": f"[{GROUP}]\n{name} = {module}:Sonar\n".encode(),
     }
     record = []
@@ -146,7 +149,9 @@ def test_third_party_adapter_installed_as_its_own_distribution_is_found(tmp_path
             assert "{name}" in available_adapters(), available_adapters()
             sonar = load_adapter("{name}", cone=0.5)
             obs = sonar.observe(2.5, time=1.0)
-            print(type(sonar).__module__, sonar.cone, obs.points.tolist(), sonar.sensor_model.prob_hit)
+            print(
+                type(sonar).__module__, sonar.cone, obs.points.tolist(), sonar.sensor_model.prob_hit
+            )
         """)
         done = subprocess.run(
             [sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path, check=False

@@ -28,7 +28,8 @@ def camera_rig(camera: CctvCamera, w: int = 640, h: int = 480) -> Rig:
 
 
 def tagged_pillar(marker_id: int = 7) -> World:
-    # a pillar whose -x face is the plane x = 2.0, marker (0.2 m) centred at (2.0, 0.1, 1.05) facing -x
+    # a pillar whose -x face is the plane x = 2.0, marker (0.2 m) centred at (2.0, 0.1, 1.05)
+    # facing -x
     pillar = Box((2.0, -0.3, 0.0), (2.4, 0.3, 1.6), CLASSES["landmark"], 42)
     marker = Marker(marker_id, (2.0, 0.1, 1.05), (-1.0, 0.0, 0.0), 0.2, 42)
     return World(name="pillar", boxes=[pillar], markers=[marker])

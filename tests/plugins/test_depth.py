@@ -17,7 +17,8 @@ K = np.array([[585.0, 0.0, 320.0], [0.0, 585.0, 240.0], [0.0, 0.0, 1.0]])
 
 
 def test_plane_at_known_distance_comes_back_within_a_millimetre() -> None:
-    # a wall whose face is the plane x = 2.0, camera at the origin looking along +x, rendered by ray casting
+    # a wall whose face is the plane x = 2.0, camera at the origin looking along +x, rendered by
+    # ray casting
     world = World(
         name="plane", boxes=[Box((2.0, -5.0, -5.0), (2.5, 5.0, 5.0), CLASSES["wall"])], floor=None
     )

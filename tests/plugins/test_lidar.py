@@ -37,7 +37,8 @@ def test_scan_of_a_square_room_gives_its_walls() -> None:
     }
     for wall, mask in on.items():
         assert mask.sum() > 20, wall
-        # each wall is seen along a stretch (the 270 degree scanner sees the wall behind it only in part)
+        # each wall is seen along a stretch (the 270 degree scanner sees the wall behind it only in
+        # part)
         other = pts[mask, 1] if wall.startswith("x") else pts[mask, 0]
         assert np.ptp(other) > 1.0, wall
 

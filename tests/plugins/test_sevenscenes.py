@@ -60,11 +60,13 @@ def test_truncated_png_and_bad_pose_are_skipped_and_counted(tmp_path: Path) -> N
     assert len(scans) == 1 and source.stats.skipped == 2
     text = " ".join(source.stats.first_errors)
     assert (
-        "frame-000151.depth.png: expected a readable 16-bit PNG, found an unreadable or truncated file"
-        in text
+        "frame-000151.depth.png: expected a readable 16-bit PNG, "
+        "found an unreadable or truncated file" in text
     )
     assert "frame-000152.pose.txt:3: field 4: expected a number, found 'zero'" in text
-    with pytest.raises(ParseError, match="frame-000151.depth.png: expected a readable 16-bit PNG"):
+    with pytest.raises(
+        ParseError, match=r"frame-000151\.depth\.png: expected a readable 16-bit PNG"
+    ):
         list(RgbdSource(tmp_path, strict=True))
 
 
@@ -98,7 +100,10 @@ def test_tum_layout(tmp_path: Path) -> None:
     (tmp_path / "groundtruth.txt").write_text("1000.0 1 2 3\n")
     with pytest.raises(
         ParseError,
-        match=r"groundtruth\.txt: at time 1000\.0: expected 'timestamp tx ty tz qx qy qz qw', found 4 fields",
+        match=(
+            r"groundtruth\.txt: at time 1000\.0: expected 'timestamp tx ty tz qx qy qz qw', "
+            r"found 4 fields"
+        ),
     ):
         RgbdSource(tmp_path)
 

@@ -86,7 +86,10 @@ def test_several_agents_run_in_real_time() -> None:
 def test_bad_sim_options() -> None:
     with pytest.raises(
         SourceSpecError,
-        match=r"agent: expected one of \['cctv-1', 'depth-1', 'lidar-1', 'lidar3d-1'\] in world 'room', found 'x'",
+        match=(
+            r"agent: expected one of \['cctv-1', 'depth-1', 'lidar-1', 'lidar3d-1'\] in world "
+            r"'room', found 'x'"
+        ),
     ):
         SimSource(world="room", agent="x")
     with pytest.raises(SourceSpecError, match="start: expected 'origin' or 'world', found 'moon'"):

@@ -42,7 +42,10 @@ def test_parse_spec() -> None:
     [
         (
             "office",
-            r"expected 'sim:key=value,...', 'replay:PATH\[,key=value...\]', 'synthetic:key=value,...' or 'bulk:key=value,...', found 'office'",
+            (
+                r"expected 'sim:key=value,...', 'replay:PATH\[,key=value...\]', "
+                r"'synthetic:key=value,...' or 'bulk:key=value,...', found 'office'"
+            ),
         ),
         (
             "lidar:x",
@@ -91,7 +94,10 @@ def test_open_replays() -> None:
         open_source(f"replay:{DATA}/redkitchen-50,poses=odometry")
     with pytest.raises(
         SourceSpecError,
-        match=r"option 'format': expected 'auto', 'carmen', '7scenes', 'tum' or 'rosbag', found 'pcd'",
+        match=(
+            r"option 'format': expected 'auto', 'carmen', '7scenes', 'tum' or 'rosbag', "
+            r"found 'pcd'"
+        ),
     ):
         open_source(f"replay:{DATA}/redkitchen-50,format=pcd")
 
@@ -116,7 +122,11 @@ def test_replay_options_depend_on_the_format(tmp_path: Path) -> None:
     assert isinstance(source, CarmenSource) and source.stop is None and source.poses == "odometry"
     with pytest.raises(
         SourceSpecError,
-        match=r"option 'stride': expected one of \['format', 'max_range', 'move_x', 'move_y', 'move_yaw', 'odometry_noise', 'poses', 'seed', 'start', 'step', 'stop', 'strict'\], found unknown option",
+        match=(
+            r"option 'stride': expected one of \['format', 'max_range', 'move_x', 'move_y', "
+            r"'move_yaw', 'odometry_noise', 'poses', 'seed', 'start', 'step', 'stop', 'strict'\], "
+            r"found unknown option"
+        ),
     ):
         open_source(f"replay:{log},stride=2")
     with pytest.raises(SourceSpecError, match=r"option 'stop': expected int or None, found 'end'"):
@@ -124,7 +134,8 @@ def test_replay_options_depend_on_the_format(tmp_path: Path) -> None:
 
 
 def test_model_defaults_are_the_sources_defaults() -> None:
-    """What `colonyd sources` prints as a default is what a source gets when the option is left out."""
+    """What `colonyd sources` prints as a default is what a source gets when the option is left
+    out."""
     pairs = [
         (SimOptions, SimSource),
         (CarmenOptions, CarmenSource),

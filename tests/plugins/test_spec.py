@@ -43,7 +43,10 @@ def test_split_spec() -> None:
     [
         (
             "toy",
-            r"^source spec: expected 'toy:key=value,...' or 'file:PATH\[,key=value...\]', found 'toy'$",
+            (
+                r"^source spec: expected 'toy:key=value,...' or 'file:PATH\[,key=value...\]', "
+                r"found 'toy'$"
+            ),
         ),
         (
             "boat:x=1",
@@ -88,7 +91,10 @@ def test_parse_options_types_and_defaults() -> None:
     [
         (
             {"cuont": "1"},
-            r"^source spec 'toy:': option 'cuont': expected one of \['count', 'limit', 'loud', 'mode', 'name', 'scale'\], found unknown option$",
+            (
+                r"^source spec 'toy:': option 'cuont': expected one of \['count', 'limit', 'loud', "
+                r"'mode', 'name', 'scale'\], found unknown option$"
+            ),
         ),
         ({"count": "many"}, r"^source spec 'toy:': option 'count': expected int, found 'many'$"),
         ({"count": "1.5"}, r"option 'count': expected int, found '1.5'"),

@@ -1,4 +1,5 @@
-"""Tests of the synthetic source: scans, rendering with the world's ray caster, pacing, spec errors."""
+"""Tests of the synthetic source: scans, rendering with the world's ray caster, pacing, spec
+errors."""
 
 from __future__ import annotations
 
@@ -29,7 +30,10 @@ def test_synthetic_and_bulk_sources():
     [
         (
             "synthetic:bogus=1",
-            r"option 'bogus': expected one of \['points', 'rate', 'room', 'scans', 'seed', 'step'\], found unknown option",
+            (
+                r"option 'bogus': expected one of \['points', 'rate', 'room', 'scans', 'seed', "
+                r"'step'\], found unknown option"
+            ),
         ),
         ("synthetic:rate=fast", r"option 'rate': expected float, found 'fast'"),
         ("synthetic:points", r"expected key=value, found 'points'"),

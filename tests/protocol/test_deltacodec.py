@@ -294,7 +294,7 @@ def test_fit_delta_meets_budget_with_summary(rng: np.random.Generator) -> None:
     assert summary is not None
     assert encoded_size(exact, summary=summary) <= budget
     assert exact.occupied.all() and exact.occupied.sum() == delta.occupied.sum()
-    out, summary2 = decode_delta_with_summary(encode_delta(exact, summary=summary))
+    _, summary2 = decode_delta_with_summary(encode_delta(exact, summary=summary))
     assert summary2 is not None and summary2.level == summary.level
     np.testing.assert_array_equal(np.sort(pack(summary2.keys)), np.sort(pack(summary.keys)))
     # a generous budget keeps everything

@@ -1,4 +1,5 @@
-"""Fuzz test: random and mutated frames (COLONY_FUZZ_CASES, `make fuzz` runs 100,000); the decoder raises only ProtocolErrors."""
+"""Fuzz test: random and mutated frames (COLONY_FUZZ_CASES, `make fuzz` runs 100,000); the decoder
+raises only ProtocolErrors."""
 
 from __future__ import annotations
 

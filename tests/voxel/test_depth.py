@@ -1,4 +1,5 @@
-"""Depth back-projection: camera-frame points of valid pixels, and world points with colour and labels."""
+"""Depth back-projection: camera-frame points of valid pixels, and world points with colour and
+labels."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Tests of the voxel grid: occupancy, free space, channels, history, forgetting, deltas, snapshots."""
+"""Tests of the voxel grid: occupancy, free space, channels, history, forgetting, deltas,
+snapshots."""
 
 from __future__ import annotations
 
@@ -218,7 +219,7 @@ def test_input_errors_say_what_was_expected():
         grid.integrate(np.ones((2, 3)), np.zeros(3), time=0.0, reliability=0.0)
     with pytest.raises(InputError, match="resolution must be a positive"):
         VoxelGrid(-1.0)
-    with pytest.raises(InputError, match="prob_hit must be above 0.5"):
+    with pytest.raises(InputError, match=r"prob_hit must be above 0\.5"):
         SensorModel(prob_hit=0.3)
     with pytest.raises(InputError, match="intrinsics must be a 3x3"):
         grid.integrate_depth(np.ones((4, 4)), np.eye(2), np.eye(4), time=0.0)
@@ -282,8 +283,8 @@ def test_apply_is_idempotent_and_order_independent(seed: int, perm_seed: int, du
 
 
 def test_apply_rejects_foreign_resolution():
-    grid, deltas = _grid_with_deltas(2, 1)
-    with pytest.raises(DeltaError, match="resolution 0.1 does not match the grid's 0.2"):
+    _, deltas = _grid_with_deltas(2, 1)
+    with pytest.raises(DeltaError, match=r"resolution 0\.1 does not match the grid's 0\.2"):
         VoxelGrid(0.2).apply(deltas[0])
 
 

@@ -107,7 +107,7 @@ def test_planar_blocks_hold_the_same_map_in_less_memory(tmp_path):
 
 
 def test_block_shape_errors_say_what_was_expected():
-    with pytest.raises(InputError, match="block shape must be one of .*'cube'.*found 'flat'"):
+    with pytest.raises(InputError, match=r"block shape must be one of .*'cube'.*found 'flat'"):
         VoxelGrid(RES, block_shape="flat")
     with pytest.raises(InputError, match="three of 1, 2, 4, 8 voxels, found \\(4, 4, 3\\)"):
         VoxelGrid(RES, block_shape=(4, 4, 3))

@@ -1,4 +1,5 @@
-"""Quaternions (x, y, z, w) and matrices: one convention, checked at every caller with a known rotation."""
+"""Quaternions (x, y, z, w) and matrices: one convention, checked at every caller with a known
+rotation."""
 
 from __future__ import annotations
 
@@ -29,8 +30,8 @@ def test_known_rotation_turns_x_into_y() -> None:
 
 def test_quaternions_from_matrices_have_w_non_negative() -> None:
     rng = np.random.default_rng(3)
-    for q in rng.normal(size=(200, 4)):
-        q /= np.linalg.norm(q)
+    for raw in rng.normal(size=(200, 4)):
+        q = raw / np.linalg.norm(raw)
         back = matrix_to_quaternion(quaternion_to_matrix(q))
         assert back[3] >= 0
         np.testing.assert_allclose(back, q if q[3] >= 0 else -q, atol=1e-9)

@@ -1,4 +1,5 @@
-"""Tests of scan input: validation messages, and beams sorted into hits, clearing, invalid, dropped."""
+"""Tests of scan input: validation messages, and beams sorted into hits, clearing, invalid,
+dropped."""
 
 from __future__ import annotations
 

@@ -1,1 +1,2 @@
-"""Localisation of one agent: odometry model, pose filter, scan matching, visual odometry, trajectory metrics."""
+"""Localisation of one agent: odometry model, pose filter, scan matching, visual odometry,
+trajectory metrics."""

@@ -1,4 +1,5 @@
-"""Extended Kalman filter over a planar pose (x, y, yaw) with filterpy: odometry predicts, pose measurements update."""
+"""Extended Kalman filter over a planar pose (x, y, yaw) with filterpy: odometry predicts, pose
+measurements update."""
 
 from __future__ import annotations
 
@@ -18,7 +19,8 @@ GATE_3DOF = 16.27
 
 @dataclass(frozen=True)
 class MotionNoise:
-    """What the filter assumes about odometry: random-walk standard deviations, as in the odometry model.
+    """What the filter assumes about odometry: random-walk standard deviations, as in the odometry
+    model.
 
     Deliberately not the simulator's true parameters: a filter is tuned to a robot class, not to
     one seeded run. The biases of real odometry are not modelled, so these are generous.
@@ -40,13 +42,15 @@ def _hx(x: np.ndarray) -> np.ndarray:
 
 
 def _residual(z: np.ndarray, hx: np.ndarray) -> np.ndarray:
-    y = z - hx
+    y: np.ndarray = z - hx
     y[2] = se2.wrap(float(y[2, 0]))
     return y
 
 
-class _Filter(ExtendedKalmanFilter):
+class _Filter(ExtendedKalmanFilter):  # type: ignore[misc]  # filterpy has no type hints
     """filterpy's EKF with the nonlinear planar motion model as its state prediction."""
+
+    x: np.ndarray  # the state (3, 1), as filterpy keeps it
 
     def predict_x(self, u: np.ndarray) -> None:
         self.x = se2.compose(self.x.ravel(), u).reshape(3, 1)
@@ -74,15 +78,18 @@ class PlanarEkf:
     @property
     def pose(self) -> np.ndarray:
         """Current (x, y, yaw)."""
-        return self.kf.x.ravel().copy()
+        pose: np.ndarray = self.kf.x.ravel().copy()
+        return pose
 
     @property
     def covariance(self) -> np.ndarray:
         """Current 3x3 covariance."""
-        return self.kf.P.copy()
+        covariance: np.ndarray = self.kf.P.copy()
+        return covariance
 
     def predict(self, increment: np.ndarray | None) -> None:
-        """Move by an odometry increment (dx, dy, dyaw) in the body frame; None: no odometry (stand still, widen)."""
+        """Move by an odometry increment (dx, dy, dyaw) in the body frame; None: no odometry (stand
+        still, widen)."""
         m = self.motion
         if increment is None:
             u = np.zeros(3)
@@ -113,7 +120,8 @@ class PlanarEkf:
     def update(
         self, pose: np.ndarray, covariance: np.ndarray, gate: float | None = GATE_3DOF
     ) -> bool:
-        """Fuse a measured pose (x, y, yaw) with its covariance; False (and no change) when gated out."""
+        """Fuse a measured pose (x, y, yaw) with its covariance; False (and no change) when gated
+        out."""
         z = np.asarray(pose, np.float64).reshape(3, 1)
         r = np.asarray(covariance, np.float64)
         if (
@@ -121,7 +129,10 @@ class PlanarEkf:
             or r.shape != (3, 3)
             or not (np.all(np.isfinite(z)) and np.all(np.isfinite(r)))
         ):
-            msg = f"pose measurement: expected (x, y, yaw) and a finite 3x3 covariance, found {z.ravel()} and shape {r.shape}"
+            msg = (
+                "pose measurement: expected (x, y, yaw) and a finite 3x3 covariance, found "
+                f"{z.ravel()} and shape {r.shape}"
+            )
             raise LocalisationError(msg)
         if gate is not None and self.innovation(z, r) > gate:
             self.rejected += 1

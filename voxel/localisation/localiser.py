@@ -1,4 +1,5 @@
-"""One agent's pose estimator for range sensors (paper Alg. 1-2): EKF predict from odometry, update by scan-to-map matching."""
+"""One agent's pose estimator for range sensors (paper Alg. 1-2): EKF predict from odometry, update
+by scan-to-map matching."""
 
 from __future__ import annotations
 
@@ -30,7 +31,8 @@ class ScanParams:
 
 @dataclass(frozen=True)
 class Step:
-    """What one step did: the estimated body pose (x, y, yaw), the match (if any) and whether it was fused."""
+    """What one step did: the estimated body pose (x, y, yaw), the match (if any) and whether it was
+    fused."""
 
     pose: np.ndarray
     match: Match | None
@@ -64,7 +66,8 @@ class ScanLocaliser:
         self.rng = np.random.default_rng(0)
 
     def step(self, points_body: np.ndarray, odometry: np.ndarray | None) -> Step:
-        """Advance with one scan (N, 3) in the body frame and the odometry pose (x, y, yaw) read with it."""
+        """Advance with one scan (N, 3) in the body frame and the odometry pose (x, y, yaw) read
+        with it."""
         p = self.params
         pts = np.asarray(points_body, np.float64)
         pts = pts[np.linalg.norm(pts[:, :2], axis=1) <= p.max_range]

@@ -1,4 +1,5 @@
-"""Trajectory metrics: Umeyama alignment and absolute trajectory error (ATE) as `evo_ape -a` computes it."""
+"""Trajectory metrics: Umeyama alignment and absolute trajectory error (ATE) as `evo_ape -a`
+computes it."""
 
 from __future__ import annotations
 
@@ -19,7 +20,8 @@ class Similarity:
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Points (N, 3) moved by this transform."""
-        return self.scale * points @ self.rotation.T + self.translation
+        moved: np.ndarray = self.scale * points @ self.rotation.T + self.translation
+        return moved
 
     def matrix(self) -> np.ndarray:
         """4x4 matrix (rotation block scaled)."""
@@ -43,7 +45,8 @@ def _positions(value: np.ndarray, name: str) -> np.ndarray:
 
 
 def umeyama(source: np.ndarray, target: np.ndarray, *, with_scale: bool = False) -> Similarity:
-    """Least-squares similarity (or rigid, without scale) moving `source` (N, 3) onto `target` (N, 3).
+    """Least-squares similarity (or rigid, without scale) moving `source` (N, 3) onto `target` (N,
+    3).
 
     Umeyama (1991), as evo's `geometry.umeyama_alignment`: the rotation from the SVD of the
     cross-covariance with the reflection fixed, the scale (when asked) from the source variance.
@@ -70,7 +73,8 @@ def umeyama(source: np.ndarray, target: np.ndarray, *, with_scale: bool = False)
 
 @dataclass(frozen=True)
 class TrajectoryError:
-    """Absolute trajectory error after alignment: per-pose translation errors and their statistics."""
+    """Absolute trajectory error after alignment: per-pose translation errors and their
+    statistics."""
 
     errors: np.ndarray  # (N,) metres
     alignment: Similarity
@@ -94,7 +98,8 @@ class TrajectoryError:
 def absolute_trajectory_error(
     reference: np.ndarray, estimate: np.ndarray, *, align: bool = True, with_scale: bool = False
 ) -> TrajectoryError:
-    """ATE of `estimate` against `reference` (positions (N, 3) or poses (N, 4, 4), pose i with pose i).
+    """ATE of `estimate` against `reference` (positions (N, 3) or poses (N, 4, 4), pose i with pose
+    i).
 
     `align` (evo's `-a`) first moves the estimate by the rigid Umeyama fit onto the reference;
     `with_scale` (`-as`) also scales it. The error of pose i is the distance between positions.
@@ -104,8 +109,5 @@ def absolute_trajectory_error(
     if ref.shape != est.shape:
         msg = f"trajectories: expected the same number of poses, found {len(ref)} and {len(est)}"
         raise LocalisationError(msg)
-    if align:
-        fit = umeyama(est, ref, with_scale=with_scale)
-    else:
-        fit = Similarity(np.eye(3), np.zeros(3))
+    fit = umeyama(est, ref, with_scale=with_scale) if align else Similarity(np.eye(3), np.zeros(3))
     return TrajectoryError(np.linalg.norm(fit.apply(est) - ref, axis=1), fit)

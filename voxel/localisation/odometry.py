@@ -1,4 +1,5 @@
-"""Wheel odometry noise model: random-walk errors growing with distance and turn, plus scale and heading bias.
+"""Wheel odometry noise model: random-walk errors growing with distance and turn, plus scale and
+heading bias.
 
 An increment of true motion (dx, dy, dyaw) in the body frame, over distance d = |(dx, dy)|, is
 read as
@@ -19,6 +20,7 @@ import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from voxel.errors import LocalisationError
 from voxel.localisation import se2
@@ -37,7 +39,10 @@ class OdometryNoise:
     def __post_init__(self) -> None:
         for name, value in asdict(self).items():
             if not math.isfinite(value) or (name in ("trans", "rot", "rot_per_m") and value < 0):
-                msg = f"odometry noise {name}: expected a finite number (>= 0 for noise), found {value!r}"
+                msg = (
+                    f"odometry noise {name}: expected a finite number (>= 0 for noise), "
+                    f"found {value!r}"
+                )
                 raise LocalisationError(msg)
 
     @property
@@ -56,7 +61,8 @@ PRESETS: dict[str, OdometryNoise] = {
 
 
 def parse_noise(text: str) -> OdometryNoise:
-    """A preset name (none, low, realistic, high) or five numbers trans/rot/rot_per_m/scale_bias/yaw_bias."""
+    """A preset name (none, low, realistic, high) or five numbers
+    trans/rot/rot_per_m/scale_bias/yaw_bias."""
     text = text.strip()
     if text in PRESETS:
         return PRESETS[text]
@@ -101,16 +107,17 @@ class WheelOdometer:
             ]
         )
 
-    def step(self, truth: np.ndarray) -> np.ndarray:
+    def step(self, truth: npt.ArrayLike) -> np.ndarray:
         """Advance to the true pose `truth` (x, y, yaw); returns the odometry pose (x, y, yaw)."""
-        truth = np.asarray(truth, np.float64)[:3]
-        self.pose = se2.compose(self.pose, self.read(se2.relative(self.truth, truth)))
-        self.truth = truth.copy()
+        true_pose = np.asarray(truth, np.float64)[:3]
+        self.pose = se2.compose(self.pose, self.read(se2.relative(self.truth, true_pose)))
+        self.truth = true_pose.copy()
         return self.pose.copy()
 
 
 def synthesise(reference: np.ndarray, noise: OdometryNoise, seed: int = 0) -> np.ndarray:
-    """Odometry poses (N, 3) of a robot that followed the planar `reference` poses (N, 3), starting at the first."""
+    """Odometry poses (N, 3) of a robot that followed the planar `reference` poses (N, 3), starting
+    at the first."""
     ref = np.asarray(reference, np.float64)
     if ref.ndim != 2 or ref.shape[1] != 3:
         msg = f"reference: expected planar poses (N, 3), found shape {ref.shape}"

@@ -1,4 +1,5 @@
-"""Scan-to-map matching: a local map of an agent's recent keyframes and robust point-to-plane (2D: point-to-line) ICP."""
+"""Scan-to-map matching: a local map of an agent's recent keyframes and robust point-to-plane (2D:
+point-to-line) ICP."""
 
 from __future__ import annotations
 
@@ -24,8 +25,8 @@ def thin(points: np.ndarray, cell: float) -> np.ndarray:
 def surface_normals(
     where: np.ndarray, points: np.ndarray, tree: cKDTree, k: int, planar: bool
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals (M, 3) at `where` from the covariance of their k nearest `points` (indexed by `tree`),
-    and a flatness in [0, 1] (1: a clean line or plane).
+    """Unit normals (M, 3) at `where` from the covariance of their k nearest `points` (indexed by
+    `tree`), and a flatness in [0, 1] (1: a clean line or plane).
 
     planar: points of a 2D scanner; normals lie in the x-y plane (normal of the fitted line).
     """
@@ -46,7 +47,8 @@ def surface_normals(
 
 
 class LocalMap:
-    """The agent's recent map: points of its last `keyframes` keyframes in the map frame, thinned, with normals.
+    """The agent's recent map: points of its last `keyframes` keyframes in the map frame, thinned,
+    with normals.
 
     A new keyframe is taken when the agent has moved `key_distance` metres or turned `key_angle`
     radians since the last one.
@@ -63,7 +65,10 @@ class LocalMap:
         key_angle: float = 0.15,
     ) -> None:
         if keyframes < 1 or cell <= 0 or k < 3:
-            msg = f"local map: expected keyframes >= 1, cell > 0, k >= 3, found {keyframes}, {cell}, {k}"
+            msg = (
+                "local map: expected keyframes >= 1, cell > 0, k >= 3, "
+                f"found {keyframes}, {cell}, {k}"
+            )
             raise LocalisationError(msg)
         self.planar, self.cell, self.k = planar, cell, k
         self.key_distance, self.key_angle = key_distance, key_angle
@@ -86,7 +91,8 @@ class LocalMap:
         return moved >= self.key_distance or turned >= self.key_angle
 
     def add(self, points_map: np.ndarray, pose: np.ndarray) -> None:
-        """Add a keyframe's points (already in the map frame): normals from the map around them, then a new tree.
+        """Add a keyframe's points (already in the map frame): normals from the map around them,
+        then a new tree.
 
         Older keyframes keep the normals they were given, so a keyframe costs one scan's normals
         and two tree builds, however long the window.
@@ -154,7 +160,8 @@ def match(
     min_matched: int = 30,
     inflation: float = 10.0,
 ) -> Match:
-    """Refine the body pose `init` (4x4) so the scan `points_body` (N, 3, body frame) lies on the local map.
+    """Refine the body pose `init` (4x4) so the scan `points_body` (N, 3, body frame) lies on the
+    local map.
 
     Gauss-Newton on point-to-plane distances (point-to-line for 2D maps) with Cauchy weights;
     correspondences within `max_distance`, shrinking to `final_distance` in the second half.

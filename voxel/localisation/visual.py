@@ -1,5 +1,6 @@
-"""RGB-D visual odometry: ORB features with depth and PnP RANSAC between frames, refined (or replaced where
-images lack texture) by depth point-to-plane ICP against the camera's recent keyframes."""
+"""RGB-D visual odometry: ORB features with depth and PnP RANSAC between frames, refined (or
+replaced where images lack texture) by depth point-to-plane ICP against the camera's recent
+keyframes."""
 
 from __future__ import annotations
 
@@ -37,7 +38,8 @@ class VisualStep:
     """One tracked frame: camera pose in the first camera's frame, how it was found, ORB inliers."""
 
     pose: np.ndarray  # (4, 4) camera-to-world
-    method: str  # "first", "orb+icp", "icp" (depth only), "orb" (ICP failed), "lost" (kept the prediction)
+    # "first", "orb+icp", "icp" (depth only), "orb" (ICP failed), "lost" (kept the prediction)
+    method: str
     inliers: int
     match: Match | None
 
@@ -51,7 +53,8 @@ def _back_project(depth: np.ndarray, K: np.ndarray, stride: int, max_depth: floa
 
 
 class VisualOdometry:
-    """Camera pose of a handheld or mounted RGB-D camera from its images alone (no wheel odometry)."""
+    """Camera pose of a handheld or mounted RGB-D camera from its images alone (no wheel
+    odometry)."""
 
     def __init__(self, K: np.ndarray, params: VisualParams | None = None) -> None:
         self.K = np.asarray(K, np.float64)
@@ -59,7 +62,7 @@ class VisualOdometry:
             msg = f"K: expected 3x3 intrinsics, found shape {self.K.shape}"
             raise LocalisationError(msg)
         self.params = p = params or VisualParams()
-        self.orb = cv2.ORB_create(nfeatures=p.features)
+        self.orb = cv2.ORB_create(nfeatures=p.features)  # type: ignore[attr-defined]  # not in cv2's stubs
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
         self.local = LocalMap(
             planar=False,
@@ -79,7 +82,8 @@ class VisualOdometry:
     def features(
         self, gray: np.ndarray | None, depth: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """ORB keypoints (pixels), their camera-frame 3D points and descriptors, keeping those with valid depth."""
+        """ORB keypoints (pixels), their camera-frame 3D points and descriptors, keeping those with
+        valid depth."""
         empty = (np.zeros((0, 2)), np.zeros((0, 3)), np.zeros((0, 32), np.uint8))
         if gray is None:
             return empty
@@ -102,7 +106,8 @@ class VisualOdometry:
         return px[ok], xyz, desc[ok]
 
     def _pnp(self, px: np.ndarray, desc: np.ndarray) -> tuple[np.ndarray | None, int]:
-        """Motion (previous camera to current camera, 4x4) from ORB matches, or None; and the inlier count."""
+        """Motion (previous camera to current camera, 4x4) from ORB matches, or None; and the inlier
+        count."""
         if self.previous is None or len(desc) < 6 or len(self.previous[1]) < 6:
             return None, 0
         pairs = self.matcher.match(self.previous[1], desc)
@@ -133,7 +138,8 @@ class VisualOdometry:
         return np.linalg.inv(cur_from_prev), count
 
     def step(self, gray: np.ndarray | None, depth: np.ndarray) -> VisualStep:
-        """Track one frame: `gray` (H, W) uint8 image or None (depth only), `depth` (H, W) metres, NaN = none."""
+        """Track one frame: `gray` (H, W) uint8 image or None (depth only), `depth` (H, W) metres,
+        NaN = none."""
         p = self.params
         depth = np.asarray(depth)
         if depth.ndim != 2:
@@ -181,5 +187,7 @@ class VisualOdometry:
         first: bool = False,
     ) -> None:
         self.previous = (xyz, desc)
-        if first or self.local.wants(self.pose):
-            self.local.add(cloud @ self.pose[:3, :3].T + self.pose[:3, 3], self.pose)
+        pose = self.pose
+        assert pose is not None  # step() sets the pose before it keeps a frame
+        if first or self.local.wants(pose):
+            self.local.add(cloud @ pose[:3, :3].T + pose[:3, 3], pose)

@@ -1,4 +1,5 @@
-"""Align two maps by their geometry: global yaw search, ICP on the best distinct hypotheses, verdict."""
+"""Align two maps by their geometry: global yaw search, ICP on the best distinct hypotheses,
+verdict."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from os import PathLike
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -70,7 +72,7 @@ class Alignment:
     failed_checks: tuple[str, ...] = ()
     method: str = METHOD
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         """The JSON record `colonyd align` writes (angles in degrees, transform 4x4 row-major)."""
         roll, pitch, yaw = (math.degrees(v) for v in euler(self.transform))
         out = {
@@ -215,7 +217,10 @@ def _check(a: MapCloud, b: MapCloud, p: AlignParams) -> None:
         raise AlignmentError(msg)
     for name, m in (("A", a), ("B", b)):
         if m.occupied.ndim != 2 or m.occupied.shape[1] != 3 or len(m.occupied) < 10:
-            msg = f"map {name} ({m.name}): expected at least 10 occupied voxels (N, 3), found shape {m.occupied.shape}"
+            msg = (
+                f"map {name} ({m.name}): expected at least 10 occupied voxels (N, 3), "
+                f"found shape {m.occupied.shape}"
+            )
             raise AlignmentError(msg)
         if not np.all(np.isfinite(m.occupied)):
             msg = f"map {name} ({m.name}): expected finite coordinates, found NaN or inf"
@@ -332,7 +337,8 @@ def _distinct(
 
 
 def _ambiguity(ranked: list[_Candidate]) -> float:
-    """Score of the second-best distinct planar pose over the best's (1 when the best scores nothing)."""
+    """Score of the second-best distinct planar pose over the best's (1 when the best scores
+    nothing)."""
     best = ranked[0].evidence.score
     if best <= 0:
         return 1.0
@@ -366,8 +372,8 @@ def _covariance(
             6: ["x", "y", "z", "roll", "pitch", "yaw"],
         }[dof]
         return np.eye(n) * 1e6, names
-    n = normals(a.occupied, a_tree, a.occupied[idx[ok]], both_planar)
-    return covariance(moved[ok], a.occupied[idx[ok]], n, dof)
+    normal = normals(a.occupied, a_tree, a.occupied[idx[ok]], both_planar)
+    return covariance(moved[ok], a.occupied[idx[ok]], normal, dof)
 
 
 def _sample(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:

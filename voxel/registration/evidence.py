@@ -39,7 +39,8 @@ class Side:
             return np.zeros(len(points), bool)
         packed = _columns(points[:, :2], self.cell)
         idx = np.minimum(np.searchsorted(self.observed, packed), self.observed.size - 1)
-        return self.observed[idx] == packed
+        seen: np.ndarray = self.observed[idx] == packed
+        return seen
 
 
 def _columns(xy: np.ndarray, cell: float) -> np.ndarray:

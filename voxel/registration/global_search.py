@@ -1,4 +1,5 @@
-"""Global search without a prior: yaw x translation correlation of 2D occupancy images, then z votes."""
+"""Global search without a prior: yaw x translation correlation of 2D occupancy images, then z
+votes."""
 
 from __future__ import annotations
 
@@ -43,7 +44,8 @@ def structure(points: np.ndarray, resolution: float, min_height_m: float = 1.0) 
 
 def _member(sorted_packed: np.ndarray, packed: np.ndarray) -> np.ndarray:
     idx = np.minimum(np.searchsorted(sorted_packed, packed), sorted_packed.size - 1)
-    return sorted_packed[idx] == packed
+    found: np.ndarray = sorted_packed[idx] == packed
+    return found
 
 
 def observed_columns(known: np.ndarray, resolution: float, cell: float) -> np.ndarray:
@@ -184,7 +186,8 @@ def yaw_search(
     chosen: list[Hypothesis] = []
     for i in order:
         yaw = float(cand_yaw[i])
-        # cell k of B's image lands on cell k + shift of A's field: p_A = R (b - centre) + lo + (half + shift) cell
+        # cell k of B's image lands on cell k + shift of A's field:
+        # p_A = R (b - centre) + lo + (half + shift) cell
         t_xy = lo + (half + np.asarray(cand_shift[i], float)) * cell
         c, s = math.cos(yaw), math.sin(yaw)
         t_xy = t_xy - np.array([[c, -s], [s, c]]) @ centre

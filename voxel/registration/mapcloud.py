@@ -56,20 +56,20 @@ class MapCloud:
 
     def state_at(self, points: np.ndarray) -> np.ndarray:
         """State (UNKNOWN -1, FREE 0, OCCUPIED 1) of this map's voxel at each point (N, 3)."""
-        if self.known is None or self.known.size == 0:
+        known, known_occupied = self.known, self.known_occupied
+        if known is None or known_occupied is None or known.size == 0:
             return np.full(len(points), UNKNOWN, np.int8)
         keys = vk.points_to_keys(points, self.resolution)
         ok = vk.in_range(keys)
         packed = vk.pack(np.where(ok[:, None], keys, 0))
-        idx = np.minimum(np.searchsorted(self.known, packed), self.known.size - 1)
-        hit = ok & (self.known[idx] == packed)
-        return np.where(hit, np.where(self.known_occupied[idx], OCCUPIED, FREE), UNKNOWN).astype(
-            np.int8
-        )
+        idx = np.minimum(np.searchsorted(known, packed), known.size - 1)
+        hit = ok & (known[idx] == packed)
+        return np.where(hit, np.where(known_occupied[idx], OCCUPIED, FREE), UNKNOWN).astype(np.int8)
 
 
 def load_map(path: str | PathLike[str]) -> MapCloud:
-    """Read a map file: OctoMap .bt, a grid snapshot .npz (`colonyd map`'s grid.npz) or a PLY cloud."""
+    """Read a map file: OctoMap .bt, a grid snapshot .npz (`colonyd map`'s grid.npz) or a PLY
+    cloud."""
     path = Path(path)
     if not path.is_file():
         msg = f"{path}: expected a map file ({', '.join(MAP_SUFFIXES)}), found nothing there"
@@ -96,7 +96,10 @@ def load_map(path: str | PathLike[str]) -> MapCloud:
         points, _ = read_ply(path)
         cloud = MapCloud(_spacing(points), points, name=str(path))
     else:
-        msg = f"{path}: expected a map file ending in {', '.join(MAP_SUFFIXES)}, found {suffix or 'no suffix'!r}"
+        msg = (
+            f"{path}: expected a map file ending in {', '.join(MAP_SUFFIXES)}, "
+            f"found {suffix or 'no suffix'!r}"
+        )
         raise FileFormatError(msg)
     if len(cloud.occupied) == 0:
         msg = f"{path}: expected a map with occupied voxels to align, found none"

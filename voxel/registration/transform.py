@@ -15,7 +15,8 @@ def rigid(
     pitch: float = 0.0,
     yaw: float = 0.0,
 ) -> np.ndarray:
-    """4x4 transform with rotation Rz(yaw) Ry(pitch) Rx(roll) (radians) and translation (x, y, z)."""
+    """4x4 transform with rotation Rz(yaw) Ry(pitch) Rx(roll) (radians) and translation (x, y,
+    z)."""
     cr, sr, cp, sp, cy, sy = (
         math.cos(roll),
         math.sin(roll),
@@ -47,7 +48,8 @@ def euler(t: np.ndarray) -> tuple[float, float, float]:
 
 def apply(t: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Points (N, 3) moved by the 4x4 transform `t`."""
-    return points @ t[:3, :3].T + t[:3, 3]
+    moved: np.ndarray = points @ t[:3, :3].T + t[:3, 3]
+    return moved
 
 
 def planar(yaw: float, x: float, y: float, z: float = 0.0) -> np.ndarray:

@@ -76,49 +76,55 @@ def judge(
         (
             "inliers",
             best.inliers >= limits.min_inliers,
-            f"too few matching voxels: expected at least {limits.min_inliers}, found {best.inliers}",
+            (
+                f"too few matching voxels: expected at least {limits.min_inliers}, "
+                f"found {best.inliers}"
+            ),
         ),
         (
             "agreement",
             best.agreement >= limits.min_agreement,
             (
-                f"the maps disagree where they overlap: expected confirmed minus contradicted walls of at "
-                f"least {limits.min_agreement:.0%}, found {best.agreement:.0%} ({best.inlier_ratio:.0%} "
-                f"confirmed, {best.conflict_ratio:.0%} in the other map's open space)"
+                "the maps disagree where they overlap: expected confirmed minus contradicted "
+                f"walls of at least {limits.min_agreement:.0%}, found {best.agreement:.0%} "
+                f"({best.inlier_ratio:.0%} confirmed, {best.conflict_ratio:.0%} in the other map's "
+                "open space)"
             ),
         ),
         (
             "confirmed",
             best.worst_inlier_ratio >= limits.min_inlier_ratio,
             (
-                f"one map's walls are not confirmed by the other: expected at least "
-                f"{limits.min_inlier_ratio:.0%} in each direction, found {best.worst_inlier_ratio:.0%}"
+                "one map's walls are not confirmed by the other: expected at least "
+                f"{limits.min_inlier_ratio:.0%} in each direction, "
+                f"found {best.worst_inlier_ratio:.0%}"
             ),
         ),
         (
             "contradicted",
             best.worst_conflict_ratio <= limits.max_conflict,
             (
-                f"walls land in the other map's open space: expected at most {limits.max_conflict:.0%} in "
-                f"each direction, found {best.worst_conflict_ratio:.0%}"
+                "walls land in the other map's open space: expected at most "
+                f"{limits.max_conflict:.0%} in each direction, found "
+                f"{best.worst_conflict_ratio:.0%}"
             ),
         ),
         (
             "near_miss",
             best.worst_near_miss_ratio <= limits.max_near_miss,
             (
-                f"walls land next to the other map's walls, not on them: expected at most "
-                f"{limits.max_near_miss:.0%} near misses in each direction, found {best.worst_near_miss_ratio:.0%} "
-                f"(a pose slid along repeated structure?)"
+                "walls land next to the other map's walls, not on them: expected at most "
+                f"{limits.max_near_miss:.0%} near misses in each direction, found "
+                f"{best.worst_near_miss_ratio:.0%} (a pose slid along repeated structure?)"
             ),
         ),
         (
             "support",
             best.support_ratio >= limits.min_support_ratio,
             (
-                f"walls agree but floors and ceilings do not: expected at least {limits.min_support_ratio:.0%} "
-                f"of all overlapping voxels to match, found {best.support_ratio:.0%} (a height offset "
-                f"--dof 3 cannot model?)"
+                "walls agree but floors and ceilings do not: expected at least "
+                f"{limits.min_support_ratio:.0%} of all overlapping voxels to match, found "
+                f"{best.support_ratio:.0%} (a height offset --dof 3 cannot model?)"
             ),
         ),
         (
@@ -126,24 +132,25 @@ def judge(
             ambiguity <= limits.max_ambiguity,
             (
                 f"ambiguous: a distinct pose scores {ambiguity:.0%} of the best (expected at most "
-                f"{limits.max_ambiguity:.0%}); e.g. a symmetric corridor, repeated rooms or maps of different places"
+                f"{limits.max_ambiguity:.0%}); e.g. a symmetric corridor, repeated rooms or maps "
+                "of different places"
             ),
         ),
         (
             "z_ambiguity",
             z_ambiguity <= limits.max_z_ambiguity,
             (
-                f"ambiguous in height: another height is supported {z_ambiguity:.0%} as well as the best "
-                f"(expected at most {limits.max_z_ambiguity:.0%})"
+                f"ambiguous in height: another height is supported {z_ambiguity:.0%} as well as "
+                f"the best (expected at most {limits.max_z_ambiguity:.0%})"
             ),
         ),
         (
             "constrained",
             t_std <= limits.max_translation_std_m and yaw_std <= limits.max_yaw_std_deg,
             (
-                f"the geometry does not constrain every direction: expected standard deviations within "
-                f"{limits.max_translation_std_m} m and {limits.max_yaw_std_deg} deg, found {t_std:.3g} m and "
-                f"{yaw_std:.3g} deg"
+                "the geometry does not constrain every direction: expected standard deviations "
+                f"within {limits.max_translation_std_m} m and {limits.max_yaw_std_deg} deg, found "
+                f"{t_std:.3g} m and {yaw_std:.3g} deg"
             ),
         ),
         (

@@ -69,5 +69,5 @@ def test_short_benchmark_run_writes_every_case_with_its_command(tmp_path: Path) 
 
 
 def test_missing_recordings_are_a_config_error(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match="expected the shared recordings .* found .*nowhere"):
+    with pytest.raises(ConfigError, match=r"expected the shared recordings .* found .*nowhere"):
         run_align_bench(tmp_path / "x.json", tmp_path / "nowhere")

@@ -82,7 +82,7 @@ def test_a_failed_append_is_cut_off_so_the_seq_keeps_one_content(tmp_path, monke
         real(fd)
 
     monkeypatch.setattr(os, "fsync", full)
-    with pytest.raises(PersistenceError, match="cannot append seq 2 .*No space left"):
+    with pytest.raises(PersistenceError, match=r"cannot append seq 2 .*No space left"):
         store.append(2, d2)
     monkeypatch.setattr(os, "fsync", real)
     assert (tmp_path / WAL).stat().st_size == size  # nothing of the failed record is left

@@ -41,6 +41,22 @@ def test_unknown_scenario_is_a_config_error(tmp_path: Path) -> None:
     from colonyd.errors import ConfigError
 
     with pytest.raises(
-        ConfigError, match="unknown scenario.*'nope'.*expected some of.*lidar3d_64x1024_0.05"
+        ConfigError, match=r"unknown scenario.*'nope'.*expected some of.*lidar3d_64x1024_0\.05"
     ):
         run_integrate_bench(tmp_path / "x.json", None, repeats=1, only=["nope"])
+
+
+@pytest.mark.parametrize("module", ["integrate", "wire"])
+def test_unreadable_depth_png_names_the_file(tmp_path: Path, module: str) -> None:
+    import importlib
+
+    from colonyd.errors import ConfigError
+
+    frames = tmp_path / "redkitchen-50" / "frames"
+    frames.mkdir(parents=True)
+    (frames / "frame-000000.depth.png").write_bytes(b"not a png")
+    bench = importlib.import_module(f"colonyd.bench.{module}")
+    with pytest.raises(
+        ConfigError, match=r"frame-000000\.depth\.png: expected a readable 16-bit depth PNG"
+    ):
+        next(iter(bench._redkitchen(tmp_path)()))

@@ -1,4 +1,5 @@
-"""Planar EKF: prediction follows the motion model, updates weigh by covariance, the gate rejects outliers."""
+"""Planar EKF: prediction follows the motion model, updates weigh by covariance, the gate rejects
+outliers."""
 
 from __future__ import annotations
 

@@ -70,7 +70,7 @@ def test_ate_equals_evo_ape_with_alignment(tmp_path: Path) -> None:
     times = np.arange(200) * 0.1
     for name, poses in (("gt", ref), ("est", est)):
         (tmp_path / f"{name}.tum").write_text(
-            "".join(tum_line(t, p) + "\n" for t, p in zip(times, poses))
+            "".join(tum_line(t, p) + "\n" for t, p in zip(times, poses, strict=True))
         )
     traj_ref = file_interface.read_tum_trajectory_file(str(tmp_path / "gt.tum"))
     traj_est = file_interface.read_tum_trajectory_file(str(tmp_path / "est.tum"))

@@ -1,4 +1,5 @@
-"""Wheel odometry model: exact without noise, biased as documented, seeded, variance linear in distance."""
+"""Wheel odometry model: exact without noise, biased as documented, seeded, variance linear in
+distance."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Scan-to-map matching on constructed rooms and corridors with known answers; the scan localiser beats odometry."""
+"""Scan-to-map matching on constructed rooms and corridors with known answers; the scan localiser
+beats odometry."""
 
 from __future__ import annotations
 
@@ -21,7 +22,8 @@ def _segments_scan(
     noise: float = 0.0,
     rng: np.random.Generator | None = None,
 ) -> np.ndarray:
-    """Body-frame points of a 360-degree 2D scan from planar `pose` against wall segments (vectorised)."""
+    """Body-frame points of a 360-degree 2D scan from planar `pose` against wall segments
+    (vectorised)."""
     a = pose[2] + np.linspace(-math.pi, math.pi, beams, endpoint=False)
     d = np.column_stack([np.cos(a), np.sin(a)])
     o = pose[:2]
@@ -65,7 +67,7 @@ def test_match_recovers_a_known_offset_in_a_room() -> None:
     truth = np.array([0.3, -0.4, 0.2])
     local = _map_of(ROOM, np.array([0.0, 0.0, 0.0]))
     scan = _segments_scan(truth, ROOM)
-    result = match(scan, local, se2.to_matrix(truth + [0.15, -0.1, 0.06]))
+    result = match(scan, local, se2.to_matrix(truth + np.array([0.15, -0.1, 0.06])))
     assert result.ok
     np.testing.assert_allclose(se2.from_matrix(result.pose), truth, atol=5e-3)
     assert result.rmse < 0.01
@@ -75,7 +77,9 @@ def test_match_recovers_a_known_offset_in_a_room() -> None:
 def test_corridor_leaves_its_length_unconstrained() -> None:
     local = _map_of(CORRIDOR, np.zeros(3))
     truth = np.array([0.5, 0.1, 0.05])
-    result = match(_segments_scan(truth, CORRIDOR), local, se2.to_matrix(truth + [0.0, 0.08, 0.03]))
+    result = match(
+        _segments_scan(truth, CORRIDOR), local, se2.to_matrix(truth + np.array([0.0, 0.08, 0.03]))
+    )
     assert result.ok
     pose = se2.from_matrix(result.pose)
     assert pose[1:] == pytest.approx(
@@ -88,7 +92,7 @@ def test_corridor_leaves_its_length_unconstrained() -> None:
 def test_match_reports_an_empty_map_and_bad_dof() -> None:
     result = match(np.zeros((10, 3)), LocalMap(planar=True), np.eye(4))
     assert not result.ok and result.reason == "empty map"
-    with pytest.raises(LocalisationError, match="dof: expected 3 .* or 6, found 4"):
+    with pytest.raises(LocalisationError, match=r"dof: expected 3 .* or 6, found 4"):
         match(np.zeros((10, 3)), LocalMap(planar=True), np.eye(4), dof=4)
     with pytest.raises(LocalisationError, match="keyframes >= 1"):
         LocalMap(planar=True, keyframes=0)
@@ -103,7 +107,10 @@ def test_scan_localiser_beats_biased_odometry_in_a_room() -> None:
     odo = synthesise(truth, OdometryNoise(0.05, 0.05, 0.01, 0.03, 0.02), seed=1)
     loc = ScanLocaliser(planar=True)
     est = np.array(
-        [loc.step(_segments_scan(p, ROOM, noise=0.01, rng=rng), o).pose for p, o in zip(truth, odo)]
+        [
+            loc.step(_segments_scan(p, ROOM, noise=0.01, rng=rng), o).pose
+            for p, o in zip(truth, odo, strict=True)
+        ]
     )
     err_est = np.linalg.norm(est[:, :2] - truth[:, :2], axis=1).max()
     err_odo = np.linalg.norm(odo[:, :2] - truth[:, :2], axis=1).max()

@@ -1,4 +1,5 @@
-"""RGB-D visual odometry: depth-only alignment on a constructed room with a known motion; ORB + depth on real frames."""
+"""RGB-D visual odometry: depth-only alignment on a constructed room with a known motion;
+ORB + depth on real frames."""
 
 from __future__ import annotations
 
@@ -29,7 +30,8 @@ PLANES = [
 
 
 def _render(pose: np.ndarray, shape: tuple[int, int] = (240, 320)) -> np.ndarray:
-    """Depth image (metres) of the room and an axis-aligned block, seen by a camera at `pose` (camera-to-world)."""
+    """Depth image (metres) of the room and an axis-aligned block, seen by a camera at `pose`
+    (camera-to-world)."""
     h, w = shape
     v, u = np.mgrid[0:h, 0:w]
     rays = np.stack(
@@ -38,8 +40,8 @@ def _render(pose: np.ndarray, shape: tuple[int, int] = (240, 320)) -> np.ndarray
     d = rays @ pose[:3, :3].T
     o = pose[:3, 3]
     best = np.full(len(d), np.inf)
-    for n, c in PLANES:
-        n = np.asarray(n, float)
+    for normal, c in PLANES:
+        n = np.asarray(normal, float)
         with np.errstate(divide="ignore", invalid="ignore"):
             t = (c - n @ o) / (d @ n)
         best = np.where((t > 0) & (t < best), t, best)

@@ -1,4 +1,5 @@
-"""Registration recovers known transforms of constructed maps and refuses ambiguous or foreign ones."""
+"""Registration recovers known transforms of constructed maps and refuses ambiguous or foreign
+ones."""
 
 from __future__ import annotations
 
@@ -109,5 +110,5 @@ def test_bad_dof_and_tiny_maps_raise() -> None:
         align_clouds(cloud, MapCloud(0.1, pts[:3]))
     bad = pts.copy()
     bad[0, 0] = np.nan
-    with pytest.raises(AlignmentError, match="map A .*expected finite coordinates, found NaN"):
+    with pytest.raises(AlignmentError, match=r"map A .*expected finite coordinates, found NaN"):
         align_clouds(MapCloud(0.1, bad), cloud)

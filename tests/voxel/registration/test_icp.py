@@ -42,7 +42,7 @@ def test_icp_converges_from_a_nearby_pose_and_keeps_z_in_3_dof() -> None:
 def test_covariance_is_small_on_a_corner_and_huge_along_a_corridor() -> None:
     x = np.linspace(0, 10, 101)
     wall = np.column_stack([x, np.zeros_like(x), np.zeros_like(x)])
-    corridor = np.concatenate([wall, wall + (0, 2, 0)])
+    corridor = np.concatenate([wall, wall + np.array([0.0, 2.0, 0.0])])
     corner = np.concatenate([wall, wall[:, [1, 0, 2]]])
     for cloud, degenerate in ((corner, False), (corridor, True)):
         tree = cKDTree(cloud)

@@ -58,7 +58,7 @@ def test_bad_map_files(tmp_path: Path) -> None:
     ):
         load_map(tmp_path / "m.txt")
     (tmp_path / "m.bt").write_bytes(b"not an octree")
-    with pytest.raises(FileFormatError, match="m.bt"):
+    with pytest.raises(FileFormatError, match=r"m\.bt"):
         load_map(tmp_path / "m.bt")
     write_bt(tmp_path / "free.bt", 0.1, np.array([[0, 0, 0]]), np.array([False]))
     with pytest.raises(

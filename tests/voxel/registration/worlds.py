@@ -1,4 +1,5 @@
-"""Constructed maps with known answers: an irregular floor plan, extruded to 3D, cropped and moved."""
+"""Constructed maps with known answers: an irregular floor plan, extruded to 3D, cropped and
+moved."""
 
 from __future__ import annotations
 
@@ -84,7 +85,8 @@ def crop_and_move(
 
 
 def error(found: np.ndarray, truth: np.ndarray, points: np.ndarray) -> tuple[float, float]:
-    """RMS distance (metres) of `points` moved by the found and the true transform, and yaw error (deg)."""
+    """RMS distance (metres) of `points` moved by the found and the true transform, and yaw error
+    (deg)."""
     rms = float(
         np.sqrt(np.mean(np.sum((apply(found, points) - apply(truth, points)) ** 2, axis=1)))
     )
