@@ -113,7 +113,7 @@ class Config(BaseSettings):
     )
     localise: bool = Field(
         True,
-        description="estimate the pose of sources with odometry (EKF + scan matching) and map from it",
+        description="estimate the pose of sources with odometry (EKF + scan matching), map from it",
     )
     align_s: float = Field(
         5.0, ge=0, description="seconds between alignment attempts with peers (0: none)"

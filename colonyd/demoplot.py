@@ -36,7 +36,8 @@ class _Canvas:
 
     def px(self, xy: np.ndarray) -> np.ndarray:
         p = (np.asarray(xy)[..., :2] - self.lo) * PIXELS_PER_M
-        return np.rint(np.stack([p[..., 0], self.h - 1 - p[..., 1]], axis=-1)).astype(np.int32)
+        out: np.ndarray = np.rint(np.stack([p[..., 0], self.h - 1 - p[..., 1]], axis=-1))
+        return out.astype(np.int32)
 
 
 def _world_to_colony(tracks: dict[str, Track], root: str) -> np.ndarray | None:

@@ -38,7 +38,8 @@ class ScanEstimator:
         points = obs.points if obs.no_return is None else obs.points[~obs.no_return]
         body = points @ self.mount[:3, :3].T + self.mount[:3, 3]
         odometry = None if obs.odometry is None else se2.from_matrix(obs.odometry)
-        return se2.to_matrix(self.localiser.step(body, odometry).pose) @ self.mount
+        pose: np.ndarray = se2.to_matrix(self.localiser.step(body, odometry).pose) @ self.mount
+        return pose
 
     def covariance(self) -> np.ndarray | None:
         ekf = self.localiser.ekf

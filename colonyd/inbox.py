@@ -24,8 +24,8 @@ from protocol.keyexpr import topic_subscription
 
 log = logging.getLogger(__name__)
 
-#: An inbox item: (kind "delta" | "hb" | "objects" | "align" | "pose" | "join", key expression or agent,
-#: raw frame, time queued).
+#: An inbox item: (kind "delta" | "hb" | "objects" | "align" | "pose" | "join", key expression
+#: or agent, raw frame, time queued).
 Item = tuple[str, str, bytes, float]
 
 
