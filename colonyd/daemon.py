@@ -362,33 +362,48 @@ class Daemon:
 
     # -- alignment (own layer against each peer's, one pair per round) ---------------------
     def _align_loop(self) -> None:
-        attempted: dict[str, int] = {}  # peer -> own seq + its seq at our last attempt
+        # peer -> own seq + its seq at our last attempt, and the object counts then: a pair is
+        # tried again when either map grew or either object list changed (re-estimated as the
+        # maps grow; a refused pair may be settled by more data or by objects)
+        attempted: dict[str, tuple[int, tuple[int, int]]] = {}
         while not self.stop.wait(self.config.align_s):
             own = self.layers.own
-            grown = {
-                layer.origin: own.seq + layer.seq - attempted.get(layer.origin, 0)
-                for layer in self.layers.all()
-                if layer.origin != own.origin and layer.seq
-            }
+            own_objects = list(self.objects.current)
+            grown: dict[str, int] = {}
+            for layer in self.layers.all():
+                if layer.origin == own.origin or not layer.seq:
+                    continue
+                seqs, counts = attempted.get(layer.origin, (0, (-1, -1)))
+                now = (len(own_objects), len(self.gossip.peer_objects.get(layer.origin)))
+                grown[layer.origin] = own.seq + layer.seq - seqs + (1 if now != counts else 0)
             if own.seq == 0 or not grown or max(grown.values()) <= 0:
                 continue
             origin = max(grown, key=lambda o: (grown[o], o))  # the pair with most new data
             peer = self.layers.find(origin)
             if peer is None:
                 continue
-            attempted[origin] = own.seq + peer.seq
+            peer_objects = self.gossip.peer_objects.get(origin)
+            attempted[origin] = (own.seq + peer.seq, (len(own_objects), len(peer_objects)))
             try:
-                result = align_layers(own, peer, self.config.align_dof)
+                result = align_layers(own, peer, self.config.align_dof, own_objects, peer_objects)
             except ValueError as exc:  # too little of a map to align yet
                 self.attempts[peer.origin] = {"aligned": False, "reason": str(exc)}
                 continue
             except Exception:
                 log.exception("alignment with %s failed", peer.origin)
                 continue
-            self.attempts[peer.origin] = result.to_json()
+            record = result.to_json()
+            record["time"] = time.time()
+            record["objects_used"] = {"own": len(own_objects), "peer": len(peer_objects)}
+            self.attempts[peer.origin] = record
             if result.aligned:
                 self.gossip.publish_align(edge_of(own.origin, peer.origin, result))
-                log.info("aligned %s to our frame: %s", peer.origin, _pose_text(result.transform))
+                log.info(
+                    "aligned %s to our frame (%s): %s",
+                    peer.origin,
+                    result.method,
+                    _pose_text(result.transform),
+                )
 
     def colony_frame(self) -> ColonyFrame:
         """The colony frame from every alignment known (own and offered)."""
