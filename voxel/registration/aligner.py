@@ -338,12 +338,20 @@ def _resolve(
 def _objection(
     vote: ObjectEvidence, fit: LandmarkFit, t: np.ndarray, b_points: np.ndarray, p: AlignParams
 ) -> str | None:
-    """Why the objects refuse the pose `t` the geometry chose, or None when they do not."""
+    """Why the objects refuse the pose `t` the geometry chose, or None when they do not: objects
+    in the other map's open space, at least 2 objects known but fewer than 2 backing the pose
+    (a pose whose objects fall where the other map has not looked waits for more data: a wrong
+    merge is worse than none), or a confident object fit elsewhere."""
     if _ruled_out(vote):
         return (
             f"objects land in the other map's open space: expected at most "
             f"{MAX_OBJECT_CONFLICT:.0%} of the objects it observed, found {vote.contradicted} of "
             f"{vote.observed}"
+        )
+    if vote.supported < 2 and vote.supported + vote.contradicted + vote.unknown >= 2:
+        return (
+            f"objects do not back the pose: expected at least 2 objects on the other map's "
+            f"surfaces, found {vote.supported} ({vote.unknown} where it has not looked)"
         )
     if fit.found and fit.inliers >= 3 and fit.ambiguity <= p.limits.max_ambiguity:
         lo, hi = b_points.min(axis=0), b_points.max(axis=0)
