@@ -224,7 +224,18 @@ def run_align_live_bench(
                     timeout=timeout,
                 )
             )
-    result = {"command": command, "runs": runs}
+    summary = [
+        {
+            "noise": r["noise"],
+            "pairs": {"/".join(p["pair"]): [p["error_m"], p["error_deg"]] for p in r["pairs"]},
+            "join_to_aligned_s": r["join_to_aligned_s"],
+            "fused_on_surface": r.get("fused_on_surface"),
+            "same_frame_everywhere": r["same_frame_everywhere"],
+            "negatives_unaligned": r["negatives_unaligned"],
+        }
+        for r in runs
+    ]
+    result = {"command": command, "summary": summary, "runs": runs}
     out_json.parent.mkdir(parents=True, exist_ok=True)
     out_json.write_text(json.dumps(result, indent=2))
     return result

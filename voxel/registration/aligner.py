@@ -82,6 +82,7 @@ class Alignment:
     failed_checks: tuple[str, ...] = ()
     method: str = METHOD
     geometric_ambiguity: float = 0.0  # before objects ruled rival poses out
+    conflict_extent_m: float = 0.0  # largest connected patch of walls in the other's open space
     #: object evidence: supported, contradicted, matched, the objects' own fit, poses ruled out
     objects: dict[str, object] | None = None
 
@@ -112,6 +113,7 @@ class Alignment:
             "dof": self.dof,
             "method": self.method,
             "geometric_ambiguity": round(self.geometric_ambiguity, 4),
+            "conflict_extent_m": round(self.conflict_extent_m, 2),
             "objects": self.objects,
             "seconds": round(self.seconds, 3),
         }
@@ -280,6 +282,7 @@ def align_clouds(
         failed_checks=() if aligned else failed,
         method=method,
         geometric_ambiguity=geometric_ambiguity,
+        conflict_extent_m=evidence.conflict_extent,
         objects=_objects_record(vote, fit, ruled_out, len(oa), len(ob)) if used else None,
     )
 
@@ -339,19 +342,21 @@ def _objection(
     vote: ObjectEvidence, fit: LandmarkFit, t: np.ndarray, b_points: np.ndarray, p: AlignParams
 ) -> str | None:
     """Why the objects refuse the pose `t` the geometry chose, or None when they do not: objects
-    in the other map's open space, at least 2 objects known but fewer than 2 backing the pose
-    (a pose whose objects fall where the other map has not looked waits for more data: a wrong
-    merge is worse than none), or a confident object fit elsewhere."""
+    in the other map's open space, at least 2 objects known but fewer than 2 (or fewer than
+    those falling where the other map has not looked) backing the pose (such a pose waits for
+    more data: a wrong merge is worse than none), or a confident object fit elsewhere."""
     if _ruled_out(vote):
         return (
             f"objects land in the other map's open space: expected at most "
             f"{MAX_OBJECT_CONFLICT:.0%} of the objects it observed, found {vote.contradicted} of "
             f"{vote.observed}"
         )
-    if vote.supported < 2 and vote.supported + vote.contradicted + vote.unknown >= 2:
+    placed = vote.supported + vote.contradicted + vote.unknown
+    if placed >= 2 and (vote.supported < 2 or vote.supported < vote.unknown):
         return (
-            f"objects do not back the pose: expected at least 2 objects on the other map's "
-            f"surfaces, found {vote.supported} ({vote.unknown} where it has not looked)"
+            f"objects do not back the pose: expected at least 2 of the {placed} objects, and "
+            f"more than land where the other map has not looked, on the other map's surfaces; "
+            f"found {vote.supported} ({vote.unknown} unobserved)"
         )
     if fit.found and fit.inliers >= 3 and fit.ambiguity <= p.limits.max_ambiguity:
         lo, hi = b_points.min(axis=0), b_points.max(axis=0)
