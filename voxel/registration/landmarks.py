@@ -76,8 +76,9 @@ def match_landmarks(
 
     dof 3 and 4 (gravity known): yaw from the horizontal offset of two objects, translation from
     their midpoints; at least 2 inlier objects. dof 6: Kabsch on three correspondences (tilts
-    over 30 degrees dropped: gravity is roughly known); at least 3. The best hypothesis (most B objects with an object of their class within `gate_m`,
-    lower residual on a tie) is refined by Kabsch/Umeyama (no scale) on its inliers.
+    over 30 degrees dropped: gravity is roughly known); at least 3. The best hypothesis (most B
+    objects with an object of their class within `gate_m`, lower residual on a tie) is refined
+    by Kabsch/Umeyama (no scale) on its inliers.
     """
     if dof not in (3, 4, 6):
         msg = f"dof: expected 3, 4 or 6, found {dof!r}"
@@ -119,9 +120,12 @@ def match_landmarks(
             break
         other = _pairs(hyps[h], a, b, gate_m)
         conflicts = sum(mapping.get(i, j) != j or used.get(j, i) != i for i, j in other.tolist())
-        if conflicts >= 2 and len(other) > second:
-            if _moved(hyps[h], fit, b.positions) > distinct_m:
-                second = len(other)
+        if (
+            conflicts >= 2
+            and len(other) > second
+            and _moved(hyps[h], fit, b.positions) > distinct_m
+        ):
+            second = len(other)
     ambiguity = second / max(len(pairs), 1)
     return LandmarkFit(True, fit, pairs, rmse, ambiguity, len(hyps), None)
 
@@ -274,7 +278,7 @@ def objects_in_map(
     if len(objects) == 0 or m.known is None:
         return ObjectEvidence(unknown=len(objects))
     res = m.resolution
-    n = max(1, int(round(radius_m / res)))
+    n = max(1, round(radius_m / res))
     g = np.arange(-n, n + 1) * res
     if m.planar:
         off = np.stack(np.meshgrid(g, g, [0.0], indexing="ij"), axis=-1).reshape(-1, 3)
