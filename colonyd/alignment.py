@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -12,7 +13,9 @@ from colonyd.errors import WireError
 from colonyd.frames import Header, frame_of
 from colonyd.layers import Layer
 from protocol import AlignOffer
-from voxel.registration import Alignment, AlignParams, MapCloud, align_clouds
+from protocol import ObjectCentroid as WireObject
+from voxel.objects import ObjectCentroid
+from voxel.registration import Alignment, AlignParams, Landmarks, MapCloud, align_clouds
 
 
 @dataclass(frozen=True)
@@ -59,9 +62,27 @@ def layer_cloud(layer: Layer) -> MapCloud:
     )
 
 
-def align_layers(own: Layer, peer: Layer, dof: int) -> Alignment:
-    """Register `peer`'s layer to `own`'s: the transform of the peer's frame into ours."""
-    return align_clouds(layer_cloud(own), layer_cloud(peer), AlignParams(dof=dof))
+def landmarks_of(objects: Sequence[ObjectCentroid | WireObject]) -> Landmarks:
+    """Object centroids (own or a peer's list) as registration's landmarks."""
+    return Landmarks.of([(o.class_id, np.asarray(o.position, float)) for o in objects])
+
+
+def align_layers(
+    own: Layer,
+    peer: Layer,
+    dof: int,
+    own_objects: Sequence[ObjectCentroid | WireObject] = (),
+    peer_objects: Sequence[ObjectCentroid | WireObject] = (),
+) -> Alignment:
+    """Register `peer`'s layer to `own`'s by geometry and both object lists: the transform of
+    the peer's frame into ours."""
+    return align_clouds(
+        layer_cloud(own),
+        layer_cloud(peer),
+        AlignParams(dof=dof),
+        objects_a=landmarks_of(own_objects),
+        objects_b=landmarks_of(peer_objects),
+    )
 
 
 def edge_of(own: str, peer: str, result: Alignment) -> Edge:

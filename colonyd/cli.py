@@ -301,6 +301,20 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="keep the maps here (default: a temporary folder)",
     )
+    b = bsub.add_parser(
+        "align-live",
+        help="live alignment: sim office agents at unknown poses, error vs truth, fused map",
+    )
+    b.add_argument("--json", type=Path, required=True)
+    b.add_argument("--frames", type=int, default=120, help="frames each sim agent maps")
+    b.add_argument(
+        "--noise",
+        type=float,
+        nargs="+",
+        default=[0.0, 0.02],
+        help="sim odometry noise per run (0: drift-free; 0.02: the sim's default)",
+    )
+    b.add_argument("--no-realtime", action="store_true", help="map as fast as possible")
     b = bsub.add_parser("colony", help="N daemons on loopback: propagation, catch-up, idle cost")
     b.add_argument("--json", type=Path, required=True, help="write the results here (JSON)")
     b.add_argument("--daemons", type=int, default=4, help="daemons on loopback (default 4)")
@@ -495,6 +509,17 @@ def _bench(args: argparse.Namespace) -> int:
             work_dir=args.work_dir,
         )
         result = {"summary": report["summary"], "json": str(args.json)}
+    elif args.bench == "align-live":
+        from colonyd.bench.align_live import run_align_live_bench
+
+        live = run_align_live_bench(
+            args.json,
+            frames=args.frames,
+            drifts=tuple(args.noise),
+            realtime=not args.no_realtime,
+            command=" ".join(["colonyd", *sys.argv[1:]]),
+        )
+        result = {"summary": live["summary"], "json": str(args.json)}
     elif args.bench == "wire":
         from colonyd.bench.wire import run_wire_bench
 

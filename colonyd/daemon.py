@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from colonyd.alignment import ColonyFrame, align_layers, edge_of
+from colonyd.alignment import ColonyFrame, Edge, align_layers, edge_of
 from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError, DuplicateAgentError, PersistenceError
 from colonyd.estimator import Estimator, PoseError, get_estimator
@@ -386,33 +386,69 @@ class Daemon:
 
     # -- alignment (own layer against each peer's, one pair per round) ---------------------
     def _align_loop(self) -> None:
-        attempted: dict[str, int] = {}  # peer -> own seq + its seq at our last attempt
+        # peer -> own seq + its seq at our last attempt, and the object counts then: a pair is
+        # tried again when either map grew or either object list changed (re-estimated as the
+        # maps grow; a refused pair may be settled by more data or by objects).
+        attempted: dict[str, tuple[int, tuple[int, int]]] = {}
+        # peer -> an accepted estimate not offered yet. An estimate is offered once a later
+        # attempt on grown maps accepts a pose that agrees with it, or once its maps stopped
+        # growing (nothing new a round later); a refusal drops it. Partial maps can fit a wrong
+        # place that more data refutes, and an offer cannot be taken back.
+        pending: dict[str, tuple[Edge, int]] = {}
         while not self.stop.wait(self.config.align_s):
             own = self.layers.own
-            grown = {
-                layer.origin: own.seq + layer.seq - attempted.get(layer.origin, 0)
-                for layer in self.layers.all()
-                if layer.origin != own.origin and layer.seq
-            }
+            own_objects = list(self.objects.current)
+            grown: dict[str, int] = {}
+            for layer in self.layers.all():
+                if layer.origin == own.origin or not layer.seq:
+                    continue
+                seqs, counts = attempted.get(layer.origin, (0, (-1, -1)))
+                now = (len(own_objects), len(self.gossip.peer_objects.get(layer.origin)))
+                grown[layer.origin] = own.seq + layer.seq - seqs + (1 if now != counts else 0)
+            for origin, (edge, seqs) in list(pending.items()):
+                if grown.get(origin, 1) <= 0 and attempted.get(origin, (None,))[0] == seqs:
+                    del pending[origin]  # computed on maps that stopped growing: final
+                    self._offer(edge, "final maps")
             if own.seq == 0 or not grown or max(grown.values()) <= 0:
                 continue
             origin = max(grown, key=lambda o: (grown[o], o))  # the pair with most new data
             peer = self.layers.find(origin)
             if peer is None:
                 continue
-            attempted[origin] = own.seq + peer.seq
+            peer_objects = self.gossip.peer_objects.get(origin)
+            seqs = own.seq + peer.seq
+            attempted[origin] = (seqs, (len(own_objects), len(peer_objects)))
             try:
-                result = align_layers(own, peer, self.config.align_dof)
+                result = align_layers(own, peer, self.config.align_dof, own_objects, peer_objects)
             except ValueError as exc:  # too little of a map to align yet
                 self.attempts[peer.origin] = {"aligned": False, "reason": str(exc)}
+                pending.pop(origin, None)
                 continue
             except Exception:
                 log.exception("alignment with %s failed", peer.origin)
                 continue
-            self.attempts[peer.origin] = result.to_json()
-            if result.aligned:
-                self.gossip.publish_align(edge_of(own.origin, peer.origin, result))
-                log.info("aligned %s to our frame: %s", peer.origin, _pose_text(result.transform))
+            record = result.to_json()
+            record["time"] = time.time()
+            record["objects_used"] = {"own": len(own_objects), "peer": len(peer_objects)}
+            self.attempts[peer.origin] = record
+            if not result.aligned:
+                pending.pop(origin, None)
+                continue
+            edge = edge_of(own.origin, peer.origin, result)
+            before = pending.pop(origin, None)
+            if (
+                before is not None
+                and before[1] < seqs
+                and _agree(before[0].transform, edge.transform)
+            ):
+                self._offer(edge, f"confirmed on grown maps ({result.method})")
+            else:
+                pending[origin] = (edge, seqs)
+                record["provisional"] = True
+
+    def _offer(self, edge: Edge, why: str) -> None:
+        self.gossip.publish_align(edge)
+        log.info("aligned %s to our frame, %s: %s", edge.target, why, _pose_text(edge.transform))
 
     def colony_frame(self) -> ColonyFrame:
         """The colony frame from every alignment known (own and offered)."""
@@ -617,3 +653,10 @@ def run_daemon(
     # 1 ms instead of 5 while mapping holds it: the latency of gossip under load.
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     return Daemon(config, config_path, flags).run()
+
+
+def _agree(t1: np.ndarray, t2: np.ndarray, metres: float = 0.25, degrees: float = 2.0) -> bool:
+    """Two estimates of one alignment are the same pose (within `metres` and `degrees`)."""
+    d = np.linalg.inv(t1) @ t2
+    yaw = abs(math.degrees(math.atan2(d[1, 0], d[0, 0])))
+    return float(np.linalg.norm(d[:3, 3])) <= metres and yaw <= degrees

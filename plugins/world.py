@@ -106,6 +106,41 @@ class World:
                 out[c.object_id] = (c.class_id, np.array([*c.centre, (c.z0 + c.z1) / 2]))
         return out
 
+    def surface_points(self, spacing: float = 0.02) -> np.ndarray:
+        """Points (N, 3) every `spacing` m on every surface: box faces, cylinder sides and tops,
+        and the floor under the boxes' extent. Ground truth, for evaluating maps only."""
+        parts = []
+
+        def grid(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+            axes = [np.arange(lo[i], hi[i] + spacing / 2, spacing) for i in range(3)]
+            return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+        for lo, hi in zip(self._lo, self._hi, strict=True):
+            for axis in range(3):
+                for side in (lo[axis], hi[axis]):
+                    a, b = lo.copy(), hi.copy()
+                    a[axis] = b[axis] = side
+                    parts.append(grid(a, b))
+        for c in self.cylinders:
+            n = max(8, int(2 * np.pi * c.radius / spacing))
+            ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
+            z = np.arange(c.z0, c.z1 + spacing / 2, spacing)
+            ring = np.column_stack([c.radius * np.cos(ang), c.radius * np.sin(ang)])
+            side = np.column_stack([np.repeat(ring + c.centre, len(z), axis=0), np.tile(z, n)])
+            r = np.arange(0.0, c.radius, spacing)
+            disc = (
+                np.column_stack(
+                    [np.outer(r, np.cos(ang)).ravel(), np.outer(r, np.sin(ang)).ravel()]
+                )
+                + c.centre
+            )
+            parts += [side, np.column_stack([disc, np.full(len(disc), c.z1)])]
+        if self.floor is not None and len(self._lo):
+            lo, hi = self._lo.min(axis=0), self._hi.max(axis=0)
+            lo[2] = hi[2] = self.floor
+            parts.append(grid(lo, hi))
+        return np.concatenate(parts) if parts else np.empty((0, 3))
+
     def marker_objects(self) -> dict[int, int]:
         """Marker id -> object id of the object it is printed on."""
         return {m.marker_id: m.object_id for m in self.markers}

@@ -351,6 +351,7 @@ def _ours(result: Alignment, truth: np.ndarray, points: np.ndarray, tol_m: float
         "overlap": round(result.overlap, 4),
         "ambiguity": round(result.ambiguity, 4),
         "conflict": round(result.conflict, 4),
+        "conflict_extent_m": round(result.conflict_extent_m, 2),
         "reason": result.reason,
         "failed_checks": list(result.failed_checks),
         "seconds": round(result.seconds, 3),

@@ -1,11 +1,11 @@
-"""Align two maps by their geometry: global yaw search, ICP on the best distinct hypotheses,
-verdict."""
+"""Align two maps by their geometry (global yaw search, ICP on the best distinct hypotheses) and
+their objects, with a verdict."""
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from os import PathLike
 from typing import Any
 
@@ -23,11 +23,22 @@ from voxel.registration.global_search import (
     z_offsets,
 )
 from voxel.registration.icp import covariance, icp, normals
+from voxel.registration.landmarks import (
+    LandmarkFit,
+    Landmarks,
+    ObjectEvidence,
+    landmark_matches,
+    match_landmarks,
+    objects_in_map,
+)
 from voxel.registration.mapcloud import MapCloud, load_map
 from voxel.registration.transform import apply, euler
 from voxel.registration.verdict import Thresholds, judge
 
 METHOD = "yaw-correlation+icp"
+#: Objects placed by a pose must not land in the other map's open space more than this share of
+#: the objects the other map observed (more rules the pose out).
+MAX_OBJECT_CONFLICT = 0.25
 
 
 @dataclass(frozen=True)
@@ -71,6 +82,10 @@ class Alignment:
     reason: str | None
     failed_checks: tuple[str, ...] = ()
     method: str = METHOD
+    geometric_ambiguity: float = 0.0  # before objects ruled rival poses out
+    conflict_extent_m: float = 0.0  # largest connected patch of walls in the other's open space
+    #: object evidence: supported, contradicted, matched, the objects' own fit, poses ruled out
+    objects: dict[str, object] | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The JSON record `colonyd align` writes (angles in degrees, transform 4x4 row-major)."""
@@ -98,6 +113,9 @@ class Alignment:
             "hypotheses": self.hypotheses,
             "dof": self.dof,
             "method": self.method,
+            "geometric_ambiguity": round(self.geometric_ambiguity, 4),
+            "conflict_extent_m": round(self.conflict_extent_m, 2),
+            "objects": self.objects,
             "seconds": round(self.seconds, 3),
         }
         if not self.aligned:
@@ -122,17 +140,53 @@ def align_maps(
     return _with_seconds(result, time.perf_counter() - began)
 
 
-def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) -> Alignment:
-    """Align map B to map A: the transform of B's points into A's frame, with its verdict."""
+def align_clouds(
+    a: MapCloud,
+    b: MapCloud,
+    params: AlignParams | None = None,
+    *,
+    objects_a: Landmarks | None = None,
+    objects_b: Landmarks | None = None,
+) -> Alignment:
+    """Align map B to map A: the transform of B's points into A's frame, with its verdict.
+
+    `objects_a` / `objects_b` are the maps' object centroids (class ids and positions, each in
+    its map's frame), when known: a class-consistent fit of B's objects to A's seeds the search,
+    and objects placed by each candidate pose in the other map vote among the poses (a pose that
+    puts objects in the other map's open space is ruled out). A planar map (a 2D scanner's)
+    against a 3D one is aligned to the 3D map's slice at the planar map's height, in x, y and
+    yaw (z 0: both frames on the same floor).
+    """
     began = time.perf_counter()
     p = params or AlignParams()
     _check(a, b, p)
+    full_a, full_b = a, b
+    sliced = a.planar != b.planar
+    if sliced:  # a 2D scan against a 3D map: the 3D map's slice at the scan's height
+        a, b = (
+            (a, _slice(b, float(a.occupied[0, 2])))
+            if a.planar
+            else (_slice(a, float(b.occupied[0, 2])), b)
+        )
+        if len(a.occupied) < 10 or len(b.occupied) < 10:
+            return _not_aligned(
+                p.dof,
+                0,
+                time.perf_counter() - began,
+                "the 3D map has too little at the planar map's height: expected at least 10 "
+                "occupied voxels in the slice",
+            )
     res = max(a.resolution, b.resolution)
     cell = p.search_cell_m or max(2.0 * res, 0.2)
     both_planar = a.planar and b.planar
     icp_dof = 3 if both_planar else p.dof
     inlier_m = max(p.inlier_voxels * res, p.inlier_min_m)
     rng = np.random.default_rng(p.seed)
+    oa = objects_a if objects_a is not None else Landmarks.of([])
+    ob = objects_b if objects_b is not None else Landmarks.of([])
+    fit = match_landmarks(oa, ob, 4 if p.dof == 4 or both_planar else p.dof)
+    if fit.found and both_planar:
+        fit = replace(fit, transform=_z_zero(fit.transform))
 
     a_tree = cKDTree(a.occupied)
     a_coarse = _thin(a.occupied, 2.0 * res)
@@ -145,6 +199,8 @@ def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) ->
     a_check = _sample_masked(a.occupied, a_wall, p.coarse_samples, rng)
 
     hypotheses = _global_hypotheses(a, b, a_walls, b_walls, a_side, cell, res, p, both_planar)
+    if fit.found:  # objects seed the search too (their centroids are biased: ICP refines)
+        hypotheses.append(Hypothesis(fit.transform, float(euler(fit.transform)[2]), 0.0))
     candidates = [
         _refine_coarse(
             h,
@@ -170,8 +226,10 @@ def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) ->
             time.perf_counter() - began,
             "the global search found no pose that puts any of B on A",
         )
+    geometric_ambiguity = _ambiguity(ranked)
+    votes = [_object_votes(c.transform, full_a, full_b, oa, ob) for c in ranked]
+    ranked, votes, ambiguity, ruled_out = _resolve(ranked, votes, geometric_ambiguity)
     best = ranked[0]
-    ambiguity = _ambiguity(ranked)
 
     b_fine = _sample(b.occupied, p.fine_samples, rng)
     fine = icp(
@@ -184,15 +242,30 @@ def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) ->
         end_m=1.5 * res,
         iterations=30,
     )
+    transform = _z_zero(fine.transform) if sliced else fine.transform
     b_eval = _sample_masked(b.occupied, b_wall, p.eval_samples, rng)
     a_eval = _sample_masked(a.occupied, a_wall, p.eval_samples, rng)
     evidence = evaluate(fine.transform, a_side, *b_eval, b_side, *a_eval, inlier_m)
     cov, names = _covariance(fine.transform, b_fine, a, a_tree, inlier_m, icp_dof, both_planar)
     verdict = judge(evidence, ambiguity, z_ambiguity, cov, names, p.limits)
+    vote = _object_votes(transform, full_a, full_b, oa, ob)
+    objection = _objection(vote, fit, transform, b.occupied, p)
+    aligned, reason, failed, confidence = (
+        verdict.aligned,
+        verdict.reason,
+        verdict.failed,
+        verdict.confidence,
+    )
+    if objection is not None:
+        aligned, confidence = False, 0.0
+        reason = reason or objection
+        failed = (*failed, "objects")
+    used = len(oa) + len(ob) > 0
+    method = ("slice+" if sliced else "") + METHOD + ("+objects" if used else "")
     return Alignment(
-        aligned=verdict.aligned,
-        transform=fine.transform,
-        confidence=verdict.confidence,
+        aligned=aligned,
+        transform=transform,
+        confidence=confidence,
         inliers=evidence.inliers,
         rmse_m=evidence.rmse,
         overlap=evidence.overlap,
@@ -204,11 +277,115 @@ def align_clouds(a: MapCloud, b: MapCloud, params: AlignParams | None = None) ->
         covariance=cov,
         covariance_params=names,
         hypotheses=len(hypotheses),
-        dof=p.dof,
+        dof=3 if sliced else p.dof,
         seconds=time.perf_counter() - began,
-        reason=verdict.reason,
-        failed_checks=verdict.failed,
+        reason=None if aligned else reason,
+        failed_checks=() if aligned else failed,
+        method=method,
+        geometric_ambiguity=geometric_ambiguity,
+        conflict_extent_m=evidence.conflict_extent,
+        objects=_objects_record(vote, fit, ruled_out, len(oa), len(ob)) if used else None,
     )
+
+
+def _slice(m: MapCloud, z: float) -> MapCloud:
+    """The horizontal layer of `m` (its occupied and known voxels) containing height `z`."""
+    k = int(np.floor(z / m.resolution))
+    occ = m.occupied[np.floor(m.occupied[:, 2] / m.resolution).astype(np.int64) == k]
+    if m.known is None or m.known_occupied is None:
+        return MapCloud(m.resolution, occ, name=m.name)
+    layer = vk.unpack(m.known)[:, 2] == k
+    return MapCloud(m.resolution, occ, m.known[layer], m.known_occupied[layer], m.name)
+
+
+def _z_zero(t: np.ndarray) -> np.ndarray:
+    out = t.copy()
+    out[2, 3] = 0.0
+    return out
+
+
+def _object_votes(
+    t: np.ndarray, a: MapCloud, b: MapCloud, oa: Landmarks, ob: Landmarks
+) -> ObjectEvidence:
+    """Both ways: B's objects in A's map and A's objects in B's map under `t`, and class matches."""
+    if len(oa) + len(ob) == 0:
+        return ObjectEvidence()
+    ev = objects_in_map(t, ob, a) + objects_in_map(np.linalg.inv(t), oa, b)
+    return replace(ev, matched=landmark_matches(t, oa, ob))
+
+
+def _backed(v: ObjectEvidence) -> bool:
+    """Objects back a pose: at least 2 land on the other map's surfaces, few in its open space."""
+    return v.supported >= 2 and v.contradicted <= MAX_OBJECT_CONFLICT * v.observed
+
+
+def _ruled_out(v: ObjectEvidence) -> bool:
+    """Objects contradict a pose: more than MAX_OBJECT_CONFLICT of the objects the other map
+    observed land in its open space."""
+    return v.contradicted > MAX_OBJECT_CONFLICT * v.observed
+
+
+def _resolve(
+    ranked: list[_Candidate], votes: list[ObjectEvidence], ambiguity: float
+) -> tuple[list[_Candidate], list[ObjectEvidence], float, int]:
+    """Let objects settle what geometry cannot: poses the objects rule out are dropped, and when
+    the best remaining pose is backed by objects the ambiguity is counted among the remaining
+    poses only. Returns the candidates, their votes, the ambiguity and how many were dropped."""
+    keep = [i for i, v in enumerate(votes) if not _ruled_out(v)]
+    if not keep or not _backed(votes[keep[0]]):
+        return ranked, votes, ambiguity, 0
+    dropped = len(ranked) - len(keep)
+    ranked, votes = [ranked[i] for i in keep], [votes[i] for i in keep]
+    return ranked, votes, _ambiguity(ranked), dropped
+
+
+def _objection(
+    vote: ObjectEvidence, fit: LandmarkFit, t: np.ndarray, b_points: np.ndarray, p: AlignParams
+) -> str | None:
+    """Why the objects refuse the pose `t` the geometry chose, or None when they do not: objects
+    in the other map's open space, at least 2 objects known but fewer than 2 (or fewer than
+    those falling where the other map has not looked) backing the pose (such a pose waits for
+    more data: a wrong merge is worse than none), or a confident object fit elsewhere."""
+    if _ruled_out(vote):
+        return (
+            f"objects land in the other map's open space: expected at most "
+            f"{MAX_OBJECT_CONFLICT:.0%} of the objects it observed, found {vote.contradicted} of "
+            f"{vote.observed}"
+        )
+    placed = vote.supported + vote.contradicted + vote.unknown
+    if placed >= 2 and (vote.supported < 2 or vote.supported < vote.unknown):
+        return (
+            f"objects do not back the pose: expected at least 2 of the {placed} objects, and "
+            f"more than land where the other map has not looked, on the other map's surfaces; "
+            f"found {vote.supported} ({vote.unknown} unobserved)"
+        )
+    if fit.found and fit.inliers >= 3 and fit.ambiguity <= p.limits.max_ambiguity:
+        lo, hi = b_points.min(axis=0), b_points.max(axis=0)
+        corners = np.array([[x, y, lo[2]] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])])
+        moved = _planar_moved(t, fit.transform, corners)
+        if moved > 2.0:
+            return (
+                f"objects and geometry disagree: {fit.inliers} objects of matching classes put B "
+                f"{moved:.1f} m away from the geometric pose (expected within 2.0 m)"
+            )
+    return None
+
+
+def _objects_record(
+    vote: ObjectEvidence, fit: LandmarkFit, ruled_out: int, n_a: int, n_b: int
+) -> dict[str, object]:
+    return {
+        "a": n_a,
+        "b": n_b,
+        "supported": vote.supported,
+        "contradicted": vote.contradicted,
+        "unobserved": vote.unknown,
+        "matched": vote.matched,
+        "fit_inliers": fit.inliers if fit.found else 0,
+        "fit_rmse_m": round(fit.rmse, 4) if fit.found and math.isfinite(fit.rmse) else None,
+        "fit_ambiguity": round(fit.ambiguity, 4) if fit.found else None,
+        "poses_ruled_out": ruled_out,
+    }
 
 
 def _check(a: MapCloud, b: MapCloud, p: AlignParams) -> None:
@@ -428,6 +605,4 @@ def _not_aligned(dof: int, hypotheses: int, seconds: float, reason: str) -> Alig
 
 
 def _with_seconds(result: Alignment, seconds: float) -> Alignment:
-    from dataclasses import replace
-
     return replace(result, seconds=seconds)

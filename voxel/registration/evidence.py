@@ -70,6 +70,7 @@ class Evidence:
     back_conflicts: int
     support: int  # inliers among all sampled B points
     support_overlapping: int  # all sampled B points where A has observed (or inliers)
+    conflict_extent: float = 0.0  # largest connected patch of contradicted walls (either way), m
 
     @property
     def overlap(self) -> float:
@@ -187,4 +188,28 @@ def evaluate(
         back_conflicts=int(conflict_back.sum()),
         support=int(inlier.sum()),
         support_overlapping=int(overlapping.sum()),
+        conflict_extent=max(_extent(b_sample[conflict]), _extent(a_sample[conflict_back])),
     )
+
+
+def _extent(points: np.ndarray, cell: float = 0.2) -> float:
+    """Longest horizontal side (m) of the largest 8-connected patch of `points` on a `cell` grid
+    (one empty cell bridged): a whole wall in the other map's open space, not scattered specks
+    (rays through glass or doors)."""
+    if len(points) < 2:
+        return 0.0
+    from scipy import ndimage
+
+    ij = np.floor(points[:, :2] / cell).astype(np.int64)
+    ij -= ij.min(axis=0)
+    if int(ij.max()) > 4096:
+        return float("inf")
+    img = np.zeros(tuple(ij.max(axis=0) + 1), bool)
+    img[ij[:, 0], ij[:, 1]] = True
+    labels, n = ndimage.label(ndimage.binary_dilation(img), structure=np.ones((3, 3)))
+    if n == 0:
+        return 0.0
+    lab = labels[ij[:, 0], ij[:, 1]]
+    sizes = np.bincount(lab)
+    biggest = ij[lab == int(np.argmax(sizes[1:]) + 1)]
+    return float((np.ptp(biggest, axis=0).max() + 1) * cell)

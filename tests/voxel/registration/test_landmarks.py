@@ -1,0 +1,125 @@
+"""Objects as alignment evidence: class-consistent RANSAC; objects settle what geometry cannot."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from voxel.registration import AlignParams, Landmarks, MapCloud, align_clouds, match_landmarks
+from voxel.registration.transform import apply, rigid
+
+
+def _scene(seed: int = 0) -> Landmarks:
+    rng = np.random.default_rng(seed)
+    pos = np.column_stack([rng.uniform(-6, 6, 7), rng.uniform(-4, 4, 7), rng.uniform(0.2, 1.0, 7)])
+    return Landmarks(pos, np.array([3, 3, 4, 4, 5, 5, 5]))
+
+
+def _moved(objs: Landmarks, t: np.ndarray, noise: float, seed: int = 1) -> Landmarks:
+    rng = np.random.default_rng(seed)
+    pos = apply(t, objs.positions) + rng.normal(scale=noise, size=objs.positions.shape)
+    return Landmarks(pos, objs.classes.copy())
+
+
+@pytest.mark.parametrize("dof", [4, 6])
+def test_objects_fit_recovers_the_pose_despite_a_wrong_object(dof: int) -> None:
+    a = _scene()
+    move = rigid(3.0, -2.0, 0.4, yaw=math.radians(123.0))  # a's frame into b's
+    b = _moved(a, move, 0.05)
+    b.positions[0] += (2.5, 0.0, 0.0)  # one object moved (a wrong match if associated)
+    fit = match_landmarks(a, b, dof)
+    assert fit.found, fit.reason
+    truth = np.linalg.inv(move)
+    err = apply(fit.transform, b.positions[1:]) - apply(truth, b.positions[1:])
+    assert np.max(np.linalg.norm(err, axis=1)) < 0.2
+    assert fit.inliers == 6 and 0 not in fit.pairs[:, 0]
+    assert fit.ambiguity <= 0.5
+
+
+def test_objects_fit_refuses_too_few_and_reports_symmetry() -> None:
+    a = Landmarks(np.array([[0.0, 0.0, 0.5], [4.0, 0.0, 0.5]]), np.array([5, 5]))
+    one = match_landmarks(a, Landmarks(a.positions[:1], a.classes[:1]))
+    assert not one.found and "expected at least 2" in (one.reason or "")
+    other_class = match_landmarks(a, Landmarks(a.positions, np.array([3, 4])))
+    assert not other_class.found and "shared class" in (other_class.reason or "")
+    symmetric = match_landmarks(a, _moved(a, rigid(1.0, 2.0, yaw=0.3), 0.0))
+    assert symmetric.found and symmetric.ambiguity == 1.0  # turned round it fits as well
+    six = match_landmarks(a, a, 6)
+    assert not six.found and "at least 3" in (six.reason or "")
+
+
+# The sim office: two rooms of one shape, so geometry alone cannot tell them apart; a depth
+# camera's objects (class-labelled) can, against a 3D LiDAR's map that has no classes.
+@pytest.fixture(scope="module")
+def office() -> dict[str, tuple[MapCloud, Landmarks, np.ndarray]]:
+    from colonyd.mapping import integrate_observation
+    from plugins.checks import pose_matrix
+    from plugins.sim import AGENTS, Path
+    from plugins.source import open_source
+    from voxel.grid import VoxelGrid
+    from voxel.objects import extract_objects
+
+    out = {}
+    for world, agent in (
+        ("office", "depth-1"),
+        ("office", "lidar3d-1"),
+        ("office", "lidar-1"),
+        ("room", "depth-1"),
+    ):
+        spec = f"sim:world={world},agent={agent},frames=120,noise=0"
+        src = open_source(spec, resolution=0.1)
+        grid = VoxelGrid(0.1, block_shape="planar" if agent == "lidar-1" else "cube")
+        for obs in src:
+            integrate_observation(grid, obs, sensor=src.adapter.sensor_model, reliability=1.0)
+        d = grid.delta_since(0)
+        known = ~np.isnan(d.logodds)
+        cloud = MapCloud.from_keys(0.1, d.keys[known], d.logodds[known] >= 0, agent)
+        objs = extract_objects(grid, exclude=frozenset({1, 2}), min_voxels=20, link=3.0)
+        s = AGENTS[world][agent]
+        x, y, yaw = Path(s.waypoints, s.speed, s.turn_rate)(0.0)  # evaluation only
+        out[f"{world}:{agent}"] = (
+            cloud,
+            Landmarks.of([(o.class_id, o.position) for o in objs]),
+            pose_matrix(x, y, 0.0, yaw),
+        )
+    return out
+
+
+def _error(found: np.ndarray, a_start: np.ndarray, b_start: np.ndarray) -> tuple[float, float]:
+    e = np.linalg.inv(np.linalg.inv(a_start) @ b_start) @ found
+    return float(np.linalg.norm(e[:3, 3])), abs(math.degrees(math.atan2(e[1, 0], e[0, 0])))
+
+
+def test_objects_settle_the_symmetric_office_and_geometry_alone_refuses(office) -> None:
+    a, oa, sa = office["office:depth-1"]
+    b, ob, sb = office["office:lidar3d-1"]
+    alone = align_clouds(a, b, AlignParams(dof=4))
+    assert not alone.aligned and "ambiguous" in (alone.reason or "")
+    both = align_clouds(a, b, AlignParams(dof=4), objects_a=oa, objects_b=ob)
+    assert both.aligned, both.reason
+    t_err, yaw_err = _error(both.transform, sa, sb)
+    assert t_err < 0.1 and yaw_err < 2.0
+    assert both.objects is not None and both.objects["supported"] >= 2
+    assert both.objects["contradicted"] == 0 and both.objects["poses_ruled_out"] >= 1
+    assert both.geometric_ambiguity > 0.5 >= both.ambiguity and "objects" in both.method
+
+
+def test_a_2d_scan_aligns_to_the_slice_of_a_3d_map(office) -> None:
+    a, _, sa = office["office:lidar3d-1"]
+    b, _, sb = office["office:lidar-1"]
+    assert b.planar and not a.planar
+    result = align_clouds(a, b, AlignParams(dof=4))
+    assert result.aligned, result.reason
+    assert result.method.startswith("slice+") and result.dof == 3
+    t_err, yaw_err = _error(result.transform, sa, sb)
+    assert t_err < 0.1 and yaw_err < 2.0
+
+
+def test_objects_in_the_other_maps_open_space_refuse_a_foreign_map(office) -> None:
+    a, oa, _ = office["office:lidar3d-1"]
+    b, ob, _ = office["room:depth-1"]  # the room fits one office room by geometry
+    result = align_clouds(a, b, AlignParams(dof=4), objects_a=oa, objects_b=ob)
+    assert not result.aligned
+    assert result.objects is not None and result.objects["contradicted"] >= 1
