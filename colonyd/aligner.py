@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import multiprocessing
+import multiprocessing.pool
+import threading
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from typing import Any, TypeVar
+
+from colonyd.errors import StoppedError
 
 T = TypeVar("T")
 
@@ -13,18 +16,32 @@ T = TypeVar("T")
 class Aligner:
     """One spawned worker process for registration (seconds of numpy and Python per attempt):
     in a thread of the daemon it would hold the interpreter lock while peers' deltas wait in the
-    inbox. Spawned, never forked, so no Zenoh session is copied; started on first use."""
+    inbox. Spawned, never forked, so no Zenoh session is copied; started on first use; `close`
+    ends it at once, even in the middle of an attempt."""
 
     def __init__(self) -> None:
-        self._pool: ProcessPoolExecutor | None = None
+        self._pool: multiprocessing.pool.Pool | None = None
+        self._closed = threading.Event()
 
     def run(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
-        """`fn(*args, **kwargs)` in the worker (arguments and result are pickled)."""
+        """`fn(*args, **kwargs)` in the worker (arguments and result are pickled); StoppedError
+        if the aligner is closed before it returns."""
+        if self._closed.is_set():
+            raise StoppedError("the aligner is closed: no registration is started")
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-        return self._pool.submit(fn, *args, **kwargs).result()
+            self._pool = multiprocessing.get_context("spawn").Pool(1)
+        pending = self._pool.apply_async(fn, args, kwargs)
+        while True:
+            try:
+                result: T = pending.get(timeout=0.2)
+                return result
+            except multiprocessing.TimeoutError:
+                if self._closed.is_set():
+                    raise StoppedError("the aligner was closed during a registration") from None
 
     def close(self) -> None:
+        self._closed.set()
         if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool.terminate()
+            self._pool.join()
             self._pool = None

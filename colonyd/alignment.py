@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from colonyd.aligner import Aligner
 from colonyd.errors import WireError
 from colonyd.frames import Header, frame_of
 from colonyd.layers import Layer
@@ -73,16 +74,16 @@ def align_layers(
     dof: int,
     own_objects: Sequence[ObjectCentroid | WireObject] = (),
     peer_objects: Sequence[ObjectCentroid | WireObject] = (),
+    aligner: Aligner | None = None,
 ) -> Alignment:
     """Register `peer`'s layer to `own`'s by geometry and both object lists: the transform of
-    the peer's frame into ours."""
-    return align_clouds(
-        layer_cloud(own),
-        layer_cloud(peer),
-        AlignParams(dof=dof),
-        objects_a=landmarks_of(own_objects),
-        objects_b=landmarks_of(peer_objects),
-    )
+    the peer's frame into ours. The layers are read here; the registration itself runs in the
+    `aligner`'s worker process when one is given (in this thread otherwise)."""
+    a, b, params = layer_cloud(own), layer_cloud(peer), AlignParams(dof=dof)
+    objects_a, objects_b = landmarks_of(own_objects), landmarks_of(peer_objects)
+    if aligner is None:
+        return align_clouds(a, b, params, objects_a=objects_a, objects_b=objects_b)
+    return aligner.run(align_clouds, a, b, params, objects_a=objects_a, objects_b=objects_b)
 
 
 def edge_of(own: str, peer: str, result: Alignment) -> Edge:

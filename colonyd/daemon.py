@@ -17,9 +17,10 @@ from typing import Any
 
 import numpy as np
 
+from colonyd.aligner import Aligner
 from colonyd.alignment import ColonyFrame, Edge, align_layers, edge_of
 from colonyd.config import Config, load_config
-from colonyd.errors import ColonydError, DuplicateAgentError, PersistenceError
+from colonyd.errors import ColonydError, DuplicateAgentError, PersistenceError, StoppedError
 from colonyd.estimator import Estimator, PoseError, get_estimator
 from colonyd.export import encode_map
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
@@ -84,6 +85,7 @@ class Daemon:
         self._last_snapshot = time.monotonic()
         self._sources_done = threading.Event()
         self.objects = OwnObjects(frozenset(config.structure_classes))
+        self.aligner = Aligner()  # registration in a worker process, started on first use
         self._estimators: dict[str, Estimator] = {}  # per source spec
         self.pose_matrix: np.ndarray | None = None  # the latest sensor pose estimate (own frame)
         self.pose_covariance: np.ndarray | None = None
@@ -283,6 +285,7 @@ class Daemon:
 
     def _shutdown(self) -> None:
         self.stop.set()
+        self.aligner.close()  # an attempt under way ends now: the align thread can return
         for t in self._threads:
             t.join(timeout=3.0)
         own = self.layers.own
@@ -419,11 +422,15 @@ class Daemon:
             seqs = own.seq + peer.seq
             attempted[origin] = (seqs, (len(own_objects), len(peer_objects)))
             try:
-                result = align_layers(own, peer, self.config.align_dof, own_objects, peer_objects)
+                result = align_layers(
+                    own, peer, self.config.align_dof, own_objects, peer_objects, self.aligner
+                )
             except ValueError as exc:  # too little of a map to align yet
                 self.attempts[peer.origin] = {"aligned": False, "reason": str(exc)}
                 pending.pop(origin, None)
                 continue
+            except StoppedError:
+                return
             except Exception:
                 log.exception("alignment with %s failed", peer.origin)
                 continue

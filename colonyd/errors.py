@@ -33,3 +33,7 @@ class WireError(ColonydError, ValueError):
 
 class StatusError(ColonydError):
     """A running colony could not be queried."""
+
+
+class StoppedError(ColonydError):
+    """The daemon is stopping: work under way was abandoned."""

@@ -1,0 +1,42 @@
+"""The aligner's worker process: results come back; closing ends an attempt under way."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from colonyd.aligner import Aligner
+from colonyd.errors import StoppedError
+
+
+def test_work_runs_in_another_process_and_close_interrupts_it():
+    import os
+
+    aligner = Aligner()
+    try:
+        assert aligner.run(os.getpid) != os.getpid()
+        assert aligner.run(divmod, 7, 2) == (3, 1)
+        failed: list[BaseException] = []
+
+        def slow() -> None:
+            try:
+                aligner.run(time.sleep, 30)
+            except BaseException as exc:  # noqa: BLE001 - the interrupted call's error is the point
+                failed.append(exc)
+
+        t = threading.Thread(target=slow)
+        t.start()
+        time.sleep(1.0)
+        began = time.monotonic()
+        aligner.close()
+        t.join(10)
+        assert not t.is_alive() and time.monotonic() - began < 5
+        assert isinstance(failed[0], StoppedError), failed
+        with pytest.raises(StoppedError, match="closed"):
+            aligner.run(divmod, 1, 1)
+    finally:
+        aligner.close()
+    with pytest.raises(ZeroDivisionError):
+        Aligner().run(divmod, 1, 0)
