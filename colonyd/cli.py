@@ -128,6 +128,18 @@ def _version() -> str:
         return "unknown"
 
 
+def _bench_io(b: argparse.ArgumentParser, *, shared_data: bool = False) -> None:
+    """The flags every benchmark takes: where its JSON goes (and where the real data is)."""
+    b.add_argument("--json", type=Path, required=True, help="write the results here (JSON)")
+    if shared_data:
+        b.add_argument(
+            "--shared-data",
+            type=Path,
+            default=None,
+            help="the real recordings (default: ../shared/data beside the checkout)",
+        )
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="colonyd", description="colony daemon: peer-to-peer voxel mapping over Zenoh"
@@ -254,13 +266,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="benchmarks")
     bsub = p.add_subparsers(dest="bench", required=True)
     b = bsub.add_parser("integrate", help="voxel integration benchmark")
-    b.add_argument("--json", type=Path, required=True, help="write the results here (JSON)")
-    b.add_argument(
-        "--shared-data",
-        type=Path,
-        default=None,
-        help="the real recordings (default: ../shared/data beside the checkout)",
-    )
+    _bench_io(b, shared_data=True)
     b.add_argument("--repeats", type=int, default=3, help="timed runs per scenario (default 3)")
     b.add_argument(
         "--only",
@@ -269,24 +275,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="run this scenario (repeatable; also opt-in ones such as lidar3d_64x1024_0.05)",
     )
     b = bsub.add_parser("wire", help="wire-format benchmark")
-    b.add_argument("--json", type=Path, required=True, help="write the results here (JSON)")
-    b.add_argument(
-        "--shared-data",
-        type=Path,
-        default=None,
-        help="the real recordings (default: ../shared/data beside the checkout)",
-    )
+    _bench_io(b, shared_data=True)
     b = bsub.add_parser(
         "align",
         help="map alignment: real laser halves, OctoMap crops, negatives, vs map_merge's ORB",
     )
-    b.add_argument("--json", type=Path, required=True, help="write the results here (JSON)")
-    b.add_argument(
-        "--shared-data",
-        type=Path,
-        default=None,
-        help="the real recordings (default: ../shared/data beside the checkout)",
-    )
+    _bench_io(b, shared_data=True)
     b.add_argument("--seeds", type=int, default=20, help="random moves of the CARMEN halves")
     b.add_argument(
         "--octomap-seeds", type=int, default=10, help="random moves of the OctoMap crops"
@@ -316,7 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.add_argument("--no-realtime", action="store_true", help="map as fast as possible")
     b = bsub.add_parser("colony", help="N daemons on loopback: propagation, catch-up, idle cost")
-    b.add_argument("--json", type=Path, required=True, help="write the results here (JSON)")
+    _bench_io(b)
     b.add_argument("--daemons", type=int, default=4, help="daemons on loopback (default 4)")
     b.add_argument("--duration", type=float, default=10.0, help="seconds of 2 Hz gossip")
     b.add_argument(
@@ -330,7 +324,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="real daemons under faults: crash, partition, freeze, disk, "
         "busy CPU, flood, hostile input (scale with --only scale)",
     )
-    b.add_argument("--json", type=Path, required=True, help="write the results here (JSON)")
+    _bench_io(b)
     b.add_argument(
         "--only",
         action="append",

@@ -14,7 +14,7 @@ from colonyd.config import Config
 from colonyd.errors import StatusError
 from colonyd.mapping import write_floor_plan
 from colonyd.outdir import output_dir
-from colonyd.runtime import open_session, zenoh_config
+from colonyd.runtime import get_client_session
 from protocol.keyexpr import EXPORT, NAME_PATTERN, status_selector
 from voxel import keys as vk
 from voxel.octomap_io import write_bt
@@ -168,24 +168,12 @@ def export_maps(
     returns the fused map's frame and the files."""
     import re
 
-    if not config.connect and not config.multicast:
-        msg = "export needs --connect ENDPOINT (a daemon's listen endpoint) or multicast"
-        raise StatusError(msg)
     for name, value in (("layer", layer), ("agent", agent)):
         if value is not None and not re.fullmatch(NAME_PATTERN, value):
             msg = f"--{name}: expected a name matching {NAME_PATTERN}, found {value!r}"
             raise StatusError(msg)
     output_dir(out, "--out")
-    conf = zenoh_config(
-        mode="peer",
-        listen=config.listen or ["tcp/127.0.0.1:0"],
-        connect=config.connect,
-        multicast=config.multicast,
-        multicast_port=config.multicast_port,
-        multicast_interface=config.multicast_interface,
-        gossip=True,
-    )
-    session = open_session(conf)
+    session = get_client_session(config, "export")
     try:
         fused, layers = fetch_maps(
             session, config.key_namespace, layer=layer, agent=agent, wait_s=wait_s

@@ -9,7 +9,7 @@ from pathlib import Path
 import zenoh
 
 from colonyd.config import Config
-from colonyd.errors import RuntimeSetupError
+from colonyd.errors import RuntimeSetupError, StatusError
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +102,25 @@ def get_session(config: Config) -> zenoh.Session:
         f"{MULTICAST_ADDRESS}:{config.multicast_port}" if config.multicast else "off",
     )
     return session
+
+
+def get_client_session(config: Config, command: str) -> zenoh.Session:
+    """A short-lived peer session for a command that talks to a running colony (`status`,
+    `export`): StatusError unless it has a daemon to connect to or multicast to find one."""
+    if not config.connect and not config.multicast:
+        msg = f"{command} needs --connect ENDPOINT (a daemon's listen endpoint) or multicast"
+        raise StatusError(msg)
+    return open_session(
+        zenoh_config(
+            mode="peer",
+            listen=config.listen or ["tcp/127.0.0.1:0"],
+            connect=config.connect,
+            multicast=config.multicast,
+            multicast_port=config.multicast_port,
+            multicast_interface=config.multicast_interface,
+            gossip=True,
+        )
+    )
 
 
 def undeclare(*entities: object) -> None:

@@ -11,7 +11,7 @@ import zenoh
 
 from colonyd.config import Config
 from colonyd.errors import StatusError
-from colonyd.runtime import open_session, undeclare, zenoh_config
+from colonyd.runtime import get_client_session, undeclare
 from colonyd.worker import Bounded, Worker
 from protocol import KeyExprError
 from protocol.keyexpr import alive_subscription, parse_key, status_key, status_selector
@@ -106,19 +106,7 @@ def collect_status(
     config: Config, *, digest: bool = False, samples: bool = False, wait_s: float = 3.0
 ) -> list[dict[str, Any]]:
     """Open a short-lived session, wait until every live member answers, return their reports."""
-    if not config.connect and not config.multicast:
-        msg = "status needs --connect ENDPOINT (a daemon's listen endpoint) or multicast"
-        raise StatusError(msg)
-    conf = zenoh_config(
-        mode="peer",
-        listen=config.listen or ["tcp/127.0.0.1:0"],
-        connect=config.connect,
-        multicast=config.multicast,
-        multicast_port=config.multicast_port,
-        multicast_interface=config.multicast_interface,
-        gossip=True,
-    )
-    session = open_session(conf)
+    session = get_client_session(config, "status")
     try:
         deadline = time.monotonic() + wait_s
         reports: list[dict[str, Any]] = []
