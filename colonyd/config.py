@@ -124,6 +124,10 @@ class Config(BaseSettings):
     anchor: str | None = Field(
         None, description="agent whose frame is the site frame (a surveyed CCTV)"
     )
+    layer_weights: dict[str, float] = Field(
+        default_factory=dict,
+        description="reliability weight in the fused map per agent id or agent kind (default 1.0)",
+    )
     objects_s: float = Field(
         2.0, ge=0, description="seconds between object-list refreshes (0: no objects)"
     )

@@ -26,7 +26,7 @@ from colonyd.export import encode_map
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.identity import get_trust, identity_path, load_signer
-from colonyd.layers import Layers, fused, write_fused
+from colonyd.layers import Layers, fused, layer_weights, write_fused
 from colonyd.logs import setup_logging
 from colonyd.mapping import integrate_observation
 from colonyd.membership import Membership, agent_alive
@@ -307,7 +307,10 @@ class Daemon:
         try:
             directory.mkdir(parents=True, exist_ok=True)
             keys, lo = fused(
-                self.layers.all(), self.config.resolution, self.colony_frame().transforms
+                self.layers.all(),
+                self.config.resolution,
+                self.colony_frame().transforms,
+                self._weights(),
             )
             write_fused(directory / self.config.agent_id, keys, lo, self.config.resolution)
             log.info(
@@ -457,6 +460,13 @@ class Daemon:
         self.gossip.publish_align(edge)
         log.info("aligned %s to our frame, %s: %s", edge.target, why, _pose_text(edge.transform))
 
+    def _weights(self) -> dict[str, float]:
+        """Each layer's reliability weight in the fused map (`layer_weights`: agent or kind)."""
+        kinds = {m.agent: m.kind for m in self.membership.table()}
+        kinds[self.config.agent_id] = self.config.kind
+        origins = [layer.origin for layer in self.layers.all()]
+        return layer_weights(self.config.layer_weights, origins, kinds)
+
     def colony_frame(self) -> ColonyFrame:
         """The colony frame from every alignment known (own and offered)."""
         agents = [layer.origin for layer in self.layers.all()]
@@ -563,7 +573,7 @@ class Daemon:
                 [],
             )
         frame = self.colony_frame()
-        keys, lo = fused(self.layers.all(), res, frame.transforms)
+        keys, lo = fused(self.layers.all(), res, frame.transforms, self._weights())
         return encode_map(
             agent, None, frame_of(frame.root), res, keys, lo, sorted(frame.transforms)
         )

@@ -89,7 +89,6 @@ class Layer:
         self.pending: dict[int, tuple[int, float, Delta]] = {}
         self.pending_size = pending_size
         self.updated = 0.0
-        self.reliability = 1.0
 
     # -- replica side ---------------------------------------------------------------------
     def offer(self, epoch: int, prev: int, seq: int, delta: Delta, created: float = 0.0) -> Applied:
@@ -364,10 +363,22 @@ class Layers:
                 self._layers.pop(origin, None)
 
 
+def layer_weights(
+    weights: dict[str, float], origins: list[str], kinds: dict[str, str]
+) -> dict[str, float]:
+    """Each origin's reliability weight in the fused view: configured for its agent id, else for
+    its kind (as its heartbeat says), else 1.0."""
+    return {o: weights.get(o, weights.get(kinds.get(o, ""), 1.0)) for o in origins}
+
+
 def fused(
-    layers: list[Layer], resolution: float, transforms: dict[str, np.ndarray] | None = None
+    layers: list[Layer],
+    resolution: float,
+    transforms: dict[str, np.ndarray] | None = None,
+    weights: dict[str, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Fused view: (keys (N,3), log-odds (N,)), the reliability-weighted sum over layers.
+    """Fused view: (keys (N,3), log-odds (N,)), the reliability-weighted sum over layers
+    (`weights` by origin, 1.0 where none is given).
 
     Without `transforms`, every layer at `resolution` is taken as already in the local frame
     (identity). With them (origin -> 4x4 taking its frame into the colony frame), only the layers
@@ -395,7 +406,7 @@ def fused(
         else:
             packed = vk.pack(keys)
         packed_parts.append(packed)
-        lo_parts.append(lo * layer.reliability)
+        lo_parts.append(lo * (weights or {}).get(layer.origin, 1.0))
     if not packed_parts:
         return np.empty((0, 3), np.int64), np.empty(0, np.float32)
     packed = np.concatenate(packed_parts)

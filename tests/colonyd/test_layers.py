@@ -7,7 +7,7 @@ import pytest
 
 from colonyd.errors import WireError
 from colonyd.grid import new_grid
-from colonyd.layers import Layer, Layers, fused
+from colonyd.layers import Layer, Layers, fused, layer_weights
 from voxel.delta import Delta
 
 
@@ -136,3 +136,15 @@ def test_admission_changes_nothing_and_refuses_our_own_layer():
     with pytest.raises(WireError, match="at most 1 peer layers") as info:
         layers.admit("q", ds)
     assert info.value.reason == "too-many-layers"
+
+
+def test_layer_weights_by_agent_then_kind_scale_the_fused_view():
+    weights = layer_weights({"cctv": 0.5, "b": 2.0}, ["a", "b", "c"], {"a": "cctv", "b": "cctv"})
+    assert weights == {"a": 0.5, "b": 2.0, "c": 1.0}  # agent id first, then kind, else 1.0
+    a, b = Layer("a", 0.1), Layer("b", 0.1)
+    _, ds = deltas(1)
+    a.offer(1, 0, 1, ds[0])
+    b.offer(1, 0, 1, ds[0])
+    _, lo = fused([a, b], 0.1, weights=weights)
+    _, one = fused([a], 0.1)
+    np.testing.assert_allclose(lo, 2.5 * one, rtol=1e-6)
