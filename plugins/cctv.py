@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from plugins.checks import as_array, as_intrinsics, as_pose, intrinsics_from_fov
+from plugins.checks import as_array, as_pose, camera_intrinsics
 from plugins.depth import DepthCamera, DepthFrame
 from plugins.errors import SensorInputError
 from plugins.observation import ObjectDetection, Observation
@@ -73,16 +73,7 @@ class CctvCamera:
         prob_miss: float = 0.4,
         noise: float = 0.0,
     ) -> None:
-        if K is not None:
-            self.K = as_intrinsics(K)
-        elif fov is not None:
-            self.K = intrinsics_from_fov(width, height, float(fov))
-        else:
-            msg = (
-                "cctv camera: expected intrinsics K or a horizontal field of view fov, "
-                "found neither"
-            )
-            raise SensorInputError(msg)
+        self.K = camera_intrinsics(K, fov, width, height, "cctv camera")
         self.pose = np.eye(4) if pose is None else as_pose(pose, "pose")
         self.distortion = np.zeros(5) if distortion is None else np.asarray(distortion, np.float64)
         if marker_length <= 0:

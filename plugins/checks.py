@@ -77,26 +77,24 @@ def intrinsics_from_fov(width: int, height: int, fov: float) -> np.ndarray:
     return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
 
 
+def camera_intrinsics(
+    K: object, fov: float | None, width: int, height: int, camera: str
+) -> np.ndarray:
+    """A camera's intrinsics: `K` if given, else a pinhole of horizontal field of view `fov`;
+    SensorInputError naming the `camera` when it has neither."""
+    if K is not None:
+        return as_intrinsics(K)
+    if fov is not None:
+        return intrinsics_from_fov(width, height, float(fov))
+    msg = f"{camera}: expected intrinsics K or a horizontal field of view fov, found neither"
+    raise SensorInputError(msg)
+
+
 def pose_matrix(
     x: float, y: float, z: float, yaw: float, pitch: float = 0.0, roll: float = 0.0
 ) -> np.ndarray:
     """4x4 transform from a position and ZYX Euler angles (radians)."""
-    cy, sy, cp, sp, cr, sr = (
-        np.cos(yaw),
-        np.sin(yaw),
-        np.cos(pitch),
-        np.sin(pitch),
-        np.cos(roll),
-        np.sin(roll),
-    )
-    pose = np.eye(4)
-    pose[:3, :3] = [
-        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-        [-sp, cp * sr, cp * cr],
-    ]
-    pose[:3, 3] = [x, y, z]
-    return pose
+    return rotation.euler_pose(x, y, z, yaw, pitch, roll)
 
 
 def quaternion_to_matrix(qx: float, qy: float, qz: float, qw: float) -> np.ndarray:

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from plugins.checks import as_array, as_intrinsics, as_pose, intrinsics_from_fov
+from plugins.checks import as_array, as_pose, camera_intrinsics
 from plugins.errors import SensorInputError
 from plugins.observation import DepthView, Observation
 from voxel.depth import camera_points
@@ -51,16 +51,7 @@ class DepthCamera:
         prob_miss: float = 0.4,
         noise: float = 0.0,
     ) -> None:
-        if K is not None:
-            self.K = as_intrinsics(K)
-        elif fov is not None:
-            self.K = intrinsics_from_fov(width, height, float(fov))
-        else:
-            msg = (
-                "depth camera: expected intrinsics K or a horizontal field of view fov, "
-                "found neither"
-            )
-            raise SensorInputError(msg)
+        self.K = camera_intrinsics(K, fov, width, height, "depth camera")
         self.width, self.height = int(width), int(height)
         if stride < 1:
             msg = f"stride: expected an integer >= 1, found {stride!r}"

@@ -24,3 +24,25 @@ def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
         canonical=True
     )
     return q
+
+
+def euler_pose(
+    x: float, y: float, z: float, yaw: float, pitch: float = 0.0, roll: float = 0.0
+) -> np.ndarray:
+    """4x4 transform: rotation Rz(yaw) Ry(pitch) Rx(roll) (ZYX Euler, radians), then (x, y, z)."""
+    cy, sy, cp, sp, cr, sr = (
+        np.cos(yaw),
+        np.sin(yaw),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(roll),
+        np.sin(roll),
+    )
+    pose = np.eye(4)
+    pose[:3, :3] = [
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ]
+    pose[:3, 3] = [x, y, z]
+    return pose

@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 
+from voxel.rotation import euler_pose
+
 
 def rigid(
     x: float = 0.0,
@@ -17,22 +19,7 @@ def rigid(
 ) -> np.ndarray:
     """4x4 transform with rotation Rz(yaw) Ry(pitch) Rx(roll) (radians) and translation (x, y,
     z)."""
-    cr, sr, cp, sp, cy, sy = (
-        math.cos(roll),
-        math.sin(roll),
-        math.cos(pitch),
-        math.sin(pitch),
-        math.cos(yaw),
-        math.sin(yaw),
-    )
-    t = np.eye(4)
-    t[:3, :3] = [
-        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-        [-sp, cp * sr, cp * cr],
-    ]
-    t[:3, 3] = (x, y, z)
-    return t
+    return euler_pose(x, y, z, yaw, pitch, roll)
 
 
 def euler(t: np.ndarray) -> tuple[float, float, float]:
