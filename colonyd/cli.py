@@ -1,5 +1,5 @@
-"""Command line: `colonyd run|status|map|localize|align|sources|bench|demo|dump-config`; the one
-place errors become exit codes."""
+"""Command line: `colonyd run|status|map|localize|align|sources|bench|demo|experiment|dump-config`;
+the one place errors become exit codes."""
 
 from __future__ import annotations
 
@@ -358,6 +358,22 @@ def build_parser() -> argparse.ArgumentParser:
         default=150.0,
         help="give up waiting for the colony after this many seconds (default 150)",
     )
+    p = sub.add_parser("experiment", help="experiments of the paper, as real daemons on loopback")
+    esub = p.add_subparsers(dest="experiment", required=True)
+    e = esub.add_parser(
+        "paper",
+        help="sim office robots localising alone and sharing (depth-alone, lidar-alone, "
+        "lidar+depth, lidar+depth+cctv): pose error against the sim's truth",
+    )
+    e.add_argument("--out", type=Path, required=True, help="where trajectories, pictures go")
+    e.add_argument("--seed", type=int, default=1, help="seed of the agents' noise (default 1)")
+    e.add_argument(
+        "--duration",
+        type=float,
+        default=60.0,
+        help="seconds of sim time each run maps, in real time (default 60)",
+    )
+    e.add_argument("--parallel", type=int, default=2, help="runs at the same time (default 2)")
     return parser
 
 
@@ -458,6 +474,12 @@ def main(argv: list[str] | None = None) -> int:
         return _align(args)
     if cmd == "bench":
         return _bench(args)
+    if cmd == "experiment":
+        from colonyd.experiment import run_paper
+
+        run_paper(args.out, seed=args.seed, duration=args.duration, parallel=args.parallel)
+        sys.stdout.write(f"wrote {args.out}: results.json, pose-error.png, <run>/\n")
+        return EXIT_OK
     if cmd == "demo":
         from colonyd.demo import run_demo
 

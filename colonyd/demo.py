@@ -7,48 +7,22 @@ import shutil
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from colonyd.bench.launcher import LocalColony
-from colonyd.demoplot import draw_colony, draw_errors
-from colonyd.export import MapReply, fetch_maps, write_maps
-from colonyd.mapping import tum_line
+from colonyd.export import MapReply, write_maps
 from colonyd.outdir import output_dir
+from colonyd.plots import Panel, draw_colony, draw_errors, track_series
+from colonyd.simrun import SimRun
+from colonyd.tracks import Track, ate, caught_up, write_tum
 
-#: The colony: (agent, what it carries, frames per second of simulated time). The 3D LiDAR robot
-#: joins halfway and catches up.
-MEMBERS = (
-    ("depth-1", "depth camera", 10.0),
-    ("lidar-1", "2D LiDAR", 10.0),
-    ("cctv-1", "CCTV", 1.0),
-)
-LATE = ("lidar3d-1", "3D LiDAR", 10.0)
-
-
-def member_spec(agent: str, rate: float, duration: float, seed: int) -> str:
-    """One sim office agent at an unknown start pose (its own frame), paced in real time."""
-    frames = max(2, int(rate * duration))
-    return f"sim:world=office,agent={agent},frames={frames},seed={seed},realtime=1"
-
-
-@dataclass
-class Track:
-    """What the demo saw of one member over time (from its status; truth for evaluation)."""
-
-    carries: str
-    joined: float
-    times: list[float] = field(default_factory=list)
-    estimate: list[np.ndarray] = field(default_factory=list)  # sensor pose, own frame
-    truth: list[np.ndarray] = field(default_factory=list)  # sensor pose, world (evaluation)
-    errors: list[tuple[float, float]] = field(default_factory=list)  # (t, pose error m)
-    aligned_at: float | None = None
-    caught_up_at: float | None = None
-    sent: int = 0
-    received: int = 0
+#: The colony: (agent, seed of its sim source). The 3D LiDAR robot joins halfway and catches up.
+MEMBERS = (("depth-1", 1), ("lidar-1", 2), ("cctv-1", 3))
+LATE = ("lidar3d-1", 9)
+#: Wheel odometry of the robots (docs/LOCALISATION.md), as in the paper's experiment.
+ODOMETRY_NOISE = "realistic"
 
 
 def _table(reports: list[dict[str, Any]], tracks: dict[str, Track], now: float) -> Any:
@@ -91,53 +65,6 @@ def _table(reports: list[dict[str, Any]], tracks: dict[str, Track], now: float) 
     return table
 
 
-def _record(reports: list[dict[str, Any]], tracks: dict[str, Track], now: float) -> None:
-    for r in reports:
-        track = tracks.get(r["agent"])
-        if track is None:
-            continue
-        counts = r["metrics"]["counts"]
-        track.sent = int(counts.get("bytes_published", 0)) + int(counts.get("bytes_served", 0))
-        track.received = int(counts.get("bytes_received", 0))
-        posed = r.get("pose_matrix") is not None and r.get("truth_matrix") is not None
-        if posed and (not track.times or now - track.times[-1] >= 0.2):
-            track.times.append(now)
-            track.estimate.append(np.array(r["pose_matrix"]))
-            track.truth.append(np.array(r["truth_matrix"]))
-        if r.get("pose_error_m") is not None:
-            track.errors.append((now, float(r["pose_error_m"])))
-        frame = r.get("colony_frame", {})
-        if (
-            track.aligned_at is None
-            and r["agent"] in frame.get("agents", {})
-            and len(frame.get("agents", {})) > 1
-        ):
-            track.aligned_at = now
-
-
-def _caught_up(reports: list[dict[str, Any]], agent: str) -> bool:
-    """True when `agent` holds every other member's layer at the version its origin reports."""
-    mine = next((r for r in reports if r["agent"] == agent), None)
-    if mine is None:
-        return False
-    for r in reports:
-        own = r.get("layers", {}).get(r["agent"])
-        if r["agent"] == agent or not own or not own.get("seq"):
-            continue
-        have = mine.get("layers", {}).get(r["agent"])
-        if have is None or have["seq"] < own["seq"]:
-            return False
-    return True
-
-
-def _ate(truth: list[np.ndarray], estimate: list[np.ndarray]) -> float | None:
-    if len(truth) < 3:
-        return None
-    from voxel.localisation.metrics import absolute_trajectory_error
-
-    return float(absolute_trajectory_error(np.array(truth), np.array(estimate)).rmse)
-
-
 def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> int:
     """Run the demo for `duration` seconds of mapping; write maps, pictures and a summary."""
     from rich.console import Console
@@ -147,50 +74,39 @@ def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> in
     output_dir(out, "--out")
     console = Console(file=sys.stdout)
     work = Path(tempfile.mkdtemp(prefix="colonyd-demo-"))
-    colony = LocalColony(work, colony="demo", heartbeat_s=0.5)
-    env = {"COLONYD_ALIGN_S": "2", "COLONYD_OBJECTS_S": "1"}
-    tracks: dict[str, Track] = {}
-    t0 = time.monotonic()
+    run = SimRun(work / "colony", "demo", odometry_noise=ODOMETRY_NOISE)
     try:
-        for i, (agent, carries, rate) in enumerate(MEMBERS):
-            d = colony.add(agent, [member_spec(agent, rate, duration, i + 1)], start=False)
-            d.env = env
-            d.start()
-            tracks[agent] = Track(carries, time.monotonic() - t0)
-        colony.wait_members(len(MEMBERS), timeout=30)
+        for agent, seed in MEMBERS:
+            run.add(agent, duration, seed)
+        run.colony.wait_members(len(MEMBERS), timeout=30)
         late_started = False
         reports: list[dict[str, Any]] = []
         with Live(console=console, refresh_per_second=2, transient=False) as live:
-            while time.monotonic() - t0 < timeout:
-                now = time.monotonic() - t0
+            while run.now() < timeout:
+                now = run.now()
                 if not late_started and now >= duration / 2:
-                    agent, carries, rate = LATE
-                    d = colony.add(agent, [member_spec(agent, rate, duration / 2, 9)], start=False)
-                    d.env = env
-                    d.start()
-                    tracks[agent] = Track(carries, now)
+                    run.add(LATE[0], duration / 2, LATE[1])
                     late_started = True
-                reports = colony.status(timeout=1.0)
-                _record(reports, tracks, now)
-                late = tracks.get(LATE[0])
-                if late and late.caught_up_at is None and _caught_up(reports, LATE[0]):
+                reports = run.poll()
+                late = run.tracks.get(LATE[0])
+                if late and late.caught_up_at is None and caught_up(reports, LATE[0]):
                     late.caught_up_at = now
-                live.update(_table(reports, tracks, now))
+                live.update(_table(reports, run.tracks, now))
                 if (
                     late_started
-                    and colony.converged()[0]
-                    and all(t.aligned_at is not None for t in tracks.values())
+                    and run.colony.converged()[0]
+                    and all(t.aligned_at is not None for t in run.tracks.values())
                 ):
                     break
-                if late_started and now > duration + 15 and colony.converged()[0]:
+                if late_started and now > duration + 15 and run.colony.converged()[0]:
                     break  # mapping is over; alignment did not complete: say so below
                 time.sleep(0.5)
-        fused, layers = fetch_maps(colony.session(), colony.namespace, agent=MEMBERS[0][0])
-        summary = _write_outputs(out, fused, layers, reports, tracks, time.monotonic() - t0)
+        fused, layers = run.maps(MEMBERS[0][0])
+        summary = _write_outputs(out, fused, layers, reports, run.tracks, run.now())
         console.print(_summary_text(summary, out))
         return 0
     finally:
-        colony.close()
+        run.close()
         shutil.rmtree(work, ignore_errors=True)
 
 
@@ -208,25 +124,13 @@ def _write_outputs(
     report = next((r for r in reports if r["agent"] == fused.agent), {})
     frame = report.get("colony_frame", {"root": "?", "agents": {}})
     colony_tf = {a: np.array(t) for a, t in frame.get("agents", {}).items()}
-    trajectories = out / "trajectories"
-    trajectories.mkdir(exist_ok=True)
     per_robot: dict[str, Any] = {}
     for agent, track in tracks.items():
-        if track.estimate:
-            (trajectories / f"{agent}.estimate.tum").write_text(
-                "".join(
-                    tum_line(t, p) + "\n" for t, p in zip(track.times, track.estimate, strict=True)
-                )
-            )
-            (trajectories / f"{agent}.groundtruth.tum").write_text(
-                "".join(
-                    tum_line(t, p) + "\n" for t, p in zip(track.times, track.truth, strict=True)
-                )
-            )
+        write_tum(track, out / "trajectories", agent)
         alive = max(seconds - track.joined, 1e-9)
         per_robot[agent] = {
             "carries": track.carries,
-            "ate_m": _ate(track.truth, track.estimate),
+            "ate_m": ate(track),
             "final_pose_error_m": track.errors[-1][1] if track.errors else None,
             "aligned": agent in colony_tf,
             "time_to_align_s": None
@@ -260,7 +164,7 @@ def _write_outputs(
         report.get("peer_objects", {}),
         report.get("objects", []),
     )
-    draw_errors(out / "pose-error.png", tracks)
+    draw_errors(out / "pose-error.png", [Panel("pose error", track_series(tracks))])
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     return summary
 

@@ -1,7 +1,9 @@
-"""Demo pictures: the fused map from above with every robot's paths and objects, and pose errors."""
+"""Pictures of a sim colony run: the fused map from above with every robot's paths and objects,
+and pose errors over time."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -11,8 +13,8 @@ import numpy as np
 from voxel import keys as vk
 
 if TYPE_CHECKING:
-    from colonyd.demo import Track
     from colonyd.export import MapReply
+    from colonyd.tracks import Track
 
 #: BGR colour per member, in order of appearance.
 COLOURS = ((40, 110, 230), (60, 170, 60), (200, 80, 40), (160, 60, 170), (30, 170, 200))
@@ -56,6 +58,9 @@ def draw_colony(
     colony_tf: dict[str, np.ndarray],
     peer_objects: dict[str, list[dict[str, Any]]],
     own_objects: list[dict[str, Any]],
+    *,
+    title: str = "",
+    colours: dict[str, int] | None = None,
 ) -> None:
     """The fused occupancy from above (free light, occupied dark), each robot's estimated path
     (solid, in the colony frame) and true path (thin grey-tinted), objects and the CCTV's view."""
@@ -84,7 +89,7 @@ def draw_colony(
     to_colony = _world_to_colony(tracks, root) if root else None
     legend: list[tuple[str, tuple[int, int, int]]] = []
     for i, (agent, track) in enumerate(tracks.items()):
-        colour = _colour(i)
+        colour = _colour((colours or {}).get(agent, i))
         legend.append((f"{agent} ({track.carries})", colour))
         if not track.estimate:
             continue
@@ -112,7 +117,8 @@ def draw_colony(
         )
     cv2.putText(
         img,
-        f"colony frame: {root or '?'}; thick: estimate, thin: truth; orange: objects",
+        f"{title + ': ' if title else ''}colony frame: {root or '?'}; "
+        "thick: estimate, thin: truth; orange: objects",
         (10, img.shape[0] - 10),
         cv2.FONT_HERSHEY_SIMPLEX,
         0.45,
@@ -138,46 +144,67 @@ def _view(img: np.ndarray, canvas: _Canvas, pose: np.ndarray, colour: tuple[int,
     cv2.polylines(img, [canvas.px(np.array(fan))], True, colour, 1, cv2.LINE_AA)
 
 
-def draw_errors(path: Path, tracks: dict[str, Track]) -> None:
-    """Pose error over time per robot (evaluation), a tick where each first aligned."""
-    w, h, pad = 800, 400, 50
-    img = np.full((h, w, 3), 255, np.uint8)
-    series = [(a, t) for a, t in tracks.items() if t.errors]
-    t_max = max((t.errors[-1][0] for _, t in series), default=1.0)
-    e_max = max((max(e for _, e in t.errors) for _, t in series), default=0.1) * 1.1 or 0.1
-    cv2.rectangle(img, (pad, pad), (w - pad, h - pad), (180, 180, 180), 1)
+@dataclass(frozen=True)
+class Series:
+    """One line of an error plot: (t, error) points, a mark where it first aligned."""
 
-    def px(t: float, e: float) -> tuple[int, int]:
-        return (int(pad + (w - 2 * pad) * t / t_max), int(h - pad - (h - 2 * pad) * e / e_max))
+    label: str
+    points: list[tuple[float, float]]
+    mark: float | None = None
+    colour: int = 0  # index into COLOURS
 
-    for i, (agent, track) in enumerate(tracks.items()):
-        colour = _colour(i)
-        if track.errors:
-            pts = np.array([px(t, e) for t, e in track.errors], np.int32)
-            cv2.polylines(img, [pts], False, colour, 2, cv2.LINE_AA)
-        if track.aligned_at is not None:
-            x = px(track.aligned_at, 0.0)[0]
-            cv2.line(img, (x, pad), (x, h - pad), colour, 1, cv2.LINE_AA)
-        cv2.putText(
+
+@dataclass(frozen=True)
+class Panel:
+    """One plot of an error figure: its title and lines."""
+
+    title: str
+    series: list[Series]
+
+
+def track_series(tracks: dict[str, Track]) -> list[Series]:
+    """The daemons' own pose errors over time, one line per member (the demo's plot)."""
+    return [
+        Series(agent, list(track.errors), track.aligned_at, i)
+        for i, (agent, track) in enumerate(tracks.items())
+    ]
+
+
+def draw_errors(path: Path, panels: list[Panel], *, note: str = "vertical: first aligned") -> None:
+    """Pose error over time (evaluation), one panel above the other, a vertical tick where each
+    line first aligned with a peer; every panel has the same time axis."""
+    w, h, pad = 800, 340, 50
+    lines = [s for p in panels for s in p.series if s.points]
+    t_max = max((max(t for t, _ in s.points) for s in lines), default=1.0) or 1.0
+    image = np.full((h * max(1, len(panels)), w, 3), 255, np.uint8)
+    for k, panel in enumerate(panels):
+        img = image[k * h : (k + 1) * h]
+        drawn = [s for s in panel.series if s.points]
+        e_max = max((max(e for _, e in s.points) for s in drawn), default=0.1) * 1.1 or 0.1
+        cv2.rectangle(img, (pad, pad), (w - pad, h - pad), (180, 180, 180), 1)
+
+        def px(t: float, e: float, e_max: float = e_max) -> tuple[int, int]:
+            return (int(pad + (w - 2 * pad) * t / t_max), int(h - pad - (h - 2 * pad) * e / e_max))
+
+        for i, s in enumerate(panel.series):
+            colour = _colour(s.colour)
+            if s.points:
+                pts = np.array([px(t, e) for t, e in s.points], np.int32)
+                cv2.polylines(img, [pts], False, colour, 2, cv2.LINE_AA)
+            if s.mark is not None:
+                x = px(s.mark, 0.0)[0]
+                cv2.line(img, (x, pad), (x, h - pad), colour, 1, cv2.LINE_AA)
+            _text(img, s.label, (pad + 10, pad + 18 * (i + 1)), colour)
+        _text(
             img,
-            agent,
-            (pad + 10, pad + 18 * (i + 1)),
-            cv2.FONT_HERSHEY_SIMPLEX,
-            0.5,
-            colour,
-            1,
-            cv2.LINE_AA,
+            f"{panel.title}: error (m, 0-{e_max:.3f}) over time (0-{t_max:.0f} s); {note}",
+            (pad, pad - 15),
+            (60, 60, 60),
         )
-    cv2.putText(
-        img,
-        f"pose error (m, 0-{e_max:.2f}) over time (0-{t_max:.0f} s); vertical: first aligned",
-        (pad, pad - 15),
-        cv2.FONT_HERSHEY_SIMPLEX,
-        0.5,
-        (60, 60, 60),
-        1,
-        cv2.LINE_AA,
-    )
-    if not cv2.imwrite(str(path), img):
+    if not cv2.imwrite(str(path), image):
         msg = f"{path}: cannot write the pose-error plot"
         raise OSError(msg)
+
+
+def _text(img: np.ndarray, text: str, at: tuple[int, int], colour: tuple[int, int, int]) -> None:
+    cv2.putText(img, text, at, cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1, cv2.LINE_AA)

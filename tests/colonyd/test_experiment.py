@@ -1,0 +1,84 @@
+"""The paper's experiment as real daemons (a short run): every output is there and sane. The order
+of the runs' errors is a benchmark's business (docs/BENCHMARKS.md), not asserted here."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+
+from colonyd.experiment import RUNS, agent_metrics
+from colonyd.tracks import Track
+
+FIELDS = {"ate_rmse_m", "final_error_m", "max_error_after_contact_m", "first_contact_s"}
+
+
+def test_experiment_paper_writes_every_output(tmp_path):
+    out = tmp_path / "paper"
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "colonyd",
+            "experiment",
+            "paper",
+            "--out",
+            str(out),
+            "--duration",
+            "5",
+            "--parallel",
+            "4",
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert run.returncode == 0, run.stdout + run.stderr
+    results = json.loads((out / "results.json").read_text())
+    assert set(results["runs"]) == set(RUNS)
+    for name, agents in RUNS.items():
+        assert set(results["runs"][name]) == set(agents), name
+        for agent in agents:
+            m = results["runs"][name][agent]
+            assert set(m) == FIELDS, (name, agent)
+            if agent != "cctv-1":  # a fixed camera has no path to evaluate
+                assert m["ate_rmse_m"] is not None and 0 <= m["ate_rmse_m"] < 1.0, (name, m)
+                assert m["final_error_m"] is not None and m["final_error_m"] >= 0
+            for trajectory in ("estimate", "groundtruth"):
+                lines = (out / name / f"{agent}.{trajectory}.tum").read_text().splitlines()
+                assert all(len(line.split()) == 8 for line in lines), (name, agent)
+                assert len(lines) >= (1 if agent == "cctv-1" else 3), (name, agent)
+        if len(agents) == 1:  # alone: nobody to meet
+            assert results["runs"][name][agents[0]]["first_contact_s"] is None
+    for picture in ["pose-error.png", *(f"{name}/topdown.png" for name in RUNS)]:
+        image = cv2.imread(str(out / picture))
+        assert image is not None and image.std() > 10, picture  # not blank
+    assert "lidar+depth+cctv" in run.stdout and "ATE" in run.stdout  # the printed table
+
+
+def test_metrics_of_a_constructed_track():
+    """Errors after the Umeyama fit: a path shifted as a whole has none; one bad last pose shows
+    in the final and the after-contact error, not before contact."""
+    track = Track("2D LiDAR", 0.0)
+    for i in range(10):
+        truth = np.eye(4)
+        truth[:3, 3] = [i * 0.5, (i % 3) * 0.2, 0.0]
+        estimate = truth.copy()
+        estimate[:3, 3] += [10.0, -3.0, 0.0]  # another frame: no error after alignment
+        track.times.append(float(i))
+        track.truth.append(truth)
+        track.estimate.append(estimate)
+    m = agent_metrics(track)
+    assert m["ate_rmse_m"] < 1e-6 and m["final_error_m"] < 1e-6
+    assert m["first_contact_s"] is None and m["max_error_after_contact_m"] is None
+    track.estimate[-1] = track.estimate[-1].copy()
+    track.estimate[-1][:3, 3] += [0.0, 1.0, 0.0]
+    track.aligned_at = 8.5
+    m = agent_metrics(track)
+    assert m["final_error_m"] > 0.5
+    assert m["max_error_after_contact_m"] == m["final_error_m"]
+    assert m["first_contact_s"] == 8.5
