@@ -309,6 +309,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="sim odometry noise per run (0: drift-free; 0.02: the sim's default)",
     )
     b.add_argument("--no-realtime", action="store_true", help="map as fast as possible")
+    b = bsub.add_parser(
+        "paper",
+        help="the paper's experiment (colonyd experiment paper) over seeds, with its claims",
+    )
+    _bench_io(b)
+    b.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="default 1-5")
+    b.add_argument("--duration", type=float, default=60.0, help="seconds per run (default 60)")
+    b.add_argument("--parallel", type=int, default=2, help="runs at the same time (default 2)")
+    b.add_argument(
+        "--out-dir", type=Path, default=None, help="keep each seed's outputs here (seed-N/)"
+    )
     b = bsub.add_parser("colony", help="N daemons on loopback: propagation, catch-up, idle cost")
     _bench_io(b)
     b.add_argument("--daemons", type=int, default=4, help="daemons on loopback (default 4)")
@@ -536,6 +547,18 @@ def _bench(args: argparse.Namespace) -> int:
             command=" ".join(["colonyd", *sys.argv[1:]]),
         )
         result = {"summary": live["summary"], "json": str(args.json)}
+    elif args.bench == "paper":
+        from colonyd.bench.paper import run_paper_bench
+
+        paper = run_paper_bench(
+            args.json,
+            seeds=args.seeds,
+            duration=args.duration,
+            parallel=args.parallel,
+            out_dir=args.out_dir,
+            command=" ".join(["colonyd", *sys.argv[1:]]),
+        )
+        result = {"summary": paper["summary"], "json": str(args.json)}
     elif args.bench == "wire":
         from colonyd.bench.wire import run_wire_bench
 
