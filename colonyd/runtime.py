@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from pathlib import Path
 
 import zenoh
@@ -81,13 +82,31 @@ def get_zenoh_config(config: Config) -> zenoh.Config:
     )
 
 
+#: " at /path/to/file.rs:61." that Zenoh appends to its errors (where in its Rust source).
+_RUST_PLACE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
+#: Zenoh's error for a listen endpoint whose address is taken.
+_IN_USE = re.compile(r"listener bound to (\S+?):\s*\[.*Address already in use", re.DOTALL)
+
+
+def session_error_text(error: str) -> str:
+    """What a Zenoh error says, for people: a listen address in use is named with what to do;
+    otherwise the text without the Rust source places."""
+    in_use = _IN_USE.search(error)
+    if in_use:
+        return (
+            f"cannot listen on {in_use.group(1)}: the address is already in use (another colonyd "
+            "or another program listens there); expected a free address: stop that program or "
+            "choose another --listen endpoint"
+        )
+    return "cannot open the Zenoh session: " + _RUST_PLACE.sub("", error).strip()
+
+
 def open_session(conf: zenoh.Config) -> zenoh.Session:
     """Open a session; the caller closes it in `finally`."""
     try:
         return zenoh.open(conf)
     except zenoh.ZError as exc:
-        msg = f"cannot open the Zenoh session: {exc}"
-        raise RuntimeSetupError(msg) from None
+        raise RuntimeSetupError(session_error_text(str(exc))) from None
 
 
 def get_session(config: Config) -> zenoh.Session:

@@ -131,3 +131,40 @@ def test_colonyd_map_bad_source_fails_with_a_clear_message(tmp_path: Path) -> No
     )
     assert run.returncode != 0
     assert "nosuch" in run.stderr
+
+
+def test_listen_port_in_use_is_named_without_rust_source_paths(tmp_path: Path) -> None:
+    """A daemon whose --listen address is taken says which endpoint and that it is in use, with
+    the documented exit code of a Zenoh session error (1), not Zenoh's Rust source places."""
+    import socket
+
+    from colonyd.cli import EXIT_FAILURE
+
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        run = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "colonyd",
+                "run",
+                "--colony",
+                "inuse",
+                "--agent-id",
+                "a",
+                "--state-dir",
+                str(tmp_path / "state"),
+                "--no-multicast",
+                "--listen",
+                f"tcp/127.0.0.1:{port}",
+            ],
+            check=False,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    assert run.returncode == EXIT_FAILURE, run.stderr
+    assert f"cannot listen on tcp/127.0.0.1:{port}: the address is already in use" in run.stderr
+    assert ".rs:" not in run.stderr and "cargo" not in run.stderr
