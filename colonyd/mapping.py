@@ -3,11 +3,12 @@ files."""
 
 from __future__ import annotations
 
+import logging
 import sys
 import time as clock
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol, TextIO
+from typing import Any, Protocol, TextIO
 
 import cv2
 import numpy as np
@@ -64,12 +65,20 @@ class NullProgress:
 
 
 class BarProgress:
-    """A one-line progress bar on a text stream (stderr), redrawn at most every 0.1 s."""
+    """A one-line progress bar on a text stream (stderr), redrawn at most every 0.1 s. While it is
+    shown, log records that go to the same stream clear the bar's line, print, and redraw it, so
+    warnings never run into the bar."""
 
     def __init__(self, stream: TextIO | None = None, width: int = 30) -> None:
         self.stream, self.width = sys.stderr if stream is None else stream, width
         self.began = clock.monotonic()
         self.drawn = 0.0
+        self.line = ""  # the bar as last drawn ("" before the first draw and after close)
+        self._handlers: list[logging.StreamHandler[Any]] = []
+        for handler in logging.getLogger().handlers:
+            if isinstance(handler, logging.StreamHandler) and handler.stream is self.stream:
+                handler.setStream(_AroundBar(self))
+                self._handlers.append(handler)
 
     def update(self, done: int, total: int | None) -> None:
         """Redraw the bar after `done` of `total` frames."""
@@ -84,13 +93,41 @@ class BarProgress:
             line = f"\r[{bar}] {done}/{total} frames {rate:.1f} fps"
         else:
             line = f"\r{done} frames {rate:.1f} fps"
+        self.line = line
         self.stream.write(line)
         self.stream.flush()
 
+    def clear(self) -> None:
+        """Blank the bar's line and return to its start (before a log line is written)."""
+        if self.line:
+            self.stream.write("\r" + " " * (len(self.line) - 1) + "\r")
+
     def close(self) -> None:
-        """End the bar's line."""
+        """End the bar's line; log records go straight to the stream again."""
+        for handler in self._handlers:
+            handler.setStream(self.stream)
+        self._handlers = []
+        self.line = ""
         self.stream.write("\n")
         self.stream.flush()
+
+
+class _AroundBar:
+    """The stream a log handler writes to while a bar is shown: each record clears the bar's line
+    first and redraws the bar after its newline."""
+
+    def __init__(self, bar: BarProgress) -> None:
+        self.bar = bar
+
+    def write(self, text: str) -> int:
+        self.bar.clear()
+        n = self.bar.stream.write(text)
+        if text.endswith("\n") and self.bar.line:
+            self.bar.stream.write(self.bar.line)
+        return n
+
+    def flush(self) -> None:
+        self.bar.stream.flush()
 
 
 def get_progress(enabled: bool) -> Progress:

@@ -172,3 +172,38 @@ def test_a_bulk_observation_is_applied_as_the_next_version() -> None:
 def test_colonyd_map_maps_a_synthetic_source(tmp_path: Path) -> None:
     summary = map_source("synthetic:scans=3,rate=1000,points=90", 0.1, tmp_path, progress=False)
     assert summary.frames == 3 and summary.points == 270 and summary.occupied > 0
+
+
+def _rendered(text: str) -> list[str]:
+    """The lines a terminal shows for `text`: a carriage return starts its line over."""
+    return [line.split("\r")[-1] for line in text.split("\n")]
+
+
+def test_log_lines_do_not_run_into_the_progress_bar() -> None:
+    """A warning logged while the bar is shown gets a line of its own; the bar is drawn again
+    after it, and logging writes straight to the stream once the bar is closed."""
+    import io
+    import logging
+
+    from colonyd.mapping import BarProgress
+
+    stream = io.StringIO()
+    handler = logging.StreamHandler(stream)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
+    root = logging.getLogger()
+    root.addHandler(handler)
+    try:
+        bar = BarProgress(stream)
+        bar.update(3, 10)
+        logging.getLogger("plugins.stream").warning("skipped bad frame 4: truncated")
+        bar.drawn = 0.0
+        bar.update(10, 10)
+        bar.close()
+        logging.getLogger("plugins.stream").warning("after the bar")
+    finally:
+        root.removeHandler(handler)
+    lines = _rendered(stream.getvalue())
+    assert "WARNING skipped bad frame 4: truncated" in lines, lines
+    assert lines[-2] == "WARNING after the bar" and lines[-1] == ""
+    assert any(line.startswith("[###") and "10/10 frames" in line for line in lines), lines
+    assert handler.stream is stream
