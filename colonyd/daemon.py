@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import faulthandler
+import itertools
 import logging
 import math
 import os
@@ -92,6 +93,7 @@ class Daemon:
         self.truth_matrix: np.ndarray | None = None
         self.pose_error = PoseError()
         self.attempts: dict[str, dict[str, Any]] = {}  # peer -> last alignment attempt (JSON)
+        self.stopping: list[tuple[str, float]] = []  # shutdown steps: (name, monotonic end)
         self.conflict = ""  # set when another live daemon has our agent id and we give way
         self._conflict_logged = 0.0
         #: The last state-directory error (disk full, read-only), "" once writing works again.
@@ -126,6 +128,7 @@ class Daemon:
                     self.layers.own.seq,
                 )
                 self._main_loop()
+                self.stopping.append(("signal", time.monotonic()))
                 self.notifier.stopping()
                 log.info("stopping")
                 self._shutdown()
@@ -133,17 +136,32 @@ class Daemon:
                 self.session.close()
         finally:
             self.store.close()
-        log.info("stopped")
+        if self.stopping:
+            _Laps(self.stopping)("session")
+            took = self.stopping[-1][1] - self.stopping[0][1]
+            steps = ", ".join(
+                f"{name} {t1 - t0:.2f}" for (_, t0), (name, t1) in itertools.pairwise(self.stopping)
+            )
+            log.info("stopped in %.2f s (%s)", took, steps)
+        else:
+            log.info("stopped")
         if self.conflict:
             raise DuplicateAgentError(self.conflict)
         return 0
 
     # -- steps ----------------------------------------------------------------------------
+    def _request_stop(self) -> None:
+        """SIGTERM / SIGINT: stop, and wake the main loop now rather than at its next tick."""
+        self.stop.set()
+        gossip = getattr(self, "gossip", None)
+        if gossip is not None:
+            gossip.hb_now.set()
+
     def _install_signals(self) -> None:
         faulthandler.enable()  # a crash in native code still leaves Python stacks in the log
         faulthandler.register(signal.SIGUSR1, all_threads=True)  # stack dump for a stuck daemon
-        signal.signal(signal.SIGTERM, lambda *_: self.stop.set())
-        signal.signal(signal.SIGINT, lambda *_: self.stop.set())
+        signal.signal(signal.SIGTERM, lambda *_: self._request_stop())
+        signal.signal(signal.SIGINT, lambda *_: self._request_stop())
         signal.signal(signal.SIGHUP, lambda *_: self.reload.set())
 
     def _recover(self) -> None:
@@ -284,24 +302,32 @@ class Daemon:
             self.gossip.hb_now.wait(max(0.01, min(timeout, 0.5)))
 
     def _shutdown(self) -> None:
+        lap = _Laps(self.stopping)
         self.stop.set()
         self.aligner.close()  # an attempt under way ends now: the align thread can return
         for t in self._threads:
             t.join(timeout=3.0)
+            if t.is_alive():
+                log.warning("thread %s did not stop within 3 s; going on without it", t.name)
+        lap("threads")
         own = self.layers.own
         try:
             self._publish_once(final=True)
+            lap("final delta")
             if own.seq > 0:
                 with own.lock:
                     self.store.snapshot(own.grid, own.seq, self._published_local)
+            lap("snapshot")
         except PersistenceError as exc:  # the last good snapshot and the log stay as they were
             log.error("shutting down without a final snapshot: %s", exc)
         if self.config.export_dir is not None:
             self._export(self.config.export_dir)
+            lap("export")
         self.status_server.close()
         self.export_server.close()
         self.gossip.close()
         self.membership.close()
+        lap("undeclare")
 
     def _export(self, directory: Path) -> None:
         try:
@@ -670,6 +696,16 @@ def run_daemon(
     # 1 ms instead of 5 while mapping holds it: the latency of gossip under load.
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     return Daemon(config, config_path, flags).run()
+
+
+class _Laps:
+    """Appends (step, time now) to a list: how long each shutdown step took, for the log."""
+
+    def __init__(self, laps: list[tuple[str, float]]) -> None:
+        self.laps = laps
+
+    def __call__(self, step: str) -> None:
+        self.laps.append((step, time.monotonic()))
 
 
 def _agree(t1: np.ndarray, t2: np.ndarray, metres: float = 0.25, degrees: float = 2.0) -> bool:
