@@ -385,6 +385,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="seconds of sim time each run maps, in real time (default 60)",
     )
     e.add_argument("--parallel", type=int, default=2, help="runs at the same time (default 2)")
+    e.add_argument(
+        "--timeout",
+        type=float,
+        default=None,
+        help="end a run whose sources are not done after this many seconds and mark it "
+        "incomplete (default 6 x duration + 120)",
+    )
     return parser
 
 
@@ -488,7 +495,13 @@ def main(argv: list[str] | None = None) -> int:
     if cmd == "experiment":
         from colonyd.experiment import run_paper
 
-        run_paper(args.out, seed=args.seed, duration=args.duration, parallel=args.parallel)
+        run_paper(
+            args.out,
+            seed=args.seed,
+            duration=args.duration,
+            parallel=args.parallel,
+            timeout=args.timeout,
+        )
         sys.stdout.write(f"wrote {args.out}: results.json, pose-error.png, <run>/\n")
         return EXIT_OK
     if cmd == "demo":

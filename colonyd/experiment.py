@@ -137,13 +137,15 @@ def run_paper(
     progress: bool = True,
 ) -> dict[str, Any]:
     """Run every run of `RUNS` (at most `parallel` at a time), each for `duration` seconds of sim
-    time; write trajectories, pictures and results.json into `out`; return the results."""
+    time (a run whose sources are not done after `timeout` seconds, default 6 x duration + 120,
+    is evaluated as far as it got and marked incomplete); write trajectories, pictures and
+    results.json into `out`; return the results."""
     from rich.console import Console
     from rich.live import Live
 
     out = Path(out)
     output_dir(out, "--out")
-    timeout = timeout if timeout is not None else 3 * duration + 60
+    timeout = timeout if timeout is not None else 6 * duration + 120
     console = Console(file=sys.stdout)
     work = Path(tempfile.mkdtemp(prefix="colonyd-paper-"))
     began = time.monotonic()
