@@ -27,7 +27,14 @@ from colonyd.export import encode_map
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.identity import get_trust, identity_path, load_signer
-from colonyd.layers import Layers, fused, layer_weights, write_fused
+from colonyd.layers import (
+    Layers,
+    best_class,
+    fused,
+    fused_classes,
+    layer_weights,
+    write_fused,
+)
 from colonyd.logs import setup_logging
 from colonyd.mapping import integrate_observation
 from colonyd.membership import Membership, agent_alive
@@ -332,13 +339,11 @@ class Daemon:
     def _export(self, directory: Path) -> None:
         try:
             directory.mkdir(parents=True, exist_ok=True)
-            keys, lo = fused(
-                self.layers.all(),
-                self.config.resolution,
-                self.colony_frame().transforms,
-                self._weights(),
-            )
-            write_fused(directory / self.config.agent_id, keys, lo, self.config.resolution)
+            layers, res = self.layers.all(), self.config.resolution
+            transforms = self.colony_frame().transforms
+            keys, lo = fused(layers, res, transforms, self._weights())
+            classes = fused_classes(layers, res, keys, transforms)
+            write_fused(directory / self.config.agent_id, keys, lo, res, classes)
             log.info(
                 "fused map of %d layers (%d voxels) written to %s",
                 len(self.layers.all()),
@@ -597,11 +602,14 @@ class Daemon:
                 full.keys[known],
                 full.logodds[known],
                 [],
+                best_class(full)[0][known],
             )
         frame = self.colony_frame()
-        keys, lo = fused(self.layers.all(), res, frame.transforms, self._weights())
+        layers = self.layers.all()
+        keys, lo = fused(layers, res, frame.transforms, self._weights())
+        classes = fused_classes(layers, res, keys, frame.transforms)
         return encode_map(
-            agent, None, frame_of(frame.root), res, keys, lo, sorted(frame.transforms)
+            agent, None, frame_of(frame.root), res, keys, lo, sorted(frame.transforms), classes
         )
 
     # -- status ---------------------------------------------------------------------------

@@ -15,7 +15,7 @@ import numpy as np
 from colonyd.export import MapReply, write_maps
 from colonyd.outdir import output_dir
 from colonyd.plots import Panel, draw_colony, draw_errors, track_series
-from colonyd.simrun import SimRun
+from colonyd.simrun import AloneReplay, SimRun
 from colonyd.tracks import Track, ate, caught_up, write_tum
 
 #: The colony: (agent, seed of its sim source). The 3D LiDAR robot joins halfway and catches up.
@@ -75,7 +75,12 @@ def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> in
     console = Console(file=sys.stdout)
     work = Path(tempfile.mkdtemp(prefix="colonyd-demo-"))
     run = SimRun(work / "colony", "demo", odometry_noise=ODOMETRY_NOISE)
+    replays: dict[str, AloneReplay] = {}
     try:
+        for agent, seed, seconds in _robots(duration):  # what each robot achieves alone
+            replays[agent] = AloneReplay(
+                work / f"alone-{agent}", agent, seconds, seed, ODOMETRY_NOISE
+            )
         for agent, seed in MEMBERS:
             run.add(agent, duration, seed)
         run.colony.wait_members(len(MEMBERS), timeout=30)
@@ -102,12 +107,25 @@ def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> in
                     break  # mapping is over; alignment did not complete: say so below
                 time.sleep(0.5)
         fused, layers = run.maps(MEMBERS[0][0])
-        summary = _write_outputs(out, fused, layers, reports, run.tracks, run.now())
+        seconds = run.now()
+        run.close()  # the CPU is the alone replays' now
+        for replay in replays.values():
+            replay.hurry()
+        alone = {a: r.result(max(30.0, timeout + 60 - run.now())) for a, r in replays.items()}
+        summary = _write_outputs(out, fused, layers, reports, run.tracks, seconds, alone)
         console.print(_summary_text(summary, out))
         return 0
     finally:
+        for replay in replays.values():
+            replay.close()
         run.close()
         shutil.rmtree(work, ignore_errors=True)
+
+
+def _robots(duration: float) -> list[tuple[str, int, float]]:
+    """(agent, seed, seconds mapped) of every member that moves (the CCTV does not)."""
+    moving = [(a, seed, duration) for a, seed in MEMBERS if not a.startswith("cctv")]
+    return [*moving, (LATE[0], LATE[1], duration / 2)]
 
 
 def _write_outputs(
@@ -117,6 +135,7 @@ def _write_outputs(
     reports: list[dict[str, Any]],
     tracks: dict[str, Track],
     seconds: float,
+    alone: dict[str, dict[str, float | None]],
 ) -> dict[str, Any]:
     files = write_maps(fused, out, "map")
     for name, reply in layers.items():
@@ -131,6 +150,8 @@ def _write_outputs(
         per_robot[agent] = {
             "carries": track.carries,
             "ate_m": ate(track),
+            "ate_alone_m": _rounded(alone.get(agent, {}).get("estimate")),
+            "ate_odometry_m": _rounded(alone.get(agent, {}).get("odometry")),
             "final_pose_error_m": track.errors[-1][1] if track.errors else None,
             "aligned": agent in colony_tf,
             "time_to_align_s": None
@@ -169,6 +190,10 @@ def _write_outputs(
     return summary
 
 
+def _rounded(x: float | None) -> float | None:
+    return None if x is None else round(x, 4)
+
+
 def _summary_text(summary: dict[str, Any], out: Path) -> str:
     lines = [
         f"colony 'demo': {len(summary['robots'])} members, {summary['seconds']} s; "
@@ -184,6 +209,14 @@ def _summary_text(summary: dict[str, Any], out: Path) -> str:
         lines.append(
             f"  {agent:<10} {r['carries']:<13} ATE {ate:>9}  {align:<22} "
             f"sent {r['bytes_sent_per_s'] / 1024:.1f} KiB/s"
+        )
+    for agent, r in summary["robots"].items():
+        if r["ate_m"] is None or r["ate_alone_m"] is None:
+            continue
+        lines.append(
+            f"  {r['carries']} robot ({agent}): ATE {r['ate_alone_m']:.3f} m alone -> "
+            f"{r['ate_m']:.3f} m in the colony"
+            + ("" if r["ate_odometry_m"] is None else f" (odometry {r['ate_odometry_m']:.3f} m)")
         )
     catch = summary["late_joiner_catch_up_s"]
     lines.append(

@@ -6,6 +6,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import msgpack
 import numpy as np
 import zenoh
@@ -35,6 +36,7 @@ class MapReply:
     keys: np.ndarray  # (N, 3) int64
     logodds: np.ndarray  # (N,) float32
     layers: list[str] = field(default_factory=list)
+    classes: np.ndarray | None = None  # (N,) int16 most probable class, -1 none (if sent)
 
 
 def encode_map(
@@ -45,21 +47,22 @@ def encode_map(
     keys: np.ndarray,
     logodds: np.ndarray,
     layers: list[str],
+    classes: np.ndarray | None = None,
 ) -> bytes:
-    """The bytes a daemon answers an export query with."""
-    answer: bytes = msgpack.packb(
-        {
-            "agent": agent,
-            "layer": layer,
-            "frame": frame,
-            "resolution": float(resolution),
-            "n": len(keys),
-            "keys": np.ascontiguousarray(keys, "<i4").tobytes(),
-            "logodds": np.ascontiguousarray(logodds, "<f4").tobytes(),
-            "layers": layers,
-        },
-        use_bin_type=True,
-    )
+    """The bytes a daemon answers an export query with (`classes`: per voxel, optional)."""
+    body = {
+        "agent": agent,
+        "layer": layer,
+        "frame": frame,
+        "resolution": float(resolution),
+        "n": len(keys),
+        "keys": np.ascontiguousarray(keys, "<i4").tobytes(),
+        "logodds": np.ascontiguousarray(logodds, "<f4").tobytes(),
+        "layers": layers,
+    }
+    if classes is not None:
+        body["classes"] = np.ascontiguousarray(classes, "<i2").tobytes()
+    answer: bytes = msgpack.packb(body, use_bin_type=True)
     return answer
 
 
@@ -79,6 +82,12 @@ def decode_map(data: bytes) -> MapReply:
         if not 0 < resolution <= 10:
             raise ValueError(f"expected a resolution in (0, 10] m, found {resolution}")
         layers = [str(x) for x in d.get("layers", [])]
+        classes = None
+        if d.get("classes") is not None:
+            if len(d["classes"]) != 2 * n:
+                msg = f"expected {n} classes of 2 bytes, found {len(d['classes'])} bytes"
+                raise ValueError(msg)
+            classes = np.frombuffer(d["classes"], "<i2").astype(np.int16)
         return MapReply(
             str(d["agent"]),
             None if d["layer"] is None else str(d["layer"]),
@@ -87,6 +96,7 @@ def decode_map(data: bytes) -> MapReply:
             np.frombuffer(d["keys"], "<i4").reshape(n, 3).astype(np.int64),
             np.frombuffer(d["logodds"], "<f4").astype(np.float32),
             layers,
+            classes,
         )
     except (ValueError, KeyError, TypeError, msgpack.exceptions.ExtraData) as exc:
         msg = (
@@ -95,14 +105,51 @@ def decode_map(data: bytes) -> MapReply:
         raise StatusError(msg) from None
 
 
+#: RGB per object class (class id modulo its length): strong colours, none on the height ramp's
+#: blue-green-yellow.
+CLASS_COLOURS = np.array(
+    [
+        (230, 60, 50),
+        (250, 150, 30),
+        (200, 60, 200),
+        (140, 90, 40),
+        (255, 110, 180),
+        (120, 120, 120),
+        (170, 0, 60),
+        (255, 215, 160),
+    ],
+    np.uint8,
+)
+
+
+def map_colours(centres: np.ndarray, classes: np.ndarray | None) -> np.ndarray:
+    """RGB (N, 3) uint8 of voxel `centres`: its class's colour where it has one, else its height
+    on a blue (low) to yellow (high) ramp between the 2nd and 98th percentile of the heights."""
+    n = len(centres)
+    if n == 0:
+        return np.zeros((0, 3), np.uint8)
+    z = centres[:, 2]
+    lo, hi = np.percentile(z, [2, 98])
+    level = np.clip((z - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
+    ramp = cv2.applyColorMap(level.reshape(-1, 1), cv2.COLORMAP_VIRIDIS).reshape(n, 3)
+    colours: np.ndarray = ramp[:, ::-1].copy()  # BGR -> RGB
+    if classes is not None:
+        labelled = classes >= 0
+        colours[labelled] = CLASS_COLOURS[classes[labelled].astype(np.int64) % len(CLASS_COLOURS)]
+    return colours
+
+
 def write_maps(reply: MapReply, out: Path, stem: str) -> dict[str, Path]:
-    """`<stem>.bt` (occupied and free), `<stem>.ply` (occupied centres), and a floor plan when
-    every occupied voxel lies in one z layer (a 2D map)."""
+    """`<stem>.bt` (occupied and free), `<stem>.ply` (occupied centres, coloured by class and by
+    height where unlabelled), and a floor plan when every occupied voxel lies in one z layer (a 2D
+    map)."""
     out.mkdir(parents=True, exist_ok=True)
     occupied = reply.logodds >= 0
     files = {f"{stem}.bt": out / f"{stem}.bt", f"{stem}.ply": out / f"{stem}.ply"}
     write_bt(files[f"{stem}.bt"], reply.resolution, reply.keys, occupied)
-    write_ply(files[f"{stem}.ply"], vk.keys_to_centers(reply.keys[occupied], reply.resolution))
+    centres = vk.keys_to_centers(reply.keys[occupied], reply.resolution)
+    classes = None if reply.classes is None else reply.classes[occupied]
+    write_ply(files[f"{stem}.ply"], centres, map_colours(centres, classes))
     z = reply.keys[occupied, 2]
     if stem == "fused" and z.size and z.min() == z.max():
         files.update(

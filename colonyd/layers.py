@@ -416,11 +416,80 @@ def fused(
     return vk.unpack(uniq), total.astype(np.float32)
 
 
-def write_fused(path_stem: Path, keys: np.ndarray, logodds: np.ndarray, resolution: float) -> None:
-    """Occupied voxels of a fused view as `<stem>.ply`, occupied and free as `<stem>.bt`."""
+def best_class(full: Delta) -> tuple[np.ndarray, np.ndarray]:
+    """Per voxel of a layer's delta: its most probable class (-1: none) and that probability."""
+    n = len(full.keys)
+    ids, probs = full.channels.get("class_ids"), full.channels.get("class_probs")
+    if ids is None or probs is None:
+        return np.full(n, -1, np.int16), np.zeros(n, np.float32)
+    ids, probs = ids.reshape(n, -1), probs.reshape(n, -1)
+    column = probs.argmax(axis=1)
+    rows = np.arange(n)
+    classes = ids[rows, column].astype(np.int16)
+    return classes, np.where(classes >= 0, probs[rows, column], 0.0).astype(np.float32)
+
+
+def fused_classes(
+    layers: list[Layer],
+    resolution: float,
+    keys: np.ndarray,
+    transforms: dict[str, np.ndarray] | None = None,
+) -> np.ndarray:
+    """Per voxel of a fused view's `keys` (`fused` with the same layers, resolution and
+    transforms): the most probable class over the labelled voxels of every layer that land in it,
+    -1 where none does."""
+    packed_keys = vk.pack(np.asarray(keys, np.int64).reshape(-1, 3))
+    order = np.argsort(packed_keys)
+    ordered = packed_keys[order]
+    out = np.full(len(packed_keys), -1, np.int16)
+    if not len(ordered):
+        return out
+    targets, classes, probs = [], [], []
+    for layer in layers:
+        t = None if transforms is None else transforms.get(layer.origin)
+        if transforms is not None and t is None:
+            continue
+        if t is None and abs(layer.resolution - resolution) > 1e-9:
+            continue
+        full = layer.full()
+        cls, prob = best_class(full)
+        labelled = (cls >= 0) & ~np.isnan(full.logodds)
+        if not labelled.any():
+            continue
+        k = full.keys[labelled]
+        if t is not None:
+            centres = vk.keys_to_centers(k, layer.resolution) @ t[:3, :3].T + t[:3, 3]
+            k = vk.points_to_keys(centres, resolution)
+        packed = vk.pack(k)
+        at = np.minimum(np.searchsorted(ordered, packed), len(ordered) - 1)
+        hit = ordered[at] == packed
+        targets.append(order[at[hit]])
+        classes.append(cls[labelled][hit])
+        probs.append(prob[labelled][hit])
+    if not targets:
+        return out
+    target, cls, prob = np.concatenate(targets), np.concatenate(classes), np.concatenate(probs)
+    best = np.lexsort((-prob, target))  # per target voxel, the most probable class first
+    first = np.unique(target[best], return_index=True)[1]
+    out[target[best][first]] = cls[best][first]
+    return out
+
+
+def write_fused(
+    path_stem: Path,
+    keys: np.ndarray,
+    logodds: np.ndarray,
+    resolution: float,
+    classes: np.ndarray | None = None,
+) -> None:
+    """Occupied voxels of a fused view as `<stem>.ply` (coloured by class, by height where
+    unlabelled), occupied and free as `<stem>.bt`."""
+    from colonyd.export import map_colours
     from voxel.octomap_io import write_bt
     from voxel.ply import write_ply
 
     occ = logodds >= 0
-    write_ply(path_stem.with_suffix(".ply"), vk.keys_to_centers(keys[occ], resolution))
+    centres = vk.keys_to_centers(keys[occ], resolution)
+    colours = map_colours(centres, None if classes is None else classes[occ])
+    write_ply(path_stem.with_suffix(".ply"), centres, colours)
     write_bt(path_stem.with_suffix(".bt"), resolution, keys, occ)

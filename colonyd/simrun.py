@@ -3,6 +3,11 @@ watched through their status (the demo and the paper's experiment both are such 
 
 from __future__ import annotations
 
+import contextlib
+import json
+import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -101,3 +106,50 @@ class SimRun:
 
     def close(self) -> None:
         self.colony.close()
+
+
+class AloneReplay:
+    """One agent's sim source (same spec and seed as in a run, not paced) through its estimator
+    with nobody to share with: `colonyd localize` in a process of low priority, so that it takes
+    what the run's daemons leave of the CPU. Its ATE is what the agent achieves alone."""
+
+    def __init__(
+        self, out: Path, agent: str, duration: float, seed: int, odometry_noise: str | None
+    ) -> None:
+        self.agent, self.out = agent, Path(out)
+        spec = sim_spec(agent, duration, seed, odometry_noise=odometry_noise, realtime=False)
+        self.out.parent.mkdir(parents=True, exist_ok=True)
+        command = ["localize", "--source", spec, "--out", str(self.out), "--no-progress"]
+        with open(self.out.parent / f"{self.out.name}.log", "ab") as log:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "colonyd", *command],
+                stdin=subprocess.DEVNULL,
+                stdout=log,
+                stderr=log,
+            )
+        with contextlib.suppress(OSError):  # not permitted here: it runs at normal priority
+            os.setpriority(os.PRIO_PROCESS, self.proc.pid, 10)
+
+    def hurry(self) -> None:
+        """Back to normal priority (the run it gave way to is over)."""
+        with contextlib.suppress(OSError):  # lowering niceness needs privileges
+            os.setpriority(os.PRIO_PROCESS, self.proc.pid, 0)
+
+    def result(self, wait_s: float) -> dict[str, float | None]:
+        """ATE RMSE (m) of the estimate and of dead reckoning alone, waiting up to `wait_s`
+        seconds for the replay to finish; None for both if it did not (it is then stopped)."""
+        try:
+            self.proc.wait(max(0.0, wait_s))
+        except subprocess.TimeoutExpired:
+            self.close()
+            return {"estimate": None, "odometry": None}
+        try:
+            ate = json.loads((self.out / "results.json").read_text())["ate_rmse_m"]
+        except (OSError, ValueError, KeyError):
+            return {"estimate": None, "odometry": None}
+        return {"estimate": ate.get("estimate"), "odometry": ate.get("odometry")}
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(5)

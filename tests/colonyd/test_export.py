@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from voxel.octomap_io import read_bt
 
@@ -61,3 +62,26 @@ def test_export_fetches_the_fused_map_and_layers(make_colony, tmp_path):
         timeout=60,
     )
     assert bad.returncode == 3 and "expected a directory, found a file" in bad.stderr
+
+
+def test_map_reply_carries_classes_and_the_ply_is_coloured_by_class_then_height(tmp_path):
+    from colonyd.errors import StatusError
+    from colonyd.export import CLASS_COLOURS, decode_map, encode_map, write_maps
+    from voxel.ply import read_ply
+
+    keys = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 5], [0, 0, 20], [3, 3, 3]])
+    logodds = np.array([1.0, 1.0, 1.0, 1.0, -1.0], np.float32)
+    classes = np.array([3, 11, -1, -1, 2], np.int16)
+    data = encode_map("a", None, "a.odom", 0.1, keys, logodds, ["a"], classes)
+    reply = decode_map(data)
+    assert reply.classes is not None and reply.classes.tolist() == classes.tolist()
+    assert decode_map(encode_map("a", None, "a.odom", 0.1, keys, logodds, [])).classes is None
+    files = write_maps(reply, tmp_path, "map")
+    centres, colours = read_ply(files["map.ply"])
+    assert len(centres) == 4 and colours is not None  # the occupied voxels only
+    assert colours[0].tolist() == CLASS_COLOURS[3].tolist()
+    assert colours[1].tolist() == CLASS_COLOURS[11 % len(CLASS_COLOURS)].tolist()
+    assert colours[2].tolist() != colours[3].tolist()  # unlabelled: by height, low != high
+    bad = encode_map("a", None, "a.odom", 0.1, keys, logodds, [], classes[:3])
+    with pytest.raises(StatusError, match="expected 5 classes of 2 bytes, found 6 bytes"):
+        decode_map(bad)

@@ -148,3 +148,44 @@ def test_layer_weights_by_agent_then_kind_scale_the_fused_view():
     _, lo = fused([a, b], 0.1, weights=weights)
     _, one = fused([a], 0.1)
     np.testing.assert_allclose(lo, 2.5 * one, rtol=1e-6)
+
+
+def _labelled_layer(origin: str, points: np.ndarray, cls: int, prob: float) -> Layer:
+    """A layer whose origin saw `points` (from above) labelled `cls` with probability `prob`."""
+    from colonyd.layers import Layer
+
+    grid = new_grid(0.1)
+    n = len(points)
+    grid.integrate(
+        points,
+        np.array([0.05, 0.05, 3.05]),
+        time=1.0,
+        class_ids=np.full(n, cls, np.int64),
+        class_probs=np.full(n, prob, np.float32),
+    )
+    layer = Layer(origin, 0.1)
+    layer.offer(1, 0, 1, grid.delta_since(0))
+    return layer
+
+
+def test_fused_classes_take_the_most_probable_label_over_layers_and_frames():
+    from colonyd.layers import best_class, fused_classes
+
+    box = np.array([[0.05, 0.05, 1.05], [0.15, 0.05, 1.05]])
+    a = _labelled_layer("a", box, 3, 0.6)
+    b = _labelled_layer("b", box, 4, 0.9)  # more sure: wins where both label a voxel
+    c = _labelled_layer("c", box - [1.0, 0.0, 0.0], 5, 0.99)  # 1 m off in its own frame
+    shift = np.eye(4)
+    shift[0, 3] = 1.0  # c's frame into ours
+    transforms = {"a": np.eye(4), "b": np.eye(4), "c": shift}
+    keys, _ = fused([a, b, c], 0.1, transforms)
+    classes = fused_classes([a, b, c], 0.1, keys, transforms)
+    hit = {tuple(k): int(x) for k, x in zip(keys.tolist(), classes.tolist(), strict=True)}
+    assert hit[(0, 0, 10)] == 5 and hit[(1, 0, 10)] == 5  # c's 0.99, moved into our frame
+    classes_ab = fused_classes([a, b], 0.1, keys)
+    hit = {tuple(k): int(x) for k, x in zip(keys.tolist(), classes_ab.tolist(), strict=True)}
+    assert hit[(0, 0, 10)] == 4 and hit[(1, 0, 10)] == 4
+    free = [k for k in hit if k[2] > 10]  # the rays' free voxels above the box: unlabelled
+    assert free and all(hit[k] == -1 for k in free)
+    cls, prob = best_class(a.full())
+    assert set(cls.tolist()) == {-1, 3} and prob[cls == 3].min() > 0 and (prob[cls < 0] == 0).all()

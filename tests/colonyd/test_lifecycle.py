@@ -79,6 +79,7 @@ def test_demo_runs_and_writes_maps(tmp_path):
     import json
 
     import cv2
+    import numpy as np
 
     out = tmp_path / "demo-out"
     run = subprocess.run(
@@ -86,7 +87,7 @@ def test_demo_runs_and_writes_maps(tmp_path):
         check=False,
         capture_output=True,
         text=True,
-        timeout=150,
+        timeout=240,
     )
     assert run.returncode == 0, run.stdout + run.stderr
     summary = json.loads((out / "summary.json").read_text())
@@ -95,6 +96,13 @@ def test_demo_runs_and_writes_maps(tmp_path):
         if robot["ate_m"] is not None:
             assert robot["ate_m"] < 0.1, (agent, robot)  # the estimate, against the sim's truth
         assert robot["bytes_sent_per_s"] > 0
+        if agent != "cctv-1":  # each robot's same-seed replay alone, and its dead reckoning
+            assert 0 < robot["ate_alone_m"] < 0.5 and robot["ate_odometry_m"] > 0, (agent, robot)
+    assert "2D LiDAR robot (lidar-1): ATE" in run.stdout and "alone ->" in run.stdout
+    from voxel.ply import read_ply
+
+    _, colours = read_ply(out / "map.ply")  # coloured: by class, and by height where unlabelled
+    assert colours is not None and len(np.unique(colours, axis=0)) > 5
     assert summary["late_joiner_catch_up_s"] is not None  # lidar3d-1 caught up
     assert summary["map"]["occupied"] > 100 and summary["colony_frame"] in summary["robots"]
     assert (out / "map.bt").stat().st_size > 0 and (out / "map.ply").stat().st_size > 0
