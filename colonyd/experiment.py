@@ -183,28 +183,31 @@ def run_paper(
         "run_seconds": {name: round(done[name].seconds, 1) for name in RUNS},
     }
     (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
-    draw_errors(out / "pose-error.png", _panels(done), note="vertical: first contact")
+    draw_errors(out / "pose-error.png", _panels(done), note="vertical: first contact", axis="sim")
     if progress:
         console.print(results_table(results))
     return results
 
 
 def _panels(done: dict[str, RunResult]) -> list[Panel]:
-    """One panel per robot, one line per run it took part in."""
+    """One panel per robot, one line per run it took part in, over the robot's sim time (frames
+    mapped / frame rate: the same axis however fast a loaded machine ran each daemon)."""
+    from plugins.sim import AGENTS
+
     panels = []
     for robot in ROBOTS:
+        rate = AGENTS["office"][robot].rate
         series = []
         for name, result in done.items():
             track = result.tracks.get(robot)
             errors = None if track is None else pose_errors(track)
             if track is None or errors is None:
                 continue
+            sim = [f / rate for f in track.frames]
+            contact = None if track.aligned_frame is None else track.aligned_frame / rate
             series.append(
                 Series(
-                    name,
-                    list(zip(track.times, errors.tolist(), strict=True)),
-                    track.aligned_at,
-                    RUN_COLOUR[name],
+                    name, list(zip(sim, errors.tolist(), strict=True)), contact, RUN_COLOUR[name]
                 )
             )
         panels.append(Panel(f"{robot} (APE after Umeyama)", series))

@@ -170,9 +170,11 @@ def track_series(tracks: dict[str, Track]) -> list[Series]:
     ]
 
 
-def draw_errors(path: Path, panels: list[Panel], *, note: str = "vertical: first aligned") -> None:
+def draw_errors(
+    path: Path, panels: list[Panel], *, note: str = "vertical: first aligned", axis: str = "run"
+) -> None:
     """Pose error over time (evaluation), one panel above the other, a vertical tick where each
-    line first aligned with a peer; every panel has the same time axis."""
+    line first aligned with a peer; every panel has the same time axis (`axis` names it)."""
     w, h, pad = 800, 340, 50
     lines = [s for p in panels for s in p.series if s.points]
     t_max = max((max(t for t, _ in s.points) for s in lines), default=1.0) or 1.0
@@ -197,7 +199,7 @@ def draw_errors(path: Path, panels: list[Panel], *, note: str = "vertical: first
             _text(img, s.label, (pad + 10, pad + 18 * (i + 1)), colour)
         _text(
             img,
-            f"{panel.title}: error (m, 0-{e_max:.3f}) over time (0-{t_max:.0f} s); {note}",
+            f"{panel.title}: error (m, 0-{e_max:.3f}) over {axis} time (0-{t_max:.0f} s); {note}",
             (pad, pad - 15),
             (60, 60, 60),
         )

@@ -25,7 +25,9 @@ class Track:
     estimate: list[np.ndarray] = field(default_factory=list)  # sensor pose, own frame
     truth: list[np.ndarray] = field(default_factory=list)  # sensor pose, world (evaluation)
     errors: list[tuple[float, float]] = field(default_factory=list)  # (t, daemon's pose error m)
+    frames: list[int] = field(default_factory=list)  # frames mapped at each recorded pose
     aligned_at: float | None = None  # first status that shows it aligned with a peer
+    aligned_frame: int | None = None  # frames it had mapped by then
     caught_up_at: float | None = None
     sent: int = 0
     received: int = 0
@@ -66,10 +68,12 @@ def record(reports: list[dict[str, Any]], tracks: dict[str, Track], now: float) 
                 track.times.append(now)
                 track.estimate.append(np.array(r["pose_matrix"]))
                 track.truth.append(truth)
+                track.frames.append(int(counts.get("frames", 0)))
         if r.get("pose_error_m") is not None:
             track.errors.append((now, float(r["pose_error_m"])))
         if track.aligned_at is None and in_contact(r):
             track.aligned_at = now
+            track.aligned_frame = int(counts.get("frames", 0))
 
 
 def caught_up(reports: list[dict[str, Any]], agent: str) -> bool:
