@@ -12,12 +12,14 @@ from contextvars import ContextVar
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic.fields import FieldInfo
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 from pydantic_settings.exceptions import SettingsError
 
 from colonyd.errors import ConfigError
+from voxel.rotation import euler_pose
 
 #: Precedence, highest first: command-line flags, `COLONYD_*` environment variables, the TOML
 #: file given with `--config` (or `COLONYD_CONFIG`), built-in defaults.
@@ -124,6 +126,13 @@ class Config(BaseSettings):
     anchor: str | None = Field(
         None, description="agent whose frame is the site frame (a surveyed CCTV)"
     )
+    site_pose: list[float] | None = Field(
+        None,
+        description=(
+            "this agent's frame in the anchor's (site) frame, when known (a survey, a start "
+            "mark): x, y, z (m), yaw (deg)[, pitch, roll (deg)]; offered as a sure alignment"
+        ),
+    )
     layer_weights: dict[str, float] = Field(
         default_factory=dict,
         description="reliability weight in the fused map per agent id or agent kind (default 1.0)",
@@ -228,7 +237,34 @@ class Config(BaseSettings):
         if self.mode == "client" and not self.connect and not self.multicast:
             msg = "client mode needs --connect ENDPOINT (a router) or multicast scouting"
             raise ValueError(msg)
+        if self.site_pose is not None:
+            if len(self.site_pose) not in (4, 6):
+                msg = (
+                    "site_pose: expected 4 numbers (x, y, z, yaw_deg) or 6 (x, y, z, yaw_deg, "
+                    f"pitch_deg, roll_deg), found {len(self.site_pose)}"
+                )
+                raise ValueError(msg)
+            if self.anchor is None:
+                msg = (
+                    "site_pose: expected `anchor` (the agent whose frame is the site frame) to be "
+                    "set as well, found no anchor"
+                )
+                raise ValueError(msg)
+            if self.anchor == self.agent_id:
+                msg = (
+                    f"site_pose: expected no site pose on the anchor {self.anchor!r} itself (its "
+                    "frame is the site frame), found one"
+                )
+                raise ValueError(msg)
         return self
+
+    def site_matrix(self) -> np.ndarray | None:
+        """`site_pose` as a 4x4 transform taking this agent's frame into the site frame."""
+        if self.site_pose is None:
+            return None
+        x, y, z, *angles = self.site_pose
+        yaw, pitch, roll = (np.radians(a) for a in (*angles, 0.0, 0.0)[:3])
+        return euler_pose(x, y, z, yaw, pitch, roll)
 
     @property
     def key_namespace(self) -> str:

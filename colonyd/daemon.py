@@ -46,6 +46,13 @@ log = logging.getLogger(__name__)
 #: The own object list is published again every this many refreshes, changed or not.
 OBJECTS_REPEAT = 5
 
+#: Own alignments are offered again every this many alignment rounds, so that members that
+#: joined later (or missed an offer) learn them and compute the same colony frame.
+OFFERS_REPEAT = 3
+
+#: Alignment round period (s) of a daemon that only re-offers a surveyed `site_pose`.
+SITE_OFFER_S = 5.0
+
 #: A heartbeat claiming our origin with another epoch is from a live duplicate when its time is
 #: within this many seconds of ours (older ones are replays).
 FRESH_S = 30.0
@@ -87,6 +94,7 @@ class Daemon:
         self.objects = OwnObjects(frozenset(config.structure_classes))
         self.aligner = Aligner()  # registration in a worker process, started on first use
         self._estimators: dict[str, Estimator] = {}  # per source spec
+        self._own_edges: dict[str, Edge] = {}  # peer -> the alignment we last offered
         self.pose_matrix: np.ndarray | None = None  # the latest sensor pose estimate (own frame)
         self.pose_covariance: np.ndarray | None = None
         self.truth_matrix: np.ndarray | None = None
@@ -248,7 +256,20 @@ class Daemon:
             self._threads.append(
                 threading.Thread(target=self._objects_loop, name="objects", daemon=True)
             )
-        if self.config.align_s > 0:
+        site = self.config.site_matrix()
+        if site is not None and self.config.anchor is not None:  # a surveyed pose: sure
+            sure = Edge(
+                self.config.agent_id,
+                self.config.anchor,
+                np.linalg.inv(site),
+                1.0,
+                0,
+                0.0,
+                np.zeros((6, 6)),
+                time.time(),
+            )
+            self._offer(sure, "surveyed site_pose")
+        if self.config.align_s > 0 or site is not None:
             self._threads.append(
                 threading.Thread(target=self._align_loop, name="alignment", daemon=True)
             )
@@ -401,7 +422,14 @@ class Daemon:
         # growing (nothing new a round later); a refusal drops it. Partial maps can fit a wrong
         # place that more data refutes, and an offer cannot be taken back.
         pending: dict[str, tuple[Edge, int]] = {}
-        while not self.stop.wait(self.config.align_s):
+        rounds = 0
+        while not self.stop.wait(self.config.align_s or SITE_OFFER_S):
+            rounds += 1
+            if rounds % OFFERS_REPEAT == 0:
+                for edge in list(self._own_edges.values()):
+                    self.gossip.publish_align(edge)
+            if self.config.align_s == 0:
+                continue  # registration off: only the surveyed pose is offered
             own = self.layers.own
             own_objects = list(self.objects.current)
             grown: dict[str, int] = {}
@@ -457,6 +485,9 @@ class Daemon:
                 record["provisional"] = True
 
     def _offer(self, edge: Edge, why: str) -> None:
+        if edge.target in self._own_edges and self._own_edges[edge.target].confidence >= 1.0:
+            return  # a surveyed pose is not replaced by an estimate
+        self._own_edges[edge.target] = edge
         self.gossip.publish_align(edge)
         log.info("aligned %s to our frame, %s: %s", edge.target, why, _pose_text(edge.transform))
 
