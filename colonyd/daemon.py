@@ -26,7 +26,7 @@ from colonyd.export import encode_map
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.identity import get_trust, identity_path, load_signer
-from colonyd.layers import Layers, fused, layer_weights, write_fused
+from colonyd.layers import FusedMap, Layers, fused, layer_weights, write_fused
 from colonyd.logs import setup_logging
 from colonyd.mapping import integrate_observation
 from colonyd.membership import Membership, agent_alive
@@ -95,6 +95,7 @@ class Daemon:
         self.aligner = Aligner()  # registration in a worker process, started on first use
         self._estimators: dict[str, Estimator] = {}  # per source spec
         self._own_edges: dict[str, Edge] = {}  # peer -> the alignment we last offered
+        self.fused_map = FusedMap()  # the live fused view, kept layer by layer
         self.pose_matrix: np.ndarray | None = None  # the latest sensor pose estimate (own frame)
         self.pose_covariance: np.ndarray | None = None
         self.truth_matrix: np.ndarray | None = None
@@ -604,7 +605,7 @@ class Daemon:
                 [],
             )
         frame = self.colony_frame()
-        keys, lo = fused(self.layers.all(), res, frame.transforms, self._weights())
+        keys, lo = self.fused_map.view(self.layers.all(), res, frame.transforms, self._weights())
         return encode_map(
             agent, None, frame_of(frame.root), res, keys, lo, sorted(frame.transforms)
         )
