@@ -50,6 +50,10 @@ OBJECTS_REPEAT = 5
 #: joined later (or missed an offer) learn them and compute the same colony frame.
 OFFERS_REPEAT = 3
 
+#: An offered alignment is withdrawn after this many refusals in a row on grown maps (a pose
+#: that more data keeps refuting was wrong: a wrong merge is worse than none).
+WITHDRAW_AFTER = 3
+
 #: Alignment round period (s) of a daemon that only re-offers a surveyed `site_pose`.
 SITE_OFFER_S = 5.0
 
@@ -423,6 +427,7 @@ class Daemon:
         # growing (nothing new a round later); a refusal drops it. Partial maps can fit a wrong
         # place that more data refutes, and an offer cannot be taken back.
         pending: dict[str, tuple[Edge, int]] = {}
+        refusals: dict[str, int] = {}  # peer -> refusals in a row since our offer
         rounds = 0
         while not self.stop.wait(self.config.align_s or SITE_OFFER_S):
             rounds += 1
@@ -472,7 +477,11 @@ class Daemon:
             self.attempts[peer.origin] = record
             if not result.aligned:
                 pending.pop(origin, None)
+                refusals[origin] = refusals.get(origin, 0) + 1
+                if refusals[origin] >= WITHDRAW_AFTER:
+                    self._withdraw(origin, refusals.pop(origin))
                 continue
+            refusals.pop(origin, None)
             edge = edge_of(own.origin, peer.origin, result)
             before = pending.pop(origin, None)
             if (
@@ -491,6 +500,15 @@ class Daemon:
         self._own_edges[edge.target] = edge
         self.gossip.publish_align(edge)
         log.info("aligned %s to our frame, %s: %s", edge.target, why, _pose_text(edge.transform))
+
+    def _withdraw(self, peer: str, refused: int) -> None:
+        """Take back our offer for `peer` (not a surveyed one): an offer of confidence 0."""
+        edge = self._own_edges.get(peer)
+        if edge is None or edge.confidence >= 1.0:
+            return
+        del self._own_edges[peer]
+        self.gossip.publish_align(replace(edge, confidence=0.0, time=time.time()))
+        log.warning("withdrew our alignment with %s: refused %d times in a row", peer, refused)
 
     def _weights(self) -> dict[str, float]:
         """Each layer's reliability weight in the fused map (`layer_weights`: agent or kind)."""
