@@ -19,7 +19,7 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 from pydantic_settings.exceptions import SettingsError
 
 from colonyd.errors import ConfigError
-from voxel.rotation import euler_pose
+from voxel.rotation import pose_from_degrees
 
 #: Precedence, highest first: command-line flags, `COLONYD_*` environment variables, the TOML
 #: file given with `--config` (or `COLONYD_CONFIG`), built-in defaults.
@@ -262,9 +262,7 @@ class Config(BaseSettings):
         """`site_pose` as a 4x4 transform taking this agent's frame into the site frame."""
         if self.site_pose is None:
             return None
-        x, y, z, *angles = self.site_pose
-        yaw, pitch, roll = (np.radians(a) for a in (*angles, 0.0, 0.0)[:3])
-        return euler_pose(x, y, z, yaw, pitch, roll)
+        return pose_from_degrees(self.site_pose)
 
     @property
     def key_namespace(self) -> str:

@@ -65,9 +65,7 @@ def parse_mount(text: str, field: str = "mount") -> np.ndarray:
             f"(e.g. 0.2/0/0.3/0), found {text!r}"
         )
         raise SensorInputError(msg)
-    x, y, z, *angles = values
-    yaw, pitch, roll = (np.radians(a) for a in (*angles, 0.0, 0.0)[:3])
-    return rotation.euler_pose(x, y, z, yaw, pitch, roll)
+    return rotation.pose_from_degrees(values)
 
 
 def as_intrinsics(value: object, field: str = "K") -> np.ndarray:
