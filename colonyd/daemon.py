@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 import zlib
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -57,11 +58,14 @@ def get_store(config: Config) -> StateStore:
     return StateStore(config.state_dir, config.agent_id, config.resolution, config.block_shape)
 
 
-def get_sources(config: Config, stop: threading.Event) -> list[Source]:
-    """The configured sources; those whose spec sets no seed take one derived from the agent id."""
+def get_sources(
+    config: Config, stop: threading.Event, session: Callable[[], Any] | None = None
+) -> list[Source]:
+    """The configured sources; those whose spec sets no seed take one derived from the agent id;
+    network sources (`ros2:`) read through `session()` once mapping starts."""
     seed = zlib.crc32(config.agent_id.encode()) % (1 << 16)
     return [
-        open_source(spec, resolution=config.resolution, seed=seed + i, stop=stop)
+        open_source(spec, resolution=config.resolution, seed=seed + i, stop=stop, session=session)
         for i, spec in enumerate(config.sources)
     ]
 
@@ -106,9 +110,8 @@ class Daemon:
             output_dir(cfg.export_dir, "export_dir")
         self.store = get_store(cfg)
         try:
-            self._sources = get_sources(
-                cfg, self.stop
-            )  # bad specs fail before the network is touched
+            # bad specs fail before the network is touched
+            self._sources = get_sources(cfg, self.stop, lambda: self.session)
             self._recover()
             self.session = get_session(cfg)
             try:
@@ -618,6 +621,15 @@ class Daemon:
             "pose_matrix": None if self.pose_matrix is None else self.pose_matrix.tolist(),
             "truth_matrix": None if self.truth_matrix is None else self.truth_matrix.tolist(),
             "sources_done": self._sources_done.is_set() or not self.config.sources,
+            "sources": [
+                {
+                    "spec": s.spec,
+                    "delivered": s.stats.delivered,
+                    "skipped": s.stats.skipped,
+                    "reasons": dict(s.stats.reasons),
+                }
+                for s in getattr(self, "_sources", [])
+            ],
             "unpublished": unpublished,
             "frame": frame_of(self.config.agent_id),
             "colony_frame": self._colony_report(),
