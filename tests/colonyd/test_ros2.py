@@ -94,7 +94,9 @@ def test_7scenes_played_as_depth_image_camera_info_tf_maps_like_colonyd_map(
     make_colony: Any, tmp_path: Path
 ) -> None:
     n = 10
-    offline = map_source(f"replay:{KITCHEN},stop={n},stride=4", 0.05, tmp_path / "offline", progress=False)
+    offline = map_source(
+        f"replay:{KITCHEN},stop={n},stride=4", 0.05, tmp_path / "offline", progress=False
+    )
     assert offline.frames == n
     ref = read_bt(tmp_path / "offline" / "map.bt")
     spec = (
