@@ -112,6 +112,7 @@ class _Reading:
     stamp: float
     frame_id: str
     arrived: float
+    data: Any = None  # what was decoded already: depth pixels, or cloud points and intensity
 
 
 def stamp_of(header: Any) -> float:
@@ -406,7 +407,12 @@ class Ros2Source:
         if not frame_id:
             text = f"{topic}: expected a header.frame_id naming the sensor frame, found ''"
             raise SensorInputError(text)
-        self._pending.append(_Reading(msg, stamp_of(msg.header), frame_id, clock.monotonic()))
+        data: Any = None  # checked now: a bad frame is refused before it waits for TF
+        if self.kind == IMAGE:
+            data = depth_pixels(msg)
+        elif self.kind == CLOUD:
+            data = cloud_points(msg)
+        self._pending.append(_Reading(msg, stamp_of(msg.header), frame_id, clock.monotonic(), data))
         while len(self._pending) > PENDING:
             old = self._pending.popleft()
             self._reject(f"{topic}@{old.stamp:.3f}", TfGapError("waited behind newer readings"))
@@ -463,7 +469,7 @@ class Ros2Source:
                 scan, pose=sensor_pose, time=t, odometry=odometry, frame=where
             )
         if self.kind == CLOUD:
-            xyz, intensity = cloud_points(msg)
+            xyz, intensity = reading.data
             return self.adapter.observe(
                 Cloud(points=xyz, intensity=intensity),
                 pose=sensor_pose,
@@ -472,7 +478,7 @@ class Ros2Source:
                 frame=where,
             )
         return self.adapter.observe(
-            DepthFrame(depth=depth_pixels(msg)),
+            DepthFrame(depth=reading.data),
             pose=sensor_pose,
             time=t,
             odometry=odometry,

@@ -10,6 +10,8 @@ from typing import Any
 
 import numpy as np
 import pytest
+import zenoh
+import zenoh.ext
 
 from colonyd.bench.integrate import iou
 from colonyd.mapping import map_source
@@ -107,3 +109,105 @@ def test_7scenes_played_as_depth_image_camera_info_tf_maps_like_colonyd_map(
     assert source["delivered"] == n and source["skipped"] == 0, source
     score = iou(live, ref.keys[ref.occupied])
     assert score >= 0.99, f"occupied IoU {score:.4f} ({len(live)} vs {ref.occupied.sum()})"
+
+
+def test_hostile_samples_are_counted_and_logged_and_the_source_goes_on(
+    make_colony: Any, tmp_path: Path
+) -> None:
+    """Wrong type, bad hash, truncated CDR, missing or short attachment, unknown encoding, a
+    100 MB sample and a TF gap: each rejected with its reason; the frames around them map."""
+    from colonyd import rosmsg
+    from colonyd.rosgraph import RosNode
+    from colonyd.runtime import open_session, zenoh_config
+    from plugins import rmw
+
+    colony = make_colony("ros2")
+    spec = "ros2:depth=/cam/depth,camera_info=/cam/info,frame=world,tf_wait=0.3,frames=3"
+    d = colony.add("robot", [spec], start=False)
+    d.env["COLONYD_LOCALISE"] = "false"
+    d.start()
+    d.wait_listening()
+    session = open_session(
+        zenoh_config(mode="peer", listen=["tcp/127.0.0.1:0"], connect=[d.endpoint])
+    )
+    node = RosNode(session, "hostile")
+    try:
+        image_t, info_t = "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo"
+        tf = node.publisher("/tf", "tf2_msgs/msg/TFMessage", block=True)
+        info = node.publisher("/cam/info", info_t, block=True)
+        image = node.publisher("/cam/depth", image_t, block=True)
+        K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+        depth = np.full((48, 64), 2000, np.uint16)
+
+        def good(t: float, attachment: bytes | None = None) -> None:
+            tf.publish(rosmsg.tf_message([rosmsg.transform_stamped(t, "world", "cam", np.eye(4))]))
+            info.publish(rosmsg.camera_info(t, "cam", K, 64, 48))
+            payload = bytes(
+                rmw.typestore().serialize_cdr(rosmsg.depth_image(t, "cam", depth), image_t)
+            )
+            if attachment is None:
+                image.put(payload)
+            else:
+                session.put(image.key, payload, attachment=attachment)
+
+        import time
+
+        time.sleep(1.0)  # declarations and routes up
+        good(100.0)
+        raw = bytes(rmw.typestore().serialize_cdr(rosmsg.depth_image(101.0, "cam", depth), image_t))
+        gid = b"\x01" * 16
+        ok = rmw.Attachment(1, 0, gid).encode()
+        odom_key = rmw.data_key(
+            0, "/cam/depth", "nav_msgs/msg/Odometry", rmw.type_hash("nav_msgs/msg/Odometry")
+        )
+        bad_hash = rmw.data_key(0, "/cam/depth", image_t, "RIHS01_" + "0" * 64)
+        session.put(odom_key, raw, attachment=ok)  # wrong type for the topic
+        session.put(bad_hash, raw, attachment=ok)  # another definition of Image
+        session.put(image.key, raw[:40], attachment=ok)  # truncated CDR
+        session.put(image.key, raw)  # no attachment
+        session.put(image.key, raw, attachment=b"\x00" * 20)  # attachment of unknown format
+        rgb = rosmsg.depth_image(101.0, "cam", depth)
+        rgb.encoding = "rgb8"
+        session.put(image.key, bytes(rmw.typestore().serialize_cdr(rgb, image_t)), attachment=ok)
+        session.put(
+            image.key,
+            bytes(100 << 20),
+            attachment=ok,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )  # 100 MB, delivered
+        gap = rosmsg.depth_image(500.0, "cam", depth)  # no transform near t = 500
+        session.put(image.key, bytes(rmw.typestore().serialize_cdr(gap, image_t)), attachment=ok)
+        time.sleep(1.0)
+        legacy = zenoh.ext.z_serialize(
+            ("sequence_number", zenoh.ext.Int64(9), "source_timestamp", zenoh.ext.Int64(0),
+             "source_gid", gid)
+        ).to_bytes()  # fmt: skip
+        good(102.0, attachment=legacy)
+        good(103.0)
+        reports = colony.wait_status(
+            lambda rs: bool(rs) and rs[0]["sources"][0]["delivered"] >= 3, within=20
+        )
+    finally:
+        node.close()
+        session.close()
+    source = reports[0]["sources"][0]
+    assert source["delivered"] == 3, source
+    assert source["reasons"] == {
+        "WrongTypeError": 2,
+        "CdrError": 1,
+        "RmwError": 2,
+        "SensorInputError": 1,
+        "TooLargeError": 1,
+        "TfGapError": 1,
+    }, source
+    assert d.alive()
+    logs = d.log_path.read_text()
+    for text in (
+        "expected sensor_msgs/msg/Image, found nav_msgs/msg/Odometry",
+        "expected CDR of sensor_msgs/msg/Image",
+        "attachment: expected rmw_zenoh's sequence number, time and GID, found none",
+        "expected 16UC1 or 32FC1 depth, found 'rgb8'",
+        "expected at most 64.0 MiB, found 100.0",
+        "TF gap: world -> cam",
+    ):
+        assert text in logs, text
