@@ -36,6 +36,7 @@ from colonyd.notify import Notifier
 from colonyd.objects import OwnObjects, to_wire
 from colonyd.outdir import output_dir
 from colonyd.persistence import StateStore
+from colonyd.rosout import Ros2Outputs, RosPublishers
 from colonyd.runtime import get_session
 from colonyd.status import StatusServer
 from plugins.observation import Observation
@@ -241,6 +242,23 @@ class Daemon:
             self.session, ns, cfg.agent_id, self.export_map, report="export"
         )
         self.gossip.start(self.membership)
+        self.ros: RosPublishers | None = None
+        if cfg.ros2_publish:
+            self.ros = RosPublishers(
+                self.session,
+                Ros2Outputs(
+                    domain=cfg.ros2_domain,
+                    node=cfg.ros2_node,
+                    map_topic=cfg.ros2_map_topic,
+                    cloud_topic=cfg.ros2_cloud_topic,
+                    objects_topic=cfg.ros2_objects_topic,
+                    frame=cfg.ros2_frame,
+                    robot_frame=cfg.ros2_robot_frame,
+                    grid_z_min=cfg.ros2_grid_z[0],
+                    grid_z_max=cfg.ros2_grid_z[1],
+                    max_points=cfg.ros2_max_points,
+                ),
+            )
 
     def _start_threads(self) -> None:
         self._threads = [
@@ -255,6 +273,8 @@ class Daemon:
             self._threads.append(
                 threading.Thread(target=self._align_loop, name="alignment", daemon=True)
             )
+        if self.ros is not None:
+            self._threads.append(threading.Thread(target=self._ros_loop, name="ros2", daemon=True))
         for t in self._threads:
             t.start()
 
@@ -301,6 +321,8 @@ class Daemon:
             log.error("shutting down without a final snapshot: %s", exc)
         if self.config.export_dir is not None:
             self._export(self.config.export_dir)
+        if self.ros is not None:
+            self.ros.close()
         self.status_server.close()
         self.export_server.close()
         self.gossip.close()
@@ -474,6 +496,54 @@ class Daemon:
         """The colony frame from every alignment known (own and offered)."""
         agents = [layer.origin for layer in self.layers.all()]
         return self.gossip.alignments.colony(agents, self.config.anchor)
+
+    # -- ROS 2 outputs (map, cloud, objects when changed; the frame every round) -----------
+    def _ros_loop(self) -> None:
+        assert self.ros is not None
+        last: tuple[Any, ...] = ()
+        res, agent = self.config.resolution, self.config.agent_id
+        while not self.stop.wait(self.config.ros2_period_s):
+            try:
+                frame = self.colony_frame()
+                own = frame.transforms.get(agent, np.eye(4) if frame.root == agent else None)
+                if own is not None:
+                    self.metrics.add("ros2_bytes", self.ros.publish_frame(own))
+                seen = (
+                    tuple((layer.origin, layer.seq) for layer in self.layers.all()),
+                    tuple((a, t.tobytes()) for a, t in sorted(frame.transforms.items())),
+                    tuple(o.object_id for o in self.objects.current),
+                )
+                if seen == last:
+                    continue
+                last = seen
+                keys, lo = fused(self.layers.all(), res, frame.transforms, self._weights())
+                self.metrics.add("ros2_bytes", self.ros.publish_map(keys, lo, res))
+                positions, ids = self._colony_objects(frame.transforms)
+                self.metrics.add("ros2_bytes", self.ros.publish_objects(positions, ids, 4 * res))
+                self.metrics.add("ros2_maps")
+            except ValueError as exc:
+                log.error("ROS 2 outputs: %s", exc)
+            except Exception:
+                log.exception("ROS 2 outputs failed")
+
+    def _colony_objects(self, transforms: dict[str, np.ndarray]) -> tuple[np.ndarray, list[int]]:
+        """Object centroids of every agent with a place in the colony frame, moved into it."""
+        positions, ids = [], []
+        agent = self.config.agent_id
+        lists: list[tuple[str, list[tuple[int, Any]]]] = [
+            (agent, [(o.object_id, o.position) for o in self.objects.current])
+        ]
+        lists += [
+            (origin, [(o.object_id, o.position) for o in self.gossip.peer_objects.get(origin)])
+            for origin in self.gossip.peer_objects.origins()
+        ]
+        for origin, objects in lists:
+            t = transforms.get(origin)
+            for object_id, position in objects:
+                if t is not None:
+                    positions.append(t[:3, :3] @ np.asarray(position, float) + t[:3, 3])
+                    ids.append(int(object_id))
+        return np.array(positions, float).reshape(-1, 3), ids
 
     # -- objects (own list refreshed and published when it changes) -----------------------
     def _objects_loop(self) -> None:

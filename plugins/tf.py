@@ -132,29 +132,31 @@ class TfTree:
         msg = f"TF gap: {edge.parent} -> {child} known for {span} s, wanted at {time:.3f}"
         raise TfGapError(msg)
 
-    def _to_root(
-        self, frame: str, time: float, tolerance: float
-    ) -> tuple[list[str], list[np.ndarray]]:
-        """Frames from `frame` up to its root and root-from-frame transforms of each."""
-        chain, poses = [frame], [np.eye(4)]
+    def _ancestors(self, frame: str) -> list[str]:
+        """`frame` and its parents up to the root (no transform evaluated)."""
+        chain = [frame]
         for _ in range(self.max_frames):
             edge = self._edges.get(chain[-1])
             if edge is None:
                 break
-            step = self._edge_at(chain[-1], edge, time, tolerance)
-            poses = [step @ p for p in poses]
-            poses.append(np.eye(4))
             chain.append(edge.parent)
-        return chain, poses
+        return chain
+
+    def _up_to(self, chain: list[str], top: str, time: float, tolerance: float) -> np.ndarray:
+        """top-from-chain[0]: the edges of `chain` below `top` only, each at `time`."""
+        pose = np.eye(4)
+        for frame in chain[: chain.index(top)]:
+            pose = self._edge_at(frame, self._edges[frame], time, tolerance) @ pose
+        return pose
 
     def lookup(self, target: str, source: str, time: float, tolerance: float = 0.0) -> np.ndarray:
-        """target-from-source at `time` (maps points in `source` into `target`); transforms up to
-        `tolerance` seconds outside an edge's history stand for it."""
+        """target-from-source at `time` (maps points in `source` into `target`), through their
+        lowest common ancestor; transforms up to `tolerance` seconds outside an edge's history
+        stand for it."""
         target, source = target.strip("/"), source.strip("/")
         if target == source:
             return np.eye(4)
-        up_s, pose_s = self._to_root(source, time, tolerance)
-        up_t, pose_t = self._to_root(target, time, tolerance)
+        up_s, up_t = self._ancestors(source), self._ancestors(target)
         common = next((f for f in up_s if f in up_t), None)
         if common is None:
             msg = (
@@ -162,16 +164,7 @@ class TfTree:
                 f"({source} reaches {up_s[-1]!r}, {target} reaches {up_t[-1]!r})"
             )
             raise TfGapError(msg)
-        common_from_source = _compose_to(up_s, pose_s, common)
-        common_from_target = _compose_to(up_t, pose_t, common)
+        common_from_source = self._up_to(up_s, common, time, tolerance)
+        common_from_target = self._up_to(up_t, common, time, tolerance)
         result: np.ndarray = np.linalg.inv(common_from_target) @ common_from_source
         return result
-
-
-def _compose_to(chain: list[str], poses: list[np.ndarray], frame: str) -> np.ndarray:
-    """frame-from-chain[0], given poses[i] = chain[-1]-from-chain[i]."""
-    i = chain.index(frame)
-    root_from_start = poses[0]
-    root_from_frame = poses[i]
-    result: np.ndarray = np.linalg.inv(root_from_frame) @ root_from_start
-    return result

@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +18,7 @@ import zenoh.ext
 
 from colonyd.bench.integrate import iou
 from colonyd.mapping import map_source
+from plugins.rosbag import cloud_points
 from tests.shared import SHARED_DATA
 from voxel.octomap_io import read_bt
 
@@ -56,11 +60,16 @@ def map_live(
     frames: int,
     rate: float,
     resolution: float,
+    *,
+    env: dict[str, str] | None = None,
+    meanwhile: Callable[[str], None] | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    """Occupied keys of the map a daemon made from the played recording, and its source report."""
+    """Occupied keys of the map a daemon made from the played recording, and its source report;
+    `meanwhile(endpoint)` runs once the map is complete, before the daemon stops."""
     colony = make_colony("ros2", extra=["--resolution", str(resolution)])
     d = colony.add("robot", [spec], start=False)
     d.env.update({"COLONYD_LOCALISE": "false", "COLONYD_EXPORT_DIR": str(tmp_path / "export")})
+    d.env.update(env or {})
     d.start()
     d.wait_listening()
     robot = play(d.endpoint, kind, path, frames, rate)
@@ -71,9 +80,64 @@ def map_live(
     )
     assert reports and reports[0]["sources_done"], reports
     source = reports[0]["sources"][0]
+    if meanwhile is not None:
+        meanwhile(d.endpoint)
     assert d.stop() == 0
     bt = read_bt(tmp_path / "export" / "robot.bt")
     return bt.keys[bt.occupied], source
+
+
+def late_subscriber(endpoint: str) -> dict[str, Any]:
+    """What a ROS 2 subscriber joining now gets: the daemon's tokens (topic -> type and QoS, node
+    names) and one decoded message per output topic (transient-local ones from the cache)."""
+    from colonyd.runtime import open_session, zenoh_config
+    from plugins import rmw
+
+    types = {
+        "/colony/map": "nav_msgs/msg/OccupancyGrid",
+        "/colony/cloud": "sensor_msgs/msg/PointCloud2",
+        "/tf": "tf2_msgs/msg/TFMessage",
+    }
+    got: dict[str, Any] = {}
+    session = open_session(
+        zenoh_config(mode="peer", listen=["tcp/127.0.0.1:0"], connect=[endpoint])
+    )
+    try:
+        time.sleep(0.5)
+        tokens: dict[str, tuple[str, str]] = {}
+        nodes = []
+        for reply in session.liveliness().get("@ros2_lv/0/**", timeout=2.0):
+            key = str(reply.ok.key_expr) if reply.ok is not None else ""
+            if "/NN/" in key:
+                nodes.append(key.split("/")[-1])
+            elif "/MP/" in key:
+                e = rmw.parse_endpoint(key)
+                tokens[e.topic] = (e.ros_type, e.qos)
+        got["tokens"], got["nodes"] = tokens, sorted(nodes)
+        done = threading.Event()
+        subs = []
+        for topic, kind in types.items():
+
+            def on(sample: Any, topic: str = topic, kind: str = kind) -> None:
+                rmw.decode_attachment(sample.attachment.to_bytes())
+                got.setdefault(
+                    topic, rmw.typestore().deserialize_cdr(sample.payload.to_bytes(), kind)
+                )
+                if all(t in got for t in types):
+                    done.set()
+
+            subs.append(
+                zenoh.ext.declare_advanced_subscriber(
+                    session,
+                    rmw.data_key(0, topic, kind, rmw.type_hash(kind)),
+                    on,
+                    history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+                )
+            )
+        done.wait(10.0)
+    finally:
+        session.close()
+    return got
 
 
 @pytest.mark.skipif(not CARMEN.is_file(), reason=f"CARMEN log not found at {CARMEN}")
@@ -85,10 +149,34 @@ def test_carmen_log_played_as_laserscan_odometry_tf_maps_like_colonyd_map(
     assert offline.frames == n
     ref = read_bt(tmp_path / "offline" / "map.bt")
     spec = f"ros2:scan=/scan,odom=/odom,frame=map,max_range=80,frames={n},queue=1000"
-    live, source = map_live(make_colony, tmp_path, spec, "carmen", CARMEN, n, 60.0, 0.1)
+    received: dict[str, Any] = {}
+    live, source = map_live(
+        make_colony, tmp_path, spec, "carmen", CARMEN, n, 60.0, 0.1,
+        env={"COLONYD_ROS2_PUBLISH": "true", "COLONYD_ROS2_PERIOD_S": "0.5"},
+        meanwhile=lambda endpoint: received.update(late_subscriber(endpoint)),
+    )  # fmt: skip
     assert source["delivered"] == n and source["skipped"] == 0, source
-    score = iou(live, ref.keys[ref.occupied])
-    assert score >= 0.99, f"occupied IoU {score:.4f} ({len(live)} vs {ref.occupied.sum()})"
+    occupied = ref.keys[ref.occupied]
+    score = iou(live, occupied)
+    assert score >= 0.99, f"occupied IoU {score:.4f} ({len(live)} vs {len(occupied)})"
+    # The daemon's ROS 2 outputs, as a subscriber joining late sees them.
+    assert received["tokens"]["/colony/map"] == ("nav_msgs/msg/OccupancyGrid", "1:1:1,1:,:,:,,")
+    assert "/colony/cloud" in received["tokens"] and "/tf" in received["tokens"]
+    assert received["nodes"] == ["colonyd"]
+    grid = received["/colony/map"]
+    assert grid.header.frame_id == "colony" and grid.info.resolution == pytest.approx(0.1)
+    cells = np.asarray(grid.data, np.int8).reshape(grid.info.height, grid.info.width)
+    iy, ix = np.nonzero(cells == 100)
+    corner = np.array([grid.info.origin.position.x, grid.info.origin.position.y])
+    cell_keys = np.round(np.column_stack([ix, iy]) + corner / 0.1).astype(np.int64)
+    plane = np.unique(occupied[:, :2], axis=0)
+    score = iou(np.column_stack([cell_keys, np.zeros(len(cell_keys), np.int64)]),
+                np.column_stack([plane, np.zeros(len(plane), np.int64)]))  # fmt: skip
+    assert score >= 0.99, f"OccupancyGrid occupied cells IoU {score:.4f}"
+    xyz, _ = cloud_points(received["/colony/cloud"])
+    assert iou(np.floor(xyz / 0.1).astype(np.int64), live) >= 0.99
+    tf = received["/tf"].transforms[0]
+    assert (tf.header.frame_id, tf.child_frame_id) == ("colony", "map")
 
 
 @pytest.mark.skipif(not KITCHEN.is_dir(), reason=f"7-Scenes frames not found at {KITCHEN}")

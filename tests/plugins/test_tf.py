@@ -58,3 +58,13 @@ def test_history_is_bounded_and_loops_and_self_edges_are_refused() -> None:
     tree.set("base", "cam", 0.0, np.eye(4), static=True)
     with pytest.raises(SensorInputError, match="at most 3 frames"):
         tree.set("base", "imu", 0.0, np.eye(4), static=True)
+
+
+def test_edges_above_the_common_ancestor_are_not_needed() -> None:
+    tree = TfTree()
+    tree.set("colony", "map", 1e9, np.eye(4), static=False)  # another clock: never at t = 5
+    tree.set("map", "base", 5.0, pose_matrix(1.0, 0.0, 0.0, 0.0), static=False)
+    tree.set("base", "laser", 0.0, np.eye(4), static=True)
+    assert tree.lookup("map", "laser", 5.0)[0, 3] == pytest.approx(1.0)
+    with pytest.raises(TfGapError, match="colony -> map"):
+        tree.lookup("colony", "laser", 5.0)
