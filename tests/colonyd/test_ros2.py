@@ -3,6 +3,8 @@ in rmw_zenoh's wire format: the same map as `colonyd map` of the recording."""
 
 from __future__ import annotations
 
+import json
+import os
 import subprocess
 import sys
 import threading
@@ -299,3 +301,58 @@ def test_hostile_samples_are_counted_and_logged_and_the_source_goes_on(
         "TF gap: world -> cam",
     ):
         assert text in logs, text
+
+
+@pytest.mark.skipif(not CARMEN.is_file(), reason=f"CARMEN log not found at {CARMEN}")
+def test_a_third_party_rmw_zenoh_client_feeds_the_daemon_and_reads_its_map(
+    make_colony: Any, tmp_path: Path
+) -> None:
+    """zenoh-ros2-sdk (PyPI, not ours) publishes scans the daemon maps, and a late subscriber of it
+    gets the daemon's OccupancyGrid and PointCloud2."""
+    pytest.importorskip("zenoh_ros2_sdk")
+    n = 60
+    map_source(f"replay:{CARMEN},stop={n}", 0.1, tmp_path / "offline", progress=False)
+    ref = read_bt(tmp_path / "offline" / "map.bt")
+    occupied = ref.keys[ref.occupied]
+    colony = make_colony("ros2")
+    spec = f"ros2:scan=/scan,odom=/odom,frame=map,max_range=80,frames={n},queue=1000"
+    d = colony.add("robot", [spec], start=False)
+    d.env.update(
+        {
+            "COLONYD_LOCALISE": "false",
+            "COLONYD_ROS2_PUBLISH": "true",
+            "COLONYD_ROS2_PERIOD_S": "0.5",
+            "COLONYD_ROS2_MAP_TOPIC": "/colony_map",  # one chunk: the SDK finds the cache of
+            "COLONYD_ROS2_CLOUD_TOPIC": "/colony_cloud",  # transient-local topics only then
+        }
+    )
+    d.start()
+    d.wait_listening()
+
+    def client(*args: str) -> dict[str, Any]:
+        run = subprocess.run(
+            [sys.executable, str(Path(__file__).with_name("ros2_sdk_client.py")), args[0],
+             str(d.port), str(tmp_path / "msgs"), *args[1:]],
+            check=False, cwd=ROOT, capture_output=True, timeout=120,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+        )  # fmt: skip
+        assert run.returncode == 0, run.stderr.decode(errors="replace")[-3000:]
+        return dict(json.loads(run.stdout.decode().strip().splitlines()[-1]))
+
+    assert client("publish", str(CARMEN), str(n)) == {"published": n}
+    reports = colony.wait_status(
+        lambda rs: bool(rs) and rs[0]["sources_done"] and not rs[0]["unpublished"], within=30
+    )
+    assert reports[0]["sources"][0]["delivered"] == n, reports[0]["sources"]
+    time.sleep(1.5)  # the last map goes out within ros2_period_s
+    got = client("subscribe")
+    assert "grid" in got and "cloud" in got, got
+    grid = got["grid"]
+    assert grid["frame"] == "colony" and grid["resolution"] == pytest.approx(0.1)
+    cells = np.round(np.array(grid["occupied"]) + np.array(grid["corner"]) / 0.1).astype(np.int64)
+    plane = np.unique(occupied[:, :2], axis=0)
+    score = iou(np.column_stack([cells, np.zeros(len(cells), np.int64)]),
+                np.column_stack([plane, np.zeros(len(plane), np.int64)]))  # fmt: skip
+    assert score >= 0.99, f"OccupancyGrid from the SDK: occupied cells IoU {score:.4f}"
+    assert got["cloud"]["fields"] == ["x", "y", "z", "rgb"]
+    assert got["cloud"]["points"] == pytest.approx(len(occupied), rel=0.01)
