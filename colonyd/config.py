@@ -179,6 +179,10 @@ class Config(BaseSettings):
     ros2_max_points: int = Field(
         2_000_000, ge=1, description="most points in the published cloud (thinned beyond)"
     )
+    ros2_type_hashes: bool = Field(
+        True,
+        description="type hashes in keys (Jazzy and later); false for Humble's rmw_zenoh",
+    )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
     @classmethod

@@ -257,6 +257,7 @@ class Daemon:
                     grid_z_min=cfg.ros2_grid_z[0],
                     grid_z_max=cfg.ros2_grid_z[1],
                     max_points=cfg.ros2_max_points,
+                    type_hashes=cfg.ros2_type_hashes,
                 ),
             )
 

@@ -36,7 +36,7 @@ class RosPublisher:
         block: bool = False,
     ) -> None:
         self.topic, self.ros_type = topic, ros_type
-        self.type_hash = rmw.type_hash(ros_type)
+        self.type_hash = rmw.type_hash(ros_type) if node.type_hashes else rmw.NO_HASH
         session, domain = node.session, node.domain
         key = rmw.data_key(domain, topic, ros_type, self.type_hash)
         qos = rmw.qos_text(reliable=reliable, transient_local=transient_local, depth=depth)
@@ -102,10 +102,23 @@ class RosPublisher:
 
 
 class RosNode:
-    """A ROS 2 node on an open Zenoh session: its NN token and a counter of entity ids."""
+    """A ROS 2 node on an open Zenoh session: its NN token and a counter of entity ids.
 
-    def __init__(self, session: zenoh.Session, name: str, domain: int = 0, namespace: str = ""):
+    `type_hashes=False` writes `TypeHashNotSupported` where keys and tokens carry a type hash, as
+    Humble's rmw_zenoh does (its subscribers match nothing else).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        name: str,
+        domain: int = 0,
+        namespace: str = "",
+        *,
+        type_hashes: bool = True,
+    ) -> None:
         self.session, self.name, self.domain, self.namespace = session, name, domain, namespace
+        self.type_hashes = type_hashes
         self.zid = str(session.zid())
         self.node_id = 0
         self._ids = 0

@@ -37,6 +37,7 @@ class Ros2Outputs:
     grid_z_min: float = -0.5
     grid_z_max: float = 2.0
     max_points: int = 2_000_000
+    type_hashes: bool = True
 
 
 def occupancy_cells(
@@ -79,7 +80,9 @@ class RosPublishers:
 
     def __init__(self, session: Any, out: Ros2Outputs) -> None:
         self.out = out
-        self.node = RosNode(session, out.node, out.domain, out.namespace)
+        self.node = RosNode(
+            session, out.node, out.domain, out.namespace, type_hashes=out.type_hashes
+        )
         latched = {"transient_local": True, "depth": 1, "block": True}
         self.grid = self.node.publisher(out.map_topic, GRID, **latched)
         self.cloud = self.node.publisher(out.cloud_topic, CLOUD, **latched)

@@ -1,7 +1,7 @@
 """A ROS 2 robot without ROS: plays a recording as rmw_zenoh topics (tests, demos, benchmarks).
 
     python -m colonyd.bench.rosrobot --connect tcp/127.0.0.1:7447 carmen LOG [--stop 300]
-    python -m colonyd.bench.rosrobot --connect tcp/127.0.0.1:7447 rgbd FOLDER [--stop 30]
+    python -m colonyd.bench.rosrobot --listen tcp/127.0.0.1:7447 rgbd FOLDER [--stop 30]
 
 CARMEN logs become /scan (LaserScan, frame laser), /odom (Odometry odom -> base_link from the
 log's wheel odometry), /tf (map -> odom, so that map -> laser is the log's reference pose) and
@@ -133,7 +133,10 @@ TF_STATIC = "/tf_static"
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--connect", required=True, help="Zenoh endpoint (router or daemon)")
+    p.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
+    p.add_argument(
+        "--listen", default="tcp/127.0.0.1:0", help="Zenoh endpoint to listen on (the robot's)"
+    )
     p.add_argument("--domain", type=int, default=0)
     p.add_argument("--rate", type=float, default=50.0, help="frames per second")
     p.add_argument("--start", type=int, default=0)
@@ -142,9 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("kind", choices=["carmen", "rgbd"])
     p.add_argument("path", type=Path)
     args = p.parse_args(argv)
-    session = open_session(
-        zenoh_config(mode="peer", listen=["tcp/127.0.0.1:0"], connect=[args.connect])
-    )
+    session = open_session(zenoh_config(mode="peer", listen=[args.listen], connect=args.connect))
     try:
         if args.kind == "carmen":
             frames = carmen_messages(args.path, args.start, args.stop)

@@ -31,14 +31,17 @@ KITCHEN = SHARED_DATA / "redkitchen-50"
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def play(endpoint: str, kind: str, path: Path, stop: int, rate: float) -> subprocess.Popen[bytes]:
-    """The robot: a separate process with its own Zenoh session, connected to the daemon."""
+def play(
+    endpoint: str, kind: str, path: Path, stop: int, rate: float, flag: str = "--connect"
+) -> subprocess.Popen[bytes]:
+    """The robot: a separate process with its own Zenoh session, connected to the daemon (or
+    listening on `endpoint`, with `flag="--listen"`)."""
     return subprocess.Popen(
         [
             sys.executable,
             "-m",
             "colonyd.bench.rosrobot",
-            "--connect",
+            flag,
             endpoint,
             "--stop",
             str(stop),
@@ -356,3 +359,31 @@ def test_a_third_party_rmw_zenoh_client_feeds_the_daemon_and_reads_its_map(
     assert score >= 0.99, f"OccupancyGrid from the SDK: occupied cells IoU {score:.4f}"
     assert got["cloud"]["fields"] == ["x", "y", "z", "rgb"]
     assert got["cloud"]["points"] == pytest.approx(len(occupied), rel=0.01)
+
+
+@pytest.mark.skipif(not CARMEN.is_file(), reason=f"CARMEN log not found at {CARMEN}")
+def test_colonyd_map_reads_a_robot_through_its_own_session(tmp_path: Path) -> None:
+    """`connect=`: the source opens its own session to the robot (here the robot listens)."""
+    from colonyd.bench.launcher import free_port
+
+    n = 50
+    offline = map_source(f"replay:{CARMEN},stop={n}", 0.1, tmp_path / "offline", progress=False)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    robot = play(endpoint, "carmen", CARMEN, n, 50.0, flag="--listen")
+    try:
+        time.sleep(1.0)  # the robot listens
+        spec = f"ros2:scan=/scan,odom=/odom,frame=map,max_range=80,frames={n},connect={endpoint}"
+        run = subprocess.run(
+            [sys.executable, "-m", "colonyd", "map", "--source", spec, "--out",
+             str(tmp_path / "live")],
+            check=False, cwd=ROOT, capture_output=True, timeout=120,
+        )  # fmt: skip
+        assert run.returncode == 0, run.stderr.decode(errors="replace")[-3000:]
+        assert f"{n} frames (0 skipped)" in run.stdout.decode()
+    finally:
+        robot.communicate(timeout=60)
+    live = read_bt(tmp_path / "live" / "map.bt")
+    ref = read_bt(tmp_path / "offline" / "map.bt")
+    assert offline.frames == n
+    score = iou(live.keys[live.occupied], ref.keys[ref.occupied])
+    assert score >= 0.99, f"occupied IoU {score:.4f}"
