@@ -163,6 +163,7 @@ def test_carmen_log_played_as_laserscan_odometry_tf_maps_like_colonyd_map(
     assert source["delivered"] == n and source["skipped"] == 0, source
     occupied = ref.keys[ref.occupied]
     score = iou(live, occupied)
+    print(f"IoU {score:.4f}")  # shown with pytest -s
     assert score >= 0.99, f"occupied IoU {score:.4f} ({len(live)} vs {len(occupied)})"
     # The daemon's ROS 2 outputs, as a subscriber joining late sees them.
     assert received["tokens"]["/colony/map"] == ("nav_msgs/msg/OccupancyGrid", "1:1:1,1:,:,:,,")
@@ -177,6 +178,7 @@ def test_carmen_log_played_as_laserscan_odometry_tf_maps_like_colonyd_map(
     plane = np.unique(occupied[:, :2], axis=0)
     score = iou(np.column_stack([cell_keys, np.zeros(len(cell_keys), np.int64)]),
                 np.column_stack([plane, np.zeros(len(plane), np.int64)]))  # fmt: skip
+    print(f"IoU {score:.4f}")  # shown with pytest -s
     assert score >= 0.99, f"OccupancyGrid occupied cells IoU {score:.4f}"
     xyz, _ = cloud_points(received["/colony/cloud"])
     assert iou(np.floor(xyz / 0.1).astype(np.int64), live) >= 0.99
@@ -201,6 +203,7 @@ def test_7scenes_played_as_depth_image_camera_info_tf_maps_like_colonyd_map(
     live, source = map_live(make_colony, tmp_path, spec, "rgbd", KITCHEN, n, 10.0, 0.05)
     assert source["delivered"] == n and source["skipped"] == 0, source
     score = iou(live, ref.keys[ref.occupied])
+    print(f"IoU {score:.4f}")  # shown with pytest -s
     assert score >= 0.99, f"occupied IoU {score:.4f} ({len(live)} vs {ref.occupied.sum()})"
 
 
@@ -356,6 +359,7 @@ def test_a_third_party_rmw_zenoh_client_feeds_the_daemon_and_reads_its_map(
     plane = np.unique(occupied[:, :2], axis=0)
     score = iou(np.column_stack([cells, np.zeros(len(cells), np.int64)]),
                 np.column_stack([plane, np.zeros(len(plane), np.int64)]))  # fmt: skip
+    print(f"IoU {score:.4f}")  # shown with pytest -s
     assert score >= 0.99, f"OccupancyGrid from the SDK: occupied cells IoU {score:.4f}"
     assert got["cloud"]["fields"] == ["x", "y", "z", "rgb"]
     assert got["cloud"]["points"] == pytest.approx(len(occupied), rel=0.01)
@@ -386,4 +390,5 @@ def test_colonyd_map_reads_a_robot_through_its_own_session(tmp_path: Path) -> No
     ref = read_bt(tmp_path / "offline" / "map.bt")
     assert offline.frames == n
     score = iou(live.keys[live.occupied], ref.keys[ref.occupied])
+    print(f"IoU {score:.4f}")  # shown with pytest -s
     assert score >= 0.99, f"occupied IoU {score:.4f}"
