@@ -374,26 +374,41 @@ class Daemon:
 
     # -- mapping (never waits on the network) ---------------------------------------------
     def _map_loop(self) -> None:
-        own = self.layers.own
+        """Recordings and simulations one after another; each live source (`ros2:`, which runs
+        until the daemon stops) in a thread of its own, so that a robot's sensors all map."""
+        live = [s for s in self._sources if getattr(s, "live", False)]
+        threads = [
+            threading.Thread(target=self._map_source, args=(s,), name=f"mapping-{i}", daemon=True)
+            for i, s in enumerate(live)
+        ]
+        for t in threads:
+            t.start()
         for source in self._sources:
             if self.stop.is_set():
                 break
-            try:
-                for obs in source:
-                    if self.stop.is_set():
-                        break
-                    try:
-                        self._integrate(own, obs, source)
-                    except ValueError as exc:  # one bad frame (voxel/plugin input errors)
-                        self.metrics.reject("bad-frame")
-                        log.warning("source %s: frame skipped: %s", source.spec, exc)
-                        continue
-                    self.metrics.add("frames")
-            except (ColonydError, ValueError) as exc:  # the source itself failed
-                log.error("source %s failed: %s", source.spec, exc)
-            except Exception:
-                log.exception("source %s failed", source.spec)
+            if source not in live:
+                self._map_source(source)
+        for t in threads:
+            t.join()
         self._sources_done.set()
+
+    def _map_source(self, source: Source) -> None:
+        own = self.layers.own
+        try:
+            for obs in source:
+                if self.stop.is_set():
+                    break
+                try:
+                    self._integrate(own, obs, source)
+                except ValueError as exc:  # one bad frame (voxel/plugin input errors)
+                    self.metrics.reject("bad-frame")
+                    log.warning("source %s: frame skipped: %s", source.spec, exc)
+                    continue
+                self.metrics.add("frames")
+        except (ColonydError, ValueError) as exc:  # the source itself failed
+            log.error("source %s failed: %s", source.spec, exc)
+        except Exception:
+            log.exception("source %s failed", source.spec)
 
     def _integrate(self, own: Any, obs: Observation, source: Source) -> None:
         if self.config.localise and obs.odometry is not None:  # map from the estimate

@@ -205,6 +205,9 @@ class Ros2Source:
         self._logged: Counter[str] = Counter()
         self.session_factory: Callable[[], Any] | None = None
 
+    #: Runs until stopped (or `frames`): a daemon gives it a mapping thread of its own.
+    live = True
+
     def _make_adapter(self, K: np.ndarray) -> SensorAdapter:
         r = self.options.max_range
         if self.kind == SCAN:

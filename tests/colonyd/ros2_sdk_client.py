@@ -79,7 +79,12 @@ def publish(port: int, log: str, frames: int) -> dict[str, Any]:
             t["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
         )
 
-    time.sleep(1.0)
+    from colonyd.bench.rosrobot import wait_for_subscriber
+
+    session = ZenohSession.get_instance(router_port=port).session
+    if not wait_for_subscriber(session, 0, "/scan", 20.0):  # as a publisher waiting for matches
+        return {"published": 0, "error": "no subscriber to /scan"}
+    time.sleep(0.5)
     n = 0
     for record in CarmenSource(Path(log), stop=frames).records():
         s = record.time
@@ -135,23 +140,26 @@ def subscribe(port: int) -> dict[str, Any]:
     from zenoh_ros2_sdk import ROS2Subscriber
 
     got: dict[str, Any] = {}
-    subs = [
-        ROS2Subscriber(
-            topic,
-            kind,
-            lambda msg, topic=topic: got.__setitem__(topic, msg),
-            router_port=port,
-            node_name="sdk_viewer",
-            qos="1:1:1,1:,:,:,,",  # reliable, transient local, depth 1: like RViz2 for /map
-        )
-        for topic, kind in (("/colony_map", TYPES[3]), ("/colony_cloud", TYPES[4]))
-    ]
-    deadline = time.monotonic() + 10
-    while len(got) < 2 and time.monotonic() < deadline:
-        time.sleep(0.1)
-    for sub in subs:
-        sub.close()
-    out: dict[str, Any] = {"hashes": [s.type_hash for s in subs]}
+    attempts = 0
+    while len(got) < 2 and attempts < 3:  # the SDK's history query has 2 s timeouts: a busy
+        attempts += 1  # machine can miss it, and the daemon republishes only on change
+        subs = [
+            ROS2Subscriber(
+                topic,
+                kind,
+                lambda msg, topic=topic: got.__setitem__(topic, msg),
+                router_port=port,
+                node_name="sdk_viewer",
+                qos="1:1:1,1:,:,:,,",  # reliable, transient local, depth 1: like RViz2 for /map
+            )
+            for topic, kind in (("/colony_map", TYPES[3]), ("/colony_cloud", TYPES[4]))
+        ]
+        deadline = time.monotonic() + 5
+        while len(got) < 2 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        for sub in subs:
+            sub.close()
+    out: dict[str, Any] = {"hashes": [s.type_hash for s in subs], "attempts": attempts}
     grid = got.get("/colony_map")
     if grid is not None:
         cells = np.asarray(grid.data, np.int8).reshape(grid.info.height, grid.info.width)
