@@ -339,11 +339,14 @@ class Ros2Source:
                         session,
                         key,
                         callback,
+                        allowed_origin=zenoh.Locality.REMOTE,
                         history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
                     )
                 )
-            else:
-                entities.append(session.declare_subscriber(key, callback))
+            else:  # REMOTE: never the daemon's own ROS 2 outputs (its /tf) on a shared session
+                entities.append(
+                    session.declare_subscriber(key, callback, allowed_origin=zenoh.Locality.REMOTE)
+                )
         for i, (role, (topic, kind)) in enumerate(self.topics.items(), start=1):
             latched = role in LATCHED
             qos = rmw.qos_text(reliable=True, transient_local=latched, depth=1 if latched else 10)

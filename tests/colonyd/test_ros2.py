@@ -102,6 +102,7 @@ def late_subscriber(endpoint: str) -> dict[str, Any]:
         "/colony/map": "nav_msgs/msg/OccupancyGrid",
         "/colony/cloud": "sensor_msgs/msg/PointCloud2",
         "/tf": "tf2_msgs/msg/TFMessage",
+        "/colony/objects": "visualization_msgs/msg/MarkerArray",
     }
     got: dict[str, Any] = {}
     session = open_session(
@@ -184,6 +185,8 @@ def test_carmen_log_played_as_laserscan_odometry_tf_maps_like_colonyd_map(
     assert iou(np.floor(xyz / 0.1).astype(np.int64), live) >= 0.99
     tf = received["/tf"].transforms[0]
     assert (tf.header.frame_id, tf.child_frame_id) == ("colony", "map")
+    markers = received["/colony/objects"].markers  # no objects in a laser log: only DELETEALL
+    assert [(m.action, m.header.frame_id) for m in markers] == [(3, "colony")]
 
 
 @pytest.mark.skipif(not KITCHEN.is_dir(), reason=f"7-Scenes frames not found at {KITCHEN}")
