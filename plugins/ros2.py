@@ -37,7 +37,7 @@ _NOMINAL_K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]
 #: Roles read transient-local (a late subscriber gets the publisher's cache).
 LATCHED = ("tf_static", "camera_info")
 #: Sensor messages waiting for their transforms, at most.
-PENDING = 16
+PENDING = 64
 
 
 class WrongTypeError(SensorInputError):
@@ -102,6 +102,7 @@ class _Sample:
     key: str
     payload: bytes
     attachment: bytes | None
+    received: float  # monotonic seconds
 
 
 @dataclass
@@ -111,7 +112,7 @@ class _Reading:
     msg: Any
     stamp: float
     frame_id: str
-    arrived: float
+    received: float  # monotonic seconds, when Zenoh handed it over
     data: Any = None  # what was decoded already: depth pixels, or cloud points and intensity
 
 
@@ -203,6 +204,7 @@ class Ros2Source:
         self._body: tuple[str, str] | None = None  # odometry frame, body frame
         self._lock = threading.Lock()
         self._logged: Counter[str] = Counter()
+        self._handled_until = 0.0  # receive time of the newest sample handled
         self.session_factory: Callable[[], Any] | None = None
 
     #: Runs until stopped (or `frames`): a daemon gives it a mapping thread of its own.
@@ -240,6 +242,7 @@ class Ros2Source:
                 key,
                 sample.payload.to_bytes(),
                 None if attachment is None else attachment.to_bytes(),
+                clock.monotonic(),
             )
             try:
                 self._queue.put_nowait(item)
@@ -366,6 +369,7 @@ class Ros2Source:
     def _handle(self, item: _Sample) -> list[Observation]:
         topic, kind = self.topics[item.role]
         self.received[item.role] += 1
+        self._handled_until = max(self._handled_until, item.received)
         found, type_hash = rmw.type_of_key(item.key)
         if found != kind:
             msg = f"{topic}: expected {kind}, found {found}"
@@ -418,19 +422,24 @@ class Ros2Source:
             data = depth_pixels(msg)
         elif self.kind == CLOUD:
             data = cloud_points(msg)
-        self._pending.append(_Reading(msg, stamp_of(msg.header), frame_id, clock.monotonic(), data))
+        self._pending.append(_Reading(msg, stamp_of(msg.header), frame_id, item.received, data))
         while len(self._pending) > PENDING:
             old = self._pending.popleft()
             self._reject(f"{topic}@{old.stamp:.3f}", TfGapError("waited behind newer readings"))
         return []
 
     def _flush(self) -> list[Observation]:
-        """Readings whose transforms are known now (in arrival order), or waited long enough."""
+        """Readings whose transforms are known now (in arrival order), or waited long enough.
+
+        A reading has waited `tf_wait` once every sample received within `tf_wait` after it has
+        been handled: a mapping thread that is behind does not turn queued transforms into gaps.
+        """
         out: list[Observation] = []
         topic = self.topics[self.sensor][0]
+        seen = clock.monotonic() if self._queue.empty() else self._handled_until
         while self._pending:
             reading = self._pending[0]
-            waited = clock.monotonic() - reading.arrived >= self.options.tf_wait
+            waited = seen - reading.received >= self.options.tf_wait
             try:
                 out.append(
                     self._observe(reading, tolerance=self.options.tf_tolerance if waited else 0.0)
