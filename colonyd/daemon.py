@@ -713,6 +713,7 @@ class Daemon:
                     "delivered": s.stats.delivered,
                     "skipped": s.stats.skipped,
                     "reasons": dict(s.stats.reasons),
+                    **({"received": dict(s.received)} if hasattr(s, "received") else {}),
                 }
                 for s in getattr(self, "_sources", [])
             ],

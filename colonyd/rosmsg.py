@@ -3,7 +3,6 @@ odometry, and the colony's outputs (occupancy grid, coloured cloud, object marke
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -228,7 +227,3 @@ def sphere_markers(
         pose[:3, 3] = p
         markers.append(make(int(i), 0, pose))
     return _t("visualization_msgs/msg/MarkerArray")(markers=markers)
-
-
-def yaw_of(pose: np.ndarray) -> float:
-    return math.atan2(pose[1, 0], pose[0, 0])

@@ -28,7 +28,6 @@ class Ros2Outputs:
 
     domain: int = 0
     node: str = "colonyd"
-    namespace: str = ""
     map_topic: str = "/colony/map"
     cloud_topic: str = "/colony/cloud"
     objects_topic: str = "/colony/objects"
@@ -80,9 +79,7 @@ class RosPublishers:
 
     def __init__(self, session: Any, out: Ros2Outputs) -> None:
         self.out = out
-        self.node = RosNode(
-            session, out.node, out.domain, out.namespace, type_hashes=out.type_hashes
-        )
+        self.node = RosNode(session, out.node, out.domain, type_hashes=out.type_hashes)
         latched = {"transient_local": True, "depth": 1, "block": True}
         self.grid = self.node.publisher(out.map_topic, GRID, **latched)
         self.cloud = self.node.publisher(out.cloud_topic, CLOUD, **latched)

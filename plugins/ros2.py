@@ -8,7 +8,7 @@ import queue
 import threading
 import time as clock
 from collections import Counter, deque
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -203,9 +203,7 @@ class Ros2Source:
         self._fixed = options.frame.strip("/") if options.frame else None
         self._body: tuple[str, str] | None = None  # odometry frame, body frame
         self._lock = threading.Lock()
-        self._logged: Counter[str] = Counter()
         self._handled_until = 0.0  # receive time of the newest sample handled
-        self.session_factory: Callable[[], Any] | None = None
 
     #: Runs until stopped (or `frames`): a daemon gives it a mapping thread of its own.
     live = True
@@ -316,7 +314,7 @@ class Ros2Source:
             except zenoh.ZError as exc:
                 msg = f"{self.spec}: cannot open a Zenoh session to {self.options.connect}: {exc}"
                 raise SourceError(msg) from None
-        factory = self.session_factory or self.context.session
+        factory = self.context.session
         if factory is None:
             msg = f"{self.spec}: expected connect= (no daemon session to share), found none"
             raise SourceError(msg)
