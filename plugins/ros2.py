@@ -82,6 +82,9 @@ class Ros2Options(Options):
     max_range: float = Field(30.0, gt=0, description="sensor range, metres")
     stride: int = Field(1, ge=1, description="depth: take every stride-th pixel on each axis")
     queue: int = Field(200, ge=1, description="samples waiting for the mapping thread, at most")
+    queue_mb: float = Field(
+        256.0, gt=0, description="bytes of samples waiting for the mapping thread, MiB, at most"
+    )
     max_mb: float = Field(64.0, gt=0, description="largest sample taken, MiB (bigger: dropped)")
     tf_wait: float = Field(
         0.5, ge=0, description="seconds a reading waits for the transforms at its time"
@@ -204,6 +207,7 @@ class Ros2Source:
         self._body: tuple[str, str] | None = None  # odometry frame, body frame
         self._lock = threading.Lock()
         self._handled_until = 0.0  # receive time of the newest sample handled
+        self._queued_bytes = 0
 
     #: Runs until stopped (or `frames`): a daemon gives it a mapping thread of its own.
     live = True
@@ -242,9 +246,18 @@ class Ros2Source:
                 None if attachment is None else attachment.to_bytes(),
                 clock.monotonic(),
             )
+            with self._lock:
+                if self._queued_bytes + size > self.options.queue_mb * (1 << 20):
+                    msg = (
+                        f"expected room in the queue of {self.options.queue_mb} MiB, found it full"
+                    )
+                    raise QueueFullError(msg)
+                self._queued_bytes += size
             try:
                 self._queue.put_nowait(item)
             except queue.Full:
+                with self._lock:
+                    self._queued_bytes -= size
                 msg = f"expected room in the queue of {self.options.queue}, found it full"
                 raise QueueFullError(msg) from None
         except SensorInputError as exc:
@@ -272,12 +285,15 @@ class Ros2Source:
         delivered = 0
         try:
             while not stop.is_set():
+                item: _Sample | None
                 try:
                     item = self._queue.get(timeout=0.1)
                 except queue.Empty:
                     item = None
                 ready: list[Observation] = []
                 if item is not None:
+                    with self._lock:
+                        self._queued_bytes -= len(item.payload)
                     try:
                         ready += self._handle(item)
                     except SensorInputError as exc:
