@@ -165,6 +165,33 @@ class Config(BaseSettings):
     drop_rate: float = Field(
         0.0, ge=0, lt=1, description="testing: drop this share of received deltas"
     )
+    ros2_publish: bool = Field(
+        False, description="publish the fused map, objects and frame to ROS 2 (rmw_zenoh)"
+    )
+    ros2_domain: int = Field(0, ge=0, le=232, description="ROS_DOMAIN_ID of the ROS 2 outputs")
+    ros2_node: str = Field("colonyd", description="ROS 2 node name of the outputs")
+    ros2_map_topic: str = Field("/colony/map", description="nav_msgs/OccupancyGrid topic")
+    ros2_cloud_topic: str = Field("/colony/cloud", description="sensor_msgs/PointCloud2 topic")
+    ros2_objects_topic: str = Field(
+        "/colony/objects", description="visualization_msgs/MarkerArray topic"
+    )
+    ros2_frame: str = Field("colony", description="frame id of the published map")
+    ros2_robot_frame: str = Field(
+        "map", description="the robot's frame its own layer is built in (/tf child of ros2_frame)"
+    )
+    ros2_period_s: float = Field(
+        2.0, gt=0, description="seconds between publications of the map (when it changed)"
+    )
+    ros2_grid_z: tuple[float, float] = Field(
+        (-0.5, 2.0), description="heights (m) of voxels projected into the OccupancyGrid"
+    )
+    ros2_max_points: int = Field(
+        2_000_000, ge=1, description="most points in the published cloud (thinned beyond)"
+    )
+    ros2_type_hashes: bool = Field(
+        True,
+        description="type hashes in keys (Jazzy and later); false for Humble's rmw_zenoh",
+    )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
     @classmethod
@@ -197,6 +224,33 @@ class Config(BaseSettings):
                 "expected an agent id other than the reserved words 'alive' and 'colony', "
                 f"found {value!r}"
             )
+            raise ValueError(msg)
+        return value
+
+    @field_validator("ros2_map_topic", "ros2_cloud_topic", "ros2_objects_topic")
+    @classmethod
+    def _topic(cls, value: str) -> str:
+        from plugins.rmw import topic_name
+
+        topic_name(value)  # RmwError (a ValueError) says what was expected
+        return value
+
+    @field_validator("ros2_publish")
+    @classmethod
+    def _rosbags(cls, value: bool) -> bool:
+        if value:
+            try:
+                import rosbags  # noqa: F401
+            except ImportError:
+                msg = "expected the rosbags package (pip install 'colony[ros]'), found it missing"
+                raise ValueError(msg) from None
+        return value
+
+    @field_validator("ros2_node", "ros2_frame", "ros2_robot_frame")
+    @classmethod
+    def _ros_name(cls, value: str) -> str:
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]{0,63}", value):
+            msg = f"expected a ROS 2 name ([A-Za-z_][A-Za-z0-9_]*), found {value!r}"
             raise ValueError(msg)
         return value
 

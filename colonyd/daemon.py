@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 import zlib
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,7 @@ from colonyd.notify import Notifier
 from colonyd.objects import OwnObjects, to_wire
 from colonyd.outdir import output_dir
 from colonyd.persistence import StateStore
+from colonyd.rosout import Ros2Outputs, RosPublishers
 from colonyd.runtime import get_session
 from colonyd.status import StatusServer
 from plugins.observation import Observation
@@ -68,11 +70,14 @@ def get_store(config: Config) -> StateStore:
     return StateStore(config.state_dir, config.agent_id, config.resolution, config.block_shape)
 
 
-def get_sources(config: Config, stop: threading.Event) -> list[Source]:
-    """The configured sources; those whose spec sets no seed take one derived from the agent id."""
+def get_sources(
+    config: Config, stop: threading.Event, session: Callable[[], Any] | None = None
+) -> list[Source]:
+    """The configured sources; those whose spec sets no seed take one derived from the agent id;
+    network sources (`ros2:`) read through `session()` once mapping starts."""
     seed = zlib.crc32(config.agent_id.encode()) % (1 << 16)
     return [
-        open_source(spec, resolution=config.resolution, seed=seed + i, stop=stop)
+        open_source(spec, resolution=config.resolution, seed=seed + i, stop=stop, session=session)
         for i, spec in enumerate(config.sources)
     ]
 
@@ -119,9 +124,8 @@ class Daemon:
             output_dir(cfg.export_dir, "export_dir")
         self.store = get_store(cfg)
         try:
-            self._sources = get_sources(
-                cfg, self.stop
-            )  # bad specs fail before the network is touched
+            # bad specs fail before the network is touched
+            self._sources = get_sources(cfg, self.stop, lambda: self.session)
             self._recover()
             self.session = get_session(cfg)
             try:
@@ -251,6 +255,24 @@ class Daemon:
             self.session, ns, cfg.agent_id, self.export_map, report="export"
         )
         self.gossip.start(self.membership)
+        self.ros: RosPublishers | None = None
+        if cfg.ros2_publish:
+            self.ros = RosPublishers(
+                self.session,
+                Ros2Outputs(
+                    domain=cfg.ros2_domain,
+                    node=cfg.ros2_node,
+                    map_topic=cfg.ros2_map_topic,
+                    cloud_topic=cfg.ros2_cloud_topic,
+                    objects_topic=cfg.ros2_objects_topic,
+                    frame=cfg.ros2_frame,
+                    robot_frame=cfg.ros2_robot_frame,
+                    grid_z_min=cfg.ros2_grid_z[0],
+                    grid_z_max=cfg.ros2_grid_z[1],
+                    max_points=cfg.ros2_max_points,
+                    type_hashes=cfg.ros2_type_hashes,
+                ),
+            )
 
     def _start_threads(self) -> None:
         self._threads = [
@@ -278,6 +300,8 @@ class Daemon:
             self._threads.append(
                 threading.Thread(target=self._align_loop, name="alignment", daemon=True)
             )
+        if self.ros is not None:
+            self._threads.append(threading.Thread(target=self._ros_loop, name="ros2", daemon=True))
         for t in self._threads:
             t.start()
 
@@ -324,6 +348,8 @@ class Daemon:
             log.error("shutting down without a final snapshot: %s", exc)
         if self.config.export_dir is not None:
             self._export(self.config.export_dir)
+        if self.ros is not None:
+            self.ros.close()
         self.status_server.close()
         self.export_server.close()
         self.gossip.close()
@@ -374,26 +400,41 @@ class Daemon:
 
     # -- mapping (never waits on the network) ---------------------------------------------
     def _map_loop(self) -> None:
-        own = self.layers.own
+        """Recordings and simulations one after another; each live source (`ros2:`, which runs
+        until the daemon stops) in a thread of its own, so that a robot's sensors all map."""
+        live = [s for s in self._sources if getattr(s, "live", False)]
+        threads = [
+            threading.Thread(target=self._map_source, args=(s,), name=f"mapping-{i}", daemon=True)
+            for i, s in enumerate(live)
+        ]
+        for t in threads:
+            t.start()
         for source in self._sources:
             if self.stop.is_set():
                 break
-            try:
-                for obs in source:
-                    if self.stop.is_set():
-                        break
-                    try:
-                        self._integrate(own, obs, source)
-                    except ValueError as exc:  # one bad frame (voxel/plugin input errors)
-                        self.metrics.reject("bad-frame")
-                        log.warning("source %s: frame skipped: %s", source.spec, exc)
-                        continue
-                    self.metrics.add("frames")
-            except (ColonydError, ValueError) as exc:  # the source itself failed
-                log.error("source %s failed: %s", source.spec, exc)
-            except Exception:
-                log.exception("source %s failed", source.spec)
+            if source not in live:
+                self._map_source(source)
+        for t in threads:
+            t.join()
         self._sources_done.set()
+
+    def _map_source(self, source: Source) -> None:
+        own = self.layers.own
+        try:
+            for obs in source:
+                if self.stop.is_set():
+                    break
+                try:
+                    self._integrate(own, obs, source)
+                except ValueError as exc:  # one bad frame (voxel/plugin input errors)
+                    self.metrics.reject("bad-frame")
+                    log.warning("source %s: frame skipped: %s", source.spec, exc)
+                    continue
+                self.metrics.add("frames")
+        except (ColonydError, ValueError) as exc:  # the source itself failed
+            log.error("source %s failed: %s", source.spec, exc)
+        except Exception:
+            log.exception("source %s failed", source.spec)
 
     def _integrate(self, own: Any, obs: Observation, source: Source) -> None:
         if self.config.localise and obs.odometry is not None:  # map from the estimate
@@ -521,6 +562,54 @@ class Daemon:
         """The colony frame from every alignment known (own and offered)."""
         agents = [layer.origin for layer in self.layers.all()]
         return self.gossip.alignments.colony(agents, self.config.anchor)
+
+    # -- ROS 2 outputs (map, cloud, objects when changed; the frame every round) -----------
+    def _ros_loop(self) -> None:
+        assert self.ros is not None
+        last: tuple[Any, ...] = ()
+        res, agent = self.config.resolution, self.config.agent_id
+        while not self.stop.wait(self.config.ros2_period_s):
+            try:
+                frame = self.colony_frame()
+                own = frame.transforms.get(agent, np.eye(4) if frame.root == agent else None)
+                if own is not None:
+                    self.metrics.add("ros2_bytes", self.ros.publish_frame(own))
+                seen = (
+                    tuple((layer.origin, layer.seq) for layer in self.layers.all()),
+                    tuple((a, t.tobytes()) for a, t in sorted(frame.transforms.items())),
+                    tuple(o.object_id for o in self.objects.current),
+                )
+                if seen == last:
+                    continue
+                last = seen
+                keys, lo = fused(self.layers.all(), res, frame.transforms, self._weights())
+                self.metrics.add("ros2_bytes", self.ros.publish_map(keys, lo, res))
+                positions, ids = self._colony_objects(frame.transforms)
+                self.metrics.add("ros2_bytes", self.ros.publish_objects(positions, ids, 4 * res))
+                self.metrics.add("ros2_maps")
+            except ValueError as exc:
+                log.error("ROS 2 outputs: %s", exc)
+            except Exception:
+                log.exception("ROS 2 outputs failed")
+
+    def _colony_objects(self, transforms: dict[str, np.ndarray]) -> tuple[np.ndarray, list[int]]:
+        """Object centroids of every agent with a place in the colony frame, moved into it."""
+        positions, ids = [], []
+        agent = self.config.agent_id
+        lists: list[tuple[str, list[tuple[int, Any]]]] = [
+            (agent, [(o.object_id, o.position) for o in self.objects.current])
+        ]
+        lists += [
+            (origin, [(o.object_id, o.position) for o in self.gossip.peer_objects.get(origin)])
+            for origin in self.gossip.peer_objects.origins()
+        ]
+        for origin, objects in lists:
+            t = transforms.get(origin)
+            for object_id, position in objects:
+                if t is not None:
+                    positions.append(t[:3, :3] @ np.asarray(position, float) + t[:3, 3])
+                    ids.append(int(object_id))
+        return np.array(positions, float).reshape(-1, 3), ids
 
     # -- objects (own list refreshed and published when it changes) -----------------------
     def _objects_loop(self) -> None:
@@ -668,6 +757,16 @@ class Daemon:
             "pose_matrix": None if self.pose_matrix is None else self.pose_matrix.tolist(),
             "truth_matrix": None if self.truth_matrix is None else self.truth_matrix.tolist(),
             "sources_done": self._sources_done.is_set() or not self.config.sources,
+            "sources": [
+                {
+                    "spec": s.spec,
+                    "delivered": s.stats.delivered,
+                    "skipped": s.stats.skipped,
+                    "reasons": dict(s.stats.reasons),
+                    **({"received": dict(s.received)} if hasattr(s, "received") else {}),
+                }
+                for s in getattr(self, "_sources", [])
+            ],
             "unpublished": unpublished,
             "frame": frame_of(self.config.agent_id),
             "colony_frame": self._colony_report(),
