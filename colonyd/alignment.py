@@ -143,12 +143,14 @@ def edge_from_offer(msg: AlignOffer) -> Edge:
 
 
 class Alignments:
-    """Every accepted alignment this daemon knows, one per unordered pair (the most confident,
-    newest on a tie), bounded in the number of agents; and the colony frame they define."""
+    """Every alignment this daemon knows: per unordered pair, the latest offer of each of the two
+    agents (an agent's new estimate replaces its old one; confidence 0 withdraws it); the pair's
+    alignment is the more confident of the two (the newer on a tie). Bounded in the number of
+    agents; the colony frame follows from them."""
 
     def __init__(self, max_agents: int = 256) -> None:
         self.max_agents = max_agents
-        self._edges: dict[tuple[str, str], Edge] = {}
+        self._edges: dict[tuple[str, str], dict[str, Edge]] = {}  # pair -> offerer -> edge
         self._lock = threading.Lock()
 
     def admit(self, edge: Edge) -> None:
@@ -161,16 +163,25 @@ class Alignments:
                 raise WireError("too-many-layers", text)
 
     def put(self, edge: Edge) -> None:
-        key = tuple(sorted((edge.source, edge.target)))
-        stored = edge if (edge.source, edge.target) == key else edge.inverse()
+        """Keep `edge` as its source's offer for the pair (confidence 0: withdraw that offer)."""
+        a, b = sorted((edge.source, edge.target))
+        stored = edge if (edge.source, edge.target) == (a, b) else edge.inverse()
         with self._lock:
-            old = self._edges.get(key)  # type: ignore[arg-type]
-            if old is None or (stored.confidence, stored.time) >= (old.confidence, old.time):
-                self._edges[key] = stored  # type: ignore[index]
+            offers = self._edges.setdefault((a, b), {})
+            if edge.confidence > 0:
+                offers[edge.source] = stored
+            else:
+                offers.pop(edge.source, None)
+                if not offers:
+                    del self._edges[a, b]
 
     def edges(self) -> list[Edge]:
+        """One edge per pair: the most confident offer (the newer on a tie)."""
         with self._lock:
-            return list(self._edges.values())
+            return [
+                max(offers.values(), key=lambda e: (e.confidence, e.time))
+                for offers in self._edges.values()
+            ]
 
     def colony(self, agents: list[str], anchor: str | None = None) -> ColonyFrame:
         """The colony frame: the `anchor`'s frame if it is given, else the frame of the smallest

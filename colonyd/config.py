@@ -12,12 +12,14 @@ from contextvars import ContextVar
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic.fields import FieldInfo
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 from pydantic_settings.exceptions import SettingsError
 
 from colonyd.errors import ConfigError
+from voxel.rotation import pose_from_degrees
 
 #: Precedence, highest first: command-line flags, `COLONYD_*` environment variables, the TOML
 #: file given with `--config` (or `COLONYD_CONFIG`), built-in defaults.
@@ -124,6 +126,13 @@ class Config(BaseSettings):
     anchor: str | None = Field(
         None, description="agent whose frame is the site frame (a surveyed CCTV)"
     )
+    site_pose: list[float] | None = Field(
+        None,
+        description=(
+            "this agent's frame in the anchor's (site) frame, when known (a survey, a start "
+            "mark): x, y, z (m), yaw (deg)[, pitch, roll (deg)]; offered as a sure alignment"
+        ),
+    )
     layer_weights: dict[str, float] = Field(
         default_factory=dict,
         description="reliability weight in the fused map per agent id or agent kind (default 1.0)",
@@ -155,6 +164,33 @@ class Config(BaseSettings):
     export_dir: Path | None = Field(None, description="write the fused map here on shutdown")
     drop_rate: float = Field(
         0.0, ge=0, lt=1, description="testing: drop this share of received deltas"
+    )
+    ros2_publish: bool = Field(
+        False, description="publish the fused map, objects and frame to ROS 2 (rmw_zenoh)"
+    )
+    ros2_domain: int = Field(0, ge=0, le=232, description="ROS_DOMAIN_ID of the ROS 2 outputs")
+    ros2_node: str = Field("colonyd", description="ROS 2 node name of the outputs")
+    ros2_map_topic: str = Field("/colony/map", description="nav_msgs/OccupancyGrid topic")
+    ros2_cloud_topic: str = Field("/colony/cloud", description="sensor_msgs/PointCloud2 topic")
+    ros2_objects_topic: str = Field(
+        "/colony/objects", description="visualization_msgs/MarkerArray topic"
+    )
+    ros2_frame: str = Field("colony", description="frame id of the published map")
+    ros2_robot_frame: str = Field(
+        "map", description="the robot's frame its own layer is built in (/tf child of ros2_frame)"
+    )
+    ros2_period_s: float = Field(
+        2.0, gt=0, description="seconds between publications of the map (when it changed)"
+    )
+    ros2_grid_z: tuple[float, float] = Field(
+        (-0.5, 2.0), description="heights (m) of voxels projected into the OccupancyGrid"
+    )
+    ros2_max_points: int = Field(
+        2_000_000, ge=1, description="most points in the published cloud (thinned beyond)"
+    )
+    ros2_type_hashes: bool = Field(
+        True,
+        description="type hashes in keys (Jazzy and later); false for Humble's rmw_zenoh",
     )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
@@ -188,6 +224,33 @@ class Config(BaseSettings):
                 "expected an agent id other than the reserved words 'alive' and 'colony', "
                 f"found {value!r}"
             )
+            raise ValueError(msg)
+        return value
+
+    @field_validator("ros2_map_topic", "ros2_cloud_topic", "ros2_objects_topic")
+    @classmethod
+    def _topic(cls, value: str) -> str:
+        from plugins.rmw import topic_name
+
+        topic_name(value)  # RmwError (a ValueError) says what was expected
+        return value
+
+    @field_validator("ros2_publish")
+    @classmethod
+    def _rosbags(cls, value: bool) -> bool:
+        if value:
+            try:
+                import rosbags  # noqa: F401
+            except ImportError:
+                msg = "expected the rosbags package (pip install 'colony[ros]'), found it missing"
+                raise ValueError(msg) from None
+        return value
+
+    @field_validator("ros2_node", "ros2_frame", "ros2_robot_frame")
+    @classmethod
+    def _ros_name(cls, value: str) -> str:
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]{0,63}", value):
+            msg = f"expected a ROS 2 name ([A-Za-z_][A-Za-z0-9_]*), found {value!r}"
             raise ValueError(msg)
         return value
 
@@ -228,7 +291,32 @@ class Config(BaseSettings):
         if self.mode == "client" and not self.connect and not self.multicast:
             msg = "client mode needs --connect ENDPOINT (a router) or multicast scouting"
             raise ValueError(msg)
+        if self.site_pose is not None:
+            if len(self.site_pose) not in (4, 6):
+                msg = (
+                    "site_pose: expected 4 numbers (x, y, z, yaw_deg) or 6 (x, y, z, yaw_deg, "
+                    f"pitch_deg, roll_deg), found {len(self.site_pose)}"
+                )
+                raise ValueError(msg)
+            if self.anchor is None:
+                msg = (
+                    "site_pose: expected `anchor` (the agent whose frame is the site frame) to be "
+                    "set as well, found no anchor"
+                )
+                raise ValueError(msg)
+            if self.anchor == self.agent_id:
+                msg = (
+                    f"site_pose: expected no site pose on the anchor {self.anchor!r} itself (its "
+                    "frame is the site frame), found one"
+                )
+                raise ValueError(msg)
         return self
+
+    def site_matrix(self) -> np.ndarray | None:
+        """`site_pose` as a 4x4 transform taking this agent's frame into the site frame."""
+        if self.site_pose is None:
+            return None
+        return pose_from_degrees(self.site_pose)
 
     @property
     def key_namespace(self) -> str:

@@ -12,6 +12,7 @@ import sys
 import threading
 import time
 import zlib
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,7 @@ from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.identity import get_trust, identity_path, load_signer
 from colonyd.layers import (
+    FusedMap,
     Layers,
     best_class,
     fused,
@@ -43,6 +45,7 @@ from colonyd.notify import Notifier
 from colonyd.objects import OwnObjects, to_wire
 from colonyd.outdir import output_dir
 from colonyd.persistence import StateStore
+from colonyd.rosout import Ros2Outputs, RosPublishers
 from colonyd.runtime import get_session
 from colonyd.status import StatusServer
 from plugins.observation import Observation
@@ -53,6 +56,17 @@ log = logging.getLogger(__name__)
 
 #: The own object list is published again every this many refreshes, changed or not.
 OBJECTS_REPEAT = 5
+
+#: Own alignments are offered again every this many alignment rounds, so that members that
+#: joined later (or missed an offer) learn them and compute the same colony frame.
+OFFERS_REPEAT = 3
+
+#: An offered alignment is withdrawn after this many refusals in a row on grown maps (a pose
+#: that more data keeps refuting was wrong: a wrong merge is worse than none).
+WITHDRAW_AFTER = 3
+
+#: Alignment round period (s) of a daemon that only re-offers a surveyed `site_pose`.
+SITE_OFFER_S = 5.0
 
 #: A heartbeat claiming our origin with another epoch is from a live duplicate when its time is
 #: within this many seconds of ours (older ones are replays).
@@ -65,11 +79,14 @@ def get_store(config: Config) -> StateStore:
     return StateStore(config.state_dir, config.agent_id, config.resolution, config.block_shape)
 
 
-def get_sources(config: Config, stop: threading.Event) -> list[Source]:
-    """The configured sources; those whose spec sets no seed take one derived from the agent id."""
+def get_sources(
+    config: Config, stop: threading.Event, session: Callable[[], Any] | None = None
+) -> list[Source]:
+    """The configured sources; those whose spec sets no seed take one derived from the agent id;
+    network sources (`ros2:`) read through `session()` once mapping starts."""
     seed = zlib.crc32(config.agent_id.encode()) % (1 << 16)
     return [
-        open_source(spec, resolution=config.resolution, seed=seed + i, stop=stop)
+        open_source(spec, resolution=config.resolution, seed=seed + i, stop=stop, session=session)
         for i, spec in enumerate(config.sources)
     ]
 
@@ -95,6 +112,8 @@ class Daemon:
         self.objects = OwnObjects(frozenset(config.structure_classes))
         self.aligner = Aligner()  # registration in a worker process, started on first use
         self._estimators: dict[str, Estimator] = {}  # per source spec
+        self._own_edges: dict[str, Edge] = {}  # peer -> the alignment we last offered
+        self.fused_map = FusedMap()  # the live fused view, kept layer by layer
         self.pose_matrix: np.ndarray | None = None  # the latest sensor pose estimate (own frame)
         self.pose_covariance: np.ndarray | None = None
         self.truth_matrix: np.ndarray | None = None
@@ -115,9 +134,8 @@ class Daemon:
             output_dir(cfg.export_dir, "export_dir")
         self.store = get_store(cfg)
         try:
-            self._sources = get_sources(
-                cfg, self.stop
-            )  # bad specs fail before the network is touched
+            # bad specs fail before the network is touched
+            self._sources = get_sources(cfg, self.stop, lambda: self.session)
             self._recover()
             self.session = get_session(cfg)
             try:
@@ -263,6 +281,24 @@ class Daemon:
             self.session, ns, cfg.agent_id, self.export_map, report="export"
         )
         self.gossip.start(self.membership)
+        self.ros: RosPublishers | None = None
+        if cfg.ros2_publish:
+            self.ros = RosPublishers(
+                self.session,
+                Ros2Outputs(
+                    domain=cfg.ros2_domain,
+                    node=cfg.ros2_node,
+                    map_topic=cfg.ros2_map_topic,
+                    cloud_topic=cfg.ros2_cloud_topic,
+                    objects_topic=cfg.ros2_objects_topic,
+                    frame=cfg.ros2_frame,
+                    robot_frame=cfg.ros2_robot_frame,
+                    grid_z_min=cfg.ros2_grid_z[0],
+                    grid_z_max=cfg.ros2_grid_z[1],
+                    max_points=cfg.ros2_max_points,
+                    type_hashes=cfg.ros2_type_hashes,
+                ),
+            )
 
     def _start_threads(self) -> None:
         self._threads = [
@@ -273,10 +309,25 @@ class Daemon:
             self._threads.append(
                 threading.Thread(target=self._objects_loop, name="objects", daemon=True)
             )
-        if self.config.align_s > 0:
+        site = self.config.site_matrix()
+        if site is not None and self.config.anchor is not None:  # a surveyed pose: sure
+            sure = Edge(
+                self.config.agent_id,
+                self.config.anchor,
+                np.linalg.inv(site),
+                1.0,
+                0,
+                0.0,
+                np.zeros((6, 6)),
+                time.time(),
+            )
+            self._offer(sure, "surveyed site_pose")
+        if self.config.align_s > 0 or site is not None:
             self._threads.append(
                 threading.Thread(target=self._align_loop, name="alignment", daemon=True)
             )
+        if self.ros is not None:
+            self._threads.append(threading.Thread(target=self._ros_loop, name="ros2", daemon=True))
         for t in self._threads:
             t.start()
 
@@ -330,6 +381,8 @@ class Daemon:
         if self.config.export_dir is not None:
             self._export(self.config.export_dir)
             lap("export")
+        if self.ros is not None:
+            self.ros.close()
         self.status_server.close()
         self.export_server.close()
         self.gossip.close()
@@ -379,26 +432,41 @@ class Daemon:
 
     # -- mapping (never waits on the network) ---------------------------------------------
     def _map_loop(self) -> None:
-        own = self.layers.own
+        """Recordings and simulations one after another; each live source (`ros2:`, which runs
+        until the daemon stops) in a thread of its own, so that a robot's sensors all map."""
+        live = [s for s in self._sources if getattr(s, "live", False)]
+        threads = [
+            threading.Thread(target=self._map_source, args=(s,), name=f"mapping-{i}", daemon=True)
+            for i, s in enumerate(live)
+        ]
+        for t in threads:
+            t.start()
         for source in self._sources:
             if self.stop.is_set():
                 break
-            try:
-                for obs in source:
-                    if self.stop.is_set():
-                        break
-                    try:
-                        self._integrate(own, obs, source)
-                    except ValueError as exc:  # one bad frame (voxel/plugin input errors)
-                        self.metrics.reject("bad-frame")
-                        log.warning("source %s: frame skipped: %s", source.spec, exc)
-                        continue
-                    self.metrics.add("frames")
-            except (ColonydError, ValueError) as exc:  # the source itself failed
-                log.error("source %s failed: %s", source.spec, exc)
-            except Exception:
-                log.exception("source %s failed", source.spec)
+            if source not in live:
+                self._map_source(source)
+        for t in threads:
+            t.join()
         self._sources_done.set()
+
+    def _map_source(self, source: Source) -> None:
+        own = self.layers.own
+        try:
+            for obs in source:
+                if self.stop.is_set():
+                    break
+                try:
+                    self._integrate(own, obs, source)
+                except ValueError as exc:  # one bad frame (voxel/plugin input errors)
+                    self.metrics.reject("bad-frame")
+                    log.warning("source %s: frame skipped: %s", source.spec, exc)
+                    continue
+                self.metrics.add("frames")
+        except (ColonydError, ValueError) as exc:  # the source itself failed
+            log.error("source %s failed: %s", source.spec, exc)
+        except Exception:
+            log.exception("source %s failed", source.spec)
 
     def _integrate(self, own: Any, obs: Observation, source: Source) -> None:
         if self.config.localise and obs.odometry is not None:  # map from the estimate
@@ -432,7 +500,15 @@ class Daemon:
         # growing (nothing new a round later); a refusal drops it. Partial maps can fit a wrong
         # place that more data refutes, and an offer cannot be taken back.
         pending: dict[str, tuple[Edge, int]] = {}
-        while not self.stop.wait(self.config.align_s):
+        refusals: dict[str, int] = {}  # peer -> refusals in a row since our offer
+        rounds = 0
+        while not self.stop.wait(self.config.align_s or SITE_OFFER_S):
+            rounds += 1
+            if rounds % OFFERS_REPEAT == 0:
+                for edge in list(self._own_edges.values()):
+                    self.gossip.publish_align(edge)
+            if self.config.align_s == 0:
+                continue  # registration off: only the surveyed pose is offered
             own = self.layers.own
             own_objects = list(self.objects.current)
             grown: dict[str, int] = {}
@@ -474,7 +550,11 @@ class Daemon:
             self.attempts[peer.origin] = record
             if not result.aligned:
                 pending.pop(origin, None)
+                refusals[origin] = refusals.get(origin, 0) + 1
+                if refusals[origin] >= WITHDRAW_AFTER:
+                    self._withdraw(origin, refusals.pop(origin))
                 continue
+            refusals.pop(origin, None)
             edge = edge_of(own.origin, peer.origin, result)
             before = pending.pop(origin, None)
             if (
@@ -488,8 +568,20 @@ class Daemon:
                 record["provisional"] = True
 
     def _offer(self, edge: Edge, why: str) -> None:
+        if edge.target in self._own_edges and self._own_edges[edge.target].confidence >= 1.0:
+            return  # a surveyed pose is not replaced by an estimate
+        self._own_edges[edge.target] = edge
         self.gossip.publish_align(edge)
         log.info("aligned %s to our frame, %s: %s", edge.target, why, _pose_text(edge.transform))
+
+    def _withdraw(self, peer: str, refused: int) -> None:
+        """Take back our offer for `peer` (not a surveyed one): an offer of confidence 0."""
+        edge = self._own_edges.get(peer)
+        if edge is None or edge.confidence >= 1.0:
+            return
+        del self._own_edges[peer]
+        self.gossip.publish_align(replace(edge, confidence=0.0, time=time.time()))
+        log.warning("withdrew our alignment with %s: refused %d times in a row", peer, refused)
 
     def _weights(self) -> dict[str, float]:
         """Each layer's reliability weight in the fused map (`layer_weights`: agent or kind)."""
@@ -502,6 +594,54 @@ class Daemon:
         """The colony frame from every alignment known (own and offered)."""
         agents = [layer.origin for layer in self.layers.all()]
         return self.gossip.alignments.colony(agents, self.config.anchor)
+
+    # -- ROS 2 outputs (map, cloud, objects when changed; the frame every round) -----------
+    def _ros_loop(self) -> None:
+        assert self.ros is not None
+        last: tuple[Any, ...] = ()
+        res, agent = self.config.resolution, self.config.agent_id
+        while not self.stop.wait(self.config.ros2_period_s):
+            try:
+                frame = self.colony_frame()
+                own = frame.transforms.get(agent, np.eye(4) if frame.root == agent else None)
+                if own is not None:
+                    self.metrics.add("ros2_bytes", self.ros.publish_frame(own))
+                seen = (
+                    tuple((layer.origin, layer.seq) for layer in self.layers.all()),
+                    tuple((a, t.tobytes()) for a, t in sorted(frame.transforms.items())),
+                    tuple(o.object_id for o in self.objects.current),
+                )
+                if seen == last:
+                    continue
+                last = seen
+                keys, lo = fused(self.layers.all(), res, frame.transforms, self._weights())
+                self.metrics.add("ros2_bytes", self.ros.publish_map(keys, lo, res))
+                positions, ids = self._colony_objects(frame.transforms)
+                self.metrics.add("ros2_bytes", self.ros.publish_objects(positions, ids, 4 * res))
+                self.metrics.add("ros2_maps")
+            except ValueError as exc:
+                log.error("ROS 2 outputs: %s", exc)
+            except Exception:
+                log.exception("ROS 2 outputs failed")
+
+    def _colony_objects(self, transforms: dict[str, np.ndarray]) -> tuple[np.ndarray, list[int]]:
+        """Object centroids of every agent with a place in the colony frame, moved into it."""
+        positions, ids = [], []
+        agent = self.config.agent_id
+        lists: list[tuple[str, list[tuple[int, Any]]]] = [
+            (agent, [(o.object_id, o.position) for o in self.objects.current])
+        ]
+        lists += [
+            (origin, [(o.object_id, o.position) for o in self.gossip.peer_objects.get(origin)])
+            for origin in self.gossip.peer_objects.origins()
+        ]
+        for origin, objects in lists:
+            t = transforms.get(origin)
+            for object_id, position in objects:
+                if t is not None:
+                    positions.append(t[:3, :3] @ np.asarray(position, float) + t[:3, 3])
+                    ids.append(int(object_id))
+        return np.array(positions, float).reshape(-1, 3), ids
 
     # -- objects (own list refreshed and published when it changes) -----------------------
     def _objects_loop(self) -> None:
@@ -606,7 +746,7 @@ class Daemon:
             )
         frame = self.colony_frame()
         layers = self.layers.all()
-        keys, lo = fused(layers, res, frame.transforms, self._weights())
+        keys, lo = self.fused_map.view(layers, res, frame.transforms, self._weights())
         classes = fused_classes(layers, res, keys, frame.transforms)
         return encode_map(
             agent, None, frame_of(frame.root), res, keys, lo, sorted(frame.transforms), classes
@@ -652,6 +792,16 @@ class Daemon:
             "pose_matrix": None if self.pose_matrix is None else self.pose_matrix.tolist(),
             "truth_matrix": None if self.truth_matrix is None else self.truth_matrix.tolist(),
             "sources_done": self._sources_done.is_set() or not self.config.sources,
+            "sources": [
+                {
+                    "spec": s.spec,
+                    "delivered": s.stats.delivered,
+                    "skipped": s.stats.skipped,
+                    "reasons": dict(s.stats.reasons),
+                    **({"received": dict(s.received)} if hasattr(s, "received") else {}),
+                }
+                for s in getattr(self, "_sources", [])
+            ],
             "unpublished": unpublished,
             "frame": frame_of(self.config.agent_id),
             "colony_frame": self._colony_report(),

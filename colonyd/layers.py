@@ -385,35 +385,87 @@ def fused(
     that have one are fused: each voxel's centre is moved into the colony frame and keyed at
     `resolution`; voxels of one layer that land in one key are averaged, then layers summed.
     """
-    packed_parts, lo_parts = [], []
-    for layer in layers:
-        t = None if transforms is None else transforms.get(layer.origin)
-        if transforms is not None and t is None:
-            continue
-        if t is None and abs(layer.resolution - resolution) > 1e-9:
-            continue
-        full = layer.full()
-        known = ~np.isnan(full.logodds)
-        if not known.any():
-            continue
-        keys, lo = full.keys[known], full.logodds[known].astype(np.float64)
-        if t is not None:
-            centres = vk.keys_to_centers(keys, layer.resolution) @ t[:3, :3].T + t[:3, 3]
-            packed, inv = np.unique(
-                vk.pack(vk.points_to_keys(centres, resolution)), return_inverse=True
-            )
-            lo = np.bincount(inv, weights=lo) / np.bincount(inv)
-        else:
-            packed = vk.pack(keys)
-        packed_parts.append(packed)
-        lo_parts.append(lo * (weights or {}).get(layer.origin, 1.0))
-    if not packed_parts:
-        return np.empty((0, 3), np.int64), np.empty(0, np.float32)
-    packed = np.concatenate(packed_parts)
-    lo = np.concatenate(lo_parts)
-    uniq, inv = np.unique(packed, return_inverse=True)
-    total = np.bincount(inv, weights=lo, minlength=uniq.shape[0])
-    return vk.unpack(uniq), total.astype(np.float32)
+    return FusedMap().view(layers, resolution, transforms, weights)
+
+
+#: One layer's part of the fused view: packed keys in the fused frame and their log-odds.
+Contribution = tuple[np.ndarray, np.ndarray]
+
+
+def contribution(layer: Layer, resolution: float, t: np.ndarray | None) -> Contribution | None:
+    """A layer's known voxels keyed at `resolution` in the frame `t` takes it into (its own
+    when None), averaged where several land in one key; None when it has none or cannot be
+    keyed (another resolution without a transform)."""
+    if t is None and abs(layer.resolution - resolution) > 1e-9:
+        return None
+    full = layer.full()
+    known = ~np.isnan(full.logodds)
+    if not known.any():
+        return None
+    keys, lo = full.keys[known], full.logodds[known].astype(np.float64)
+    if t is None:
+        return vk.pack(keys), lo
+    centres = vk.keys_to_centers(keys, layer.resolution) @ t[:3, :3].T + t[:3, 3]
+    packed, inv = np.unique(vk.pack(vk.points_to_keys(centres, resolution)), return_inverse=True)
+    return packed, np.bincount(inv, weights=lo) / np.bincount(inv)
+
+
+class FusedMap:
+    """The fused view kept up to date layer by layer: a layer's contribution is computed again
+    only when its version (epoch, seq, the grid's version) or its transform into the fused frame
+    changed, so a view
+    of a colony where one layer grew costs one layer's work plus the final sum."""
+
+    def __init__(self) -> None:
+        self._parts: dict[str, tuple[tuple[object, ...], Contribution | None]] = {}
+        self._lock = threading.Lock()
+        self.computed = 0  # layer contributions computed (not taken from the cache)
+
+    def view(
+        self,
+        layers: list[Layer],
+        resolution: float,
+        transforms: dict[str, np.ndarray] | None = None,
+        weights: dict[str, float] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The fused view (as `fused` describes it) of `layers`."""
+        packed_parts, lo_parts = [], []
+        with self._lock:
+            held = {layer.origin for layer in layers}
+            for origin in set(self._parts) - held:
+                del self._parts[origin]
+            for layer in layers:
+                t = None if transforms is None else transforms.get(layer.origin)
+                if transforms is not None and t is None:
+                    continue
+                with layer.lock:
+                    moved = None if t is None else np.asarray(t, float).tobytes()
+                    grid = layer.grid
+                    tag = (
+                        layer.epoch,
+                        layer.seq,
+                        grid.version,
+                        layer.resolution,
+                        resolution,
+                        moved,
+                    )
+                    cached = self._parts.get(layer.origin)
+                    if cached is None or cached[0] != tag:
+                        cached = (tag, contribution(layer, resolution, t))
+                        self._parts[layer.origin] = cached
+                        self.computed += 1
+                part = cached[1]
+                if part is None:
+                    continue
+                packed_parts.append(part[0])
+                lo_parts.append(part[1] * (weights or {}).get(layer.origin, 1.0))
+        if not packed_parts:
+            return np.empty((0, 3), np.int64), np.empty(0, np.float32)
+        packed = np.concatenate(packed_parts)
+        lo = np.concatenate(lo_parts)
+        uniq, inv = np.unique(packed, return_inverse=True)
+        total = np.bincount(inv, weights=lo, minlength=uniq.shape[0])
+        return vk.unpack(uniq), total.astype(np.float32)
 
 
 def best_class(full: Delta) -> tuple[np.ndarray, np.ndarray]:

@@ -52,6 +52,22 @@ def as_pose(value: object, field: str) -> np.ndarray:
     return pose
 
 
+def parse_mount(text: str, field: str = "mount") -> np.ndarray:
+    """A sensor's pose in the robot body from `x/y/z/yaw_deg[/pitch_deg/roll_deg]` (metres and
+    degrees, ZYX Euler): the 4x4 transform taking sensor points into the body frame."""
+    try:
+        values = [float(v) for v in text.split("/")]
+    except ValueError:
+        values = []
+    if len(values) not in (4, 6) or not np.all(np.isfinite(values)):
+        msg = (
+            f"{field}: expected x/y/z/yaw_deg or x/y/z/yaw_deg/pitch_deg/roll_deg "
+            f"(e.g. 0.2/0/0.3/0), found {text!r}"
+        )
+        raise SensorInputError(msg)
+    return rotation.pose_from_degrees(values)
+
+
 def as_intrinsics(value: object, field: str = "K") -> np.ndarray:
     """A 3x3 pinhole camera matrix with positive focal lengths."""
     K = as_array(value, field, shape=(3, 3))

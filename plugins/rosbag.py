@@ -10,7 +10,7 @@ import numpy as np
 from pydantic import Field
 
 from plugins.adapter import SensorAdapter, load_adapter
-from plugins.checks import quaternion_to_matrix
+from plugins.checks import parse_mount, quaternion_to_matrix
 from plugins.depth import DepthFrame
 from plugins.errors import ParseError, SensorInputError, SourceError, SourceSpecError
 from plugins.lidar import Cloud, Scan
@@ -132,6 +132,11 @@ class RosbagOptions(Options):
         None, description="CameraInfo topic for depth images; none: the first one"
     )
     max_range: float = Field(30.0, description="sensor range, metres")
+    mount: str | None = Field(
+        None,
+        description="the sensor's pose in the robot body (its TF from base_link): "
+        "x/y/z/yaw_deg[/pitch_deg/roll_deg]; none: at the body's origin",
+    )
     strict: bool = Field(
         False, description="fail on the first bad message instead of skipping and counting it"
     )
@@ -148,6 +153,7 @@ class RosbagSource:
         odom: str | None = None,
         info: str | None = None,
         max_range: float = 30.0,
+        mount: str | None = None,
         strict: bool = False,
         spec: str = "",
     ) -> None:
@@ -158,6 +164,10 @@ class RosbagSource:
         self.reader_class = _any_reader()
         self.spec = spec or f"replay:{self.path}"
         self.strict, self.max_range = strict, max_range
+        try:
+            self.mount = np.eye(4) if mount is None else parse_mount(mount)
+        except SensorInputError as exc:
+            raise SourceSpecError(str(exc)) from None
         try:
             with self.reader_class([self.path]) as reader:
                 types = {c.topic: c.msgtype for c in reader.connections}
@@ -204,15 +214,15 @@ class RosbagSource:
 
     def _adapter(self) -> SensorAdapter:
         if self.kind == SCAN:
-            return load_adapter("lidar2d", range_max=self.max_range)
+            return load_adapter("lidar2d", range_max=self.max_range, mount=self.mount)
         if self.kind == CLOUD:
-            return load_adapter("lidar3d", range_max=self.max_range)
+            return load_adapter("lidar3d", range_max=self.max_range, mount=self.mount)
         with self.reader_class([self.path]) as reader:
             conns = [c for c in reader.connections if c.topic == self.info]
             for conn, _, raw in reader.messages(connections=conns):
                 info = reader.deserialize(raw, conn.msgtype)
                 K = np.asarray(info.k if hasattr(info, "k") else info.K, np.float64).reshape(3, 3)
-                return load_adapter("depth", K=K, max_range=self.max_range)
+                return load_adapter("depth", K=K, max_range=self.max_range, mount=self.mount)
         msg = f"{self.path}: expected at least one CameraInfo message on {self.info}, found none"
         raise SourceError(msg)
 

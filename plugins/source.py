@@ -1,15 +1,17 @@
-"""Source kinds (`sim:`, `replay:`, `synthetic:`, `bulk:`): their registry, `open_source(spec)` and
-reference."""
+"""Source kinds (`sim:`, `replay:`, `ros2:`, `synthetic:`, `bulk:`): their registry,
+`open_source(spec)` and reference."""
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from plugins.bulk import BulkOptions, open_bulk
 from plugins.carmen import CarmenOptions
 from plugins.replay import ReplayOptions, open_replay
+from plugins.ros2 import Ros2Options, open_ros2
 from plugins.rosbag import RosbagOptions
 from plugins.sevenscenes import RgbdOptions
 from plugins.sim import SimOptions, open_sim
@@ -62,6 +64,15 @@ SOURCE_KINDS: dict[str, SourceKind] = {
             takes_path=True,
         ),
         SourceKind(
+            "ros2",
+            "ros2:key=value,...",
+            "a live ROS 2 robot on rmw_zenoh (no ROS install): one LaserScan, PointCloud2 or "
+            "depth Image topic, its sensor pose from Odometry and /tf, /tf_static at each "
+            "reading's time (docs/ROS2.md; needs the [ros] extra); runs until stopped or frames",
+            (("", Ros2Options),),
+            open_ros2,
+        ),
+        SourceKind(
             "synthetic",
             "synthetic:key=value,...",
             "nothing: a 2.5D scanner walking an empty square room, horizontal beams to the walls "
@@ -89,16 +100,25 @@ def parse_spec(spec: str) -> SourceSpec:
 
 
 def open_source(
-    spec: str, *, resolution: float = 0.1, seed: int = 0, stop: threading.Event | None = None
+    spec: str,
+    *,
+    resolution: float = 0.1,
+    seed: int = 0,
+    stop: threading.Event | None = None,
+    session: Callable[[], Any] | None = None,
 ) -> Source:
     """Open the source described by `spec` (`colonyd sources` lists them).
 
     `resolution` is the voxel size of the grid it feeds, `seed` the seed of sources whose spec
-    sets none, `stop` ends paced or endless sources between frames.
+    sets none, `stop` ends paced or endless sources between frames, `session` gives the caller's
+    Zenoh session to network sources (`ros2:`).
     """
     parsed = parse_spec(spec)
     context = SourceContext(
-        resolution=resolution, seed=seed, stop=stop if stop is not None else threading.Event()
+        resolution=resolution,
+        seed=seed,
+        stop=stop if stop is not None else threading.Event(),
+        session=session,
     )
     return SOURCE_KINDS[parsed.kind].open(parsed, context)
 

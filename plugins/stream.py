@@ -6,9 +6,9 @@ from __future__ import annotations
 import logging
 import threading
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 from plugins.adapter import SensorAdapter
 from plugins.observation import Observation
@@ -40,12 +40,14 @@ class SourceContext:
 
     `resolution`: voxel size of the grid fed (sources of ready-made voxels need it); `seed`: the
     seed of sources whose spec sets none (the daemon derives one per agent); `stop`: set to end
-    a paced or endless source between frames.
+    a paced or endless source between frames; `session`: gives the caller's Zenoh session (the
+    daemon's), for sources that read from the network (`ros2:`), once it is open.
     """
 
     resolution: float = 0.1
     seed: int = 0
     stop: threading.Event = field(default_factory=threading.Event)
+    session: Callable[[], Any] | None = None
 
 
 @runtime_checkable

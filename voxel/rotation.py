@@ -8,6 +8,8 @@ from the rotated frame into the reference frame: a quaternion (0, 0, sin(a/2), c
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -46,3 +48,10 @@ def euler_pose(
     ]
     pose[:3, 3] = [x, y, z]
     return pose
+
+
+def pose_from_degrees(values: Sequence[float]) -> np.ndarray:
+    """4x4 transform from `x, y, z, yaw[, pitch, roll]` (metres, degrees; ZYX Euler)."""
+    x, y, z, *angles = (float(v) for v in values)
+    yaw, pitch, roll = (np.radians(a) for a in (*angles, 0.0, 0.0)[:3])
+    return euler_pose(x, y, z, float(yaw), float(pitch), float(roll))

@@ -104,3 +104,21 @@ def test_offers_reach_the_colony_frame_and_bad_ones_are_refused(make_colony):
     np.testing.assert_allclose(np.array(frame["agents"]["p"]), np.linalg.inv(t), atol=1e-5)
     rejected = report["metrics"]["rejected"]
     assert rejected.get("bad-align", 0) == 1 and rejected.get("keyexpr", 0) == 1, rejected
+
+
+def test_an_agents_new_estimate_replaces_its_old_one_and_confidence_zero_withdraws_it():
+    store = Alignments()
+    store.put(_edge("a", "b", _rigid(1, 0, 0), 0.9))
+    store.put(_edge("a", "b", _rigid(1.2, 0, 0), 0.6))  # a re-estimated on grown maps
+    (edge,) = store.edges()
+    np.testing.assert_allclose(edge.transform, _rigid(1.2, 0, 0), atol=1e-12)
+    store.put(_edge("b", "a", _rigid(-1.1, 0, 0), 0.7))  # b's own offer for the pair
+    (edge,) = store.edges()
+    np.testing.assert_allclose(edge.transform, _rigid(1.1, 0, 0), atol=1e-12)  # the surer one
+    header = {"origin": "b", "epoch": 1, "seq": 2, "time": 6.0}
+    withdrawn = edge_from_offer(offer_of(_edge("b", "a", np.eye(4), 0.0), header))
+    store.put(withdrawn)  # b takes its offer back: a's stands
+    (edge,) = store.edges()
+    np.testing.assert_allclose(edge.transform, _rigid(1.2, 0, 0), atol=1e-12)
+    store.put(_edge("a", "b", np.eye(4), 0.0))
+    assert store.edges() == [] and set(store.colony(["a", "b"]).transforms) == {"a"}

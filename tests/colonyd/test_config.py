@@ -42,6 +42,12 @@ def test_toml_colonyd_table_and_env_config_path(tmp_path, monkeypatch):
         ({"connect": ["localhost:7447"]}, r"expected a Zenoh endpoint like 'tcp/127.0.0.1:7447'"),
         ({"no_such_option": 1}, r"no_such_option: Extra inputs are not permitted"),
         ({"mode": "client", "multicast": False}, r"client mode needs --connect"),
+        (
+            {"ros2_map_topic": "/colony map"},
+            r"ros2_map_topic: .*expected a ROS 2 topic name such as /scan, found '/colony map'",
+        ),
+        ({"ros2_frame": "colony/frame"}, r"ros2_frame: .*expected a ROS 2 name"),
+        ({"ros2_domain": 300}, r"ros2_domain: Input should be less than or equal to 232"),
     ],
 )
 def test_invalid_config_says_what_was_expected(flags, match):

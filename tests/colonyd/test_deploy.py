@@ -56,6 +56,16 @@ def test_example_config_is_valid():
     assert cfg.colony == "site-a" and cfg.multicast
 
 
+def test_ros2_example_config_is_valid():
+    pytest.importorskip("rosbags")
+    cfg = load_config(DEPLOY / "colonyd-ros2.toml")
+    assert cfg.ros2_publish and cfg.sources[0].startswith("ros2:")
+    from plugins.source import open_source
+
+    source = open_source(cfg.sources[0])
+    assert set(source.topics) == {"scan", "odom", "tf", "tf_static"}
+
+
 def test_router_config_parses():
     conf = zenoh.Config.from_file(str(DEPLOY / "router.json5"))
     assert '"router"' in conf.get_json("mode")

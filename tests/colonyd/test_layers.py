@@ -7,7 +7,7 @@ import pytest
 
 from colonyd.errors import WireError
 from colonyd.grid import new_grid
-from colonyd.layers import Layer, Layers, fused, layer_weights
+from colonyd.layers import FusedMap, Layer, Layers, fused, layer_weights
 from voxel.delta import Delta
 
 
@@ -189,3 +189,30 @@ def test_fused_classes_take_the_most_probable_label_over_layers_and_frames():
     assert free and all(hit[k] == -1 for k in free)
     cls, prob = best_class(a.full())
     assert set(cls.tolist()) == {-1, 3} and prob[cls == 3].min() > 0 and (prob[cls < 0] == 0).all()
+
+
+def test_live_fused_view_recomputes_only_what_changed():
+    a, b = Layer("a", 0.1), Layer("b", 0.1)
+    _, ds = deltas(3)
+    a.offer(1, 0, 1, ds[0])
+    b.offer(1, 0, 1, ds[1])
+    moved = {"a": np.eye(4), "b": np.eye(4)}
+    moved["b"][:3, 3] = [1.0, -0.5, 0.0]
+    live = FusedMap()
+    first = live.view([a, b], 0.1, moved)
+    assert live.computed == 2
+    again = live.view([a, b], 0.1, moved)
+    assert live.computed == 2  # nothing changed: nothing recomputed
+    assert all(np.array_equal(x, y) for x, y in zip(first, again, strict=True))
+    b.offer(1, 1, 2, ds[2])  # b grew
+    grown = live.view([a, b], 0.1, moved)
+    assert live.computed == 3
+    fresh = fused([a, b], 0.1, moved)
+    assert np.array_equal(grown[0], fresh[0]) and np.array_equal(grown[1], fresh[1])
+    assert not np.array_equal(grown[0], first[0])
+    moved["a"] = moved["b"].copy()  # a's alignment changed
+    live.view([a, b], 0.1, moved)
+    assert live.computed == 4
+    _, lo = live.view([a], 0.1, moved, weights={"a": 0.5})  # b left, a weighted: no work
+    assert live.computed == 4
+    np.testing.assert_allclose(lo, 0.5 * fused([a], 0.1, moved)[1], rtol=1e-6)

@@ -201,3 +201,19 @@ def test_bad_bags(tmp_path: Path) -> None:
         SourceSpecError, match="expected a LaserScan, PointCloud2 or Image topic, found None"
     ):
         RosbagSource(tmp_path / "bag")
+
+
+def test_sensor_mount_moves_the_scans_into_the_body(tmp_path: Path) -> None:
+    ranges = np.full(181, 2.0)
+    items = [
+        ("/odom", 0.0, odometry(TS2, 0.0, x=1.0)),
+        ("/scan", 0.01, laser_scan(TS2, 0.01, ranges)),
+    ]
+    write_ros2(tmp_path / "bag", items)
+    plain = next(iter(open_source(f"replay:{tmp_path / 'bag'}")))
+    (mounted,) = list(open_source(f"replay:{tmp_path / 'bag'},mount=0.2/0/0.3/90"))
+    np.testing.assert_allclose(plain.origin, [1.0, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(mounted.origin, [1.2, 0.0, 0.3], atol=1e-9)
+    np.testing.assert_allclose(mounted.pose[:3, 0], [0.0, 1.0, 0.0], atol=1e-9)  # turned 90°
+    with pytest.raises(SourceSpecError, match=r"mount: expected x/y/z/yaw_deg.*found '1/2'"):
+        open_source(f"replay:{tmp_path / 'bag'},mount=1/2")

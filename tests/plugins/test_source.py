@@ -44,7 +44,8 @@ def test_parse_spec() -> None:
             "office",
             (
                 r"expected 'sim:key=value,...', 'replay:PATH\[,key=value...\]', "
-                r"'synthetic:key=value,...' or 'bulk:key=value,...', found 'office'"
+                r"'ros2:key=value,...', 'synthetic:key=value,...' or 'bulk:key=value,...', "
+                r"found 'office'"
             ),
         ),
         (
@@ -103,13 +104,14 @@ def test_open_replays() -> None:
 
 
 def test_every_kind_opens_from_its_spec() -> None:
-    assert set(SOURCE_KINDS) == {"sim", "replay", "synthetic", "bulk"}
+    assert set(SOURCE_KINDS) == {"sim", "replay", "ros2", "synthetic", "bulk"}
     assert isinstance(open_source("synthetic:scans=1"), SyntheticSource)
     assert isinstance(open_source("bulk:voxels=8"), BulkSource)
     for source in (
         open_source("synthetic:scans=1"),
         open_source("bulk:voxels=8"),
         open_source("sim:frames=1"),
+        open_source("ros2:scan=/scan,frame=map"),
     ):
         assert isinstance(source, Source)
         assert source.adapter.sensor_model is not None and 0 < source.adapter.reliability <= 1
