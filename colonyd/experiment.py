@@ -158,10 +158,11 @@ def run_paper(
                 while pending and len(active) < max(1, parallel):
                     name = pending.pop(0)
                     active[name] = _start(work, name, seed, duration)
+                    active[name].watch()
                 for name, run in list(active.items()):
-                    run.poll()
                     over = run.now() > timeout
                     if run.mapping_done() or over:
+                        run.unwatch()
                         run.poll()  # the last poses
                         done[name] = _finish(run, out, complete=not over)
                         run.close()

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -15,6 +17,8 @@ from typing import Any
 from colonyd.bench.launcher import LocalColony
 from colonyd.export import MapReply, fetch_maps
 from colonyd.tracks import Track, record
+
+log = logging.getLogger(__name__)
 
 #: What each sim office agent carries (for tables and legends).
 CARRIES = {
@@ -70,6 +74,8 @@ class SimRun:
         self.tracks: dict[str, Track] = {}
         self.reports: list[dict[str, Any]] = []
         self.began = time.monotonic()
+        self._watcher: threading.Thread | None = None
+        self._stop_watch = threading.Event()
 
     def now(self) -> float:
         """Seconds since the run began."""
@@ -89,6 +95,29 @@ class SimRun:
         record(self.reports, self.tracks, self.now())
         return self.reports
 
+    def watch(self, interval: float = 0.25) -> None:
+        """Poll in a thread of its own every `interval` seconds until `unwatch` (runs watched
+        side by side each keep their pace, however slowly another answers)."""
+        self._stop_watch = threading.Event()
+
+        def loop() -> None:
+            while not self._stop_watch.is_set():
+                try:
+                    self.poll()
+                except Exception:  # one failed round (a session closing, a bad reply)
+                    log.exception("run %s: a status round failed", self.name)
+                self._stop_watch.wait(interval)
+
+        self._watcher = threading.Thread(target=loop, name=f"watch-{self.name}", daemon=True)
+        self._watcher.start()
+
+    def unwatch(self) -> None:
+        """Stop the watching thread after its current poll."""
+        if self._watcher is not None:
+            self._stop_watch.set()
+            self._watcher.join()
+            self._watcher = None
+
     def mapping_done(self) -> bool:
         """True when every member answered in the last round and its sources are done."""
         answered = {r["agent"]: r for r in self.reports}
@@ -105,6 +134,7 @@ class SimRun:
         return fetch_maps(self.colony.session(), self.colony.namespace, agent=agent)
 
     def close(self) -> None:
+        self.unwatch()
         self.colony.close()
 
 
