@@ -19,9 +19,10 @@ import numpy as np
 
 from colonyd.aligner import Aligner
 from colonyd.alignment import ColonyFrame, Edge, align_layers, edge_of
+from colonyd.colonymap import ColonyMaps
 from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError, DuplicateAgentError, PersistenceError, StoppedError
-from colonyd.estimator import Estimator, PoseError, get_estimator
+from colonyd.estimator import Estimator, PoseError, ScanEstimator, get_estimator
 from colonyd.export import encode_map
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
@@ -87,6 +88,8 @@ class Daemon:
         self.objects = OwnObjects(frozenset(config.structure_classes))
         self.aligner = Aligner()  # registration in a worker process, started on first use
         self._estimators: dict[str, Estimator] = {}  # per source spec
+        self._colony_maps: dict[str, ColonyMaps] = {}  # per source spec with a scan estimator
+        self._estimate_s = 0.0  # running mean of one estimator step, seconds
         self.pose_matrix: np.ndarray | None = None  # the latest sensor pose estimate (own frame)
         self.pose_covariance: np.ndarray | None = None
         self.truth_matrix: np.ndarray | None = None
@@ -252,6 +255,10 @@ class Daemon:
             self._threads.append(
                 threading.Thread(target=self._align_loop, name="alignment", daemon=True)
             )
+        if self.config.localise and self.config.colony_map_s > 0:
+            self._threads.append(
+                threading.Thread(target=self._colony_map_loop, name="colony-map", daemon=True)
+            )
         for t in self._threads:
             t.start()
 
@@ -374,7 +381,12 @@ class Daemon:
             estimator = self._estimators.get(source.spec)
             if estimator is None:
                 estimator = self._estimators[source.spec] = get_estimator(source.adapter, obs)
+            started = time.perf_counter()
             obs = replace(obs, pose=estimator(obs))
+            spent = time.perf_counter() - started
+            self._estimate_s = (
+                spent if not self._estimate_s else 0.95 * self._estimate_s + 0.05 * spent
+            )
             self.pose_covariance = estimator.covariance()
         self.pose_error.update(obs.pose, obs.truth)  # evaluation only: never fed back
         with own.lock:
@@ -389,6 +401,44 @@ class Daemon:
         self.pose = [float(v) for v in obs.origin]
         self.pose_matrix = obs.pose
         self.truth_matrix = obs.truth  # evaluation only (a simulator's truth): reported, never used
+
+    # -- colony map (aligned peers' maps near the robot, for its scan matching) ------------
+    def _colony_map_loop(self) -> None:
+        """Give every scan estimator the aligned peers' map near its robot, in our frame."""
+        while not self.stop.wait(self.config.colony_map_s):
+            try:
+                self._refresh_colony_maps()
+            except Exception:
+                log.exception("colony map refresh failed")
+
+    def _refresh_colony_maps(self) -> None:
+        pose = self.pose_matrix
+        if pose is None:
+            return
+        frame = self.colony_frame()
+        for spec, estimator in list(self._estimators.items()):
+            if not isinstance(estimator, ScanEstimator):
+                continue
+            maps = self._colony_maps.get(spec)
+            if maps is None:
+                maps = self._colony_maps[spec] = ColonyMaps(
+                    self.config.agent_id,
+                    planar=estimator.planar,
+                    height=estimator.height,
+                    sensor_range=estimator.sensor_range,
+                )
+            estimator.colony = maps.refresh(self.layers, frame, pose)
+
+    def _localisation_report(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"estimate_ms": round(self._estimate_s * 1000, 2)}
+        for spec, estimator in list(self._estimators.items()):
+            entry: dict[str, Any] = {"estimator": estimator.name}
+            if isinstance(estimator, ScanEstimator):
+                entry.update(estimator.counts())
+                maps = self._colony_maps.get(spec)
+                entry["colony_map"] = None if maps is None else maps.report()
+            out[spec] = entry
+        return out
 
     # -- alignment (own layer against each peer's, one pair per round) ---------------------
     def _align_loop(self) -> None:
@@ -615,6 +665,10 @@ class Daemon:
             "uptime": time.time() - self.started,
             "pose": self.pose,
             "pose_error_m": self.pose_error.last,
+            "pose_covariance": None
+            if self.pose_covariance is None
+            else np.round(self.pose_covariance, 9).tolist(),
+            "localisation": self._localisation_report(),
             "pose_matrix": None if self.pose_matrix is None else self.pose_matrix.tolist(),
             "truth_matrix": None if self.truth_matrix is None else self.truth_matrix.tolist(),
             "sources_done": self._sources_done.is_set() or not self.config.sources,

@@ -284,6 +284,12 @@ class SimOptions(Options):
         "world (the true start pose)",
     )
     realtime: bool = Field(False, description="pace frames at the agent's rate in wall-clock time")
+    lidar_range: float | None = Field(
+        None,
+        gt=0,
+        description="range of a LiDAR agent's sensor in metres (default 12 for 2D, 30 for 3D): "
+        "a short-range scanner (e.g. 4) sees little of a room, as cheap ones do",
+    )
 
 
 class SimSource:
@@ -305,6 +311,7 @@ class SimSource:
         start: str = "origin",
         realtime: bool = False,
         odometry_noise: str | None = None,
+        lidar_range: float | None = None,
         spec: str = "",
     ) -> None:
         self.world = get_world(world)
@@ -325,6 +332,11 @@ class SimSource:
         self.odometry_noise = odometry_noise_of(odometry_noise)
         self.rig, params = make_rig(self.agent.sensor)
         params["noise"] = range_noise
+        if lidar_range is not None:
+            if self.agent.sensor not in ("lidar2d", "lidar3d"):
+                msg = f"lidar_range: expected a LiDAR agent, found {agent!r} ({self.agent.sensor})"
+                raise SourceSpecError(msg)
+            params["range_max"] = float(lidar_range)
         if self.agent.sensor == "cctv":
             assert self.agent.fixed is not None  # every cctv agent is defined with a fixed pose
             x, y, z, yaw, pitch = self.agent.fixed

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from voxel.localisation import se2
+from voxel.localisation.colony_map import ColonyMap
 from voxel.localisation.ekf import MotionNoise, PlanarEkf
 from voxel.localisation.scan_match import LocalMap, Match, match, thin
 
@@ -27,6 +28,7 @@ class ScanParams:
     final_distance: float = 0.15
     iterations: int = 20
     inflation: float = 10.0
+    colony_min_matched: int = 60  # correspondences a match against the colony's map needs
 
 
 @dataclass(frozen=True)
@@ -37,6 +39,8 @@ class Step:
     pose: np.ndarray
     match: Match | None
     fused: bool
+    colony: Match | None = None  # the match against the colony's map, when there was one
+    colony_fused: bool = False
 
 
 class ScanLocaliser:
@@ -44,8 +48,11 @@ class ScanLocaliser:
 
     Each step: predict with the odometry increment (or widen without odometry), match the scan
     against the agent's own recent map from the predicted pose, fuse the matched pose (gated by
-    its Mahalanobis distance), then add the scan to the local map when it is a keyframe.
-    Reads only odometry and the scan: never a reference pose.
+    its Mahalanobis distance); when a `ColonyMap` is given (aligned peers' maps in this agent's
+    frame), match the scan against it too and fuse that as an absolute pose measurement (its
+    covariance plus the alignment's, gated the same way: a bad alignment is refused, not
+    followed); then add the scan to the local map when it is a keyframe.
+    Reads only odometry, the scan and the peers' maps: never a reference pose.
     """
 
     def __init__(
@@ -64,10 +71,16 @@ class ScanLocaliser:
         self.ekf: PlanarEkf | None = None
         self.last_odometry: np.ndarray | None = None
         self.rng = np.random.default_rng(0)
+        self.colony_accepted = self.colony_rejected = self.colony_failed = 0
 
-    def step(self, points_body: np.ndarray, odometry: np.ndarray | None) -> Step:
+    def step(
+        self,
+        points_body: np.ndarray,
+        odometry: np.ndarray | None,
+        colony: ColonyMap | None = None,
+    ) -> Step:
         """Advance with one scan (N, 3) in the body frame and the odometry pose (x, y, yaw) read
-        with it."""
+        with it; `colony`: the aligned peers' map near the agent, in its frame."""
         p = self.params
         pts = np.asarray(points_body, np.float64)
         pts = pts[np.linalg.norm(pts[:, :2], axis=1) <= p.max_range]
@@ -96,9 +109,38 @@ class ScanLocaliser:
             )
             if result.ok:
                 fused = self.ekf.update(se2.from_matrix(result.pose), result.covariance)
+        colony_match: Match | None = None
+        colony_fused = False
+        if colony is not None and colony.tree is not None:
+            colony_match, colony_fused = self._colony_update(pts, colony)
         self.last_odometry = None if odometry is None else np.asarray(odometry, np.float64).copy()
         pose = self.ekf.pose
         m = se2.to_matrix(pose)
         if self.local.wants(m):
             self.local.add(pts @ m[:3, :3].T + m[:3, 3], m)
-        return Step(pose, result, fused)
+        return Step(pose, result, fused, colony_match, colony_fused)
+
+    def _colony_update(self, pts: np.ndarray, colony: ColonyMap) -> tuple[Match, bool]:
+        """Match the scan against the colony's map from the current estimate; fuse it, gated."""
+        p = self.params
+        assert self.ekf is not None  # the first step made it
+        result = match(
+            pts,
+            colony,
+            se2.to_matrix(self.ekf.pose),
+            dof=3,
+            max_distance=p.max_distance,
+            final_distance=p.final_distance,
+            iterations=p.iterations,
+            inflation=p.inflation,
+            min_matched=p.colony_min_matched,
+        )
+        if not result.ok:
+            self.colony_failed += 1
+            return result, False
+        fused = self.ekf.update(se2.from_matrix(result.pose), result.covariance + colony.covariance)
+        if fused:
+            self.colony_accepted += 1
+        else:
+            self.colony_rejected += 1
+        return result, fused
