@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 import zlib
+from collections import deque
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -38,9 +39,13 @@ from colonyd.outdir import output_dir
 from colonyd.persistence import StateStore
 from colonyd.runtime import get_session
 from colonyd.status import StatusServer
-from plugins.observation import Observation
+from plugins.cctv import AGENT_LABEL
+from plugins.observation import ObjectDetection, Observation
 from plugins.source import open_source
 from plugins.stream import Source
+from protocol import PoseFix
+from voxel.localisation import se2
+from voxel.localisation.colony_map import ALIGNMENT_VARIANCE
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +55,8 @@ OBJECTS_REPEAT = 5
 #: A heartbeat claiming our origin with another epoch is from a live duplicate when its time is
 #: within this many seconds of ours (older ones are replays).
 FRESH_S = 30.0
+#: A CCTV sends no fix for a robot marker detected with less confidence than this.
+MIN_FIX_CONFIDENCE = 0.15
 #: The interpreter's thread switch interval in a daemon (Python's default is 5 ms).
 SWITCH_INTERVAL_S = 0.001
 
@@ -90,6 +97,8 @@ class Daemon:
         self._estimators: dict[str, Estimator] = {}  # per source spec
         self._colony_maps: dict[str, ColonyMaps] = {}  # per source spec with a scan estimator
         self._estimate_s = 0.0  # running mean of one estimator step, seconds
+        #: PoseFix messages for us (a CCTV saw our marker), applied by the mapping thread.
+        self._fixes: deque[PoseFix] = deque(maxlen=32)
         self.pose_matrix: np.ndarray | None = None  # the latest sensor pose estimate (own frame)
         self.pose_covariance: np.ndarray | None = None
         self.truth_matrix: np.ndarray | None = None
@@ -229,6 +238,7 @@ class Daemon:
             self.metrics,
             epoch=self.epoch,
             on_own_origin=self._on_own_origin,
+            on_fix=self._fixes.append,
             inbox_size=cfg.inbox_size,
             inbox_bytes=int(cfg.inbox_mb * (1 << 20)),
             drop_rate=cfg.drop_rate,
@@ -387,7 +397,12 @@ class Daemon:
             self._estimate_s = (
                 spent if not self._estimate_s else 0.95 * self._estimate_s + 0.05 * spent
             )
+            if self._fixes and isinstance(estimator, ScanEstimator):
+                self._apply_fixes(estimator)
             self.pose_covariance = estimator.covariance()
+        seen = [d for d in obs.objects if d.label.startswith(AGENT_LABEL)]
+        if seen:
+            self._send_fixes(obs, seen)
         self.pose_error.update(obs.pose, obs.truth)  # evaluation only: never fed back
         with own.lock:
             integrate_observation(
@@ -401,6 +416,48 @@ class Daemon:
         self.pose = [float(v) for v in obs.origin]
         self.pose_matrix = obs.pose
         self.truth_matrix = obs.truth  # evaluation only (a simulator's truth): reported, never used
+
+    # -- pose fixes (a fixed camera tells a robot where it saw it) -------------------------
+    def _send_fixes(self, obs: Observation, seen: list[ObjectDetection]) -> None:
+        """Each robot marker seen (a CCTV): that robot's body pose in our frame, to that robot.
+
+        Standard deviations: 1 cm per metre of range in x and y (the board's known height fixes
+        the range), 4 degrees in yaw; detections under `MIN_FIX_CONFIDENCE` (small, blurred
+        markers) are not sent."""
+        for det in seen:
+            target = det.label[len(AGENT_LABEL) :]
+            if target == self.config.agent_id or det.probability < MIN_FIX_CONFIDENCE:
+                continue
+            body = obs.pose @ det.pose
+            sd = 0.01 * float(np.linalg.norm(det.pose[:3, 3])) + 0.01
+            cov = np.diag([sd**2, sd**2, 0.05**2, 0.05**2, 0.05**2, math.radians(4.0) ** 2])
+            try:
+                self.gossip.publisher.publish_fix(
+                    target, body, cov, obs.time, det.object_id, det.probability
+                )
+            except Exception:
+                log.exception("sending a pose fix to %s failed", target)
+
+    def _apply_fixes(self, estimator: ScanEstimator) -> None:
+        """Fuse the fixes received: each sender's frame into ours through the colony frame."""
+        frame = self.colony_frame()
+        mine = frame.transforms.get(self.config.agent_id)
+        while self._fixes:
+            msg = self._fixes.popleft()
+            theirs = frame.transforms.get(msg.origin)
+            if mine is None or theirs is None:
+                self.metrics.add("fix_unaligned")
+                continue
+            to_own = np.linalg.inv(mine) @ theirs
+            body = to_own @ msg.matrix()
+            cov = np.asarray(msg.covariance, float).reshape(6, 6)[np.ix_([0, 1, 5], [0, 1, 5])]
+            rot = np.eye(3)
+            rot[:2, :2] = to_own[:2, :2]
+            cov = rot @ cov @ rot.T + ALIGNMENT_VARIANCE
+            result = estimator.fix(se2.from_matrix(body), cov, msg.stamp)
+            self.metrics.add(
+                "fix_stale" if result is None else "fix_fused" if result else "fix_refused"
+            )
 
     # -- colony map (aligned peers' maps near the robot, for its scan matching) ------------
     def _colony_map_loop(self) -> None:

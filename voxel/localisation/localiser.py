@@ -3,6 +3,8 @@ by scan-to-map matching."""
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +31,8 @@ class ScanParams:
     iterations: int = 20
     inflation: float = 10.0
     colony_min_matched: int = 60  # correspondences a match against the colony's map needs
+    history: int = 100  # (time, pose) of the last steps, to carry a late fix to the present
+    fix_tolerance: float = 0.15  # seconds between a fix's stamp and the nearest step
 
 
 @dataclass(frozen=True)
@@ -72,15 +76,19 @@ class ScanLocaliser:
         self.last_odometry: np.ndarray | None = None
         self.rng = np.random.default_rng(0)
         self.colony_accepted = self.colony_rejected = self.colony_failed = 0
+        self.fix_accepted = self.fix_rejected = self.fix_stale = 0
+        self.history: deque[tuple[float, np.ndarray]] = deque(maxlen=self.params.history)
 
     def step(
         self,
         points_body: np.ndarray,
         odometry: np.ndarray | None,
         colony: ColonyMap | None = None,
+        time: float | None = None,
     ) -> Step:
         """Advance with one scan (N, 3) in the body frame and the odometry pose (x, y, yaw) read
-        with it; `colony`: the aligned peers' map near the agent, in its frame."""
+        with it; `colony`: the aligned peers' map near the agent, in its frame; `time`: when the
+        scan was taken (kept with the pose, for `fix`)."""
         p = self.params
         pts = np.asarray(points_body, np.float64)
         pts = pts[np.linalg.norm(pts[:, :2], axis=1) <= p.max_range]
@@ -115,10 +123,40 @@ class ScanLocaliser:
             colony_match, colony_fused = self._colony_update(pts, colony)
         self.last_odometry = None if odometry is None else np.asarray(odometry, np.float64).copy()
         pose = self.ekf.pose
+        if time is not None:
+            self.history.append((float(time), pose))
         m = se2.to_matrix(pose)
         if self.local.wants(m):
             self.local.add(pts @ m[:3, :3].T + m[:3, 3], m)
         return Step(pose, result, fused, colony_match, colony_fused)
+
+    def fix(self, pose: np.ndarray, covariance: np.ndarray, stamp: float) -> bool | None:
+        """Fuse an absolute measurement of the body pose (x, y, yaw) in this agent's frame, taken
+        at `stamp` (a CCTV saw the agent's marker): carried to the present by the estimated motion
+        since the step nearest `stamp`, its covariance widened by the filter's motion noise over
+        that motion, and gated like every update. None (and nothing changes) when `stamp` is not
+        within `fix_tolerance` of a recent step."""
+        if self.ekf is None or not self.history:
+            self.fix_stale += 1
+            return None
+        times = np.array([t for t, _ in self.history])
+        i = int(np.argmin(np.abs(times - stamp)))
+        if abs(times[i] - stamp) > self.params.fix_tolerance:
+            self.fix_stale += 1
+            return None
+        motion = se2.relative(self.history[i][1], self.ekf.pose)
+        z = se2.compose(np.asarray(pose, np.float64), motion)
+        m = self.ekf.motion
+        d = math.hypot(motion[0], motion[1])
+        widen = np.diag(
+            [m.trans**2 * d, m.trans**2 * d, m.rot**2 * abs(motion[2]) + m.rot_per_m**2 * d]
+        )
+        fused = self.ekf.update(z, np.asarray(covariance, np.float64) + widen)
+        if fused:
+            self.fix_accepted += 1
+        else:
+            self.fix_rejected += 1
+        return fused
 
     def _colony_update(self, pts: np.ndarray, colony: ColonyMap) -> tuple[Match, bool]:
         """Match the scan against the colony's map from the current estimate; fuse it, gated."""

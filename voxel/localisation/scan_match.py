@@ -19,7 +19,13 @@ def thin(points: np.ndarray, cell: float) -> np.ndarray:
     if len(points) == 0:
         return points
     keys = np.floor(points / cell).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    if float(np.prod(span.astype(np.float64))) < 2.0**62:  # one integer per cell: a 1-D unique
+        packed = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+        _, first = np.unique(packed, return_index=True)
+    else:
+        _, first = np.unique(keys, axis=0, return_index=True)
     return points[np.sort(first)]
 
 

@@ -101,3 +101,23 @@ def test_a_short_range_robot_in_a_corridor_localises_better_on_the_peers_map() -
     alone, together = _corridor_run(False), _corridor_run(True)
     assert alone > 0.2  # the scale error of odometry is not visible in the robot's own map
     assert together < 0.5 * alone
+
+
+def test_a_fix_from_a_moment_ago_is_carried_to_the_present() -> None:
+    loc = _drifted(np.array([0.0, 0.0, 0.0]), 0.3)
+    loc.history.append((10.0, np.array([0.0, 0.0, 0.0])))
+    loc.ekf.kf.x = np.array([[1.0], [0.0], [0.0]])  # the filter has moved 1 m along x since
+    # At t = 10 the camera saw the robot 0.2 m further left than it believed: so it is now too.
+    assert loc.fix(np.array([0.0, 0.2, 0.0]), np.diag([1e-4, 1e-4, 1e-4]), 10.05) is True
+    # Kalman gain 0.09 / (0.09 + 0.01 + 1e-4): prior 0.3 m, the fix widened by 0.1 m/sqrt(m) x 1 m
+    np.testing.assert_allclose(loc.ekf.pose, [1.0, 0.2 * 0.09 / 0.1001, 0.0], atol=1e-3)
+    assert loc.fix(np.zeros(3), np.eye(3) * 1e-4, 12.0) is None  # no step near that time
+    assert (loc.fix_accepted, loc.fix_stale) == (1, 1)
+
+
+def test_a_fix_far_from_a_confident_estimate_is_refused() -> None:
+    loc = _drifted(np.array([2.0, 1.0, 0.5]), 0.02)
+    loc.history.append((3.0, np.array([2.0, 1.0, 0.5])))
+    assert loc.fix(np.array([2.5, 1.0, 0.5]), np.diag([1e-4, 1e-4, 1e-3]), 3.0) is False
+    np.testing.assert_allclose(loc.ekf.pose, [2.0, 1.0, 0.5])
+    assert loc.fix_rejected == 1
