@@ -105,6 +105,7 @@ class ColonyMaps:
             centre=xy,
             radius=self.radius,
             sources=tuple(k[0] for k in key),
+            alignment=b"".join(k[0].encode() + k[3] for k in key),
         )
         self.last = Build(cut, key, time.perf_counter() - started, time.time())
         return cut

@@ -68,6 +68,7 @@ class ScanEstimator:
             "colony_accepted": loc.colony_accepted,
             "colony_rejected": loc.colony_rejected,
             "colony_failed": loc.colony_failed,
+            "colony_suspended": loc.colony_suspended,
             "fix_accepted": loc.fix_accepted,
             "fix_rejected": loc.fix_rejected,
             "fix_stale": loc.fix_stale,

@@ -33,6 +33,9 @@ class ColonyMap:
     radius: float
     sources: tuple[str, ...] = ()
     covariance: np.ndarray = field(default_factory=ALIGNMENT_VARIANCE.copy)
+    #: Identifies the alignments the cut was made with: a localiser that stopped trusting a
+    #: colony map trusts it again only once this changes.
+    alignment: bytes = b""
 
     def __len__(self) -> int:
         return len(self.points)
@@ -55,6 +58,7 @@ def colony_map(
     max_points: int = 50_000,
     sources: tuple[str, ...] = (),
     covariance: np.ndarray | None = None,
+    alignment: bytes = b"",
 ) -> ColonyMap:
     """The scan-matching target of occupied voxel centres (N, 3) already in the agent's frame.
 
@@ -83,9 +87,11 @@ def colony_map(
         pts = pts[np.linspace(0, len(pts) - 1, max_points).astype(np.int64)]
     cov = ALIGNMENT_VARIANCE.copy() if covariance is None else np.asarray(covariance, np.float64)
     if len(pts) < k:
-        return ColonyMap(np.zeros((0, 3)), np.zeros((0, 3)), None, c, radius, sources, cov)
+        return ColonyMap(
+            np.zeros((0, 3)), np.zeros((0, 3)), None, c, radius, sources, cov, alignment
+        )
     normals, flat = surface_normals(pts, pts, cKDTree(pts), k, planar)
     good = flat > 0.7
     pts, normals = pts[good], normals[good]
     tree = cKDTree(pts) if len(pts) >= k else None
-    return ColonyMap(pts, normals, tree, c, radius, sources, cov)
+    return ColonyMap(pts, normals, tree, c, radius, sources, cov, alignment)

@@ -31,6 +31,11 @@ class ScanParams:
     iterations: int = 20
     inflation: float = 10.0
     colony_min_matched: int = 60  # correspondences a match against the colony's map needs
+    #: Of the last `colony_window` matches against the colony's map, more than this share
+    #: refused by the gate means that map disagrees with us (a wrong alignment, or a peer whose
+    #: map drifted): it is not used again until the alignments change.
+    colony_window: int = 20
+    colony_refusals: float = 0.3
     history: int = 100  # (time, pose) of the last steps, to carry a late fix to the present
     fix_tolerance: float = 0.15  # seconds between a fix's stamp and the nearest step
 
@@ -76,6 +81,9 @@ class ScanLocaliser:
         self.last_odometry: np.ndarray | None = None
         self.rng = np.random.default_rng(0)
         self.colony_accepted = self.colony_rejected = self.colony_failed = 0
+        self.colony_suspended = 0
+        self._colony_outcomes: deque[bool] = deque(maxlen=self.params.colony_window)
+        self._distrusted: bytes | None = None  # the alignment of a colony map that disagreed
         self.fix_accepted = self.fix_rejected = self.fix_stale = 0
         self.history: deque[tuple[float, np.ndarray]] = deque(maxlen=self.params.history)
 
@@ -120,7 +128,11 @@ class ScanLocaliser:
         colony_match: Match | None = None
         colony_fused = False
         if colony is not None and colony.tree is not None:
-            colony_match, colony_fused = self._colony_update(pts, colony)
+            if self._distrusted is not None and colony.alignment == self._distrusted:
+                self.colony_suspended += 1
+            else:
+                self._distrusted = None
+                colony_match, colony_fused = self._colony_update(pts, colony)
         self.last_odometry = None if odometry is None else np.asarray(odometry, np.float64).copy()
         pose = self.ekf.pose
         if time is not None:
@@ -181,4 +193,11 @@ class ScanLocaliser:
             self.colony_accepted += 1
         else:
             self.colony_rejected += 1
+        outcomes = self._colony_outcomes
+        outcomes.append(fused)
+        if len(outcomes) >= p.colony_window // 2 and (
+            outcomes.count(False) > p.colony_refusals * len(outcomes)
+        ):
+            self._distrusted = colony.alignment
+            outcomes.clear()
         return result, fused

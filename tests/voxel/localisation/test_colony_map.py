@@ -121,3 +121,21 @@ def test_a_fix_far_from_a_confident_estimate_is_refused() -> None:
     assert loc.fix(np.array([2.5, 1.0, 0.5]), np.diag([1e-4, 1e-4, 1e-3]), 3.0) is False
     np.testing.assert_allclose(loc.ekf.pose, [2.0, 1.0, 0.5])
     assert loc.fix_rejected == 1
+
+
+def test_a_colony_map_that_keeps_disagreeing_is_dropped_until_the_alignment_changes() -> None:
+    truth = np.array([0.4, -0.5, 0.3])
+    shifted = _wall_points(ROOM) + np.array([0.4, 0.0, 0.0])
+    wrong = colony_map(
+        shifted, planar=True, height=0.0, centre=np.zeros(2), radius=10.0, alignment=b"a"
+    )
+    loc = _drifted(truth, 0.03)
+    scan = _segments_scan(truth, ROOM)
+    for _ in range(15):
+        loc.step(scan, np.zeros(3), colony=wrong)
+    assert loc.colony_rejected == 10 and loc.colony_suspended == 5  # tried 10 times, then not
+    np.testing.assert_allclose(loc.ekf.pose[:2], truth[:2], atol=0.01)
+    right = colony_map(
+        _wall_points(ROOM), planar=True, height=0.0, centre=np.zeros(2), radius=10.0, alignment=b"b"
+    )
+    assert loc.step(scan, np.zeros(3), colony=right).colony_fused  # a new alignment: used again
