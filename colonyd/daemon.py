@@ -46,6 +46,7 @@ from plugins.stream import Source
 from protocol import PoseFix
 from voxel.localisation import se2
 from voxel.localisation.colony_map import ALIGNMENT_VARIANCE
+from voxel.localisation.sightings import frame_from_sightings
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +58,10 @@ OBJECTS_REPEAT = 5
 FRESH_S = 30.0
 #: A CCTV sends no fix for a robot marker detected with less confidence than this.
 MIN_FIX_CONFIDENCE = 0.15
+#: Confidence of an alignment found from sightings (registration's are 0-1 by overlap and fit).
+SIGHTING_CONFIDENCE = 0.5
+#: Observers whose sightings of us are kept at once (each at most 50).
+MAX_SIGHTED = 16
 #: The interpreter's thread switch interval in a daemon (Python's default is 5 ms).
 SWITCH_INTERVAL_S = 0.001
 
@@ -99,6 +104,8 @@ class Daemon:
         self._estimate_s = 0.0  # running mean of one estimator step, seconds
         #: PoseFix messages for us (a CCTV saw our marker), applied by the mapping thread.
         self._fixes: deque[PoseFix] = deque(maxlen=32)
+        #: Fixes of observers not aligned with us: (pose seen, our estimate then) per observer.
+        self._sightings: dict[str, deque[tuple[np.ndarray, np.ndarray]]] = {}
         self.pose_matrix: np.ndarray | None = None  # the latest sensor pose estimate (own frame)
         self.pose_covariance: np.ndarray | None = None
         self.truth_matrix: np.ndarray | None = None
@@ -447,6 +454,7 @@ class Daemon:
             theirs = frame.transforms.get(msg.origin)
             if mine is None or theirs is None:
                 self.metrics.add("fix_unaligned")
+                self._sighted(estimator, msg)
                 continue
             to_own = np.linalg.inv(mine) @ theirs
             body = to_own @ msg.matrix()
@@ -458,6 +466,40 @@ class Daemon:
             self.metrics.add(
                 "fix_stale" if result is None else "fix_fused" if result else "fix_refused"
             )
+
+    def _sighted(self, estimator: ScanEstimator, msg: PoseFix) -> None:
+        """A fix from an agent not aligned with us: keep it with our estimate at its stamp; once
+        the sightings fit one transform (`frame_from_sightings`), offer it as an alignment."""
+        then = estimator.localiser.pose_at(msg.stamp)
+        if then is None or (
+            msg.origin not in self._sightings and len(self._sightings) >= MAX_SIGHTED
+        ):
+            return
+        kept = self._sightings.setdefault(msg.origin, deque(maxlen=50))
+        kept.append((se2.from_matrix(msg.matrix()), then))
+        fit = frame_from_sightings(np.array([a for a, _ in kept]), np.array([b for _, b in kept]))
+        self.attempts[msg.origin] = {
+            "aligned": fit.ok,
+            "method": "sightings",
+            "sightings": len(kept),
+            "rmse_m": None if math.isinf(fit.rmse) else round(fit.rmse, 4),
+            "reason": fit.reason,
+            "time": time.time(),
+        }
+        if not fit.ok:
+            return
+        edge = Edge(
+            self.config.agent_id,
+            msg.origin,
+            fit.transform,
+            SIGHTING_CONFIDENCE,
+            len(kept),
+            fit.rmse,
+            np.zeros((6, 6)),
+            time.time(),
+        )
+        self._offer(edge, f"from {len(kept)} sightings of us")
+        kept.clear()
 
     # -- colony map (aligned peers' maps near the robot, for its scan matching) ------------
     def _colony_map_loop(self) -> None:

@@ -142,21 +142,29 @@ class ScanLocaliser:
             self.local.add(pts @ m[:3, :3].T + m[:3, 3], m)
         return Step(pose, result, fused, colony_match, colony_fused)
 
+    def pose_at(self, stamp: float) -> np.ndarray | None:
+        """The estimate (x, y, yaw) of the recent step nearest `stamp`, if one is within
+        `fix_tolerance` seconds of it."""
+        if not self.history:
+            return None
+        times = np.array([t for t, _ in self.history])
+        i = int(np.argmin(np.abs(times - stamp)))
+        if abs(times[i] - stamp) > self.params.fix_tolerance:
+            return None
+        pose: np.ndarray = self.history[i][1].copy()
+        return pose
+
     def fix(self, pose: np.ndarray, covariance: np.ndarray, stamp: float) -> bool | None:
         """Fuse an absolute measurement of the body pose (x, y, yaw) in this agent's frame, taken
         at `stamp` (a CCTV saw the agent's marker): carried to the present by the estimated motion
         since the step nearest `stamp`, its covariance widened by the filter's motion noise over
         that motion, and gated like every update. None (and nothing changes) when `stamp` is not
         within `fix_tolerance` of a recent step."""
-        if self.ekf is None or not self.history:
+        then = self.pose_at(stamp)
+        if self.ekf is None or then is None:
             self.fix_stale += 1
             return None
-        times = np.array([t for t, _ in self.history])
-        i = int(np.argmin(np.abs(times - stamp)))
-        if abs(times[i] - stamp) > self.params.fix_tolerance:
-            self.fix_stale += 1
-            return None
-        motion = se2.relative(self.history[i][1], self.ekf.pose)
+        motion = se2.relative(then, self.ekf.pose)
         z = se2.compose(np.asarray(pose, np.float64), motion)
         m = self.ekf.motion
         d = math.hypot(motion[0], motion[1])
