@@ -13,7 +13,7 @@ from voxel import keys as vk
 from voxel.localisation.colony_map import ColonyMap, colony_map
 
 #: Metres beyond the sensor's range that a cut of the colony map reaches: the robot may move this
-#: far before the cut is made again.
+#: far from where the cut was made before it is made again.
 MARGIN_M = 2.0
 
 #: What a cut depends on: each aligned peer's (origin, epoch, seq) and alignment (rounded).
@@ -66,7 +66,7 @@ def peer_centres(peers: list[tuple[Layer, np.ndarray]]) -> np.ndarray:
 class ColonyMaps:
     """Keeps one agent's cut of the colony map: made again when an alignment or the set of
     aligned peers changed, when a replica grew (at most every `grown_s` seconds), or when the
-    robot nears the cut's edge."""
+    robot moved `MARGIN_M` from where it was made (its scans would reach past the cut)."""
 
     def __init__(
         self,
