@@ -131,6 +131,7 @@ class LocalMap:
         )
         self.tree = cKDTree(self.points) if len(self.points) >= self.k else None
 
+
     def transform(self, m: np.ndarray) -> None:
         """Move the whole map by `m` (4x4, in the map frame): the estimate it was built from was
         corrected by an absolute measurement, and the recent map was as wrong as the estimate."""
