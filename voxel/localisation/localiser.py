@@ -30,7 +30,7 @@ class ScanParams:
     final_distance: float = 0.15
     iterations: int = 20
     inflation: float = 10.0
-    colony_min_matched: int = 30  # correspondences a match against the colony's map needs
+    colony_min_matched: int = 60  # correspondences a match against the colony's map needs
     #: Of the last `colony_window` matches against the colony's map, more than this share
     #: refused by the gate means that map disagrees with us (a wrong alignment, or a peer whose
     #: map drifted): it is not used again until the alignments change.
@@ -171,24 +171,12 @@ class ScanLocaliser:
         widen = np.diag(
             [m.trans**2 * d, m.trans**2 * d, m.rot**2 * abs(motion[2]) + m.rot_per_m**2 * d]
         )
-        before = se2.to_matrix(self.ekf.pose)
         fused = self.ekf.update(z, np.asarray(covariance, np.float64) + widen)
         if fused:
             self.fix_accepted += 1
-            self._carry_local_map(before)
         else:
             self.fix_rejected += 1
         return fused
-
-    def _carry_local_map(self, before: np.ndarray) -> None:
-        """An absolute update moved the estimate from `before` (4x4): move the recent map with it.
-
-        The recent map was built from the estimate and shares its error; left where it was, the
-        next own-map match would pull the estimate back onto the old error."""
-        assert self.ekf is not None
-        correction = se2.to_matrix(self.ekf.pose) @ np.linalg.inv(before)
-        if np.linalg.norm(correction[:2, 3]) > 1e-3 or abs(correction[1, 0]) > 1e-4:
-            self.local.transform(correction)
 
     def _colony_update(self, pts: np.ndarray, colony: ColonyMap) -> tuple[Match, bool]:
         """Match the scan against the colony's map from the current estimate; fuse it, gated."""
@@ -208,11 +196,9 @@ class ScanLocaliser:
         if not result.ok:
             self.colony_failed += 1
             return result, False
-        before = se2.to_matrix(self.ekf.pose)
         fused = self.ekf.update(se2.from_matrix(result.pose), result.covariance + colony.covariance)
         if fused:
             self.colony_accepted += 1
-            self._carry_local_map(before)
         else:
             self.colony_rejected += 1
         outcomes = self._colony_outcomes

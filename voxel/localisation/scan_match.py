@@ -132,22 +132,6 @@ class LocalMap:
         self.tree = cKDTree(self.points) if len(self.points) >= self.k else None
 
 
-    def transform(self, m: np.ndarray) -> None:
-        """Move the whole map by `m` (4x4, in the map frame): the estimate it was built from was
-        corrected by an absolute measurement, and the recent map was as wrong as the estimate."""
-        m = np.asarray(m, np.float64)
-        r, t = m[:3, :3], m[:3, 3]
-        self.frames = deque(
-            ((pts @ r.T + t, nrm @ r.T) for pts, nrm in self.frames), maxlen=self.frames.maxlen
-        )
-        if self.last_key is not None:
-            self.last_key = m @ self.last_key
-        if len(self.points):
-            self.points = self.points @ r.T + t
-            self.normals = self.normals @ r.T
-            self.tree = cKDTree(self.points) if len(self.points) >= self.k else None
-
-
 @dataclass(frozen=True)
 class Match:
     """Result of matching a scan to a map: the refined pose and how much to trust it."""
