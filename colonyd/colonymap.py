@@ -100,6 +100,8 @@ class ColonyMaps:
                 return last.map
         cut = colony_map(
             peer_centres(peers),
+            cell=0.05 if self.planar else 0.1,  # a 3D cut: voxel centres, at most 20,000
+            max_points=50_000 if self.planar else 20_000,
             planar=self.planar,
             height=self.height,
             centre=xy,
