@@ -516,7 +516,7 @@ class Daemon:
             return
         frame = self.colony_frame()
         for spec, estimator in list(self._estimators.items()):
-            if not isinstance(estimator, ScanEstimator) or not estimator.lidar:
+            if not isinstance(estimator, ScanEstimator):
                 continue
             maps = self._colony_maps.get(spec)
             if maps is None:

@@ -31,9 +31,7 @@ class ScanEstimator:
 
     name = "ekf+scan-to-map"
 
-    def __init__(
-        self, planar: bool, mount: np.ndarray, sensor_range: float = 30.0, lidar: bool = True
-    ) -> None:
+    def __init__(self, planar: bool, mount: np.ndarray, sensor_range: float = 30.0) -> None:
         # A 3D scan (depth image, 3D LiDAR) is thinned to 10 cm: a tenth of the cost of 5 cm,
         # as accurate on room-sized geometry (docs/LOCALISATION.md).
         self.localiser = ScanLocaliser(
@@ -44,9 +42,7 @@ class ScanEstimator:
         self.planar = planar
         self.height = float(mount[2, 3])  # a 2D scan's height in the body frame
         self.sensor_range = float(sensor_range)
-        #: The aligned peers' map near the agent (set by the daemon's colony-map thread, for
-        #: LiDAR sources: a depth camera's short, narrow scans are matched against its own map).
-        self.lidar = lidar
+        #: The aligned peers' map near the agent (set by the daemon's colony-map thread).
         self.colony: ColonyMap | None = None
 
     def __call__(self, obs: Observation) -> np.ndarray:
@@ -121,8 +117,7 @@ def get_estimator(adapter: SensorAdapter, first: Observation) -> Estimator:
     if adapter.kind in ("lidar2d", "lidar3d") or first.odometry is not None:
         model = getattr(adapter, "sensor_model", None)
         sensor_range = 30.0 if model is None else min(float(model.max_range), 30.0)
-        lidar = adapter.kind in ("lidar2d", "lidar3d")
-        return ScanEstimator(adapter.kind == "lidar2d", mount, sensor_range, lidar)
+        return ScanEstimator(adapter.kind == "lidar2d", mount, sensor_range)
     return VisualEstimator()
 
 
