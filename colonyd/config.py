@@ -117,6 +117,12 @@ class Config(BaseSettings):
         True,
         description="estimate the pose of sources with odometry (EKF + scan matching), map from it",
     )
+    colony_map_s: float = Field(
+        1.0,
+        ge=0,
+        description="seconds between refreshes of the aligned peers' map a localising LiDAR "
+        "robot also matches its scans against (0: its own map only)",
+    )
     align_s: float = Field(
         5.0, ge=0, description="seconds between alignment attempts with peers (0: none)"
     )

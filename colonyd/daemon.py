@@ -12,6 +12,7 @@ import sys
 import threading
 import time
 import zlib
+from collections import deque
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -21,9 +22,10 @@ import numpy as np
 
 from colonyd.aligner import Aligner
 from colonyd.alignment import ColonyFrame, Edge, align_layers, edge_of
+from colonyd.colonymap import ColonyMaps
 from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError, DuplicateAgentError, PersistenceError, StoppedError
-from colonyd.estimator import Estimator, PoseError, get_estimator
+from colonyd.estimator import Estimator, PoseError, ScanEstimator, get_estimator
 from colonyd.export import encode_map
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
@@ -48,9 +50,14 @@ from colonyd.persistence import StateStore
 from colonyd.rosout import Ros2Outputs, RosPublishers
 from colonyd.runtime import get_session
 from colonyd.status import StatusServer
-from plugins.observation import Observation
+from plugins.cctv import AGENT_LABEL
+from plugins.observation import ObjectDetection, Observation
 from plugins.source import open_source
 from plugins.stream import Source
+from protocol import PoseFix
+from voxel.localisation import se2
+from voxel.localisation.colony_map import ALIGNMENT_VARIANCE
+from voxel.localisation.sightings import frame_from_sightings
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +78,12 @@ SITE_OFFER_S = 5.0
 #: A heartbeat claiming our origin with another epoch is from a live duplicate when its time is
 #: within this many seconds of ours (older ones are replays).
 FRESH_S = 30.0
+#: A CCTV sends no fix for a robot marker detected with less confidence than this.
+MIN_FIX_CONFIDENCE = 0.15
+#: Confidence of an alignment found from sightings (registration's are 0-1 by overlap and fit).
+SIGHTING_CONFIDENCE = 0.5
+#: Observers whose sightings of us are kept at once (each at most 50).
+MAX_SIGHTED = 16
 #: The interpreter's thread switch interval in a daemon (Python's default is 5 ms).
 SWITCH_INTERVAL_S = 0.001
 
@@ -114,6 +127,12 @@ class Daemon:
         self._estimators: dict[str, Estimator] = {}  # per source spec
         self._own_edges: dict[str, Edge] = {}  # peer -> the alignment we last offered
         self.fused_map = FusedMap()  # the live fused view, kept layer by layer
+        self._colony_maps: dict[str, ColonyMaps] = {}  # per source spec with a scan estimator
+        self._estimate_s = 0.0  # running mean of one estimator step, seconds
+        #: PoseFix messages for us (a CCTV saw our marker), applied by the mapping thread.
+        self._fixes: deque[PoseFix] = deque(maxlen=32)
+        #: Fixes of observers not aligned with us: (pose seen, our estimate then) per observer.
+        self._sightings: dict[str, deque[tuple[np.ndarray, np.ndarray]]] = {}
         self.pose_matrix: np.ndarray | None = None  # the latest sensor pose estimate (own frame)
         self.pose_covariance: np.ndarray | None = None
         self.truth_matrix: np.ndarray | None = None
@@ -269,6 +288,7 @@ class Daemon:
             self.metrics,
             epoch=self.epoch,
             on_own_origin=self._on_own_origin,
+            on_fix=self._fixes.append,
             inbox_size=cfg.inbox_size,
             inbox_bytes=int(cfg.inbox_mb * (1 << 20)),
             drop_rate=cfg.drop_rate,
@@ -328,6 +348,10 @@ class Daemon:
             )
         if self.ros is not None:
             self._threads.append(threading.Thread(target=self._ros_loop, name="ros2", daemon=True))
+        if self.config.localise and self.config.colony_map_s > 0:
+            self._threads.append(
+                threading.Thread(target=self._colony_map_loop, name="colony-map", daemon=True)
+            )
         for t in self._threads:
             t.start()
 
@@ -473,8 +497,18 @@ class Daemon:
             estimator = self._estimators.get(source.spec)
             if estimator is None:
                 estimator = self._estimators[source.spec] = get_estimator(source.adapter, obs)
+            started = time.perf_counter()
             obs = replace(obs, pose=estimator(obs))
+            spent = time.perf_counter() - started
+            self._estimate_s = (
+                spent if not self._estimate_s else 0.95 * self._estimate_s + 0.05 * spent
+            )
+            if self._fixes and isinstance(estimator, ScanEstimator):
+                self._apply_fixes(estimator)
             self.pose_covariance = estimator.covariance()
+        seen = [d for d in obs.objects if d.label.startswith(AGENT_LABEL)]
+        if seen:
+            self._send_fixes(obs, seen)
         self.pose_error.update(obs.pose, obs.truth)  # evaluation only: never fed back
         with own.lock:
             integrate_observation(
@@ -488,6 +522,121 @@ class Daemon:
         self.pose = [float(v) for v in obs.origin]
         self.pose_matrix = obs.pose
         self.truth_matrix = obs.truth  # evaluation only (a simulator's truth): reported, never used
+
+    # -- pose fixes (a fixed camera tells a robot where it saw it) -------------------------
+    def _send_fixes(self, obs: Observation, seen: list[ObjectDetection]) -> None:
+        """Each robot marker seen (a CCTV): that robot's body pose in our frame, to that robot.
+
+        Standard deviations: 1 cm per metre of range in x and y (the board's known height fixes
+        the range), 4 degrees in yaw; detections under `MIN_FIX_CONFIDENCE` (small, blurred
+        markers) are not sent."""
+        for det in seen:
+            target = det.label[len(AGENT_LABEL) :]
+            if target == self.config.agent_id or det.probability < MIN_FIX_CONFIDENCE:
+                continue
+            body = obs.pose @ det.pose
+            sd = 0.01 * float(np.linalg.norm(det.pose[:3, 3])) + 0.01
+            cov = np.diag([sd**2, sd**2, 0.05**2, 0.05**2, 0.05**2, math.radians(4.0) ** 2])
+            try:
+                self.gossip.publisher.publish_fix(
+                    target, body, cov, obs.time, det.object_id, det.probability
+                )
+            except Exception:
+                log.exception("sending a pose fix to %s failed", target)
+
+    def _apply_fixes(self, estimator: ScanEstimator) -> None:
+        """Fuse the fixes received: each sender's frame into ours through the colony frame."""
+        frame = self.colony_frame()
+        mine = frame.transforms.get(self.config.agent_id)
+        while self._fixes:
+            msg = self._fixes.popleft()
+            theirs = frame.transforms.get(msg.origin)
+            if mine is None or theirs is None:
+                self.metrics.add("fix_unaligned")
+                self._sighted(estimator, msg)
+                continue
+            to_own = np.linalg.inv(mine) @ theirs
+            body = to_own @ msg.matrix()
+            cov = np.asarray(msg.covariance, float).reshape(6, 6)[np.ix_([0, 1, 5], [0, 1, 5])]
+            rot = np.eye(3)
+            rot[:2, :2] = to_own[:2, :2]
+            cov = rot @ cov @ rot.T + ALIGNMENT_VARIANCE
+            result = estimator.fix(se2.from_matrix(body), cov, msg.stamp)
+            self.metrics.add(
+                "fix_stale" if result is None else "fix_fused" if result else "fix_refused"
+            )
+
+    def _sighted(self, estimator: ScanEstimator, msg: PoseFix) -> None:
+        """A fix from an agent not aligned with us: keep it with our estimate at its stamp; once
+        the sightings fit one transform (`frame_from_sightings`), offer it as an alignment."""
+        then = estimator.localiser.pose_at(msg.stamp)
+        if then is None or (
+            msg.origin not in self._sightings and len(self._sightings) >= MAX_SIGHTED
+        ):
+            return
+        kept = self._sightings.setdefault(msg.origin, deque(maxlen=50))
+        kept.append((se2.from_matrix(msg.matrix()), then))
+        fit = frame_from_sightings(np.array([a for a, _ in kept]), np.array([b for _, b in kept]))
+        self.attempts[msg.origin] = {
+            "aligned": fit.ok,
+            "method": "sightings",
+            "sightings": len(kept),
+            "rmse_m": None if math.isinf(fit.rmse) else round(fit.rmse, 4),
+            "reason": fit.reason,
+            "time": time.time(),
+        }
+        if not fit.ok:
+            return
+        edge = Edge(
+            self.config.agent_id,
+            msg.origin,
+            fit.transform,
+            SIGHTING_CONFIDENCE,
+            len(kept),
+            fit.rmse,
+            np.zeros((6, 6)),
+            time.time(),
+        )
+        self._offer(edge, f"from {len(kept)} sightings of us")
+        kept.clear()
+
+    # -- colony map (aligned peers' maps near the robot, for its scan matching) ------------
+    def _colony_map_loop(self) -> None:
+        """Give every scan estimator the aligned peers' map near its robot, in our frame."""
+        while not self.stop.wait(self.config.colony_map_s):
+            try:
+                self._refresh_colony_maps()
+            except Exception:
+                log.exception("colony map refresh failed")
+
+    def _refresh_colony_maps(self) -> None:
+        pose = self.pose_matrix
+        if pose is None:
+            return
+        frame = self.colony_frame()
+        for spec, estimator in list(self._estimators.items()):
+            if not isinstance(estimator, ScanEstimator):
+                continue
+            maps = self._colony_maps.get(spec)
+            if maps is None:
+                maps = self._colony_maps[spec] = ColonyMaps(
+                    self.config.agent_id,
+                    planar=estimator.planar,
+                    height=estimator.height,
+                    sensor_range=estimator.sensor_range,
+                )
+            estimator.colony = maps.refresh(self.layers, frame, pose)
+
+    def _localisation_report(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"estimate_ms": round(self._estimate_s * 1000, 2)}
+        for spec, estimator in list(self._estimators.items()):
+            entry: dict[str, Any] = {"estimator": estimator.name}
+            if isinstance(estimator, ScanEstimator):
+                entry.update(estimator.counts())
+                maps = self._colony_maps.get(spec)
+                entry["colony_map"] = None if maps is None else maps.report()
+            out[spec] = entry
+        return out
 
     # -- alignment (own layer against each peer's, one pair per round) ---------------------
     def _align_loop(self) -> None:
@@ -789,6 +938,10 @@ class Daemon:
             "uptime": time.time() - self.started,
             "pose": self.pose,
             "pose_error_m": self.pose_error.last,
+            "pose_covariance": None
+            if self.pose_covariance is None
+            else np.round(self.pose_covariance, 9).tolist(),
+            "localisation": self._localisation_report(),
             "pose_matrix": None if self.pose_matrix is None else self.pose_matrix.tolist(),
             "truth_matrix": None if self.truth_matrix is None else self.truth_matrix.tolist(),
             "sources_done": self._sources_done.is_set() or not self.config.sources,

@@ -2,7 +2,7 @@
 
 Everything on the wire is the colony protocol (`protocol/`, docs/PROTOCOL.md): VoxelDelta on
 `<origin>/delta`, Heartbeat on `<origin>/heartbeat`, Objects on `<origin>/objects`, AlignOffer on
-`<origin>/align`, SnapshotRequest/Reply and
+`<origin>/align`, PoseFix on `<origin>/fix`, SnapshotRequest/Reply and
 DeltaRangeRequest/Reply through the `<server>/snapshot/<layer>` and `<server>/deltas/<layer>`
 queryables. Layer versions on the wire are the origin's delta sequence numbers.
 """
@@ -25,7 +25,7 @@ from colonyd.metrics import Metrics
 from colonyd.objects import PeerObjects
 from colonyd.publisher import Publisher
 from colonyd.replicas import Replicas
-from protocol import ObjectCentroid, OwnOriginError, Receiver
+from protocol import ObjectCentroid, OwnOriginError, PoseFix, Receiver
 from voxel.delta import Delta
 
 
@@ -43,6 +43,7 @@ class Gossip:
         *,
         epoch: int,
         on_own_origin: Callable[[OwnOriginError], None] | None = None,
+        on_fix: Callable[[PoseFix], None] | None = None,
         inbox_size: int = 256,
         inbox_bytes: int = 128 << 20,
         drop_rate: float = 0.0,
@@ -79,6 +80,7 @@ class Gossip:
             request_repair=self.catchup.request,
             send_heartbeat=self.publisher.hb_now.set,
             on_own_origin=on_own_origin,
+            on_fix=on_fix,
             size=inbox_size,
             max_bytes=inbox_bytes,
             drop_rate=drop_rate,

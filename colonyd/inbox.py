@@ -19,13 +19,26 @@ from colonyd.objects import PeerObjects
 from colonyd.replicas import Replicas
 from colonyd.runtime import undeclare
 from colonyd.worker import Bounded, Worker
-from protocol import AlignOffer, Heartbeat, Objects, OwnOriginError, Pose, Receiver, VoxelDelta
+from protocol import (
+    AlignOffer,
+    Heartbeat,
+    Objects,
+    OwnOriginError,
+    Pose,
+    PoseFix,
+    Receiver,
+    VoxelDelta,
+)
 from protocol.keyexpr import topic_subscription
 
 log = logging.getLogger(__name__)
 
-#: An inbox item: (kind "delta" | "hb" | "objects" | "align" | "pose" | "join", key expression
-#: or agent, raw frame, time queued).
+#: The smallest x, y (m^2) and yaw (rad^2) variance a PoseFix may claim: a fix claiming certainty
+#: would override every other measurement.
+MIN_FIX_VARIANCE = 1e-6
+
+#: An inbox item: (kind "delta" | "hb" | "objects" | "align" | "pose" | "fix" | "join", key
+#: expression or agent, raw frame, time queued).
 Item = tuple[str, str, bytes, float]
 
 
@@ -46,6 +59,7 @@ class Inbox:
         request_repair: Callable[[str, list[str]], None],
         send_heartbeat: Callable[[], None],
         on_own_origin: Callable[[OwnOriginError], None] | None = None,
+        on_fix: Callable[[PoseFix], None] | None = None,
         size: int = 256,
         max_bytes: int = 128 << 20,
         drop_rate: float = 0.0,
@@ -62,6 +76,8 @@ class Inbox:
         self._send_heartbeat = send_heartbeat
         #: Called (on the inbox thread) with a heartbeat that claims our own origin.
         self._on_own_origin = on_own_origin
+        #: Called (on the inbox thread) with a validated PoseFix whose target is this daemon.
+        self._on_fix = on_fix
         self._drop_rate = drop_rate
         self._rng = random.Random()
         self._worker: Worker[Item] = Worker(
@@ -91,6 +107,9 @@ class Inbox:
             session.declare_subscriber(
                 topic_subscription(namespace, "pose"), self._on_pose, allowed_origin=remote
             ),
+            session.declare_subscriber(
+                topic_subscription(namespace, "fix"), self._on_fix_sample, allowed_origin=remote
+            ),
         ]
 
     # -- zenoh callbacks: enqueue only ----------------------------------------------------
@@ -111,6 +130,9 @@ class Inbox:
 
     def _on_pose(self, sample: zenoh.Sample) -> None:
         self._worker.put(("pose", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
+
+    def _on_fix_sample(self, sample: zenoh.Sample) -> None:
+        self._worker.put(("fix", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
 
     def on_member_event(self, agent: str, event: str) -> None:
         """Liveliness join: ask the newcomer (or returning peer) what it holds."""
@@ -141,6 +163,8 @@ class Inbox:
                 self._handle_align(key, raw)
             elif kind == "pose":
                 self._handle_pose(key, raw)
+            elif kind == "fix":
+                self._handle_fix(key, raw)
             elif kind == "join":
                 self._handle_join(key)
         except OwnOriginError as exc:
@@ -204,6 +228,28 @@ class Inbox:
             raise WireError("unknown-member", f"expected a pose of a member, found {msg.origin!r}")
         accept(self.receiver, self.metrics, msg, raw)
         self.membership.posed(msg.origin, msg)
+
+    def _handle_fix(self, key: str, raw: bytes) -> None:
+        msg = expect(self.receiver.decode(raw, key_expr=key), PoseFix, f"on {key}")
+        if msg.frame_id != frame_of(msg.origin):
+            text = f"expected a fix in {frame_of(msg.origin)!r}, found frame {msg.frame_id!r}"
+            raise WireError("bad-fix", text)
+        variances = [msg.covariance[i] for i in (0, 7, 35)]  # x, y, yaw
+        if not all(v >= MIN_FIX_VARIANCE for v in variances):
+            text = (
+                f"expected x, y and yaw variances >= {MIN_FIX_VARIANCE}, found "
+                f"{', '.join(f'{v:.3g}' for v in variances)}"
+            )
+            raise WireError("bad-fix", text)
+        if self.membership is None or self.membership.find(msg.origin) is None:
+            raise WireError("unknown-member", f"expected a fix from a member, found {msg.origin!r}")
+        accept(self.receiver, self.metrics, msg, raw)
+        if msg.target != self.replicas.layers.own_id:
+            self.metrics.add("fix_for_others")
+            return
+        self.metrics.add("fix_received")
+        if self._on_fix is not None:
+            self._on_fix(msg)
 
     def _handle_join(self, agent: str) -> None:
         """A member joined (or came back): tell it what we hold right away."""

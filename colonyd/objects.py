@@ -10,6 +10,7 @@ import numpy as np
 
 from colonyd.errors import WireError
 from colonyd.grid import VoxelGrid
+from plugins.cctv import AGENT_LABEL
 from plugins.observation import Observation
 from protocol import ObjectCentroid as WireObject
 from voxel.objects import ObjectCentroid, ObjectTracker, extract_objects, moved
@@ -63,6 +64,8 @@ class OwnObjects:
             for det in obs.objects:
                 if det.class_id in self.structure or not 0 <= det.object_id < CLUSTER_IDS:
                     continue
+                if det.label.startswith(AGENT_LABEL):
+                    continue  # another agent's marker: that agent, not an object of the map
                 p = obs.pose[:3, :3] @ det.position + obs.pose[:3, 3]
                 s = self._sightings.get(det.object_id)
                 if s is None:

@@ -19,6 +19,7 @@ from protocol import (
     ObjectCentroid,
     Objects,
     Pose,
+    PoseFix,
     VoxelDelta,
     delta_messages,
 )
@@ -67,6 +68,9 @@ class Publisher:
         )
         self._pose = session.declare_publisher(
             topic_key(namespace, self.own, "pose"), congestion_control=drop
+        )
+        self._fix = session.declare_publisher(
+            topic_key(namespace, self.own, "fix"), congestion_control=drop
         )
 
     def publish_own(
@@ -163,5 +167,30 @@ class Publisher:
         self._pose.put(payload)
         self.metrics.add("bytes_published", len(payload))
 
+    def publish_fix(
+        self,
+        target: str,
+        pose: np.ndarray,
+        covariance: np.ndarray,
+        stamp: float,
+        marker_id: int,
+        confidence: float,
+    ) -> None:
+        """Tell `target` where we saw it: its body pose in our frame at `stamp` (PoseFix)."""
+        msg = PoseFix(
+            **self.sender.header(),
+            target=target,
+            frame_id=frame_of(self.own),
+            stamp=stamp,
+            **PoseFix.split_matrix(pose),
+            covariance=[float(x) for x in np.asarray(covariance, float).ravel()],
+            marker_id=marker_id,
+            confidence=confidence,
+        )
+        payload = self.sender.encode(msg)
+        self._fix.put(payload)
+        self.metrics.add("fixes_sent")
+        self.metrics.add("bytes_published", len(payload))
+
     def close(self) -> None:
-        undeclare(self._deltas, self._heartbeats, self._objects, self._align, self._pose)
+        undeclare(self._deltas, self._heartbeats, self._objects, self._align, self._pose, self._fix)

@@ -13,6 +13,13 @@ from plugins.errors import SensorInputError
 from plugins.observation import ObjectDetection, Observation
 from voxel.sensor import SensorModel
 
+#: Label of a detection that is another agent's marker (followed by the agent id); its pose is
+#: that agent's body pose in the camera frame.
+AGENT_LABEL = "agent:"
+#: A robot's board whose solved normal leaves the horizontal by more than 10 degrees is an
+#: ambiguous (flipped) pose solution of a small marker, and dropped.
+VERTICAL_SIN = 0.17
+
 
 @dataclass(frozen=True)
 class CctvFrame:
@@ -72,8 +79,14 @@ class CctvCamera:
         prob_hit: float = 0.7,
         prob_miss: float = 0.4,
         noise: float = 0.0,
+        agent_markers: dict[int, tuple[str, np.ndarray, float]] | None = None,
     ) -> None:
         self.K = camera_intrinsics(K, fov, width, height, "cctv camera")
+        #: Markers on other agents: marker id -> (agent id, marker-to-body transform, side length).
+        self.agent_markers = {
+            int(k): (str(name), as_pose(mount, f"agent_markers[{k}]"), float(length))
+            for k, (name, mount, length) in (agent_markers or {}).items()
+        }
         self.pose = np.eye(4) if pose is None else as_pose(pose, "pose")
         self.distortion = np.zeros(5) if distortion is None else np.asarray(distortion, np.float64)
         if marker_length <= 0:
@@ -115,9 +128,10 @@ class CctvCamera:
         corners, ids, _ = self.detector.detectMarkers(grey)
         if ids is None:
             return []
-        model = marker_corners(self.marker_length)
         found = []
         for detected, marker in zip(corners, ids.reshape(-1), strict=True):
+            on_agent = self.agent_markers.get(int(marker))
+            model = marker_corners(self.marker_length if on_agent is None else on_agent[2])
             quad = detected.reshape(4, 2).astype(np.float64)
             ok, rvec, tvec = cv2.solvePnP(
                 model, quad, self.K, self.distortion, flags=cv2.SOLVEPNP_IPPE_SQUARE
@@ -130,17 +144,39 @@ class CctvCamera:
             pose = np.eye(4)
             pose[:3, :3] = cv2.Rodrigues(rvec)[0]
             pose[:3, 3] = tvec.reshape(3)
+            label = f"aruco:{int(marker)}"
+            if on_agent is not None:  # the agent's body pose in the camera frame
+                if abs((self.pose[:3, :3] @ pose[:3, 2])[2]) > VERTICAL_SIN:
+                    continue  # boards on robots are vertical: a tilted solution is a flip
+                pose = self._at_board_height(pose, float(on_agent[1][2, 3]))
+                pose = pose @ np.linalg.inv(on_agent[1])
+                label = f"{AGENT_LABEL}{on_agent[0]}"
             found.append(
                 ObjectDetection(
                     object_id=int(marker),
                     class_id=self.marker_classes.get(int(marker), self.default_class),
                     pose=pose,
                     probability=confidence(side, error),
-                    label=f"aruco:{int(marker)}",
+                    label=label,
                     corners=quad,
                 )
             )
         return found
+
+    def _at_board_height(self, marker: np.ndarray, height: float) -> np.ndarray:
+        """A robot's board pose (camera frame) moved along the camera's ray through its centre to
+        the board's known height above the floor (z = 0 of the camera's surveyed frame): range is
+        what a small marker's pose gets worst, the ray's direction what it gets best."""
+        o = self.pose[:3, 3]
+        c = self.pose[:3, :3] @ marker[:3, 3] + o
+        if abs(c[2] - o[2]) < 1e-3:
+            return marker  # a ray parallel to the floor: no better range from the height
+        scale = (height - o[2]) / (c[2] - o[2])
+        if not 0.5 < scale < 2.0:
+            return marker
+        out = marker.copy()
+        out[:3, 3] = marker[:3, 3] * scale
+        return out
 
     def observe(
         self,
@@ -175,6 +211,8 @@ class CctvCamera:
         labels = np.full(depth.shape, -1, np.int32)
         probs = np.zeros(depth.shape, np.float32)
         for obj in objects:
+            if obj.label.startswith(AGENT_LABEL):
+                continue  # a robot passing by: not part of the map
             assert obj.corners is not None  # detect() gives every marker its image corners
             quad = np.round(obj.corners).astype(np.int32)
             cv2.fillConvexPoly(labels, quad, obj.class_id)

@@ -23,7 +23,7 @@ from plugins.observation import Observation
 from plugins.odometry import odometry_noise_of
 from plugins.spec import Options, SourceSpec, parse_options
 from plugins.stream import SourceContext, StreamStats
-from plugins.world import CLASSES, WORLDS, World, get_world
+from plugins.world import CLASSES, WORLDS, Marker, World, get_world
 from voxel.depth import pixel_rays
 from voxel.localisation.odometry import WheelOdometer
 
@@ -47,6 +47,7 @@ class AgentSpec:
     speed: float = 0.5  # m/s
     turn_rate: float = 1.0  # rad/s, turning in place at waypoints
     rate: float = 10.0  # frames per second
+    marker: int = -1  # first of the 4 ArUco marker ids on the robot's sides (-1: none)
 
 
 def look_at(
@@ -57,16 +58,51 @@ def look_at(
     return (*eye, math.atan2(d[1], d[0]), math.atan2(-d[2], math.hypot(d[0], d[1])))
 
 
+#: The ArUco boards on a robot's four sides: side length, distance from the body's centre, height.
+BOARD_LENGTH, BOARD_OFFSET, BOARD_HEIGHT = 0.24, 0.2, 0.7
+
+
+def robot_markers(agent: AgentSpec) -> dict[int, np.ndarray]:
+    """Marker id -> marker-to-body transform (OpenCV's marker frame: x right, y up, z out of the
+    board) of the boards on a robot's front, left, back and right; none for agents without."""
+    if agent.marker < 0:
+        return {}
+    out = {}
+    for i in range(4):
+        a = i * math.pi / 2
+        z = np.array([math.cos(a), math.sin(a), 0.0])
+        y = np.array([0.0, 0.0, 1.0])
+        m = np.eye(4)
+        m[:3, :3] = np.column_stack([np.cross(y, z), y, z])
+        m[:3, 3] = BOARD_OFFSET * z + [0.0, 0.0, BOARD_HEIGHT]
+        out[agent.marker + i] = m
+    return out
+
+
+def boards_at(agent: AgentSpec, body: np.ndarray) -> list[Marker]:
+    """The robot's boards as world markers, its body at `body` (4x4, world frame)."""
+    boards = []
+    for marker_id, m in robot_markers(agent).items():
+        w = body @ m
+        boards.append(
+            Marker(marker_id, tuple(w[:3, 3]), tuple(w[:3, 2]), BOARD_LENGTH, margin=0.15)
+        )
+    return boards
+
+
 AGENTS: dict[str, dict[str, AgentSpec]] = {
     "room": {
         "depth-1": AgentSpec(
-            "depth-1", "depth", ((-2.0, -2.0), (2.0, -2.0), (2.0, 0.5), (-2.0, 0.0))
+            "depth-1", "depth", ((-2.0, -2.0), (2.0, -2.0), (2.0, 0.5), (-2.0, 0.0)), marker=20
         ),
         "lidar-1": AgentSpec(
-            "lidar-1", "lidar2d", ((-2.2, -2.2), (2.2, -2.2), (2.2, 2.2), (-2.2, 2.2))
+            "lidar-1", "lidar2d", ((-2.2, -2.2), (2.2, -2.2), (2.2, 2.2), (-2.2, 2.2)), marker=24
         ),
         "lidar3d-1": AgentSpec(
-            "lidar3d-1", "lidar3d", ((0.0, -2.0), (2.0, 0.0), (0.0, 2.3), (-2.3, 0.0))
+            "lidar3d-1",
+            "lidar3d",
+            ((0.0, -2.0), (2.0, 0.0), (0.0, 2.3), (-2.3, 0.0)),
+            marker=28,
         ),
         "cctv-1": AgentSpec(
             "cctv-1", "cctv", fixed=look_at((-2.8, -2.8, 2.3), (1.5, 1.5, 0.8)), rate=1.0
@@ -77,14 +113,19 @@ AGENTS: dict[str, dict[str, AgentSpec]] = {
             "depth-1",
             "depth",
             ((-5.0, -3.0), (-1.0, -1.0), (-1.0, 0.0), (3.0, 0.0), (5.0, 2.0), (-5.0, 0.0)),
+            marker=20,
         ),
         "lidar-1": AgentSpec(
             "lidar-1",
             "lidar2d",
             ((-5.0, 0.0), (-1.0, 0.0), (2.5, 0.0), (5.0, -3.0), (5.0, 3.0), (-5.0, 3.5)),
+            marker=24,
         ),
         "lidar3d-1": AgentSpec(
-            "lidar3d-1", "lidar3d", ((-4.0, -3.0), (-0.8, 0.0), (2.5, -2.0), (5.0, 1.5), (0.8, 0.0))
+            "lidar3d-1",
+            "lidar3d",
+            ((-4.0, -3.0), (-0.8, 0.0), (2.5, -2.0), (5.0, 1.5), (0.8, 0.0)),
+            marker=28,
         ),
         "cctv-1": AgentSpec(
             "cctv-1", "cctv", fixed=look_at((-5.8, -3.8, 2.5), (-2.0, -1.0, 0.8)), rate=1.0
@@ -226,8 +267,10 @@ def render(
     pose: np.ndarray,
     rng: np.random.Generator,
     range_noise: float,
+    boards: list[Marker] | None = None,
 ) -> Scan | Cloud | DepthFrame | CctvFrame:
-    """A raw reading of `sensor` at sensor pose `pose` (world frame), rendered by ray casting."""
+    """A raw reading of `sensor` at sensor pose `pose` (world frame), rendered by ray casting;
+    `boards`: markers on robots, drawn into camera images only (robots are not in the scene)."""
     directions = rig.directions @ pose[:3, :3].T
     hits = world.cast(pose[:3, 3], directions)
     t = hits.t
@@ -246,7 +289,7 @@ def render(
         np.where(np.isfinite(t), t, np.nan).reshape(h, w).astype(np.float32)
     )  # z = t for z = 1 rays
     assert rig.K is not None  # camera rigs carry their intrinsics
-    colour = world.render_colour(rig.K, pose, (h, w), directions, hits)
+    colour = world.render_colour(rig.K, pose, (h, w), directions, hits, boards)
     if sensor == "depth":
         labels = hits.class_id.reshape(h, w)
         normals = (hits.normal @ pose[:3, :3]).reshape(h, w, 3)
@@ -284,6 +327,23 @@ class SimOptions(Options):
         "world (the true start pose)",
     )
     realtime: bool = Field(False, description="pace frames at the agent's rate in wall-clock time")
+    epoch: float | None = Field(
+        None,
+        description="shared clock: Unix time at which every agent's path starts; frames are "
+        "paced in wall-clock time (late ones skipped, as a moving robot would), observation "
+        "times are Unix times, and a CCTV agent sees the robots where they are then",
+    )
+    robots: str = Field(
+        "",
+        description="'+'-separated robots of this world that a CCTV agent sees (their ArUco "
+        "boards), e.g. lidar-1+depth-1; needs epoch",
+    )
+    lidar_range: float | None = Field(
+        None,
+        gt=0,
+        description="range of a LiDAR agent's sensor in metres (default 12 for 2D, 30 for 3D): "
+        "a short-range scanner (e.g. 4) sees little of a room, as cheap ones do",
+    )
 
 
 class SimSource:
@@ -305,6 +365,9 @@ class SimSource:
         start: str = "origin",
         realtime: bool = False,
         odometry_noise: str | None = None,
+        lidar_range: float | None = None,
+        epoch: float | None = None,
+        robots: str = "",
         spec: str = "",
     ) -> None:
         self.world = get_world(world)
@@ -319,12 +382,32 @@ class SimSource:
             msg = f"frames: expected a non-negative integer, found {frames}"
             raise SourceSpecError(msg)
         self.agent = agents[agent]
+        names = [r for r in robots.split("+") if r]
+        unknown = [r for r in names if r not in agents or agents[r].marker < 0]
+        if unknown:
+            movers = sorted(a for a, s in agents.items() if s.marker >= 0)
+            msg = (
+                f"robots: expected robots of world {world!r} ({', '.join(movers)}), found {unknown}"
+            )
+            raise SourceSpecError(msg)
+        if names and (self.agent.sensor != "cctv" or epoch is None):
+            msg = (
+                f"robots: expected a CCTV agent with an epoch, found agent {agent!r}, epoch {epoch}"
+            )
+            raise SourceSpecError(msg)
+        self.robots = [agents[r] for r in names]
+        self.epoch = epoch
         self.spec = spec or f"sim:world={world},agent={agent}"
         self.seed, self.frames, self.noise, self.drift = seed, frames, noise, drift
         self.range_noise, self.start, self.realtime = range_noise, start, realtime
         self.odometry_noise = odometry_noise_of(odometry_noise)
         self.rig, params = make_rig(self.agent.sensor)
         params["noise"] = range_noise
+        if lidar_range is not None:
+            if self.agent.sensor not in ("lidar2d", "lidar3d"):
+                msg = f"lidar_range: expected a LiDAR agent, found {agent!r} ({self.agent.sensor})"
+                raise SourceSpecError(msg)
+            params["range_max"] = float(lidar_range)
         if self.agent.sensor == "cctv":
             assert self.agent.fixed is not None  # every cctv agent is defined with a fixed pose
             x, y, z, yaw, pitch = self.agent.fixed
@@ -335,6 +418,11 @@ class SimSource:
             params["dictionary"] = self.world.dictionary
             if self.world.markers:
                 params["marker_length"] = self.world.markers[0].length
+            params["agent_markers"] = {
+                marker_id: (robot.name, mount, BOARD_LENGTH)
+                for robot in self.robots
+                for marker_id, mount in robot_markers(robot).items()
+            }
         else:
             params["mount"] = self.rig.mount
         self.adapter: SensorAdapter = load_adapter(self.agent.sensor, **params)
@@ -361,9 +449,23 @@ class SimSource:
             else np.linalg.inv(pose_matrix(start[0], start[1], 0.0, start[2]))
         )
         self.ground_truth = []
+        robots = [(r, Path(r.waypoints, r.speed, r.turn_rate)) for r in self.robots]
         began = clock.monotonic()
-        for i in range(self.frames):
+        i = -1
+        while i + 1 < self.frames:
+            i += 1
+            if self.epoch is not None:  # a shared clock: where everyone is now
+                i = max(i, int((clock.time() - self.epoch) * agent.rate))
+                if i >= self.frames:
+                    break
+                while (wait := self.epoch + i / agent.rate - clock.time()) > 0:
+                    clock.sleep(min(wait, 0.5))
             t = i / agent.rate
+            boards = [
+                b
+                for robot, (x, y, yaw) in ((r, p(t)) for r, p in robots)
+                for b in boards_at(robot, pose_matrix(x, y, 0.0, yaw))
+            ]
             if path is None:  # a fixed camera: the adapter loaded for "cctv" is a CctvCamera
                 truth_sensor = cast(CctvCamera, self.adapter).pose
                 body_guess = None
@@ -376,15 +478,16 @@ class SimSource:
                 body_guess = to_agent @ pose_matrix(estimate[0], estimate[1], 0.0, estimate[2])
                 odometry = body_guess
             reading = render(
-                self.world, agent.sensor, self.rig, truth_sensor, rng, self.range_noise
+                self.world, agent.sensor, self.rig, truth_sensor, rng, self.range_noise, boards
             )
+            stamp = t if self.epoch is None else self.epoch + t
             obs = self.adapter.observe(
-                reading, pose=body_guess, time=t, odometry=odometry, frame=f"{self.spec}#{i}"
+                reading, pose=body_guess, time=stamp, odometry=odometry, frame=f"{self.spec}#{i}"
             )
             obs = _with_truth(obs, truth_sensor)
-            self.ground_truth.append((t, truth_sensor))
+            self.ground_truth.append((stamp, truth_sensor))
             self.stats.delivered += 1
-            if self.realtime:
+            if self.realtime and self.epoch is None:
                 delay = began + t - clock.monotonic()
                 if delay > 0:
                     clock.sleep(delay)

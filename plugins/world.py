@@ -235,12 +235,14 @@ class World:
         size: tuple[int, int],
         directions: np.ndarray,
         hits: Hits,
+        moving: list[Marker] | None = None,
     ) -> np.ndarray:
         """BGR image (H, W, 3) of a pinhole camera's hits: shaded surfaces with markers warped on.
 
         `directions` are the world-frame rays of the pixels (row-major, as cast). Markers are drawn
         by a perspective warp of their bitmap (sub-pixel edges), only where the cast ray hits the
-        marker's face (occlusion).
+        marker's face (occlusion). `moving` markers (boards on robots, not part of the cast
+        scene) are drawn where they are nearer than the scene.
         """
         h, w = size
         d = np.asarray(directions, np.float64)
@@ -252,7 +254,8 @@ class World:
         base *= lit[:, None]
         points = pose[:3, 3] + d * np.where(hit, hits.t, 0.0)[:, None]
         world_to_cam = np.linalg.inv(pose)
-        for marker in self.markers:
+        for i, marker in enumerate([*self.markers, *(moving or [])]):
+            board = i >= len(self.markers)
             frame = marker.frame()
             if (frame[:3, 3] - pose[:3, 3]) @ frame[:3, 2] >= 0:
                 continue  # seen from behind
@@ -273,12 +276,18 @@ class World:
             # pixels of the tag's bounding box whose ray hits the marker's face (occlusion test)
             rows, cols = np.mgrid[lo[1] : hi[1], lo[0] : hi[0]]
             index = (rows * w + cols).reshape(-1)
-            local = (points[index] - frame[:3, 3]) @ frame[:3, :3]
-            face = (
-                hit[index]
-                & (np.abs(local[:, 2]) < 1e-4)
-                & (hits.normal[index] @ frame[:3, 2] > 0.5)
-            )
+            if board:  # in front of the scene where the ray meets the board's plane first
+                ray = d[index]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    t_board = ((frame[:3, 3] - pose[:3, 3]) @ frame[:3, 2]) / (ray @ frame[:3, 2])
+                face = (t_board > 0) & (~hit[index] | (t_board < hits.t[index]))
+            else:
+                local = (points[index] - frame[:3, 3]) @ frame[:3, :3]
+                face = (
+                    hit[index]
+                    & (np.abs(local[:, 2]) < 1e-4)
+                    & (hits.normal[index] @ frame[:3, 2] > 0.5)
+                )
             if not face.any():
                 continue
             tag = self._tag(marker)

@@ -24,7 +24,7 @@ ROOT = "colony"
 NAME_PATTERN = r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}"
 _NAME = re.compile(NAME_PATTERN)
 #: Topics an origin publishes on.
-TOPICS = ("announce", "pose", "delta", "objects", "align", "heartbeat")
+TOPICS = ("announce", "pose", "delta", "objects", "align", "heartbeat", "fix")
 #: Queryables an origin serves, each for one layer.
 QUERIES = ("snapshot", "deltas")
 ALIVE = "alive"
@@ -35,7 +35,7 @@ EXPORT = "export"
 #: Queryables of a daemon's own that are not protocol frames (tooling).
 REPORTS = (STATUS, EXPORT)
 
-Topic = Literal["announce", "pose", "delta", "objects", "align", "heartbeat"]
+Topic = Literal["announce", "pose", "delta", "objects", "align", "heartbeat", "fix"]
 Query = Literal["snapshot", "deltas"]
 
 

@@ -254,6 +254,31 @@ class AlignOffer(Message, _Rigid):
     pairs: Annotated[list[tuple[U63, U63]], Field(max_length=4096)] = []
 
 
+class PoseFix(Message, _Rigid):
+    """An absolute observation of another agent's pose: the origin (a fixed camera with a surveyed
+    pose) saw `target`'s marker at `stamp`; `position`/`orientation` are the target's body pose in
+    `frame_id`, the origin's own frame, with a 6x6 covariance (x y z roll pitch yaw)."""
+
+    TYPE: ClassVar[int] = 11
+    KIND: ClassVar[str] = "fix"
+
+    target: Name
+    frame_id: Name
+    #: When the target was seen (the observation's time on the origin's clock), seconds (Unix).
+    stamp: Finite
+    covariance: Cov6 = [0.0] * 36
+    #: The marker seen (0: unknown).
+    marker_id: U32 = 0
+    confidence: Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)] = 1.0
+
+    @model_validator(mode="after")
+    def _other_agent(self) -> PoseFix:
+        if self.target == self.origin:
+            msg = f"target must be another agent than the origin, found {self.target!r} for both"
+            raise ValueError(msg)
+        return self
+
+
 class SnapshotRequest(Message):
     """Ask for the full content of `layer` (answered with SnapshotReply parts)."""
 
@@ -400,5 +425,6 @@ MESSAGE_TYPES: dict[int, type[Message]] = {
         DeltaRangeRequest,
         DeltaRangeReply,
         Heartbeat,
+        PoseFix,
     )
 }

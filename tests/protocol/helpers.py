@@ -15,6 +15,7 @@ from protocol.messages import (
     ObjectCentroid,
     Objects,
     Pose,
+    PoseFix,
     SensorInfo,
     SnapshotReply,
     SnapshotRequest,
@@ -144,6 +145,17 @@ def sample_messages(rng: np.random.Generator | None = None) -> list[Message]:
                 LayerVersion(origin="robot-1", epoch=3, version=17),
                 LayerVersion(origin="robot-2", epoch=1_700_000_000_123_456, version=4),
             ],
+        ),
+        PoseFix(
+            **common,
+            target="robot-2",
+            frame_id="robot-1.map",
+            stamp=1_700_000_000.0,
+            position=(2.0, -1.0, 0.0),
+            orientation=(0.0, 0.0, 0.6, 0.8),
+            covariance=[0.0025 * (i % 7 == 0) for i in range(36)],
+            marker_id=24,
+            confidence=0.7,
         ),
     ]
 

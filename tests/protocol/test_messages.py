@@ -17,6 +17,7 @@ from protocol.messages import (
     LayerVersion,
     ObjectCentroid,
     Pose,
+    PoseFix,
     SensorInfo,
     SnapshotReply,
     SnapshotRequest,
@@ -29,8 +30,8 @@ COMMON = {"origin": "r1", "time": 1.0}
 
 
 def test_every_type_has_a_unique_code_and_kind() -> None:
-    assert sorted(MESSAGE_TYPES) == list(range(1, 11))
-    assert len({c.KIND for c in MESSAGE_TYPES.values()}) == 10
+    assert sorted(MESSAGE_TYPES) == list(range(1, 12))
+    assert len({c.KIND for c in MESSAGE_TYPES.values()}) == 11
     assert {type(m) for m in sample_messages()} == set(MESSAGE_TYPES.values())
 
 
@@ -116,6 +117,27 @@ def test_sensor_info_round_trips_a_sensor_model() -> None:
             "epoch",
         ),
         (lambda: Pose(**COMMON, epoch=1 << 63, frame_id="m", position=(0, 0, 0)), "less than"),
+        (
+            lambda: PoseFix(**COMMON, target="r1", frame_id="m", stamp=1.0, position=(0, 0, 0)),
+            "another agent than the origin, found 'r1' for both",
+        ),
+        (lambda: PoseFix(**COMMON, target="r2", frame_id="m", position=(0, 0, 0)), "stamp"),
+        (
+            lambda: PoseFix(
+                **COMMON, target="r2", frame_id="m", stamp=float("inf"), position=(0, 0, 0)
+            ),
+            "finite",
+        ),
+        (
+            lambda: PoseFix(
+                **COMMON, target="r2", frame_id="m", stamp=1.0, position=(0, 0, 0), confidence=2
+            ),
+            "less than or equal to 1",
+        ),
+        (
+            lambda: PoseFix(**COMMON, target="a/b", frame_id="m", stamp=1.0, position=(0, 0, 0)),
+            "pattern",
+        ),
     ],
 )
 def test_invalid_messages_rejected(factory, match: str) -> None:

@@ -3,11 +3,14 @@ by scan-to-map matching."""
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
 from voxel.localisation import se2
+from voxel.localisation.colony_map import ColonyMap
 from voxel.localisation.ekf import MotionNoise, PlanarEkf
 from voxel.localisation.scan_match import LocalMap, Match, match, thin
 
@@ -27,6 +30,14 @@ class ScanParams:
     final_distance: float = 0.15
     iterations: int = 20
     inflation: float = 10.0
+    colony_min_matched: int = 60  # correspondences a match against the colony's map needs
+    #: Of the last `colony_window` matches against the colony's map, more than this share
+    #: refused by the gate means that map disagrees with us (a wrong alignment, or a peer whose
+    #: map drifted): it is not used again until the alignments change.
+    colony_window: int = 20
+    colony_refusals: float = 0.3
+    history: int = 100  # (time, pose) of the last steps, to carry a late fix to the present
+    fix_tolerance: float = 0.15  # seconds between a fix's stamp and the nearest step
 
 
 @dataclass(frozen=True)
@@ -37,6 +48,8 @@ class Step:
     pose: np.ndarray
     match: Match | None
     fused: bool
+    colony: Match | None = None  # the match against the colony's map, when there was one
+    colony_fused: bool = False
 
 
 class ScanLocaliser:
@@ -44,8 +57,11 @@ class ScanLocaliser:
 
     Each step: predict with the odometry increment (or widen without odometry), match the scan
     against the agent's own recent map from the predicted pose, fuse the matched pose (gated by
-    its Mahalanobis distance), then add the scan to the local map when it is a keyframe.
-    Reads only odometry and the scan: never a reference pose.
+    its Mahalanobis distance); when a `ColonyMap` is given (aligned peers' maps in this agent's
+    frame), match the scan against it too and fuse that as an absolute pose measurement (its
+    covariance plus the alignment's, gated the same way: a bad alignment is refused, not
+    followed); then add the scan to the local map when it is a keyframe.
+    Reads only odometry, the scan and the peers' maps: never a reference pose.
     """
 
     def __init__(
@@ -64,10 +80,23 @@ class ScanLocaliser:
         self.ekf: PlanarEkf | None = None
         self.last_odometry: np.ndarray | None = None
         self.rng = np.random.default_rng(0)
+        self.colony_accepted = self.colony_rejected = self.colony_failed = 0
+        self.colony_suspended = 0
+        self._colony_outcomes: deque[bool] = deque(maxlen=self.params.colony_window)
+        self._distrusted: bytes | None = None  # the alignment of a colony map that disagreed
+        self.fix_accepted = self.fix_rejected = self.fix_stale = 0
+        self.history: deque[tuple[float, np.ndarray]] = deque(maxlen=self.params.history)
 
-    def step(self, points_body: np.ndarray, odometry: np.ndarray | None) -> Step:
+    def step(
+        self,
+        points_body: np.ndarray,
+        odometry: np.ndarray | None,
+        colony: ColonyMap | None = None,
+        time: float | None = None,
+    ) -> Step:
         """Advance with one scan (N, 3) in the body frame and the odometry pose (x, y, yaw) read
-        with it."""
+        with it; `colony`: the aligned peers' map near the agent, in its frame; `time`: when the
+        scan was taken (kept with the pose, for `fix`)."""
         p = self.params
         pts = np.asarray(points_body, np.float64)
         pts = pts[np.linalg.norm(pts[:, :2], axis=1) <= p.max_range]
@@ -96,9 +125,87 @@ class ScanLocaliser:
             )
             if result.ok:
                 fused = self.ekf.update(se2.from_matrix(result.pose), result.covariance)
+        colony_match: Match | None = None
+        colony_fused = False
+        if colony is not None and colony.tree is not None:
+            if self._distrusted is not None and colony.alignment == self._distrusted:
+                self.colony_suspended += 1
+            else:
+                self._distrusted = None
+                colony_match, colony_fused = self._colony_update(pts, colony)
         self.last_odometry = None if odometry is None else np.asarray(odometry, np.float64).copy()
         pose = self.ekf.pose
+        if time is not None:
+            self.history.append((float(time), pose))
         m = se2.to_matrix(pose)
         if self.local.wants(m):
             self.local.add(pts @ m[:3, :3].T + m[:3, 3], m)
-        return Step(pose, result, fused)
+        return Step(pose, result, fused, colony_match, colony_fused)
+
+    def pose_at(self, stamp: float) -> np.ndarray | None:
+        """The estimate (x, y, yaw) of the recent step nearest `stamp`, if one is within
+        `fix_tolerance` seconds of it."""
+        if not self.history:
+            return None
+        times = np.array([t for t, _ in self.history])
+        i = int(np.argmin(np.abs(times - stamp)))
+        if abs(times[i] - stamp) > self.params.fix_tolerance:
+            return None
+        pose: np.ndarray = self.history[i][1].copy()
+        return pose
+
+    def fix(self, pose: np.ndarray, covariance: np.ndarray, stamp: float) -> bool | None:
+        """Fuse an absolute measurement of the body pose (x, y, yaw) in this agent's frame, taken
+        at `stamp` (a CCTV saw the agent's marker): carried to the present by the estimated motion
+        since the step nearest `stamp`, its covariance widened by the filter's motion noise over
+        that motion, and gated like every update. None (and nothing changes) when `stamp` is not
+        within `fix_tolerance` of a recent step."""
+        then = self.pose_at(stamp)
+        if self.ekf is None or then is None:
+            self.fix_stale += 1
+            return None
+        motion = se2.relative(then, self.ekf.pose)
+        z = se2.compose(np.asarray(pose, np.float64), motion)
+        m = self.ekf.motion
+        d = math.hypot(motion[0], motion[1])
+        widen = np.diag(
+            [m.trans**2 * d, m.trans**2 * d, m.rot**2 * abs(motion[2]) + m.rot_per_m**2 * d]
+        )
+        fused = self.ekf.update(z, np.asarray(covariance, np.float64) + widen)
+        if fused:
+            self.fix_accepted += 1
+        else:
+            self.fix_rejected += 1
+        return fused
+
+    def _colony_update(self, pts: np.ndarray, colony: ColonyMap) -> tuple[Match, bool]:
+        """Match the scan against the colony's map from the current estimate; fuse it, gated."""
+        p = self.params
+        assert self.ekf is not None  # the first step made it
+        result = match(
+            pts,
+            colony,
+            se2.to_matrix(self.ekf.pose),
+            dof=3,
+            max_distance=p.max_distance,
+            final_distance=p.final_distance,
+            iterations=p.iterations,
+            inflation=p.inflation,
+            min_matched=p.colony_min_matched,
+        )
+        if not result.ok:
+            self.colony_failed += 1
+            return result, False
+        fused = self.ekf.update(se2.from_matrix(result.pose), result.covariance + colony.covariance)
+        if fused:
+            self.colony_accepted += 1
+        else:
+            self.colony_rejected += 1
+        outcomes = self._colony_outcomes
+        outcomes.append(fused)
+        if len(outcomes) >= p.colony_window // 2 and (
+            outcomes.count(False) > p.colony_refusals * len(outcomes)
+        ):
+            self._distrusted = colony.alignment
+            outcomes.clear()
+        return result, fused

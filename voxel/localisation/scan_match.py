@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -18,7 +19,13 @@ def thin(points: np.ndarray, cell: float) -> np.ndarray:
     if len(points) == 0:
         return points
     keys = np.floor(points / cell).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    if float(np.prod(span.astype(np.float64))) < 2.0**62:  # one integer per cell: a 1-D unique
+        packed = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+        _, first = np.unique(packed, return_index=True)
+    else:
+        _, first = np.unique(keys, axis=0, return_index=True)
     return points[np.sort(first)]
 
 
@@ -44,6 +51,18 @@ def surface_normals(
         1.0 - values[:, 0] / spread if planar else 1.0 - values[:, 0] / (values[:, 1] + 1e-12)
     )
     return normals, np.clip(flatness, 0.0, 1.0)
+
+
+class MatchTarget(Protocol):
+    """What `match` aligns a scan to: points (N, 3) with unit normals (N, 3) and a k-d tree over
+    the points (None: nothing to match)."""
+
+    @property
+    def points(self) -> np.ndarray: ...
+    @property
+    def normals(self) -> np.ndarray: ...
+    @property
+    def tree(self) -> cKDTree | None: ...
 
 
 class LocalMap:
@@ -149,7 +168,7 @@ def _increment(delta: np.ndarray, centre: np.ndarray, dof: int) -> np.ndarray:
 
 def match(
     points_body: np.ndarray,
-    local: LocalMap,
+    local: MatchTarget,
     init: np.ndarray,
     *,
     dof: int = 3,
@@ -161,7 +180,7 @@ def match(
     inflation: float = 10.0,
 ) -> Match:
     """Refine the body pose `init` (4x4) so the scan `points_body` (N, 3, body frame) lies on the
-    local map.
+    local map (or any `MatchTarget`: the colony's map near the agent).
 
     Gauss-Newton on point-to-plane distances (point-to-line for 2D maps) with Cauchy weights;
     correspondences within `max_distance`, shrinking to `final_distance` in the second half.

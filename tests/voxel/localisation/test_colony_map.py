@@ -1,0 +1,141 @@
+"""Colony-map updates on constructed cases: a peer's map pulls a drifted estimate back, a wrong
+one is gated out, a short-range robot in a corridor stays on the peer's map."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tests.voxel.localisation.test_scan_match import ROOM, _segments_scan
+from voxel.errors import LocalisationError
+from voxel.localisation.colony_map import colony_map
+from voxel.localisation.ekf import PlanarEkf
+from voxel.localisation.localiser import ScanLocaliser
+from voxel.localisation.odometry import OdometryNoise, synthesise
+
+
+def _wall_points(walls: list, spacing: float = 0.02, height: float = 0.0) -> np.ndarray:
+    """Points every `spacing` m along wall segments, at `height` (a peer's map of them)."""
+    out = []
+    for (x1, y1), (x2, y2) in walls:
+        n = max(2, int(math.hypot(x2 - x1, y2 - y1) / spacing))
+        s = np.linspace(0.0, 1.0, n)
+        out.append(np.column_stack([x1 + s * (x2 - x1), y1 + s * (y2 - y1), np.full(n, height)]))
+    return np.concatenate(out)
+
+
+def _drifted(pose: np.ndarray, sd: float) -> ScanLocaliser:
+    """A localiser whose filter believes `pose` with standard deviation `sd` (m and rad)."""
+    loc = ScanLocaliser(planar=True)
+    loc.ekf = PlanarEkf(pose, covariance=np.diag([sd**2, sd**2, (sd / 2) ** 2]))
+    loc.last_odometry = np.zeros(3)
+    return loc
+
+
+def test_colony_map_pulls_a_drifted_estimate_to_the_peers_map() -> None:
+    truth = np.array([0.4, -0.5, 0.3])
+    peers = colony_map(_wall_points(ROOM), planar=True, height=0.0, centre=np.zeros(2), radius=10.0)
+    assert len(peers) > 500 and peers.tree is not None
+    loc = _drifted(truth + np.array([0.2, -0.15, 0.05]), 0.2)
+    step = loc.step(_segments_scan(truth, ROOM), np.zeros(3), colony=peers)
+    assert step.match is not None and not step.match.ok  # no own map yet: only the colony's
+    assert step.colony_fused and loc.colony_accepted == 1
+    np.testing.assert_allclose(step.pose, truth, atol=0.02)
+
+
+def test_a_wrong_colony_map_is_gated_out() -> None:
+    truth = np.array([0.4, -0.5, 0.3])
+    shifted = _wall_points(ROOM) + np.array([0.4, 0.0, 0.0])  # a bad alignment: 40 cm off
+    peers = colony_map(shifted, planar=True, height=0.0, centre=np.zeros(2), radius=10.0)
+    believed = truth + np.array([0.01, 0.0, 0.0])
+    loc = _drifted(believed, 0.03)
+    step = loc.step(_segments_scan(truth, ROOM), np.zeros(3), colony=peers)
+    assert step.colony is not None and step.colony.ok
+    assert not step.colony_fused and loc.colony_rejected == 1
+    np.testing.assert_allclose(step.pose, believed, atol=1e-3)  # not dragged
+
+
+def test_planar_cut_keeps_the_scan_band_and_the_radius() -> None:
+    wall = _wall_points([((-4, 2), (4, 2))])
+    stack = np.concatenate([wall + np.array([0, 0, z]) for z in (0.05, 0.35, 0.65, 1.5)])
+    peers = colony_map(stack, planar=True, height=0.3, centre=np.array([0.0, 0.0]), radius=3.0)
+    assert np.all(peers.points[:, 2] == 0.3)  # the band around the scan height, on it
+    assert np.all(np.abs(peers.points[:, 0]) <= math.sqrt(9 - 4) + 1e-9)
+    assert len(peers) == len(np.unique(np.floor(peers.points / 0.05), axis=0))  # thinned
+    assert peers.covers(np.array([0.5, 0.0]), 2.0) and not peers.covers(np.array([2.0, 0]), 2.0)
+    far = colony_map(stack, planar=True, height=5.0, centre=np.zeros(2), radius=3.0)
+    assert far.tree is None and len(far) == 0
+    with pytest.raises(LocalisationError, match="radius, cell, band > 0"):
+        colony_map(stack, planar=True, height=0.3, centre=np.zeros(2), radius=0.0)
+
+
+# A 24 m corridor with door jambs every 4 m (sides alternating): a 1.5 m scanner sees one over
+# about 2 of every 4 m, and nothing but two parallel walls in between;
+# its own map has every jamb where its drifted estimate put it, the peer's map where it is.
+CORRIDOR = [((-12, -1), (12, -1)), ((-12, 1), (12, 1)), ((-12, -1), (-12, 1)), ((12, -1), (12, 1))]
+CORRIDOR += [((x, 1), (x, 0.75)) for x in (-8.0, 0.0, 8.0)]
+CORRIDOR += [((x + 4, -1), (x + 4, -0.75)) for x in (-8.0, 0.0)]
+
+
+def _corridor_run(with_colony: bool) -> float:
+    n = 220
+    truth = np.column_stack([np.linspace(-10.5, 10.5, n), np.zeros(n), np.zeros(n)])
+    odo = synthesise(truth, OdometryNoise(0.02, 0.01, 0.002, 0.06, 0.0), seed=2)
+    peers = colony_map(
+        _wall_points(CORRIDOR), planar=True, height=0.0, centre=np.zeros(2), radius=30.0
+    )
+    rng = np.random.default_rng(3)
+    loc = ScanLocaliser(planar=True)
+    errors = []
+    for p, o in zip(truth, odo, strict=True):
+        scan = _segments_scan(p, CORRIDOR, noise=0.01, rng=rng)
+        scan = scan[np.linalg.norm(scan[:, :2], axis=1) <= 1.5]
+        pose = loc.step(scan, o, colony=peers if with_colony else None).pose
+        errors.append(float(np.linalg.norm(pose[:2] - p[:2])))
+    return float(np.sqrt(np.mean(np.square(errors))))
+
+
+def test_a_short_range_robot_in_a_corridor_localises_better_on_the_peers_map() -> None:
+    alone, together = _corridor_run(False), _corridor_run(True)
+    assert alone > 0.2  # the scale error of odometry is not visible in the robot's own map
+    assert together < 0.5 * alone
+
+
+def test_a_fix_from_a_moment_ago_is_carried_to_the_present() -> None:
+    loc = _drifted(np.array([0.0, 0.0, 0.0]), 0.3)
+    loc.history.append((10.0, np.array([0.0, 0.0, 0.0])))
+    loc.ekf.kf.x = np.array([[1.0], [0.0], [0.0]])  # the filter has moved 1 m along x since
+    # At t = 10 the camera saw the robot 0.2 m further left than it believed: so it is now too.
+    assert loc.fix(np.array([0.0, 0.2, 0.0]), np.diag([1e-4, 1e-4, 1e-4]), 10.05) is True
+    # Kalman gain 0.09 / (0.09 + 0.01 + 1e-4): prior 0.3 m, the fix widened by 0.1 m/sqrt(m) x 1 m
+    np.testing.assert_allclose(loc.ekf.pose, [1.0, 0.2 * 0.09 / 0.1001, 0.0], atol=1e-3)
+    assert loc.fix(np.zeros(3), np.eye(3) * 1e-4, 12.0) is None  # no step near that time
+    assert (loc.fix_accepted, loc.fix_stale) == (1, 1)
+
+
+def test_a_fix_far_from_a_confident_estimate_is_refused() -> None:
+    loc = _drifted(np.array([2.0, 1.0, 0.5]), 0.02)
+    loc.history.append((3.0, np.array([2.0, 1.0, 0.5])))
+    assert loc.fix(np.array([2.5, 1.0, 0.5]), np.diag([1e-4, 1e-4, 1e-3]), 3.0) is False
+    np.testing.assert_allclose(loc.ekf.pose, [2.0, 1.0, 0.5])
+    assert loc.fix_rejected == 1
+
+
+def test_a_colony_map_that_keeps_disagreeing_is_dropped_until_the_alignment_changes() -> None:
+    truth = np.array([0.4, -0.5, 0.3])
+    shifted = _wall_points(ROOM) + np.array([0.4, 0.0, 0.0])
+    wrong = colony_map(
+        shifted, planar=True, height=0.0, centre=np.zeros(2), radius=10.0, alignment=b"a"
+    )
+    loc = _drifted(truth, 0.03)
+    scan = _segments_scan(truth, ROOM)
+    for _ in range(15):
+        loc.step(scan, np.zeros(3), colony=wrong)
+    assert loc.colony_rejected == 10 and loc.colony_suspended == 5  # tried 10 times, then not
+    np.testing.assert_allclose(loc.ekf.pose[:2], truth[:2], atol=0.01)
+    right = colony_map(
+        _wall_points(ROOM), planar=True, height=0.0, centre=np.zeros(2), radius=10.0, alignment=b"b"
+    )
+    assert loc.step(scan, np.zeros(3), colony=right).colony_fused  # a new alignment: used again

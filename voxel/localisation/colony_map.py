@@ -1,0 +1,97 @@
+"""Colony map: aligned peers' occupied voxels near an agent, in its own frame, as a scan-matching
+target with normals (how another agent's map corrects this one's pose)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from voxel.errors import LocalisationError
+from voxel.localisation.scan_match import surface_normals, thin
+
+#: What an alignment between two agents' frames adds to a pose measured against the other's map
+#: (x, y, yaw variances): live alignment is within ~3 cm and 0.2 degrees in the sim office
+#: (docs/BENCHMARKS.md), so 3 cm and 0.3 degrees standard deviation.
+ALIGNMENT_VARIANCE = np.diag([0.03**2, 0.03**2, np.radians(0.3) ** 2])
+
+
+@dataclass(frozen=True)
+class ColonyMap:
+    """Peers' occupied voxel centres (thinned) around `centre`, with normals and a k-d tree.
+
+    `points` are in the agent's own (odometry) frame; for a 2D scanner they are the peers'
+    surfaces in a band around the scan height, put onto that height. `covariance` (x, y, yaw) is
+    added to every pose measured against this map: the alignment's own uncertainty.
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    tree: cKDTree | None
+    centre: np.ndarray  # (2,) x, y where the map was cut
+    radius: float
+    sources: tuple[str, ...] = ()
+    covariance: np.ndarray = field(default_factory=ALIGNMENT_VARIANCE.copy)
+    #: Identifies the alignments the cut was made with: a localiser that stopped trusting a
+    #: colony map trusts it again only once this changes.
+    alignment: bytes = b""
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def covers(self, xy: np.ndarray, margin: float) -> bool:
+        """Whether a scan of range `radius - margin` taken at `xy` stays inside the cut."""
+        return float(np.linalg.norm(np.asarray(xy)[:2] - self.centre)) <= self.radius - margin
+
+
+def colony_map(
+    centres: np.ndarray,
+    *,
+    planar: bool,
+    height: float,
+    centre: np.ndarray,
+    radius: float,
+    cell: float = 0.05,
+    band: float = 0.2,
+    k: int = 8,
+    max_points: int = 50_000,
+    sources: tuple[str, ...] = (),
+    covariance: np.ndarray | None = None,
+    alignment: bytes = b"",
+) -> ColonyMap:
+    """The scan-matching target of occupied voxel centres (N, 3) already in the agent's frame.
+
+    Keeps the centres within `radius` (x-y) of `centre`; planar (a 2D scanner at `height`): those
+    within `band` of the scan height, moved onto it. Thinned to `cell`, at most `max_points`
+    (evenly subsampled), normals from `k` neighbours; corners and clutter (flatness <= 0.7) are
+    dropped, as in the agent's own local map.
+    """
+    pts = np.asarray(centres, np.float64).reshape(-1, 3)
+    c = np.asarray(centre, np.float64).reshape(-1)[:2]
+    if radius <= 0 or cell <= 0 or band <= 0 or k < 3 or c.shape != (2,):
+        msg = (
+            "colony map: expected radius, cell, band > 0, k >= 3 and an (x, y) centre, found "
+            f"{radius}, {cell}, {band}, {k}, {c}"
+        )
+        raise LocalisationError(msg)
+    keep = np.sum((pts[:, :2] - c) ** 2, axis=1) <= radius * radius
+    if planar:
+        keep &= np.abs(pts[:, 2] - height) <= band
+    pts = pts[keep]
+    if planar:
+        pts = pts.copy()
+        pts[:, 2] = height
+    pts = thin(pts, cell)
+    if len(pts) > max_points:
+        pts = pts[np.linspace(0, len(pts) - 1, max_points).astype(np.int64)]
+    cov = ALIGNMENT_VARIANCE.copy() if covariance is None else np.asarray(covariance, np.float64)
+    if len(pts) < k:
+        return ColonyMap(
+            np.zeros((0, 3)), np.zeros((0, 3)), None, c, radius, sources, cov, alignment
+        )
+    normals, flat = surface_normals(pts, pts, cKDTree(pts), k, planar)
+    good = flat > 0.7
+    pts, normals = pts[good], normals[good]
+    tree = cKDTree(pts) if len(pts) >= k else None
+    return ColonyMap(pts, normals, tree, c, radius, sources, cov, alignment)
