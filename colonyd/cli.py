@@ -64,6 +64,15 @@ _CONFIG_FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
     ),
     ("publish_hz", "--publish-hz", {"type": float, "help": "own-delta publish rate"}),
     ("heartbeat_s", "--heartbeat-s", {"type": float, "help": "heartbeat period"}),
+    (
+        "sync_before_publish",
+        "--sync-before-publish",
+        {
+            "action": "store_const",
+            "const": True,
+            "help": "fsync each own delta's log record before publishing it (slower)",
+        },
+    ),
     ("lease_ms", "--lease-ms", {"type": int, "help": "Zenoh transport lease"}),
     ("colony_key", "--colony-key", {"help": "shared secret for authentication"}),
     (
@@ -107,6 +116,7 @@ _FLAG_NAMES = (
     "block_shape",
     "publish_hz",
     "heartbeat_s",
+    "sync_before_publish",
     "lease_ms",
     "colony_key",
     "export_dir",
@@ -334,6 +344,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.add_argument("--kills", type=int, default=20, help="SIGKILLs in the crash scenario")
     b.add_argument("--duration", type=float, default=10.0, help="seconds of 2 Hz gossip (busy)")
+    b.add_argument(
+        "--sync-before-publish",
+        action="store_true",
+        help="busy: daemons fsync each delta before publishing it (the stricter mode)",
+    )
 
     p = sub.add_parser(
         "demo",
@@ -522,7 +537,11 @@ def _bench(args: argparse.Namespace) -> int:
         from colonyd.bench.faults import run_faults_bench
 
         result = run_faults_bench(
-            args.json, only=args.only, kills=args.kills, duration=args.duration
+            args.json,
+            only=args.only,
+            kills=args.kills,
+            duration=args.duration,
+            sync_first=args.sync_before_publish,
         )
     else:
         from colonyd.bench.colony import run_colony_bench

@@ -53,6 +53,7 @@ def run_faults_bench(
     kills: int = 20,
     duration: float = 10.0,
     scale_sizes: tuple[int, ...] = (4, 8, 16),
+    sync_first: bool = False,
 ) -> dict[str, Any]:
     """Run the scenarios (all default ones, or `only`) and write one JSON object of figures."""
     names = list(only or SCENARIOS)
@@ -68,7 +69,7 @@ def run_faults_bench(
         "hostile": hostile,
         "disk": disk,
         "partition": partition,
-        "busy": lambda b: busy(b, duration=duration),
+        "busy": lambda b: busy(b, duration=duration, sync_first=sync_first),
         "flood": flood,
         "scale": lambda b: scale(b, sizes=scale_sizes),
     }
@@ -751,12 +752,15 @@ def propagation(
         colony.close()
 
 
-def busy(base: Path, *, duration: float = 10.0) -> dict[str, Any]:
-    """Propagation with 4 daemons, quiet and while another process keeps one core busy."""
-    quiet = propagation(base / "quiet", duration=duration)
+def busy(base: Path, *, duration: float = 10.0, sync_first: bool = False) -> dict[str, Any]:
+    """Propagation with 4 daemons, quiet and while another process keeps one core busy
+    (`sync_first`: each delta fsync'ed before it is published)."""
+    extra = ["--sync-before-publish"] if sync_first else None
+    quiet = propagation(base / "quiet", duration=duration, extra=extra)
     with Spinner():
-        loaded = propagation(base / "busy", duration=duration)
+        loaded = propagation(base / "busy", duration=duration, extra=extra)
     return {
+        "busy_sync_before_publish": sync_first,
         "quiet_p50_ms": quiet["p50_ms"],
         "quiet_p99_ms": quiet["p99_ms"],
         "busy_p50_ms": loaded["p50_ms"],

@@ -275,3 +275,40 @@ def test_store_and_forward_through_a_third_peer(make_colony):
     else:
         raise AssertionError("c never received a's layer through b")
     assert "a" not in reports
+
+
+def test_a_record_lost_to_a_reboot_starts_a_new_epoch_that_peers_adopt(make_colony):
+    """Deltas are published once written, before their fsync. A power loss can then take the
+    last record a peer saw out of the origin's log; the origin must not go on in the same epoch
+    (b would keep a version a lost, or see its seq again with other content): recovery in
+    another boot takes a new epoch and b replaces its replica."""
+    colony = make_colony("reboot")
+    a = colony.add("a", src(1, 6))
+    colony.add("b")
+    colony.wait_converged(30)
+    before = {r["agent"]: r for r in colony.status(digest=True)}
+    epoch, seq = before["a"]["epoch"], before["a"]["layers"]["a"]["seq"]
+    assert before["b"]["layers"]["a"]["seq"] == seq > 1
+    a.kill()
+    # The reboot: meta.json names the boot the unsynced records were written in; the last
+    # record never reached the disk.
+    meta_path = a.state_dir / "meta.json"
+    meta = json.loads(meta_path.read_text())
+    assert meta.get("unsynced_boot"), meta  # published before the fsync in this boot
+    meta["unsynced_boot"] = "an-earlier-boot"
+    meta_path.write_text(json.dumps(meta))
+    wal = a.state_dir / "wal.log"
+    data = wal.read_bytes()
+    offsets, pos = [], 0
+    while pos + 8 <= len(data):
+        offsets.append(pos)
+        pos += 8 + int.from_bytes(data[pos : pos + 4], "little")
+    wal.write_bytes(data[: offsets[-1]])  # seq `seq` lost with the page cache
+    a.args = _without_sources(a.args)
+    a.start()
+    colony.wait_converged(30)
+    after = {r["agent"]: r for r in colony.status(digest=True)}
+    assert after["a"]["epoch"] > epoch
+    assert after["a"]["layers"]["a"]["seq"] == seq - 1
+    assert after["b"]["layers"]["a"]["epoch"] == after["a"]["epoch"]
+    assert after["b"]["layers"]["a"]["digest"] == after["a"]["layers"]["a"]["digest"]
