@@ -108,6 +108,24 @@ def by_agent(colony: LocalColony, **kw: Any) -> dict[str, dict[str, Any]]:
     return {r["agent"]: r for r in colony.status(**kw)}
 
 
+def reports_of(
+    colony: LocalColony, agents: list[str], *, within: float = 10.0, timeout: float = 1.0
+) -> dict[str, dict[str, Any]]:
+    """One round of status reports in which every one of `agents` answered (asked again until
+    one does, for up to `within` s). A daemon that misses a round's timeout on a loaded machine
+    would otherwise read as holding nothing (seq 0)."""
+    deadline = time.monotonic() + within
+    while True:
+        got = by_agent(colony, timeout=timeout)
+        missing = [a for a in agents if a not in got]
+        if not missing:
+            return got
+        if time.monotonic() > deadline:
+            msg = f"no status report from {missing} in one round within {within:.0f} s"
+            raise TimeoutError(msg)
+        log.info("status round without %s; asking again", missing)
+
+
 def seq_of(reports: dict[str, dict[str, Any]], holder: str, origin: str) -> int:
     return int(reports.get(holder, {}).get("layers", {}).get(origin, {}).get("seq", 0))
 
@@ -291,10 +309,10 @@ def freeze(
         colony.wait_members(3, timeout=30)
         time.sleep(1.0)
         c.signal(19)  # SIGSTOP
-        stopped = by_agent(colony, timeout=0.5)
+        stopped = reports_of(colony, ["a", "b"], timeout=0.5)
         t0 = time.monotonic()
         time.sleep(frozen_s)
-        during = by_agent(colony, timeout=0.5)
+        during = reports_of(colony, ["a", "b"], timeout=0.5)
         a_progress = seq_of(during, "a", "a") - seq_of(stopped, "a", "a")
         b_lag = seq_of(during, "a", "a") - seq_of(during, "b", "a")
         c.signal(18)  # SIGCONT
@@ -620,13 +638,13 @@ def partition(
             time.sleep(1.0)
             # (The observer reaches the daemons through the same switch: while c's link is cut
             # it sees a and b only; c's side is read right after the heal.)
-            r0 = by_agent(colony, timeout=1.0)
+            r0 = reports_of(colony, names)
             lab.cut("c")
             t_cut = time.monotonic()
             time.sleep(1.0)
-            r_cut = by_agent(colony, timeout=0.5)
+            r_cut = reports_of(colony, ["a", "b"], timeout=0.5)
             time.sleep(cut_s - 1.0)
-            r1 = by_agent(colony, timeout=1.0)
+            r1 = reports_of(colony, ["a", "b"])
             a_side = seq_of(r1, "a", "a") - seq_of(r_cut, "a", "a")
             b_lag = seq_of(r1, "a", "a") - seq_of(r1, "b", "a")
             saw_c = max(seq_of(r1, h, "c") - seq_of(r_cut, h, "c") for h in ("a", "b"))
@@ -638,7 +656,7 @@ def partition(
             cut = time.monotonic() - t_cut
             t_heal = time.monotonic()
             wait_for("c answers after the heal", lambda: "c" in by_agent(colony, timeout=0.5), 30)
-            rc = by_agent(colony, timeout=1.0)
+            rc = reports_of(colony, names)
             c_side = seq_of(rc, "c", "c") - seq_of(r0, "c", "c")
             c_saw_a = seq_of(rc, "c", "a")  # before any repair: what leaked across the cut
             want = {"a": seq_of(r1, "a", "a"), "b": seq_of(r1, "b", "b"), "c": seq_of(rc, "c", "c")}

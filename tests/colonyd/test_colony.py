@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
 import time
@@ -112,7 +111,7 @@ def _without_sources(args: list[str]) -> list[str]:
     return out
 
 
-def test_sigkill_restart_loses_nothing_logged(make_colony):
+def test_sigkill_restart_loses_nothing_logged_and_a_reboot_takes_a_new_epoch(make_colony):
     colony = make_colony("kill")
     a = colony.add("a", src(1, 40))
     colony.add("b")
@@ -144,34 +143,32 @@ def test_sigkill_restart_loses_nothing_logged(make_colony):
     assert final["a"]["epoch"] == epoch
     assert final["a"]["layers"]["a"]["seq"] > seq
     assert final["b"]["layers"]["a"]["digest"] == final["a"]["layers"]["a"]["digest"]
-
-
-def test_frozen_daemon_does_not_stall_others(make_colony):
-    colony = make_colony("freeze", lease_ms=2000)
-    colony.add("a", src(1, 28))
-    colony.add("b", src(2, 28))
-    c = colony.add("c", src(3, 3))
-    try:
-        colony.wait_members(3)
-        colony.wait_status(
-            lambda rs: any(r["agent"] == "c" and "a" in r["layers"] for r in rs), within=10
-        )
-        c.signal(signal.SIGSTOP)
-        frozen_at = {
-            r["agent"]: r["layers"]["a"]["seq"]
-            for r in colony.status(timeout=1.0)
-            if "a" in r["layers"]
-        }
-        # a and b keep mapping and gossiping while c is frozen, and converge between themselves.
-        colony.wait_converged(40, ["a", "b"])
-        seq_a = next(r for r in colony.status(timeout=1.0) if r["agent"] == "a")["layers"]["a"][
-            "seq"
-        ]
-        assert seq_a > frozen_at.get("a", 0)
-        c.signal(signal.SIGCONT)
-        colony.wait_converged(40)
-    finally:
-        c.signal(signal.SIGCONT)
+    # A power loss is another matter. Deltas are published once written, before their fsync,
+    # so a reboot can take the last record b saw out of a's log; a must not go on in the same
+    # epoch (b would keep a version a lost, or see its seq again with other content): recovery
+    # in another boot takes a new epoch, and b replaces its replica.
+    seq = final["a"]["layers"]["a"]["seq"]
+    a.kill()
+    meta_path = a.state_dir / "meta.json"
+    meta = json.loads(meta_path.read_text())
+    assert meta.get("unsynced_boot"), meta  # records were published before their flush
+    meta["unsynced_boot"] = "an-earlier-boot"
+    meta_path.write_text(json.dumps(meta))
+    wal = a.state_dir / "wal.log"
+    data = wal.read_bytes()
+    offsets, pos = [], 0
+    while pos + 8 <= len(data):
+        offsets.append(pos)
+        pos += 8 + int.from_bytes(data[pos : pos + 4], "little")
+    wal.write_bytes(data[: offsets[-1]])  # the last record never left the page cache
+    a.args = _without_sources(a.args)
+    a.start()
+    colony.wait_converged(30)
+    rebooted = {r["agent"]: r for r in colony.status(digest=True)}
+    assert rebooted["a"]["epoch"] > epoch
+    assert rebooted["a"]["layers"]["a"]["seq"] == seq - 1
+    assert rebooted["b"]["layers"]["a"]["epoch"] == rebooted["a"]["epoch"]
+    assert rebooted["b"]["layers"]["a"]["digest"] == rebooted["a"]["layers"]["a"]["digest"]
 
 
 def test_two_colonies_do_not_see_each_other(make_colony):
@@ -275,40 +272,3 @@ def test_store_and_forward_through_a_third_peer(make_colony):
     else:
         raise AssertionError("c never received a's layer through b")
     assert "a" not in reports
-
-
-def test_a_record_lost_to_a_reboot_starts_a_new_epoch_that_peers_adopt(make_colony):
-    """Deltas are published once written, before their fsync. A power loss can then take the
-    last record a peer saw out of the origin's log; the origin must not go on in the same epoch
-    (b would keep a version a lost, or see its seq again with other content): recovery in
-    another boot takes a new epoch and b replaces its replica."""
-    colony = make_colony("reboot")
-    a = colony.add("a", src(1, 6))
-    colony.add("b")
-    colony.wait_converged(30)
-    before = {r["agent"]: r for r in colony.status(digest=True)}
-    epoch, seq = before["a"]["epoch"], before["a"]["layers"]["a"]["seq"]
-    assert before["b"]["layers"]["a"]["seq"] == seq > 1
-    a.kill()
-    # The reboot: meta.json names the boot the unsynced records were written in; the last
-    # record never reached the disk.
-    meta_path = a.state_dir / "meta.json"
-    meta = json.loads(meta_path.read_text())
-    assert meta.get("unsynced_boot"), meta  # published before the fsync in this boot
-    meta["unsynced_boot"] = "an-earlier-boot"
-    meta_path.write_text(json.dumps(meta))
-    wal = a.state_dir / "wal.log"
-    data = wal.read_bytes()
-    offsets, pos = [], 0
-    while pos + 8 <= len(data):
-        offsets.append(pos)
-        pos += 8 + int.from_bytes(data[pos : pos + 4], "little")
-    wal.write_bytes(data[: offsets[-1]])  # seq `seq` lost with the page cache
-    a.args = _without_sources(a.args)
-    a.start()
-    colony.wait_converged(30)
-    after = {r["agent"]: r for r in colony.status(digest=True)}
-    assert after["a"]["epoch"] > epoch
-    assert after["a"]["layers"]["a"]["seq"] == seq - 1
-    assert after["b"]["layers"]["a"]["epoch"] == after["a"]["epoch"]
-    assert after["b"]["layers"]["a"]["digest"] == after["a"]["layers"]["a"]["digest"]
