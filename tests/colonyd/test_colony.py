@@ -241,8 +241,10 @@ def test_flood_is_bounded_and_counted(make_colony):
 
 def test_lost_deltas_are_repaired_by_range_queries(make_colony):
     colony = make_colony("lossy")
-    colony.add("a", src(1, 24))
+    # The lossy receiver first: on a loaded machine a could otherwise finish mapping before b
+    # is up, and b would take a snapshot instead of live deltas (nothing to drop or repair).
     colony.add("b", extra=["--drop-rate", "0.4"])
+    colony.add("a", src(1, 24))
     colony.wait_converged(40)
     b = next(r for r in colony.status() if r["agent"] == "b")
     counts = b["metrics"]["counts"]
