@@ -686,8 +686,9 @@ def partition(
 
 
 def stage_breakdown(reports: list[dict[str, Any]]) -> dict[str, dict[str, float | None]]:
-    """Where a delta's time goes (ms, p50 / p99 over deltas and receivers): log (WAL fsync),
-    encode (+ put) at the origin, transport, queue wait, decode, apply at the replica."""
+    """Where a delta's time goes (ms, p50 / p99 over deltas and receivers): log (WAL record
+    written; its fsync too with --sync-before-publish), encode (+ put) at the origin,
+    transport, queue wait, decode, apply at the replica."""
     out_side: dict[tuple[str, int], tuple[float, float, float]] = {}
     for r in reports:
         for st in r["metrics"].get("stages", []):
