@@ -128,6 +128,16 @@ class LocalDaemon:
             self.proc.wait(5)
 
 
+def stop_all(daemons: list[LocalDaemon], timeout: float = 8.0) -> None:
+    """Stop daemons all at once (SIGTERM to each, then wait; SIGKILL after `timeout`): each
+    one's shutdown (final snapshot, export, session close) overlaps the others'."""
+    for d in daemons:
+        d.terminate()
+    deadline = time.monotonic() + timeout
+    for d in daemons:
+        d.reap(deadline)
+
+
 class LocalColony:
     """Daemons on 127.0.0.1 with multicast off and a fresh namespace; the first is the hub."""
 
@@ -330,13 +340,7 @@ class LocalColony:
                 self._session.close()
                 self._session = None
         finally:
-            # All at once: each daemon's shutdown (final snapshot, export, session close) then
-            # overlaps the others' instead of adding up.
-            for d in self.daemons.values():
-                d.terminate()
-            deadline = time.monotonic() + 8.0
-            for d in self.daemons.values():
-                d.reap(deadline)
+            stop_all(list(self.daemons.values()))
 
     def __enter__(self) -> Self:
         return self
