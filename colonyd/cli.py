@@ -6,9 +6,10 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from colonyd.config import PRECEDENCE, load_config
 from colonyd.errors import ColonydError, ConfigError
@@ -64,6 +65,15 @@ _CONFIG_FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
     ),
     ("publish_hz", "--publish-hz", {"type": float, "help": "own-delta publish rate"}),
     ("heartbeat_s", "--heartbeat-s", {"type": float, "help": "heartbeat period"}),
+    (
+        "sync_before_publish",
+        "--sync-before-publish",
+        {
+            "action": "store_const",
+            "const": True,
+            "help": "fsync each own delta's log record before publishing it (slower)",
+        },
+    ),
     ("lease_ms", "--lease-ms", {"type": int, "help": "Zenoh transport lease"}),
     ("colony_key", "--colony-key", {"help": "shared secret for authentication"}),
     (
@@ -107,6 +117,7 @@ _FLAG_NAMES = (
     "block_shape",
     "publish_hz",
     "heartbeat_s",
+    "sync_before_publish",
     "lease_ms",
     "colony_key",
     "export_dir",
@@ -345,6 +356,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.add_argument("--kills", type=int, default=20, help="SIGKILLs in the crash scenario")
     b.add_argument("--duration", type=float, default=10.0, help="seconds of 2 Hz gossip (busy)")
+    b.add_argument(
+        "--sync-before-publish",
+        action="store_true",
+        help="busy: daemons fsync each delta before publishing it (the stricter mode)",
+    )
 
     p = sub.add_parser(
         "demo",
@@ -445,7 +461,8 @@ def main(argv: list[str] | None = None) -> int:
             return EXIT_OK
         from colonyd.daemon import run_daemon
 
-        return run_daemon(config, args.config, flags)
+        code = run_daemon(config, args.config, flags)
+        _leave(code)
     if cmd == "sources":
         from plugins.source import describe_sources
 
@@ -580,7 +597,11 @@ def _bench(args: argparse.Namespace) -> int:
         from colonyd.bench.faults import run_faults_bench
 
         result = run_faults_bench(
-            args.json, only=args.only, kills=args.kills, duration=args.duration
+            args.json,
+            only=args.only,
+            kills=args.kills,
+            duration=args.duration,
+            sync_first=args.sync_before_publish,
         )
     else:
         from colonyd.bench.colony import run_colony_bench
@@ -623,6 +644,16 @@ def _known_errors() -> list[tuple[type[BaseException], int, str]]:
     return known
 
 
+def _leave(code: int) -> NoReturn:
+    """End a daemon that stopped cleanly (session, log and files closed) without tearing the
+    interpreter down: finalising numpy, scipy, OpenCV and Zenoh's modules takes a second or
+    more, which every stop or restart (a unit's, a test's) would wait for."""
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 def launch(argv: list[str] | None = None) -> None:
     """Console-script entry point: run `main` and map known errors to exit codes and log lines."""
     try:
@@ -641,19 +672,4 @@ def launch(argv: list[str] | None = None) -> None:
                 break
         else:
             raise
-    words = sys.argv[1:] if argv is None else argv
-    if code == EXIT_OK and words[:1] == ["run"]:
-        _exit_now(code)
     sys.exit(code)
-
-
-def _exit_now(code: int) -> None:
-    """End a daemon that stopped cleanly without the interpreter's teardown: the daemon has
-    closed its session, state and aligner, so only module finalisation (numpy, SciPy, OpenCV,
-    Zenoh) is left, which took 2 s of a loaded machine's time after "stopped" was logged."""
-    import os
-
-    logging.shutdown()
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(code)

@@ -107,6 +107,11 @@ class Config(BaseSettings):
     publish_hz: float = Field(2.0, gt=0, le=100, description="own-delta publish rate")
     heartbeat_s: float = Field(1.0, gt=0, le=60, description="status heartbeat period")
     snapshot_s: float = Field(30.0, gt=0, description="own-layer snapshot period")
+    sync_before_publish: bool = Field(
+        False,
+        description="fsync each own delta's log record before publishing it (slower; a power "
+        "loss then never loses a delta a peer saw; otherwise it starts a new epoch)",
+    )
     inbox_size: int = Field(256, ge=8, description="bounded queue of received messages")
     inbox_mb: float = Field(128.0, gt=0, description="bytes the received-message queue may hold")
     max_layers: int = Field(256, ge=1, description="most peer layers held (hostile origins)")

@@ -833,22 +833,30 @@ class Daemon:
                 if version != self._published_local
                 else None
             )
-        wrote = False
+        wrote = unsynced = False
         if delta is not None and len(delta):
             created = time.time()
             prev, seq = own.seq, own.seq + 1
-            # Acknowledged to the log before anyone sees it (the frames are encoded while the
-            # disk flushes); if the log cannot take it (disk full), nothing is published and
-            # the same changes are tried again next time.
-            encoded = self.store.append(
-                seq, delta, meanwhile=lambda: self.gossip.encode_own(prev, seq, delta, created)
-            )
+            # Logged before anyone sees it; if the log cannot take it (disk full), nothing is
+            # published and the same changes are tried again next time.
+            if self.config.sync_before_publish or not self.store.early_publish:
+                # durable first (the frames are encoded while the disk flushes)
+                encoded = self.store.append(
+                    seq, delta, meanwhile=lambda: self.gossip.encode_own(prev, seq, delta, created)
+                )
+            else:
+                # written (safe from a crash of this process), published, then flushed below:
+                # a reboot that loses it starts a new epoch (StateStore)
+                self.store.write(seq, delta)
+                encoded, unsynced = None, True
             wrote = True
             logged = time.time()
             self.gossip.publish_own(prev, seq, delta, created, encoded)
             self.metrics.stage("out", self.config.agent_id, seq, created, logged, time.time())
         if delta is not None:
             self._published_local = version
+        if unsynced:
+            self.store.sync()
         due = time.monotonic() - self._last_snapshot >= self.config.snapshot_s
         if not final and own.seq > 0 and (due or self.store.wal_bytes > (64 << 20)):
             self._last_snapshot = time.monotonic()  # a failed one is retried after snapshot_s

@@ -32,6 +32,17 @@ META = "meta.json"
 SNAPSHOT = "snapshot.json"
 WAL = "wal.log"
 FRAMES = "frames.json"
+BOOT_ID = Path("/proc/sys/kernel/random/boot_id")
+#: `unsynced_boot` after a failed flush: matches no boot, so the next recovery takes a new epoch.
+SYNC_FAILED = "sync-failed"
+
+
+def current_boot_id() -> str:
+    """This boot of the machine (Linux's random boot id), "" where the system has none."""
+    try:
+        return BOOT_ID.read_text().strip()
+    except OSError:
+        return ""
 
 
 @dataclass
@@ -72,15 +83,32 @@ def _fsync_dir(path: Path) -> None:
 
 
 class StateStore:
-    """Own layer on disk: `meta.json`, `snapshot.json` + grid file, and `wal.log`."""
+    """Own layer on disk: `meta.json`, `snapshot.json` + grid file, and `wal.log`.
+
+    Two ways to log an own delta: `append` (written and fsync'ed before the caller publishes
+    it) and `write` + `sync` (published once written, before the fsync: a killed daemon loses
+    nothing, as written bytes survive the process in the page cache, but a machine that loses
+    power may lose the last records a peer has seen). The second is only safe with a boot id:
+    while records may be published unsynced, `meta.json` names the boot they were written in
+    (`unsynced_boot`), and a recovery in another boot continues in a new epoch, so peers replace
+    what they hold instead of silently keeping versions the origin lost. `close` clears the mark
+    once everything is on disk (a clean shutdown keeps the epoch across a reboot).
+    """
 
     def __init__(
-        self, state_dir: Path, agent_id: str, resolution: float, block_shape: str = "cube"
+        self,
+        state_dir: Path,
+        agent_id: str,
+        resolution: float,
+        block_shape: str = "cube",
+        *,
+        boot_id: str | None = None,
     ) -> None:
         self.dir = Path(state_dir)
         self.agent_id = agent_id
         self.resolution = resolution
         self.block_shape = block_shape
+        self.boot_id = current_boot_id() if boot_id is None else boot_id
         try:
             self.dir.mkdir(parents=True, exist_ok=True)
             self._lock_fd = os.open(self.dir / "lock", os.O_RDWR | os.O_CREAT, 0o600)
@@ -99,6 +127,8 @@ class StateStore:
         self.broken = ""
         self._flusher: ThreadPoolExecutor | None = None  # fsyncs while the caller works on
         self.epoch = 0  # set by `recover`
+        self._unsynced = False  # records written (and maybe published) but not yet fsync'ed
+        self._marked = False  # meta.json names this boot as one with unsynced records
 
     # -- recovery -------------------------------------------------------------------------
     def recover(self) -> Recovered:
@@ -113,13 +143,15 @@ class StateStore:
         """
         meta_path = self.dir / META
         fresh = not meta_path.exists()
+        meta: dict[str, Any] = {}
         if fresh:
             epoch = _new_epoch(0)
             self._write_meta(epoch)
             self.reserve_frames(0)
             atomic_write(self.dir / WAL, _wal_header(0, epoch))
         else:
-            epoch = self._check_meta(self._read_json(meta_path))
+            meta = self._read_json(meta_path)
+            epoch = self._check_meta(meta)
         grid, seq, published = new_grid(self.resolution, self.block_shape), 0, 0
         snap_path = self.dir / SNAPSHOT
         if snap_path.exists():
@@ -132,7 +164,7 @@ class StateStore:
             seq = int(snap["seq"])
             published = int(snap.get("published", grid.version))
         header, records = self._read_wal()
-        lost = self._lost(header, seq, epoch)
+        lost = self._lost(header, seq, epoch) or self._rebooted(meta)
         applied = 0
         for rec in records:
             if rec["seq"] <= seq:
@@ -161,6 +193,8 @@ class StateStore:
             self._write_meta(epoch)
             self.reserve_frames(0)
             frame_seq = 0
+        else:
+            self._marked = bool(meta.get("unsynced_boot"))  # this boot's mark: it stays
         self.epoch = epoch
         self._open_wal()
         if lost:
@@ -183,9 +217,33 @@ class StateStore:
             raise PersistenceError(msg)
         return int(meta["epoch"])
 
-    def _write_meta(self, epoch: int) -> None:
-        meta = {"agent_id": self.agent_id, "epoch": epoch, "resolution": self.resolution}
+    def _write_meta(self, epoch: int, unsynced_boot: str = "") -> None:
+        meta: dict[str, Any] = {
+            "agent_id": self.agent_id,
+            "epoch": epoch,
+            "resolution": self.resolution,
+        }
+        if unsynced_boot:
+            meta["unsynced_boot"] = unsynced_boot
         atomic_write(self.dir / META, json.dumps(meta).encode())
+        self._marked = bool(unsynced_boot)
+
+    def _rebooted(self, meta: dict[str, Any]) -> str:
+        """Why published records may be missing from the log after a reboot ("" if not)."""
+        marked = str(meta.get("unsynced_boot", ""))
+        if not marked or (marked == self.boot_id and self.boot_id):
+            return ""
+        if marked == SYNC_FAILED:
+            return "a flush of the log failed after its record was published"
+        return (
+            "the machine restarted (boot id changed) while records were published before "
+            "reaching the disk: the last ones a peer saw may be missing"
+        )
+
+    @property
+    def early_publish(self) -> bool:
+        """True if records may be published before their fsync (a boot id tells a reboot)."""
+        return bool(self.boot_id)
 
     def _lost(self, header: dict[str, Any] | None, seq: int, epoch: int) -> str:
         """Why logged records or frame reservations may be missing ("" if nothing shows it),
@@ -279,6 +337,59 @@ class StateStore:
         # Unbuffered: a failed write leaves nothing in a buffer that a later write would flush.
         self._wal = open(self.dir / WAL, "ab", buffering=0)  # noqa: SIM115 - kept open for appends
         self.wal_bytes = self._wal.seek(0, os.SEEK_END)
+
+    def write(self, seq: int, delta: Delta) -> None:
+        """Write an own delta's record without waiting for the disk: once this returns it may
+        be published (a killed process loses nothing written); `sync` makes it durable.
+
+        All or nothing, as `append`. Needs `early_publish`: the first write of a run marks this
+        boot in `meta.json` (see the class)."""
+        if not self.early_publish:
+            msg = "publishing before the log is flushed needs a boot id, and this system has none"
+            raise PersistenceError(msg)
+        if self.broken:
+            raise PersistenceError(self.broken)
+        if not self._marked:
+            try:
+                self._write_meta(self.epoch, self.boot_id)
+            except OSError as exc:
+                msg = f"cannot mark {META} in {self.dir} before logging seq {seq}: {exc.strerror}"
+                raise PersistenceError(msg) from None
+        record = _record({"seq": int(seq), "delta": _pack_wal_delta(delta)})
+        try:
+            if self._wal is None:
+                self._open_wal()
+            start = self.wal_bytes
+            view = memoryview(record)
+            while view:
+                view = view[self._wal.write(view) :]
+        except OSError as exc:
+            msg = f"cannot append seq {seq} to the write-ahead log in {self.dir}: {exc.strerror}"
+            self._rewind(msg)
+            raise PersistenceError(msg) from None
+        self.wal_bytes = start + len(record)
+        self._unsynced = True
+
+    def sync(self) -> None:
+        """fsync what `write` wrote. A failure cannot take back what was published: appends
+        stop until restart, and `meta.json` is marked so that recovery starts a new epoch."""
+        if not self._unsynced or self._wal is None:
+            return
+        try:
+            os.fsync(self._wal.fileno())
+        except OSError as exc:
+            self.broken = (
+                f"cannot flush the write-ahead log in {self.dir} ({exc.strerror}) after its "
+                "last record was published: nothing more is logged or published until colonyd "
+                "restarts, in a new epoch"
+            )
+            log.error("%s", self.broken)
+            try:
+                self._write_meta(self.epoch, SYNC_FAILED)
+            except OSError as again:
+                log.error("cannot mark %s in %s either: %s", META, self.dir, again.strerror)
+            raise PersistenceError(self.broken) from None
+        self._unsynced = False
 
     def append(self, seq: int, delta: Delta, meanwhile: Callable[[], T] | None = None) -> T | None:
         """Log an own delta (grid versions) durably before it is published.
@@ -384,6 +495,7 @@ class StateStore:
             atomic_write(self.dir / WAL, _wal_header(seq, self.epoch))
             self._open_wal()
             self.broken = ""  # the new log holds only whole records
+            self._unsynced = False  # and the snapshot holds every record before it, on disk
         except OSError as exc:
             tmp.unlink(missing_ok=True)
             if not pointed and name != previous:  # the previous snapshot stays the one in use
@@ -395,10 +507,20 @@ class StateStore:
                 old.unlink(missing_ok=True)
 
     def close(self) -> None:
+        """Flush and close; a store that published unsynced records and now has them all on
+        disk drops its boot mark (a later reboot then keeps the epoch)."""
         if self._flusher is not None:
             self._flusher.shutdown(wait=True)
             self._flusher = None
         if self._wal is not None:
+            try:
+                self.sync()
+                if self._marked and not self.broken:
+                    self._write_meta(self.epoch)
+            except (OSError, PersistenceError) as exc:
+                log.error(
+                    "state %s: closing with records that may not be on disk: %s", self.dir, exc
+                )
             self._wal.close()
             self._wal = None
         os.close(self._lock_fd)

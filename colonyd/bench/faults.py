@@ -53,6 +53,7 @@ def run_faults_bench(
     kills: int = 20,
     duration: float = 10.0,
     scale_sizes: tuple[int, ...] = (4, 8, 16),
+    sync_first: bool = False,
 ) -> dict[str, Any]:
     """Run the scenarios (all default ones, or `only`) and write one JSON object of figures."""
     names = list(only or SCENARIOS)
@@ -68,7 +69,7 @@ def run_faults_bench(
         "hostile": hostile,
         "disk": disk,
         "partition": partition,
-        "busy": lambda b: busy(b, duration=duration),
+        "busy": lambda b: busy(b, duration=duration, sync_first=sync_first),
         "flood": flood,
         "scale": lambda b: scale(b, sizes=scale_sizes),
     }
@@ -105,6 +106,24 @@ class Skip(Exception):
 
 def by_agent(colony: LocalColony, **kw: Any) -> dict[str, dict[str, Any]]:
     return {r["agent"]: r for r in colony.status(**kw)}
+
+
+def reports_of(
+    colony: LocalColony, agents: list[str], *, within: float = 10.0, timeout: float = 1.0
+) -> dict[str, dict[str, Any]]:
+    """One round of status reports in which every one of `agents` answered (asked again until
+    one does, for up to `within` s). A daemon that misses a round's timeout on a loaded machine
+    would otherwise read as holding nothing (seq 0)."""
+    deadline = time.monotonic() + within
+    while True:
+        got = by_agent(colony, timeout=timeout)
+        missing = [a for a in agents if a not in got]
+        if not missing:
+            return got
+        if time.monotonic() > deadline:
+            msg = f"no status report from {missing} in one round within {within:.0f} s"
+            raise TimeoutError(msg)
+        log.info("status round without %s; asking again", missing)
 
 
 def seq_of(reports: dict[str, dict[str, Any]], holder: str, origin: str) -> int:
@@ -290,10 +309,10 @@ def freeze(
         colony.wait_members(3, timeout=30)
         time.sleep(1.0)
         c.signal(19)  # SIGSTOP
-        stopped = by_agent(colony, timeout=0.5)
+        stopped = reports_of(colony, ["a", "b"], timeout=0.5)
         t0 = time.monotonic()
         time.sleep(frozen_s)
-        during = by_agent(colony, timeout=0.5)
+        during = reports_of(colony, ["a", "b"], timeout=0.5)
         a_progress = seq_of(during, "a", "a") - seq_of(stopped, "a", "a")
         b_lag = seq_of(during, "a", "a") - seq_of(during, "b", "a")
         c.signal(18)  # SIGCONT
@@ -619,16 +638,20 @@ def partition(
             time.sleep(1.0)
             # (The observer reaches the daemons through the same switch: while c's link is cut
             # it sees a and b only; c's side is read right after the heal.)
-            r0 = by_agent(colony, timeout=1.0)
+            r0 = reports_of(colony, names)
             lab.cut("c")
             t_cut = time.monotonic()
             time.sleep(1.0)
-            r_cut = by_agent(colony, timeout=0.5)
+            # a's answer is what the progress needs; b's is used when it came (b may not answer
+            # for seconds during a cut, RELIABILITY.md: waiting would let a finish mapping)
+            r_cut = reports_of(colony, ["a"], timeout=0.5)
             time.sleep(cut_s - 1.0)
-            r1 = by_agent(colony, timeout=1.0)
+            r1 = reports_of(colony, ["a", "b"])
             a_side = seq_of(r1, "a", "a") - seq_of(r_cut, "a", "a")
             b_lag = seq_of(r1, "a", "a") - seq_of(r1, "b", "a")
-            saw_c = max(seq_of(r1, h, "c") - seq_of(r_cut, h, "c") for h in ("a", "b"))
+            saw_c = max(
+                seq_of(r1, h, "c") - seq_of(r_cut, h, "c") for h in ("a", "b") if h in r_cut
+            )
             log.info(
                 "partition: during the cut %s",
                 {h: {o: seq_of(r1, h, o) for o in names} for h in r1},
@@ -637,7 +660,7 @@ def partition(
             cut = time.monotonic() - t_cut
             t_heal = time.monotonic()
             wait_for("c answers after the heal", lambda: "c" in by_agent(colony, timeout=0.5), 30)
-            rc = by_agent(colony, timeout=1.0)
+            rc = reports_of(colony, names)
             c_side = seq_of(rc, "c", "c") - seq_of(r0, "c", "c")
             c_saw_a = seq_of(rc, "c", "a")  # before any repair: what leaked across the cut
             want = {"a": seq_of(r1, "a", "a"), "b": seq_of(r1, "b", "b"), "c": seq_of(rc, "c", "c")}
@@ -667,8 +690,9 @@ def partition(
 
 
 def stage_breakdown(reports: list[dict[str, Any]]) -> dict[str, dict[str, float | None]]:
-    """Where a delta's time goes (ms, p50 / p99 over deltas and receivers): log (WAL fsync),
-    encode (+ put) at the origin, transport, queue wait, decode, apply at the replica."""
+    """Where a delta's time goes (ms, p50 / p99 over deltas and receivers): log (WAL record
+    written; its fsync too with --sync-before-publish), encode (+ put) at the origin,
+    transport, queue wait, decode, apply at the replica."""
     out_side: dict[tuple[str, int], tuple[float, float, float]] = {}
     for r in reports:
         for st in r["metrics"].get("stages", []):
@@ -751,12 +775,15 @@ def propagation(
         colony.close()
 
 
-def busy(base: Path, *, duration: float = 10.0) -> dict[str, Any]:
-    """Propagation with 4 daemons, quiet and while another process keeps one core busy."""
-    quiet = propagation(base / "quiet", duration=duration)
+def busy(base: Path, *, duration: float = 10.0, sync_first: bool = False) -> dict[str, Any]:
+    """Propagation with 4 daemons, quiet and while another process keeps one core busy
+    (`sync_first`: each delta fsync'ed before it is published)."""
+    extra = ["--sync-before-publish"] if sync_first else None
+    quiet = propagation(base / "quiet", duration=duration, extra=extra)
     with Spinner():
-        loaded = propagation(base / "busy", duration=duration)
+        loaded = propagation(base / "busy", duration=duration, extra=extra)
     return {
+        "busy_sync_before_publish": sync_first,
         "quiet_p50_ms": quiet["p50_ms"],
         "quiet_p99_ms": quiet["p99_ms"],
         "busy_p50_ms": loaded["p50_ms"],

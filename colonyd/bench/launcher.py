@@ -101,13 +101,22 @@ class LocalDaemon:
 
     def stop(self, timeout: float = 8.0) -> int | None:
         """SIGTERM, then SIGKILL after `timeout`; returns the exit code."""
+        self.terminate()
+        return self.reap(time.monotonic() + timeout)
+
+    def terminate(self) -> None:
+        """Ask the daemon to stop (SIGCONT first, in case it is frozen, then SIGTERM)."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGCONT)
+            self.proc.terminate()
+
+    def reap(self, deadline: float) -> int | None:
+        """Wait for the exit until `deadline` (monotonic), then SIGKILL; the exit code."""
         if self.proc is None:
             return None
         if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGCONT)
-            self.proc.terminate()
             try:
-                self.proc.wait(timeout)
+                self.proc.wait(max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(5)
@@ -117,6 +126,16 @@ class LocalDaemon:
         if self.proc is not None and self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait(5)
+
+
+def stop_all(daemons: list[LocalDaemon], timeout: float = 8.0) -> None:
+    """Stop daemons all at once (SIGTERM to each, then wait; SIGKILL after `timeout`): each
+    one's shutdown (final snapshot, export, session close) overlaps the others'."""
+    for d in daemons:
+        d.terminate()
+    deadline = time.monotonic() + timeout
+    for d in daemons:
+        d.reap(deadline)
 
 
 class LocalColony:
@@ -321,8 +340,7 @@ class LocalColony:
                 self._session.close()
                 self._session = None
         finally:
-            for d in self.daemons.values():
-                d.stop()
+            stop_all(list(self.daemons.values()))
 
     def __enter__(self) -> Self:
         return self

@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from colonyd.bench.launcher import LocalColony
+from colonyd.bench.launcher import LocalColony, stop_all
 
 #: Attribute of a test item holding the colonies its `make_colony` made.
 _COLONIES = "_colonies_made"
@@ -32,6 +32,7 @@ def make_colony(
     try:
         yield make
     finally:
+        stop_all([d for colony in made for d in colony.daemons.values()])  # all colonies at once
         for colony in made:
             colony.close()
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
 import time
@@ -112,7 +111,7 @@ def _without_sources(args: list[str]) -> list[str]:
     return out
 
 
-def test_sigkill_restart_loses_nothing_logged(make_colony):
+def test_sigkill_restart_loses_nothing_logged_and_a_reboot_takes_a_new_epoch(make_colony):
     colony = make_colony("kill")
     a = colony.add("a", src(1, 40))
     colony.add("b")
@@ -144,34 +143,32 @@ def test_sigkill_restart_loses_nothing_logged(make_colony):
     assert final["a"]["epoch"] == epoch
     assert final["a"]["layers"]["a"]["seq"] > seq
     assert final["b"]["layers"]["a"]["digest"] == final["a"]["layers"]["a"]["digest"]
-
-
-def test_frozen_daemon_does_not_stall_others(make_colony):
-    colony = make_colony("freeze", lease_ms=2000)
-    colony.add("a", src(1, 28))
-    colony.add("b", src(2, 28))
-    c = colony.add("c", src(3, 3))
-    try:
-        colony.wait_members(3)
-        colony.wait_status(
-            lambda rs: any(r["agent"] == "c" and "a" in r["layers"] for r in rs), within=10
-        )
-        c.signal(signal.SIGSTOP)
-        frozen_at = {
-            r["agent"]: r["layers"]["a"]["seq"]
-            for r in colony.status(timeout=1.0)
-            if "a" in r["layers"]
-        }
-        # a and b keep mapping and gossiping while c is frozen, and converge between themselves.
-        colony.wait_converged(40, ["a", "b"])
-        seq_a = next(r for r in colony.status(timeout=1.0) if r["agent"] == "a")["layers"]["a"][
-            "seq"
-        ]
-        assert seq_a > frozen_at.get("a", 0)
-        c.signal(signal.SIGCONT)
-        colony.wait_converged(40)
-    finally:
-        c.signal(signal.SIGCONT)
+    # A power loss is another matter. Deltas are published once written, before their fsync,
+    # so a reboot can take the last record b saw out of a's log; a must not go on in the same
+    # epoch (b would keep a version a lost, or see its seq again with other content): recovery
+    # in another boot takes a new epoch, and b replaces its replica.
+    seq = final["a"]["layers"]["a"]["seq"]
+    a.kill()
+    meta_path = a.state_dir / "meta.json"
+    meta = json.loads(meta_path.read_text())
+    assert meta.get("unsynced_boot"), meta  # records were published before their flush
+    meta["unsynced_boot"] = "an-earlier-boot"
+    meta_path.write_text(json.dumps(meta))
+    wal = a.state_dir / "wal.log"
+    data = wal.read_bytes()
+    offsets, pos = [], 0
+    while pos + 8 <= len(data):
+        offsets.append(pos)
+        pos += 8 + int.from_bytes(data[pos : pos + 4], "little")
+    wal.write_bytes(data[: offsets[-1]])  # the last record never left the page cache
+    a.args = _without_sources(a.args)
+    a.start()
+    colony.wait_converged(30)
+    rebooted = {r["agent"]: r for r in colony.status(digest=True)}
+    assert rebooted["a"]["epoch"] > epoch
+    assert rebooted["a"]["layers"]["a"]["seq"] == seq - 1
+    assert rebooted["b"]["layers"]["a"]["epoch"] == rebooted["a"]["epoch"]
+    assert rebooted["b"]["layers"]["a"]["digest"] == rebooted["a"]["layers"]["a"]["digest"]
 
 
 def test_two_colonies_do_not_see_each_other(make_colony):
@@ -244,8 +241,10 @@ def test_flood_is_bounded_and_counted(make_colony):
 
 def test_lost_deltas_are_repaired_by_range_queries(make_colony):
     colony = make_colony("lossy")
-    colony.add("a", src(1, 24))
+    # The lossy receiver first: on a loaded machine a could otherwise finish mapping before b
+    # is up, and b would take a snapshot instead of live deltas (nothing to drop or repair).
     colony.add("b", extra=["--drop-rate", "0.4"])
+    colony.add("a", src(1, 24))
     colony.wait_converged(40)
     b = next(r for r in colony.status() if r["agent"] == "b")
     counts = b["metrics"]["counts"]

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import errno
+import fcntl
+import json
+import os
+
 import numpy as np
 import pytest
 
@@ -228,3 +233,102 @@ def test_lost_records_start_a_new_epoch_never_a_reused_version(tmp_path, damage)
     again = store.recover()
     store.close()
     assert (again.epoch, again.seq) == (rec.epoch, rec.seq) and again.grid.content_equal(rec.grid)
+
+
+def _published_unsynced(tmp_path, boot: str):
+    """Two records written for early publishing (the second never fsync'ed), the process gone
+    without closing; the epoch and grid it had."""
+    store = StateStore(tmp_path, "a", 0.1, boot_id=boot)
+    rec = store.recover()
+    grid = rec.grid
+    scan(grid, 1)
+    store.write(1, grid.delta_since(0))
+    store.sync()
+    v = grid.version
+    scan(grid, 2)
+    store.write(2, grid.delta_since(v))  # published now, before any fsync
+    fcntl.flock(store._lock_fd, fcntl.LOCK_UN)  # as a killed process leaves it (no close)
+    store._wal.close()
+    os.close(store._lock_fd)
+    return rec.epoch, grid
+
+
+def test_early_published_records_survive_a_crash_in_the_same_boot(tmp_path):
+    epoch, grid = _published_unsynced(tmp_path, "boot-1")
+    assert json.loads((tmp_path / "meta.json").read_text())["unsynced_boot"] == "boot-1"
+    store = StateStore(tmp_path, "a", 0.1, boot_id="boot-1")
+    rec = store.recover()  # the page cache kept both records: same epoch, nothing lost
+    assert rec.epoch == epoch and rec.seq == 2 and rec.grid.content_equal(grid)
+    store.close()  # everything on disk: a clean close drops the mark
+    assert "unsynced_boot" not in json.loads((tmp_path / "meta.json").read_text())
+    store = StateStore(tmp_path, "a", 0.1, boot_id="boot-2")  # so a reboot keeps the epoch
+    assert store.recover().epoch == epoch
+    store.close()
+
+
+def test_a_reboot_after_early_publishing_starts_a_new_epoch(tmp_path):
+    """Power lost before the fsync: the last record a peer saw is gone from the log. The origin
+    must not log seq 2 again with other content in the same epoch."""
+    epoch, _ = _published_unsynced(tmp_path, "boot-1")
+    data = (tmp_path / WAL).read_bytes()
+    records = _record_offsets(data)
+    (tmp_path / WAL).write_bytes(data[: records[-1]])  # the page cache never reached the disk
+    store = StateStore(tmp_path, "a", 0.1, boot_id="boot-2")
+    rec = store.recover()
+    assert rec.seq == 1 and rec.epoch > epoch  # what survived, in a new epoch
+    store.close()
+    # same files in the boot that wrote them would have kept the epoch (nothing could be lost)
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    assert meta["epoch"] == rec.epoch and "unsynced_boot" not in meta
+
+
+def test_a_failed_flush_after_publishing_stops_appends_and_forces_a_new_epoch(
+    tmp_path, monkeypatch
+):
+    store = StateStore(tmp_path, "a", 0.1, boot_id="boot-1")
+    rec = store.recover()
+    scan(rec.grid, 1)
+    store.write(1, rec.grid.delta_since(0))
+
+    real, calls = os.fsync, []
+
+    def eio(fd: int) -> None:  # the log's flush fails; the disk takes the mark after it
+        calls.append(fd)
+        if len(calls) == 1:
+            raise OSError(errno.EIO, "Input/output error")
+        real(fd)
+
+    monkeypatch.setattr(os, "fsync", eio)
+    with pytest.raises(PersistenceError, match=r"cannot flush .*Input/output error.*new epoch"):
+        store.sync()
+    monkeypatch.setattr(os, "fsync", real)
+    v = rec.grid.version
+    scan(rec.grid, 2)
+    with pytest.raises(PersistenceError, match="cannot flush"):
+        store.write(2, rec.grid.delta_since(v))
+    store.close()
+    store = StateStore(tmp_path, "a", 0.1, boot_id="boot-1")  # same boot, all the same
+    again = store.recover()
+    assert again.epoch > rec.epoch and again.seq == 1
+    store.close()
+
+
+def test_early_publishing_needs_a_boot_id(tmp_path):
+    store = StateStore(tmp_path, "a", 0.1, boot_id="")
+    rec = store.recover()
+    assert not store.early_publish
+    scan(rec.grid, 1)
+    with pytest.raises(PersistenceError, match="needs a boot id"):
+        store.write(1, rec.grid.delta_since(0))
+    store.append(1, rec.grid.delta_since(0))  # the fsync-first path works everywhere
+    store.close()
+
+
+def _record_offsets(data: bytes) -> list[int]:
+    """Start offsets of the log's records."""
+    out, pos = [], 0
+    while pos + 8 <= len(data):
+        length = int.from_bytes(data[pos : pos + 4], "little")
+        out.append(pos)
+        pos += 8 + length
+    return out
