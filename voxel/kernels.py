@@ -32,7 +32,7 @@ def enabled() -> bool:
 def _get(name: str) -> Callable[..., Any] | None:
     if not enabled():
         return None
-    if not _compiled:
+    if "sweep" not in _compiled:
         _load()
     return _compiled[name]
 
@@ -40,6 +40,11 @@ def _get(name: str) -> Callable[..., Any] | None:
 def sweep() -> Callable[..., Any] | None:
     """The compiled dense sweep (see `_sweep_dense`), or None to use the numpy path."""
     return _get("sweep")
+
+
+def occupancy() -> Callable[..., Any] | None:
+    """The compiled occupancy update of a chunk of blocks (see `_update_blocks`), or None."""
+    return _get("occupancy")
 
 
 def warm() -> bool:
@@ -59,19 +64,31 @@ def warm() -> bool:
         np.zeros(0, dtype=np.int64),
         0,
     )
+    lo = np.full((1, 1), np.nan, dtype=np.float32)
+    stamp = np.zeros((1, 1), dtype=np.uint32)
+    steps = np.zeros(3, dtype=np.float32)
+    bound = np.float32(1.0)
+    slots = np.zeros(1, dtype=np.int64)
+    cells = np.ones((1, 1), dtype=np.uint8)
+    kernel = occupancy()
+    if kernel is not None:
+        kernel(lo, stamp.copy(), stamp, stamp[0], slots, cells, steps, -bound, bound, 1, 0)
     return True
 
 
 def _load() -> None:
     with _lock:
-        if _compiled:
+        if "sweep" in _compiled:
             return
         try:
             import numba
         except ImportError:
-            _compiled["sweep"] = None
+            _compiled.update(occupancy=None, sweep=None)
             return
-        _compiled["sweep"] = numba.njit(cache=True, nogil=True)(_sweep_dense)
+        jit = numba.njit(cache=True, nogil=True)
+        # "sweep" last: callers test for it before asking for the others.
+        _compiled["occupancy"] = jit(_update_blocks)
+        _compiled["sweep"] = jit(_sweep_dense)
 
 
 def _sweep_dense(
@@ -213,3 +230,59 @@ def _sweep_dense(
                     touched[n_touched] = blk
                     n_touched += 1
     return np.sort(touched[:n_touched])
+
+
+def _update_blocks(
+    logodds: np.ndarray,
+    version: np.ndarray,
+    last_time: np.ndarray,
+    slot_version: np.ndarray,
+    slots: np.ndarray,
+    cells: np.ndarray,
+    steps: np.ndarray,
+    low: np.float32,
+    high: np.float32,
+    v: int,
+    stamp: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """One scan's occupancy update of blocks `slots` (cells (B, V): 0 untouched, else the
+    index of its log-odds step), without decay or statistics, as `occupancy._update_chunk`'s
+    numpy path does it: each touched voxel's value becomes clip(value or 0 + step); changed
+    voxels take version `v` and time `stamp`; nothing is written when nothing changed.
+    Returns log-odds before and after (B, V), the changed mask and the count of changed."""
+    n_blocks, n_vox = cells.shape
+    old = np.empty((n_blocks, n_vox), dtype=np.float32)
+    new = np.empty((n_blocks, n_vox), dtype=np.float32)
+    changed = np.zeros((n_blocks, n_vox), dtype=np.bool_)
+    count = 0
+    for i in range(n_blocks):
+        s = slots[i]
+        for j in range(n_vox):
+            before = logodds[s, j]
+            old[i, j] = before
+            c = cells[i, j]
+            if c == 0:
+                new[i, j] = before
+                continue
+            known = not np.isnan(before)
+            after = (before if known else np.float32(0.0)) + steps[c]
+            after = min(max(after, low), high)
+            new[i, j] = after
+            if not known or after != before:
+                changed[i, j] = True
+                count += 1
+    if count == 0:
+        return old, new, changed, 0
+    for i in range(n_blocks):
+        s = slots[i]
+        hit_block = False
+        for j in range(n_vox):
+            if cells[i, j] != 0:
+                logodds[s, j] = new[i, j]
+            if changed[i, j]:
+                version[s, j] = v
+                last_time[s, j] = stamp
+                hit_block = True
+        if hit_block:
+            slot_version[s] = v
+    return old, new, changed, count
