@@ -218,8 +218,9 @@ def _sweep_dense(
                 xb = ko[b] if stay_b else yv
                 xc = ko[c] if stay_c else zv
                 lin = xa * strides[a] + xb * strides[b] + xc * strides[c]
-                if cells[lin] == 0:
-                    cells[lin] = 1
+                if cells[lin] != 0:
+                    continue  # marked before, and so was its block
+                cells[lin] = 1
                 blk = (
                     (xa >> shifts[a]) * bstride[a]
                     + (xb >> shifts[b]) * bstride[b]
