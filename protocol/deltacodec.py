@@ -232,7 +232,7 @@ def _block_sort(comp: np.ndarray, bs: int) -> tuple[np.ndarray | None, np.ndarra
                 return perm, comp[perm]
     elif n <= 1:
         return None, comp
-    order = np.argsort(comp, kind="stable")
+    order = np.argsort(comp)  # keys are unique (checked when encoded): stability is moot
     return order, comp[order]
 
 
@@ -616,12 +616,15 @@ def _decode_keys(
         off = np.empty(n, dtype=np.int64)
         block_of = np.empty(n, dtype=np.int64)
     if nd:
-        bits = np.unpackbits(bitmaps.reshape(nd, bitmap_bytes), axis=1, bitorder="little")
-        pop = bits.sum(axis=1, dtype=np.int64)
+        # Set bits in order, from the non-zero bytes alone (dense blocks are mostly zero bytes).
+        at = np.flatnonzero(bitmaps)
+        r, c = np.nonzero(np.unpackbits(bitmaps[at][:, None], axis=1, bitorder="little"))
+        bit = at[r] * 8 + c
+        rows, cols = bit >> (3 * bs), bit & (nvox - 1)
+        pop = np.bincount(rows, minlength=nd)
         if np.any(pop != counts[dense]):
             msg = f"{what}: expected bitmap population to equal block counts, found a mismatch"
             raise MalformedError(msg)
-        rows, cols = np.nonzero(bits)
         if block_of is None:  # every block is a bitmap: rows are already in output order
             off[:] = cols
         else:
@@ -807,7 +810,8 @@ def decode_delta_with_summary(
         raise MalformedError(msg)
     keys = np.concatenate(key_parts) if key_parts else np.zeros((0, 3), np.int64)
     if len(key_parts) > 1:
-        packed = np.sort(pack(keys))
+        # Each section is sorted by (block, offset): a stable sort merges the sorted runs.
+        packed = np.sort(_composite(keys, bs), kind="stable")
         if np.any(packed[1:] == packed[:-1]):
             msg = "delta body: expected each voxel at most once, found a voxel in two sections"
             raise MalformedError(msg)
