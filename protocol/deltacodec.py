@@ -617,9 +617,9 @@ def _decode_keys(
         block_of = np.empty(n, dtype=np.int64)
     if nd:
         # Set bits in order, from the non-zero bytes alone (dense blocks are mostly zero bytes).
-        at = np.flatnonzero(bitmaps)
-        r, c = np.nonzero(np.unpackbits(bitmaps[at][:, None], axis=1, bitorder="little"))
-        bit = at[r] * 8 + c
+        nz = np.flatnonzero(bitmaps)
+        r, c = np.nonzero(np.unpackbits(bitmaps[nz][:, None], axis=1, bitorder="little"))
+        bit = nz[r] * 8 + c
         rows, cols = bit >> (3 * bs), bit & (nvox - 1)
         pop = np.bincount(rows, minlength=nd)
         if np.any(pop != counts[dense]):
