@@ -40,6 +40,7 @@ from colonyd.status import StatusServer
 from plugins.observation import Observation
 from plugins.source import open_source
 from plugins.stream import Source
+from voxel import kernels
 
 log = logging.getLogger(__name__)
 
@@ -118,6 +119,8 @@ class Daemon:
                 self.notifier.ready(
                     f"colony {cfg.colony} agent {cfg.agent_id} seq {self.layers.own.seq}"
                 )
+                # Compiled kernels (optional) load after ready, before most first scans arrive.
+                threading.Thread(target=kernels.warm, name="kernels", daemon=True).start()
                 log.info(
                     "ready: colony %s, agent %s, epoch %d, seq %d",
                     cfg.colony,
