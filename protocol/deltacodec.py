@@ -264,7 +264,8 @@ def _dense_order(comp: np.ndarray, bs: int) -> np.ndarray | None:
     slot = np.full(cells, -1, dtype=np.int64)
     slot[lin] = np.arange(n)
     order: np.ndarray = slot[slot >= 0]
-    return order
+    # Duplicates share a cell: leave them to the sort, after which encoding refuses them.
+    return order if order.shape[0] == n else None
 
 
 def _encode_keys(comp: np.ndarray, bs: int, level: int = 0) -> list[Any]:

@@ -481,6 +481,7 @@ def test_dense_deltas_are_ordered_by_placement_as_a_sort_orders_them(bs: int) ->
     assert order is not None
     np.testing.assert_array_equal(order, np.argsort(comp))
     assert _dense_order(comp[::50], bs) is None  # sparse: left to the sort
+    assert _dense_order(np.r_[comp, comp[:1]], bs) is None  # a duplicate: the encoder refuses it
     delta = Delta(
         0.1, 0, 3, keys, np.full(len(keys), -0.40625, np.float32), np.full(len(keys), 2.0)
     )
