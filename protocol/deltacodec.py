@@ -234,7 +234,8 @@ def _block_sort(comp: np.ndarray, bs: int) -> tuple[np.ndarray | None, np.ndarra
         return None, comp
     order = _dense_order(comp, bs)
     if order is None:
-        order = np.argsort(comp)  # keys are unique (checked when encoded): stability is moot
+        # Stable (a merge sort) finds the sorted runs of a grid's block-ordered voxels.
+        order = np.argsort(comp, kind="stable")
     return order, comp[order]
 
 
