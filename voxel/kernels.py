@@ -9,12 +9,15 @@ calls it in a background thread at start), and the first `sweep()` otherwise.
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 #: Environment variable that turns the compiled kernels off ("0"), e.g. to compare both paths.
 JIT_ENV = "COLONY_JIT"
@@ -49,11 +52,12 @@ def occupancy() -> Callable[..., Any] | None:
 
 def warm() -> bool:
     """Import numba and load (or compile and cache) the kernels now; True when they are in use."""
-    compiled = sweep()
-    if compiled is None:
-        return False
-    # One tiny call so that the first real scan finds everything resolved.
-    compiled(
+    return sweep() is not None
+
+
+def _try_out(sweep: Callable[..., Any], update: Callable[..., Any]) -> None:
+    """One tiny call of each kernel: compiles (or loads) them, so a failure shows here."""
+    sweep(
         np.array([0.5, 0.5, 0.5]),
         np.array([[3.5, 2.5, 0.5]]),
         np.array([16, 4, 1], dtype=np.int64),
@@ -70,25 +74,34 @@ def warm() -> bool:
     bound = np.float32(1.0)
     slots = np.zeros(1, dtype=np.int64)
     cells = np.ones((1, 1), dtype=np.uint8)
-    kernel = occupancy()
-    if kernel is not None:
-        kernel(lo, stamp.copy(), stamp, stamp[0], slots, cells, steps, -bound, bound, 1, 0)
-    return True
+    update(lo, stamp.copy(), stamp, stamp[0], slots, cells, steps, -bound, bound, 1, 0)
 
 
 def _load() -> None:
     with _lock:
         if "sweep" in _compiled:
             return
+        found: dict[str, Callable[..., Any] | None] = {"occupancy": None, "sweep": None}
         try:
             import numba
         except ImportError:
-            _compiled.update(occupancy=None, sweep=None)
+            _compiled.update(found)
             return
-        jit = numba.njit(cache=True, nogil=True)
+        try:
+            try:
+                jit = numba.njit(cache=True, nogil=True)
+                kernels = jit(_update_blocks), jit(_sweep_dense)
+            except RuntimeError:  # no writable cache directory: compile at every start
+                log.warning("numba cannot cache here (set NUMBA_CACHE_DIR); compiling in memory")
+                jit = numba.njit(nogil=True)
+                kernels = jit(_update_blocks), jit(_sweep_dense)
+            _try_out(kernels[1], kernels[0])
+            found = {"occupancy": kernels[0], "sweep": kernels[1]}
+        except Exception as exc:  # noqa: BLE001 - any numba failure leaves the numpy path
+            log.warning("compiled kernels unavailable, using numpy: %s", exc)
         # "sweep" last: callers test for it before asking for the others.
-        _compiled["occupancy"] = jit(_update_blocks)
-        _compiled["sweep"] = jit(_sweep_dense)
+        _compiled["occupancy"] = found["occupancy"]
+        _compiled["sweep"] = found["sweep"]
 
 
 def _sweep_dense(
