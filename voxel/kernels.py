@@ -1,10 +1,11 @@
-"""Compiled kernels (numba, the optional `fast` extra) for the traversal's hot loop, loaded lazily.
+"""Compiled kernels (numba, the optional `fast` extra) for integration's hot loops, loaded lazily.
 
-`sweep()` returns the compiled dense sweep, or None when numba is absent or `COLONY_JIT=0`; the
-callers then run their pure-numpy path, which gives bit-identical results (the kernel repeats
+`sweep()` (the traversal's dense sweep) and `occupancy()` (the occupancy update of a chunk of
+blocks) return a compiled kernel, or None when numba is absent, fails, or `COLONY_JIT=0`; the
+callers then run their pure-numpy path, which gives bit-identical results (the kernels repeat
 its floating-point operations one for one). Importing numba and loading the cached machine code
-take ~0.5 s, so nothing here happens at import: `warm()` does it, off the hot path (a daemon
-calls it in a background thread at start), and the first `sweep()` otherwise.
+take ~0.5 s of CPU, so nothing here happens at import: `warm()` does it, off the hot path (a
+daemon calls it in a background thread once ready), and the first call otherwise.
 """
 
 from __future__ import annotations
