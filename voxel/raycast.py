@@ -242,7 +242,12 @@ def trace(
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
     buf = np.zeros(-(-total // 8) * 8, dtype=np.uint8)  # whole 8-byte words, for `_marked`
     cells = buf[:total]
-    lin = (strides.astype(np.float64) @ hk - float(strides @ lo)).astype(np.int64)
+    # Exact integers in float64 (below 2**53): the same values as a matmul, without BLAS.
+    lin_f = hk[0] * float(strides[0])
+    lin_f += hk[1] * float(strides[1])
+    lin_f += hk[2]  # strides[2] is 1
+    lin_f -= float(strides @ lo)
+    lin = lin_f.astype(np.int64)
     cells[lin] = HIT
     hit_lin = _marked(buf)
     local = np.empty((hit_lin.size, 3), dtype=np.int64)
