@@ -280,6 +280,12 @@ def build_parser() -> argparse.ArgumentParser:
     _bench_io(b, shared_data=True)
     b.add_argument("--repeats", type=int, default=3, help="timed runs per scenario (default 3)")
     b.add_argument(
+        "--runs",
+        type=int,
+        default=1,
+        help="whole measurements per scenario; speedup min / median / max over them (default 1)",
+    )
+    b.add_argument(
         "--only",
         action="append",
         metavar="SCENARIO",
@@ -472,14 +478,16 @@ def main(argv: list[str] | None = None) -> int:
 
     setup_logging("info")
     if cmd == "map":
-        from colonyd.mapping import map_source
+        from colonyd.mapping import map_source, summary_breakdown
 
         summary = map_source(args.map_source, args.resolution, args.out)
         written = ", ".join(str(p) for p in getattr(summary, "files", {}).values())
         sys.stdout.write(
             f"{summary.spec}: {summary.frames} frames ({summary.skipped} skipped), "
             f"{summary.points} points -> {summary.occupied} occupied, {summary.free} free voxels "
-            f"at {summary.resolution} m in {summary.seconds:.1f} s\nwrote {written}\n"
+            f"at {summary.resolution} m in {summary.seconds:.1f} s "
+            f"({summary.frames_per_second:.1f} frames/s)\nwrote {written}\n"
+            f"time: {summary_breakdown(summary.breakdown, summary.seconds)}\n"
         )
         return EXIT_OK
     if cmd == "localize":
@@ -552,7 +560,9 @@ def _bench(args: argparse.Namespace) -> int:
     if args.bench == "integrate":
         from colonyd.bench.integrate import run_integrate_bench
 
-        result = run_integrate_bench(args.json, args.shared_data, args.repeats, args.only)
+        result = run_integrate_bench(
+            args.json, args.shared_data, args.repeats, args.only, args.runs
+        )
     elif args.bench == "align":
         from colonyd.bench.align import run_align_bench
 

@@ -55,6 +55,7 @@ from plugins.observation import ObjectDetection, Observation
 from plugins.source import open_source
 from plugins.stream import Source
 from protocol import PoseFix
+from voxel import kernels
 from voxel.localisation import se2
 from voxel.localisation.colony_map import ALIGNMENT_VARIANCE
 from voxel.localisation.sightings import frame_from_sightings
@@ -164,6 +165,8 @@ class Daemon:
                 self.notifier.ready(
                     f"colony {cfg.colony} agent {cfg.agent_id} seq {self.layers.own.seq}"
                 )
+                # Compiled kernels (optional) load after ready, before most first scans arrive.
+                threading.Thread(target=kernels.warm, name="kernels", daemon=True).start()
                 log.info(
                     "ready: colony %s, agent %s, epoch %d, seq %d",
                     cfg.colony,

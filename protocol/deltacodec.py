@@ -232,8 +232,41 @@ def _block_sort(comp: np.ndarray, bs: int) -> tuple[np.ndarray | None, np.ndarra
                 return perm, comp[perm]
     elif n <= 1:
         return None, comp
-    order = np.argsort(comp, kind="stable")
+    order = _dense_order(comp, bs)
+    if order is None:
+        # Stable (a merge sort) finds the sorted runs of a grid's block-ordered voxels.
+        order = np.argsort(comp, kind="stable")
     return order, comp[order]
+
+
+#: `_dense_order` places voxels in a box of blocks with at most this many cells per voxel.
+_DENSE_CELLS_PER_VOXEL = 4
+
+
+def _dense_order(comp: np.ndarray, bs: int) -> np.ndarray | None:
+    """argsort of unique composites in linear time when their blocks fill a box well (a whole
+    layer's snapshot does): each voxel is placed at its cell of the box; None otherwise."""
+    n = comp.shape[0]
+    axis, obits = 21 - bs, 3 * bs
+    bc = comp >> obits
+    amask = (1 << axis) - 1
+    cols = [bc >> (2 * axis), (bc >> axis) & amask, bc & amask]
+    lo = [int(c.min()) for c in cols]
+    dims = [int(c.max()) - x + 1 for c, x in zip(cols, lo, strict=True)]
+    cells = dims[0] * dims[1] * dims[2] << obits
+    if cells > _DENSE_CELLS_PER_VOXEL * n + 4096:
+        return None
+    lin = (cols[0] - lo[0]) * dims[1]
+    lin += cols[1] - lo[1]
+    lin *= dims[2]
+    lin += cols[2] - lo[2]
+    lin <<= obits
+    lin |= comp & ((1 << obits) - 1)
+    slot = np.full(cells, -1, dtype=np.int64)
+    slot[lin] = np.arange(n)
+    order: np.ndarray = slot[slot >= 0]
+    # Duplicates share a cell: leave them to the sort, after which encoding refuses them.
+    return order if order.shape[0] == n else None
 
 
 def _encode_keys(comp: np.ndarray, bs: int, level: int = 0) -> list[Any]:
@@ -616,12 +649,15 @@ def _decode_keys(
         off = np.empty(n, dtype=np.int64)
         block_of = np.empty(n, dtype=np.int64)
     if nd:
-        bits = np.unpackbits(bitmaps.reshape(nd, bitmap_bytes), axis=1, bitorder="little")
-        pop = bits.sum(axis=1, dtype=np.int64)
+        # Set bits in order, from the non-zero bytes alone (dense blocks are mostly zero bytes).
+        nz = np.flatnonzero(bitmaps)
+        r, c = np.nonzero(np.unpackbits(bitmaps[nz][:, None], axis=1, bitorder="little"))
+        bit = nz[r] * 8 + c
+        rows, cols = bit >> (3 * bs), bit & (nvox - 1)
+        pop = np.bincount(rows, minlength=nd)
         if np.any(pop != counts[dense]):
             msg = f"{what}: expected bitmap population to equal block counts, found a mismatch"
             raise MalformedError(msg)
-        rows, cols = np.nonzero(bits)
         if block_of is None:  # every block is a bitmap: rows are already in output order
             off[:] = cols
         else:
@@ -807,7 +843,8 @@ def decode_delta_with_summary(
         raise MalformedError(msg)
     keys = np.concatenate(key_parts) if key_parts else np.zeros((0, 3), np.int64)
     if len(key_parts) > 1:
-        packed = np.sort(pack(keys))
+        # Each section is sorted by (block, offset): a stable sort merges the sorted runs.
+        packed = np.sort(_composite(keys, bs), kind="stable")
         if np.any(packed[1:] == packed[:-1]):
             msg = "delta body: expected each voxel at most once, found a voxel in two sections"
             raise MalformedError(msg)

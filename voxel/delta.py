@@ -159,7 +159,7 @@ def merge_delta(store: BlockStore, times: TimeBase, delta: Delta) -> np.ndarray:
         )
         raise DeltaError(msg)
     blocks, offsets = store.split(delta.keys)
-    ub, inv = np.unique(blocks, return_inverse=True)
+    ub, inv = vk.unique_packed(blocks)
     slots = store.ensure(ub)[inv]
     incoming = np.uint32(delta.to_version)
     take = store.channels["version"][slots, offsets] < incoming

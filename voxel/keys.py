@@ -40,6 +40,35 @@ def unpack(packed: np.ndarray) -> np.ndarray:
     return out - AXIS_OFFSET
 
 
+#: `unique_packed` counts in a dense box when it has at most this many cells per key (+ slack).
+DENSE_CELLS_PER_KEY = 4
+
+
+def unique_packed(packed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """np.unique(packed, return_inverse=True) of packed keys, in linear time when the keys fill
+    their bounding box well (a map's blocks do): marks in a dense box instead of a sort."""
+    p = np.asarray(packed, dtype=np.int64).reshape(-1)
+    n = p.shape[0]
+    if n < 64:
+        ub, inv = np.unique(p, return_inverse=True)
+        return ub, inv.reshape(-1)
+    k = unpack(p)
+    lo = k.min(axis=0)
+    dims = k.max(axis=0) - lo + 1
+    cells = int(dims[0]) * int(dims[1]) * int(dims[2])
+    if cells > DENSE_CELLS_PER_KEY * n + 4096:
+        ub, inv = np.unique(p, return_inverse=True)
+        return ub, inv.reshape(-1)
+    k -= lo
+    lin = (k[:, 0] * dims[1] + k[:, 1]) * dims[2] + k[:, 2]
+    first = np.full(cells, -1, dtype=np.int64)
+    first[lin] = np.arange(n)
+    held = np.flatnonzero(first >= 0)  # box order is packed order (x-major)
+    rank = np.empty(cells, dtype=np.int64)
+    rank[held] = np.arange(held.size)
+    return p[first[held]], rank[lin]
+
+
 def in_range(keys: np.ndarray) -> np.ndarray:
     """Mask of keys (N, 3) that fit the packed key space."""
     k = np.asarray(keys)

@@ -8,6 +8,7 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from voxel import kernels
 from voxel import keys as vk
 from voxel.blocks import BlockStore
 from voxel.raycast import FREE, HIT, Traversal
@@ -139,6 +140,42 @@ def _update_chunk(
     update: OccupancyUpdate,
 ) -> None:
     ev = rule.evidence
+    compiled = kernels.occupancy() if rule.half_life is None and not rule.statistics else None
+    if compiled is not None:
+        old, new, changed, count = compiled(
+            store.channels["logodds"],
+            store.channels["version"],
+            store.channels["last_time"],
+            store.slot_version,
+            slots,
+            cells,
+            ev.step,
+            np.float32(ev.low),
+            np.float32(ev.high),
+            int(v),
+            int(stamp),
+        )
+    else:
+        old, new, changed, count = _update_numpy(store, slots, cells, rule, v, time, stamp, times)
+    if count == 0:
+        return
+    update.changed += count
+    update.chunks.append(_worth_recording(store, slots, old, new, changed, cells))
+
+
+def _update_numpy(
+    store: BlockStore,
+    slots: np.ndarray,
+    cells: np.ndarray,
+    rule: UpdateRule,
+    v: np.uint32,
+    time: float,
+    stamp: np.ndarray,
+    times: TimeBase,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """The update of one chunk in numpy (any rule): log-odds before and after, changed mask and
+    count; the store is written only when something changed."""
+    ev = rule.evidence
     lo_arr = store.channels["logodds"]
     old = lo_arr[slots]
     touched = cells != 0
@@ -157,7 +194,7 @@ def _update_chunk(
         changed = touched & (~known | (new != old))
     count = int(np.count_nonzero(changed))
     if count == 0:
-        return
+        return old, new, changed, 0
     lo_arr[slots] = new
     ver = store.channels["version"]
     ver[slots] = np.where(changed, v, ver[slots])
@@ -166,8 +203,7 @@ def _update_chunk(
     store.slot_version[slots[changed.any(axis=1)]] = v
     if rule.statistics:
         _count(store, slots, cells, touched & ~known, time)
-    update.changed += count
-    update.chunks.append(_worth_recording(store, slots, old, new, changed, cells))
+    return old, new, changed, count
 
 
 def _count(

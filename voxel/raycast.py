@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from voxel import kernels
 from voxel import keys as vk
 from voxel.blocks import CUBE, split_keys
 
@@ -241,7 +242,12 @@ def trace(
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
     buf = np.zeros(-(-total // 8) * 8, dtype=np.uint8)  # whole 8-byte words, for `_marked`
     cells = buf[:total]
-    lin = (strides.astype(np.float64) @ hk - float(strides @ lo)).astype(np.int64)
+    # Exact integers in float64 (below 2**53): the same values as a matmul, without BLAS.
+    lin_f = hk[0] * float(strides[0])
+    lin_f += hk[1] * float(strides[1])
+    lin_f += hk[2]  # strides[2] is 1
+    lin_f -= float(strides @ lo)
+    lin = lin_f.astype(np.int64)
     cells[lin] = HIT
     hit_lin = _marked(buf)
     local = np.empty((hit_lin.size, 3), dtype=np.int64)
@@ -251,12 +257,27 @@ def trace(
     hit_cast = hit_lin != start  # a ray whose end lies in the origin voxel marks nothing
     clear_cast = np.any(clear_keys != key_o, axis=1)
     ends = np.concatenate([local[hit_cast] + 0.5, clear_scaled[clear_cast] - lo])
-    cells[hit_lin] = 0
-    _sweep(o_scaled - lo, ends, strides, lambda x: cells.__setitem__(x, FREE))
-    if ends.shape[0]:
-        cells[start] = FREE
-    cells[hit_lin] = HIT
-    blocks, vals = _blocks_of(buf, dims, lo, shifts)
+    compiled = kernels.sweep()
+    if compiled is not None:
+        touched = compiled(
+            o_scaled - lo,
+            ends,
+            strides,
+            dims,
+            np.asarray(shifts),
+            FLAT_BELOW,
+            cells,
+            hit_lin,
+            start,
+        )
+        blocks, vals = _blocks_at(buf, dims, lo, shifts, touched)
+    else:
+        cells[hit_lin] = 0
+        _sweep(o_scaled - lo, ends, strides, lambda x: cells.__setitem__(x, FREE))
+        if ends.shape[0]:
+            cells[start] = FREE
+        cells[hit_lin] = HIT
+        blocks, vals = _blocks_of(buf, dims, lo, shifts)
     point_rows = np.searchsorted(hit_lin, lin) if want_inverse else None
     return Traversal(blocks=blocks, cells=vals, hit_keys=local + lo, inverse=point_rows)
 
@@ -308,6 +329,33 @@ def _blocks_of(
         for i in range(1, 1 << sy):
             touched |= rows[:, :, i]
         bx, by, bz = np.nonzero(touched)
+    return _gather(c6, bx, by, bz, lo, shifts)
+
+
+def _blocks_at(
+    buf: np.ndarray,
+    dims: np.ndarray,
+    lo: np.ndarray,
+    shifts: tuple[int, int, int],
+    touched: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Packed keys and cells of the blocks of a dense box at sorted row-major block indices."""
+    sx, sy, sz = shifts
+    nb = dims >> np.asarray(shifts)
+    c6 = buf[: int(np.prod(dims))].reshape(nb[0], 1 << sx, nb[1], 1 << sy, nb[2], 1 << sz)
+    bx, rest = np.divmod(touched, nb[1] * nb[2])
+    by, bz = np.divmod(rest, nb[2])
+    return _gather(c6, bx, by, bz, lo, shifts)
+
+
+def _gather(
+    c6: np.ndarray,
+    bx: np.ndarray,
+    by: np.ndarray,
+    bz: np.ndarray,
+    lo: np.ndarray,
+    shifts: tuple[int, int, int],
+) -> tuple[np.ndarray, np.ndarray]:
     vals = c6[bx, :, by, :, bz, :].reshape(bx.size, 1 << sum(shifts))
     bkeys = np.stack([bx, by, bz], axis=1) + (lo >> np.asarray(shifts))
     return vk.pack(bkeys), vals

@@ -11,17 +11,20 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def quaternion_to_matrix(q: np.ndarray | tuple[float, float, float, float]) -> np.ndarray:
     """Rotation matrix (3, 3) float64 of a non-zero quaternion (x, y, z, w), normalised first."""
+    from scipy.spatial.transform import Rotation  # loads on first use, not at start-up
+
     matrix: np.ndarray = Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix()
     return matrix
 
 
 def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
     """Unit quaternion (x, y, z, w) float64, w >= 0, of a rotation matrix (3, 3)."""
+    from scipy.spatial.transform import Rotation
+
     q: np.ndarray = Rotation.from_matrix(np.asarray(rotation, dtype=np.float64)).as_quat(
         canonical=True
     )

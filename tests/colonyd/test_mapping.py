@@ -3,6 +3,7 @@ run."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import cv2
@@ -207,3 +208,24 @@ def test_log_lines_do_not_run_into_the_progress_bar() -> None:
     assert lines[-2] == "WARNING after the bar" and lines[-1] == ""
     assert any(line.startswith("[###") and "10/10 frames" in line for line in lines), lines
     assert handler.stream is stream
+
+
+def test_colonyd_map_reports_frames_per_second_and_where_time_went(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from colonyd.cli import main
+
+    code = main(
+        ["map", "--source", "synthetic:scans=4,rate=1000,points=90", "--out", str(tmp_path)]
+    )
+    out = capsys.readouterr().out
+    assert code == 0
+    assert re.search(r"4 frames .* \(\d+\.\d frames/s\)", out)
+    line = next(x for x in out.splitlines() if x.startswith("time: "))
+    for part in ("decode", "integrate", "write", "other"):
+        assert re.search(rf"{part} \d+\.\d\d s", line), line
+    summary = map_source("synthetic:scans=3,rate=1000,points=90", 0.1, tmp_path, progress=False)
+    assert set(summary.breakdown) == {"decode", "integrate", "write"}
+    assert all(sec > 0 for sec in summary.breakdown.values())
+    assert summary.frames_per_second > 0
+    assert sum(summary.breakdown.values()) <= summary.seconds

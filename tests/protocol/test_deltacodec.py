@@ -465,3 +465,26 @@ def test_summary_round_trips_in_body(rng: np.random.Generator) -> None:
     assert np.all(back.logodds < 0)
     assert back.time == pytest.approx(summary.time, abs=1e-3)
     assert_delta_close(exact, out)
+
+
+@pytest.mark.parametrize("bs", [2, 3, 4])
+def test_dense_deltas_are_ordered_by_placement_as_a_sort_orders_them(bs: int) -> None:
+    # a snapshot's voxels fill their blocks: placed in a box of blocks in linear time, the same
+    # order as sorting (and the same bytes on the wire), shuffled or not
+    from protocol.deltacodec import _composite, _dense_order
+
+    rng = np.random.default_rng(bs)
+    keys = np.unique(rng.integers(-30, 30, (150_000, 3)), axis=0)
+    rng.shuffle(keys)
+    comp = _composite(keys, bs)
+    order = _dense_order(comp, bs)
+    assert order is not None
+    np.testing.assert_array_equal(order, np.argsort(comp))
+    assert _dense_order(comp[::50], bs) is None  # sparse: left to the sort
+    assert _dense_order(np.r_[comp, comp[:1]], bs) is None  # a duplicate: the encoder refuses it
+    delta = Delta(
+        0.1, 0, 3, keys, np.full(len(keys), -0.40625, np.float32), np.full(len(keys), 2.0)
+    )
+    back = decode_delta(encode_delta(delta, block_shift=bs), Limits(max_voxels=1 << 20))
+    np.testing.assert_array_equal(back.keys, keys[np.argsort(comp)])
+    assert_delta_close(back, delta)

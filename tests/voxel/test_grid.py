@@ -43,7 +43,7 @@ def test_wall_is_occupied_space_before_is_free_behind_unknown():
     assert np.all(occ[:, 0] == 20)
 
 
-def test_matches_octomap_discretized_update():
+def test_matches_octomap_discretized_update(kernel_path):
     pyoctomap = pytest.importorskip("pyoctomap")
     from colonyd.bench.integrate import iou, octomap_sets
 

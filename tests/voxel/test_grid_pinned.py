@@ -302,7 +302,9 @@ EXPECTED: dict[str, str] = {
 
 
 @pytest.mark.parametrize("name", sorted(SCENARIOS))
-def test_results_are_bit_identical_to_the_pinned_ones(name: str, tmp_path: Path) -> None:
+def test_results_are_bit_identical_to_the_pinned_ones(
+    name: str, tmp_path: Path, kernel_path: str
+) -> None:
     assert run(name, tmp_path) == EXPECTED[name]
 
 

@@ -29,3 +29,14 @@ def test_pack_round_trips_the_whole_key_space():
     keys = np.array([[vk.KEY_MIN, 0, vk.KEY_MAX], [-1, 1, 0], [vk.KEY_MAX, vk.KEY_MIN, -7]])
     np.testing.assert_array_equal(vk.unpack(vk.pack(keys)), keys)
     assert np.all(np.diff(vk.pack(np.array([[0, 0, 0], [0, 0, 1], [0, 1, 0], [1, 0, 0]]))) > 0)
+
+
+@pytest.mark.parametrize(("n", "spread"), [(10, 5), (5000, 3), (100_000, 30), (100_000, 10**6)])
+def test_unique_packed_is_numpy_unique_with_inverse(n: int, spread: int) -> None:
+    # dense boxes are counted, sparse ones (and few keys) sorted: the same answer either way
+    keys = np.random.default_rng(n + spread).integers(-spread, spread, (n, 3))
+    packed = vk.pack(keys)
+    ub, inv = vk.unique_packed(packed)
+    ref, ref_inv = np.unique(packed, return_inverse=True)
+    np.testing.assert_array_equal(ub, ref)
+    np.testing.assert_array_equal(inv, ref_inv.reshape(-1))

@@ -35,7 +35,7 @@ def _traced(origin, hits, clear_ends, shifts) -> tuple[set, set]:
 
 
 @pytest.mark.parametrize("shifts", [(2, 2, 2), (3, 3, 0), (0, 1, 3)])
-def test_trace_visits_exactly_the_voxels_of_each_ray(shifts):
+def test_trace_visits_exactly_the_voxels_of_each_ray(shifts, kernel_path):
     rng = np.random.default_rng(11)
     origin = rng.uniform(
         -0.05, 0.05, size=3
@@ -114,7 +114,9 @@ def test_block_shape_errors_say_what_was_expected():
 
 
 @pytest.mark.parametrize("limit", [20_000, 600])
-def test_a_box_too_large_for_one_scratch_volume_is_split_and_merged(monkeypatch, limit):
+def test_a_box_too_large_for_one_scratch_volume_is_split_and_merged(
+    monkeypatch, limit, kernel_path
+):
     import voxel.raycast as rc
 
     monkeypatch.setattr(rc, "DENSE_LIMIT", limit)  # small limits force wedges, then sparse tracing
@@ -135,7 +137,7 @@ def test_a_box_too_large_for_one_scratch_volume_is_split_and_merged(monkeypatch,
     np.testing.assert_array_equal(tr.hit_keys[tr.inverse], keys.T)  # each point finds its voxel
 
 
-def test_rays_along_an_axis_and_ends_on_voxel_faces():
+def test_rays_along_an_axis_and_ends_on_voxel_faces(kernel_path):
     # origin and ends on voxel faces, rays along the axes and in coordinate planes: every fixed
     # coordinate is folded, nothing leaves the one-layer box of a planar scan
     origin = np.array([0.3, 0.2, 0.5]) * RES * 2
@@ -151,3 +153,33 @@ def test_rays_along_an_axis_and_ends_on_voxel_faces():
     flat = ends[np.abs(ends[:, 2] - origin[2]) < 1e-12]
     free, hit = _traced(origin, flat, flat[:2] * 1.5, (3, 3, 0))
     assert (free, hit) == _reference(origin, flat, flat[:2] * 1.5)
+
+
+@pytest.mark.parametrize("flat_below", [3000, 40, 1])
+def test_the_compiled_sweep_visits_what_the_numpy_sweep_visits(monkeypatch, flat_below):
+    # Both paths must give bit-identical traversals, also where the numpy sweep switches from
+    # stepping runs to enumerating them (FLAT_BELOW) at some step of the longest runs.
+    pytest.importorskip("numba")
+    import voxel.raycast as rc
+    from voxel import kernels
+
+    monkeypatch.setattr(rc, "FLAT_BELOW", flat_below)
+    rng = np.random.default_rng(flat_below)
+    for shifts in [(2, 2, 2), (3, 3, 0), (0, 1, 3)]:
+        origin = rng.uniform(-0.05, 0.05, size=3)
+        scale = rng.choice([0.05, 0.5, 3.0], size=(2000, 1)) * [1.0, 1.0, 0.3]
+        hits = origin + rng.normal(size=(2000, 3)) * scale
+        hits[::50, 2] = origin[2]  # rays in the origin's layer: a fixed axis folded in
+        dirs = rng.normal(size=(200, 3))
+        clear_ends = origin + dirs / np.linalg.norm(dirs, axis=1, keepdims=True) * 4.0
+        keys = vk.points_to_keys(hits, RES).T
+        out = []
+        for flag in ("0", "1"):
+            monkeypatch.setenv(kernels.JIT_ENV, flag)
+            out.append(trace(origin, keys, clear_ends, RES, shifts, want_inverse=True))
+        assert kernels.sweep() is not None
+        numpy_tr, compiled_tr = out
+        np.testing.assert_array_equal(compiled_tr.blocks, numpy_tr.blocks)
+        np.testing.assert_array_equal(compiled_tr.cells, numpy_tr.cells)
+        np.testing.assert_array_equal(compiled_tr.hit_keys, numpy_tr.hit_keys)
+        np.testing.assert_array_equal(compiled_tr.inverse, numpy_tr.inverse)

@@ -3,11 +3,12 @@ measurements update."""
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter
 
 from voxel.errors import LocalisationError
 from voxel.localisation import se2
@@ -47,13 +48,21 @@ def _residual(z: np.ndarray, hx: np.ndarray) -> np.ndarray:
     return y
 
 
-class _Filter(ExtendedKalmanFilter):  # type: ignore[misc]  # filterpy has no type hints
-    """filterpy's EKF with the nonlinear planar motion model as its state prediction."""
+@functools.cache
+def _filter_class() -> Any:
+    """filterpy's EKF with the nonlinear planar motion model as its state prediction.
 
-    x: np.ndarray  # the state (3, 1), as filterpy keeps it
+    Imported on first use: filterpy pulls in scipy.stats (~0.5 s of CPU), which a daemon does
+    not need before its first observation."""
+    from filterpy.kalman import ExtendedKalmanFilter
 
-    def predict_x(self, u: np.ndarray) -> None:
-        self.x = se2.compose(self.x.ravel(), u).reshape(3, 1)
+    class _Filter(ExtendedKalmanFilter):  # type: ignore[misc]  # filterpy has no type hints
+        x: np.ndarray  # the state (3, 1), as filterpy keeps it
+
+        def predict_x(self, u: np.ndarray) -> None:
+            self.x = se2.compose(self.x.ravel(), u).reshape(3, 1)
+
+    return _Filter
 
 
 class PlanarEkf:
@@ -66,7 +75,7 @@ class PlanarEkf:
         motion: MotionNoise | None = None,
     ) -> None:
         self.motion = motion or MotionNoise()
-        self.kf = _Filter(dim_x=3, dim_z=3)
+        self.kf = _filter_class()(dim_x=3, dim_z=3)
         self.kf.x = np.asarray(pose, np.float64).reshape(3, 1).copy()
         self.kf.P = (
             np.diag([1e-6, 1e-6, 1e-6])

@@ -6,12 +6,14 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from voxel.errors import LocalisationError
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 
 def thin(points: np.ndarray, cell: float) -> np.ndarray:
@@ -120,6 +122,8 @@ class LocalMap:
         self.last_key = np.asarray(pose, np.float64).copy()
         both = np.concatenate([self.points, new]) if len(self.points) else new
         if len(both) >= self.k:
+            from scipy.spatial import cKDTree  # loads on first use, not at start-up
+
             normals, flat = surface_normals(new, both, cKDTree(both), self.k, self.planar)
             keep = flat > 0.7  # corners and clutter have no reliable normal
             self.frames.append((new[keep], normals[keep]))
@@ -129,6 +133,8 @@ class LocalMap:
         self.normals = (
             np.concatenate([f[1] for f in self.frames]) if self.frames else np.zeros((0, 3))
         )
+        from scipy.spatial import cKDTree  # loads on first use, not at start-up
+
         self.tree = cKDTree(self.points) if len(self.points) >= self.k else None
 
 

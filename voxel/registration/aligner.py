@@ -7,10 +7,9 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 from os import PathLike
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from voxel import keys as vk
 from voxel.errors import AlignmentError
@@ -34,6 +33,9 @@ from voxel.registration.landmarks import (
 from voxel.registration.mapcloud import MapCloud, load_map
 from voxel.registration.transform import apply, euler
 from voxel.registration.verdict import Thresholds, judge
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 METHOD = "yaw-correlation+icp"
 #: Objects placed by a pose must not land in the other map's open space more than this share of
@@ -187,6 +189,8 @@ def align_clouds(
     fit = match_landmarks(oa, ob, 4 if p.dof == 4 or both_planar else p.dof)
     if fit.found and both_planar:
         fit = replace(fit, transform=_z_zero(fit.transform))
+
+    from scipy.spatial import cKDTree  # scipy.spatial loads on first use, not at start-up
 
     a_tree = cKDTree(a.occupied)
     a_coarse = _thin(a.occupied, 2.0 * res)

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from voxel import keys as vk
 from voxel.registration.transform import apply
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 #: A wall point of one map contradicts the other map where that map has observed the column
 #: (free space or floor seen) and has no wall within this distance. Real maps of one place
@@ -31,6 +34,8 @@ class Side:
     def build(cls, tree: cKDTree, walls: np.ndarray, observed_xy: np.ndarray, cell: float) -> Side:
         """A side from a tree over all occupied points, wall points (N, 3) and the centres (M, 2)
         of its observed columns."""
+        from scipy.spatial import cKDTree  # scipy.spatial loads on first use, not at start-up
+
         return cls(tree, cKDTree(walls), np.sort(_columns(observed_xy, cell)), cell)
 
     def sees(self, points: np.ndarray) -> np.ndarray:

@@ -8,7 +8,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy import fft
 
 from voxel import keys as vk
 from voxel.registration.transform import planar
@@ -136,6 +135,8 @@ def yaw_search(
     radius = float(np.max(np.linalg.norm(q, axis=1))) if len(q) else 0.0
     half = math.ceil(radius / cell) + 2
     side = 2 * half + 1
+    from scipy import fft  # loads on first use, not at start-up
+
     shape = (
         fft.next_fast_len(field.shape[0] + side, real=True),
         fft.next_fast_len(field.shape[1] + side, real=True),

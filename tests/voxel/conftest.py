@@ -1,0 +1,21 @@
+"""Fixtures of the voxel tests: the traversal's two paths (compiled kernel and pure numpy)."""
+
+from __future__ import annotations
+
+import pytest
+
+from voxel import kernels
+
+
+@pytest.fixture(params=["numpy", "compiled"])
+def kernel_path(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Runs a test once on the pure-numpy path and once on the compiled one (skipped without
+    numba, the optional `fast` extra)."""
+    if request.param == "numpy":
+        monkeypatch.setenv(kernels.JIT_ENV, "0")
+        assert kernels.sweep() is None
+    else:
+        pytest.importorskip("numba")
+        monkeypatch.setenv(kernels.JIT_ENV, "1")
+        assert kernels.warm()
+    return str(request.param)
