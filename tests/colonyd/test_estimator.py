@@ -35,4 +35,5 @@ def test_a_daemon_that_estimates_drifts_less_than_one_that_does_not(make_colony)
     # the estimate travels as Pose messages with its covariance: raw knows est's uncertainty
     seen = {m["agent"]: m for m in reports["raw"]["members"]}
     assert seen["est"]["pose_std_m"] is not None and 0 < seen["est"]["pose_std_m"] < 0.5, seen
-    assert reports["raw"]["metrics"]["rejected"] == {}
+    # nothing rejected but frames that came before the sender's first heartbeat (its key unknown)
+    assert set(reports["raw"]["metrics"]["rejected"]) <= {"unknown_identity"}
