@@ -34,6 +34,12 @@ ANCHOR = "cctv-1"
 #: a colony, so the runs differ only in what is shared.
 AGENT_SEED = {"lidar-1": 1, "depth-1": 2, "cctv-1": 3}
 ODOMETRY_NOISE = "realistic"
+#: lidar-1's range (m): a short-range 2D LiDAR, like cheap ones. With the sim's 12 m it sees
+#: every wall of the office from anywhere and is at 0.02 m alone (docs/LOCALISATION.md).
+LIDAR_RANGE = 4.0
+#: Seconds from starting a run's daemons to its shared clock's zero (`epoch=`): every agent's path
+#: starts then, so a daemon slow to start does not skip the first frames.
+EPOCH_DELAY_S = 15.0
 #: Colour index of each run in the pictures.
 RUN_COLOUR = {name: i for i, name in enumerate(RUNS)}
 AGENT_COLOUR = {"lidar-1": 0, "depth-1": 1, "cctv-1": 2}
@@ -75,9 +81,25 @@ def _start(base: Path, name: str, seed: int, duration: float) -> SimRun:
     agents = RUNS[name]
     env = {"COLONYD_ANCHOR": ANCHOR} if ANCHOR in agents else {}
     run = SimRun(base / name, name, env=env, odometry_noise=ODOMETRY_NOISE)
+    epoch = time.time() + EPOCH_DELAY_S
     for agent in agents:
-        run.add(agent, duration, seed * 100 + AGENT_SEED[agent])
+        run.add(
+            agent, duration, seed * 100 + AGENT_SEED[agent], agent_options(agents, agent, epoch)
+        )
     return run
+
+
+def agent_options(agents: tuple[str, ...], agent: str, epoch: float) -> str:
+    """The `sim:` options of `agent` in a run of `agents`: the run's shared clock, lidar-1's short
+    range, and the CCTV told which robots' markers it can see (so that it sends them fixes)."""
+    options = [f"epoch={epoch:.3f}"]
+    if agent == "lidar-1":
+        options.append(f"lidar_range={LIDAR_RANGE:g}")
+    if agent == ANCHOR:
+        robots = [a for a in ROBOTS if a in agents]
+        if robots:
+            options.append("robots=" + "+".join(robots))
+    return ",".join(options)
 
 
 def _finish(run: SimRun, out: Path, complete: bool) -> RunResult:
@@ -177,6 +199,7 @@ def run_paper(
     results = {
         "seed": seed,
         "duration_s": duration,
+        "lidar_range_m": LIDAR_RANGE,
         "odometry_noise": ODOMETRY_NOISE,
         "seconds": round(time.monotonic() - began, 1),
         "runs": {name: done[name].metrics for name in RUNS},

@@ -41,10 +41,12 @@ def sim_spec(
     world: str = "office",
     odometry_noise: str | None = None,
     realtime: bool = True,
+    options: str = "",
 ) -> str:
     """One sim agent for `duration` seconds of its own frame rate, starting at an unknown pose (its
     own frame), paced in real time; `odometry_noise` a wheel noise model (docs/LOCALISATION.md)
-    instead of the sim's default odometer."""
+    instead of the sim's default odometer; `options`: more comma-separated `name=value` options
+    of `sim:` (docs/SOURCES.md)."""
     from plugins.sim import AGENTS
 
     frames = max(2, int(AGENTS[world][agent].rate * duration))
@@ -53,6 +55,8 @@ def sim_spec(
         spec += f",odometry_noise={odometry_noise}"
     if realtime:
         spec += ",realtime=1"
+    if options:
+        spec += f",{options}"
     return spec
 
 
@@ -81,9 +85,10 @@ class SimRun:
         """Seconds since the run began."""
         return time.monotonic() - self.began
 
-    def add(self, agent: str, duration: float, seed: int) -> None:
-        """Start `agent`'s daemon mapping its sim source for `duration` seconds."""
-        spec = sim_spec(agent, duration, seed, odometry_noise=self.odometry_noise)
+    def add(self, agent: str, duration: float, seed: int, options: str = "") -> None:
+        """Start `agent`'s daemon mapping its sim source for `duration` seconds (`options`: more
+        options of its `sim:` spec)."""
+        spec = sim_spec(agent, duration, seed, odometry_noise=self.odometry_noise, options=options)
         d = self.colony.add(agent, [spec], start=False)
         d.env = dict(self.env)
         d.start()
