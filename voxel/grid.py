@@ -186,6 +186,7 @@ class VoxelGrid:
             else scan.channels
         )
         time = quantise_time(scan.time)
+        version = self.version + 1
         observer = Observer(
             time,
             self.history.agent_code(agent),
@@ -193,9 +194,9 @@ class VoxelGrid:
             scan.reliability,
             experience,
             bias,
+            version,
         )
         stamp = self.times.stamp(time)
-        version = self.version + 1
         rule = UpdateRule(Evidence.of(sensor, scan.reliability), self.half_life, self.statistics)
         update = update_occupancy(self.store, traversal, rule, version, time, stamp, self.times)
         fused = fuse_channels(

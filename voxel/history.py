@@ -27,8 +27,13 @@ RECORD_DTYPE = np.dtype(
         ("experience", np.float32),
         ("reliability", np.float32),
         ("bias", np.float32),
+        ("version", np.uint32),  # the origin grid's version that made the record (one per scan)
     ]
 )
+#: Column names of a record, in storage order.
+RECORD_COLUMNS: tuple[str, ...] = tuple(RECORD_DTYPE.names or ())
+#: Record columns of snapshots written before records carried the grid version (format 3).
+RECORD_DTYPE_V3 = np.dtype([(n, RECORD_DTYPE[n]) for n in RECORD_COLUMNS if n != "version"])
 
 
 @dataclass(frozen=True)
@@ -41,6 +46,7 @@ class Observer:
     reliability: float
     experience: float
     bias: float
+    version: int = 0  # the grid version of the scan
 
 
 class ObjectTags(NamedTuple):
@@ -69,6 +75,15 @@ class ObjectTags(NamedTuple):
         obj_id[found] = self.ids[pos[found]]
         obj_p[found & (obj_id >= 0)] = 1.0
         return obj_id, obj_p
+
+
+@dataclass(frozen=True)
+class HistoryPage:
+    """Records of a history (RECORD_DTYPE) whose `agent` column indexes `agents`; the unit a layer's
+    history travels in."""
+
+    records: np.ndarray
+    agents: list[str]
 
 
 class History:
@@ -128,7 +143,7 @@ class History:
         """Append one scan's records: every hit voxel and every voxel whose state flipped.
 
         `changes` are the occupancy update's chunks (appended one by one, as the update made
-        them); free space seen for the first time (unknown -> free) is not among them.
+        them): hits, and voxels whose state changed or that are or were occupied.
         """
         for ch in changes:
             if ch.keys.size == 0:
@@ -155,6 +170,7 @@ class History:
                 experience=observer.experience,
                 reliability=observer.reliability,
                 bias=observer.bias,
+                version=observer.version,
             )
 
     def _compact(self, incoming: int) -> None:
@@ -206,6 +222,41 @@ class History:
         rec = self.view()
         m = rec["flip"] & (rec["time"] > t0) & (rec["time"] <= t1)
         return np.unique(rec["key"][m])
+
+    def newest_version(self) -> int:
+        """Highest grid version among the records held (0 without any)."""
+        return int(self.view()["version"].max()) if self.size else 0
+
+    def page(self, after: int, max_records: int) -> tuple[HistoryPage, int, bool]:
+        """Records of versions above `after`, oldest version first, in whole versions: as many
+        as fit `max_records` (at least one version). Returns the page, the highest version it
+        covers (`after` when empty) and whether records of later versions remain."""
+        rec = self.view()
+        mine = rec[rec["version"] > after]
+        mine = mine[np.argsort(mine["version"], kind="stable")]
+        if mine.size == 0:
+            return HistoryPage(mine.copy(), list(self.agents)), after, False
+        v = mine["version"]
+        cut = v.size
+        if max_records < v.size:  # end before the version the first record left out belongs to
+            cut = int(np.searchsorted(v, v[max_records], side="left"))
+        if cut == 0:  # one version larger than a page: it still goes whole
+            cut = int(np.searchsorted(v, v[0], side="right"))
+        picked = mine[:cut].copy()
+        return HistoryPage(picked, list(self.agents)), int(v[cut - 1]), cut < mine.size
+
+    def merge(self, page: HistoryPage) -> int:
+        """Append the records of a page (another holder's) whose versions are newer than every
+        record held; agent codes are translated to this history's. Returns records taken."""
+        rec = page.records[page.records["version"] > self.newest_version()]
+        if rec.size == 0:
+            return 0
+        codes = np.array([self.agent_code(a) for a in page.agents], dtype=np.uint16)
+        rec = rec.copy()
+        rec["agent"] = codes[rec["agent"]]
+        rec = rec[np.argsort(rec["version"], kind="stable")]
+        self.append(rec["key"], **{n: rec[n] for n in RECORD_COLUMNS if n != "key"})
+        return int(rec.size)
 
     def load(self, records: np.ndarray, agents: list[str]) -> None:
         """Replace the content with saved records and agent table."""

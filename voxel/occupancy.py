@@ -193,13 +193,10 @@ def _worth_recording(
     changed: np.ndarray,
     cells: np.ndarray,
 ) -> Changes:
-    """Changed voxels that are hit, occupied now or were occupied (see `History.record`).
-
-    Free space seen for the first time (unknown -> free) is left out: it is most of every scan
-    and carries no event; `state_at` derives it from the voxel's current state.
-    """
+    """Changed voxels that are hit, occupied now, were occupied or were unknown (see
+    `History.record`): only free space staying free is left out (no state changes there)."""
     with np.errstate(invalid="ignore"):
-        keep = (new >= 0) | (old >= 0)  # occupied now, or was (NaN, unknown, is neither)
+        keep = (new >= 0) | ~(old < 0)  # occupied now, or was occupied or unknown (NaN)
     keep |= cells == HIT
     keep &= changed
     b, o = np.nonzero(keep)

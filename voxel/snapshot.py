@@ -16,12 +16,13 @@ import zstandard
 
 from voxel.blocks import BlockStore
 from voxel.errors import FileFormatError
-from voxel.history import RECORD_DTYPE, History
+from voxel.history import RECORD_DTYPE, RECORD_DTYPE_V3, History
 
 FORMAT = "colony-voxel-snapshot"
-FORMAT_VERSION = 3
-#: Versions `load_grid` reads; version 2 predates block shapes (its blocks are cubes).
-READABLE_VERSIONS = (2, 3)
+FORMAT_VERSION = 4
+#: Versions `load_grid` reads; version 2 predates block shapes (its blocks are cubes), versions
+#: 2 and 3 history records without the grid version (read as version 0: kept, never served).
+READABLE_VERSIONS = (2, 3, 4)
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 
 
@@ -138,6 +139,11 @@ def load_grid(path: Path, make_grid: Callable[..., G]) -> G:
                     raise FileFormatError(msg)
                 target[slots] = arr
             hist = data["history"]
+            if hist.dtype == RECORD_DTYPE_V3 and meta["version"] < 4:
+                old = hist
+                hist = np.zeros(old.size, dtype=RECORD_DTYPE)
+                for name in RECORD_DTYPE_V3.names or ():
+                    hist[name] = old[name]
             if hist.dtype != RECORD_DTYPE:
                 msg = f"{path}: history records have dtype {hist.dtype}, expected {RECORD_DTYPE}"
                 raise FileFormatError(msg)

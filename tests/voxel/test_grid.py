@@ -323,8 +323,9 @@ def test_snapshot_errors(tmp_path):
         VoxelGrid.load(other)
 
 
-def _rewrite_meta(path, **changes) -> None:
-    """Re-save a snapshot with its metadata changed (or keys removed when given None)."""
+def _rewrite_meta(path, history_v3: bool = False, **changes) -> None:
+    """Re-save a snapshot with its metadata changed (or keys removed when given None); with
+    `history_v3`, its history records without the version column (format 3)."""
     import io
     import json
 
@@ -340,6 +341,13 @@ def _rewrite_meta(path, **changes) -> None:
         else:
             meta[key] = value
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    if history_v3:
+        from voxel.history import RECORD_DTYPE_V3
+
+        old = arrays["history"]
+        arrays["history"] = np.zeros(old.size, RECORD_DTYPE_V3)
+        for name in RECORD_DTYPE_V3.names:
+            arrays["history"][name] = old[name]
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     path.write_bytes(zstandard.ZstdCompressor().compress(buf.getvalue()))
@@ -352,6 +360,11 @@ def test_snapshot_versions_and_block_shapes(tmp_path):
     _rewrite_meta(path, version=2, block_shape=None)  # written before block shapes existed
     back = VoxelGrid.load(path)
     assert back.store.shifts == (2, 2, 2) and back.content_equal(grid)
+    grid.save(path)
+    _rewrite_meta(path, history_v3=True, version=3)  # records before they carried the version
+    back = VoxelGrid.load(path)
+    assert back.history.size == grid.history.size and back.history.newest_version() == 0
+    np.testing.assert_array_equal(back.history.view()["key"], grid.history.view()["key"])
     _rewrite_meta(path, version=3, block_shape=5)
     with pytest.raises(FileFormatError, match="not a readable colony-voxel-snapshot"):
         VoxelGrid.load(path)
@@ -359,7 +372,9 @@ def test_snapshot_versions_and_block_shapes(tmp_path):
     with pytest.raises(FileFormatError, match="block sides must be three of 1, 2, 4, 8 voxels"):
         VoxelGrid.load(path)
     _rewrite_meta(path, version=9)
-    with pytest.raises(FileFormatError, match="expected format colony-voxel-snapshot v2/3, found"):
+    with pytest.raises(
+        FileFormatError, match="expected format colony-voxel-snapshot v2/3/4, found"
+    ):
         VoxelGrid.load(path)
 
 
