@@ -138,6 +138,11 @@ class Config(BaseSettings):
     max_message_mb: float = Field(64.0, gt=0, description="largest accepted decoded message")
     query_timeout_s: float = Field(5.0, gt=0, description="range/snapshot query timeout")
     snapshot_chunk_voxels: int = Field(250_000, ge=1000, description="voxels per snapshot reply")
+    history_sync_s: float = Field(
+        5.0,
+        ge=0,
+        description="seconds between pulls of peer layers' history records (0: replicas keep none)",
+    )
     colony_key: str | None = Field(None, description="shared secret; unauthenticated dropped")
     trust: Literal["off", "tofu", "list"] = Field(
         "tofu", description="peers' identities: off, pinned on first use, or trusted_keys only"

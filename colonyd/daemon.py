@@ -22,7 +22,7 @@ from colonyd.alignment import ColonyFrame, Edge, align_layers, edge_of
 from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError, DuplicateAgentError, PersistenceError, StoppedError
 from colonyd.estimator import Estimator, PoseError, get_estimator
-from colonyd.export import encode_map
+from colonyd.export import encode_map, export_time
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.identity import get_trust, identity_path, load_signer
@@ -231,6 +231,7 @@ class Daemon:
             drop_rate=cfg.drop_rate,
             query_timeout_s=cfg.query_timeout_s,
             chunk_voxels=cfg.snapshot_chunk_voxels,
+            history_sync_s=cfg.history_sync_s,
         )
         self.membership = Membership(self.session, ns, cfg.agent_id, self.gossip.on_member_event)
         self.status_server = StatusServer(self.session, ns, cfg.agent_id, self.report)
@@ -554,26 +555,27 @@ class Daemon:
 
     # -- export (a live map for `colonyd export`) -----------------------------------------
     def export_map(self, params: dict[str, str]) -> bytes | None:
-        """The fused map in the colony frame, or with `layer=ID` that layer in its own frame."""
+        """The fused map in the colony frame, or with `layer=ID` that layer in its own frame;
+        with `at=T` (seconds) as it was at time T, from the layers' history."""
         agent, res = self.config.agent_id, self.config.resolution
         layer_id = params.get("layer")
+        try:
+            at = export_time(params.get("at"))
+        except ValueError:
+            return None
         if layer_id:
             layer = self.layers.find(layer_id)
             if layer is None:
                 return None
-            full = layer.full()
-            known = ~np.isnan(full.logodds)
-            return encode_map(
-                agent,
-                layer_id,
-                frame_of(layer_id),
-                layer.resolution,
-                full.keys[known],
-                full.logodds[known],
-                [],
-            )
+            if at is None:
+                full = layer.full()
+                known = ~np.isnan(full.logodds)
+                keys, lo = full.keys[known], full.logodds[known]
+            else:
+                keys, lo = layer.known_at(at)
+            return encode_map(agent, layer_id, frame_of(layer_id), layer.resolution, keys, lo, [])
         frame = self.colony_frame()
-        keys, lo = fused(self.layers.all(), res, frame.transforms, self._weights())
+        keys, lo = fused(self.layers.all(), res, frame.transforms, self._weights(), at=at)
         return encode_map(
             agent, None, frame_of(frame.root), res, keys, lo, sorted(frame.transforms)
         )

@@ -120,7 +120,9 @@ class Layer:
         if len(keys) and self.grid.store.sorted_keys.size == 0:
             shape = replica_shape(keys)
             if self.grid.store.shifts != block_shifts(shape):
+                history = self.grid.history  # paged in already (HistorySync): kept
                 self.grid = new_grid(self.resolution, shape)
+                self.grid.history = history
 
     def _apply(self, prev: int, seq: int, delta: Delta) -> int:
         delta = relabel(delta, prev, seq)
@@ -156,7 +158,10 @@ class Layer:
             result.missing = (self.seq, min(p for p, *_ in self.pending.values()))
 
     def _reset(self, epoch: int) -> None:
+        history = self.grid.history if epoch == self.epoch else None  # same epoch: still valid
         self.grid = new_grid(self.resolution)
+        if history is not None:
+            self.grid.history = history
         self.epoch = epoch
         self.seq = 0
         self.ring.clear()
@@ -236,6 +241,12 @@ class Layer:
                 return int(np.unique(split_keys(keys, shifts)[0]).size)
             blocks = np.unique(store.split(keys)[0])
             return int(np.count_nonzero(store.lookup(blocks) < 0))
+
+    def known_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Keys and log-odds of the voxels known at time t (`VoxelGrid.known_at`: from the
+        history this layer holds)."""
+        with self.lock:
+            return self.grid.known_at(t)
 
     def full(self) -> Delta:
         with self.lock:
@@ -376,9 +387,11 @@ def fused(
     resolution: float,
     transforms: dict[str, np.ndarray] | None = None,
     weights: dict[str, float] | None = None,
+    at: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fused view: (keys (N,3), log-odds (N,)), the reliability-weighted sum over layers
-    (`weights` by origin, 1.0 where none is given).
+    (`weights` by origin, 1.0 where none is given); with `at`, of the layers as they were at
+    that time (`Layer.known_at`).
 
     Without `transforms`, every layer at `resolution` is taken as already in the local frame
     (identity). With them (origin -> 4x4 taking its frame into the colony frame), only the layers
@@ -392,11 +405,15 @@ def fused(
             continue
         if t is None and abs(layer.resolution - resolution) > 1e-9:
             continue
-        full = layer.full()
-        known = ~np.isnan(full.logodds)
-        if not known.any():
+        if at is None:
+            full = layer.full()
+            known = ~np.isnan(full.logodds)
+            keys, lo = full.keys[known], full.logodds[known].astype(np.float64)
+        else:
+            keys, lo32 = layer.known_at(at)
+            lo = lo32.astype(np.float64)
+        if not len(keys):
             continue
-        keys, lo = full.keys[known], full.logodds[known].astype(np.float64)
         if t is not None:
             centres = vk.keys_to_centers(keys, layer.resolution) @ t[:3, :3].T + t[:3, 3]
             packed, inv = np.unique(

@@ -6,6 +6,7 @@ Layout (every NAME matches `NAME_PATTERN`):
     colony/<colony>/alive/<origin>                                  liveliness tokens
     colony/<colony>/<origin>/snapshot/<layer>                       queryable: snapshot of a layer
     colony/<colony>/<origin>/deltas/<layer>                         queryable: range of deltas
+    colony/<colony>/<origin>/history/<layer>                        queryable: history records
     colony/<colony>/<origin>/status                                 queryable: JSON status report
     colony/<colony>/<origin>/export                                 queryable: the daemon's map
 """
@@ -26,7 +27,7 @@ _NAME = re.compile(NAME_PATTERN)
 #: Topics an origin publishes on.
 TOPICS = ("announce", "pose", "delta", "objects", "align", "heartbeat")
 #: Queryables an origin serves, each for one layer.
-QUERIES = ("snapshot", "deltas")
+QUERIES = ("snapshot", "deltas", "history")
 ALIVE = "alive"
 #: An origin's status queryable (a daemon's JSON report, not a protocol frame).
 STATUS = "status"
@@ -36,7 +37,7 @@ EXPORT = "export"
 REPORTS = (STATUS, EXPORT)
 
 Topic = Literal["announce", "pose", "delta", "objects", "align", "heartbeat"]
-Query = Literal["snapshot", "deltas"]
+Query = Literal["snapshot", "deltas", "history"]
 
 
 def validate_name(name: str, what: str = "name") -> str:

@@ -365,6 +365,24 @@ class VoxelGrid:
             out[np.flatnonzero(none)[free_then]] = FREE_STATE
         return out
 
+    def known_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Keys (N, 3) and log-odds (N,) of every voxel known at time t, as `state_at` answers:
+        the log-odds of its last record at or before t, or (no record, free now and last changed
+        at or before t) its current log-odds."""
+        last = self.history.last_at(t)
+        st = self.store
+        slots = st.used_slots()
+        lo = st.channels["logodds"][slots]
+        when = self.times.seconds(st.channels["last_time"][slots])
+        with np.errstate(invalid="ignore"):
+            b, o = np.nonzero((lo < 0) & (when <= t))
+        free_keys = vk.pack(st.join(st.slot_keys[slots[b]], o))
+        free_lo = lo[b, o]
+        extra = ~np.isin(free_keys, last["key"], assume_unique=True)
+        packed = np.concatenate([last["key"], free_keys[extra]])
+        values = np.concatenate([last["logodds"], free_lo[extra]]).astype(np.float32)
+        return vk.unpack(packed), values
+
     def changed_between(self, t0: float, t1: float) -> np.ndarray:
         """Keys (M, 3) of voxels whose state changed in (t0, t1]."""
         return vk.unpack(self.history.flips_between(t0, t1))

@@ -217,6 +217,15 @@ class History:
         out[ok] = rs[pos[ok]]
         return out
 
+    def last_at(self, t: float) -> np.ndarray:
+        """The last record at or before time t of every voxel that has one (sorted by key)."""
+        rec = self.view()
+        rec = rec[rec["time"] <= t]
+        rec = rec[np.lexsort((rec["time"], rec["key"]))]
+        last = np.r_[rec["key"][1:] != rec["key"][:-1], True] if rec.size else np.zeros(0, bool)
+        out: np.ndarray = rec[last]
+        return out
+
     def flips_between(self, t0: float, t1: float) -> np.ndarray:
         """Packed keys whose state changed in (t0, t1]."""
         rec = self.view()
