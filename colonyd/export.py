@@ -147,7 +147,9 @@ def write_maps(reply: MapReply, out: Path, stem: str) -> dict[str, Path]:
     return files
 
 
-def _ask(session: zenoh.Session, namespace: str, params: str, timeout: float) -> list[MapReply]:
+def query_maps(
+    session: zenoh.Session, namespace: str, params: str, timeout: float
+) -> list[MapReply]:
     """Map replies of every daemon to an export query with `params` ("k=v;k=v")."""
     replies = session.get(
         status_selector(namespace, EXPORT) + (f"?{params}" if params else ""),
@@ -170,11 +172,13 @@ def fetch_maps(
     """The fused map of the daemon `agent` (or the first to answer, by agent id) and its layers'
     maps (every layer of the colony frame, or only `layer`; none without `layers_too`); with
     `at`, as they were at that time."""
-    when = "" if at is None else f"at={at!r}"
+    when = "" if at is None else f"at={float(at)!r}"
     deadline = time.monotonic() + wait_s
     while True:
         fused = [
-            r for r in _ask(session, namespace, when, 5.0) if agent is None or r.agent == agent
+            r
+            for r in query_maps(session, namespace, when, 5.0)
+            if agent is None or r.agent == agent
         ]
         if fused or time.monotonic() >= deadline:
             break
@@ -188,7 +192,7 @@ def fetch_maps(
     names = [layer] if layer is not None else source.layers if layers_too else []
     for name in names:
         params = ";".join(p for p in (f"layer={name}", when) if p)
-        got = [r for r in _ask(session, namespace, params, 10.0) if r.agent == source.agent]
+        got = [r for r in query_maps(session, namespace, params, 10.0) if r.agent == source.agent]
         if not got:
             msg = f"daemon {source.agent!r} holds no layer {name!r}"
             raise StatusError(msg)
