@@ -138,6 +138,20 @@ class Config(BaseSettings):
     max_message_mb: float = Field(64.0, gt=0, description="largest accepted decoded message")
     query_timeout_s: float = Field(5.0, gt=0, description="range/snapshot query timeout")
     snapshot_chunk_voxels: int = Field(250_000, ge=1000, description="voxels per snapshot reply")
+    half_life_s: float | None = Field(
+        None,
+        gt=0,
+        description="own layer's evidence decays toward unknown with this half-life, seconds "
+        "(none: no decay); peers decay their copy the same way (heartbeats carry it)",
+    )
+    forget_after_s: float | None = Field(
+        None,
+        gt=0,
+        description="own layer's voxels nobody observed for this long become unknown (none: never)",
+    )
+    forget_s: float = Field(
+        10.0, gt=0, description="seconds between forgetting passes over the own layer"
+    )
     history_sync_s: float = Field(
         5.0,
         ge=0,

@@ -168,6 +168,8 @@ class Daemon:
         )
         own = self.layers.own
         own.grid, own.epoch, own.seq = rec.grid, rec.epoch, rec.seq
+        own.set_half_life(cfg.half_life_s)
+        self._last_forget = time.monotonic()
         self._published_local = rec.published  # changes after it were never logged: send them
         log.info(
             "state %s: %s, epoch %d, seq %d, %d log records replayed, layer digest %s",
@@ -505,8 +507,24 @@ class Daemon:
             except Exception:
                 log.exception("publish failed")
 
+    def _forget_due(self) -> None:
+        """Every `forget_s`, forget what decayed or aged out of the own layer (a new version:
+        the next delta carries it to peers as unknown)."""
+        cfg = self.config
+        if cfg.half_life_s is None and cfg.forget_after_s is None:
+            return
+        if time.monotonic() - self._last_forget < cfg.forget_s:
+            return
+        self._last_forget = time.monotonic()
+        own = self.layers.own
+        with own.lock:
+            freed = own.grid.forget(after=cfg.forget_after_s)  # at the latest observation time
+        if freed:
+            self.metrics.add("blocks_forgotten", freed)
+
     def _publish_once(self, final: bool = False) -> None:
         own = self.layers.own
+        self._forget_due()
         with own.lock:
             version = int(own.grid.version)
             delta = (
@@ -530,6 +548,8 @@ class Daemon:
             self.metrics.stage("out", self.config.agent_id, seq, created, logged, time.time())
         if delta is not None:
             self._published_local = version
+            with own.lock:
+                own.grid.settle(version)  # forgotten voxels are in a logged, published delta
         due = time.monotonic() - self._last_snapshot >= self.config.snapshot_s
         if not final and own.seq > 0 and (due or self.store.wal_bytes > (64 << 20)):
             self._last_snapshot = time.monotonic()  # a failed one is retried after snapshot_s
@@ -600,6 +620,8 @@ class Daemon:
                 "voxels": layer.voxels(),
                 "updated": layer.updated,
                 "pending": len(layer.pending),
+                "half_life": layer.half_life,
+                "history": layer.grid.history.size,
             }
             if want_digest:
                 entry["digest"] = layer.digest()

@@ -178,6 +178,10 @@ class Inbox:
         if self.membership is None:
             return
         member = self.membership.heard(msg.origin, msg)
+        own_entry = next((e for e in msg.layers if e.origin == msg.origin), None)
+        layer = self.replicas.layers.find(msg.origin)
+        if own_entry is not None and layer is not None and layer.half_life != own_entry.half_life:
+            layer.set_half_life(own_entry.half_life)  # only the origin says how its layer decays
         self._compare(msg.origin, member.layers)
 
     def _handle_objects(self, key: str, raw: bytes) -> None:

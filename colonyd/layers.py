@@ -89,6 +89,18 @@ class Layer:
         self.pending: dict[int, tuple[int, float, Delta]] = {}
         self.pending_size = pending_size
         self.updated = 0.0
+        self.half_life: float | None = None  # the origin's decay (its heartbeats say)
+
+    def set_half_life(self, half_life: float | None) -> None:
+        """Decay this layer as its origin does (so queries give the origin's occupancy)."""
+        with self.lock:
+            self.half_life = half_life
+            self.grid.half_life = half_life
+
+    def _new_grid(self, shape: str = "cube") -> VoxelGrid:
+        grid = new_grid(self.resolution, shape)
+        grid.half_life = self.half_life
+        return grid
 
     # -- replica side ---------------------------------------------------------------------
     def offer(self, epoch: int, prev: int, seq: int, delta: Delta, created: float = 0.0) -> Applied:
@@ -121,7 +133,7 @@ class Layer:
             shape = replica_shape(keys)
             if self.grid.store.shifts != block_shifts(shape):
                 history = self.grid.history  # paged in already (HistorySync): kept
-                self.grid = new_grid(self.resolution, shape)
+                self.grid = self._new_grid(shape)
                 self.grid.history = history
 
     def _apply(self, prev: int, seq: int, delta: Delta) -> int:
@@ -159,7 +171,7 @@ class Layer:
 
     def _reset(self, epoch: int) -> None:
         history = self.grid.history if epoch == self.epoch else None  # same epoch: still valid
-        self.grid = new_grid(self.resolution)
+        self.grid = self._new_grid()
         if history is not None:
             self.grid.history = history
         self.epoch = epoch
@@ -362,6 +374,10 @@ class Layers:
     def all(self) -> list[Layer]:
         with self._lock:
             return list(self._layers.values())
+
+    def half_lives(self) -> dict[str, float | None]:
+        """origin -> the decay half-life of every layer held."""
+        return {layer.origin: layer.grid.half_life for layer in self.all()}
 
     def versions(self) -> dict[str, tuple[int, int]]:
         """origin -> (epoch, seq) for every layer held."""

@@ -117,8 +117,9 @@ class Publisher:
 
     def heartbeat(self, kind: str, pose: list[float]) -> None:
         """Publish what this daemon is and holds: kind, pose, every layer's (epoch, seq)."""
+        decay = self.layers.half_lives()
         layers = [
-            LayerVersion(origin=o, epoch=e, version=s)
+            LayerVersion(origin=o, epoch=e, version=s, half_life=decay.get(o))
             for o, (e, s) in list(self.layers.versions().items())[:MAX_HEARTBEAT_LAYERS]
         ]
         position = tuple(float(x) for x in pose[:3])

@@ -351,6 +351,9 @@ class LayerVersion(BaseModel):
     origin: Name
     epoch: U63
     version: U63
+    #: The layer's decay half-life in seconds (None: no decay), as its origin configured it: a
+    #: replica decays its copy the same way, so it computes the origin's occupancy.
+    half_life: Positive | None = None
 
 
 class Heartbeat(Message):

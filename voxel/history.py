@@ -232,6 +232,24 @@ class History:
         m = rec["flip"] & (rec["time"] > t0) & (rec["time"] <= t1)
         return np.unique(rec["key"][m])
 
+    def drop_keys(self, keys: np.ndarray) -> int:
+        """Drop every record of packed `keys` (voxels forgotten: unknown again) and return the
+        buffer's memory when it is mostly empty. Returns records dropped."""
+        rec = self.view()
+        gone = np.isin(rec["key"], np.asarray(keys, dtype=np.int64))
+        n = int(np.count_nonzero(gone))
+        if n:
+            kept = rec[~gone]
+            self._buf[: kept.size] = kept
+            self.size = kept.size
+        if self.size * 4 < self._buf.shape[0] and self._buf.shape[0] > 65536:
+            self._buf = self._buf[: max(self.size + self.size // 4, 65536)].copy()
+        return n
+
+    def allocated_bytes(self) -> int:
+        """Bytes of the record buffer (its capacity, not only the records held)."""
+        return int(self._buf.nbytes)
+
     def newest_version(self) -> int:
         """Highest grid version among the records held (0 without any)."""
         return int(self.view()["version"].max()) if self.size else 0

@@ -67,3 +67,25 @@ def test_a_replica_answers_temporal_queries_as_the_origin(make_colony, tmp_path)
         capture_output=True, check=False, text=True, timeout=60,
     )  # fmt: skip
     assert bad.returncode == 1 and "--since: expected seconds" in bad.stderr
+
+
+def test_forgetting_replicates_with_the_origins_decay(make_colony):
+    """An origin that forgets what nobody observed for a second: its replica drops the same
+    voxels (digests equal) and decays its copy with the origin's half-life."""
+    colony = make_colony("forget")
+    a = colony.add("a", ["synthetic:scans=12,rate=4,points=240,seed=2,step=1.0"], start=False)
+    a.env.update(
+        {"COLONYD_HALF_LIFE_S": "20", "COLONYD_FORGET_AFTER_S": "1.0", "COLONYD_FORGET_S": "0.3"}
+    )
+    a.start()
+    colony.add("b")
+    colony.wait_converged(40)
+    deadline = time.monotonic() + 15
+    while time.monotonic() < deadline:
+        report = {r["agent"]: r for r in colony.status(digest=True)}
+        la, lb = report["a"]["layers"]["a"], report["b"]["layers"].get("a", {})
+        if la["digest"] == lb.get("digest") and lb.get("half_life") == 20.0:
+            break
+        time.sleep(0.5)
+    assert la["digest"] == lb["digest"] and lb["half_life"] == 20.0 and la["half_life"] == 20.0
+    assert report["a"]["metrics"]["counts"].get("blocks_forgotten", 0) > 0

@@ -194,6 +194,43 @@ def test_forgetting_decays_and_frees_blocks():
     assert grid.state(p)[0] == UNKNOWN
 
 
+def test_decayed_evidence_reads_unknown_before_it_is_forgotten():
+    grid = VoxelGrid(RES, half_life=10.0)
+    pts, origin = wall_scan()
+    grid.integrate(pts, origin, time=0.0)
+    p = pts[:1]
+    assert grid.state(p, now=10.0)[0] == OCCUPIED
+    assert grid.state(p, now=60.0)[0] == UNKNOWN  # 0.85 / 2^6 < FORGET_EPSILON
+    assert len(grid.occupied_keys()) > 0 and grid.store.used_slots().size > 0
+
+
+def test_forgetting_bumps_versions_replicates_and_returns_memory():
+    """Forget 90 % of a layer: a replica that follows its deltas drops the same voxels and
+    computes the same decayed occupancy; allocated bytes (not counters) drop >= 80 %."""
+    grid = VoxelGrid(RES, half_life=30.0)
+    rng = np.random.default_rng(5)
+    for t in range(9):  # nine old scans far away
+        origin = np.array([20.0 * t, 0.0, 0.0])
+        grid.integrate(origin + rng.normal(size=(4000, 3)) * 3, origin, time=float(t))
+    replica = VoxelGrid(RES, half_life=30.0)
+    replica.apply(grid.delta_since(0))
+    seen = grid.version
+    origin = np.array([200.0, 0.0, 0.0])
+    grid.integrate(origin + rng.normal(size=(4000, 3)) * 3, origin, time=99.0)  # one recent
+    before, known = grid.allocated_bytes(), grid.known_count()
+    freed = grid.forget(now=100.0, after=50.0)
+    assert freed > 0 and grid.version > seen + 1
+    assert grid.known_count() < 0.2 * known
+    replica.apply(grid.delta_since(seen))
+    assert replica.content_equal(grid) and replica.known_count() == grid.known_count()
+    probe = vk.keys_to_centers(grid.occupied_keys()[:50], RES)
+    np.testing.assert_array_equal(replica.occupancy(probe), grid.occupancy(probe))
+    grid.settle(grid.version)  # the delta that carries the forgotten voxels was taken
+    assert grid.allocated_bytes() <= 0.2 * before
+    assert replica.allocated_bytes() <= 0.2 * before
+    assert grid.history.view()["key"].size < 0.2 * known  # their history went with them
+
+
 def test_ray_and_box_queries():
     grid = VoxelGrid(RES)
     pts, origin = wall_scan()
