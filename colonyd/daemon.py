@@ -622,6 +622,7 @@ class Daemon:
                 "pending": len(layer.pending),
                 "half_life": layer.half_life,
                 "history": layer.grid.history.size,
+                "channels": sorted(layer.grid.store.channels),
             }
             if want_digest:
                 entry["digest"] = layer.digest()

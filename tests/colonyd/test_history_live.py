@@ -89,3 +89,29 @@ def test_forgetting_replicates_with_the_origins_decay(make_colony):
         time.sleep(0.5)
     assert la["digest"] == lb["digest"] and lb["half_life"] == 20.0 and la["half_life"] == 20.0
     assert report["a"]["metrics"]["counts"].get("blocks_forgotten", 0) > 0
+
+
+def test_replicas_equal_the_origin_in_every_channel_and_the_history(make_colony):
+    """A simulated depth camera maps colour, classes and normals: the replica's layer equals
+    the origin's in every channel (digests cover them all) and holds the same history."""
+    colony = make_colony("channels")
+    a = colony.add("a", ["sim:world=room,agent=depth-1,frames=4"], start=False)
+    a.env["COLONYD_HISTORY_SYNC_S"] = "0.5"
+    a.start()
+    b = colony.add("b", start=False)
+    b.env["COLONYD_HISTORY_SYNC_S"] = "0.5"
+    b.start()
+    colony.wait_converged(60)
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        report = {r["agent"]: r for r in colony.status(digest=True)}
+        la, lb = report["a"]["layers"]["a"], report["b"]["layers"].get("a", {})
+        if la["digest"] == lb.get("digest") and la["history"] == lb.get("history"):
+            break
+        time.sleep(0.5)
+    assert la["digest"] == lb["digest"] and la["history"] == lb["history"] > 1000
+    for channels in (la["channels"], lb["channels"]):
+        assert {"colour", "normal", "class_ids", "class_probs"} <= set(channels)
+    ka, va = _layer_at(colony, "a", time.time())
+    kb, vb = _layer_at(colony, "b", time.time())
+    assert np.array_equal(ka, kb) and np.array_equal(va, vb) and len(ka) > 1000
