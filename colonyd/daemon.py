@@ -35,6 +35,7 @@ from colonyd.notify import Notifier
 from colonyd.objects import OwnObjects, to_wire
 from colonyd.outdir import output_dir
 from colonyd.persistence import StateStore
+from colonyd.provenance import agent_bias, agent_reliability, pose_error
 from colonyd.runtime import get_session
 from colonyd.status import StatusServer
 from plugins.observation import Observation
@@ -170,6 +171,7 @@ class Daemon:
         own.grid, own.epoch, own.seq = rec.grid, rec.epoch, rec.seq
         own.set_half_life(cfg.half_life_s)
         self._last_forget = time.monotonic()
+        self.bias = 0.0  # b: this agent's bias against aligned peers (colonyd/provenance.py)
         self._published_local = rec.published  # changes after it were never logged: send them
         log.info(
             "state %s: %s, epoch %d, seq %d, %d log records replayed, layer digest %s",
@@ -373,12 +375,13 @@ class Daemon:
         self._sources_done.set()
 
     def _integrate(self, own: Any, obs: Observation, source: Source) -> None:
+        covariance = None
         if self.config.localise and obs.odometry is not None:  # map from the estimate
             estimator = self._estimators.get(source.spec)
             if estimator is None:
                 estimator = self._estimators[source.spec] = get_estimator(source.adapter, obs)
             obs = replace(obs, pose=estimator(obs))
-            self.pose_covariance = estimator.covariance()
+            self.pose_covariance = covariance = estimator.covariance()
         self.pose_error.update(obs.pose, obs.truth)  # evaluation only: never fed back
         with own.lock:
             integrate_observation(
@@ -387,6 +390,11 @@ class Daemon:
                 sensor=source.adapter.sensor_model,
                 reliability=source.adapter.reliability,
                 agent=self.config.agent_id,
+                error=pose_error(covariance),
+                agent_reliability=agent_reliability(
+                    self.config.layer_weights, self.config.agent_id, self.config.kind
+                ),
+                bias=self.bias,
             )
         self.objects.observe(obs)
         self.pose = [float(v) for v in obs.origin]
@@ -420,6 +428,7 @@ class Daemon:
                     self._offer(edge, "final maps")
             if own.seq == 0 or not grown or max(grown.values()) <= 0:
                 continue
+            self._estimate_bias()
             origin = max(grown, key=lambda o: (grown[o], o))  # the pair with most new data
             peer = self.layers.find(origin)
             if peer is None:
@@ -458,6 +467,19 @@ class Daemon:
             else:
                 pending[origin] = (edge, seqs)
                 record["provisional"] = True
+
+    def _estimate_bias(self) -> None:
+        """b from disagreement with the peers aligned in the colony frame (next records)."""
+        try:
+            frame = self.colony_frame()
+            own = self.layers.own
+            peers = [layer for layer in self.layers.all() if layer.origin != own.origin]
+            bias = agent_bias(own, peers, frame.transforms)
+        except Exception:
+            log.exception("bias estimate failed")
+            return
+        if bias is not None:
+            self.bias = bias
 
     def _offer(self, edge: Edge, why: str) -> None:
         self.gossip.publish_align(edge)
@@ -516,6 +538,7 @@ class Daemon:
         if time.monotonic() - self._last_forget < cfg.forget_s:
             return
         self._last_forget = time.monotonic()
+        self.bias = 0.0  # b: this agent's bias against aligned peers (colonyd/provenance.py)
         own = self.layers.own
         with own.lock:
             freed = own.grid.forget(after=cfg.forget_after_s)  # at the latest observation time

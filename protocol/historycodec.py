@@ -37,7 +37,7 @@ WIRE_DTYPES: dict[str, str] = {
     "flip": "u1",
     "object_id": "<i4",
     "object_prob": "<f4",
-    "experience": "<f4",
+    "error": "<f4",
     "reliability": "<f4",
     "bias": "<f4",
     "version": "<u4",
@@ -133,7 +133,7 @@ def _check_values(rec: np.ndarray, agents: list[str]) -> None:
             (rec["object_prob"] >= 0) & (rec["object_prob"] <= 1),
             "a probability in [0, 1]",
         ),
-        ("experience", np.isfinite(rec["experience"]), "a finite number"),
+        ("error", np.isfinite(rec["error"]) & (rec["error"] >= 0), "an error >= 0"),
         (
             "reliability",
             (rec["reliability"] >= 0) & (rec["reliability"] <= 1),

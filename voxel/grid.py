@@ -134,8 +134,9 @@ class VoxelGrid:
         sensor: SensorModel = DEFAULT_SENSOR,
         agent: str = "self",
         reliability: float = 1.0,
-        experience: float = 0.0,
+        error: float = 0.0,
         bias: float = 0.0,
+        agent_reliability: float = 1.0,
         colours: np.ndarray | None = None,
         normals: np.ndarray | None = None,
         class_ids: np.ndarray | None = None,
@@ -163,7 +164,14 @@ class VoxelGrid:
             scalars=scalars,
             no_return=no_return,
         )
-        return self.integrate_scan(scan, sensor, agent=agent, experience=experience, bias=bias)
+        return self.integrate_scan(
+            scan,
+            sensor,
+            agent=agent,
+            error=error,
+            bias=bias,
+            agent_reliability=agent_reliability,
+        )
 
     def integrate_scan(
         self,
@@ -171,11 +179,14 @@ class VoxelGrid:
         sensor: SensorModel = DEFAULT_SENSOR,
         *,
         agent: str = "self",
-        experience: float = 0.0,
+        error: float = 0.0,
         bias: float = 0.0,
+        agent_reliability: float = 1.0,
     ) -> IntegrationReport:
         """Integrate a validated scan: traverse, update occupancy, fuse channels, record history,
-        bump version."""
+        bump version. Its records carry the provenance (VOXEL.md, "Provenance"): `error` (e, the
+        pose error estimate, m), r = the scan's (sensor) reliability x `agent_reliability`, and
+        `bias` (b)."""
         beams = sort_beams(scan, sensor, self.resolution)
         traversal = trace(
             scan.origin,
@@ -196,8 +207,8 @@ class VoxelGrid:
             time,
             self.history.agent_code(agent),
             sensor.kind_code,
-            scan.reliability,
-            experience,
+            scan.reliability * agent_reliability,
+            error,
             bias,
             version,
         )

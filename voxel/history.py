@@ -24,16 +24,24 @@ RECORD_DTYPE = np.dtype(
         ("flip", np.bool_),  # the state changed with this record
         ("object_id", np.int32),  # -1 when none
         ("object_prob", np.float32),
-        ("experience", np.float32),
-        ("reliability", np.float32),
-        ("bias", np.float32),
+        ("error", np.float32),  # e: the agent's pose error estimate at integration, metres
+        ("reliability", np.float32),  # r: sensor model x the agent's configured reliability
+        ("bias", np.float32),  # b: the agent's bias estimate (docs/VOXEL.md, "Provenance")
         ("version", np.uint32),  # the origin grid's version that made the record (one per scan)
     ]
 )
 #: Column names of a record, in storage order.
 RECORD_COLUMNS: tuple[str, ...] = tuple(RECORD_DTYPE.names or ())
+#: Columns renamed since format 3 (old name -> new name).
+RENAMED_V3 = {"experience": "error"}
 #: Record columns of snapshots written before records carried the grid version (format 3).
-RECORD_DTYPE_V3 = np.dtype([(n, RECORD_DTYPE[n]) for n in RECORD_COLUMNS if n != "version"])
+RECORD_DTYPE_V3 = np.dtype(
+    [
+        (next((old for old, new in RENAMED_V3.items() if new == n), n), RECORD_DTYPE[n])
+        for n in RECORD_COLUMNS
+        if n != "version"
+    ]
+)
 
 
 @dataclass(frozen=True)
@@ -43,8 +51,8 @@ class Observer:
     time: float  # seconds, whole milliseconds
     agent: int  # History.agent_code of the agent
     sensor: int  # voxel.sensor.SENSOR_KINDS code
-    reliability: float
-    experience: float
+    reliability: float  # recorded r (the scan's evidence uses the sensor's reliability alone)
+    error: float
     bias: float
     version: int = 0  # the grid version of the scan
 
@@ -167,7 +175,7 @@ class History:
                 flip=flip,
                 object_id=obj_id,
                 object_prob=obj_p,
-                experience=observer.experience,
+                error=observer.error,
                 reliability=observer.reliability,
                 bias=observer.bias,
                 version=observer.version,

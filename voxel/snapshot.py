@@ -16,7 +16,7 @@ import zstandard
 
 from voxel.blocks import BlockStore
 from voxel.errors import FileFormatError
-from voxel.history import RECORD_DTYPE, RECORD_DTYPE_V3, History
+from voxel.history import RECORD_DTYPE, RECORD_DTYPE_V3, RENAMED_V3, History
 
 FORMAT = "colony-voxel-snapshot"
 FORMAT_VERSION = 4
@@ -143,7 +143,7 @@ def load_grid(path: Path, make_grid: Callable[..., G]) -> G:
                 old = hist
                 hist = np.zeros(old.size, dtype=RECORD_DTYPE)
                 for name in RECORD_DTYPE_V3.names or ():
-                    hist[name] = old[name]
+                    hist[RENAMED_V3.get(name, name)] = old[name]
             if hist.dtype != RECORD_DTYPE:
                 msg = f"{path}: history records have dtype {hist.dtype}, expected {RECORD_DTYPE}"
                 raise FileFormatError(msg)

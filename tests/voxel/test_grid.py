@@ -379,12 +379,12 @@ def _rewrite_meta(path, history_v3: bool = False, **changes) -> None:
             meta[key] = value
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
     if history_v3:
-        from voxel.history import RECORD_DTYPE_V3
+        from voxel.history import RECORD_DTYPE_V3, RENAMED_V3
 
         old = arrays["history"]
         arrays["history"] = np.zeros(old.size, RECORD_DTYPE_V3)
         for name in RECORD_DTYPE_V3.names:
-            arrays["history"][name] = old[name]
+            arrays["history"][name] = old[RENAMED_V3.get(name, name)]
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     path.write_bytes(zstandard.ZstdCompressor().compress(buf.getvalue()))

@@ -133,7 +133,7 @@ def scenario_rich() -> list[str]:
                 origin,
                 time=float(i) + 0.25,
                 agent=f"robot-{i % 2}",
-                experience=0.5 * i,
+                error=0.5 * i,
                 bias=-0.1 * i,
                 reliability=1.0 - 0.1 * i,
                 **kwargs,

@@ -89,7 +89,7 @@ def test_record_writes_one_row_per_change_with_the_observer_columns() -> None:
         agent=history.agent_code("robot-a"),
         sensor=3,
         reliability=0.5,
-        experience=1.0,
+        error=1.0,
         bias=-0.25,
     )
     tags = ObjectTags.of(
