@@ -110,6 +110,8 @@ class CatchUp:
     def request(self, origin: str, servers: list[str]) -> None:
         """Bring `origin`'s layer up to date, asking `servers` first; no-op while it is under
         way."""
+        if origin in self.layers.forgotten:
+            return  # a tombstone: never repaired back
         with self._lock:
             if origin in self._repairing:
                 return

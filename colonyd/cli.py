@@ -190,6 +190,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
 
     p = sub.add_parser(
+        "forget-agent",
+        help="remove an agent's layer from the whole colony and keep it removed "
+        "(e.g. a robot with a broken sensor)",
+    )
+    _config_flags(p, (*_CLIENT_FLAGS, "colony_key"))
+    p.add_argument("forget_id", metavar="ID", help="the agent whose layer to forget")
+
+    p = sub.add_parser(
         "changes",
         help="what appeared and disappeared in the live fused map (or one layer) since a time: "
         "appeared.ply, disappeared.ply and the counts",
@@ -392,9 +400,17 @@ def main(argv: list[str] | None = None) -> int:
     """Parse and dispatch; raises the package errors that `launch` maps to exit codes."""
     args = build_parser().parse_args(argv)
     cmd = args.command
-    if cmd in ("run", "status", "dump-config", "identity", "export", "changes"):
+    if cmd in ("run", "status", "dump-config", "identity", "export", "changes", "forget-agent"):
         flags = _flags(args)
         config = load_config(args.config, **flags)
+        if cmd == "forget-agent":
+            from colonyd.logs import setup_logging
+            from colonyd.tombstones import forget_agent
+
+            setup_logging("warning")
+            answers = forget_agent(config, args.forget_id)
+            sys.stdout.write(json.dumps(answers) + "\n")
+            return EXIT_OK
         if cmd == "changes":
             from colonyd.export import map_changes, parse_time
             from colonyd.logs import setup_logging

@@ -38,6 +38,7 @@ from colonyd.persistence import StateStore
 from colonyd.provenance import agent_bias, agent_reliability, pose_error
 from colonyd.runtime import get_session
 from colonyd.status import StatusServer
+from colonyd.tombstones import forget_params, load_tombstones, save_tombstones
 from plugins.observation import Observation
 from plugins.source import open_source
 from plugins.stream import Source
@@ -170,6 +171,10 @@ class Daemon:
         own = self.layers.own
         own.grid, own.epoch, own.seq = rec.grid, rec.epoch, rec.seq
         own.set_half_life(cfg.half_life_s)
+        self.layers.forgotten = load_tombstones(cfg.state_dir)
+        self.layers.on_forget = lambda _origin: save_tombstones(
+            cfg.state_dir, self.layers.forgotten
+        )
         self._last_forget = time.monotonic()
         self.bias = 0.0  # b: this agent's bias against aligned peers (colonyd/provenance.py)
         self._published_local = rec.published  # changes after it were never logged: send them
@@ -242,6 +247,9 @@ class Daemon:
         self.export_server = StatusServer(
             self.session, ns, cfg.agent_id, self.export_map, report="export"
         )
+        self.forget_server = StatusServer(
+            self.session, ns, cfg.agent_id, self.forget_request, report="forget"
+        )
         self.gossip.start(self.membership)
 
     def _start_threads(self) -> None:
@@ -305,6 +313,7 @@ class Daemon:
             self._export(self.config.export_dir)
         self.status_server.close()
         self.export_server.close()
+        self.forget_server.close()
         self.gossip.close()
         self.membership.close()
 
@@ -622,6 +631,26 @@ class Daemon:
         return encode_map(
             agent, None, frame_of(frame.root), res, keys, lo, sorted(frame.transforms)
         )
+
+    # -- forgetting an agent (`colonyd forget-agent`) -----------------------------------------
+    def forget_request(self, params: dict[str, str]) -> dict[str, Any]:
+        """Forget `agent=ID`'s layer colony-wide: checked against the colony key when one is
+        configured (`t` within a minute, `auth` its HMAC), then a tombstone that heartbeats
+        carry to every member."""
+        cfg = self.config
+        try:
+            agent = forget_params(params, colony_key(cfg.colony_key), time.time())
+        except ValueError as exc:
+            self.metrics.reject("bad-forget")
+            log.warning("refused a forget request: %s", exc)
+            return {"agent": cfg.agent_id, "forgotten": None, "error": str(exc)}
+        if agent == cfg.agent_id:
+            return {"agent": cfg.agent_id, "forgotten": None, "error": "own layer"}
+        new = self.layers.forget_agent(agent)
+        if new:
+            log.warning("forgot the layer of %s (forget-agent request)", agent)
+            self.gossip.hb_now.set()  # tell the colony now
+        return {"agent": cfg.agent_id, "forgotten": agent, "new": new}
 
     # -- status ---------------------------------------------------------------------------
     def _colony_report(self) -> dict[str, Any]:

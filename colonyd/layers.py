@@ -6,6 +6,7 @@ import hashlib
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -311,6 +312,9 @@ class Layers:
         self.max_peer_blocks = max_peer_blocks
         self._layers: dict[str, Layer] = {}
         self._lock = threading.Lock()
+        #: origins forgotten colony-wide (`forget_agent`): never held again, whoever offers them
+        self.forgotten: set[str] = set()
+        self.on_forget: Callable[[str], None] | None = None  # persists a new tombstone
         self.own = self.get(own)
 
     def admit(self, origin: str, deltas: list[Delta], *, replace: bool = False) -> None:
@@ -321,6 +325,8 @@ class Layers:
             raise WireError(
                 "own-origin", f"expected another agent's layer, found our own {origin!r}"
             )
+        if origin in self.forgotten:
+            raise WireError("forgotten", f"expected a layer not forgotten, found {origin!r}'s")
         layer = self.find(origin)
         resolutions = {float(d.resolution) for d in deltas}
         if layer is None:
@@ -382,6 +388,19 @@ class Layers:
     def versions(self) -> dict[str, tuple[int, int]]:
         """origin -> (epoch, seq) for every layer held."""
         return {layer.origin: (layer.epoch, layer.seq) for layer in self.all() if layer.seq > 0}
+
+    def forget_agent(self, origin: str) -> bool:
+        """Drop `origin`'s layer and keep it dropped (a tombstone that repair and every
+        admission respect); never the own layer. True if it was new."""
+        if origin == self.own_id or origin in self.forgotten:
+            return False
+        if len(self.forgotten) >= self.max_layers:
+            return False  # bounded: a hostile flood of names cannot grow it without end
+        self.forgotten.add(origin)
+        self.drop(origin)
+        if self.on_forget is not None:
+            self.on_forget(origin)
+        return True
 
     def drop(self, origin: str) -> None:
         """Forget a peer's layer (an untrusted or retired origin); never the own layer."""

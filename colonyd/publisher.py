@@ -128,6 +128,7 @@ class Publisher:
             kind=kind,
             frame_id=frame_of(self.own),
             layers=layers,
+            forgotten=sorted(self.layers.forgotten)[:MAX_HEARTBEAT_LAYERS],
             identity=self.sender.identity,
             position=position if len(position) == 3 and all(map(math.isfinite, position)) else None,
         )

@@ -9,6 +9,7 @@ Layout (every NAME matches `NAME_PATTERN`):
     colony/<colony>/<origin>/history/<layer>                        queryable: history records
     colony/<colony>/<origin>/status                                 queryable: JSON status report
     colony/<colony>/<origin>/export                                 queryable: the daemon's map
+    colony/<colony>/<origin>/forget                                 queryable: forget an agent
 """
 
 from __future__ import annotations
@@ -33,8 +34,10 @@ ALIVE = "alive"
 STATUS = "status"
 #: An origin's map export queryable (a daemon's fused or per-layer map, not a protocol frame).
 EXPORT = "export"
+#: An origin's queryable that forgets an agent's layer colony-wide (tooling, not a frame).
+FORGET = "forget"
 #: Queryables of a daemon's own that are not protocol frames (tooling).
-REPORTS = (STATUS, EXPORT)
+REPORTS = (STATUS, EXPORT, FORGET)
 
 Topic = Literal["announce", "pose", "delta", "objects", "align", "heartbeat"]
 Query = Literal["snapshot", "deltas", "history"]

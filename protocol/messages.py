@@ -372,6 +372,9 @@ class Heartbeat(Message):
     position: Vec3 | None = None
     orientation: Quat = (0.0, 0.0, 0.0, 1.0)
     layers: Annotated[list[LayerVersion], Field(max_length=4096)] = []
+    #: Agents whose layers were forgotten colony-wide (`colonyd forget-agent`): receivers drop
+    #: them and refuse them from then on.
+    forgotten: Annotated[list[Name], Field(max_length=4096)] = []
     #: The sender's Ed25519 public key (32 bytes): how peers that trust on first use learn it.
     identity: Annotated[bytes, Field(min_length=32, max_length=32)] | None = None
 
