@@ -312,6 +312,12 @@ def build_parser() -> argparse.ArgumentParser:
     b = bsub.add_parser("wire", help="wire-format benchmark")
     _bench_io(b, shared_data=True)
     b = bsub.add_parser(
+        "history",
+        help="history bytes per record on the wire, replica temporal queries against the "
+        "origin's, allocated bytes after forgetting",
+    )
+    _bench_io(b, shared_data=True)
+    b = bsub.add_parser(
         "align",
         help="map alignment: real laser halves, OctoMap crops, negatives, vs map_merge's ORB",
     )
@@ -580,6 +586,10 @@ def _bench(args: argparse.Namespace) -> int:
         from colonyd.bench.wire import run_wire_bench
 
         result = run_wire_bench(args.json, args.shared_data)
+    elif args.bench == "history":
+        from colonyd.bench.history import run_history_bench
+
+        result = run_history_bench(args.json, args.shared_data)
     elif args.bench == "faults":
         from colonyd.bench.faults import run_faults_bench
 

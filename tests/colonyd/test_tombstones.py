@@ -64,11 +64,19 @@ def test_forget_agent_removes_a_layer_from_the_colony_and_repair_respects_it(mak
         "--namespace", colony.namespace, "--no-multicast", "--connect", c.endpoint,
     ]  # fmt: skip
     wrong = subprocess.run(
-        [*base, "a", "--colony-key", "wrong"], capture_output=True, text=True, timeout=60
+        [*base, "a", "--colony-key", "wrong"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
     )
     assert wrong.returncode == 1 and "to forget 'a'" in wrong.stderr
     run = subprocess.run(
-        [*base, "a", "--colony-key", "s3cret"], capture_output=True, text=True, timeout=60
+        [*base, "a", "--colony-key", "s3cret"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
     )
     assert run.returncode == 0, run.stderr
     answers = json.loads(run.stdout)
