@@ -29,7 +29,11 @@ def join_pages(msgs: list[HistoryReply]) -> HistoryPage | None:
     agents = pages[0].agents
     if any(p.agents != agents for p in pages):
         return None
-    return HistoryPage(np.concatenate([p.records for p in pages]), agents)
+    return HistoryPage(
+        np.concatenate([p.records for p in pages]),
+        agents,
+        np.concatenate([p.seen for p in pages]),
+    )
 
 
 class HistorySync:

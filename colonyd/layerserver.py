@@ -224,15 +224,15 @@ class LayerServer:
                 break
             for i in reversed(big):
                 p = pieces[i]
-                if p is None or p.records.size < 2:
+                if p is None or p.records.size + p.seen.size < 2:
                     text = (
                         f"expected history parts within {max_frame} bytes, found a record too large"
                     )
                     raise WireError("oversized", text)
-                half = p.records.size // 2
+                half, seen_half = p.records.size // 2, p.seen.size // 2
                 pieces[i : i + 1] = [
-                    HistoryPage(p.records[:half], p.agents),
-                    HistoryPage(p.records[half:], p.agents),
+                    HistoryPage(p.records[:half], p.agents, p.seen[:seen_half]),
+                    HistoryPage(p.records[half:], p.agents, p.seen[seen_half:]),
                 ]
         self._reply(query, key, frames)
         self.metrics.add("histories_served")

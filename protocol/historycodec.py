@@ -16,7 +16,7 @@ from protocol import fields
 from protocol.errors import MalformedError, OversizedError, RangeError, VersionError
 from protocol.keyexpr import NAME_PATTERN
 from protocol.limits import DEFAULT_LIMITS, Limits
-from voxel.history import RECORD_COLUMNS, RECORD_DTYPE, HistoryPage
+from voxel.history import RECORD_COLUMNS, RECORD_DTYPE, SEEN_DTYPE, HistoryPage
 from voxel.keys import AXIS_BITS
 from voxel.sensor import SENSOR_KINDS
 
@@ -42,6 +42,8 @@ WIRE_DTYPES: dict[str, str] = {
     "bias": "<f4",
     "version": "<u4",
 }
+#: Wire dtype of the seen log's dictionary-coded columns (`key` travels like records' keys).
+SEEN_WIRE_DTYPES: dict[str, str] = {"time": "<f8", "version": "<u4"}
 _NAME = re.compile(NAME_PATTERN)
 _KEY_LIMIT = 1 << (3 * AXIS_BITS)
 
@@ -67,22 +69,40 @@ def encode_history(page: HistoryPage) -> bytes:
         msg = f"history records must have dtype {RECORD_DTYPE}, found {rec.dtype}"
         raise MalformedError(msg)
     rec = rec[np.lexsort((rec["key"], rec["version"]))]
-    keys = rec["key"].astype("<i8")
-    diffs = np.diff(keys, prepend=np.int64(0)).astype("<i8")
-    shuffled = diffs.view(np.uint8).reshape(-1, 8).T.copy()  # byte planes: high ones all zero
+    seen = page.seen[np.lexsort((page.seen["key"], page.seen["version"]))]
     body: dict[str, Any] = {
         "v": CODEC_VERSION,
         "n": int(rec.size),
         "agents": list(page.agents),
-        "key": shuffled.tobytes(),
+        "key": _shuffled_keys(rec["key"]),
+        "seen_n": int(seen.size),
+        "seen_key": _shuffled_keys(seen["key"]),
     }
     for name, wire in WIRE_DTYPES.items():
         body[name] = _column(rec[name], wire)
+    for name, wire in SEEN_WIRE_DTYPES.items():
+        body[f"seen_{name}"] = _column(seen[name], wire)
     return fields.pack(body)
 
 
-def _decode_column(raw: Any, name: str, n: int) -> np.ndarray:
-    wire = np.dtype(WIRE_DTYPES[name])
+def _shuffled_keys(keys: np.ndarray) -> bytes:
+    """Packed keys as i8 differences from the previous (the first from 0), byte-shuffled."""
+    diffs = np.diff(keys.astype("<i8"), prepend=np.int64(0)).astype("<i8")
+    return diffs.view(np.uint8).reshape(-1, 8).T.copy().tobytes()  # high byte planes: zeros
+
+
+def _unshuffled_keys(raw: bytes, n: int, what: str) -> np.ndarray:
+    if len(raw) != 8 * n:
+        msg = f"history body: expected {8 * n} {what} bytes for {n} entries, found {len(raw)}"
+        raise MalformedError(msg)
+    diffs = np.frombuffer(raw, dtype=np.uint8).reshape(8, n).T.copy().view("<i8")[:, 0]
+    with np.errstate(over="ignore"):
+        keys: np.ndarray = np.cumsum(diffs, dtype=np.int64)
+    return keys
+
+
+def _decode_column(raw: Any, name: str, n: int, wire_name: str | None = None) -> np.ndarray:
+    wire = np.dtype(wire_name or WIRE_DTYPES[name])
     if not isinstance(raw, list) or len(raw) != 2 or not all(isinstance(x, bytes) for x in raw):
         msg = (
             f"history column {name!r}: expected [table bin, codes bin], found {type(raw).__name__}"
@@ -166,16 +186,29 @@ def decode_history(data: bytes, limits: Limits = DEFAULT_LIMITS) -> HistoryPage:
     ):
         msg = f"history body: expected at most {MAX_AGENTS} agent names, found {agents[:3]!r}…"
         raise RangeError(msg)
-    key_raw = fields.field(body, "key", bytes, "history body")
-    if len(key_raw) != 8 * n:
-        msg = f"history body: expected {8 * n} key bytes for {n} records, found {len(key_raw)}"
-        raise MalformedError(msg)
     rec = np.zeros(n, dtype=RECORD_DTYPE)
-    diffs = np.frombuffer(key_raw, dtype=np.uint8).reshape(8, n).T.copy().view("<i8")[:, 0]
-    with np.errstate(over="ignore"):
-        rec["key"] = np.cumsum(diffs, dtype=np.int64)
+    rec["key"] = _unshuffled_keys(fields.field(body, "key", bytes, "history body"), n, "key")
     for name in RECORD_COLUMNS:
         if name != "key":
             rec[name] = _decode_column(body.get(name), name, n)
     _check_values(rec, agents)
-    return HistoryPage(rec, [str(a) for a in agents])
+    m = body.get("seen_n", 0)  # optional: absent means no seen entries
+    if isinstance(m, bool) or not isinstance(m, int) or not 0 <= m <= MAX_RECORDS:
+        msg = f"history body: expected 0..{MAX_RECORDS} seen entries, found {m!r}"
+        raise RangeError(msg)
+    seen = np.zeros(m, dtype=SEEN_DTYPE)
+    if m:
+        raw = fields.field(body, "seen_key", bytes, "history body")
+        seen["key"] = _unshuffled_keys(raw, m, "seen_key")
+        for name, wire in SEEN_WIRE_DTYPES.items():
+            seen[name] = _decode_column(body.get(f"seen_{name}"), f"seen_{name}", m, wire)
+        checks = (
+            ("seen_key", (seen["key"] >= 0) & (seen["key"] < _KEY_LIMIT), "a packed key"),
+            ("seen_time", np.isfinite(seen["time"]), "a finite time"),
+            ("seen_version", seen["version"] > 0, "a version > 0"),
+        )
+        for name, ok, expected in checks:
+            if not bool(np.all(ok)):
+                msg = f"history column {name!r}: expected {expected}, found a value outside"
+                raise RangeError(msg)
+    return HistoryPage(rec, [str(a) for a in agents], seen)

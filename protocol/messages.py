@@ -440,8 +440,8 @@ class HistoryReply(Message):
                 f"{self.to_version}"
             )
             raise ValueError(msg)
-        if self.records is not None and self.records.records.size:
-            v = self.records.records["version"]
+        if self.records is not None and (self.records.records.size or self.records.seen.size):
+            v = np.concatenate([self.records.records["version"], self.records.seen["version"]])
             if int(v.min()) <= self.from_version or int(v.max()) > self.to_version:
                 msg = (
                     f"records must have versions in ({self.from_version}, {self.to_version}], "

@@ -16,7 +16,7 @@ import zstandard
 
 from voxel.blocks import BlockStore
 from voxel.errors import FileFormatError
-from voxel.history import RECORD_DTYPE, RECORD_DTYPE_V3, RENAMED_V3, History
+from voxel.history import RECORD_DTYPE, RECORD_DTYPE_V3, RENAMED_V3, SEEN_DTYPE, History
 
 FORMAT = "colony-voxel-snapshot"
 FORMAT_VERSION = 4
@@ -72,6 +72,7 @@ def save_grid(grid: SnapshotGrid, path: Path) -> None:
         "block_keys": st.slot_keys[slots],
         "slot_version": st.slot_version[slots],
         "history": grid.history.view(),
+        "history_seen": grid.history.seen(),
     }
     for name, arr in st.channels.items():
         arrays[f"ch/{name}"] = arr[slots]
@@ -147,7 +148,11 @@ def load_grid(path: Path, make_grid: Callable[..., G]) -> G:
             if hist.dtype != RECORD_DTYPE:
                 msg = f"{path}: history records have dtype {hist.dtype}, expected {RECORD_DTYPE}"
                 raise FileFormatError(msg)
-            grid.history.load(hist, meta["agents"])
+            seen = data["history_seen"] if "history_seen" in files else None
+            if seen is not None and seen.dtype != SEEN_DTYPE:
+                msg = f"{path}: seen log has dtype {seen.dtype}, expected {SEEN_DTYPE}"
+                raise FileFormatError(msg)
+            grid.history.load(hist, meta["agents"], seen)
             grid.version = int(meta["grid_version"])
             grid.now = float(meta["now"])
             grid.time_base_ms = meta["time_base_ms"]

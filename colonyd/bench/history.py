@@ -52,7 +52,11 @@ def _replicate(origin: VoxelGrid) -> tuple[VoxelGrid, int, int, int]:
         assert isinstance(back, HistoryReply)
         if back.records is not None:
             replica.history.merge(back.records)
-        frames, nbytes, records = frames + 1, nbytes + len(frame), records + page.records.size
+        frames, nbytes, records = (
+            frames + 1,
+            nbytes + len(frame),
+            records + page.records.size + page.seen.size,
+        )
         after = to
         if not more:
             return replica, frames, nbytes, records

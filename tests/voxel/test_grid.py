@@ -382,6 +382,7 @@ def _rewrite_meta(path, history_v3: bool = False, **changes) -> None:
         from voxel.history import RECORD_DTYPE_V3, RENAMED_V3
 
         old = arrays["history"]
+        arrays.pop("history_seen", None)  # format 3 had no seen log
         arrays["history"] = np.zeros(old.size, RECORD_DTYPE_V3)
         for name in RECORD_DTYPE_V3.names:
             arrays["history"][name] = old[RENAMED_V3.get(name, name)]

@@ -1,7 +1,7 @@
 """Pinned results: fixed scans give bit-identical grids, deltas, history and files across refactors.
 
 The expected digests were computed with the grid before it was split into modules (commit
-43ae299), then re-pinned when history records gained unknown -> free and the grid version
+43ae299), then re-pinned when the history gained the seen log (unknown -> free) and the grid version
 (issue 14; grid content unchanged), and for forgetting when it came to bump versions and read
 decayed evidence as unknown; run this file as a script to print the digests of the current
 code.
@@ -51,7 +51,7 @@ def grid_digest(grid: VoxelGrid) -> str:
     )
     for name in sorted(st.channels):
         _update(h, name, st.channels[name][slots])
-    _update(h, grid.history.view(), grid.history.agents, grid.history.dropped)
+    _update(h, grid.history.view(), grid.history.seen(), grid.history.agents, grid.history.dropped)
     return h.hexdigest()[:20]
 
 
@@ -294,13 +294,13 @@ def run(name: str, tmp: Path) -> str:
 
 
 EXPECTED: dict[str, str] = {
-    "plain": "84f218edcb4a08a7d979",
-    "rich": "cda7a33edbf561c8247c",
-    "forgetting": "e6a09212879bfe2ea0c4",
-    "time_base": "9f3b799c9cdc1262bbb9",
-    "planar_and_big": "b8ea0fb4b5e86a0310fd",
-    "depth": "06418b0a70ef0b505cfc",
-    "files": "c163d819182dcfc87f70",
+    "plain": "c917849816405218f1af",
+    "rich": "a4bc3c72c2236ac91ed9",
+    "forgetting": "d424d37359ba221f039b",
+    "time_base": "3880da6cfa5255cdd233",
+    "planar_and_big": "1629e97315f55bf10be8",
+    "depth": "ce81ed4055781f182f3a",
+    "files": "a69493a8bf131d3baf79",
 }
 
 

@@ -15,12 +15,13 @@ ORIGIN = np.array([0.05, 0.05, 0.05])
 WALL = np.array([[1.05, 0.05, 0.05]])
 
 
-def test_unknown_to_free_is_recorded_and_unchanged_hits_are_not() -> None:
+def test_unknown_to_free_goes_to_the_seen_log_and_unchanged_hits_are_not_recorded() -> None:
     grid = VoxelGrid(RES)
     grid.integrate(WALL, ORIGIN, time=0.0)
-    assert len(grid.free_keys()) == 10 and grid.history.size == 11  # 10 newly free + the hit
-    first = grid.history.view()
-    assert first["flip"].all() and int((first["state"] == FREE_STATE).sum()) == 10
+    assert len(grid.free_keys()) == 10 and grid.history.size == 1  # the hit: a record
+    seen = grid.history.seen()  # the 10 voxels seen free for the first time: 20 bytes each
+    assert seen.size == 10 and set(seen["time"]) == {0.0} and set(seen["version"]) == {1}
+    assert sorted(seen["key"]) == sorted(vk.pack(grid.free_keys()))
     for t in range(1, 12):
         grid.integrate(WALL, ORIGIN, time=float(t))
     held = grid.history.size
@@ -55,16 +56,17 @@ def test_pages_cover_whole_versions_and_merge_into_an_equal_history() -> None:
     while True:
         page, to, more = src.page(after, max_records=15)
         versions = np.unique(page.records["version"])
-        assert page.records.size <= 15 or versions.size == 1  # whole versions, within the bound
-        assert replica.merge(page) == page.records.size
+        # whole versions, within the bound
+        assert page.records.size + page.seen.size <= 15 or versions.size == 1
+        assert replica.merge(page) == page.records.size + page.seen.size
         assert replica.merge(page) == 0  # a page taken twice adds nothing
         after, pages = to, pages + 1
         if not more:
             break
     assert pages > 2 and after == grid.version == replica.newest_version()
-    keys = src.view()["key"]
+    keys = np.concatenate([src.view()["key"], src.seen()["key"]])
     for t in (-1.0, 0.0, 2.5, 5.0):
-        np.testing.assert_array_equal(replica.state_at(keys, t), src.state_at(keys, t))
+        np.testing.assert_array_equal(replica.state_at_all(keys, t), src.state_at_all(keys, t))
         np.testing.assert_array_equal(replica.flips_between(-1, t), src.flips_between(-1, t))
     got = replica.view()
     names = [replica.agents[a] for a in got["agent"]]
@@ -82,6 +84,7 @@ def test_record_writes_one_row_per_change_with_the_observer_columns() -> None:
             np.array([np.nan, 0.4, -0.4], np.float32),
             np.array([0.85, -0.01, 0.4], np.float32),
             np.array([True, False, True]),
+            np.empty(0, np.int64),
         )
     ]
     observer = Observer(
