@@ -342,20 +342,22 @@ class History:
         remain."""
         rec, seen = self.view(), self.seen()
         rec, seen = rec[rec["version"] > after], seen[seen["version"] > after]
-        v = np.sort(np.concatenate([rec["version"], seen["version"]]), kind="stable")
-        if v.size == 0:
+        if rec.size + seen.size == 0:
             return HistoryPage(rec.copy(), list(self.agents), seen.copy()), after, False
-        cut = v.size
-        if max_records < v.size:  # end before the version the first entry left out belongs to
-            cut = int(np.searchsorted(v, v[max_records], side="left"))
-        if cut == 0:  # one version larger than a page: it still goes whole
-            cut = int(np.searchsorted(v, v[0], side="right"))
-        to = int(v[cut - 1])
+        # entries per version (versions are small consecutive integers): O(n), no sort
+        lo = min(int(a.min()) for a in (rec["version"], seen["version"]) if a.size)
+        hi = max(int(a.max()) for a in (rec["version"], seen["version"]) if a.size)
+        counts = np.bincount(rec["version"].astype(np.int64) - lo, minlength=hi - lo + 1)
+        counts += np.bincount(seen["version"].astype(np.int64) - lo, minlength=hi - lo + 1)
+        total = np.cumsum(counts)
+        fits = int(np.searchsorted(total, max_records, side="right"))  # versions that fit
+        to = lo + max(fits, int(np.flatnonzero(counts)[0]) + 1) - 1  # at least one version
+        to = min(to, hi)
         rec = rec[rec["version"] <= to]
         seen = seen[seen["version"] <= to]
         rec = rec[np.argsort(rec["version"], kind="stable")]
         seen = seen[np.argsort(seen["version"], kind="stable")]
-        return HistoryPage(rec, list(self.agents), seen), to, cut < v.size
+        return HistoryPage(rec, list(self.agents), seen), to, to < hi
 
     def merge(self, page: HistoryPage) -> int:
         """Append the records and seen entries of a page (another holder's) whose versions are
