@@ -68,6 +68,10 @@ def get_sources(config: Config, stop: threading.Event) -> list[Source]:
     ]
 
 
+#: Seconds between estimates of the own bias against aligned peers (colonyd/provenance.py).
+BIAS_S = 30.0
+
+
 class Daemon:
     """One colony member. `run()` reads as the table of contents of its life."""
 
@@ -177,6 +181,7 @@ class Daemon:
         )
         self._last_forget = time.monotonic()
         self.bias = 0.0  # b: this agent's bias against aligned peers (colonyd/provenance.py)
+        self._bias_at = time.monotonic()
         self._published_local = rec.published  # changes after it were never logged: send them
         log.info(
             "state %s: %s, epoch %d, seq %d, %d log records replayed, layer digest %s",
@@ -478,9 +483,15 @@ class Daemon:
                 record["provisional"] = True
 
     def _estimate_bias(self) -> None:
-        """b from disagreement with the peers aligned in the colony frame (next records)."""
+        """b from disagreement with the peers aligned in the colony frame (next records), at
+        most every BIAS_S seconds (it reads whole layers)."""
+        if time.monotonic() - self._bias_at < BIAS_S:
+            return
         try:
             frame = self.colony_frame()
+            if len(frame.transforms) < 2 or self.config.agent_id not in frame.transforms:
+                return
+            self._bias_at = time.monotonic()
             own = self.layers.own
             peers = [layer for layer in self.layers.all() if layer.origin != own.origin]
             bias = agent_bias(own, peers, frame.transforms)
@@ -548,6 +559,7 @@ class Daemon:
             return
         self._last_forget = time.monotonic()
         self.bias = 0.0  # b: this agent's bias against aligned peers (colonyd/provenance.py)
+        self._bias_at = time.monotonic()
         own = self.layers.own
         with own.lock:
             freed = own.grid.forget(after=cfg.forget_after_s)  # at the latest observation time
