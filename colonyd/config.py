@@ -153,9 +153,10 @@ class Config(BaseSettings):
         10.0, gt=0, description="seconds between forgetting passes over the own layer"
     )
     history_sync_s: float = Field(
-        5.0,
+        0.0,
         ge=0,
-        description="seconds between pulls of peer layers' history records (0: replicas keep none)",
+        description="opt-in: seconds between pulls of peer layers' history records "
+        "(0: replicas keep none; 5 is a good value)",
     )
     colony_key: str | None = Field(None, description="shared secret; unauthenticated dropped")
     trust: Literal["off", "tofu", "list"] = Field(
