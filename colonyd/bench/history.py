@@ -117,11 +117,11 @@ def run_history_bench(out_json: Path, shared_data: Path | None) -> list[dict[str
     """Each scenario: map a source, replicate content and history through frames, compare
     temporal queries, then forget and measure allocated bytes."""
     data = shared_data_dir(shared_data)
-    scenarios = [("sim-depth-room", "sim:world=room,agent=depth-1,frames=30", 0.05, "cube")]
+    scenarios = [("sim-depth-room", "sim:world=room,agent=depth-1,frames=8", 0.1, "cube")]
     if data is not None:
         log = data / "carmen" / "freiburg-079-corrected.log.gz"
         if log.is_file():
-            scenarios.append(("carmen-079-step4", f"replay:{log},step=4", 0.05, "planar"))
+            scenarios.append(("carmen-079-step20", f"replay:{log},step=20", 0.05, "planar"))
     results = []
     for name, spec, resolution, shape in scenarios:
         began = time.perf_counter()
