@@ -22,6 +22,8 @@ from colonyd.worker import Bounded, Worker
 from protocol import (
     DeltaRangeReply,
     DeltaRangeRequest,
+    HistoryReply,
+    HistoryRequest,
     Message,
     ProtocolError,
     Receiver,
@@ -108,11 +110,17 @@ class CatchUp:
     def request(self, origin: str, servers: list[str]) -> None:
         """Bring `origin`'s layer up to date, asking `servers` first; no-op while it is under
         way."""
+        if origin in self.layers.forgotten:
+            return  # a tombstone: never repaired back
         with self._lock:
             if origin in self._repairing:
                 return
             self._repairing.add(origin)
         self._worker.put(Repair(origin, servers))  # a full queue forgets it (done below)
+
+    def new_request_id(self) -> int:
+        """A fresh random request id (u63)."""
+        return self._rng.getrandbits(63)
 
     def _done(self, rep: Repair) -> None:
         with self._lock:
@@ -144,13 +152,13 @@ class CatchUp:
             if self._fetch_snapshot(server, rep.origin):
                 return
 
-    def _ask(
+    def ask(
         self,
         server: str,
         query: str,
         layer: str,
-        request: SnapshotRequest | DeltaRangeRequest,
-        cls: type[SnapshotReply] | type[DeltaRangeReply],
+        request: SnapshotRequest | DeltaRangeRequest | HistoryRequest,
+        cls: type[SnapshotReply] | type[DeltaRangeReply] | type[HistoryReply],
     ) -> list[Any]:
         """Send a request frame to `server`'s queryable; the replies of type `cls` for `layer`
         and this request (every other reply is rejected and counted)."""
@@ -197,7 +205,7 @@ class CatchUp:
             to_version=want,
             max_part_bytes=self.part_bytes,
         )
-        msgs = self._ask(server, "deltas", origin, request, DeltaRangeReply)
+        msgs = self.ask(server, "deltas", origin, request, DeltaRangeReply)
         self.metrics.add("range_repairs")
         if not complete(msgs, "range") or not all(m.complete for m in msgs):
             return False
@@ -230,7 +238,7 @@ class CatchUp:
         request = SnapshotRequest(
             **self.sender.header(), layer=origin, request_id=rid, max_part_bytes=self.part_bytes
         )
-        msgs = self._ask(server, "snapshot", origin, request, SnapshotReply)
+        msgs = self.ask(server, "snapshot", origin, request, SnapshotReply)
         if not complete(msgs, "snapshot"):
             return False
         states = {(m.layer_epoch, m.delta.from_version, m.delta.to_version) for m in msgs}

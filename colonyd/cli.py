@@ -191,6 +191,41 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="AGENT",
         help="ask this daemon (default: the first to answer, by agent id)",
     )
+    p.add_argument(
+        "--at",
+        dest="export_at",
+        default=None,
+        metavar="T",
+        help="the map as it was at time T (Unix seconds, -SECONDS before now, or ISO 8601), "
+        "from the layers' history",
+    )
+
+    p = sub.add_parser(
+        "forget-agent",
+        help="remove an agent's layer from the whole colony and keep it removed "
+        "(e.g. a robot with a broken sensor)",
+    )
+    _config_flags(p, (*_CLIENT_FLAGS, "colony_key"))
+    p.add_argument("forget_id", metavar="ID", help="the agent whose layer to forget")
+
+    p = sub.add_parser(
+        "changes",
+        help="what appeared and disappeared in the live fused map (or one layer) since a time: "
+        "appeared.ply, disappeared.ply and the counts",
+    )
+    _config_flags(p, _CLIENT_FLAGS)
+    p.add_argument("--out", dest="export_out", type=Path, required=True, help="output directory")
+    p.add_argument(
+        "--since",
+        dest="changes_since",
+        required=True,
+        metavar="T",
+        help="Unix seconds, -SECONDS before now, or ISO 8601",
+    )
+    p.add_argument("--layer", dest="export_layer", default=None, metavar="ID", help="one layer")
+    p.add_argument(
+        "--from", dest="export_agent", default=None, metavar="AGENT", help="ask this daemon"
+    )
 
     p = sub.add_parser(
         "identity",
@@ -292,6 +327,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="run this scenario (repeatable; also opt-in ones such as lidar3d_64x1024_0.05)",
     )
     b = bsub.add_parser("wire", help="wire-format benchmark")
+    _bench_io(b, shared_data=True)
+    b = bsub.add_parser(
+        "history",
+        help="history bytes per record on the wire, replica temporal queries against the "
+        "origin's, allocated bytes after forgetting",
+    )
     _bench_io(b, shared_data=True)
     b = bsub.add_parser(
         "align",
@@ -421,16 +462,43 @@ def main(argv: list[str] | None = None) -> int:
     """Parse and dispatch; raises the package errors that `launch` maps to exit codes."""
     args = build_parser().parse_args(argv)
     cmd = args.command
-    if cmd in ("run", "status", "dump-config", "identity", "export"):
+    if cmd in ("run", "status", "dump-config", "identity", "export", "changes", "forget-agent"):
         flags = _flags(args)
         config = load_config(args.config, **flags)
-        if cmd == "export":
-            from colonyd.export import export_maps
+        if cmd == "forget-agent":
+            from colonyd.logs import setup_logging
+            from colonyd.tombstones import forget_agent
+
+            setup_logging("warning")
+            answers = forget_agent(config, args.forget_id)
+            sys.stdout.write(json.dumps(answers) + "\n")
+            return EXIT_OK
+        if cmd == "changes":
+            from colonyd.export import map_changes, parse_time
             from colonyd.logs import setup_logging
 
             setup_logging("warning")
+            since = parse_time(args.changes_since, "--since")
+            changes, files = map_changes(
+                config, args.export_out, since, layer=args.export_layer, agent=args.export_agent
+            )
+            counts = {
+                "since": changes.since,
+                "frame": changes.frame,
+                "appeared": len(changes.appeared),
+                "disappeared": len(changes.disappeared),
+                "files": [str(p) for p in files.values()],
+            }
+            sys.stdout.write(json.dumps(counts) + "\n")
+            return EXIT_OK
+        if cmd == "export":
+            from colonyd.export import export_maps, parse_time
+            from colonyd.logs import setup_logging
+
+            setup_logging("warning")
+            at = None if args.export_at is None else parse_time(args.export_at, "--at")
             frame, files = export_maps(
-                config, args.export_out, layer=args.export_layer, agent=args.export_agent
+                config, args.export_out, layer=args.export_layer, agent=args.export_agent, at=at
             )
             sys.stdout.write(
                 f"fused map in frame {frame}; wrote "
@@ -603,6 +671,10 @@ def _bench(args: argparse.Namespace) -> int:
         from colonyd.bench.wire import run_wire_bench
 
         result = run_wire_bench(args.json, args.shared_data)
+    elif args.bench == "history":
+        from colonyd.bench.history import run_history_bench
+
+        result = run_history_bench(args.json, args.shared_data)
     elif args.bench == "faults":
         from colonyd.bench.faults import run_faults_bench
 

@@ -158,6 +158,26 @@ class Config(BaseSettings):
     max_message_mb: float = Field(64.0, gt=0, description="largest accepted decoded message")
     query_timeout_s: float = Field(5.0, gt=0, description="range/snapshot query timeout")
     snapshot_chunk_voxels: int = Field(250_000, ge=1000, description="voxels per snapshot reply")
+    half_life_s: float | None = Field(
+        None,
+        gt=0,
+        description="own layer's evidence decays toward unknown with this half-life, seconds "
+        "(none: no decay); peers decay their copy the same way (heartbeats carry it)",
+    )
+    forget_after_s: float | None = Field(
+        None,
+        gt=0,
+        description="own layer's voxels nobody observed for this long become unknown (none: never)",
+    )
+    forget_s: float = Field(
+        10.0, gt=0, description="seconds between forgetting passes over the own layer"
+    )
+    history_sync_s: float = Field(
+        0.0,
+        ge=0,
+        description="opt-in: seconds between pulls of peer layers' history records "
+        "(0: replicas keep none; 5 is a good value)",
+    )
     colony_key: str | None = Field(None, description="shared secret; unauthenticated dropped")
     trust: Literal["off", "tofu", "list"] = Field(
         "tofu", description="peers' identities: off, pinned on first use, or trusted_keys only"

@@ -26,7 +26,7 @@ from colonyd.colonymap import ColonyMaps
 from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError, DuplicateAgentError, PersistenceError, StoppedError
 from colonyd.estimator import Estimator, PoseError, ScanEstimator, get_estimator
-from colonyd.export import encode_map
+from colonyd.export import encode_map, export_time
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.identity import get_trust, identity_path, load_signer
@@ -47,9 +47,11 @@ from colonyd.notify import Notifier
 from colonyd.objects import OwnObjects, to_wire
 from colonyd.outdir import output_dir
 from colonyd.persistence import StateStore
+from colonyd.provenance import agent_bias, agent_reliability, pose_error
 from colonyd.rosout import Ros2Outputs, RosPublishers
 from colonyd.runtime import get_session
 from colonyd.status import StatusServer
+from colonyd.tombstones import forget_params, load_tombstones, save_tombstones
 from plugins.cctv import AGENT_LABEL
 from plugins.observation import ObjectDetection, Observation
 from plugins.source import open_source
@@ -103,6 +105,10 @@ def get_sources(
         open_source(spec, resolution=config.resolution, seed=seed + i, stop=stop, session=session)
         for i, spec in enumerate(config.sources)
     ]
+
+
+#: Seconds between estimates of the own bias against aligned peers (colonyd/provenance.py).
+BIAS_S = 30.0
 
 
 class Daemon:
@@ -233,6 +239,14 @@ class Daemon:
         )
         own = self.layers.own
         own.grid, own.epoch, own.seq = rec.grid, rec.epoch, rec.seq
+        own.set_half_life(cfg.half_life_s)
+        self.layers.forgotten = load_tombstones(cfg.state_dir)
+        self.layers.on_forget = lambda _origin: save_tombstones(
+            cfg.state_dir, self.layers.forgotten
+        )
+        self._last_forget = time.monotonic()
+        self.bias = 0.0  # b: this agent's bias against aligned peers (colonyd/provenance.py)
+        self._bias_at = time.monotonic()
         self._published_local = rec.published  # changes after it were never logged: send them
         log.info(
             "state %s: %s, epoch %d, seq %d, %d log records replayed, layer digest %s",
@@ -297,11 +311,15 @@ class Daemon:
             drop_rate=cfg.drop_rate,
             query_timeout_s=cfg.query_timeout_s,
             chunk_voxels=cfg.snapshot_chunk_voxels,
+            history_sync_s=cfg.history_sync_s,
         )
         self.membership = Membership(self.session, ns, cfg.agent_id, self.gossip.on_member_event)
         self.status_server = StatusServer(self.session, ns, cfg.agent_id, self.report)
         self.export_server = StatusServer(
             self.session, ns, cfg.agent_id, self.export_map, report="export"
+        )
+        self.forget_server = StatusServer(
+            self.session, ns, cfg.agent_id, self.forget_request, report="forget"
         )
         self.gossip.start(self.membership)
         self.ros: RosPublishers | None = None
@@ -412,6 +430,7 @@ class Daemon:
             self.ros.close()
         self.status_server.close()
         self.export_server.close()
+        self.forget_server.close()
         self.gossip.close()
         self.membership.close()
         lap("undeclare")
@@ -496,6 +515,7 @@ class Daemon:
             log.exception("source %s failed", source.spec)
 
     def _integrate(self, own: Any, obs: Observation, source: Source) -> None:
+        covariance = None
         if self.config.localise and obs.odometry is not None:  # map from the estimate
             estimator = self._estimators.get(source.spec)
             if estimator is None:
@@ -508,7 +528,7 @@ class Daemon:
             )
             if self._fixes and isinstance(estimator, ScanEstimator):
                 self._apply_fixes(estimator)
-            self.pose_covariance = estimator.covariance()
+            self.pose_covariance = covariance = estimator.covariance()
         seen = [d for d in obs.objects if d.label.startswith(AGENT_LABEL)]
         if seen:
             self._send_fixes(obs, seen)
@@ -520,6 +540,11 @@ class Daemon:
                 sensor=source.adapter.sensor_model,
                 reliability=source.adapter.reliability,
                 agent=self.config.agent_id,
+                error=pose_error(covariance),
+                agent_reliability=agent_reliability(
+                    self.config.layer_weights, self.config.agent_id, self.config.kind
+                ),
+                bias=self.bias,
             )
         self.objects.observe(obs)
         self.pose = [float(v) for v in obs.origin]
@@ -676,6 +701,7 @@ class Daemon:
                     self._offer(edge, "final maps")
             if own.seq == 0 or not grown or max(grown.values()) <= 0:
                 continue
+            self._estimate_bias()
             origin = max(grown, key=lambda o: (grown[o], o))  # the pair with most new data
             peer = self.layers.find(origin)
             if peer is None:
@@ -718,6 +744,25 @@ class Daemon:
             else:
                 pending[origin] = (edge, seqs)
                 record["provisional"] = True
+
+    def _estimate_bias(self) -> None:
+        """b from disagreement with the peers aligned in the colony frame (next records), at
+        most every BIAS_S seconds (it reads whole layers)."""
+        if time.monotonic() - self._bias_at < BIAS_S:
+            return
+        try:
+            frame = self.colony_frame()
+            if len(frame.transforms) < 2 or self.config.agent_id not in frame.transforms:
+                return
+            self._bias_at = time.monotonic()
+            own = self.layers.own
+            peers = [layer for layer in self.layers.all() if layer.origin != own.origin]
+            bias = agent_bias(own, peers, frame.transforms)
+        except Exception:
+            log.exception("bias estimate failed")
+            return
+        if bias is not None:
+            self.bias = bias
 
     def _offer(self, edge: Edge, why: str) -> None:
         if edge.target in self._own_edges and self._own_edges[edge.target].confidence >= 1.0:
@@ -827,8 +872,26 @@ class Daemon:
             except Exception:
                 log.exception("publish failed")
 
+    def _forget_due(self) -> None:
+        """Every `forget_s`, forget what decayed or aged out of the own layer (a new version:
+        the next delta carries it to peers as unknown)."""
+        cfg = self.config
+        if cfg.half_life_s is None and cfg.forget_after_s is None:
+            return
+        if time.monotonic() - self._last_forget < cfg.forget_s:
+            return
+        self._last_forget = time.monotonic()
+        self.bias = 0.0  # b: this agent's bias against aligned peers (colonyd/provenance.py)
+        self._bias_at = time.monotonic()
+        own = self.layers.own
+        with own.lock:
+            freed = own.grid.forget(after=cfg.forget_after_s)  # at the latest observation time
+        if freed:
+            self.metrics.add("blocks_forgotten", freed)
+
     def _publish_once(self, final: bool = False) -> None:
         own = self.layers.own
+        self._forget_due()
         with own.lock:
             version = int(own.grid.version)
             delta = (
@@ -858,6 +921,8 @@ class Daemon:
             self.metrics.stage("out", self.config.agent_id, seq, created, logged, time.time())
         if delta is not None:
             self._published_local = version
+            with own.lock:
+                own.grid.settle(version)  # forgotten voxels are in a logged, published delta
         if unsynced:
             self.store.sync()
         due = time.monotonic() - self._last_snapshot >= self.config.snapshot_s
@@ -885,13 +950,23 @@ class Daemon:
 
     # -- export (a live map for `colonyd export`) -----------------------------------------
     def export_map(self, params: dict[str, str]) -> bytes | None:
-        """The fused map in the colony frame, or with `layer=ID` that layer in its own frame."""
+        """The fused map in the colony frame, or with `layer=ID` that layer in its own frame;
+        with `at=T` (seconds) as it was at time T, from the layers' history."""
         agent, res = self.config.agent_id, self.config.resolution
         layer_id = params.get("layer")
+        try:
+            at = export_time(params.get("at"))
+        except ValueError:
+            return None
         if layer_id:
             layer = self.layers.find(layer_id)
             if layer is None:
                 return None
+            if at is not None:  # as it was at `at` (its history): no classes then
+                keys, lo = layer.known_at(at)
+                return encode_map(
+                    agent, layer_id, frame_of(layer_id), layer.resolution, keys, lo, []
+                )
             full = layer.full()
             known = ~np.isnan(full.logodds)
             return encode_map(
@@ -906,11 +981,35 @@ class Daemon:
             )
         frame = self.colony_frame()
         layers = self.layers.all()
-        keys, lo = self.fused_map.view(layers, res, frame.transforms, self._weights())
-        classes = fused_classes(layers, res, keys, frame.transforms)
+        classes: np.ndarray | None = None
+        if at is None:
+            keys, lo = self.fused_map.view(layers, res, frame.transforms, self._weights())
+            classes = fused_classes(layers, res, keys, frame.transforms)
+        else:
+            keys, lo = fused(layers, res, frame.transforms, self._weights(), at=at)
         return encode_map(
             agent, None, frame_of(frame.root), res, keys, lo, sorted(frame.transforms), classes
         )
+
+    # -- forgetting an agent (`colonyd forget-agent`) -----------------------------------------
+    def forget_request(self, params: dict[str, str]) -> dict[str, Any]:
+        """Forget `agent=ID`'s layer colony-wide: checked against the colony key when one is
+        configured (`t` within a minute, `auth` its HMAC), then a tombstone that heartbeats
+        carry to every member."""
+        cfg = self.config
+        try:
+            agent = forget_params(params, colony_key(cfg.colony_key), time.time())
+        except ValueError as exc:
+            self.metrics.reject("bad-forget")
+            log.warning("refused a forget request: %s", exc)
+            return {"agent": cfg.agent_id, "forgotten": None, "error": str(exc)}
+        if agent == cfg.agent_id:
+            return {"agent": cfg.agent_id, "forgotten": None, "error": "own layer"}
+        new = self.layers.forget_agent(agent)
+        if new:
+            log.warning("forgot the layer of %s (forget-agent request)", agent)
+            self.gossip.hb_now.set()  # tell the colony now
+        return {"agent": cfg.agent_id, "forgotten": agent, "new": new}
 
     # -- status ---------------------------------------------------------------------------
     def _colony_report(self) -> dict[str, Any]:
@@ -932,6 +1031,9 @@ class Daemon:
                 "voxels": layer.voxels(),
                 "updated": layer.updated,
                 "pending": len(layer.pending),
+                "half_life": layer.half_life,
+                "history": layer.grid.history.size,
+                "channels": sorted(layer.grid.store.channels),
             }
             if want_digest:
                 entry["digest"] = layer.digest()

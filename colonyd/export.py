@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +38,39 @@ class MapReply:
     logodds: np.ndarray  # (N,) float32
     layers: list[str] = field(default_factory=list)
     classes: np.ndarray | None = None  # (N,) int16 most probable class, -1 none (if sent)
+
+
+def export_time(text: str | None) -> float | None:
+    """The time of an export query's `at` parameter (seconds), None when absent; ValueError
+    unless a finite number (a query from the network: the daemon answers a bad one with
+    nothing)."""
+    if text is None:
+        return None
+    t = float(text)
+    if not math.isfinite(t):
+        msg = f"expected a finite time, found {text!r}"
+        raise ValueError(msg)
+    return t
+
+
+def parse_time(text: str, flag: str) -> float:
+    """Seconds (Unix) of a command-line time: a number of seconds, an ISO 8601 date-time (UTC
+    unless it says otherwise), or `-N` for N seconds before now; StatusError otherwise."""
+    import datetime as dt
+
+    try:
+        t = float(text)
+        return time.time() + t if t < 0 else t
+    except ValueError:
+        pass
+    try:
+        stamp = dt.datetime.fromisoformat(text)
+    except ValueError:
+        msg = f"{flag}: expected seconds, -SECONDS (before now) or an ISO 8601 time, found {text!r}"
+        raise StatusError(msg) from None
+    if stamp.tzinfo is None:
+        stamp = stamp.replace(tzinfo=dt.UTC)
+    return stamp.timestamp()
 
 
 def encode_map(
@@ -160,7 +194,10 @@ def write_maps(reply: MapReply, out: Path, stem: str) -> dict[str, Path]:
     return files
 
 
-def _ask(session: zenoh.Session, namespace: str, params: str, timeout: float) -> list[MapReply]:
+def query_maps(
+    session: zenoh.Session, namespace: str, params: str, timeout: float
+) -> list[MapReply]:
+    """Map replies of every daemon to an export query with `params` ("k=v;k=v")."""
     replies = session.get(
         status_selector(namespace, EXPORT) + (f"?{params}" if params else ""),
         consolidation=zenoh.ConsolidationMode.NONE,
@@ -176,12 +213,20 @@ def fetch_maps(
     layer: str | None = None,
     agent: str | None = None,
     wait_s: float = 5.0,
+    at: float | None = None,
+    layers_too: bool = True,
 ) -> tuple[MapReply, dict[str, MapReply]]:
     """The fused map of the daemon `agent` (or the first to answer, by agent id) and its layers'
-    maps (every layer of the colony frame, or only `layer`)."""
+    maps (every layer of the colony frame, or only `layer`; none without `layers_too`); with
+    `at`, as they were at that time."""
+    when = "" if at is None else f"at={float(at)!r}"
     deadline = time.monotonic() + wait_s
     while True:
-        fused = [r for r in _ask(session, namespace, "", 5.0) if agent is None or r.agent == agent]
+        fused = [
+            r
+            for r in query_maps(session, namespace, when, 5.0)
+            if agent is None or r.agent == agent
+        ]
         if fused or time.monotonic() >= deadline:
             break
         time.sleep(0.3)
@@ -191,15 +236,86 @@ def fetch_maps(
         raise StatusError(msg)
     source = min(fused, key=lambda r: r.agent)
     layers: dict[str, MapReply] = {}
-    for name in [layer] if layer is not None else source.layers:
-        got = [
-            r for r in _ask(session, namespace, f"layer={name}", 10.0) if r.agent == source.agent
-        ]
+    names = [layer] if layer is not None else source.layers if layers_too else []
+    for name in names:
+        params = ";".join(p for p in (f"layer={name}", when) if p)
+        got = [r for r in query_maps(session, namespace, params, 10.0) if r.agent == source.agent]
         if not got:
             msg = f"daemon {source.agent!r} holds no layer {name!r}"
             raise StatusError(msg)
         layers[name] = got[0]
     return source, layers
+
+
+def _check_names(layer: str | None, agent: str | None) -> None:
+    import re
+
+    for name, value in (("layer", layer), ("agent", agent)):
+        if value is not None and not re.fullmatch(NAME_PATTERN, value):
+            msg = f"--{name}: expected a name matching {NAME_PATTERN}, found {value!r}"
+            raise StatusError(msg)
+
+
+@dataclass
+class Changes:
+    """What appeared (occupied now, not at `since`) and disappeared (occupied at `since`, not
+    now) in one map, as voxel keys."""
+
+    since: float
+    frame: str
+    resolution: float
+    appeared: np.ndarray  # (A, 3)
+    disappeared: np.ndarray  # (D, 3)
+
+
+def diff_maps(before: MapReply, after: MapReply, since: float) -> Changes:
+    """Occupied voxels of `after` not occupied in `before`, and the other way round."""
+    occ_before = vk.pack(before.keys[before.logodds >= 0])
+    occ_after = vk.pack(after.keys[after.logodds >= 0])
+    appeared = vk.unpack(np.setdiff1d(occ_after, occ_before))
+    disappeared = vk.unpack(np.setdiff1d(occ_before, occ_after))
+    return Changes(since, after.frame, after.resolution, appeared, disappeared)
+
+
+def map_changes(
+    config: Config,
+    out: Path,
+    since: float,
+    *,
+    layer: str | None = None,
+    agent: str | None = None,
+    wait_s: float = 5.0,
+) -> tuple[Changes, dict[str, Path]]:
+    """What changed in the fused map (or one `layer`) of a running colony since a time:
+    `appeared.ply` and `disappeared.ply` (occupied voxel centres) in `out`, and the counts."""
+    _check_names(layer, agent)
+    output_dir(out, "--out")
+    session = get_client_session(config, "changes")
+    try:
+        maps = []
+        for at in (since, None):
+            fused, layers = fetch_maps(
+                session,
+                config.key_namespace,
+                layer=layer,
+                agent=agent,
+                wait_s=wait_s,
+                at=at,
+                layers_too=layer is not None,
+            )
+            maps.append(fused if layer is None else layers[layer])
+            agent = fused.agent  # both from the same daemon
+    finally:
+        session.close()
+    changes = diff_maps(maps[0], maps[1], since)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"appeared.ply": out / "appeared.ply", "disappeared.ply": out / "disappeared.ply"}
+    for name, keys in (
+        ("appeared.ply", changes.appeared),
+        ("disappeared.ply", changes.disappeared),
+    ):
+        write_ply(files[name], vk.keys_to_centers(keys, changes.resolution))
+    return changes, files
 
 
 def export_maps(
@@ -209,21 +325,17 @@ def export_maps(
     layer: str | None = None,
     agent: str | None = None,
     wait_s: float = 5.0,
+    at: float | None = None,
 ) -> tuple[str, dict[str, Path]]:
     """Fetch the fused map in the colony frame and every layer's map (or one `layer`) from a
-    running colony (the daemon `agent`, or the first to answer) and write them into `out`;
-    returns the fused map's frame and the files."""
-    import re
-
-    for name, value in (("layer", layer), ("agent", agent)):
-        if value is not None and not re.fullmatch(NAME_PATTERN, value):
-            msg = f"--{name}: expected a name matching {NAME_PATTERN}, found {value!r}"
-            raise StatusError(msg)
+    running colony (the daemon `agent`, or the first to answer), as they are or were `at` a
+    time, and write them into `out`; returns the fused map's frame and the files."""
+    _check_names(layer, agent)
     output_dir(out, "--out")
     session = get_client_session(config, "export")
     try:
         fused, layers = fetch_maps(
-            session, config.key_namespace, layer=layer, agent=agent, wait_s=wait_s
+            session, config.key_namespace, layer=layer, agent=agent, wait_s=wait_s, at=at
         )
     finally:
         session.close()

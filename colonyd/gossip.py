@@ -2,9 +2,10 @@
 
 Everything on the wire is the colony protocol (`protocol/`, docs/PROTOCOL.md): VoxelDelta on
 `<origin>/delta`, Heartbeat on `<origin>/heartbeat`, Objects on `<origin>/objects`, AlignOffer on
-`<origin>/align`, PoseFix on `<origin>/fix`, SnapshotRequest/Reply and
-DeltaRangeRequest/Reply through the `<server>/snapshot/<layer>` and `<server>/deltas/<layer>`
-queryables. Layer versions on the wire are the origin's delta sequence numbers.
+`<origin>/align`, PoseFix on `<origin>/fix`, SnapshotRequest/Reply, DeltaRangeRequest/Reply and
+HistoryRequest/Reply through the `<server>/snapshot/<layer>`, `<server>/deltas/<layer>` and
+`<server>/history/<layer>` queryables. Layer versions on the wire are the origin's delta sequence
+numbers; history versions are the origin's grid versions.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import zenoh
 from colonyd.alignment import Alignments, Edge
 from colonyd.catchup import CatchUp
 from colonyd.frames import Sender
+from colonyd.historysync import HistorySync
 from colonyd.inbox import Inbox
 from colonyd.layers import Layers
 from colonyd.layerserver import LayerServer
@@ -50,6 +52,7 @@ class Gossip:
         query_timeout_s: float = 5.0,
         chunk_voxels: int = 250_000,
         part_bytes: int = 4 << 20,
+        history_sync_s: float = 0.0,
     ) -> None:
         self.stop = threading.Event()  # one stop for every worker: they wind down together
         replicas = Replicas(layers, metrics)
@@ -98,18 +101,23 @@ class Gossip:
             part_bytes=part_bytes,
             stop=self.stop,
         )
+        self.history = HistorySync(
+            layers, self.catchup, metrics, period_s=history_sync_s, stop=self.stop
+        )
         self.hb_now = self.publisher.hb_now  # set on a join: send our heartbeat without waiting
 
     def start(self, membership: Membership) -> None:
         self.inbox.start(membership)
         self.server.start()
         self.catchup.start(membership)
+        self.history.start(membership)
 
     def close(self) -> None:
         self.stop.set()
         self.inbox.close()
         self.server.close()
         self.catchup.close()
+        self.history.close()
         self.publisher.close()
 
     def on_member_event(self, agent: str, event: str) -> None:

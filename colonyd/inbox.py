@@ -202,6 +202,13 @@ class Inbox:
         if self.membership is None:
             return
         member = self.membership.heard(msg.origin, msg)
+        for origin in msg.forgotten:  # a tombstone travels with every member's heartbeat
+            if self.replicas.layers.forget_agent(origin):
+                log.warning("forgot the layer of %s (tombstone from %s)", origin, msg.origin)
+        own_entry = next((e for e in msg.layers if e.origin == msg.origin), None)
+        layer = self.replicas.layers.find(msg.origin)
+        if own_entry is not None and layer is not None and layer.half_life != own_entry.half_life:
+            layer.set_half_life(own_entry.half_life)  # only the origin says how its layer decays
         self._compare(msg.origin, member.layers)
 
     def _handle_objects(self, key: str, raw: bytes) -> None:
@@ -261,7 +268,7 @@ class Inbox:
         """Schedule a repair for every origin where `agent` holds more than we do."""
         layers = self.replicas.layers
         for origin, version in theirs.items():
-            if origin == layers.own_id:
+            if origin == layers.own_id or origin in layers.forgotten:
                 continue
             layer = layers.find(origin)
             mine = (layer.epoch, layer.seq) if layer else (0, 0)

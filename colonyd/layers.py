@@ -6,6 +6,7 @@ import hashlib
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -89,6 +90,18 @@ class Layer:
         self.pending: dict[int, tuple[int, float, Delta]] = {}
         self.pending_size = pending_size
         self.updated = 0.0
+        self.half_life: float | None = None  # the origin's decay (its heartbeats say)
+
+    def set_half_life(self, half_life: float | None) -> None:
+        """Decay this layer as its origin does (so queries give the origin's occupancy)."""
+        with self.lock:
+            self.half_life = half_life
+            self.grid.half_life = half_life
+
+    def _new_grid(self, shape: str = "cube") -> VoxelGrid:
+        grid = new_grid(self.resolution, shape)
+        grid.half_life = self.half_life
+        return grid
 
     # -- replica side ---------------------------------------------------------------------
     def offer(self, epoch: int, prev: int, seq: int, delta: Delta, created: float = 0.0) -> Applied:
@@ -120,7 +133,9 @@ class Layer:
         if len(keys) and self.grid.store.sorted_keys.size == 0:
             shape = replica_shape(keys)
             if self.grid.store.shifts != block_shifts(shape):
-                self.grid = new_grid(self.resolution, shape)
+                history = self.grid.history  # paged in already (HistorySync): kept
+                self.grid = self._new_grid(shape)
+                self.grid.history = history
 
     def _apply(self, prev: int, seq: int, delta: Delta) -> int:
         delta = relabel(delta, prev, seq)
@@ -156,7 +171,10 @@ class Layer:
             result.missing = (self.seq, min(p for p, *_ in self.pending.values()))
 
     def _reset(self, epoch: int) -> None:
-        self.grid = new_grid(self.resolution)
+        history = self.grid.history if epoch == self.epoch else None  # same epoch: still valid
+        self.grid = self._new_grid()
+        if history is not None:
+            self.grid.history = history
         self.epoch = epoch
         self.seq = 0
         self.ring.clear()
@@ -237,6 +255,12 @@ class Layer:
             blocks = np.unique(store.split(keys)[0])
             return int(np.count_nonzero(store.lookup(blocks) < 0))
 
+    def known_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Keys and log-odds of the voxels known at time t (`VoxelGrid.known_at`: from the
+        history this layer holds)."""
+        with self.lock:
+            return self.grid.known_at(t)
+
     def full(self) -> Delta:
         with self.lock:
             return self.grid.delta_since(0)
@@ -288,6 +312,9 @@ class Layers:
         self.max_peer_blocks = max_peer_blocks
         self._layers: dict[str, Layer] = {}
         self._lock = threading.Lock()
+        #: origins forgotten colony-wide (`forget_agent`): never held again, whoever offers them
+        self.forgotten: set[str] = set()
+        self.on_forget: Callable[[str], None] | None = None  # persists a new tombstone
         self.own = self.get(own)
 
     def admit(self, origin: str, deltas: list[Delta], *, replace: bool = False) -> None:
@@ -298,6 +325,8 @@ class Layers:
             raise WireError(
                 "own-origin", f"expected another agent's layer, found our own {origin!r}"
             )
+        if origin in self.forgotten:
+            raise WireError("forgotten", f"expected a layer not forgotten, found {origin!r}'s")
         layer = self.find(origin)
         resolutions = {float(d.resolution) for d in deltas}
         if layer is None:
@@ -352,9 +381,26 @@ class Layers:
         with self._lock:
             return list(self._layers.values())
 
+    def half_lives(self) -> dict[str, float | None]:
+        """origin -> the decay half-life of every layer held."""
+        return {layer.origin: layer.grid.half_life for layer in self.all()}
+
     def versions(self) -> dict[str, tuple[int, int]]:
         """origin -> (epoch, seq) for every layer held."""
         return {layer.origin: (layer.epoch, layer.seq) for layer in self.all() if layer.seq > 0}
+
+    def forget_agent(self, origin: str) -> bool:
+        """Drop `origin`'s layer and keep it dropped (a tombstone that repair and every
+        admission respect); never the own layer. True if it was new."""
+        if origin == self.own_id or origin in self.forgotten:
+            return False
+        if len(self.forgotten) >= self.max_layers:
+            return False  # bounded: a hostile flood of names cannot grow it without end
+        self.forgotten.add(origin)
+        self.drop(origin)
+        if self.on_forget is not None:
+            self.on_forget(origin)
+        return True
 
     def drop(self, origin: str) -> None:
         """Forget a peer's layer (an untrusted or retired origin); never the own layer."""
@@ -376,33 +422,41 @@ def fused(
     resolution: float,
     transforms: dict[str, np.ndarray] | None = None,
     weights: dict[str, float] | None = None,
+    at: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fused view: (keys (N,3), log-odds (N,)), the reliability-weighted sum over layers
-    (`weights` by origin, 1.0 where none is given).
+    (`weights` by origin, 1.0 where none is given); with `at`, of the layers as they were at
+    that time (`Layer.known_at`).
 
     Without `transforms`, every layer at `resolution` is taken as already in the local frame
     (identity). With them (origin -> 4x4 taking its frame into the colony frame), only the layers
     that have one are fused: each voxel's centre is moved into the colony frame and keyed at
     `resolution`; voxels of one layer that land in one key are averaged, then layers summed.
     """
-    return FusedMap().view(layers, resolution, transforms, weights)
+    return FusedMap(at).view(layers, resolution, transforms, weights)
 
 
 #: One layer's part of the fused view: packed keys in the fused frame and their log-odds.
 Contribution = tuple[np.ndarray, np.ndarray]
 
 
-def contribution(layer: Layer, resolution: float, t: np.ndarray | None) -> Contribution | None:
-    """A layer's known voxels keyed at `resolution` in the frame `t` takes it into (its own
-    when None), averaged where several land in one key; None when it has none or cannot be
-    keyed (another resolution without a transform)."""
+def contribution(
+    layer: Layer, resolution: float, t: np.ndarray | None, at: float | None = None
+) -> Contribution | None:
+    """A layer's known voxels (at time `at` when given) keyed at `resolution` in the frame `t`
+    takes it into (its own when None), averaged where several land in one key; None when it
+    has none or cannot be keyed (another resolution without a transform)."""
     if t is None and abs(layer.resolution - resolution) > 1e-9:
         return None
-    full = layer.full()
-    known = ~np.isnan(full.logodds)
-    if not known.any():
+    if at is None:
+        full = layer.full()
+        known = ~np.isnan(full.logodds)
+        keys, lo = full.keys[known], full.logodds[known].astype(np.float64)
+    else:
+        keys, lo32 = layer.known_at(at)
+        lo = lo32.astype(np.float64)
+    if not len(keys):
         return None
-    keys, lo = full.keys[known], full.logodds[known].astype(np.float64)
     if t is None:
         return vk.pack(keys), lo
     centres = vk.keys_to_centers(keys, layer.resolution) @ t[:3, :3].T + t[:3, 3]
@@ -416,7 +470,8 @@ class FusedMap:
     changed, so a view
     of a colony where one layer grew costs one layer's work plus the final sum."""
 
-    def __init__(self) -> None:
+    def __init__(self, at: float | None = None) -> None:
+        self.at = at  # the layers as they were at this time (their history); None: now
         self._parts: dict[str, tuple[tuple[object, ...], Contribution | None]] = {}
         self._lock = threading.Lock()
         self.computed = 0  # layer contributions computed (not taken from the cache)
@@ -451,7 +506,7 @@ class FusedMap:
                     )
                     cached = self._parts.get(layer.origin)
                     if cached is None or cached[0] != tag:
-                        cached = (tag, contribution(layer, resolution, t))
+                        cached = (tag, contribution(layer, resolution, t, self.at))
                         self._parts[layer.origin] = cached
                         self.computed += 1
                 part = cached[1]

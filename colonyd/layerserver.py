@@ -19,6 +19,8 @@ from colonyd.worker import Bounded, Worker
 from protocol import (
     DeltaRangeReply,
     DeltaRangeRequest,
+    HistoryReply,
+    HistoryRequest,
     Message,
     Receiver,
     SnapshotReply,
@@ -29,11 +31,15 @@ from protocol.codec import FRAME_OVERHEAD
 from protocol.deltacodec import MIN_PART_BODY
 from protocol.keyexpr import parse_key, query_declaration
 from voxel.delta import Delta
+from voxel.history import HistoryPage
+
+#: Most history records one reply carries (a request may ask for fewer).
+MAX_HISTORY_RECORDS = 200_000
 
 
 class LayerServer:
-    """The `<own>/snapshot/<layer>` and `<own>/deltas/<layer>` queryables (store and forward:
-    any layer held is served), answered in order by one worker."""
+    """The `<own>/snapshot/<layer>`, `<own>/deltas/<layer>` and `<own>/history/<layer>`
+    queryables (store and forward: any layer held is served), answered in order by one worker."""
 
     def __init__(
         self,
@@ -69,7 +75,7 @@ class LayerServer:
         )
         self._queryables = [
             session.declare_queryable(query_declaration(namespace, self.own, q), self._worker.put)
-            for q in ("snapshot", "deltas")
+            for q in ("snapshot", "deltas", "history")
         ]
 
     def start(self) -> None:
@@ -88,7 +94,12 @@ class LayerServer:
             raise WireError("bad-query", f"expected a request frame as the payload of {key!r}")
         raw = query.payload.to_bytes()
         msg = self.receiver.decode(raw)  # the requester's frame: its origin is not the key's
-        cls = SnapshotRequest if parsed.kind == "snapshot" else DeltaRangeRequest
+        requests: dict[str, type[Message]] = {
+            "snapshot": SnapshotRequest,
+            "deltas": DeltaRangeRequest,
+            "history": HistoryRequest,
+        }
+        cls = requests[parsed.kind]
         request = expect(msg, cls, f"on {key}")
         if request.layer != parsed.layer:
             text = f"expected layer {parsed.layer!r}, found {request.layer!r}"
@@ -98,6 +109,9 @@ class LayerServer:
         if parsed.kind == "snapshot":
             if layer is not None and layer.seq > 0:
                 self._serve_snapshot(query, key, layer, request)
+            return
+        if parsed.kind == "history":
+            self._serve_history(query, key, layer, request)
             return
         self._serve_range(query, key, layer, request)
 
@@ -174,3 +188,51 @@ class LayerServer:
         )
         self._reply(query, key, frames)
         self.metrics.add("ranges_served")
+
+    def _serve_history(
+        self, query: zenoh.Query, key: str, layer: Layer | None, request: Any
+    ) -> None:
+        """History records of versions above `from_version`, a page of whole versions, in parts
+        that each fit `max_part_bytes` (`layer_epoch` 0: the layer is not held)."""
+        epoch, page, to, more = 0, None, request.from_version, False
+        if layer is not None and layer.seq > 0:
+            with layer.lock:
+                epoch = self._layer_epoch(layer)
+                page, to, more = layer.grid.history.page(
+                    request.from_version, min(request.max_records, MAX_HISTORY_RECORDS)
+                )
+        common = {
+            "origin": self.own,
+            "layer": request.layer,
+            "request_id": request.request_id,
+            "layer_epoch": epoch,
+            "from_version": request.from_version,
+            "to_version": to,
+            "more": more,
+        }
+        pieces: list[HistoryPage | None] = [page if page and page.records.size else None]
+        max_frame = min(self.part_bytes, request.max_part_bytes)
+        while True:
+            frames = self.sender.encode_all(
+                [
+                    HistoryReply(**common, time=time.time(), part=i, parts=len(pieces), records=p)
+                    for i, p in enumerate(pieces)
+                ]
+            )
+            big = [i for i, f in enumerate(frames) if len(f) > max_frame]
+            if not big:
+                break
+            for i in reversed(big):
+                p = pieces[i]
+                if p is None or p.records.size + p.seen.size < 2:
+                    text = (
+                        f"expected history parts within {max_frame} bytes, found a record too large"
+                    )
+                    raise WireError("oversized", text)
+                half, seen_half = p.records.size // 2, p.seen.size // 2
+                pieces[i : i + 1] = [
+                    HistoryPage(p.records[:half], p.agents, p.seen[:seen_half]),
+                    HistoryPage(p.records[half:], p.agents, p.seen[seen_half:]),
+                ]
+        self._reply(query, key, frames)
+        self.metrics.add("histories_served")

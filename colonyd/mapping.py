@@ -152,9 +152,13 @@ def integrate_observation(
     sensor: SensorModel,
     reliability: float,
     agent: str = "self",
+    error: float = 0.0,
+    agent_reliability: float = 1.0,
+    bias: float = 0.0,
 ) -> None:
     """Integrate one observation, with its pose guess, into `grid`; a ready-made delta is applied as
-    the grid's next version."""
+    the grid's next version. `error`, `agent_reliability` and `bias` go into its history records
+    (VOXEL.md, "Provenance")."""
     if obs.delta is not None:
         v, d = int(grid.version), obs.delta
         grid.apply(
@@ -170,6 +174,9 @@ def integrate_observation(
         sensor=sensor,
         agent=agent,
         reliability=reliability,
+        error=error,
+        agent_reliability=agent_reliability,
+        bias=bias,
         colours=obs.colours,
         normals=obs.normals_world(),
         class_ids=obs.class_ids,

@@ -121,8 +121,9 @@ class Publisher:
 
     def heartbeat(self, kind: str, pose: list[float]) -> None:
         """Publish what this daemon is and holds: kind, pose, every layer's (epoch, seq)."""
+        decay = self.layers.half_lives()
         layers = [
-            LayerVersion(origin=o, epoch=e, version=s)
+            LayerVersion(origin=o, epoch=e, version=s, half_life=decay.get(o))
             for o, (e, s) in list(self.layers.versions().items())[:MAX_HEARTBEAT_LAYERS]
         ]
         position = tuple(float(x) for x in pose[:3])
@@ -131,6 +132,7 @@ class Publisher:
             kind=kind,
             frame_id=frame_of(self.own),
             layers=layers,
+            forgotten=sorted(self.layers.forgotten)[:MAX_HEARTBEAT_LAYERS],
             identity=self.sender.identity,
             position=position if len(position) == 3 and all(map(math.isfinite, position)) else None,
         )

@@ -131,6 +131,11 @@ class CarmenOptions(Options):
     max_range: float = Field(
         NO_RETURN, description="sensor range, metres; readings at 80 m or more are no-return beams"
     )
+    free_range: float = Field(
+        0.0,
+        description="how far a beam without a return clears free space, metres "
+        "(0: the lidar2d default, 10 m)",
+    )
     start: int = Field(0, description="first scan (index among FLASER lines)")
     stop: int | None = Field(None, description="scan index to stop before; none: the end")
     step: int = Field(1, description="take every step-th scan (>= 1)")
@@ -170,6 +175,7 @@ class CarmenSource:
         *,
         poses: str = "reference",
         max_range: float = NO_RETURN,
+        free_range: float = 0.0,
         start: int = 0,
         stop: int | None = None,
         step: int = 1,
@@ -207,6 +213,7 @@ class CarmenSource:
             angle_increment=math.pi / 360,
             range_max=max_range,
             no_return_range=NO_RETURN,
+            free_range=free_range,
         )
         self.stats = StreamStats()
         self._count: int | None = None

@@ -31,12 +31,19 @@ class Cloud:
     intensity: np.ndarray | None = None
 
 
+#: How far a 2D scanner's beam without a return clears free space by default, metres: indoor
+#: scanners see nothing back through doors, windows and glass, and clearing their whole range
+#: there (80 m on the Freiburg 079 log) fills the map with unbounded free space.
+FREE_RANGE_2D = 10.0
+
+
 class Lidar2D:
     """Planar laser scanner: beam i points at angle_min + i * angle_increment in the sensor's x-y
     plane.
 
     A range at or beyond `no_return_range` (default: `range_max`), or +inf, is a beam without a
-    return: it clears free space up to `range_max` and hits nothing. NaN and ranges below
+    return: it clears free space up to `free_range` (default FREE_RANGE_2D, at most `range_max`;
+    OctoMap's `maxrange` for beams that saw nothing) and hits nothing. NaN and ranges below
     `range_min` are invalid measurements (REP 117) and are dropped.
     """
 
@@ -52,6 +59,7 @@ class Lidar2D:
         range_min: float = 0.0,
         range_max: float = 30.0,
         no_return_range: float | None = None,
+        free_range: float = 0.0,
         mount: np.ndarray | None = None,
         reliability: float = 1.0,
         prob_hit: float = 0.7,
@@ -71,8 +79,16 @@ class Lidar2D:
         self.mount = np.eye(4) if mount is None else as_pose(mount, "mount")
         self.reliability = float(reliability)
         self.noise = float(noise)
+        if not (free_range >= 0 and math.isfinite(free_range)):
+            msg = f"free_range: expected metres >= 0 (0: the default), found {free_range!r}"
+            raise SensorInputError(msg)
+        self.free_range = min(free_range or FREE_RANGE_2D, self.range_max)
         self.sensor_model = SensorModel(
-            prob_hit=prob_hit, prob_miss=prob_miss, max_range=range_max, kind="lidar2d"
+            prob_hit=prob_hit,
+            prob_miss=prob_miss,
+            max_range=range_max,
+            kind="lidar2d",
+            free_range=self.free_range,
         )
 
     def observe(

@@ -36,6 +36,7 @@ from protocol.errors import (
     UnknownTypeError,
     VersionError,
 )
+from protocol.historycodec import decode_history, encode_history
 from protocol.identity import SIG_BYTES, Signer, Trust, verify_signature
 from protocol.keyexpr import NAME_PATTERN
 from protocol.limits import DEFAULT_LIMITS, Limits
@@ -60,7 +61,7 @@ MIN_COMPRESS_BYTES = 64
 FRAME_OVERHEAD = 320
 
 _NAME_RE = __import__("re").compile(NAME_PATTERN)
-_DELTA_FIELDS = ("delta", "free_summary")
+_DELTA_FIELDS = ("delta", "free_summary", "records")
 
 
 @dataclass(frozen=True)
@@ -89,6 +90,9 @@ def _body(msg: Message) -> dict[str, Any]:
         delta = cast("Delta | None", msg.__dict__["delta"])  # the field a message type declares
         summary = getattr(msg, "free_summary", None)
         body["delta"] = None if delta is None else encode_delta(delta, summary=summary)
+    if "records" in type(msg).model_fields:
+        page = msg.__dict__["records"]
+        body["records"] = None if page is None else encode_history(page)
     return body
 
 
@@ -315,6 +319,12 @@ def decode(
                     msg = f"{cls.KIND} body: expected an exact delta, found a free-space summary"
                     raise MalformedError(msg)
                 known["free_summary"] = summary
+    if "records" in cls.model_fields and known.get("records") is not None:
+        raw = known["records"]
+        if not isinstance(raw, bytes):
+            msg = f"{cls.KIND} body: expected binary 'records', found {type(raw).__name__}"
+            raise MalformedError(msg)
+        known["records"] = decode_history(raw, limits)
     try:
         message = cls.model_validate(
             {

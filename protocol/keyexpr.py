@@ -6,8 +6,10 @@ Layout (every NAME matches `NAME_PATTERN`):
     colony/<colony>/alive/<origin>                                  liveliness tokens
     colony/<colony>/<origin>/snapshot/<layer>                       queryable: snapshot of a layer
     colony/<colony>/<origin>/deltas/<layer>                         queryable: range of deltas
+    colony/<colony>/<origin>/history/<layer>                        queryable: history records
     colony/<colony>/<origin>/status                                 queryable: JSON status report
     colony/<colony>/<origin>/export                                 queryable: the daemon's map
+    colony/<colony>/<origin>/forget                                 queryable: forget an agent
 """
 
 from __future__ import annotations
@@ -26,17 +28,19 @@ _NAME = re.compile(NAME_PATTERN)
 #: Topics an origin publishes on.
 TOPICS = ("announce", "pose", "delta", "objects", "align", "heartbeat", "fix")
 #: Queryables an origin serves, each for one layer.
-QUERIES = ("snapshot", "deltas")
+QUERIES = ("snapshot", "deltas", "history")
 ALIVE = "alive"
 #: An origin's status queryable (a daemon's JSON report, not a protocol frame).
 STATUS = "status"
 #: An origin's map export queryable (a daemon's fused or per-layer map, not a protocol frame).
 EXPORT = "export"
+#: An origin's queryable that forgets an agent's layer colony-wide (tooling, not a frame).
+FORGET = "forget"
 #: Queryables of a daemon's own that are not protocol frames (tooling).
-REPORTS = (STATUS, EXPORT)
+REPORTS = (STATUS, EXPORT, FORGET)
 
 Topic = Literal["announce", "pose", "delta", "objects", "align", "heartbeat", "fix"]
-Query = Literal["snapshot", "deltas"]
+Query = Literal["snapshot", "deltas", "history"]
 
 
 def validate_name(name: str, what: str = "name") -> str:

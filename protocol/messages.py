@@ -10,6 +10,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    InstanceOf,
     StringConstraints,
     field_validator,
     model_validator,
@@ -18,6 +19,7 @@ from pydantic import (
 from protocol.keyexpr import NAME_PATTERN
 from protocol.summary import FreeSummary
 from voxel.delta import Delta
+from voxel.history import HistoryPage
 from voxel.rotation import matrix_to_quaternion, quaternion_to_matrix
 from voxel.sensor import SENSOR_KINDS, SensorModel
 
@@ -374,6 +376,9 @@ class LayerVersion(BaseModel):
     origin: Name
     epoch: U63
     version: U63
+    #: The layer's decay half-life in seconds (None: no decay), as its origin configured it: a
+    #: replica decays its copy the same way, so it computes the origin's occupancy.
+    half_life: Positive | None = None
 
 
 class Heartbeat(Message):
@@ -392,6 +397,9 @@ class Heartbeat(Message):
     position: Vec3 | None = None
     orientation: Quat = (0.0, 0.0, 0.0, 1.0)
     layers: Annotated[list[LayerVersion], Field(max_length=4096)] = []
+    #: Agents whose layers were forgotten colony-wide (`colonyd forget-agent`): receivers drop
+    #: them and refuse them from then on.
+    forgotten: Annotated[list[Name], Field(max_length=4096)] = []
     #: The sender's Ed25519 public key (32 bytes): how peers that trust on first use learn it.
     identity: Annotated[bytes, Field(min_length=32, max_length=32)] | None = None
 
@@ -411,6 +419,63 @@ class Heartbeat(Message):
         return layers
 
 
+class HistoryRequest(Message):
+    """Ask for the history records of `layer` made at versions above `from_version` (the
+    origin's grid versions, one per scan), at most about `max_records` of them."""
+
+    TYPE: ClassVar[int] = 12
+    KIND: ClassVar[str] = "history_request"
+    REQUEST: ClassVar[bool] = True
+
+    layer: Name
+    request_id: U63
+    from_version: U63
+    max_records: Annotated[int, Field(ge=1, le=1_000_000)] = 200_000
+    max_part_bytes: Annotated[int, Field(ge=1024, le=1 << 30)] = 4 << 20
+
+
+class HistoryReply(Message):
+    """One part of the history records of `layer` in versions (from_version, to_version].
+
+    The server pages in whole versions: the parts of one reply together hold every record it
+    holds of those versions. `more` says records of later versions remain (ask again from
+    `to_version`). `layer_epoch` is the epoch of the layer's origin the versions belong to
+    (0: the server holds no such layer). `records` is None when there are none.
+    """
+
+    TYPE: ClassVar[int] = 13
+    KIND: ClassVar[str] = "history_reply"
+
+    layer: Name
+    request_id: U63
+    layer_epoch: U63
+    from_version: U63
+    to_version: U63
+    more: bool = False
+    part: U16 = 0
+    parts: Annotated[int, Field(ge=1, le=0xFFFF)] = 1
+    records: InstanceOf[HistoryPage] | None = None
+
+    @model_validator(mode="after")
+    def _checked(self) -> HistoryReply:
+        _check_part(self.part, self.parts)
+        if self.to_version < self.from_version:
+            msg = (
+                f"to_version must be >= from_version, found {self.from_version} -> "
+                f"{self.to_version}"
+            )
+            raise ValueError(msg)
+        if self.records is not None and (self.records.records.size or self.records.seen.size):
+            v = np.concatenate([self.records.records["version"], self.records.seen["version"]])
+            if int(v.min()) <= self.from_version or int(v.max()) > self.to_version:
+                msg = (
+                    f"records must have versions in ({self.from_version}, {self.to_version}], "
+                    f"found {int(v.min())}..{int(v.max())}"
+                )
+                raise ValueError(msg)
+        return self
+
+
 #: Every message class by its type code (byte 5 of a frame).
 MESSAGE_TYPES: dict[int, type[Message]] = {
     cls.TYPE: cls
@@ -426,5 +491,7 @@ MESSAGE_TYPES: dict[int, type[Message]] = {
         DeltaRangeReply,
         Heartbeat,
         PoseFix,
+        HistoryRequest,
+        HistoryReply,
     )
 }

@@ -201,6 +201,36 @@ class BlockStore:
         self.slot_keys[slots] = -1
         self.free_slots.extend(int(s) for s in slots)
 
+    def shrink(self) -> bool:
+        """Return memory: when at most a quarter of the slots hold blocks, move the used slots to
+        the front of new arrays just large enough for them (slot numbers change). Returns
+        whether it did."""
+        used = self.sorted_slots
+        n = int(used.size)
+        if n * 4 > self.capacity or self.capacity <= 64:
+            return False
+        cap = max(64, n + n // 4)
+        for name, arr in self.channels.items():
+            fresh = self._new_array(self.spec(name), cap)
+            fresh[:n] = arr[used]
+            self.channels[name] = fresh
+        keys = np.full(cap, -1, dtype=np.int64)
+        keys[:n] = self.slot_keys[used]
+        versions = np.zeros(cap, dtype=np.uint32)
+        versions[:n] = self.slot_version[used]
+        self.slot_keys, self.slot_version = keys, versions
+        self.sorted_slots = np.arange(n, dtype=np.int64)
+        self.free_slots = []
+        self.count, self.capacity = n, cap
+        return True
+
+    def allocated_bytes(self) -> int:
+        """Bytes of every array the store holds (capacity, not only used slots)."""
+        arrays = [*self.channels.values(), self.slot_keys, self.slot_version]
+        return sum(int(a.nbytes) for a in arrays) + int(
+            self.sorted_keys.nbytes + self.sorted_slots.nbytes
+        )
+
     def used_slots(self) -> np.ndarray:
         """Slots that hold a block, in block-key order."""
         return self.sorted_slots

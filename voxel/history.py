@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -24,9 +24,27 @@ RECORD_DTYPE = np.dtype(
         ("flip", np.bool_),  # the state changed with this record
         ("object_id", np.int32),  # -1 when none
         ("object_prob", np.float32),
-        ("experience", np.float32),
-        ("reliability", np.float32),
-        ("bias", np.float32),
+        ("error", np.float32),  # e: the agent's pose error estimate at integration, metres
+        ("reliability", np.float32),  # r: sensor model x the agent's configured reliability
+        ("bias", np.float32),  # b: the agent's bias estimate (docs/VOXEL.md, "Provenance")
+        ("version", np.uint32),  # the origin grid's version that made the record (one per scan)
+    ]
+)
+#: Entries of the seen log: a voxel that went unknown -> free, and the scan that saw it.
+SEEN_DTYPE = np.dtype([("key", np.int64), ("time", np.float64), ("version", np.uint32)])
+#: Log-odds `last_at` reports for a voxel known only from the seen log (OctoMap's first miss).
+FIRST_MISS = np.float32(-0.40625)  # log(0.4 / 0.6) on the quantum grid
+
+#: Column names of a record, in storage order.
+RECORD_COLUMNS: tuple[str, ...] = tuple(RECORD_DTYPE.names or ())
+#: Columns renamed since format 3 (old name -> new name).
+RENAMED_V3 = {"experience": "error"}
+#: Record columns of snapshots written before records carried the grid version (format 3).
+RECORD_DTYPE_V3 = np.dtype(
+    [
+        (next((old for old, new in RENAMED_V3.items() if new == n), n), RECORD_DTYPE[n])
+        for n in RECORD_COLUMNS
+        if n != "version"
     ]
 )
 
@@ -38,9 +56,10 @@ class Observer:
     time: float  # seconds, whole milliseconds
     agent: int  # History.agent_code of the agent
     sensor: int  # voxel.sensor.SENSOR_KINDS code
-    reliability: float
-    experience: float
+    reliability: float  # recorded r (the scan's evidence uses the sensor's reliability alone)
+    error: float
     bias: float
+    version: int = 0  # the grid version of the scan
 
 
 class ObjectTags(NamedTuple):
@@ -71,6 +90,16 @@ class ObjectTags(NamedTuple):
         return obj_id, obj_p
 
 
+@dataclass(frozen=True)
+class HistoryPage:
+    """Records of a history (RECORD_DTYPE) whose `agent` column indexes `agents`; the unit a layer's
+    history travels in."""
+
+    records: np.ndarray
+    agents: list[str]
+    seen: np.ndarray = field(default_factory=lambda: np.zeros(0, SEEN_DTYPE))  # SEEN_DTYPE
+
+
 class History:
     """A columnar log of observations, bounded per voxel and in total.
 
@@ -87,6 +116,10 @@ class History:
         self.agents: list[str] = []
         self._agent_index: dict[str, int] = {}
         self.dropped = 0
+        #: The seen log: voxels that went unknown -> free (20 bytes each instead of a record),
+        #: bounded by `capacity` too (oldest entries dropped first).
+        self._seen = np.zeros(0, dtype=SEEN_DTYPE)
+        self.seen_size = 0
 
     def agent_code(self, agent: str) -> int:
         code = self._agent_index.get(agent)
@@ -128,9 +161,10 @@ class History:
         """Append one scan's records: every hit voxel and every voxel whose state flipped.
 
         `changes` are the occupancy update's chunks (appended one by one, as the update made
-        them); free space seen for the first time (unknown -> free) is not among them.
+        them): hits, and voxels whose state changed or that are or were occupied.
         """
         for ch in changes:
+            self._log_seen(ch.seen, observer.time, observer.version)
             if ch.keys.size == 0:
                 continue
             state = ch.after >= 0
@@ -152,10 +186,40 @@ class History:
                 flip=flip,
                 object_id=obj_id,
                 object_prob=obj_p,
-                experience=observer.experience,
+                error=observer.error,
                 reliability=observer.reliability,
                 bias=observer.bias,
+                version=observer.version,
             )
+
+    def _log_seen(self, keys: np.ndarray, time: float, version: int) -> None:
+        n = int(keys.size)
+        if n == 0:
+            return
+        if self.seen_size + n > self.capacity:  # drop the oldest quarter (appended in order)
+            keep = max(0, min(self.seen_size, (self.capacity * 3) // 4 - n))
+            self._seen[:keep] = self._seen[self.seen_size - keep : self.seen_size]
+            self.dropped += self.seen_size - keep
+            self.seen_size = keep
+        if self.seen_size + n > self._seen.shape[0]:
+            grown = np.zeros(
+                min(max(self._seen.shape[0] * 2, self.seen_size + n, 65536), max(self.capacity, n)),
+                dtype=SEEN_DTYPE,
+            )
+            grown[: self.seen_size] = self._seen[: self.seen_size]
+            self._seen = grown
+        block = self._seen[self.seen_size : self.seen_size + n]
+        block["key"], block["time"], block["version"] = keys, time, version
+        self.seen_size += n
+
+    def seen(self) -> np.ndarray:
+        """The seen log (a view; oldest first)."""
+        return self._seen[: self.seen_size]
+
+    def _seen_at(self, t: float) -> np.ndarray:
+        """Packed keys (sorted, unique) seen as free at or before time t."""
+        s = self.seen()
+        return np.unique(s["key"][s["time"] <= t])
 
     def _compact(self, incoming: int) -> None:
         rec = self._buf[: self.size]
@@ -201,14 +265,125 @@ class History:
         out[ok] = rs[pos[ok]]
         return out
 
+    def state_at_all(self, keys: np.ndarray, t: float) -> np.ndarray:
+        """`state_at`, and free for voxels without a record at or before t that the seen log
+        has seen free by then."""
+        keys = np.asarray(keys, dtype=np.int64)
+        out = self.state_at(keys, t)
+        none = out == -1
+        if none.any() and self.seen_size:
+            seen = self._seen_at(t)
+            if seen.size:
+                pos = np.minimum(np.searchsorted(seen, keys[none]), seen.size - 1)
+                free = seen[pos] == keys[none]
+                out[np.flatnonzero(none)[free]] = FREE_STATE
+        return out
+
+    def last_at(self, t: float) -> np.ndarray:
+        """The last record at or before time t of every voxel that has one (sorted by key)."""
+        rec = self.view()
+        rec = rec[rec["time"] <= t]
+        rec = rec[np.lexsort((rec["time"], rec["key"]))]
+        last = np.r_[rec["key"][1:] != rec["key"][:-1], True] if rec.size else np.zeros(0, bool)
+        out: np.ndarray = rec[last]
+        seen = self._seen_at(t) if self.seen_size else np.empty(0, np.int64)
+        seen = seen[~np.isin(seen, out["key"], assume_unique=True)]
+        if seen.size:  # known only from the seen log: free, at the first miss's log-odds
+            extra = np.zeros(seen.size, dtype=RECORD_DTYPE)
+            extra["key"], extra["logodds"], extra["state"] = seen, FIRST_MISS, FREE_STATE
+            out = np.concatenate([out, extra])
+        return out
+
     def flips_between(self, t0: float, t1: float) -> np.ndarray:
         """Packed keys whose state changed in (t0, t1]."""
         rec = self.view()
         m = rec["flip"] & (rec["time"] > t0) & (rec["time"] <= t1)
-        return np.unique(rec["key"][m])
+        s = self.seen()
+        fresh = s["key"][(s["time"] > t0) & (s["time"] <= t1)]
+        return np.unique(np.concatenate([rec["key"][m], fresh]))
 
-    def load(self, records: np.ndarray, agents: list[str]) -> None:
-        """Replace the content with saved records and agent table."""
+    def drop_keys(self, keys: np.ndarray) -> int:
+        """Drop every record of packed `keys` (voxels forgotten: unknown again) and return the
+        buffer's memory when it is mostly empty. Returns records dropped."""
+        rec = self.view()
+        gone = np.isin(rec["key"], np.asarray(keys, dtype=np.int64))
+        n = int(np.count_nonzero(gone))
+        if n:
+            kept = rec[~gone]
+            self._buf[: kept.size] = kept
+            self.size = kept.size
+        if self.size * 4 < self._buf.shape[0] and self._buf.shape[0] > 65536:
+            self._buf = self._buf[: max(self.size + self.size // 4, 65536)].copy()
+        s = self.seen()
+        gone_seen = np.isin(s["key"], np.asarray(keys, dtype=np.int64))
+        if gone_seen.any():
+            kept_seen = s[~gone_seen]
+            self._seen[: kept_seen.size] = kept_seen
+            self.seen_size = kept_seen.size
+        if self.seen_size * 4 < self._seen.shape[0] and self._seen.shape[0] > 65536:
+            self._seen = self._seen[: max(self.seen_size + self.seen_size // 4, 65536)].copy()
+        return n + int(np.count_nonzero(gone_seen))
+
+    def allocated_bytes(self) -> int:
+        """Bytes of the record buffer (its capacity, not only the records held)."""
+        return int(self._buf.nbytes + self._seen.nbytes)
+
+    def newest_version(self) -> int:
+        """Highest grid version among the records and seen entries held (0 without any)."""
+        versions = [
+            int(a.max()) for a in (self.view()["version"], self.seen()["version"]) if a.size
+        ]
+        return max(versions, default=0)
+
+    def page(self, after: int, max_records: int) -> tuple[HistoryPage, int, bool]:
+        """Records and seen entries of versions above `after`, oldest version first, in whole
+        versions: as many as fit `max_records` together (at least one version). Returns the
+        page, the highest version it covers (`after` when empty) and whether later versions
+        remain."""
+        rec, seen = self.view(), self.seen()
+        rec, seen = rec[rec["version"] > after], seen[seen["version"] > after]
+        if rec.size + seen.size == 0:
+            return HistoryPage(rec.copy(), list(self.agents), seen.copy()), after, False
+        # entries per version (versions are small consecutive integers): O(n), no sort
+        lo = min(int(a.min()) for a in (rec["version"], seen["version"]) if a.size)
+        hi = max(int(a.max()) for a in (rec["version"], seen["version"]) if a.size)
+        counts = np.bincount(rec["version"].astype(np.int64) - lo, minlength=hi - lo + 1)
+        counts += np.bincount(seen["version"].astype(np.int64) - lo, minlength=hi - lo + 1)
+        total = np.cumsum(counts)
+        fits = int(np.searchsorted(total, max_records, side="right"))  # versions that fit
+        to = lo + max(fits, int(np.flatnonzero(counts)[0]) + 1) - 1  # at least one version
+        to = min(to, hi)
+        rec = rec[rec["version"] <= to]
+        seen = seen[seen["version"] <= to]
+        rec = rec[np.argsort(rec["version"], kind="stable")]
+        seen = seen[np.argsort(seen["version"], kind="stable")]
+        return HistoryPage(rec, list(self.agents), seen), to, to < hi
+
+    def merge(self, page: HistoryPage) -> int:
+        """Append the records and seen entries of a page (another holder's) whose versions are
+        newer than everything held; agent codes are translated to this history's. Returns
+        records and entries taken."""
+        newest = self.newest_version()
+        rec = page.records[page.records["version"] > newest]
+        seen = page.seen[page.seen["version"] > newest]
+        if rec.size:
+            codes = np.array([self.agent_code(a) for a in page.agents], dtype=np.uint16)
+            rec = rec.copy()
+            rec["agent"] = codes[rec["agent"]]
+            rec = rec[np.argsort(rec["version"], kind="stable")]
+            self.append(rec["key"], **{n: rec[n] for n in RECORD_COLUMNS if n != "key"})
+        seen = seen[np.argsort(seen["version"], kind="stable")]
+        for version in np.unique(seen["version"]):
+            part = seen[seen["version"] == version]
+            self._log_seen(part["key"], float(part["time"][0]), int(version))
+        return int(rec.size + seen.size)
+
+    def load(self, records: np.ndarray, agents: list[str], seen: np.ndarray | None = None) -> None:
+        """Replace the content with saved records, agent table and seen log."""
+        seen = np.zeros(0, SEEN_DTYPE) if seen is None else seen
+        self._seen = np.zeros(max(seen.size, 65536), dtype=SEEN_DTYPE)
+        self._seen[: seen.size] = seen
+        self.seen_size = seen.size
         self._buf = np.zeros(max(records.size, min(self.capacity, 65536)), dtype=RECORD_DTYPE)
         self._buf[: records.size] = records
         self.size = records.size

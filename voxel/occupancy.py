@@ -85,6 +85,7 @@ class Changes(NamedTuple):
     before: np.ndarray  # (M,) float32, NaN = was unknown
     after: np.ndarray  # (M,) float32
     hit: np.ndarray  # (M,) bool
+    seen: np.ndarray  # (F,) packed keys of the voxels that went unknown -> free
 
 
 @dataclass
@@ -103,6 +104,7 @@ class UpdateRule:
     evidence: Evidence
     half_life: float | None
     statistics: bool
+    seen: bool = True  # log voxels seen free for the first time (History's seen log)
 
 
 def update_occupancy(
@@ -160,7 +162,7 @@ def _update_chunk(
     if count == 0:
         return
     update.changed += count
-    update.chunks.append(_worth_recording(store, slots, old, new, changed, cells))
+    update.chunks.append(_worth_recording(store, slots, old, new, changed, cells, rule.seen))
 
 
 def _update_numpy(
@@ -228,18 +230,23 @@ def _worth_recording(
     new: np.ndarray,
     changed: np.ndarray,
     cells: np.ndarray,
+    seen: bool = True,
 ) -> Changes:
-    """Changed voxels that are hit, occupied now or were occupied (see `History.record`).
-
-    Free space seen for the first time (unknown -> free) is left out: it is most of every scan
-    and carries no event; `state_at` derives it from the voxel's current state.
-    """
+    """Changed voxels that are hit, occupied now or were occupied (see `History.record`), and
+    apart, only their keys, the voxels seen for the first time as free (unknown -> free: most of
+    a scan, so the history keeps them in a compact log)."""
     with np.errstate(invalid="ignore"):
         keep = (new >= 0) | (old >= 0)  # occupied now, or was (NaN, unknown, is neither)
+        fresh = changed & np.isnan(old) & (new < 0) if seen else None
     keep |= cells == HIT
     keep &= changed
     b, o = np.nonzero(keep)
     keys = (
         vk.pack(store.join(store.slot_keys[slots[b]], o)) if b.size else np.empty(0, dtype=np.int64)
     )
-    return Changes(keys, old[b, o], new[b, o], cells[b, o] == HIT)
+    fresh_keys = np.empty(0, dtype=np.int64)
+    if fresh is not None:
+        fb, fo = np.nonzero(fresh)
+        if fb.size:
+            fresh_keys = vk.pack(store.join(store.slot_keys[slots[fb]], fo))
+    return Changes(keys, old[b, o], new[b, o], cells[b, o] == HIT, fresh_keys)

@@ -124,7 +124,8 @@ class Beams:
 
 
 def sort_beams(scan: Scan, sensor: SensorModel, resolution: float) -> Beams:
-    """Hits end within max range; beams beyond it or without a return clear up to max range."""
+    """Hits end within max range; beams beyond it clear up to max range, beams without a return
+    up to the sensor's `no_return_range`."""
     n = scan.points.shape[0]
     org, nr = scan.origin, scan.no_return
     rows = np.ascontiguousarray(
@@ -149,7 +150,7 @@ def sort_beams(scan: Scan, sensor: SensorModel, resolution: float) -> Beams:
             valid = np.isfinite(r) & (r > 0)
             clear_mask[rest] = valid & ((r > sensor.max_range) | nr[rest])
     dropped = 0
-    if not math.isfinite(sensor.max_range):
+    if not math.isfinite(sensor.no_return_range):  # then no max range either: only no-returns
         dropped = int(np.count_nonzero(clear_mask))
         clear_mask[:] = False
     inv = 1.0 / resolution
@@ -160,7 +161,10 @@ def sort_beams(scan: Scan, sensor: SensorModel, resolution: float) -> Beams:
         hit_mask[np.flatnonzero(hit_mask)[~ok]] = False
         hit_keys = hit_keys[:, ok]
     if clear_mask.any():
-        clear_ends = _clear_ends(rows, org, r2, clear_mask, sensor.max_range, resolution)
+        limit: float | np.ndarray = sensor.max_range
+        if sensor.no_return_range < sensor.max_range and nr.any():
+            limit = np.where(nr[clear_mask], sensor.no_return_range, sensor.max_range)
+        clear_ends = _clear_ends(rows, org, r2, clear_mask, limit, resolution)
     else:
         clear_ends = np.empty((0, 3))
     cleared = int(np.count_nonzero(clear_mask))
@@ -173,14 +177,14 @@ def _clear_ends(
     org: np.ndarray,
     r2: np.ndarray,
     clear_mask: np.ndarray,
-    max_range: float,
+    max_range: float | np.ndarray,
     resolution: float,
 ) -> np.ndarray:
     """End points (M, 3) of the rays of beams without a hit; drops unusable beams from clear_mask.
 
-    Beams are truncated at max range and cast once per 1/CLEAR_SUBDIVISION-voxel cell of their
-    ends, one real beam standing for its cell (OctoMap's discretised update does the like):
-    distant beams share voxels.
+    Beams are truncated at max range (one for all, or one per clearing beam) and cast once per
+    1/CLEAR_SUBDIVISION-voxel cell of their ends, one real beam standing for its cell (OctoMap's
+    discretised update does the like): distant beams share voxels.
     """
     idx = np.flatnonzero(clear_mask)
     scale = max_range / np.sqrt(r2[idx])

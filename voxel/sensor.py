@@ -23,7 +23,13 @@ def probability(log_odds: float) -> float:
 
 @dataclass(frozen=True)
 class SensorModel:
-    """Inverse sensor model of one sensor; OctoMap's defaults."""
+    """Inverse sensor model of one sensor; OctoMap's defaults.
+
+    Points beyond `max_range` clear free space up to it and hit nothing (OctoMap's `maxrange`).
+    A beam without a return clears only up to `free_range` (at most `max_range`): nothing came
+    back, so how far the space is free is a guess, and clearing a scanner's whole range around
+    every doorway and window fills the map with free space no wall bounds.
+    """
 
     prob_hit: float = 0.7
     prob_miss: float = 0.4
@@ -31,6 +37,7 @@ class SensorModel:
     clamp_max: float = 0.97
     max_range: float = math.inf
     kind: str = "unknown"
+    free_range: float = math.inf
 
     def __post_init__(self) -> None:
         for name in ("prob_hit", "prob_miss", "clamp_min", "clamp_max"):
@@ -53,6 +60,9 @@ class SensorModel:
         if not self.max_range > 0:
             msg = f"SensorModel.max_range must be positive, found {self.max_range!r}"
             raise InputError(msg)
+        if not self.free_range > 0:
+            msg = f"SensorModel.free_range must be positive, found {self.free_range!r}"
+            raise InputError(msg)
         if self.kind not in SENSOR_KINDS:
             msg = f"SensorModel.kind must be one of {sorted(SENSOR_KINDS)}, found {self.kind!r}"
             raise InputError(msg)
@@ -72,6 +82,11 @@ class SensorModel:
     @property
     def log_max(self) -> float:
         return logodds(self.clamp_max)
+
+    @property
+    def no_return_range(self) -> float:
+        """How far a beam without a return clears: min(free_range, max_range)."""
+        return min(self.free_range, self.max_range)
 
     @property
     def kind_code(self) -> int:

@@ -16,12 +16,13 @@ import zstandard
 
 from voxel.blocks import BlockStore
 from voxel.errors import FileFormatError
-from voxel.history import RECORD_DTYPE, History
+from voxel.history import RECORD_DTYPE, RECORD_DTYPE_V3, RENAMED_V3, SEEN_DTYPE, History
 
 FORMAT = "colony-voxel-snapshot"
-FORMAT_VERSION = 3
-#: Versions `load_grid` reads; version 2 predates block shapes (its blocks are cubes).
-READABLE_VERSIONS = (2, 3)
+FORMAT_VERSION = 4
+#: Versions `load_grid` reads; version 2 predates block shapes (its blocks are cubes), versions
+#: 2 and 3 history records without the grid version (read as version 0: kept, never served).
+READABLE_VERSIONS = (2, 3, 4)
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 
 
@@ -71,6 +72,7 @@ def save_grid(grid: SnapshotGrid, path: Path) -> None:
         "block_keys": st.slot_keys[slots],
         "slot_version": st.slot_version[slots],
         "history": grid.history.view(),
+        "history_seen": grid.history.seen(),
     }
     for name, arr in st.channels.items():
         arrays[f"ch/{name}"] = arr[slots]
@@ -138,10 +140,19 @@ def load_grid(path: Path, make_grid: Callable[..., G]) -> G:
                     raise FileFormatError(msg)
                 target[slots] = arr
             hist = data["history"]
+            if hist.dtype == RECORD_DTYPE_V3 and meta["version"] < 4:
+                old = hist
+                hist = np.zeros(old.size, dtype=RECORD_DTYPE)
+                for name in RECORD_DTYPE_V3.names or ():
+                    hist[RENAMED_V3.get(name, name)] = old[name]
             if hist.dtype != RECORD_DTYPE:
                 msg = f"{path}: history records have dtype {hist.dtype}, expected {RECORD_DTYPE}"
                 raise FileFormatError(msg)
-            grid.history.load(hist, meta["agents"])
+            seen = data["history_seen"] if "history_seen" in files else None
+            if seen is not None and seen.dtype != SEEN_DTYPE:
+                msg = f"{path}: seen log has dtype {seen.dtype}, expected {SEEN_DTYPE}"
+                raise FileFormatError(msg)
+            grid.history.load(hist, meta["agents"], seen)
             grid.version = int(meta["grid_version"])
             grid.now = float(meta["now"])
             grid.time_base_ms = meta["time_base_ms"]

@@ -65,9 +65,9 @@ def pose_error(found: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 
 def fused_maps(colony: LocalColony, timeout: float = 10.0) -> dict[str, Any]:
     """Every daemon's fused map (in its colony frame), by agent."""
-    from colonyd.export import _ask
+    from colonyd.export import query_maps
 
-    return {r.agent: r for r in _ask(colony.session(), colony.namespace, "", timeout)}
+    return {r.agent: r for r in query_maps(colony.session(), colony.namespace, "", timeout)}
 
 
 def run_live(

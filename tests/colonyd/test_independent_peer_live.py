@@ -158,7 +158,8 @@ def test_a_peer_from_the_document_talks_to_a_daemon(make_colony):
 
 
 def test_unknown_voxels_and_missing_channels_as_the_document_says() -> None:
-    """-128 makes a voxel unknown; a channel a delta does not carry keeps its values."""
+    """-128 makes a voxel unknown (a block left all unknown is freed, channels and all); a
+    channel a delta does not carry keeps its values."""
     import numpy as np
 
     from protocol.codec import encode
@@ -174,10 +175,12 @@ def test_unknown_voxels_and_missing_channels_as_the_document_says() -> None:
         keys,
         np.array([0.5, -0.25], np.float32),
         np.array([1.0, 1.0]),
-        {"hits": np.array([3, 0], np.uint16)},
+        {"hits": np.array([3, 7], np.uint16)},
         1.0,
     )
-    second = Delta(0.1, 1, 2, keys[:1], np.array([np.nan], np.float32), np.array([2.0]), {}, 2.0)
+    second = Delta(
+        0.1, 1, 2, keys, np.array([np.nan, -0.25], np.float32), np.array([2.0, 2.0]), {}, 2.0
+    )
     grid = VoxelGrid(0.1)
     peer: dict = {}
     hits: dict = {}
@@ -197,7 +200,6 @@ def test_unknown_voxels_and_missing_channels_as_the_document_says() -> None:
     }
     assert peer == {(4, 5, 6): -0.25}
     row = int(np.flatnonzero((ref.keys == [4, 5, 6]).all(1))[0])
-    assert ref.channels["hits"][row] == hits[(4, 5, 6)] == 0
-    row = int(np.flatnonzero((ref.keys == [1, 2, 3]).all(1))[0])
-    assert ref.channels["hits"][row] == 3  # the second delta carried no hits: kept as it was
+    assert ref.channels["hits"][row] == hits[(4, 5, 6)] == 7  # not carried again: kept
+    assert not (ref.keys == [1, 2, 3]).all(1).any()  # forgotten: its block was freed
     _ = struct  # the peer decoder's struct use lives in tests.protocol.test_independent_peer

@@ -125,9 +125,9 @@ def test_replay_options_depend_on_the_format(tmp_path: Path) -> None:
     with pytest.raises(
         SourceSpecError,
         match=(
-            r"option 'stride': expected one of \['format', 'max_range', 'move_x', 'move_y', "
-            r"'move_yaw', 'odometry_noise', 'poses', 'seed', 'start', 'step', 'stop', 'strict'\], "
-            r"found unknown option"
+            r"option 'stride': expected one of \['format', 'free_range', 'max_range', 'move_x', "
+            r"'move_y', 'move_yaw', 'odometry_noise', 'poses', 'seed', 'start', 'step', 'stop', "
+            r"'strict'\], found unknown option"
         ),
     ):
         open_source(f"replay:{log},stride=2")

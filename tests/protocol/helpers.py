@@ -10,6 +10,8 @@ from protocol.messages import (
     DeltaRangeReply,
     DeltaRangeRequest,
     Heartbeat,
+    HistoryReply,
+    HistoryRequest,
     LayerVersion,
     Message,
     ObjectCentroid,
@@ -22,6 +24,7 @@ from protocol.messages import (
     VoxelDelta,
 )
 from voxel.delta import Delta
+from voxel.history import HistoryPage
 from voxel.sensor import SensorModel
 
 KEY = b"colony-test-key-0123456789abcdef"
@@ -58,11 +61,25 @@ def make_delta(
     return Delta(resolution, 10, 12, keys, lo, last, channels=ch, time=time)
 
 
+def history_page(scans: int = 3, points: int = 40) -> tuple[HistoryPage, int]:
+    """A page of a small grid's whole history and the highest version it covers."""
+    from voxel.grid import VoxelGrid
+
+    grid = VoxelGrid(0.1)
+    rng = np.random.default_rng(11)
+    for t in range(scans):
+        origin = rng.uniform(-0.5, 0.5, 3)
+        grid.integrate(origin + rng.normal(size=(points, 3)), origin, time=1.7e9 + t, agent="r1")
+    page, to, _more = grid.history.page(0, 10**6)
+    return page, to
+
+
 def sample_messages(rng: np.random.Generator | None = None) -> list[Message]:
     """One valid message of every type (small deltas)."""
     rng = rng or np.random.default_rng(7)
     common = {"origin": "robot-1", "epoch": 3, "seq": 41, "time": 1_700_000_000.25}
     delta = make_delta(rng, 60)
+    page, page_to = history_page()
     return [
         Announce(
             **common,
@@ -156,6 +173,19 @@ def sample_messages(rng: np.random.Generator | None = None) -> list[Message]:
             covariance=[0.0025 * (i % 7 == 0) for i in range(36)],
             marker_id=24,
             confidence=0.7,
+        ),
+        HistoryRequest(**common, layer="robot-2", request_id=80, from_version=6, max_records=900),
+        HistoryReply(
+            **common,
+            layer="robot-2",
+            request_id=80,
+            layer_epoch=4,
+            from_version=0,
+            to_version=page_to,
+            more=True,
+            part=1,
+            parts=2,
+            records=page,
         ),
     ]
 

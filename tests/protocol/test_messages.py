@@ -30,8 +30,8 @@ COMMON = {"origin": "r1", "time": 1.0}
 
 
 def test_every_type_has_a_unique_code_and_kind() -> None:
-    assert sorted(MESSAGE_TYPES) == list(range(1, 12))
-    assert len({c.KIND for c in MESSAGE_TYPES.values()}) == 11
+    assert sorted(MESSAGE_TYPES) == list(range(1, 14))
+    assert len({c.KIND for c in MESSAGE_TYPES.values()}) == 13
     assert {type(m) for m in sample_messages()} == set(MESSAGE_TYPES.values())
 
 

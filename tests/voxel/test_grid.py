@@ -194,6 +194,43 @@ def test_forgetting_decays_and_frees_blocks():
     assert grid.state(p)[0] == UNKNOWN
 
 
+def test_decayed_evidence_reads_unknown_before_it_is_forgotten():
+    grid = VoxelGrid(RES, half_life=10.0)
+    pts, origin = wall_scan()
+    grid.integrate(pts, origin, time=0.0)
+    p = pts[:1]
+    assert grid.state(p, now=10.0)[0] == OCCUPIED
+    assert grid.state(p, now=60.0)[0] == UNKNOWN  # 0.85 / 2^6 < FORGET_EPSILON
+    assert len(grid.occupied_keys()) > 0 and grid.store.used_slots().size > 0
+
+
+def test_forgetting_bumps_versions_replicates_and_returns_memory():
+    """Forget 90 % of a layer: a replica that follows its deltas drops the same voxels and
+    computes the same decayed occupancy; allocated bytes (not counters) drop >= 80 %."""
+    grid = VoxelGrid(RES, half_life=30.0)
+    rng = np.random.default_rng(5)
+    for t in range(9):  # nine old scans far away
+        origin = np.array([20.0 * t, 0.0, 0.0])
+        grid.integrate(origin + rng.normal(size=(4000, 3)) * 3, origin, time=float(t))
+    replica = VoxelGrid(RES, half_life=30.0)
+    replica.apply(grid.delta_since(0))
+    seen = grid.version
+    origin = np.array([200.0, 0.0, 0.0])
+    grid.integrate(origin + rng.normal(size=(4000, 3)) * 3, origin, time=99.0)  # one recent
+    before, known = grid.allocated_bytes(), grid.known_count()
+    freed = grid.forget(now=100.0, after=50.0)
+    assert freed > 0 and grid.version > seen + 1
+    assert grid.known_count() < 0.2 * known
+    replica.apply(grid.delta_since(seen))
+    assert replica.content_equal(grid) and replica.known_count() == grid.known_count()
+    probe = vk.keys_to_centers(grid.occupied_keys()[:50], RES)
+    np.testing.assert_array_equal(replica.occupancy(probe), grid.occupancy(probe))
+    grid.settle(grid.version)  # the delta that carries the forgotten voxels was taken
+    assert grid.allocated_bytes() <= 0.2 * before
+    assert replica.allocated_bytes() <= 0.2 * before
+    assert grid.history.view()["key"].size < 0.2 * known  # their history went with them
+
+
 def test_ray_and_box_queries():
     grid = VoxelGrid(RES)
     pts, origin = wall_scan()
@@ -323,8 +360,9 @@ def test_snapshot_errors(tmp_path):
         VoxelGrid.load(other)
 
 
-def _rewrite_meta(path, **changes) -> None:
-    """Re-save a snapshot with its metadata changed (or keys removed when given None)."""
+def _rewrite_meta(path, history_v3: bool = False, **changes) -> None:
+    """Re-save a snapshot with its metadata changed (or keys removed when given None); with
+    `history_v3`, its history records without the version column (format 3)."""
     import io
     import json
 
@@ -340,6 +378,14 @@ def _rewrite_meta(path, **changes) -> None:
         else:
             meta[key] = value
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    if history_v3:
+        from voxel.history import RECORD_DTYPE_V3, RENAMED_V3
+
+        old = arrays["history"]
+        arrays.pop("history_seen", None)  # format 3 had no seen log
+        arrays["history"] = np.zeros(old.size, RECORD_DTYPE_V3)
+        for name in RECORD_DTYPE_V3.names:
+            arrays["history"][name] = old[RENAMED_V3.get(name, name)]
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     path.write_bytes(zstandard.ZstdCompressor().compress(buf.getvalue()))
@@ -352,6 +398,11 @@ def test_snapshot_versions_and_block_shapes(tmp_path):
     _rewrite_meta(path, version=2, block_shape=None)  # written before block shapes existed
     back = VoxelGrid.load(path)
     assert back.store.shifts == (2, 2, 2) and back.content_equal(grid)
+    grid.save(path)
+    _rewrite_meta(path, history_v3=True, version=3)  # records before they carried the version
+    back = VoxelGrid.load(path)
+    assert back.history.size == grid.history.size and back.history.newest_version() == 0
+    np.testing.assert_array_equal(back.history.view()["key"], grid.history.view()["key"])
     _rewrite_meta(path, version=3, block_shape=5)
     with pytest.raises(FileFormatError, match="not a readable colony-voxel-snapshot"):
         VoxelGrid.load(path)
@@ -359,7 +410,9 @@ def test_snapshot_versions_and_block_shapes(tmp_path):
     with pytest.raises(FileFormatError, match="block sides must be three of 1, 2, 4, 8 voxels"):
         VoxelGrid.load(path)
     _rewrite_meta(path, version=9)
-    with pytest.raises(FileFormatError, match="expected format colony-voxel-snapshot v2/3, found"):
+    with pytest.raises(
+        FileFormatError, match="expected format colony-voxel-snapshot v2/3/4, found"
+    ):
         VoxelGrid.load(path)
 
 

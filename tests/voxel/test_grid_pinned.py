@@ -1,7 +1,10 @@
 """Pinned results: fixed scans give bit-identical grids, deltas, history and files across refactors.
 
 The expected digests were computed with the grid before it was split into modules (commit
-43ae299); run this file as a script to print the digests of the current code.
+43ae299), then re-pinned when the history gained the seen log (unknown -> free) and the grid version
+(issue 14; grid content unchanged), and for forgetting when it came to bump versions and read
+decayed evidence as unknown; run this file as a script to print the digests of the current
+code.
 """
 
 from __future__ import annotations
@@ -48,7 +51,7 @@ def grid_digest(grid: VoxelGrid) -> str:
     )
     for name in sorted(st.channels):
         _update(h, name, st.channels[name][slots])
-    _update(h, grid.history.view(), grid.history.agents, grid.history.dropped)
+    _update(h, grid.history.view(), grid.history.seen(), grid.history.agents, grid.history.dropped)
     return h.hexdigest()[:20]
 
 
@@ -130,7 +133,7 @@ def scenario_rich() -> list[str]:
                 origin,
                 time=float(i) + 0.25,
                 agent=f"robot-{i % 2}",
-                experience=0.5 * i,
+                error=0.5 * i,
                 bias=-0.1 * i,
                 reliability=1.0 - 0.1 * i,
                 **kwargs,
@@ -291,13 +294,13 @@ def run(name: str, tmp: Path) -> str:
 
 
 EXPECTED: dict[str, str] = {
-    "plain": "0a9827b6a8e8431571f0",
-    "rich": "7cf3e847874f35f62b22",
-    "forgetting": "3704aad61603a2789e30",
-    "time_base": "ee418a9eabe765f2b17d",
-    "planar_and_big": "a2fe447aa4ac245683fe",
-    "depth": "c53b6c07e91adf0924e9",
-    "files": "09b268387ebc210f7edd",
+    "plain": "c917849816405218f1af",
+    "rich": "a4bc3c72c2236ac91ed9",
+    "forgetting": "d424d37359ba221f039b",
+    "time_base": "3880da6cfa5255cdd233",
+    "planar_and_big": "1629e97315f55bf10be8",
+    "depth": "ce81ed4055781f182f3a",
+    "files": "a69493a8bf131d3baf79",
 }
 
 

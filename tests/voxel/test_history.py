@@ -15,10 +15,13 @@ ORIGIN = np.array([0.05, 0.05, 0.05])
 WALL = np.array([[1.05, 0.05, 0.05]])
 
 
-def test_unknown_to_free_and_unchanged_hits_are_not_recorded() -> None:
+def test_unknown_to_free_goes_to_the_seen_log_and_unchanged_hits_are_not_recorded() -> None:
     grid = VoxelGrid(RES)
     grid.integrate(WALL, ORIGIN, time=0.0)
-    assert len(grid.free_keys()) == 10 and grid.history.size == 1  # only the hit voxel
+    assert len(grid.free_keys()) == 10 and grid.history.size == 1  # the hit: a record
+    seen = grid.history.seen()  # the 10 voxels seen free for the first time: 20 bytes each
+    assert seen.size == 10 and set(seen["time"]) == {0.0} and set(seen["version"]) == {1}
+    assert sorted(seen["key"]) == sorted(vk.pack(grid.free_keys()))
     for t in range(1, 12):
         grid.integrate(WALL, ORIGIN, time=float(t))
     held = grid.history.size
@@ -27,6 +30,49 @@ def test_unknown_to_free_and_unchanged_hits_are_not_recorded() -> None:
     grid.integrate(np.array([[2.05, 0.05, 0.05]]), ORIGIN, time=21.0)  # a miss on the occupied wall
     last = grid.voxel_history(WALL[0])[-1]
     assert last["time"] == 21.0 and last["state"] == OCCUPIED and not last["flip"]
+
+
+def test_state_at_answers_free_space_from_when_it_became_free() -> None:
+    """A voxel on a ray that became free at t=10 and was seen again later is free from t=10 on,
+    with or without statistics (which re-stamp every touched voxel)."""
+    for statistics in (False, True):
+        grid = VoxelGrid(RES, statistics=statistics)
+        for t in range(10, 20):
+            grid.integrate(WALL, ORIGIN, time=float(t))
+        ray = np.array([[0.55, 0.05, 0.05]])
+        assert grid.state_at(ray, 9.999)[0] == -1
+        assert [int(grid.state_at(ray, t)[0]) for t in (10.0, 11.0, 13.0, 19.0)] == [FREE_STATE] * 4
+        assert vk.pack(vk.points_to_keys(ray, RES))[0] in vk.pack(grid.changed_between(9.0, 10.0))
+
+
+def test_pages_cover_whole_versions_and_merge_into_an_equal_history() -> None:
+    grid = VoxelGrid(RES)
+    for t in range(6):
+        wall = WALL + np.array([[0.0, 0.1 * t, 0.0]])
+        grid.integrate(wall, ORIGIN, time=float(t), agent=f"robot-{t % 2}")
+    src = grid.history
+    replica = History()
+    after, pages = 0, 0
+    while True:
+        page, to, more = src.page(after, max_records=15)
+        versions = np.unique(page.records["version"])
+        # whole versions, within the bound
+        assert page.records.size + page.seen.size <= 15 or versions.size == 1
+        assert replica.merge(page) == page.records.size + page.seen.size
+        assert replica.merge(page) == 0  # a page taken twice adds nothing
+        after, pages = to, pages + 1
+        if not more:
+            break
+    assert pages > 2 and after == grid.version == replica.newest_version()
+    keys = np.concatenate([src.view()["key"], src.seen()["key"]])
+    for t in (-1.0, 0.0, 2.5, 5.0):
+        np.testing.assert_array_equal(replica.state_at_all(keys, t), src.state_at_all(keys, t))
+        np.testing.assert_array_equal(replica.flips_between(-1, t), src.flips_between(-1, t))
+    got = replica.view()
+    names = [replica.agents[a] for a in got["agent"]]
+    assert names == [src.agents[a] for a in src.view()["agent"]]
+    empty, to, more = src.page(after, 15)
+    assert empty.records.size == 0 and to == after and not more
 
 
 def test_record_writes_one_row_per_change_with_the_observer_columns() -> None:
@@ -38,6 +84,7 @@ def test_record_writes_one_row_per_change_with_the_observer_columns() -> None:
             np.array([np.nan, 0.4, -0.4], np.float32),
             np.array([0.85, -0.01, 0.4], np.float32),
             np.array([True, False, True]),
+            np.empty(0, np.int64),
         )
     ]
     observer = Observer(
@@ -45,7 +92,7 @@ def test_record_writes_one_row_per_change_with_the_observer_columns() -> None:
         agent=history.agent_code("robot-a"),
         sensor=3,
         reliability=0.5,
-        experience=1.0,
+        error=1.0,
         bias=-0.25,
     )
     tags = ObjectTags.of(

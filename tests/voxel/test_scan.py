@@ -55,3 +55,21 @@ def test_beams_are_sorted_by_what_they_do() -> None:
         3,
         1,
     )  # 1e9 m: off the key space
+
+
+def test_beams_without_a_return_clear_only_up_to_the_free_range() -> None:
+    """OctoMap's maxrange for beams that saw nothing: a no-return beam clears up to free_range,
+    a point beyond max range still clears up to max range."""
+    origin = np.zeros(3)
+    pts = np.array([[0, 7.0, 0], [9.0, 0, 0], [0, 0, 1.0]])
+    scan = Scan.of(pts, origin, time=0.0, reliability=1.0, no_return=np.array([True, False, False]))
+    beams = sort_beams(scan, SensorModel(max_range=5.0, free_range=1.5), 0.1)
+    assert (beams.hits, beams.cleared, beams.dropped) == (1, 2, 0)
+    reach = sorted(np.linalg.norm(beams.clear_ends - origin, axis=1).round(6).tolist())
+    assert reach == [1.5, 5.0]
+    # Without a max range, a free range alone lets no-return beams clear.
+    beams = sort_beams(scan, SensorModel(free_range=2.0), 0.1)
+    assert (beams.hits, beams.cleared, beams.dropped) == (2, 1, 0)
+    assert np.allclose(np.linalg.norm(beams.clear_ends, axis=1), 2.0)
+    with pytest.raises(InputError, match="free_range must be positive, found 0"):
+        SensorModel(free_range=0.0)

@@ -1,0 +1,126 @@
+"""History sync: pages the history of every peer layer from a holder into its replica."""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import numpy as np
+
+from colonyd.catchup import MAX_SERVERS, CatchUp, complete
+from colonyd.layers import Layer, Layers
+from colonyd.membership import Membership
+from colonyd.metrics import Metrics
+from protocol import HistoryReply, HistoryRequest
+from voxel.history import HistoryPage
+
+log = logging.getLogger(__name__)
+
+#: Most pages one layer takes per round (the rest waits for the next round).
+MAX_PAGES_PER_ROUND = 16
+
+
+def join_pages(msgs: list[HistoryReply]) -> HistoryPage | None:
+    """The records of every part of one reply (parts share the agent table), or None if the
+    parts disagree on it."""
+    pages = [m.records for m in sorted(msgs, key=lambda m: m.part) if m.records is not None]
+    if not pages:
+        return None
+    agents = pages[0].agents
+    if any(p.agents != agents for p in pages):
+        return None
+    return HistoryPage(
+        np.concatenate([p.records for p in pages]),
+        agents,
+        np.concatenate([p.seen for p in pages]),
+    )
+
+
+class HistorySync:
+    """Every `period_s`, each peer layer asks a holder (its origin first) for the history
+    records newer than the newest it holds, page by page (HistoryRequest, docs/PROTOCOL.md)."""
+
+    def __init__(
+        self,
+        layers: Layers,
+        catchup: CatchUp,
+        metrics: Metrics,
+        *,
+        period_s: float,
+        page_records: int = 200_000,
+        stop: threading.Event,
+    ) -> None:
+        self.layers = layers
+        self.catchup = catchup
+        self.metrics = metrics
+        self.period_s = period_s
+        self.page_records = page_records
+        self.stop = stop
+        self.membership: Membership | None = None
+        self._thread = threading.Thread(target=self._loop, name="history-sync", daemon=True)
+
+    def start(self, membership: Membership) -> None:
+        self.membership = membership
+        if self.period_s > 0:
+            self._thread.start()
+
+    def close(self) -> None:
+        if self._thread.is_alive():
+            self._thread.join(timeout=5.0)
+
+    def _loop(self) -> None:
+        while not self.stop.wait(self.period_s):
+            for layer in self.layers.all():
+                if self.stop.is_set():
+                    return
+                if layer.origin == self.layers.own_id or layer.seq == 0:
+                    continue
+                try:
+                    self.pull(layer)
+                except Exception:
+                    log.exception("history sync of %s failed", layer.origin)
+
+    def servers(self, origin: str) -> list[str]:
+        """Who to ask for `origin`'s history: live holders of its newest version, origin first."""
+        if self.membership is None:
+            return [origin]
+        _epoch, _seq, holders = self.membership.best(origin)
+        return (holders or [origin])[:MAX_SERVERS]
+
+    def pull(self, layer: Layer) -> int:
+        """Page `layer`'s history from a holder until it has no more; returns records taken."""
+        taken = 0
+        for server in self.servers(layer.origin):
+            for _ in range(MAX_PAGES_PER_ROUND):
+                with layer.lock:
+                    after, epoch = layer.grid.history.newest_version(), layer.epoch
+                request = HistoryRequest(
+                    **self.catchup.sender.header(),
+                    layer=layer.origin,
+                    request_id=self.catchup.new_request_id(),
+                    from_version=after,
+                    max_records=self.page_records,
+                    max_part_bytes=self.catchup.part_bytes,
+                )
+                msgs = self.catchup.ask(server, "history", layer.origin, request, HistoryReply)
+                if not complete(msgs, "history"):
+                    break
+                heads = {(m.layer_epoch, m.from_version, m.to_version, m.more) for m in msgs}
+                if len(heads) != 1:
+                    self.metrics.reject("bad-parts")
+                    break
+                got_epoch, start, _to, more = heads.pop()
+                if got_epoch != epoch or start != after:
+                    break  # another epoch of the layer (or none held): nothing to take here
+                page = join_pages(msgs)
+                if page is not None:
+                    with layer.lock:
+                        if layer.epoch == epoch:
+                            n = layer.grid.history.merge(page)
+                            taken += n
+                            self.metrics.add("history_records", n)
+                if not more:
+                    return taken
+            else:
+                return taken
+        return taken

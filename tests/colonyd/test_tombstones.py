@@ -1,0 +1,96 @@
+"""Forgetting an agent colony-wide: the tombstone, its checks, and a live colony that keeps it."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from colonyd.errors import WireError
+from colonyd.layers import Layers
+from colonyd.tombstones import forget_params, forget_tag, load_tombstones, save_tombstones
+from voxel.delta import Delta
+
+
+def test_a_forgotten_layer_is_dropped_and_refused_from_then_on(tmp_path) -> None:
+    layers = Layers("me", 0.1)
+    delta = Delta(0.1, 0, 1, np.zeros((1, 3)), np.ones(1), np.zeros(1))
+    layers.admit("bad", [delta])
+    layers.get("bad")
+    saved: list[str] = []
+    layers.on_forget = saved.append
+    assert layers.forget_agent("bad") and layers.find("bad") is None and saved == ["bad"]
+    assert not layers.forget_agent("bad") and not layers.forget_agent("me")
+    with pytest.raises(WireError, match="expected a layer not forgotten, found 'bad'"):
+        layers.admit("bad", [delta])
+    save_tombstones(tmp_path, layers.forgotten)
+    assert load_tombstones(tmp_path) == {"bad"}
+    (tmp_path / "forgotten.json").write_text('{"not": "a list"}')
+    assert load_tombstones(tmp_path) == set() == load_tombstones(tmp_path / "nowhere")
+
+
+def test_forget_requests_are_checked_against_the_colony_key() -> None:
+    assert forget_params({"agent": "r1"}, None, 0.0) == "r1"
+    with pytest.raises(ValueError, match="expected agent=NAME"):
+        forget_params({"agent": "r 1"}, None, 0.0)
+    key = b"k" * 32
+    good = {"agent": "r1", "t": "100.0", "auth": forget_tag(key, "r1", 100.0)}
+    assert forget_params(good, key, 130.0) == "r1"
+    with pytest.raises(ValueError, match="within 60 s"):
+        forget_params(good, key, 200.0)
+    with pytest.raises(ValueError, match="bad tag"):
+        forget_params({**good, "auth": forget_tag(b"x" * 32, "r1", 100.0)}, key, 100.0)
+    with pytest.raises(ValueError, match="within 60 s"):
+        forget_params({"agent": "r1"}, key, 100.0)
+
+
+def test_forget_agent_removes_a_layer_from_the_colony_and_repair_respects_it(make_colony):
+    colony = make_colony("tomb", extra=["--colony-key", "s3cret"])
+    colony.add("a", ["synthetic:scans=0,rate=2,points=120,seed=1"])
+    colony.add("b")
+    c = colony.add("c")
+    deadline = time.monotonic() + 40
+    while time.monotonic() < deadline:
+        report = {r["agent"]: r for r in colony.status()}
+        if all("a" in report.get(x, {}).get("layers", {}) for x in ("b", "c")):
+            break
+        time.sleep(0.5)
+    base = [
+        sys.executable, "-m", "colonyd", "forget-agent", "--colony", "tomb",
+        "--namespace", colony.namespace, "--no-multicast", "--connect", c.endpoint,
+    ]  # fmt: skip
+    wrong = subprocess.run(
+        [*base, "a", "--colony-key", "wrong"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert wrong.returncode == 1 and "to forget 'a'" in wrong.stderr
+    run = subprocess.run(
+        [*base, "a", "--colony-key", "s3cret"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert run.returncode == 0, run.stderr
+    answers = json.loads(run.stdout)
+    assert "c" in {x["agent"] for x in answers if x.get("forgotten") == "a"}
+    # a daemon the request did not reach learns the tombstone from heartbeats
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        report = {r["agent"]: r for r in colony.status()}
+        if all("a" not in report[x]["layers"] for x in ("b", "c")):
+            break
+        time.sleep(0.5)
+    time.sleep(3.0)  # a keeps mapping and publishing; heartbeats keep listing its layer
+    report = {r["agent"]: r for r in colony.status()}
+    assert report["a"]["layers"]["a"]["seq"] > 0
+    for x in ("b", "c"):
+        assert "a" not in report[x]["layers"], x
+        assert report[x]["metrics"]["rejected"].get("forgotten", 0) > 0, x
