@@ -151,6 +151,26 @@ def _bench_io(b: argparse.ArgumentParser, *, shared_data: bool = False) -> None:
         )
 
 
+def _map_query_flags(p: argparse.ArgumentParser) -> None:
+    """The flags of the commands that fetch maps from a running colony (`export`, `changes`)."""
+    _config_flags(p, _CLIENT_FLAGS)
+    p.add_argument("--out", dest="export_out", type=Path, required=True, help="output directory")
+    p.add_argument(
+        "--layer",
+        dest="export_layer",
+        default=None,
+        metavar="ID",
+        help="only this agent's layer, in its own frame",
+    )
+    p.add_argument(
+        "--from",
+        dest="export_agent",
+        default=None,
+        metavar="AGENT",
+        help="ask this daemon (default: the first to answer, by agent id)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="colonyd", description="colony daemon: peer-to-peer voxel mapping over Zenoh"
@@ -175,22 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="fetch the live fused map (colony frame) and the layers' maps "
         "from a running colony into .bt/.ply files (and a floor plan for 2D maps)",
     )
-    _config_flags(p, _CLIENT_FLAGS)
-    p.add_argument("--out", dest="export_out", type=Path, required=True, help="output directory")
-    p.add_argument(
-        "--layer",
-        dest="export_layer",
-        default=None,
-        metavar="ID",
-        help="only this agent's layer, in its own frame",
-    )
-    p.add_argument(
-        "--from",
-        dest="export_agent",
-        default=None,
-        metavar="AGENT",
-        help="ask this daemon (default: the first to answer, by agent id)",
-    )
+    _map_query_flags(p)
     p.add_argument(
         "--at",
         dest="export_at",
@@ -213,18 +218,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="what appeared and disappeared in the live fused map (or one layer) since a time: "
         "appeared.ply, disappeared.ply and the counts",
     )
-    _config_flags(p, _CLIENT_FLAGS)
-    p.add_argument("--out", dest="export_out", type=Path, required=True, help="output directory")
+    _map_query_flags(p)
     p.add_argument(
         "--since",
         dest="changes_since",
         required=True,
         metavar="T",
         help="Unix seconds, -SECONDS before now, or ISO 8601",
-    )
-    p.add_argument("--layer", dest="export_layer", default=None, metavar="ID", help="one layer")
-    p.add_argument(
-        "--from", dest="export_agent", default=None, metavar="AGENT", help="ask this daemon"
     )
 
     p = sub.add_parser(
