@@ -15,6 +15,7 @@ import tempfile
 import time
 from collections import Counter
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any, cast
 
@@ -130,6 +131,10 @@ def seq_of(reports: dict[str, dict[str, Any]], holder: str, origin: str) -> int:
     return int(reports.get(holder, {}).get("layers", {}).get(origin, {}).get("seq", 0))
 
 
+def _saw_any(watch: DeltaWatch, epoch: int) -> bool:
+    return bool(watch.seqs(epoch))
+
+
 def wait_for(what: str, check: Callable[[], bool], timeout: float, every: float = 0.1) -> float:
     """Seconds until `check()` holds; TimeoutError naming `what` otherwise."""
     t0 = time.monotonic()
@@ -229,6 +234,11 @@ def crash(base: Path, *, kills: int = 20, seed: int = 7) -> dict[str, Any]:
                 before = _ready_count(a)
                 a.start()
                 wait_for("a ready", _more_ready(a, before), 30, 0.02)
+            if i == 0:
+                # Kill during mapping: a loaded machine can take over a second from ready to
+                # the source's first scan, and a layer never written has nothing to lose.
+                first = int(json.loads((a.state_dir / "meta.json").read_text())["epoch"])
+                wait_for("a's first delta", partial(_saw_any, watch, first), 30, 0.02)
             delay = rng.uniform(0.15, 1.2)
             kill_ms.append(round(delay * 1000))
             time.sleep(delay)

@@ -9,7 +9,7 @@ import subprocess
 import sys
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Self
@@ -306,14 +306,22 @@ class LocalColony:
         raise TimeoutError(f"colony did not converge in {timeout:.0f} s: {reason}")
 
     def wait_status(
-        self, until: Callable[[list[dict[str, Any]]], bool], within: float = 15.0, **query: Any
+        self,
+        until: Callable[[list[dict[str, Any]]], bool],
+        within: float = 15.0,
+        agents: Iterable[str] = (),
+        **query: Any,
     ) -> list[dict[str, Any]]:
-        """Status reports once `until(reports)` holds, or the last ones after `within` seconds (the
-        caller's assertions then say what is missing); `query` goes to `status`."""
+        """Status reports once every agent in `agents` answered and `until(reports)` holds, or the
+        last ones after `within` seconds (the caller's assertions then say what is missing);
+        `query` goes to `status`. Naming the agents keeps a slow reply from making a condition
+        over "every report" hold for the ones that came."""
+        want = set(agents)
         deadline = time.monotonic() + within
         while True:
             reports = self.status(**query)
-            if until(reports) or time.monotonic() > deadline:
+            answered = want <= {r["agent"] for r in reports}
+            if (answered and until(reports)) or time.monotonic() > deadline:
                 return reports
             time.sleep(0.2)
 

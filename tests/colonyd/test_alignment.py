@@ -93,12 +93,14 @@ def test_offers_reach_the_colony_frame_and_bad_ones_are_refused(make_colony):
     for offer in (good, bad_frames):
         s.put(topic_key(ns, "p", "align"), p.encode(offer))
     s.put(topic_key(ns, "a", "align"), p.encode(offer_of(_edge("p", "a", t), p.header())))
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:
-        (report,) = colony.status()
-        if "p" in report["colony_frame"]["agents"] and report["metrics"]["rejected"].get("keyexpr"):
-            break
-        time.sleep(0.2)
+
+    def placed(reports: list[dict]) -> bool:
+        (report,) = reports
+        return "p" in report["colony_frame"]["agents"] and report["metrics"]["rejected"].get(
+            "keyexpr", 0
+        )
+
+    (report,) = colony.wait_status(placed, 10, agents=("a",))
     frame = report["colony_frame"]
     assert frame["root"] == "a"
     np.testing.assert_allclose(np.array(frame["agents"]["p"]), np.linalg.inv(t), atol=1e-5)

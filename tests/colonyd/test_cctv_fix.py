@@ -27,7 +27,7 @@ def test_a_cctv_anchors_a_robot_it_sees(make_colony):
         lidar = next((r for r in reports if r["agent"] == "lidar-1"), None)
         return lidar is not None and lidar["metrics"]["counts"].get("fix_fused", 0) >= 2
 
-    reports = colony.wait_status(fused, 40)
+    reports = colony.wait_status(fused, 40, agents=("lidar-1", "cctv-1"))
     lidar = next(r for r in reports if r["agent"] == "lidar-1")
     cctv = next(r for r in reports if r["agent"] == "cctv-1")
     assert cctv["metrics"]["counts"].get("fixes_sent", 0) >= 4, cctv["metrics"]["counts"]

@@ -53,7 +53,7 @@ def test_hostile_and_valid_fixes_reach_a_daemon_as_counted(make_colony):
         counts = reports[0]["metrics"]["counts"]
         return counts.get("fix_received", 0) >= 1 and counts.get("fix_for_others", 0) >= 1
 
-    (b,) = colony.wait_status(settled, 10)
+    (b,) = colony.wait_status(settled, 10, agents=("b",))
     counts, rejected = b["metrics"]["counts"], b["metrics"]["rejected"]
     assert counts.get("fix_received") == 1 and counts.get("fix_for_others") == 1, counts
     assert rejected.get("bad-fix") == 2, rejected

@@ -118,7 +118,7 @@ def test_a_key_holder_cannot_forge_another_agents_layer(make_colony):
         b = next(r for r in reports if r["agent"] == "b")
         return b["metrics"]["rejected"].get("identity", 0) >= 2
 
-    reports = colony.wait_status(refused, 10, digest=True)
+    reports = colony.wait_status(refused, 10, agents=("b",), digest=True)
     b = next(r for r in reports if r["agent"] == "b")
     assert b["metrics"]["rejected"].get("identity", 0) >= 2, b["metrics"]["rejected"]
     assert b["layers"]["a"]["digest"] == layer["digest"]  # nothing of mallory's applied

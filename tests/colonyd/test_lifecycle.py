@@ -55,7 +55,8 @@ def test_colony_key_closes_the_colony(make_colony):
         for r in colony.wait_status(
             lambda rs: all(
                 r["metrics"]["rejected"].get("auth", 0) > 0 for r in rs if r["agent"] in ("a", "b")
-            )
+            ),
+            agents=("a", "b"),
         )
     }
     for agent in ("a", "b"):

@@ -34,7 +34,7 @@ def test_a_lidar_robot_matches_its_scans_against_an_aligned_peers_map(make_colon
         lidar = next((r for r in reports if r["agent"] == "lidar-1"), None)
         return lidar is not None and _localisation(lidar).get("colony_accepted", 0) >= 5
 
-    reports = colony.wait_status(fused, 40)
+    reports = colony.wait_status(fused, 40, agents=("lidar-1",))
     lidar = next(r for r in reports if r["agent"] == "lidar-1")
     counts = _localisation(lidar)
     assert counts["colony_accepted"] >= 5, counts

@@ -38,7 +38,9 @@ def test_surveyed_agent_is_in_the_site_frame_everywhere_and_for_a_late_joiner(ma
         d.start()
         if agent == "b":  # c joins once b's first offer is long gone
             colony.wait_members(2)
-            colony.wait_status(lambda rs: all(_frame_of(r, "b") is not None for r in rs))
+            colony.wait_status(
+                lambda rs: all(_frame_of(r, "b") is not None for r in rs), agents=("a", "b")
+            )
     want = euler_pose(1.5, -2.0, 0.0, np.pi / 2)
 
     def placed(reports: list[dict]) -> bool:
