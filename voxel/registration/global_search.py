@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from voxel import keys as vk
@@ -95,6 +94,8 @@ def score_field(
     shape = tuple(int(v) for v in cells.max(axis=0) + pad + 1)
     empty = np.full(shape, 255, np.uint8)
     empty[cells[:, 0], cells[:, 1]] = 0
+    import cv2  # loads on first use, not at start-up
+
     d = cv2.distanceTransform(empty, cv2.DIST_L2, 5)
     field = np.exp(-(d * d) / (2.0 * sigma * sigma)).astype(np.float32)
     field[d > near] = 0.0
