@@ -202,12 +202,12 @@ class BlockStore:
         self.free_slots.extend(int(s) for s in slots)
 
     def shrink(self) -> bool:
-        """Return memory: when at most a quarter of the slots hold blocks, move the used slots to
+        """Return memory: when at most half of the slots hold blocks, move the used slots to
         the front of new arrays just large enough for them (slot numbers change). Returns
         whether it did."""
         used = self.sorted_slots
         n = int(used.size)
-        if n * 4 > self.capacity or self.capacity <= 64:
+        if n * 2 > self.capacity or self.capacity <= 64:
             return False
         cap = max(64, n + n // 4)
         for name, arr in self.channels.items():

@@ -127,3 +127,22 @@ def test_no_object_tags_without_object_ids_or_hits() -> None:
         ObjectTags.of(np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
         is None
     )
+
+
+def test_dropping_keys_returns_the_buffers_memory_down_to_what_is_held() -> None:
+    """Forgetting 90 % of the voxels frees 90 % of the history's allocated bytes: the record
+    buffer and the seen log shrink to what they hold (no 65,536-entry floor, which held 4.8 MB
+    of a mostly forgotten 079 layer), and an empty history costs little."""
+    h = History()
+    assert h.allocated_bytes() < 100_000
+    keys = np.arange(100_000, dtype=np.int64)
+    for v in range(10):
+        part = keys[v * 10_000 : (v + 1) * 10_000]
+        h.append(part[::2], time=float(v), version=v + 1)
+        h._log_seen(part[1::2], float(v), v + 1)
+    before = h.allocated_bytes()
+    assert h.drop_keys(keys[10_000:]) == 90_000
+    assert h.size == 5_000 and h.seen_size == 5_000
+    assert h.allocated_bytes() <= 0.15 * before
+    h.append(keys[:3], time=11.0, version=11)  # it grows again from there
+    assert h.size == 5_003
