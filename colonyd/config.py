@@ -173,10 +173,16 @@ class Config(BaseSettings):
         10.0, gt=0, description="seconds between forgetting passes over the own layer"
     )
     history_sync_s: float = Field(
-        0.0,
+        5.0,
         ge=0,
-        description="opt-in: seconds between pulls of peer layers' history records "
-        "(0: replicas keep none; 5 is a good value)",
+        description="seconds between pulls of peer layers' history records, so temporal "
+        "queries on replicas answer as the origin (0: replicas keep none)",
+    )
+    peer_history_entries: int = Field(
+        2_000_000,
+        ge=10_000,
+        description="history entries (records; seen-log entries alike) all peer layers keep "
+        "together, split evenly, each its newest (~53 B a record, 20 B a seen entry)",
     )
     colony_key: str | None = Field(None, description="shared secret; unauthenticated dropped")
     trust: Literal["off", "tofu", "list"] = Field(

@@ -312,6 +312,7 @@ class Daemon:
             query_timeout_s=cfg.query_timeout_s,
             chunk_voxels=cfg.snapshot_chunk_voxels,
             history_sync_s=cfg.history_sync_s,
+            peer_history_entries=cfg.peer_history_entries,
         )
         self.membership = Membership(self.session, ns, cfg.agent_id, self.gossip.on_member_event)
         self.status_server = StatusServer(self.session, ns, cfg.agent_id, self.report)

@@ -52,7 +52,8 @@ class Gossip:
         query_timeout_s: float = 5.0,
         chunk_voxels: int = 250_000,
         part_bytes: int = 4 << 20,
-        history_sync_s: float = 0.0,
+        history_sync_s: float = 5.0,
+        peer_history_entries: int = 2_000_000,
     ) -> None:
         self.stop = threading.Event()  # one stop for every worker: they wind down together
         replicas = Replicas(layers, metrics)
@@ -102,7 +103,12 @@ class Gossip:
             stop=self.stop,
         )
         self.history = HistorySync(
-            layers, self.catchup, metrics, period_s=history_sync_s, stop=self.stop
+            layers,
+            self.catchup,
+            metrics,
+            period_s=history_sync_s,
+            budget=peer_history_entries,
+            stop=self.stop,
         )
         self.hb_now = self.publisher.hb_now  # set on a join: send our heartbeat without waiting
 

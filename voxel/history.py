@@ -205,6 +205,8 @@ class History:
             self._seen[:keep] = self._seen[self.seen_size - keep : self.seen_size]
             self.dropped += self.seen_size - keep
             self.seen_size = keep
+            if self._seen.shape[0] > max(self.capacity, n):  # the bound was lowered
+                self._seen = self._seen[: max(self.capacity, n)].copy()
         if self.seen_size + n > self._seen.shape[0]:
             grown = np.zeros(
                 min(
@@ -241,6 +243,8 @@ class History:
             rec = rec[np.sort(newest)]
         self.dropped += self.size - rec.size
         rec = rec[np.argsort(rec["time"], kind="stable")]
+        if self._buf.shape[0] > self.capacity:  # the bound was lowered: return the excess
+            self._buf = np.zeros(max(self.capacity, rec.size + incoming), dtype=RECORD_DTYPE)
         self._buf[: rec.size] = rec
         self.size = rec.size
 
@@ -368,8 +372,8 @@ class History:
 
     def merge(self, page: HistoryPage) -> int:
         """Append the records and seen entries of a page (another holder's) whose versions are
-        newer than everything held; agent codes are translated to this history's. Returns
-        records and entries taken."""
+        newer than everything held; agent codes are translated to this history's. The bound
+        holds: past `capacity` the oldest go first. Returns records and entries taken."""
         newest = self.newest_version()
         rec = page.records[page.records["version"] > newest]
         seen = page.seen[page.seen["version"] > newest]
@@ -378,8 +382,14 @@ class History:
             rec = rec.copy()
             rec["agent"] = codes[rec["agent"]]
             rec = rec[np.argsort(rec["version"], kind="stable")]
+            if rec.size > self.capacity:  # more than the bound: its newest only
+                self.dropped += rec.size - self.capacity
+                rec = rec[rec.size - self.capacity :]
             self.append(rec["key"], **{n: rec[n] for n in RECORD_COLUMNS if n != "key"})
         seen = seen[np.argsort(seen["version"], kind="stable")]
+        if seen.size > self.capacity:
+            self.dropped += seen.size - self.capacity
+            seen = seen[seen.size - self.capacity :]
         for version in np.unique(seen["version"]):
             part = seen[seen["version"] == version]
             self._log_seen(part["key"], float(part["time"][0]), int(version))

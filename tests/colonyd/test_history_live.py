@@ -93,23 +93,29 @@ def test_forgetting_replicates_with_the_origins_decay(make_colony):
 
 def test_replicas_equal_the_origin_in_every_channel_and_the_history(make_colony):
     """A simulated depth camera maps colour, classes and normals: the replica's layer equals
-    the origin's in every channel (digests cover them all) and holds the same history."""
+    the origin's in every channel (digests cover them all) and holds the same history (history
+    sync is on by default); a replica with a small peer history budget keeps within it."""
     colony = make_colony("channels")
     a = colony.add("a", ["sim:world=room,agent=depth-1,frames=4"], start=False)
     a.env["COLONYD_HISTORY_SYNC_S"] = "0.5"
     a.start()
-    b = colony.add("b", start=False)
-    b.env["COLONYD_HISTORY_SYNC_S"] = "0.5"
-    b.start()
+    colony.add("b")  # the default history_sync_s
+    c = colony.add("c", start=False)
+    c.env.update({"COLONYD_HISTORY_SYNC_S": "0.5", "COLONYD_PEER_HISTORY_ENTRIES": "10000"})
+    c.start()
     colony.wait_converged(60)
     deadline = time.monotonic() + 20
     while time.monotonic() < deadline:
         report = {r["agent"]: r for r in colony.status(digest=True)}
-        la, lb = report["a"]["layers"]["a"], report["b"]["layers"].get("a", {})
-        if la["digest"] == lb.get("digest") and la["history"] == lb.get("history"):
-            break
+        if set(report) == {"a", "b", "c"}:  # a round every daemon answered
+            la, lb = (report[x]["layers"].get("a", {}) for x in "ab")
+            lc = report["c"]["layers"].get("a", {})
+            same = la["digest"] == lb.get("digest") and la["history"] == lb.get("history")
+            if same and lc.get("history", 0) > 0:
+                break
         time.sleep(0.5)
-    assert la["digest"] == lb["digest"] and la["history"] == lb["history"] > 1000
+    assert la["digest"] == lb["digest"] and la["history"] == lb["history"] > 10_000
+    assert la["digest"] == lc["digest"] and 0 < lc["history"] <= 10_000  # its budget
     for channels in (la["channels"], lb["channels"]):
         assert {"colour", "normal", "class_ids", "class_probs"} <= set(channels)
     ka, va = _layer_at(colony, "a", time.time())
