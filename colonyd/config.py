@@ -100,9 +100,10 @@ class Config(BaseSettings):
     zenoh_config: Path | None = Field(None, description="extra Zenoh JSON5 file, merged first")
     sources: list[str] = Field(default_factory=list, description="source specs")
     resolution: float = Field(0.1, gt=0, le=10, description="voxel size in metres")
-    block_shape: Literal["cube", "planar"] = Field(
+    block_shape: Literal["cube", "planar", "slab"] = Field(
         "cube",
-        description="own layer's voxel blocks: planar (8x8x1) when mapping with 2D scanners only",
+        description="own layer's voxel blocks: planar (8x8x1) when mapping with 2D scanners only, "
+        "slab (4x4x1) with a 3D LiDAR",
     )
     publish_hz: float = Field(2.0, gt=0, le=100, description="own-delta publish rate")
     heartbeat_s: float = Field(1.0, gt=0, le=60, description="status heartbeat period")
