@@ -179,6 +179,11 @@ class Config(BaseSettings):
         description="seconds between pulls of peer layers' history records, so temporal "
         "queries on replicas answer as the origin (0: replicas keep none)",
     )
+    history_push: bool = Field(
+        False,
+        description="opt-in: publish the own layer's new history records with each delta "
+        "(<own>/history) and take peers' as they come; the pull fills any gap",
+    )
     peer_history_entries: int = Field(
         2_000_000,
         ge=10_000,

@@ -92,6 +92,20 @@ class HistorySync:
         peers = max(1, len(self.layers.all()) - 1)
         return max(MIN_LAYER_ENTRIES, self.budget // peers)
 
+    def offer(self, layer: Layer, epoch: int, after: int, page: HistoryPage) -> int:
+        """Merge `page` (records of versions above `after` of `layer` at `epoch`) into the
+        replica's history, within its share of the budget, unless it is of another epoch or
+        leaves a gap (versions between the newest held and `after`: the pull fills it).
+        Returns records and entries taken."""
+        with layer.lock:
+            history = layer.grid.history
+            if layer.epoch != epoch or after > history.newest_version():
+                return 0
+            history.capacity = self.share()  # past it, the oldest are dropped
+            n = history.merge(page)
+        self.metrics.add("history_records", n)
+        return n
+
     def servers(self, origin: str) -> list[str]:
         """Who to ask for `origin`'s history: live holders of its newest version, origin first."""
         if self.membership is None:
@@ -126,12 +140,7 @@ class HistorySync:
                     break  # another epoch of the layer (or none held): nothing to take here
                 page = join_pages(msgs)
                 if page is not None:
-                    with layer.lock:
-                        if layer.epoch == epoch:
-                            layer.grid.history.capacity = self.share()  # oldest dropped past it
-                            n = layer.grid.history.merge(page)
-                            taken += n
-                            self.metrics.add("history_records", n)
+                    taken += self.offer(layer, epoch, after, page)
                 if not more:
                     return taken
             else:
