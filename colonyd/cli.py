@@ -59,8 +59,8 @@ _CONFIG_FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
         "block_shape",
         "--block-shape",
         {
-            "choices": ["cube", "planar"],
-            "help": "own layer's voxel blocks (planar: 2D scanners only)",
+            "choices": ["cube", "planar", "slab"],
+            "help": "own layer's voxel blocks (planar: 2D scanners only; slab: 3D LiDAR)",
         },
     ),
     ("publish_hz", "--publish-hz", {"type": float, "help": "own-delta publish rate"}),

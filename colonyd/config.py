@@ -100,9 +100,10 @@ class Config(BaseSettings):
     zenoh_config: Path | None = Field(None, description="extra Zenoh JSON5 file, merged first")
     sources: list[str] = Field(default_factory=list, description="source specs")
     resolution: float = Field(0.1, gt=0, le=10, description="voxel size in metres")
-    block_shape: Literal["cube", "planar"] = Field(
+    block_shape: Literal["cube", "planar", "slab"] = Field(
         "cube",
-        description="own layer's voxel blocks: planar (8x8x1) when mapping with 2D scanners only",
+        description="own layer's voxel blocks: planar (8x8x1) when mapping with 2D scanners only, "
+        "slab (4x4x1) with a 3D LiDAR",
     )
     publish_hz: float = Field(2.0, gt=0, le=100, description="own-delta publish rate")
     heartbeat_s: float = Field(1.0, gt=0, le=60, description="status heartbeat period")
@@ -173,10 +174,21 @@ class Config(BaseSettings):
         10.0, gt=0, description="seconds between forgetting passes over the own layer"
     )
     history_sync_s: float = Field(
-        0.0,
+        5.0,
         ge=0,
-        description="opt-in: seconds between pulls of peer layers' history records "
-        "(0: replicas keep none; 5 is a good value)",
+        description="seconds between pulls of peer layers' history records, so temporal "
+        "queries on replicas answer as the origin (0: replicas keep none)",
+    )
+    history_push: bool = Field(
+        False,
+        description="opt-in: publish the own layer's new history records with each delta "
+        "(<own>/history) and take peers' as they come; the pull fills any gap",
+    )
+    peer_history_entries: int = Field(
+        2_000_000,
+        ge=10_000,
+        description="history entries (records; seen-log entries alike) all peer layers keep "
+        "together, split evenly, each its newest (~53 B a record, 20 B a seen entry)",
     )
     colony_key: str | None = Field(None, description="shared secret; unauthenticated dropped")
     trust: Literal["off", "tofu", "list"] = Field(

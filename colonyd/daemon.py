@@ -312,6 +312,8 @@ class Daemon:
             query_timeout_s=cfg.query_timeout_s,
             chunk_voxels=cfg.snapshot_chunk_voxels,
             history_sync_s=cfg.history_sync_s,
+            peer_history_entries=cfg.peer_history_entries,
+            history_push=cfg.history_push,
         )
         self.membership = Membership(self.session, ns, cfg.agent_id, self.gossip.on_member_event)
         self.status_server = StatusServer(self.session, ns, cfg.agent_id, self.report)
@@ -919,6 +921,7 @@ class Daemon:
             logged = time.time()
             self.gossip.publish_own(prev, seq, delta, created, encoded)
             self.metrics.stage("out", self.config.agent_id, seq, created, logged, time.time())
+            self.gossip.push_history()  # with history push on: the records of what was sent
         if delta is not None:
             self._published_local = version
             with own.lock:

@@ -2,7 +2,8 @@
 
 Everything on the wire is the colony protocol (`protocol/`, docs/PROTOCOL.md): VoxelDelta on
 `<origin>/delta`, Heartbeat on `<origin>/heartbeat`, Objects on `<origin>/objects`, AlignOffer on
-`<origin>/align`, PoseFix on `<origin>/fix`, SnapshotRequest/Reply, DeltaRangeRequest/Reply and
+`<origin>/align`, PoseFix on `<origin>/fix`, pushed HistoryReply on `<origin>/history` (opt-in),
+SnapshotRequest/Reply, DeltaRangeRequest/Reply and
 HistoryRequest/Reply through the `<server>/snapshot/<layer>`, `<server>/deltas/<layer>` and
 `<server>/history/<layer>` queryables. Layer versions on the wire are the origin's delta sequence
 numbers; history versions are the origin's grid versions.
@@ -27,7 +28,7 @@ from colonyd.metrics import Metrics
 from colonyd.objects import PeerObjects
 from colonyd.publisher import Publisher
 from colonyd.replicas import Replicas
-from protocol import ObjectCentroid, OwnOriginError, PoseFix, Receiver
+from protocol import HistoryReply, ObjectCentroid, OwnOriginError, PoseFix, Receiver
 from voxel.delta import Delta
 
 
@@ -52,7 +53,9 @@ class Gossip:
         query_timeout_s: float = 5.0,
         chunk_voxels: int = 250_000,
         part_bytes: int = 4 << 20,
-        history_sync_s: float = 0.0,
+        history_sync_s: float = 5.0,
+        peer_history_entries: int = 2_000_000,
+        history_push: bool = False,
     ) -> None:
         self.stop = threading.Event()  # one stop for every worker: they wind down together
         replicas = Replicas(layers, metrics)
@@ -72,6 +75,16 @@ class Gossip:
             part_bytes=part_bytes,
             stop=self.stop,
         )
+        self.layers = layers
+        self.history_push = history_push
+        self.history = HistorySync(
+            layers,
+            self.catchup,
+            metrics,
+            period_s=history_sync_s,
+            budget=peer_history_entries,
+            stop=self.stop,
+        )
         self.inbox = Inbox(
             session,
             namespace,
@@ -84,6 +97,7 @@ class Gossip:
             send_heartbeat=self.publisher.hb_now.set,
             on_own_origin=on_own_origin,
             on_fix=on_fix,
+            on_history=self._take_history if history_push else None,
             size=inbox_size,
             max_bytes=inbox_bytes,
             drop_rate=drop_rate,
@@ -100,9 +114,6 @@ class Gossip:
             chunk_voxels=chunk_voxels,
             part_bytes=part_bytes,
             stop=self.stop,
-        )
-        self.history = HistorySync(
-            layers, self.catchup, metrics, period_s=history_sync_s, stop=self.stop
         )
         self.hb_now = self.publisher.hb_now  # set on a join: send our heartbeat without waiting
 
@@ -134,6 +145,16 @@ class Gossip:
     ) -> int:
         """Publish an own delta (already logged); returns the bytes sent."""
         return self.publisher.publish_own(prev, seq, delta, created, encoded)
+
+    def push_history(self) -> int:
+        """With history push on, publish the own history records not pushed yet."""
+        return self.publisher.push_history() if self.history_push else 0
+
+    def _take_history(self, msg: HistoryReply) -> None:
+        """A peer's pushed history (inbox thread): into its replica when it follows on."""
+        layer = self.layers.find(msg.origin)
+        if layer is not None and layer.seq > 0 and msg.records is not None:
+            self.history.offer(layer, msg.layer_epoch, msg.from_version, msg.records)
 
     def encode_own(
         self, prev: int, seq: int, delta: Delta, created: float

@@ -18,6 +18,8 @@ log = logging.getLogger(__name__)
 
 #: Most pages one layer takes per round (the rest waits for the next round).
 MAX_PAGES_PER_ROUND = 16
+#: Fewest history entries a peer layer may keep, however many layers share the budget.
+MIN_LAYER_ENTRIES = 10_000
 
 
 def join_pages(msgs: list[HistoryReply]) -> HistoryPage | None:
@@ -38,7 +40,9 @@ def join_pages(msgs: list[HistoryReply]) -> HistoryPage | None:
 
 class HistorySync:
     """Every `period_s`, each peer layer asks a holder (its origin first) for the history
-    records newer than the newest it holds, page by page (HistoryRequest, docs/PROTOCOL.md)."""
+    records newer than the newest it holds, page by page (HistoryRequest, docs/PROTOCOL.md).
+    Peer layers keep at most `budget` history entries together (records and seen-log entries
+    each), split evenly: past its share a layer drops its oldest."""
 
     def __init__(
         self,
@@ -47,6 +51,7 @@ class HistorySync:
         metrics: Metrics,
         *,
         period_s: float,
+        budget: int = 2_000_000,
         page_records: int = 200_000,
         stop: threading.Event,
     ) -> None:
@@ -54,6 +59,7 @@ class HistorySync:
         self.catchup = catchup
         self.metrics = metrics
         self.period_s = period_s
+        self.budget = budget
         self.page_records = page_records
         self.stop = stop
         self.membership: Membership | None = None
@@ -79,6 +85,26 @@ class HistorySync:
                     self.pull(layer)
                 except Exception:
                     log.exception("history sync of %s failed", layer.origin)
+
+    def share(self) -> int:
+        """History entries (records, and seen-log entries alike) each peer layer may keep: the
+        budget split evenly among the peer layers held; each keeps its newest."""
+        peers = max(1, len(self.layers.all()) - 1)
+        return max(MIN_LAYER_ENTRIES, self.budget // peers)
+
+    def offer(self, layer: Layer, epoch: int, after: int, page: HistoryPage) -> int:
+        """Merge `page` (records of versions above `after` of `layer` at `epoch`) into the
+        replica's history, within its share of the budget, unless it is of another epoch or
+        leaves a gap (versions between the newest held and `after`: the pull fills it).
+        Returns records and entries taken."""
+        with layer.lock:
+            history = layer.grid.history
+            if layer.epoch != epoch or after > history.newest_version():
+                return 0
+            history.capacity = self.share()  # past it, the oldest are dropped
+            n = history.merge(page)
+        self.metrics.add("history_records", n)
+        return n
 
     def servers(self, origin: str) -> list[str]:
         """Who to ask for `origin`'s history: live holders of its newest version, origin first."""
@@ -114,11 +140,7 @@ class HistorySync:
                     break  # another epoch of the layer (or none held): nothing to take here
                 page = join_pages(msgs)
                 if page is not None:
-                    with layer.lock:
-                        if layer.epoch == epoch:
-                            n = layer.grid.history.merge(page)
-                            taken += n
-                            self.metrics.add("history_records", n)
+                    taken += self.offer(layer, epoch, after, page)
                 if not more:
                     return taken
             else:

@@ -1,4 +1,5 @@
-"""Inbox: peers' deltas, heartbeats and joins, queued by Zenoh callbacks and handled in order."""
+"""Inbox: peers' deltas, heartbeats, pushed history and joins, queued by Zenoh callbacks and
+handled in order."""
 
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from colonyd.worker import Bounded, Worker
 from protocol import (
     AlignOffer,
     Heartbeat,
+    HistoryReply,
     Objects,
     OwnOriginError,
     Pose,
@@ -37,8 +39,8 @@ log = logging.getLogger(__name__)
 #: would override every other measurement.
 MIN_FIX_VARIANCE = 1e-6
 
-#: An inbox item: (kind "delta" | "hb" | "objects" | "align" | "pose" | "fix" | "join", key
-#: expression or agent, raw frame, time queued).
+#: An inbox item: (kind "delta" | "hb" | "objects" | "align" | "pose" | "fix" | "history" |
+#: "join", key expression or agent, raw frame, time queued).
 Item = tuple[str, str, bytes, float]
 
 
@@ -60,6 +62,7 @@ class Inbox:
         send_heartbeat: Callable[[], None],
         on_own_origin: Callable[[OwnOriginError], None] | None = None,
         on_fix: Callable[[PoseFix], None] | None = None,
+        on_history: Callable[[HistoryReply], None] | None = None,
         size: int = 256,
         max_bytes: int = 128 << 20,
         drop_rate: float = 0.0,
@@ -78,6 +81,9 @@ class Inbox:
         self._on_own_origin = on_own_origin
         #: Called (on the inbox thread) with a validated PoseFix whose target is this daemon.
         self._on_fix = on_fix
+        #: Called (on the inbox thread) with a validated pushed history (history push, opt-in:
+        #: without it the inbox does not subscribe to `<origin>/history`).
+        self._on_history = on_history
         self._drop_rate = drop_rate
         self._rng = random.Random()
         self._worker: Worker[Item] = Worker(
@@ -111,6 +117,14 @@ class Inbox:
                 topic_subscription(namespace, "fix"), self._on_fix_sample, allowed_origin=remote
             ),
         ]
+        if on_history is not None:
+            self._subs.append(
+                session.declare_subscriber(
+                    topic_subscription(namespace, "history"),
+                    self._on_history_sample,
+                    allowed_origin=remote,
+                )
+            )
 
     # -- zenoh callbacks: enqueue only ----------------------------------------------------
     def _on_delta(self, sample: zenoh.Sample) -> None:
@@ -133,6 +147,9 @@ class Inbox:
 
     def _on_fix_sample(self, sample: zenoh.Sample) -> None:
         self._worker.put(("fix", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
+
+    def _on_history_sample(self, sample: zenoh.Sample) -> None:
+        self._worker.put(("history", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
 
     def on_member_event(self, agent: str, event: str) -> None:
         """Liveliness join: ask the newcomer (or returning peer) what it holds."""
@@ -165,6 +182,8 @@ class Inbox:
                 self._handle_pose(key, raw)
             elif kind == "fix":
                 self._handle_fix(key, raw)
+            elif kind == "history":
+                self._handle_history(key, raw)
             elif kind == "join":
                 self._handle_join(key)
         except OwnOriginError as exc:
@@ -257,6 +276,19 @@ class Inbox:
         self.metrics.add("fix_received")
         if self._on_fix is not None:
             self._on_fix(msg)
+
+    def _handle_history(self, key: str, raw: bytes) -> None:
+        msg = expect(self.receiver.decode(raw, key_expr=key), HistoryReply, f"on {key}")
+        if msg.layer != msg.origin or msg.request_id != 0 or msg.parts != 1:
+            text = (
+                "expected a pushed history of the origin's own layer (request id 0, one part), "
+                f"found layer {msg.layer!r} from {msg.origin!r}, request {msg.request_id}, "
+                f"{msg.parts} parts"
+            )
+            raise WireError("bad-history", text)
+        accept(self.receiver, self.metrics, msg, raw)
+        if msg.records is not None and self._on_history is not None:
+            self._on_history(msg)
 
     def _handle_join(self, agent: str) -> None:
         """A member joined (or came back): tell it what we hold right away."""

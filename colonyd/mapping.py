@@ -20,6 +20,7 @@ from plugins.observation import Observation
 from plugins.source import open_source
 from voxel import kernels
 from voxel import keys as vk
+from voxel.blocks import shape_for
 from voxel.delta import Delta
 from voxel.errors import InputError
 from voxel.grid import VoxelGrid
@@ -255,7 +256,7 @@ def map_source(
     warming.start()  # compiled kernels load while the source opens and decodes
     source = open_source(spec, resolution=resolution)
     adapter = source.adapter
-    grid = VoxelGrid(resolution, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
+    grid = VoxelGrid(resolution, block_shape=shape_for(adapter.kind))
     out_dir = Path(out_dir)
     output_dir(out_dir, "--out")
     total = len(source) if max_frames is None else min(len(source), max_frames)

@@ -15,6 +15,7 @@ from colonyd.metrics import Metrics
 from colonyd.runtime import undeclare
 from protocol import (
     Heartbeat,
+    HistoryReply,
     LayerVersion,
     ObjectCentroid,
     Objects,
@@ -28,6 +29,8 @@ from voxel.delta import Delta
 
 #: Most layers one heartbeat lists.
 MAX_HEARTBEAT_LAYERS = 4096
+#: Most history records (and seen entries) one pushed frame carries; the rest goes next time.
+MAX_PUSH_RECORDS = 200_000
 
 
 class Publisher:
@@ -72,6 +75,12 @@ class Publisher:
         self._fix = session.declare_publisher(
             topic_key(namespace, self.own, "fix"), congestion_control=drop
         )
+        self._history = session.declare_publisher(
+            topic_key(namespace, self.own, "history"), congestion_control=drop
+        )
+        #: The highest own history version pushed (`push_history`); what the layer held at start
+        #: (restored from the state directory) is for replicas to page.
+        self.history_pushed = layers.own.grid.history.newest_version()
 
     def publish_own(
         self,
@@ -97,6 +106,37 @@ class Publisher:
         self.metrics.add("deltas_published")
         self.metrics.add("bytes_published", sent)
         return sent
+
+    def push_history(self) -> int:
+        """Put the own layer's history records of versions not pushed yet on `<own>/history`
+        (a HistoryReply with request id 0, one part; history push, opt-in). A frame too large
+        is not sent: replicas page those versions with HistoryRequest. Returns records sent."""
+        own = self.layers.own
+        with own.lock:
+            page, to, more = own.grid.history.page(self.history_pushed, MAX_PUSH_RECORDS)
+        after = self.history_pushed
+        if to == after:
+            return 0
+        self.history_pushed = to
+        msg = HistoryReply(
+            **self.sender.header(),
+            layer=self.own,
+            request_id=0,
+            layer_epoch=self.epoch,
+            from_version=after,
+            to_version=to,
+            more=more,
+            records=page if page.records.size + page.seen.size else None,
+        )
+        payload = self.sender.encode(msg)
+        if len(payload) > self.part_bytes:
+            self.metrics.add("history_push_oversized")
+            return 0
+        self._history.put(payload)
+        n = int(page.records.size + page.seen.size)
+        self.metrics.add("history_pushed", n)
+        self.metrics.add("bytes_published", len(payload))
+        return n
 
     def encode_own(
         self, prev: int, seq: int, delta: Delta, created: float
@@ -195,4 +235,12 @@ class Publisher:
         self.metrics.add("bytes_published", len(payload))
 
     def close(self) -> None:
-        undeclare(self._deltas, self._heartbeats, self._objects, self._align, self._pose, self._fix)
+        undeclare(
+            self._deltas,
+            self._heartbeats,
+            self._objects,
+            self._align,
+            self._pose,
+            self._fix,
+            self._history,
+        )

@@ -2,7 +2,7 @@
 
 Layout (every NAME matches `NAME_PATTERN`):
 
-    colony/<colony>/<origin>/announce|pose|delta|objects|align|heartbeat   publications
+    colony/<colony>/<origin>/announce|pose|delta|objects|align|heartbeat|fix|history  publications
     colony/<colony>/alive/<origin>                                  liveliness tokens
     colony/<colony>/<origin>/snapshot/<layer>                       queryable: snapshot of a layer
     colony/<colony>/<origin>/deltas/<layer>                         queryable: range of deltas
@@ -26,7 +26,7 @@ ROOT = "colony"
 NAME_PATTERN = r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}"
 _NAME = re.compile(NAME_PATTERN)
 #: Topics an origin publishes on.
-TOPICS = ("announce", "pose", "delta", "objects", "align", "heartbeat", "fix")
+TOPICS = ("announce", "pose", "delta", "objects", "align", "heartbeat", "fix", "history")
 #: Queryables an origin serves, each for one layer.
 QUERIES = ("snapshot", "deltas", "history")
 ALIVE = "alive"
@@ -39,7 +39,7 @@ FORGET = "forget"
 #: Queryables of a daemon's own that are not protocol frames (tooling).
 REPORTS = (STATUS, EXPORT, FORGET)
 
-Topic = Literal["announce", "pose", "delta", "objects", "align", "heartbeat", "fix"]
+Topic = Literal["announce", "pose", "delta", "objects", "align", "heartbeat", "fix", "history"]
 Query = Literal["snapshot", "deltas", "history"]
 
 

@@ -9,10 +9,13 @@ from voxel import keys as vk
 from voxel.errors import InputError
 
 #: Block side lengths as powers of two per axis. Cubes (4x4x4) suit 3D sensors; planar blocks
-#: (8x8x1) suit layers mapped by a 2D scanner, whose voxels all lie in one z layer.
+#: (8x8x1) suit layers mapped by a 2D scanner, whose voxels all lie in one z layer; slabs
+#: (4x4x1) suit a 3D LiDAR at fine resolution, whose long, thin, mostly level rays fill 22 % of
+#: a cube and 40 % of a slab (docs/BENCHMARKS.md).
 CUBE = (2, 2, 2)
 PLANAR = (3, 3, 0)
-BLOCK_SHAPES = {"cube": CUBE, "planar": PLANAR}
+SLAB = (2, 2, 0)
+BLOCK_SHAPES = {"cube": CUBE, "planar": PLANAR, "slab": SLAB}
 
 #: Channel name -> (dtype, trailing shape, fill value). Core channels always exist; the others are
 #: allocated the first time they are used.
@@ -31,6 +34,12 @@ RICH_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
     "class_probs": (np.dtype(np.float32), (-1,), 0.0),
 }
 SCALAR_SPEC = (np.dtype(np.float32), (), np.nan)
+
+
+def shape_for(sensor_kind: str) -> str:
+    """The block shape that holds a layer mapped by one kind of sensor in the least memory:
+    planar for a 2D LiDAR, slab for a 3D LiDAR, cube otherwise (docs/VOXEL.md, "Storage")."""
+    return {"lidar2d": "planar", "lidar3d": "slab"}.get(sensor_kind, "cube")
 
 
 def block_shifts(shape: str | tuple[int, int, int]) -> tuple[int, int, int]:
@@ -202,12 +211,12 @@ class BlockStore:
         self.free_slots.extend(int(s) for s in slots)
 
     def shrink(self) -> bool:
-        """Return memory: when at most a quarter of the slots hold blocks, move the used slots to
+        """Return memory: when at most half of the slots hold blocks, move the used slots to
         the front of new arrays just large enough for them (slot numbers change). Returns
         whether it did."""
         used = self.sorted_slots
         n = int(used.size)
-        if n * 4 > self.capacity or self.capacity <= 64:
+        if n * 2 > self.capacity or self.capacity <= 64:
             return False
         cap = max(64, n + n // 4)
         for name, arr in self.channels.items():

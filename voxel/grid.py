@@ -82,7 +82,8 @@ class VoxelGrid:
     One grid is one layer with a single writer. Every change bumps the grid version; each voxel
     remembers the version of its last change, so `delta_since` returns exactly what changed and
     `apply` is idempotent and order-independent. `block_shape` is "cube" (4x4x4, for 3D sensors),
-    "planar" (8x8x1, for a layer mapped by a 2D scanner) or three side lengths.
+    "planar" (8x8x1, for a layer mapped by a 2D scanner), "slab" (4x4x1, for a 3D LiDAR) or three
+    side lengths.
     """
 
     def __init__(

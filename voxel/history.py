@@ -32,6 +32,10 @@ RECORD_DTYPE = np.dtype(
 )
 #: Entries of the seen log: a voxel that went unknown -> free, and the scan that saw it.
 SEEN_DTYPE = np.dtype([("key", np.int64), ("time", np.float64), ("version", np.uint32)])
+#: Smallest record buffer and seen log a history keeps allocated (entries): buffers grow by
+#: doubling from it and shrink back to it (`drop_keys`), so an empty or mostly forgotten
+#: history costs ~50 KB, not the 4.8 MB a 65,536-entry floor held.
+MIN_BUFFER = 1024
 #: Log-odds `last_at` reports for a voxel known only from the seen log (OctoMap's first miss).
 FIRST_MISS = np.float32(-0.40625)  # log(0.4 / 0.6) on the quantum grid
 
@@ -111,7 +115,7 @@ class History:
         self.capacity = capacity
         self.per_voxel = per_voxel
         self.records = np.zeros(0, dtype=RECORD_DTYPE)
-        self._buf = np.zeros(min(capacity, 65536), dtype=RECORD_DTYPE)
+        self._buf = np.zeros(min(capacity, MIN_BUFFER), dtype=RECORD_DTYPE)
         self.size = 0
         self.agents: list[str] = []
         self._agent_index: dict[str, int] = {}
@@ -201,9 +205,14 @@ class History:
             self._seen[:keep] = self._seen[self.seen_size - keep : self.seen_size]
             self.dropped += self.seen_size - keep
             self.seen_size = keep
+            if self._seen.shape[0] > max(self.capacity, n):  # the bound was lowered
+                self._seen = self._seen[: max(self.capacity, n)].copy()
         if self.seen_size + n > self._seen.shape[0]:
             grown = np.zeros(
-                min(max(self._seen.shape[0] * 2, self.seen_size + n, 65536), max(self.capacity, n)),
+                min(
+                    max(self._seen.shape[0] * 2, self.seen_size + n, MIN_BUFFER),
+                    max(self.capacity, n),
+                ),
                 dtype=SEEN_DTYPE,
             )
             grown[: self.seen_size] = self._seen[: self.seen_size]
@@ -234,6 +243,8 @@ class History:
             rec = rec[np.sort(newest)]
         self.dropped += self.size - rec.size
         rec = rec[np.argsort(rec["time"], kind="stable")]
+        if self._buf.shape[0] > self.capacity:  # the bound was lowered: return the excess
+            self._buf = np.zeros(max(self.capacity, rec.size + incoming), dtype=RECORD_DTYPE)
         self._buf[: rec.size] = rec
         self.size = rec.size
 
@@ -312,16 +323,16 @@ class History:
             kept = rec[~gone]
             self._buf[: kept.size] = kept
             self.size = kept.size
-        if self.size * 4 < self._buf.shape[0] and self._buf.shape[0] > 65536:
-            self._buf = self._buf[: max(self.size + self.size // 4, 65536)].copy()
+        if self.size * 2 < self._buf.shape[0] and self._buf.shape[0] > MIN_BUFFER:
+            self._buf = self._buf[: max(self.size + self.size // 4, MIN_BUFFER)].copy()
         s = self.seen()
         gone_seen = np.isin(s["key"], np.asarray(keys, dtype=np.int64))
         if gone_seen.any():
             kept_seen = s[~gone_seen]
             self._seen[: kept_seen.size] = kept_seen
             self.seen_size = kept_seen.size
-        if self.seen_size * 4 < self._seen.shape[0] and self._seen.shape[0] > 65536:
-            self._seen = self._seen[: max(self.seen_size + self.seen_size // 4, 65536)].copy()
+        if self.seen_size * 2 < self._seen.shape[0] and self._seen.shape[0] > MIN_BUFFER:
+            self._seen = self._seen[: max(self.seen_size + self.seen_size // 4, MIN_BUFFER)].copy()
         return n + int(np.count_nonzero(gone_seen))
 
     def allocated_bytes(self) -> int:
@@ -361,8 +372,8 @@ class History:
 
     def merge(self, page: HistoryPage) -> int:
         """Append the records and seen entries of a page (another holder's) whose versions are
-        newer than everything held; agent codes are translated to this history's. Returns
-        records and entries taken."""
+        newer than everything held; agent codes are translated to this history's. The bound
+        holds: past `capacity` the oldest go first. Returns records and entries taken."""
         newest = self.newest_version()
         rec = page.records[page.records["version"] > newest]
         seen = page.seen[page.seen["version"] > newest]
@@ -371,8 +382,14 @@ class History:
             rec = rec.copy()
             rec["agent"] = codes[rec["agent"]]
             rec = rec[np.argsort(rec["version"], kind="stable")]
+            if rec.size > self.capacity:  # more than the bound: its newest only
+                self.dropped += rec.size - self.capacity
+                rec = rec[rec.size - self.capacity :]
             self.append(rec["key"], **{n: rec[n] for n in RECORD_COLUMNS if n != "key"})
         seen = seen[np.argsort(seen["version"], kind="stable")]
+        if seen.size > self.capacity:
+            self.dropped += seen.size - self.capacity
+            seen = seen[seen.size - self.capacity :]
         for version in np.unique(seen["version"]):
             part = seen[seen["version"] == version]
             self._log_seen(part["key"], float(part["time"][0]), int(version))
@@ -381,10 +398,10 @@ class History:
     def load(self, records: np.ndarray, agents: list[str], seen: np.ndarray | None = None) -> None:
         """Replace the content with saved records, agent table and seen log."""
         seen = np.zeros(0, SEEN_DTYPE) if seen is None else seen
-        self._seen = np.zeros(max(seen.size, 65536), dtype=SEEN_DTYPE)
+        self._seen = np.zeros(max(seen.size, MIN_BUFFER), dtype=SEEN_DTYPE)
         self._seen[: seen.size] = seen
         self.seen_size = seen.size
-        self._buf = np.zeros(max(records.size, min(self.capacity, 65536)), dtype=RECORD_DTYPE)
+        self._buf = np.zeros(max(records.size, min(self.capacity, MIN_BUFFER)), dtype=RECORD_DTYPE)
         self._buf[: records.size] = records
         self.size = records.size
         self.agents = list(agents)

@@ -34,7 +34,7 @@ class Scenario:
     resolution: float
     max_range: float
     frames: Callable[[], Iterator[Frame]]
-    block_shape: str = "cube"  # planar for a 2D scanner's layer, as `colonyd map` chooses
+    block_shape: str = "cube"  # planar for a 2D scanner, slab for a 3D LiDAR (`colonyd map`)
     default: bool = True  # run unless scenarios are named (slow ones are opt-in)
 
 
@@ -98,9 +98,9 @@ def scenarios(shared_data: Path | None) -> list[Scenario]:
         Scenario("depth_640x480_0.05", 0.05, 5.0, _synthetic_depth),
         Scenario("depth_640x480_0.10", 0.10, 5.0, _synthetic_depth),
         Scenario("lidar2d_1081_0.05", 0.05, 30.0, _lidar2d, "planar"),
-        Scenario("lidar3d_64x1024_0.10", 0.10, 30.0, _lidar3d),
+        Scenario("lidar3d_64x1024_0.10", 0.10, 30.0, _lidar3d, "slab"),
         # OctoMap needs ~1 min and 11 GB for this one, and reading its tree back ~20 min: opt-in.
-        Scenario("lidar3d_64x1024_0.05", 0.05, 30.0, _lidar3d, default=False),
+        Scenario("lidar3d_64x1024_0.05", 0.05, 30.0, _lidar3d, "slab", default=False),
     ]
     if shared_data is not None and (shared_data / "redkitchen-50" / "frames").is_dir():
         out.append(Scenario("redkitchen50_0.05", 0.05, 5.0, _redkitchen(shared_data)))

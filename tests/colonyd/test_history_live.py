@@ -11,7 +11,12 @@ import time
 import numpy as np
 
 from colonyd.export import query_maps
+from colonyd.frames import Sender
+from protocol import Heartbeat, HistoryReply
+from protocol.identity import Signer
+from protocol.keyexpr import topic_key
 from voxel import keys as vk
+from voxel.history import History
 
 
 def _layer_at(colony, daemon: str, t: float):
@@ -93,25 +98,83 @@ def test_forgetting_replicates_with_the_origins_decay(make_colony):
 
 def test_replicas_equal_the_origin_in_every_channel_and_the_history(make_colony):
     """A simulated depth camera maps colour, classes and normals: the replica's layer equals
-    the origin's in every channel (digests cover them all) and holds the same history."""
+    the origin's in every channel (digests cover them all) and holds the same history (history
+    sync is on by default); a replica with a small peer history budget keeps within it."""
     colony = make_colony("channels")
     a = colony.add("a", ["sim:world=room,agent=depth-1,frames=4"], start=False)
     a.env["COLONYD_HISTORY_SYNC_S"] = "0.5"
     a.start()
-    b = colony.add("b", start=False)
-    b.env["COLONYD_HISTORY_SYNC_S"] = "0.5"
-    b.start()
+    colony.add("b")  # the default history_sync_s
+    c = colony.add("c", start=False)
+    c.env.update({"COLONYD_HISTORY_SYNC_S": "0.5", "COLONYD_PEER_HISTORY_ENTRIES": "10000"})
+    c.start()
     colony.wait_converged(60)
     deadline = time.monotonic() + 20
     while time.monotonic() < deadline:
         report = {r["agent"]: r for r in colony.status(digest=True)}
-        la, lb = report["a"]["layers"]["a"], report["b"]["layers"].get("a", {})
-        if la["digest"] == lb.get("digest") and la["history"] == lb.get("history"):
-            break
+        if set(report) == {"a", "b", "c"}:  # a round every daemon answered
+            la, lb = (report[x]["layers"].get("a", {}) for x in "ab")
+            lc = report["c"]["layers"].get("a", {})
+            same = la["digest"] == lb.get("digest") and la["history"] == lb.get("history")
+            if same and lc.get("history", 0) > 0:
+                break
         time.sleep(0.5)
-    assert la["digest"] == lb["digest"] and la["history"] == lb["history"] > 1000
+    assert la["digest"] == lb["digest"] and la["history"] == lb["history"] > 10_000
+    assert la["digest"] == lc["digest"] and 0 < lc["history"] <= 10_000  # its budget
     for channels in (la["channels"], lb["channels"]):
         assert {"colour", "normal", "class_ids", "class_probs"} <= set(channels)
     ka, va = _layer_at(colony, "a", time.time())
     kb, vb = _layer_at(colony, "b", time.time())
     assert np.array_equal(ka, kb) and np.array_equal(va, vb) and len(ka) > 1000
+
+
+def test_history_pushed_with_the_deltas_reaches_a_replica_that_never_pulls(make_colony):
+    """History push (opt-in): the origin publishes its new records with each delta and a
+    replica whose pull is off holds the origin's history, answering temporal queries alike."""
+    colony = make_colony("push")
+    b = colony.add("b", start=False)  # listening first: a is connected before it maps
+    b.env.update({"COLONYD_HISTORY_PUSH": "true", "COLONYD_HISTORY_SYNC_S": "0"})
+    b.start()
+    a = colony.add("a", ["synthetic:scans=8,rate=4,points=240,seed=3"], start=False)
+    a.env["COLONYD_HISTORY_PUSH"] = "true"
+    t_start = time.time()
+    a.start()
+    colony.wait_converged(40)
+    deadline = time.monotonic() + 15
+    while True:
+        report = {r["agent"]: r for r in colony.status()}
+        if set(report) == {"a", "b"}:
+            held = (report["a"]["layers"]["a"]["history"], report["b"]["layers"]["a"]["history"])
+            if held[0] == held[1] or time.monotonic() > deadline:
+                break
+        time.sleep(0.5)
+    assert held[0] == held[1] > 100, held
+    counts = {x: report[x]["metrics"]["counts"] for x in "ab"}
+    assert counts["a"].get("history_pushed", 0) >= held[0]
+    assert counts["b"].get("history_records", 0) >= held[1]
+    assert counts["a"].get("histories_served", 0) == 0  # nobody pulled
+    for t in np.linspace(t_start, time.time(), 6):
+        (ka, la), (kb, lb) = _layer_at(colony, "a", t), _layer_at(colony, "b", t)
+        assert np.array_equal(ka, kb) and np.array_equal(la, lb)
+    # a peer pushing records of another's layer is refused, counted, and changes nothing
+    evil = Sender("evil", 1, signer=Signer.generate())
+    page = History()
+    code = page.agent_code("evil")
+    page.append(np.arange(5, dtype=np.int64), time=1.0, version=10**6, agent=code)
+    forged = HistoryReply(
+        **evil.header(), layer="a", request_id=0, layer_epoch=1, from_version=0,
+        to_version=10**6, records=page.page(0, 10)[0],
+    )  # fmt: skip
+    hello = Heartbeat(**evil.header(), kind="robot", frame_id="evil.odom", identity=evil.identity)
+    s = colony.session()
+    s.put(topic_key(colony.namespace, "evil", "heartbeat"), evil.encode(hello))  # pinned (TOFU)
+    time.sleep(1.0)
+    s.put(topic_key(colony.namespace, "evil", "history"), evil.encode(forged))
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        b_report = next((r for r in colony.status() if r["agent"] == "b"), None)
+        if b_report and b_report["metrics"]["rejected"].get("bad-history", 0) >= 1:
+            break
+        time.sleep(0.3)
+    assert b_report["metrics"]["rejected"].get("bad-history", 0) >= 1, b_report["metrics"]
+    assert b_report["layers"]["a"]["history"] == held[1]

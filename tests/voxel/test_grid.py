@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from voxel import keys as vk
+from voxel.blocks import BlockStore
 from voxel.errors import DeltaError, FileFormatError, InputError
 from voxel.grid import FREE_STATE, OCCUPIED, UNKNOWN, VoxelGrid
 from voxel.sensor import SensorModel, logodds
@@ -474,3 +475,15 @@ def test_times_are_exact_across_a_moved_time_base():
         a.dtype.itemsize * int(np.prod(a.shape[2:])) for a in grid.store.channels.values()
     )
     assert per_voxel == 12  # log-odds, version, time
+
+
+def test_the_store_shrinks_once_half_its_slots_are_free() -> None:
+    store = BlockStore(capacity=64)
+    slots = store.ensure(np.arange(1000, dtype=np.int64))
+    cap = store.capacity
+    store.release(slots[:400])
+    assert not store.shrink()  # 600 of 1000 held: more than half
+    store.release(slots[400:520])
+    assert store.shrink() and store.capacity < 0.7 * cap
+    assert store.lookup(np.array([519, 520, 999])).tolist()[0] == -1
+    assert (store.lookup(np.arange(520, 1000)) >= 0).all()

@@ -6,7 +6,7 @@ import numpy as np
 
 from voxel import keys as vk
 from voxel.grid import FREE_STATE, OCCUPIED, VoxelGrid
-from voxel.history import History, ObjectTags, Observer
+from voxel.history import RECORD_DTYPE, SEEN_DTYPE, History, ObjectTags, Observer
 from voxel.occupancy import Changes, Evidence
 from voxel.sensor import SensorModel
 
@@ -127,3 +127,61 @@ def test_no_object_tags_without_object_ids_or_hits() -> None:
         ObjectTags.of(np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
         is None
     )
+
+
+def test_dropping_keys_returns_the_buffers_memory_down_to_what_is_held() -> None:
+    """Forgetting 90 % of the voxels frees 90 % of the history's allocated bytes: the record
+    buffer and the seen log shrink to what they hold (no 65,536-entry floor, which held 4.8 MB
+    of a mostly forgotten 079 layer), and an empty history costs little."""
+    h = History()
+    assert h.allocated_bytes() < 100_000
+    keys = np.arange(100_000, dtype=np.int64)
+    for v in range(10):
+        part = keys[v * 10_000 : (v + 1) * 10_000]
+        h.append(part[::2], time=float(v), version=v + 1)
+        h._log_seen(part[1::2], float(v), v + 1)
+    before = h.allocated_bytes()
+    assert h.drop_keys(keys[10_000:]) == 90_000
+    assert h.size == 5_000 and h.seen_size == 5_000
+    assert h.allocated_bytes() <= 0.15 * before
+    h.append(keys[:3], time=11.0, version=11)  # it grows again from there
+    assert h.size == 5_003
+
+
+def test_merging_past_the_capacity_keeps_the_newest() -> None:
+    """A replica whose history budget is below the origin's keeps the newest records and seen
+    entries, however large the page (the daemon's peer history budget relies on it)."""
+    origin = History()
+    keys = np.arange(30_000, dtype=np.int64)
+    agent = origin.agent_code("a")
+    for v in range(3):
+        part = keys[v * 10_000 : (v + 1) * 10_000]
+        origin.append(part, time=float(v), version=v + 1, agent=agent)
+        origin._log_seen(part + 100_000, float(v), v + 1)
+    page, to, more = origin.page(0, 1_000_000)
+    assert to == 3 and not more
+    replica = History(capacity=12_000)
+    assert replica.merge(page) == 24_000
+    assert replica.size <= 12_000 and replica.seen_size <= 12_000
+    assert replica.newest_version() == 3
+    assert set(replica.view()["version"]) <= {2, 3} and 3 in set(replica.seen()["version"])
+
+
+def test_lowering_the_capacity_returns_memory_at_the_next_merge() -> None:
+    """More peer layers share the daemon's history budget: a layer whose share shrinks gives
+    the excess back when it next takes records."""
+    origin, replica = History(), History()
+    agent = origin.agent_code("a")
+    keys = np.arange(40_000, dtype=np.int64)
+    for v in range(4):
+        part = keys[v * 10_000 : (v + 1) * 10_000]
+        origin.append(part, time=float(v), version=v + 1, agent=agent)
+        origin._log_seen(part + 100_000, float(v), v + 1)
+    page, to, _ = origin.page(0, 60_000)  # versions 1-3 (20,000 entries each)
+    replica.merge(page)
+    big = replica.allocated_bytes()
+    replica.capacity = 12_000
+    replica.merge(origin.page(to, 1_000_000)[0])
+    assert replica.size <= 12_000 and replica.seen_size <= 12_000
+    assert replica.allocated_bytes() <= 12_000 * (RECORD_DTYPE.itemsize + SEEN_DTYPE.itemsize)
+    assert replica.allocated_bytes() < big / 2

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from voxel import keys as vk
-from voxel.blocks import join_keys, split_keys
+from voxel.blocks import join_keys, shape_for, split_keys
 from voxel.errors import InputError
 from voxel.grid import VoxelGrid
 from voxel.raycast import FREE, HIT, ray_keys, trace
+from voxel.sensor import SensorModel
 
 RES = 0.1
 
@@ -183,3 +184,25 @@ def test_the_compiled_sweep_visits_what_the_numpy_sweep_visits(monkeypatch, flat
         np.testing.assert_array_equal(compiled_tr.cells, numpy_tr.cells)
         np.testing.assert_array_equal(compiled_tr.hit_keys, numpy_tr.hit_keys)
         np.testing.assert_array_equal(compiled_tr.inverse, numpy_tr.inverse)
+
+
+def test_slab_blocks_hold_a_3d_lidar_scan_in_less_memory():
+    """Long, thin, nearly level rays at fine resolution fill a quarter of 4x4x4 cubes; 4x4x1
+    slabs hold the same scan in far less memory per known voxel."""
+    origin = np.array([0.01, 0.02, 1.8])
+    elev, azim = np.meshgrid(np.radians(np.linspace(-15, 5, 16)), np.linspace(-np.pi, np.pi, 256))
+    d = np.stack([np.cos(elev) * np.cos(azim), np.cos(elev) * np.sin(azim), np.sin(elev)], -1)
+    d = d.reshape(-1, 3)
+    r = np.where(d[:, 2] < 0, np.minimum(1.8 / np.maximum(-d[:, 2], 1e-9), 12.0), 12.0)
+    pts = origin + d * r[:, None]  # a ground plane, and clear rays to 12 m
+    cube, slab = VoxelGrid(0.05), VoxelGrid(0.05, block_shape="slab")
+    for g in (cube, slab):
+        g.integrate(pts, origin, time=0.0, sensor=SensorModel(max_range=10.0))
+    assert slab.store.shifts == (2, 2, 0) and shape_for("lidar3d") == "slab"
+    assert shape_for("lidar2d") == "planar" and shape_for("depth") == "cube"
+    assert abs(slab.known_count() - cube.known_count()) <= 1e-3 * cube.known_count()
+    assert np.array_equal(
+        np.sort(vk.pack(slab.occupied_keys())), np.sort(vk.pack(cube.occupied_keys()))
+    )
+    per_slab = slab.nbytes() / slab.known_count()
+    assert per_slab < 0.8 * cube.nbytes() / cube.known_count()
