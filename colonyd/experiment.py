@@ -54,6 +54,7 @@ class RunResult:
     metrics: dict[str, dict[str, float | None]]
     seconds: float
     complete: bool  # every source done before the timeout
+    updates: dict[str, dict[str, int]]  # per agent, its estimator's update counts at the end
 
 
 def agent_metrics(track: Track) -> dict[str, float | None]:
@@ -77,24 +78,29 @@ def _round(x: float | None, digits: int = 4) -> float | None:
     return None if x is None else round(x, digits)
 
 
-def _start(base: Path, name: str, seed: int, duration: float) -> SimRun:
+def _start(base: Path, name: str, seed: int, duration: float, lidar_range: float) -> SimRun:
     agents = RUNS[name]
     env = {"COLONYD_ANCHOR": ANCHOR} if ANCHOR in agents else {}
     run = SimRun(base / name, name, env=env, odometry_noise=ODOMETRY_NOISE)
     epoch = time.time() + EPOCH_DELAY_S
     for agent in agents:
         run.add(
-            agent, duration, seed * 100 + AGENT_SEED[agent], agent_options(agents, agent, epoch)
+            agent,
+            duration,
+            seed * 100 + AGENT_SEED[agent],
+            agent_options(agents, agent, epoch, lidar_range),
         )
     return run
 
 
-def agent_options(agents: tuple[str, ...], agent: str, epoch: float) -> str:
+def agent_options(
+    agents: tuple[str, ...], agent: str, epoch: float, lidar_range: float = LIDAR_RANGE
+) -> str:
     """The `sim:` options of `agent` in a run of `agents`: the run's shared clock, lidar-1's short
     range, and the CCTV told which robots' markers it can see (so that it sends them fixes)."""
     options = [f"epoch={epoch:.3f}"]
     if agent == "lidar-1":
-        options.append(f"lidar_range={LIDAR_RANGE:g}")
+        options.append(f"lidar_range={lidar_range:g}")
     if agent == ANCHOR:
         robots = [a for a in ROBOTS if a in agents]
         if robots:
@@ -123,7 +129,20 @@ def _finish(run: SimRun, out: Path, complete: bool) -> RunResult:
         colours=AGENT_COLOUR,
     )
     metrics = {agent: agent_metrics(track) for agent, track in run.tracks.items()}
-    return RunResult(run.name, run.tracks, metrics, run.now(), complete)
+    updates = {agent: update_counts(run.report(agent)) for agent in run.tracks}
+    return RunResult(run.name, run.tracks, metrics, run.now(), complete, updates)
+
+
+def update_counts(report: dict[str, Any]) -> dict[str, int]:
+    """What an agent's estimator fused and refused, by kind (own map, colony map, fixes), and the
+    fixes its daemon received, from its last status."""
+    out: dict[str, int] = {}
+    for entry in (report.get("localisation") or {}).values():
+        if isinstance(entry, dict):
+            out.update({k: int(v) for k, v in entry.items() if isinstance(v, int)})
+    counts = report.get("metrics", {}).get("counts", {})
+    out.update({k: int(v) for k, v in counts.items() if k.startswith("fix")})
+    return out
 
 
 def _progress(active: dict[str, SimRun], done: dict[str, RunResult], began: float) -> Any:
@@ -157,6 +176,7 @@ def run_paper(
     parallel: int = 2,
     timeout: float | None = None,
     progress: bool = True,
+    lidar_range: float | None = None,
 ) -> dict[str, Any]:
     """Run every run of `RUNS` (at most `parallel` at a time), each for `duration` seconds of sim
     time (a run whose sources are not done after `timeout` seconds, default 6 x duration + 120,
@@ -168,6 +188,7 @@ def run_paper(
     out = Path(out)
     output_dir(out, "--out")
     timeout = timeout if timeout is not None else 6 * duration + 120
+    lidar_range = LIDAR_RANGE if lidar_range is None else lidar_range
     console = Console(file=sys.stdout)
     work = Path(tempfile.mkdtemp(prefix="colonyd-paper-"))
     began = time.monotonic()
@@ -179,7 +200,7 @@ def run_paper(
             while pending or active:
                 while pending and len(active) < max(1, parallel):
                     name = pending.pop(0)
-                    active[name] = _start(work, name, seed, duration)
+                    active[name] = _start(work, name, seed, duration, lidar_range)
                     active[name].watch()
                 for name, run in list(active.items()):
                     over = run.now() > timeout
@@ -199,12 +220,13 @@ def run_paper(
     results = {
         "seed": seed,
         "duration_s": duration,
-        "lidar_range_m": LIDAR_RANGE,
+        "lidar_range_m": lidar_range,
         "odometry_noise": ODOMETRY_NOISE,
         "seconds": round(time.monotonic() - began, 1),
         "runs": {name: done[name].metrics for name in RUNS},
         "complete": {name: done[name].complete for name in RUNS},
         "run_seconds": {name: round(done[name].seconds, 1) for name in RUNS},
+        "updates": {name: done[name].updates for name in RUNS},
     }
     (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
     draw_errors(out / "pose-error.png", _panels(done), note="vertical: first contact", axis="sim")
