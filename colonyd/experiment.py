@@ -96,9 +96,11 @@ def _start(base: Path, name: str, seed: int, duration: float, lidar_range: float
 def agent_options(
     agents: tuple[str, ...], agent: str, epoch: float, lidar_range: float = LIDAR_RANGE
 ) -> str:
-    """The `sim:` options of `agent` in a run of `agents`: the run's shared clock, lidar-1's short
+    """The `sim:` options of `agent` in a run of `agents`: the run's shared clock (frames a
+    daemon is late for are mapped late, not skipped: on a loaded machine a run takes longer, but
+    every agent maps every frame, so a run's figures do not depend on the load), lidar-1's short
     range, and the CCTV told which robots' markers it can see (so that it sends them fixes)."""
-    options = [f"epoch={epoch:.3f}"]
+    options = [f"epoch={epoch:.3f}", "keep_late=1"]
     if agent == "lidar-1":
         options.append(f"lidar_range={lidar_range:g}")
     if agent == ANCHOR:

@@ -162,6 +162,11 @@ class ScanLocaliser:
         pose: np.ndarray = self.history[i][1].copy()
         return pose
 
+    def ahead(self, stamp: float) -> bool:
+        """True when `stamp` is later than the last step by more than `fix_tolerance`: a fix
+        from a sensor that is ahead of this agent (it maps late), to be fused once it gets there."""
+        return bool(self.history) and stamp > self.history[-1][0] + self.params.fix_tolerance
+
     def fix(self, pose: np.ndarray, covariance: np.ndarray, stamp: float) -> bool | None:
         """Fuse an absolute measurement of the body pose (x, y, yaw) in this agent's frame, taken
         at `stamp` (a CCTV saw the agent's marker): carried to the present by the estimated motion
