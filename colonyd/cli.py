@@ -390,6 +390,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument(
         "--out-dir", type=Path, default=None, help="keep each seed's outputs here (seed-N/)"
     )
+    b.add_argument(
+        "--timeout",
+        type=float,
+        default=None,
+        help="per run, as for colonyd experiment paper (default 6 x duration + 120)",
+    )
     b = bsub.add_parser("colony", help="N daemons on loopback: propagation, catch-up, idle cost")
     _bench_io(b)
     b.add_argument("--daemons", type=int, default=4, help="daemons on loopback (default 4)")
@@ -678,6 +684,7 @@ def _bench(args: argparse.Namespace) -> int:
             duration=args.duration,
             parallel=args.parallel,
             lidar_range=args.lidar_range,
+            timeout=args.timeout,
             out_dir=args.out_dir,
             command=" ".join(["colonyd", *sys.argv[1:]]),
         )

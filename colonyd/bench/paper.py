@@ -90,6 +90,7 @@ def run_paper_bench(
     duration: float = 60.0,
     parallel: int = 2,
     lidar_range: float | None = None,
+    timeout: float | None = None,
     out_dir: Path | None = None,
     command: str | None = None,
 ) -> dict[str, Any]:
@@ -104,7 +105,12 @@ def run_paper_bench(
             out = base / f"seed-{seed}"
             before = _load()
             results = run_paper(
-                out, seed=seed, duration=duration, parallel=parallel, lidar_range=lidar_range
+                out,
+                seed=seed,
+                duration=duration,
+                parallel=parallel,
+                lidar_range=lidar_range,
+                timeout=timeout,
             )
             load = {"start": before, "end": _load()}  # the machine is shared: results' context
             per_seed.append({**results, "load_average": load, "claims": claims(results, out)})
