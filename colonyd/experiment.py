@@ -4,6 +4,7 @@ loopback; their pose error against the sim's truth (read here only, to evaluate)
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 import sys
 import tempfile
@@ -14,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from colonyd.errors import StatusError
 from colonyd.outdir import output_dir
 from colonyd.plots import Panel, Series, draw_colony, draw_errors
 from colonyd.simrun import SimRun
@@ -21,6 +23,8 @@ from colonyd.tracks import Track, pose_errors, write_tum
 
 #: The runs: name -> the agents of its colony. Every agent starts at an unknown pose (its own
 #: frame) with realistic wheel odometry; cctv-1 is fixed with a surveyed pose (the anchor).
+log = logging.getLogger(__name__)
+
 RUNS: dict[str, tuple[str, ...]] = {
     "depth-alone": ("depth-1",),
     "lidar-alone": ("lidar-1",),
@@ -40,6 +44,8 @@ LIDAR_RANGE = 4.0
 #: Seconds from starting a run's daemons to its shared clock's zero (`epoch=`): every agent's path
 #: starts then, so a daemon slow to start does not skip the first frames.
 EPOCH_DELAY_S = 15.0
+#: Seconds to wait for the fused map of a finished run (a loaded machine answers late).
+MAP_WAIT_S = 30.0
 #: Colour index of each run in the pictures.
 RUN_COLOUR = {name: i for i, name in enumerate(RUNS)}
 AGENT_COLOUR = {"lidar-1": 0, "depth-1": 1, "cctv-1": 2}
@@ -117,19 +123,24 @@ def _finish(run: SimRun, out: Path, complete: bool) -> RunResult:
     for agent, track in run.tracks.items():
         write_tum(track, directory, agent)
     viewer = next(a for a in ROBOTS if a in run.tracks)  # whose fused map is drawn
-    fused, _ = run.maps(viewer)
+    try:
+        fused, _ = run.maps(viewer, wait_s=MAP_WAIT_S)
+    except StatusError as exc:  # a daemon too busy to answer: the figures still count
+        log.warning("run %s: no top-down picture: %s", run.name, exc)
+        fused = None
     report = run.report(viewer)
     frame = report.get("colony_frame", {"agents": {}})
-    draw_colony(
-        directory / "topdown.png",
-        fused,
-        run.tracks,
-        {a: np.array(t) for a, t in frame.get("agents", {}).items()},
-        report.get("peer_objects", {}),
-        report.get("objects", []),
-        title=f"{run.name} (map of {viewer})",
-        colours=AGENT_COLOUR,
-    )
+    if fused is not None:
+        draw_colony(
+            directory / "topdown.png",
+            fused,
+            run.tracks,
+            {a: np.array(t) for a, t in frame.get("agents", {}).items()},
+            report.get("peer_objects", {}),
+            report.get("objects", []),
+            title=f"{run.name} (map of {viewer})",
+            colours=AGENT_COLOUR,
+        )
     metrics = {agent: agent_metrics(track) for agent, track in run.tracks.items()}
     updates = {agent: update_counts(run.report(agent)) for agent in run.tracks}
     return RunResult(run.name, run.tracks, metrics, run.now(), complete, updates)
