@@ -139,6 +139,17 @@ def _version() -> str:
         return "unknown"
 
 
+def _lidar_range(p: argparse.ArgumentParser) -> None:
+    from colonyd.experiment import LIDAR_RANGE
+
+    p.add_argument(
+        "--lidar-range",
+        type=float,
+        default=LIDAR_RANGE,
+        help=f"lidar-1's range in m (default {LIDAR_RANGE:g}: a short-range 2D LiDAR)",
+    )
+
+
 def _bench_io(b: argparse.ArgumentParser, *, shared_data: bool = False) -> None:
     """The flags every benchmark takes: where its JSON goes (and where the real data is)."""
     b.add_argument("--json", type=Path, required=True, help="write the results here (JSON)")
@@ -375,8 +386,15 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="default 1-5")
     b.add_argument("--duration", type=float, default=60.0, help="seconds per run (default 60)")
     b.add_argument("--parallel", type=int, default=2, help="runs at the same time (default 2)")
+    _lidar_range(b)
     b.add_argument(
         "--out-dir", type=Path, default=None, help="keep each seed's outputs here (seed-N/)"
+    )
+    b.add_argument(
+        "--timeout",
+        type=float,
+        default=None,
+        help="per run, as for colonyd experiment paper (default 6 x duration + 120)",
     )
     b = bsub.add_parser("colony", help="N daemons on loopback: propagation, catch-up, idle cost")
     _bench_io(b)
@@ -448,6 +466,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="seconds of sim time each run maps, in real time (default 60)",
     )
     e.add_argument("--parallel", type=int, default=2, help="runs at the same time (default 2)")
+    _lidar_range(e)
     e.add_argument(
         "--timeout",
         type=float,
@@ -594,6 +613,7 @@ def main(argv: list[str] | None = None) -> int:
             duration=args.duration,
             parallel=args.parallel,
             timeout=args.timeout,
+            lidar_range=args.lidar_range,
         )
         sys.stdout.write(f"wrote {args.out}: results.json, pose-error.png, <run>/\n")
         return EXIT_OK
@@ -663,6 +683,8 @@ def _bench(args: argparse.Namespace) -> int:
             seeds=args.seeds,
             duration=args.duration,
             parallel=args.parallel,
+            lidar_range=args.lidar_range,
+            timeout=args.timeout,
             out_dir=args.out_dir,
             command=" ".join(["colonyd", *sys.argv[1:]]),
         )

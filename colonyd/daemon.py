@@ -578,8 +578,12 @@ class Daemon:
         """Fuse the fixes received: each sender's frame into ours through the colony frame."""
         frame = self.colony_frame()
         mine = frame.transforms.get(self.config.agent_id)
+        later = []  # seen at a time this robot has not mapped yet (it is late): kept for then
         while self._fixes:
             msg = self._fixes.popleft()
+            if estimator.localiser.ahead(msg.stamp):
+                later.append(msg)
+                continue
             theirs = frame.transforms.get(msg.origin)
             if mine is None or theirs is None:
                 self.metrics.add("fix_unaligned")
@@ -595,6 +599,7 @@ class Daemon:
             self.metrics.add(
                 "fix_stale" if result is None else "fix_fused" if result else "fix_refused"
             )
+        self._fixes.extend(later)
 
     def _sighted(self, estimator: ScanEstimator, msg: PoseFix) -> None:
         """A fix from an agent not aligned with us: keep it with our estimate at its stamp; once

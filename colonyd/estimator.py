@@ -37,6 +37,7 @@ class ScanEstimator:
         self.localiser = ScanLocaliser(
             planar=planar,
             params=None if planar else ScanParams(scan_cell=0.1, map_cell=0.1, max_points=1500),
+            sensor=mount[:3, 3],
         )
         self.mount = mount
         self.planar = planar

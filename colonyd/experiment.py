@@ -4,6 +4,7 @@ loopback; their pose error against the sim's truth (read here only, to evaluate)
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 import sys
 import tempfile
@@ -14,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from colonyd.errors import StatusError
 from colonyd.outdir import output_dir
 from colonyd.plots import Panel, Series, draw_colony, draw_errors
 from colonyd.simrun import SimRun
@@ -21,6 +23,8 @@ from colonyd.tracks import Track, pose_errors, write_tum
 
 #: The runs: name -> the agents of its colony. Every agent starts at an unknown pose (its own
 #: frame) with realistic wheel odometry; cctv-1 is fixed with a surveyed pose (the anchor).
+log = logging.getLogger(__name__)
+
 RUNS: dict[str, tuple[str, ...]] = {
     "depth-alone": ("depth-1",),
     "lidar-alone": ("lidar-1",),
@@ -40,6 +44,8 @@ LIDAR_RANGE = 4.0
 #: Seconds from starting a run's daemons to its shared clock's zero (`epoch=`): every agent's path
 #: starts then, so a daemon slow to start does not skip the first frames.
 EPOCH_DELAY_S = 15.0
+#: Seconds to wait for the fused map of a finished run (a loaded machine answers late).
+MAP_WAIT_S = 30.0
 #: Colour index of each run in the pictures.
 RUN_COLOUR = {name: i for i, name in enumerate(RUNS)}
 AGENT_COLOUR = {"lidar-1": 0, "depth-1": 1, "cctv-1": 2}
@@ -54,6 +60,7 @@ class RunResult:
     metrics: dict[str, dict[str, float | None]]
     seconds: float
     complete: bool  # every source done before the timeout
+    updates: dict[str, dict[str, int]]  # per agent, its estimator's update counts at the end
 
 
 def agent_metrics(track: Track) -> dict[str, float | None]:
@@ -77,24 +84,31 @@ def _round(x: float | None, digits: int = 4) -> float | None:
     return None if x is None else round(x, digits)
 
 
-def _start(base: Path, name: str, seed: int, duration: float) -> SimRun:
+def _start(base: Path, name: str, seed: int, duration: float, lidar_range: float) -> SimRun:
     agents = RUNS[name]
     env = {"COLONYD_ANCHOR": ANCHOR} if ANCHOR in agents else {}
     run = SimRun(base / name, name, env=env, odometry_noise=ODOMETRY_NOISE)
     epoch = time.time() + EPOCH_DELAY_S
     for agent in agents:
         run.add(
-            agent, duration, seed * 100 + AGENT_SEED[agent], agent_options(agents, agent, epoch)
+            agent,
+            duration,
+            seed * 100 + AGENT_SEED[agent],
+            agent_options(agents, agent, epoch, lidar_range),
         )
     return run
 
 
-def agent_options(agents: tuple[str, ...], agent: str, epoch: float) -> str:
-    """The `sim:` options of `agent` in a run of `agents`: the run's shared clock, lidar-1's short
+def agent_options(
+    agents: tuple[str, ...], agent: str, epoch: float, lidar_range: float = LIDAR_RANGE
+) -> str:
+    """The `sim:` options of `agent` in a run of `agents`: the run's shared clock (frames a
+    daemon is late for are mapped late, not skipped: on a loaded machine a run takes longer, but
+    every agent maps every frame, so a run's figures do not depend on the load), lidar-1's short
     range, and the CCTV told which robots' markers it can see (so that it sends them fixes)."""
-    options = [f"epoch={epoch:.3f}"]
+    options = [f"epoch={epoch:.3f}", "keep_late=1"]
     if agent == "lidar-1":
-        options.append(f"lidar_range={LIDAR_RANGE:g}")
+        options.append(f"lidar_range={lidar_range:g}")
     if agent == ANCHOR:
         robots = [a for a in ROBOTS if a in agents]
         if robots:
@@ -109,21 +123,39 @@ def _finish(run: SimRun, out: Path, complete: bool) -> RunResult:
     for agent, track in run.tracks.items():
         write_tum(track, directory, agent)
     viewer = next(a for a in ROBOTS if a in run.tracks)  # whose fused map is drawn
-    fused, _ = run.maps(viewer)
+    try:
+        fused, _ = run.maps(viewer, wait_s=MAP_WAIT_S)
+    except StatusError as exc:  # a daemon too busy to answer: the figures still count
+        log.warning("run %s: no top-down picture: %s", run.name, exc)
+        fused = None
     report = run.report(viewer)
     frame = report.get("colony_frame", {"agents": {}})
-    draw_colony(
-        directory / "topdown.png",
-        fused,
-        run.tracks,
-        {a: np.array(t) for a, t in frame.get("agents", {}).items()},
-        report.get("peer_objects", {}),
-        report.get("objects", []),
-        title=f"{run.name} (map of {viewer})",
-        colours=AGENT_COLOUR,
-    )
+    if fused is not None:
+        draw_colony(
+            directory / "topdown.png",
+            fused,
+            run.tracks,
+            {a: np.array(t) for a, t in frame.get("agents", {}).items()},
+            report.get("peer_objects", {}),
+            report.get("objects", []),
+            title=f"{run.name} (map of {viewer})",
+            colours=AGENT_COLOUR,
+        )
     metrics = {agent: agent_metrics(track) for agent, track in run.tracks.items()}
-    return RunResult(run.name, run.tracks, metrics, run.now(), complete)
+    updates = {agent: update_counts(run.report(agent)) for agent in run.tracks}
+    return RunResult(run.name, run.tracks, metrics, run.now(), complete, updates)
+
+
+def update_counts(report: dict[str, Any]) -> dict[str, int]:
+    """What an agent's estimator fused and refused, by kind (own map, colony map, fixes), and the
+    fixes its daemon received, from its last status."""
+    out: dict[str, int] = {}
+    for entry in (report.get("localisation") or {}).values():
+        if isinstance(entry, dict):
+            out.update({k: int(v) for k, v in entry.items() if isinstance(v, int)})
+    counts = report.get("metrics", {}).get("counts", {})
+    out.update({k: int(v) for k, v in counts.items() if k.startswith("fix")})
+    return out
 
 
 def _progress(active: dict[str, SimRun], done: dict[str, RunResult], began: float) -> Any:
@@ -157,6 +189,7 @@ def run_paper(
     parallel: int = 2,
     timeout: float | None = None,
     progress: bool = True,
+    lidar_range: float | None = None,
 ) -> dict[str, Any]:
     """Run every run of `RUNS` (at most `parallel` at a time), each for `duration` seconds of sim
     time (a run whose sources are not done after `timeout` seconds, default 6 x duration + 120,
@@ -168,6 +201,7 @@ def run_paper(
     out = Path(out)
     output_dir(out, "--out")
     timeout = timeout if timeout is not None else 6 * duration + 120
+    lidar_range = LIDAR_RANGE if lidar_range is None else lidar_range
     console = Console(file=sys.stdout)
     work = Path(tempfile.mkdtemp(prefix="colonyd-paper-"))
     began = time.monotonic()
@@ -179,7 +213,7 @@ def run_paper(
             while pending or active:
                 while pending and len(active) < max(1, parallel):
                     name = pending.pop(0)
-                    active[name] = _start(work, name, seed, duration)
+                    active[name] = _start(work, name, seed, duration, lidar_range)
                     active[name].watch()
                 for name, run in list(active.items()):
                     over = run.now() > timeout
@@ -199,12 +233,13 @@ def run_paper(
     results = {
         "seed": seed,
         "duration_s": duration,
-        "lidar_range_m": LIDAR_RANGE,
+        "lidar_range_m": lidar_range,
         "odometry_noise": ODOMETRY_NOISE,
         "seconds": round(time.monotonic() - began, 1),
         "runs": {name: done[name].metrics for name in RUNS},
         "complete": {name: done[name].complete for name in RUNS},
         "run_seconds": {name: round(done[name].seconds, 1) for name in RUNS},
+        "updates": {name: done[name].updates for name in RUNS},
     }
     (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
     draw_errors(out / "pose-error.png", _panels(done), note="vertical: first contact", axis="sim")

@@ -231,8 +231,13 @@ def fetch_maps(
             break
         time.sleep(0.3)
     if not fused:
-        who = f"daemon {agent!r}" if agent else "no daemon"
-        msg = f"{who} of colony namespace {namespace!r} answered an export query"
+        msg = (
+            f"daemon {agent!r} of colony namespace {namespace!r} did not answer an export query "
+            f"within {wait_s:g} s"
+            if agent
+            else f"no daemon of colony namespace {namespace!r} answered an export query within "
+            f"{wait_s:g} s"
+        )
         raise StatusError(msg)
     source = min(fused, key=lambda r: r.agent)
     layers: dict[str, MapReply] = {}

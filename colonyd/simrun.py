@@ -134,9 +134,10 @@ class SimRun:
         """`agent`'s last status report ({} when it did not answer)."""
         return next((r for r in self.reports if r["agent"] == agent), {})
 
-    def maps(self, agent: str) -> tuple[MapReply, dict[str, MapReply]]:
-        """`agent`'s fused map (in its colony frame) and its layers' maps."""
-        return fetch_maps(self.colony.session(), self.colony.namespace, agent=agent)
+    def maps(self, agent: str, wait_s: float = 5.0) -> tuple[MapReply, dict[str, MapReply]]:
+        """`agent`'s fused map (in its colony frame) and its layers' maps (waiting up to `wait_s`
+        seconds for an answer)."""
+        return fetch_maps(self.colony.session(), self.colony.namespace, agent=agent, wait_s=wait_s)
 
     def close(self) -> None:
         self.unwatch()

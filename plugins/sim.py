@@ -333,6 +333,12 @@ class SimOptions(Options):
         "paced in wall-clock time (late ones skipped, as a moving robot would), observation "
         "times are Unix times, and a CCTV agent sees the robots where they are then",
     )
+    keep_late: bool = Field(
+        False,
+        description="with epoch: deliver the frames a reader is late for, late, instead of "
+        "skipping them (every frame is mapped: a loaded machine slows a run down instead of "
+        "thinning it out)",
+    )
     robots: str = Field(
         "",
         description="'+'-separated robots of this world that a CCTV agent sees (their ArUco "
@@ -367,6 +373,7 @@ class SimSource:
         odometry_noise: str | None = None,
         lidar_range: float | None = None,
         epoch: float | None = None,
+        keep_late: bool = False,
         robots: str = "",
         spec: str = "",
     ) -> None:
@@ -396,7 +403,7 @@ class SimSource:
             )
             raise SourceSpecError(msg)
         self.robots = [agents[r] for r in names]
-        self.epoch = epoch
+        self.epoch, self.keep_late = epoch, keep_late
         self.spec = spec or f"sim:world={world},agent={agent}"
         self.seed, self.frames, self.noise, self.drift = seed, frames, noise, drift
         self.range_noise, self.start, self.realtime = range_noise, start, realtime
@@ -454,10 +461,11 @@ class SimSource:
         i = -1
         while i + 1 < self.frames:
             i += 1
-            if self.epoch is not None:  # a shared clock: where everyone is now
+            if self.epoch is not None and not self.keep_late:  # a shared clock: where everyone is
                 i = max(i, int((clock.time() - self.epoch) * agent.rate))
                 if i >= self.frames:
                     break
+            if self.epoch is not None:
                 while (wait := self.epoch + i / agent.rate - clock.time()) > 0:
                     clock.sleep(min(wait, 0.5))
             t = i / agent.rate

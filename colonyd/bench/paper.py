@@ -42,6 +42,13 @@ def growth_after_contact(out: Path, run: str, agent: str, contact: float | None)
     return round(float(slope * (times[after][-1] - times[after][0])), 4)
 
 
+def _load() -> list[float]:
+    """The 1, 5 and 15 minute load averages."""
+    import os
+
+    return [round(x, 2) for x in os.getloadavg()]
+
+
 def _pose(row: np.ndarray) -> np.ndarray:
     from voxel.rotation import quaternion_to_matrix
 
@@ -82,6 +89,8 @@ def run_paper_bench(
     seeds: list[int],
     duration: float = 60.0,
     parallel: int = 2,
+    lidar_range: float | None = None,
+    timeout: float | None = None,
     out_dir: Path | None = None,
     command: str | None = None,
 ) -> dict[str, Any]:
@@ -94,8 +103,17 @@ def run_paper_bench(
         base = Path(out_dir) if out_dir is not None else Path(tmp)
         for seed in seeds:
             out = base / f"seed-{seed}"
-            results = run_paper(out, seed=seed, duration=duration, parallel=parallel)
-            per_seed.append({**results, "claims": claims(results, out)})
+            before = _load()
+            results = run_paper(
+                out,
+                seed=seed,
+                duration=duration,
+                parallel=parallel,
+                lidar_range=lidar_range,
+                timeout=timeout,
+            )
+            load = {"start": before, "end": _load()}  # the machine is shared: results' context
+            per_seed.append({**results, "load_average": load, "claims": claims(results, out)})
     summary = {
         "seeds": seeds,
         "lidar_ate_m": {s["seed"]: s["claims"]["lidar_ate_m"] for s in per_seed},
@@ -103,6 +121,7 @@ def run_paper_bench(
         "cctv_no_worse": [s["claims"]["cctv_no_worse"] for s in per_seed],
         "no_growth_after_contact": [s["claims"]["no_growth_after_contact"] for s in per_seed],
         "seconds": [s["seconds"] for s in per_seed],
+        "load_average": [s["load_average"] for s in per_seed],
     }
     result = {
         "command": command,

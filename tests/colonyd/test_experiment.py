@@ -10,7 +10,7 @@ import sys
 import cv2
 import numpy as np
 
-from colonyd.experiment import RUNS, agent_metrics
+from colonyd.experiment import RUNS, agent_metrics, update_counts
 from colonyd.tracks import Track
 
 FIELDS = {"ate_rmse_m", "final_error_m", "max_error_after_contact_m", "first_contact_s"}
@@ -52,6 +52,9 @@ def test_experiment_paper_writes_every_output(tmp_path):
                 lines = (out / name / f"{agent}.{trajectory}.tum").read_text().splitlines()
                 assert all(len(line.split()) == 8 for line in lines), (name, agent)
                 assert len(lines) >= (1 if agent == "cctv-1" else 3), (name, agent)
+        assert set(results["updates"][name]) == set(agents), name
+        if "lidar-1" in agents:  # its estimator matched scans against its own map
+            assert results["updates"][name]["lidar-1"]["updates_accepted"] > 0, name
         if len(agents) == 1:  # alone: nobody to meet
             assert results["runs"][name][agents[0]]["first_contact_s"] is None
     for picture in ["pose-error.png", *(f"{name}/topdown.png" for name in RUNS)]:
@@ -82,3 +85,20 @@ def test_metrics_of_a_constructed_track():
     assert m["final_error_m"] > 0.5
     assert m["max_error_after_contact_m"] == m["final_error_m"]
     assert m["first_contact_s"] == 8.5
+
+
+def test_update_counts_gathers_the_estimators_and_the_fixes_counts():
+    report = {
+        "localisation": {
+            "estimate_ms": 3.2,
+            "sim:agent=lidar-1": {"estimator": "ekf", "colony_accepted": 4, "colony_rejected": 1},
+        },
+        "metrics": {"counts": {"frames": 600, "fix_fused": 2, "fix_refused": 1}},
+    }
+    assert update_counts(report) == {
+        "colony_accepted": 4,
+        "colony_rejected": 1,
+        "fix_fused": 2,
+        "fix_refused": 1,
+    }
+    assert update_counts({}) == {}

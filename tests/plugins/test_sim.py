@@ -94,3 +94,12 @@ def test_bad_sim_options() -> None:
         SimSource(world="room", agent="x")
     with pytest.raises(SourceSpecError, match="start: expected 'origin' or 'world', found 'moon'"):
         SimSource(start="moon")
+
+
+def test_a_late_reader_skips_frames_unless_told_to_keep_them() -> None:
+    # The shared clock started 1 s ago: at 10 frames/s the first 10 frames are past.
+    epoch = time.time() - 1.0
+    skipped = list(SimSource(world="room", agent="lidar-1", frames=5, epoch=epoch))
+    kept = list(SimSource(world="room", agent="lidar-1", frames=5, epoch=epoch, keep_late=True))
+    assert skipped == []
+    assert [o.time - epoch for o in kept] == pytest.approx([0.0, 0.1, 0.2, 0.3, 0.4])

@@ -39,6 +39,8 @@ class ColonyMap:
     #: Identifies the alignments the cut was made with: a localiser that stopped trusting a
     #: colony map trusts it again only once this changes.
     alignment: bytes = b""
+    #: Voxel centres carry no side they were seen from: normals are unsigned.
+    oriented: bool = False
 
     def __len__(self) -> int:
         return len(self.points)

@@ -65,9 +65,16 @@ class ScanLocaliser:
     """
 
     def __init__(
-        self, *, planar: bool, params: ScanParams | None = None, motion: MotionNoise | None = None
+        self,
+        *,
+        planar: bool,
+        params: ScanParams | None = None,
+        motion: MotionNoise | None = None,
+        sensor: np.ndarray | None = None,
     ) -> None:
         self.params = params or ScanParams()
+        #: The sensor's position in the body frame: the side of a surface the scan sees.
+        self.sensor = np.zeros(3) if sensor is None else np.asarray(sensor, np.float64).reshape(3)
         p = self.params
         self.local = LocalMap(
             planar=planar,
@@ -122,6 +129,7 @@ class ScanLocaliser:
                 final_distance=p.final_distance,
                 iterations=p.iterations,
                 inflation=p.inflation,
+                sensor=self.sensor,
             )
             if result.ok:
                 fused = self.ekf.update(se2.from_matrix(result.pose), result.covariance)
@@ -139,7 +147,7 @@ class ScanLocaliser:
             self.history.append((float(time), pose))
         m = se2.to_matrix(pose)
         if self.local.wants(m):
-            self.local.add(pts @ m[:3, :3].T + m[:3, 3], m)
+            self.local.add(pts @ m[:3, :3].T + m[:3, 3], m, m[:3, :3] @ self.sensor + m[:3, 3])
         return Step(pose, result, fused, colony_match, colony_fused)
 
     def pose_at(self, stamp: float) -> np.ndarray | None:
@@ -153,6 +161,11 @@ class ScanLocaliser:
             return None
         pose: np.ndarray = self.history[i][1].copy()
         return pose
+
+    def ahead(self, stamp: float) -> bool:
+        """True when `stamp` is later than the last step by more than `fix_tolerance`: a fix
+        from a sensor that is ahead of this agent (it maps late), to be fused once it gets there."""
+        return bool(self.history) and stamp > self.history[-1][0] + self.params.fix_tolerance
 
     def fix(self, pose: np.ndarray, covariance: np.ndarray, stamp: float) -> bool | None:
         """Fuse an absolute measurement of the body pose (x, y, yaw) in this agent's frame, taken
@@ -192,6 +205,7 @@ class ScanLocaliser:
             iterations=p.iterations,
             inflation=p.inflation,
             min_matched=p.colony_min_matched,
+            sensor=self.sensor,
         )
         if not result.ok:
             self.colony_failed += 1

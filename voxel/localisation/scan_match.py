@@ -55,6 +55,16 @@ def surface_normals(
     return normals, np.clip(flatness, 0.0, 1.0)
 
 
+def orient(normals: np.ndarray, points: np.ndarray, viewpoint: np.ndarray) -> np.ndarray:
+    """`normals` (M, 3) at `points` (M, 3) flipped to face `viewpoint` (3,): the side of the
+    surface the sensor saw. A wall seen from one side then differs from its other face a wall's
+    thickness away, which an unsigned normal cannot tell apart."""
+    towards = np.asarray(viewpoint, np.float64).reshape(3) - points
+    sign = np.where(np.einsum("ij,ij->i", normals, towards) < 0.0, -1.0, 1.0)
+    flipped: np.ndarray = normals * sign[:, None]
+    return flipped
+
+
 class MatchTarget(Protocol):
     """What `match` aligns a scan to: points (N, 3) with unit normals (N, 3) and a k-d tree over
     the points (None: nothing to match)."""
@@ -65,6 +75,10 @@ class MatchTarget(Protocol):
     def normals(self) -> np.ndarray: ...
     @property
     def tree(self) -> cKDTree | None: ...
+    @property
+    def oriented(self) -> bool:
+        """True when the normals face the side their surface was seen from (`orient`)."""
+        ...
 
 
 class LocalMap:
@@ -72,8 +86,11 @@ class LocalMap:
     with normals.
 
     A new keyframe is taken when the agent has moved `key_distance` metres or turned `key_angle`
-    radians since the last one.
+    radians since the last one. Normals face the keyframe's viewpoint (`oriented`), so `match`
+    does not pair a scan of a wall's far face with the near face in the map.
     """
+
+    oriented = True
 
     def __init__(
         self,
@@ -111,9 +128,12 @@ class LocalMap:
         turned = math.acos(max(-1.0, min(1.0, (np.trace(rel) - 1.0) / 2.0)))
         return moved >= self.key_distance or turned >= self.key_angle
 
-    def add(self, points_map: np.ndarray, pose: np.ndarray) -> None:
+    def add(
+        self, points_map: np.ndarray, pose: np.ndarray, viewpoint: np.ndarray | None = None
+    ) -> None:
         """Add a keyframe's points (already in the map frame): normals from the map around them,
-        then a new tree.
+        facing `viewpoint` (the sensor's position in the map frame; default the pose's), then a
+        new tree.
 
         Older keyframes keep the normals they were given, so a keyframe costs one scan's normals
         and two tree builds, however long the window.
@@ -125,6 +145,8 @@ class LocalMap:
             from scipy.spatial import cKDTree  # loads on first use, not at start-up
 
             normals, flat = surface_normals(new, both, cKDTree(both), self.k, self.planar)
+            eye = self.last_key[:3, 3] if viewpoint is None else viewpoint
+            normals = orient(normals, new, eye)
             keep = flat > 0.7  # corners and clutter have no reliable normal
             self.frames.append((new[keep], normals[keep]))
         self.points = (
@@ -184,6 +206,7 @@ def match(
     robust_scale: float = 0.05,
     min_matched: int = 30,
     inflation: float = 10.0,
+    sensor: np.ndarray | None = None,
 ) -> Match:
     """Refine the body pose `init` (4x4) so the scan `points_body` (N, 3, body frame) lies on the
     local map (or any `MatchTarget`: the colony's map near the agent).
@@ -193,7 +216,9 @@ def match(
     dof 3 moves x, y, yaw (a ground robot); dof 6 moves everything. The covariance is the
     Gauss-Newton inverse Hessian times the residual variance, times `inflation` (neighbouring
     residuals are correlated, so the raw one is overconfident); a direction the map does not
-    constrain (a corridor's length) keeps a large variance.
+    constrain (a corridor's length) keeps a large variance. When the target's normals are
+    `oriented`, a correspondence whose map normal faces away from the sensor (at `sensor`, body
+    frame; default the body's origin) is dropped: the scan sees the other face of that surface.
     """
     if dof not in (3, 6):
         msg = f"dof: expected 3 (x, y, yaw) or 6, found {dof}"
@@ -203,6 +228,8 @@ def match(
         return Match(t, np.eye(dof) * 1e6, 0, math.inf, 0, False, "empty map")
     src = np.asarray(points_body, np.float64)
     rot, trans = src @ t[:3, :3].T, t[:3, 3]
+    oriented = bool(getattr(local, "oriented", False))
+    eye = np.zeros(3) if sensor is None else np.asarray(sensor, np.float64).reshape(3)
     half = max(1, iterations // 2)
     matched, rmse, it = 0, math.inf, 0
     h = np.eye(dof)
@@ -212,6 +239,10 @@ def match(
         moved = rot + trans
         d, idx = local.tree.query(moved, distance_upper_bound=limit)
         ok = np.isfinite(d)
+        if oriented:
+            view = t[:3, :3] @ eye + t[:3, 3] - moved
+            facing = np.einsum("ij,ij->i", local.normals[np.where(ok, idx, 0)], view) >= 0.0
+            ok &= facing
         matched = int(ok.sum())
         if matched < min_matched:
             return Match(

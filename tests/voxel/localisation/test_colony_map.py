@@ -111,6 +111,8 @@ def test_a_fix_from_a_moment_ago_is_carried_to_the_present() -> None:
     assert loc.fix(np.array([0.0, 0.2, 0.0]), np.diag([1e-4, 1e-4, 1e-4]), 10.05) is True
     # Kalman gain 0.09 / (0.09 + 0.01 + 1e-4): prior 0.3 m, the fix widened by 0.1 m/sqrt(m) x 1 m
     np.testing.assert_allclose(loc.ekf.pose, [1.0, 0.2 * 0.09 / 0.1001, 0.0], atol=1e-3)
+    assert not loc.ahead(10.1)
+    assert loc.ahead(12.0)  # seen after our last step: the daemon keeps it for later
     assert loc.fix(np.zeros(3), np.eye(3) * 1e-4, 12.0) is None  # no step near that time
     assert (loc.fix_accepted, loc.fix_stale) == (1, 1)
 

@@ -12,7 +12,7 @@ from voxel.errors import LocalisationError
 from voxel.localisation import se2
 from voxel.localisation.localiser import ScanLocaliser
 from voxel.localisation.odometry import OdometryNoise, synthesise
-from voxel.localisation.scan_match import LocalMap, match
+from voxel.localisation.scan_match import LocalMap, match, orient
 
 
 def _segments_scan(
@@ -55,10 +55,10 @@ ROOM = [
 CORRIDOR = [((-20, -1), (20, -1)), ((-20, 1), (20, 1))]
 
 
-def _map_of(walls: list, pose: np.ndarray) -> LocalMap:
+def _map_of(walls: list, pose: np.ndarray, beams: int = 360) -> LocalMap:
     local = LocalMap(planar=True)
     m = se2.to_matrix(pose)
-    pts = _segments_scan(pose, walls)
+    pts = _segments_scan(pose, walls, beams)
     local.add(pts @ m[:3, :3].T + m[:3, 3], m)
     return local
 
@@ -87,6 +87,37 @@ def test_corridor_leaves_its_length_unconstrained() -> None:
     )  # across the corridor and the heading are found
     sd = np.sqrt(np.diag(result.covariance))
     assert sd[0] > 20 * sd[1]  # along the corridor: no information
+
+
+#: A 10 cm thick wall (faces at x = -0.05 and +0.05) and a long wall at y = 3 seen from both sides
+#: of it: only the thin wall constrains x.
+THIN_WALL = [((-0.05, -2), (-0.05, 2)), ((0.05, -2), (0.05, 2)), ((-4, 3), (4, 3))]
+
+
+def test_orient_turns_normals_towards_the_viewpoint() -> None:
+    normals = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    points = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    out = orient(normals, points, np.array([1.0, 0.0, 0.0]))
+    np.testing.assert_array_equal(out, [[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def test_a_thin_walls_far_face_is_not_matched_to_its_near_face() -> None:
+    # The map saw the wall from the left (x = -1); the robot, truly at x = 1, sees its right face.
+    # Unsigned normals pair the two faces and pull the robot 10 cm through the wall; oriented
+    # ones drop those pairs, and x (constrained by nothing else) stays where it was predicted.
+    local = _map_of(THIN_WALL, np.array([-1.0, 0.0, 0.0]), beams=1440)
+    truth = np.array([1.0, 0.0, 0.0])
+    scan = _segments_scan(truth, THIN_WALL, beams=1440)
+    oriented = match(scan, local, se2.to_matrix(truth))
+    assert oriented.ok
+    assert se2.from_matrix(oriented.pose)[0] == pytest.approx(1.0, abs=1e-3)
+    assert math.sqrt(oriented.covariance[0, 0]) > 20 * math.sqrt(oriented.covariance[1, 1])
+
+    class Unsigned:  # the same map without the side it was seen from
+        points, normals, tree, oriented = local.points, local.normals, local.tree, False
+
+    unsigned = match(scan, Unsigned(), se2.to_matrix(truth))
+    assert se2.from_matrix(unsigned.pose)[0] == pytest.approx(0.9, abs=0.01)
 
 
 def test_match_reports_an_empty_map_and_bad_dof() -> None:
