@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -11,6 +12,7 @@ from colonyd.alignment import ColonyFrame
 from colonyd.layers import Layer, Layers
 from voxel import keys as vk
 from voxel.localisation.colony_map import ColonyMap, colony_map
+from voxel.occupancy import FREE_STATE, OCCUPIED
 
 #: Metres beyond the sensor's range that a cut of the colony map reaches: the robot may move this
 #: far from where the cut was made before it is made again.
@@ -63,6 +65,21 @@ def peer_centres(peers: list[tuple[Layer, np.ndarray]]) -> np.ndarray:
     return np.concatenate(parts) if parts else np.zeros((0, 3))
 
 
+def free_in_peers(peers: list[tuple[Layer, np.ndarray]], points: np.ndarray) -> np.ndarray:
+    """Whether any peer knows each point (N, 3, our frame) as free and none as occupied."""
+    free = np.zeros(len(points), bool)
+    occupied = np.zeros(len(points), bool)
+    for layer, m in peers:
+        back = np.linalg.inv(m)
+        there = points @ back[:3, :3].T + back[:3, 3]
+        with layer.lock:
+            state = layer.grid.state(there)
+        free |= state == FREE_STATE
+        occupied |= state == OCCUPIED
+    out: np.ndarray = free & ~occupied
+    return out
+
+
 class ColonyMaps:
     """Keeps one agent's cut of the colony map: made again when an alignment or the set of
     aligned peers changed, when a replica grew (at most every `grown_s` seconds), or when the
@@ -108,6 +125,8 @@ class ColonyMaps:
             radius=self.radius,
             sources=tuple(k[0] for k in key),
             alignment=b"".join(k[0].encode() + k[3] for k in key),
+            free=partial(free_in_peers, peers),
+            step=max(layer.resolution for layer, _ in peers),
         )
         self.last = Build(cut, key, time.perf_counter() - started, time.time())
         return cut

@@ -3,6 +3,7 @@ target with normals (how another agent's map corrects this one's pose)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -39,7 +40,8 @@ class ColonyMap:
     #: Identifies the alignments the cut was made with: a localiser that stopped trusting a
     #: colony map trusts it again only once this changes.
     alignment: bytes = b""
-    #: Voxel centres carry no side they were seen from: normals are unsigned.
+    #: True when every normal faces the free side of its surface (`orient_by_free_space`);
+    #: voxel centres alone carry no side they were seen from, and then normals are unsigned.
     oriented: bool = False
 
     def __len__(self) -> int:
@@ -64,13 +66,17 @@ def colony_map(
     sources: tuple[str, ...] = (),
     covariance: np.ndarray | None = None,
     alignment: bytes = b"",
+    free: Callable[[np.ndarray], np.ndarray] | None = None,
+    step: float = 0.1,
 ) -> ColonyMap:
     """The scan-matching target of occupied voxel centres (N, 3) already in the agent's frame.
 
     Keeps the centres within `radius` (x-y) of `centre`; planar (a 2D scanner at `height`): those
     within `band` of the scan height, moved onto it. Thinned to `cell`, at most `max_points`
     (evenly subsampled), normals from `k` neighbours; corners and clutter (flatness <= 0.7) are
-    dropped, as in the agent's own local map.
+    dropped, as in the agent's own local map. With `free` (points (M, 3) in the agent's frame ->
+    bool mask, "a peer knows this is free space"), normals are oriented to the free side of their
+    surface, probed `step` metres along each normal (`orient_by_free_space`).
     """
     pts = np.asarray(centres, np.float64).reshape(-1, 3)
     c = np.asarray(centre, np.float64).reshape(-1)[:2]
@@ -100,5 +106,43 @@ def colony_map(
     normals, flat = surface_normals(pts, pts, cKDTree(pts), k, planar)
     good = flat > 0.7
     pts, normals = pts[good], normals[good]
+    oriented = False
+    if free is not None and len(pts):
+        sided = orient_by_free_space(pts, normals, free, step)
+        if sided is not None:
+            pts, normals = sided
+            oriented = True
     tree = cKDTree(pts) if len(pts) >= k else None
-    return ColonyMap(pts, normals, tree, c, radius, sources, cov, alignment)
+    return ColonyMap(pts, normals, tree, c, radius, sources, cov, alignment, oriented)
+
+
+#: Below this share of surface points with a free side, a cut keeps its normals unsigned.
+MIN_SIDED = 0.5
+
+
+def orient_by_free_space(
+    points: np.ndarray,
+    normals: np.ndarray,
+    free: Callable[[np.ndarray], np.ndarray],
+    step: float,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Points and normals facing the free side of their surface, or None when fewer than
+    `MIN_SIDED` of them have one.
+
+    Probes `step` along each normal both ways. Free on one side: the normal faces it. Free on
+    both (a wall one voxel thick, seen from both sides): two faces, a quarter step either way,
+    each facing its side. Free on neither (inside a thick wall, or seen by no one): dropped. A
+    scan of a wall's far face then no longer matches its near face in a peer's map.
+    """
+    ahead = np.asarray(free(points + normals * step), bool)
+    behind = np.asarray(free(points - normals * step), bool)
+    if np.count_nonzero(ahead | behind) < MIN_SIDED * len(points):
+        return None
+    one = ahead ^ behind
+    sign = np.where(ahead[one], 1.0, -1.0)[:, None]
+    both = ahead & behind
+    n_both = normals[both]
+    q = 0.25 * step
+    pts = np.concatenate([points[one], points[both] + n_both * q, points[both] - n_both * q])
+    nrm = np.concatenate([normals[one] * sign, n_both, -n_both])
+    return pts, nrm

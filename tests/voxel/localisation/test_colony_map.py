@@ -141,3 +141,33 @@ def test_a_colony_map_that_keeps_disagreeing_is_dropped_until_the_alignment_chan
         _wall_points(ROOM), planar=True, height=0.0, centre=np.zeros(2), radius=10.0, alignment=b"b"
     )
     assert loc.step(scan, np.zeros(3), colony=right).colony_fused  # a new alignment: used again
+
+
+def test_a_peers_free_space_orients_its_map_so_a_walls_far_face_is_not_matched() -> None:
+    from tests.voxel.localisation.test_scan_match import THIN_WALL
+    from voxel.localisation import se2
+    from voxel.localisation.scan_match import match
+
+    # The peer saw the thin wall from the left only: its map holds the left face, and the
+    # free space it knows is left of the wall. The robot, truly at x = 1, sees the right face.
+    left_face, far_wall = THIN_WALL[0], THIN_WALL[2]
+    seen = _wall_points([left_face, far_wall])
+
+    def free(points: np.ndarray) -> np.ndarray:
+        return (points[:, 0] < -0.07) & (np.abs(points[:, 1]) < 2.95)
+
+    truth = np.array([1.0, 0.0, 0.0])
+    scan = _segments_scan(truth, THIN_WALL, beams=1440)
+    cut = dict(planar=True, height=0.0, centre=np.zeros(2), radius=10.0)
+    sided = colony_map(seen, free=free, step=0.1, **cut)
+    assert sided.oriented and len(sided) > 100
+    assert np.all(sided.normals[np.abs(sided.points[:, 0] + 0.05) < 0.01][:, 0] < -0.99)
+    kept = match(scan, sided, se2.to_matrix(truth))
+    assert kept.ok and se2.from_matrix(kept.pose)[0] == pytest.approx(1.0, abs=1e-3)
+    unsigned = colony_map(seen, **cut)  # the same cut without the peer's free space
+    assert not unsigned.oriented
+    pulled = match(scan, unsigned, se2.to_matrix(truth))
+    assert se2.from_matrix(pulled.pose)[0] == pytest.approx(0.9, abs=0.01)  # through the wall
+    # A cut whose surfaces mostly have no free side keeps unsigned normals.
+    blind = colony_map(seen, free=lambda p: np.zeros(len(p), bool), **cut)
+    assert not blind.oriented and len(blind) == len(unsigned)
