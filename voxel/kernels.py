@@ -98,6 +98,7 @@ def _try_out(
         np.zeros(64, dtype=np.uint8),
         np.zeros(8, dtype=np.uint8),
         np.zeros(8, dtype=np.int64),
+        True,
     )
     lo = np.full((1, 1), np.nan, dtype=np.float32)
     stamp = np.zeros((1, 1), dtype=np.uint32)
@@ -159,6 +160,7 @@ def _trace_box(
     cells: np.ndarray,
     marks: np.ndarray,
     touched: np.ndarray,
+    want_rows: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """One scan's traversal in a dense box (lower corner `lo`, block-aligned, sides `dims`), as
     `raycast.trace`'s numpy path computes it: hit voxels at keys `hk` (3, H) (exact integers in
@@ -171,7 +173,7 @@ def _trace_box(
     `touched` (int64, at least its blocks) is any: scratch buffers reused across scans, left
     zero again on return. Returns the packed keys (B,) of the touched blocks, sorted, their cells
     (B, block voxels), the distinct hit keys (U, 3) int64 in packed order, each hit's row in
-    them (H,), and the count of FREE cells.
+    them (H,; with `want_rows`, else empty), and the count of FREE cells.
 
     Written for numba: the arithmetic of `raycast._sequences`, `_sweep` and `_enumerate` per run,
     in the same order, so the visited voxels are bit-identical to the numpy path's. Runs step by
@@ -211,7 +213,7 @@ def _trace_box(
             marks[blk] = 1
             touched[n_touched] = blk
             n_touched += 1
-    rows = np.searchsorted(hit_lin, point_lin)
+    rows = np.searchsorted(hit_lin, point_lin) if want_rows else point_lin[:0]
     hit_keys = np.empty((n_uniq, 3), dtype=np.int64)
     ko0 = np.int64(np.floor(o[0]))
     ko1 = np.int64(np.floor(o[1]))
@@ -504,7 +506,7 @@ def _sort_beams(
     key_min: float,
     key_max: float,
     fine_limit: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, bool]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, bool, np.ndarray]:
     """A scan's beams sorted as `scan.sort_beams` sorts them (the same floating-point operations
     in the same order): points (N, 3) seen from `org`, `nr` the no-return flags; `inv` is
     1 / resolution, `fine_scale` CLEAR_SUBDIVISION / resolution, keys must lie in
@@ -512,13 +514,15 @@ def _sort_beams(
 
     Returns the hit keys (3, H) float64, the hit mask (N,), the clear ends (M, 3) (one beam per
     fine cell, chosen as `keys.one_per_key` chooses), the counts of clearing and dropped beams,
-    and False when the clear cells span too much for one packed index (then nothing is valid:
-    the caller uses the numpy path)."""
+    False when the clear cells span too much for one packed index (then nothing is valid: the
+    caller uses the numpy path), and the bounds (2, 3) int64 of the hit keys and of the clear
+    ends' keys (floor(end * inv)), for the traversal's box (a bound is empty: low > high)."""
     n = points.shape[0]
     max2 = max_range * max_range
     r2 = np.empty(n, dtype=np.float64)
     hit_mask = np.zeros(n, dtype=np.bool_)
     clear_mask = np.zeros(n, dtype=np.bool_)
+    keys = np.empty((3, n), dtype=np.float64)
     n_hit = 0
     n_clear = 0
     for i in range(n):
@@ -530,25 +534,36 @@ def _sort_beams(
         d2 += t * t
         r2[i] = d2
         if d2 > 0 and d2 <= max2 and not nr[i]:
-            ok = True
-            for a in range(3):
-                k = np.floor(points[i, a] * inv)
-                if k < key_min or k > key_max:
-                    ok = False
-            hit_mask[i] = ok
-            n_hit += ok
+            k0 = np.floor(points[i, 0] * inv)
+            k1 = np.floor(points[i, 1] * inv)
+            k2 = np.floor(points[i, 2] * inv)
+            if (
+                k0 >= key_min
+                and k0 <= key_max
+                and k1 >= key_min
+                and k1 <= key_max
+                and k2 >= key_min
+                and k2 <= key_max
+            ):
+                hit_mask[i] = True
+                keys[0, n_hit] = k0
+                keys[1, n_hit] = k1
+                keys[2, n_hit] = k2
+                n_hit += 1
         else:
             r = np.sqrt(d2)
             if np.isfinite(r) and r > 0 and (r > max_range or nr[i]):
                 clear_mask[i] = True
                 n_clear += 1
-    hit_keys = np.empty((3, n_hit), dtype=np.float64)
-    j = 0
-    for i in range(n):
-        if hit_mask[i]:
-            for a in range(3):
-                hit_keys[a, j] = np.floor(points[i, a] * inv)
-            j += 1
+    hit_keys = keys[:, :n_hit].copy()
+    bounds = np.empty((2, 3), dtype=np.int64)
+    bounds[0, :] = np.iinfo(np.int64).max
+    bounds[1, :] = np.iinfo(np.int64).min
+    for i in range(n_hit):
+        for a in range(3):
+            k = np.int64(keys[a, i])
+            bounds[0, a] = min(bounds[0, a], k)
+            bounds[1, a] = max(bounds[1, a], k)
     dropped = 0
     if not np.isfinite(no_return_range):  # then no max range either: only no-returns
         dropped = n_clear
@@ -590,7 +605,7 @@ def _sort_beams(
             lo[a] = np.int64(mn)
             span[a] = np.int64(mx) - lo[a] + 1
         if np.float64(span[0]) * np.float64(span[1]) * np.float64(span[2]) > 2.0**62:
-            return hit_keys, hit_mask, ends[:0], cleared, dropped, False
+            return hit_keys, hit_mask, ends[:0], cleared, dropped, False, bounds
         lin = np.empty(m, dtype=np.int64)
         for i in range(m):
             lin[i] = (
@@ -638,5 +653,9 @@ def _sort_beams(
     picked = np.empty((n_c, 3), dtype=np.float64)
     for i in range(n_c):
         for a in range(3):
-            picked[i, a] = ends[chosen[i], a]
-    return hit_keys, hit_mask, picked, cleared, dropped, True
+            e = ends[chosen[i], a]
+            picked[i, a] = e
+            k = np.int64(np.floor(e * inv))
+            bounds[0, a] = min(bounds[0, a], k)
+            bounds[1, a] = max(bounds[1, a], k)
+    return hit_keys, hit_mask, picked, cleared, dropped, True, bounds

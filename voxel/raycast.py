@@ -215,12 +215,15 @@ def trace(
     resolution: float,
     shifts: tuple[int, int, int] = CUBE,
     want_inverse: bool = False,
+    bounds: np.ndarray | None = None,
 ) -> Traversal:
     """One scan's free and hit voxels: a ray from `origin` to each distinct hit voxel's centre and
     to each of `clear_ends` (world points); free voxels along rays (end voxel excluded), hits win.
 
     `hit_keys` are the hit points' voxel keys as rows (3, N) (float or int, exact integers).
-    Each voxel appears once however many rays pass it, as in OctoMap's update.
+    Each voxel appears once however many rays pass it, as in OctoMap's update. `bounds` (2, 3),
+    when given, are the lowest and highest key of the hits and of the clear ends (saves
+    reading them all again).
     """
     origin = np.asarray(origin, dtype=np.float64).reshape(3)
     hk = np.asarray(hit_keys, dtype=np.float64).reshape(3, -1)
@@ -229,8 +232,13 @@ def trace(
     o_scaled = origin * inv
     key_o = np.floor(o_scaled).astype(np.int64)
     clear_scaled = clear * inv
-    clear_keys = np.floor(clear_scaled).astype(np.int64)
-    lo, dims = _box(key_o, hk, clear_keys.T, shifts=shifts)
+    if bounds is None:
+        clear_keys = np.floor(clear_scaled).astype(np.int64)
+        lo, dims = _box(key_o, hk, clear_keys.T, shifts=shifts)
+    else:
+        b = np.asarray(bounds, dtype=np.int64)
+        rows = b.T if b[0, 0] <= b[1, 0] else np.empty((3, 0), dtype=np.int64)  # none: empty
+        lo, dims = _box(key_o, rows, shifts=shifts)
     total = int(np.prod(dims))
     if total > DENSE_LIMIT:
         packed, inverse = np.unique(vk.pack(hk.T.astype(np.int64)), return_inverse=True)
@@ -259,6 +267,7 @@ def trace(
             cells,
             marks,
             touched,
+            want_inverse,
         )
         scratch.give("cells", cells)
         scratch.give("marks", marks)
@@ -270,6 +279,7 @@ def trace(
             inverse=rows if want_inverse else None,
             free=free,
         )
+    clear_keys = np.floor(clear_scaled).astype(np.int64)
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
     buf = np.zeros(-(-total // 8) * 8, dtype=np.uint8)  # whole 8-byte words, for `_marked`
     cells = buf[:total]

@@ -118,6 +118,8 @@ class Beams:
     cleared: int  # beams without a hit (no return or beyond max range) that clear free space
     invalid: int  # NaN/inf points, zero-length rays, keys outside the key space
     dropped: int  # no-return beams that cannot be used (sensor without a max range)
+    #: (2, 3) int64 lowest and highest voxel key of the hits and clear ends, when known
+    bounds: np.ndarray | None = None
 
     @property
     def hits(self) -> int:
@@ -129,7 +131,7 @@ def sort_beams(scan: Scan, sensor: SensorModel, resolution: float) -> Beams:
     up to the sensor's `no_return_range`."""
     compiled = kernels.beams()
     if compiled is not None:
-        hit_keys, hit_mask, ends, cleared, dropped, ok = compiled(
+        hit_keys, hit_mask, ends, cleared, dropped, ok, bounds = compiled(
             np.ascontiguousarray(scan.points),
             scan.origin,
             scan.no_return,
@@ -143,7 +145,7 @@ def sort_beams(scan: Scan, sensor: SensorModel, resolution: float) -> Beams:
         )
         if ok:
             invalid = scan.points.shape[0] - int(hit_keys.shape[1]) - cleared - dropped
-            return Beams(hit_keys, hit_mask, ends, cleared, invalid, dropped)
+            return Beams(hit_keys, hit_mask, ends, cleared, invalid, dropped, bounds)
     n = scan.points.shape[0]
     org, nr = scan.origin, scan.no_return
     rows = np.ascontiguousarray(

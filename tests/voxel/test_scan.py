@@ -106,3 +106,9 @@ def test_compiled_beams_are_the_numpy_beams(monkeypatch, free_range) -> None:
             np.testing.assert_array_equal(getattr(compiled_b, name), getattr(numpy_b, name))
         for name in ("cleared", "invalid", "dropped"):
             assert getattr(compiled_b, name) == getattr(numpy_b, name), name
+        # The bounds the traversal's box is built from: every hit key and clear end's key.
+        keys = np.concatenate(
+            [numpy_b.hit_keys.T, np.floor(numpy_b.clear_ends * (1.0 / 0.05))]
+        ).astype(np.int64)
+        assert compiled_b.bounds is not None
+        np.testing.assert_array_equal(compiled_b.bounds, [keys.min(axis=0), keys.max(axis=0)])
