@@ -192,14 +192,16 @@ def _trace_box(
     n_touched = 0
     # Hit voxels: mark them, and their blocks; distinct ones in row-major (= packed key) order.
     n_hits = hk.shape[1]
-    point_lin = np.empty(n_hits, dtype=np.int64)
-    uniq = np.empty(n_hits, dtype=np.int64)
+    uniq = np.empty(min(n_hits, 4096), dtype=np.int64)  # grows: hits share voxels
     n_uniq = 0
     for i in range(n_hits):
         lin = np.int64(hk[0, i]) * s0 + np.int64(hk[1, i]) * s1 + np.int64(hk[2, i]) - base
-        point_lin[i] = lin
         if cells[lin] == 0:
             cells[lin] = 2  # HIT
+            if n_uniq == uniq.size:
+                grown = np.empty(min(n_hits, 2 * uniq.size), dtype=np.int64)
+                grown[:n_uniq] = uniq
+                uniq = grown
             uniq[n_uniq] = lin
             n_uniq += 1
     hit_lin = np.sort(uniq[:n_uniq])
@@ -213,7 +215,11 @@ def _trace_box(
             marks[blk] = 1
             touched[n_touched] = blk
             n_touched += 1
-    rows = np.searchsorted(hit_lin, point_lin) if want_rows else point_lin[:0]
+    rows = np.empty(n_hits if want_rows else 0, dtype=np.int64)
+    if want_rows:
+        for i in range(n_hits):
+            lin = np.int64(hk[0, i]) * s0 + np.int64(hk[1, i]) * s1 + np.int64(hk[2, i]) - base
+            rows[i] = np.searchsorted(hit_lin, lin)
     hit_keys = np.empty((n_uniq, 3), dtype=np.int64)
     ko0 = np.int64(np.floor(o[0]))
     ko1 = np.int64(np.floor(o[1]))
@@ -329,16 +335,33 @@ def _trace_box(
             sh_c = shifts[c]
             y = y0
             z = z0
-            for k in range(m):
-                if k < k_flat:
-                    yv = np.int64(y)
-                    zv = np.int64(z)
-                    y += inc_y
-                    z += inc_z
-                else:
-                    jf = np.float64(k - k_flat)
-                    yv = np.int64(y + jf * inc_y)
-                    zv = np.int64(z + jf * inc_z)
+            split = min(m, k_flat)
+            for k in range(split):  # accumulate (the numpy sweep's steps)
+                yv = np.int64(y)
+                zv = np.int64(z)
+                y += inc_y
+                z += inc_z
+                lin = lin_a + fixed
+                if not stay_b:
+                    lin += yv * sb
+                if not stay_c:
+                    lin += zv * sc
+                lin_a += sa
+                if cells[lin] != 0:
+                    continue  # marked before, and so was its block
+                cells[lin] = 1  # FREE
+                xa = ko[a] + (k + 1) * isgn
+                xb = ko[b] if stay_b else yv
+                xc = ko[c] if stay_c else zv
+                blk = (xa >> sh_a) * blk_a + (xb >> sh_b) * blk_b + (xc >> sh_c) * blk_c
+                if marks[blk] == 0:
+                    marks[blk] = 1
+                    touched[n_touched] = blk
+                    n_touched += 1
+            for k in range(split, m):  # multiply (the numpy sweep's flat pass)
+                jf = np.float64(k - k_flat)
+                yv = np.int64(y + jf * inc_y)
+                zv = np.int64(z + jf * inc_z)
                 lin = lin_a + fixed
                 if not stay_b:
                     lin += yv * sb
@@ -519,10 +542,10 @@ def _sort_beams(
     ends' keys (floor(end * inv)), for the traversal's box (a bound is empty: low > high)."""
     n = points.shape[0]
     max2 = max_range * max_range
-    r2 = np.empty(n, dtype=np.float64)
     hit_mask = np.zeros(n, dtype=np.bool_)
     clear_mask = np.zeros(n, dtype=np.bool_)
-    keys = np.empty((3, n), dtype=np.float64)
+    # floor(x) lies in [key_min, key_max] exactly when key_min <= x < key_max + 1.
+    k_top = key_max + 1.0
     n_hit = 0
     n_clear = 0
     for i in range(n):
@@ -532,38 +555,38 @@ def _sort_beams(
         d2 += t * t
         t = points[i, 2] - org[2]
         d2 += t * t
-        r2[i] = d2
         if d2 > 0 and d2 <= max2 and not nr[i]:
-            k0 = np.floor(points[i, 0] * inv)
-            k1 = np.floor(points[i, 1] * inv)
-            k2 = np.floor(points[i, 2] * inv)
+            x0 = points[i, 0] * inv
+            x1 = points[i, 1] * inv
+            x2 = points[i, 2] * inv
             if (
-                k0 >= key_min
-                and k0 <= key_max
-                and k1 >= key_min
-                and k1 <= key_max
-                and k2 >= key_min
-                and k2 <= key_max
+                x0 >= key_min
+                and x0 < k_top
+                and x1 >= key_min
+                and x1 < k_top
+                and x2 >= key_min
+                and x2 < k_top
             ):
                 hit_mask[i] = True
-                keys[0, n_hit] = k0
-                keys[1, n_hit] = k1
-                keys[2, n_hit] = k2
                 n_hit += 1
         else:
             r = np.sqrt(d2)
             if np.isfinite(r) and r > 0 and (r > max_range or nr[i]):
                 clear_mask[i] = True
                 n_clear += 1
-    hit_keys = keys[:, :n_hit].copy()
+    hit_keys = np.empty((3, n_hit), dtype=np.float64)
     bounds = np.empty((2, 3), dtype=np.int64)
     bounds[0, :] = np.iinfo(np.int64).max
     bounds[1, :] = np.iinfo(np.int64).min
-    for i in range(n_hit):
-        for a in range(3):
-            k = np.int64(keys[a, i])
-            bounds[0, a] = min(bounds[0, a], k)
-            bounds[1, a] = max(bounds[1, a], k)
+    j = 0
+    for i in range(n):
+        if hit_mask[i]:
+            for a in range(3):
+                k = np.floor(points[i, a] * inv)
+                hit_keys[a, j] = k
+                bounds[0, a] = min(bounds[0, a], np.int64(k))
+                bounds[1, a] = max(bounds[1, a], np.int64(k))
+            j += 1
     dropped = 0
     if not np.isfinite(no_return_range):  # then no max range either: only no-returns
         dropped = n_clear
@@ -576,7 +599,13 @@ def _sort_beams(
             if not clear_mask[i]:
                 continue
             limit = no_return_range if nr[i] and no_return_range < max_range else max_range
-            scale = limit / np.sqrt(r2[i])
+            t = points[i, 0] - org[0]
+            d2 = t * t
+            t = points[i, 1] - org[1]
+            d2 += t * t
+            t = points[i, 2] - org[2]
+            d2 += t * t
+            scale = limit / np.sqrt(d2)
             inside = True
             for a in range(3):
                 e = points[i, a] - org[a]
