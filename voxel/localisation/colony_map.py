@@ -4,12 +4,15 @@ target with normals (how another agent's map corrects this one's pose)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from voxel.errors import LocalisationError
 from voxel.localisation.scan_match import surface_normals, thin
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 #: What an alignment between two agents' frames adds to a pose measured against the other's map
 #: (x, y, yaw variances): live alignment is within ~3 cm and 0.2 degrees in the sim office
@@ -90,6 +93,8 @@ def colony_map(
         return ColonyMap(
             np.zeros((0, 3)), np.zeros((0, 3)), None, c, radius, sources, cov, alignment
         )
+    from scipy.spatial import cKDTree  # loads on first use, not at a daemon's start-up
+
     normals, flat = surface_normals(pts, pts, cKDTree(pts), k, planar)
     good = flat > 0.7
     pts, normals = pts[good], normals[good]
