@@ -403,8 +403,17 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument(
         "--catchup-voxels",
         type=int,
-        default=1_000_000,
-        help="voxels of the layer a newcomer catches up with (default 1,000,000)",
+        action="append",
+        help="voxels of the layer a newcomer catches up with (repeatable; default 1,000,000)",
+    )
+    b.add_argument(
+        "--start-runs", type=int, default=5, help="daemons timed from spawn to READY (default 5)"
+    )
+    b.add_argument(
+        "--phase",
+        action="append",
+        choices=["gossip", "catchup", "steps", "start"],
+        help="run only this phase (repeatable; default all)",
     )
     b = bsub.add_parser(
         "faults",
@@ -714,7 +723,9 @@ def _bench(args: argparse.Namespace) -> int:
             args.json,
             daemons=args.daemons,
             duration=args.duration,
-            catchup_voxels=args.catchup_voxels,
+            catchup_voxels=args.catchup_voxels or [1_000_000],
+            start_runs=args.start_runs,
+            phases=args.phase,
         )
     if result is not None:
         sys.stdout.write(json.dumps(result, indent=1, default=str) + "\n")

@@ -156,6 +156,13 @@ class BlockStore:
         shape."""
         return split_keys(keys, self.shifts)
 
+    def offset_keys(self) -> np.ndarray:
+        """Keys (block voxels, 3) of each in-block offset in a block at key (0, 0, 0)."""
+        corner = vk.pack(np.zeros((1, 3), dtype=np.int64))
+        return join_keys(
+            np.repeat(corner, self.block_voxels), np.arange(self.block_voxels), self.shifts
+        )
+
     def join(self, blocks: np.ndarray, offsets: np.ndarray) -> np.ndarray:
         """Voxel keys (N, 3) of packed block keys and in-block offsets."""
         return join_keys(blocks, offsets, self.shifts)

@@ -129,7 +129,11 @@ def delta_of(
     ver = store.channels["version"][slots]
     b, o = np.nonzero(ver > version)
     s = slots[b]
-    keys = store.join(store.slot_keys[s], o)
+    # Keys from each block's corner plus its offset's place: unpacking per block, not per voxel
+    # (a 10 M-voxel snapshot otherwise builds several (N, 3) temporaries).
+    corners = vk.unpack(store.slot_keys[slots]) << np.asarray(store.shifts, dtype=np.int64)
+    keys = corners[b]
+    keys += store.offset_keys()[o]
     channels = {
         name: arr[s, o] for name, arr in store.channels.items() if name not in CORE_CHANNELS
     }

@@ -200,6 +200,7 @@ class VoxelGrid:
             self.resolution,
             self.store.shifts,
             scan.channels.any,
+            beams.bounds,
         )
         hit_channels = (
             scan.channels.select(np.flatnonzero(beams.hit_mask))

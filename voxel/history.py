@@ -208,7 +208,9 @@ class History:
             if self._seen.shape[0] > max(self.capacity, n):  # the bound was lowered
                 self._seen = self._seen[: max(self.capacity, n)].copy()
         if self.seen_size + n > self._seen.shape[0]:
-            grown = np.zeros(
+            # Uninitialised: only the first seen_size entries are ever read, each written whole
+            # (zeroing 1.3 MB was most of a fresh grid's first small scan).
+            grown = np.empty(
                 min(
                     max(self._seen.shape[0] * 2, self.seen_size + n, MIN_BUFFER),
                     max(self.capacity, n),

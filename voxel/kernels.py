@@ -1,11 +1,12 @@
 """Compiled kernels (numba, the optional `fast` extra) for integration's hot loops, loaded lazily.
 
-`sweep()` (the traversal's dense sweep) and `occupancy()` (the occupancy update of a chunk of
-blocks) return a compiled kernel, or None when numba is absent, fails, or `COLONY_JIT=0`; the
-callers then run their pure-numpy path, which gives bit-identical results (the kernels repeat
-its floating-point operations one for one). Importing numba and loading the cached machine code
-take ~0.5 s of CPU, so nothing here happens at import: `warm()` does it, off the hot path (a
-daemon calls it in a background thread once ready), and the first call otherwise.
+`trace()` (a scan's whole dense traversal: hits, rays, blocks touched) and `update()` (the
+occupancy update of a chunk of blocks and the voxels the history records) return a compiled
+kernel, or None when numba is absent, fails, or `COLONY_JIT=0`; the callers then run their
+pure-numpy path, which gives bit-identical results (the kernels repeat its floating-point
+operations one for one). Importing numba and loading the cached machine code take ~0.5 s of
+CPU, so nothing here happens at import: `warm()` does it, off the hot path (a daemon calls it in
+a background thread once ready), and the first call otherwise.
 """
 
 from __future__ import annotations
@@ -18,10 +19,18 @@ from typing import Any
 
 import numpy as np
 
+from voxel import keys as vk
+
 log = logging.getLogger(__name__)
 
 #: Environment variable that turns the compiled kernels off ("0"), e.g. to compare both paths.
 JIT_ENV = "COLONY_JIT"
+
+#: Packed keys (voxel.keys): bits per axis and the offset added to each axis.
+_AXIS_BITS = vk.AXIS_BITS
+_AXIS_OFFSET = 1 << (_AXIS_BITS - 1)
+#: Multipliers of `keys.one_per_key`'s hash rounds.
+_HASH = vk._HASH_MULTIPLIERS
 
 _lock = threading.Lock()
 #: Name -> compiled kernel (None: numba absent); empty until loaded.
@@ -36,53 +45,86 @@ def enabled() -> bool:
 def _get(name: str) -> Callable[..., Any] | None:
     if not enabled():
         return None
-    if "sweep" not in _compiled:
+    if "trace" not in _compiled:
         _load()
     return _compiled[name]
 
 
-def sweep() -> Callable[..., Any] | None:
-    """The compiled dense sweep (see `_sweep_dense`), or None to use the numpy path."""
-    return _get("sweep")
+def trace() -> Callable[..., Any] | None:
+    """The compiled dense traversal (see `_trace_box`), or None to use the numpy path."""
+    return _get("trace")
 
 
-def occupancy() -> Callable[..., Any] | None:
-    """The compiled occupancy update of a chunk of blocks (see `_update_blocks`), or None."""
-    return _get("occupancy")
+def beams() -> Callable[..., Any] | None:
+    """The compiled sorting of a scan's beams (see `_sort_beams`), or None."""
+    return _get("beams")
+
+
+def update() -> Callable[..., Any] | None:
+    """The compiled occupancy update of a chunk of blocks (see `_update_records`), or None."""
+    return _get("update")
 
 
 def warm() -> bool:
     """Import numba and load (or compile and cache) the kernels now; True when they are in use."""
-    return sweep() is not None
+    return trace() is not None
 
 
-def _try_out(sweep: Callable[..., Any], update: Callable[..., Any]) -> None:
+def _try_out(
+    trace: Callable[..., Any], update: Callable[..., Any], beams: Callable[..., Any]
+) -> None:
     """One tiny call of each kernel: compiles (or loads) them, so a failure shows here."""
-    sweep(
+    beams(
+        np.array([[1.0, 2.0, 0.5], [40.0, 0.0, 0.0]]),
+        np.zeros(3),
+        np.array([False, True]),
+        30.0,
+        10.0,
+        20.0,
+        60.0,
+        float(vk.KEY_MIN),
+        float(vk.KEY_MAX),
+        float(vk.KEY_MAX * 3),
+    )
+    trace(
         np.array([0.5, 0.5, 0.5]),
-        np.array([[3.5, 2.5, 0.5]]),
-        np.array([16, 4, 1], dtype=np.int64),
+        np.array([[3.0], [2.0], [0.0]]),
+        np.zeros((0, 3)),
+        np.zeros(3, dtype=np.int64),
+        np.zeros(3, dtype=np.int64),
         np.array([4, 4, 4], dtype=np.int64),
         np.array([1, 1, 1], dtype=np.int64),
         3000,
         np.zeros(64, dtype=np.uint8),
-        np.zeros(0, dtype=np.int64),
-        0,
+        np.zeros(8, dtype=np.uint8),
+        np.zeros(8, dtype=np.int64),
+        True,
     )
     lo = np.full((1, 1), np.nan, dtype=np.float32)
     stamp = np.zeros((1, 1), dtype=np.uint32)
-    steps = np.zeros(3, dtype=np.float32)
-    bound = np.float32(1.0)
-    slots = np.zeros(1, dtype=np.int64)
-    cells = np.ones((1, 1), dtype=np.uint8)
-    update(lo, stamp.copy(), stamp, stamp[0], slots, cells, steps, -bound, bound, 1, 0)
+    update(
+        lo,
+        stamp.copy(),
+        stamp,
+        stamp[0],
+        np.zeros(1, dtype=np.int64),
+        np.zeros(1, dtype=np.int64),
+        np.ones((1, 1), dtype=np.uint8),
+        np.zeros(3, dtype=np.float32),
+        np.float32(-1.0),
+        np.float32(1.0),
+        1,
+        0,
+        np.zeros(3, dtype=np.int64),
+        True,
+    )
 
 
 def _load() -> None:
     with _lock:
-        if "sweep" in _compiled:
+        if "trace" in _compiled:
             return
-        found: dict[str, Callable[..., Any] | None] = {"occupancy": None, "sweep": None}
+        found: dict[str, Callable[..., Any] | None] = {"beams": None, "update": None, "trace": None}
         try:
             import numba
         except ImportError:
@@ -91,53 +133,128 @@ def _load() -> None:
         try:
             try:
                 jit = numba.njit(cache=True, nogil=True)
-                kernels = jit(_update_blocks), jit(_sweep_dense)
+                kernels = jit(_trace_box), jit(_update_records), jit(_sort_beams)
             except RuntimeError:  # no writable cache directory: compile at every start
                 log.warning("numba cannot cache here (set NUMBA_CACHE_DIR); compiling in memory")
                 jit = numba.njit(nogil=True)
-                kernels = jit(_update_blocks), jit(_sweep_dense)
-            _try_out(kernels[1], kernels[0])
-            found = {"occupancy": kernels[0], "sweep": kernels[1]}
+                kernels = jit(_trace_box), jit(_update_records), jit(_sort_beams)
+            _try_out(*kernels)
+            found = {"beams": kernels[2], "update": kernels[1], "trace": kernels[0]}
         except Exception as exc:  # noqa: BLE001 - any numba failure leaves the numpy path
             log.warning("compiled kernels unavailable, using numpy: %s", exc)
-        # "sweep" last: callers test for it before asking for the others.
-        _compiled["occupancy"] = found["occupancy"]
-        _compiled["sweep"] = found["sweep"]
+        # "trace" last: callers test for it before asking for the others.
+        _compiled["beams"] = found["beams"]
+        _compiled["update"] = found["update"]
+        _compiled["trace"] = found["trace"]
 
 
-def _sweep_dense(
+def _trace_box(
     o: np.ndarray,
-    ends: np.ndarray,
-    strides: np.ndarray,
+    hk: np.ndarray,
+    clear_scaled: np.ndarray,
+    key_o: np.ndarray,
+    lo: np.ndarray,
     dims: np.ndarray,
     shifts: np.ndarray,
     flat_below: int,
     cells: np.ndarray,
-    hit_lin: np.ndarray,
-    start: int,
-) -> np.ndarray:
-    """Mark FREE the cells of a dense box (row-major, `cells` uint8) that rays o -> ends enter,
-    end voxel excluded, leaving HIT cells (already marked, at `hit_lin`) as they are; the origin
-    voxel `start` (-1 none) is free when any ray is cast. Returns the sorted row-major indices
-    of the blocks (side 1 << shifts) holding a mark.
+    marks: np.ndarray,
+    touched: np.ndarray,
+    want_rows: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """One scan's traversal in a dense box (lower corner `lo`, block-aligned, sides `dims`), as
+    `raycast.trace`'s numpy path computes it: hit voxels at keys `hk` (3, H) (exact integers in
+    float64), rays from `o` (box-local, in voxels) to each distinct hit voxel's centre and to the
+    ends `clear_scaled` (M, 3) (world, in voxels; cast unless in the origin's voxel `key_o`)
+    mark FREE the voxels they enter, end voxel excluded, hits win; the origin voxel is free when
+    any ray is cast.
 
-    Written for numba: the arithmetic of `raycast._sequences`, `_sweep` and `_enumerate` per
-    run, in the same order, so the visited voxels are bit-identical to the numpy path's. Runs
-    step by accumulation up to the step `k_flat` at which the numpy sweep has fewer than
-    `flat_below` runs left, and are enumerated by multiplication from there, as it does.
+    `cells` (uint8, at least the box's cells), `marks` (uint8, at least its blocks) are zero and
+    `touched` (int64, at least its blocks) is any: scratch buffers reused across scans, left
+    zero again on return. Returns the packed keys (B,) of the touched blocks, sorted, their cells
+    (B, block voxels), the distinct hit keys (U, 3) int64 in packed order, each hit's row in
+    them (H,; with `want_rows`, else empty), and the count of FREE cells.
+
+    Written for numba: the arithmetic of `raycast._sequences`, `_sweep` and `_enumerate` per run,
+    in the same order, so the visited voxels are bit-identical to the numpy path's. Runs step by
+    accumulation up to the step `k_flat` at which the numpy sweep has fewer than `flat_below` runs
+    left, and are enumerated by multiplication from there, as it does.
     """
-    n_rays = ends.shape[0]
-    ko0 = np.int64(np.floor(o[0]))
-    ko1 = np.int64(np.floor(o[1]))
-    ko2 = np.int64(np.floor(o[2]))
-    ko = np.array([ko0, ko1, ko2], dtype=np.int64)
+    s2 = np.int64(1)
+    s1 = dims[2]
+    s0 = dims[1] * dims[2]
+    strides = np.array([s0, s1, s2], dtype=np.int64)
+    base = lo[0] * s0 + lo[1] * s1 + lo[2]
     nb = np.empty(3, dtype=np.int64)
     for a in range(3):
         nb[a] = dims[a] >> shifts[a]
     bstride = np.array([nb[1] * nb[2], nb[2], 1], dtype=np.int64)
-    marks = np.zeros(nb[0] * nb[1] * nb[2], dtype=np.uint8)
-    counts = np.empty((n_rays, 3), dtype=np.int64)
+    n_touched = 0
+    # Hit voxels: mark them, and their blocks; distinct ones in row-major (= packed key) order.
+    n_hits = hk.shape[1]
+    uniq = np.empty(min(n_hits, 4096), dtype=np.int64)  # grows: hits share voxels
+    n_uniq = 0
+    for i in range(n_hits):
+        lin = np.int64(hk[0, i]) * s0 + np.int64(hk[1, i]) * s1 + np.int64(hk[2, i]) - base
+        if cells[lin] == 0:
+            cells[lin] = 2  # HIT
+            if n_uniq == uniq.size:
+                grown = np.empty(min(n_hits, 2 * uniq.size), dtype=np.int64)
+                grown[:n_uniq] = uniq
+                uniq = grown
+            uniq[n_uniq] = lin
+            n_uniq += 1
+    hit_lin = np.sort(uniq[:n_uniq])
+    for i in range(n_uniq):
+        x = hit_lin[i] // s0
+        rest = hit_lin[i] - x * s0
+        y = rest // s1
+        z = rest - y * s1
+        blk = (x >> shifts[0]) * bstride[0] + (y >> shifts[1]) * bstride[1] + (z >> shifts[2])
+        if marks[blk] == 0:
+            marks[blk] = 1
+            touched[n_touched] = blk
+            n_touched += 1
+    rows = np.empty(n_hits if want_rows else 0, dtype=np.int64)
+    if want_rows:
+        for i in range(n_hits):
+            lin = np.int64(hk[0, i]) * s0 + np.int64(hk[1, i]) * s1 + np.int64(hk[2, i]) - base
+            rows[i] = np.searchsorted(hit_lin, lin)
+    hit_keys = np.empty((n_uniq, 3), dtype=np.int64)
+    ko0 = np.int64(np.floor(o[0]))
+    ko1 = np.int64(np.floor(o[1]))
+    ko2 = np.int64(np.floor(o[2]))
+    ko = np.array([ko0, ko1, ko2], dtype=np.int64)
+    start = (key_o[0] - lo[0]) * s0 + (key_o[1] - lo[1]) * s1 + (key_o[2] - lo[2])
+    # Ray ends: each distinct hit voxel's centre (unless it is the origin's voxel), each clear end
+    # outside the origin's voxel.
+    n_clear = clear_scaled.shape[0]
+    ends = np.empty((n_uniq + n_clear, 3), dtype=np.float64)
+    n_rays = 0
+    for i in range(n_uniq):
+        x = hit_lin[i] // s0
+        rest = hit_lin[i] - x * s0
+        y = rest // s1
+        z = rest - y * s1
+        hit_keys[i, 0] = x + lo[0]
+        hit_keys[i, 1] = y + lo[1]
+        hit_keys[i, 2] = z + lo[2]
+        if hit_lin[i] != start:
+            ends[n_rays, 0] = x + 0.5
+            ends[n_rays, 1] = y + 0.5
+            ends[n_rays, 2] = z + 0.5
+            n_rays += 1
+    for i in range(n_clear):
+        cast = False
+        for a in range(3):
+            if np.int64(np.floor(clear_scaled[i, a])) != key_o[a]:
+                cast = True
+        if cast:
+            for a in range(3):
+                ends[n_rays, a] = clear_scaled[i, a] - np.float64(lo[a])
+            n_rays += 1
     # Pass 1: each ray's crossings per axis, the end voxel's crossing dropped.
+    counts = np.empty((n_rays, 3), dtype=np.int64)
     longest = 0
     for r in range(n_rays):
         best = -np.inf
@@ -172,22 +289,9 @@ def _sweep_dense(
             if seen >= flat_below:
                 k_flat = v
                 break
-    touched = np.empty(marks.size, dtype=np.int64)
-    n_touched = 0
-    # Hit cells and the origin voxel mark their blocks.
-    for i in range(hit_lin.size):
-        x = hit_lin[i] // strides[0]
-        rest = hit_lin[i] - x * strides[0]
-        y = rest // strides[1]
-        z = rest - y * strides[1]
-        blk = (x >> shifts[0]) * bstride[0] + (y >> shifts[1]) * bstride[1] + (z >> shifts[2])
-        if marks[blk] == 0:
-            marks[blk] = 1
-            touched[n_touched] = blk
-            n_touched += 1
-    if n_rays > 0 and start >= 0:
+    if n_rays > 0:
         if cells[start] == 0:
-            cells[start] = 1
+            cells[start] = 1  # FREE
         blk = (ko0 >> shifts[0]) * bstride[0] + (ko1 >> shifts[1]) * bstride[1] + (ko2 >> shifts[2])
         if marks[blk] == 0:
             marks[blk] = 1
@@ -216,42 +320,105 @@ def _sweep_dense(
             inc_y = 0.0 if stay_b else sgn * rb
             z0 = 0.5 if stay_c else o[c] + dist0 * rc
             inc_z = 0.0 if stay_c else sgn * rc
+            # Per run constants; the axis-a term of the linear index advances by one stride
+            # per crossing. Crossings before k_flat accumulate, later ones multiply (as numpy).
+            sa = strides[a] * isgn
+            sb = strides[b]
+            sc = strides[c]
+            lin_a = (ko[a] + isgn) * strides[a]
+            fixed = (ko[b] * sb if stay_b else 0) + (ko[c] * sc if stay_c else 0)
+            blk_a = bstride[a]
+            blk_b = bstride[b]
+            blk_c = bstride[c]
+            sh_a = shifts[a]
+            sh_b = shifts[b]
+            sh_c = shifts[c]
             y = y0
             z = z0
-            for k in range(m):
-                if k < k_flat:
-                    yv = np.int64(y)
-                    zv = np.int64(z)
-                    y += inc_y
-                    z += inc_z
-                else:
-                    jf = np.float64(k - k_flat)
-                    yv = np.int64(y + jf * inc_y)
-                    zv = np.int64(z + jf * inc_z)
+            split = min(m, k_flat)
+            for k in range(split):  # accumulate (the numpy sweep's steps)
+                yv = np.int64(y)
+                zv = np.int64(z)
+                y += inc_y
+                z += inc_z
+                lin = lin_a + fixed
+                if not stay_b:
+                    lin += yv * sb
+                if not stay_c:
+                    lin += zv * sc
+                lin_a += sa
+                if cells[lin] != 0:
+                    continue  # marked before, and so was its block
+                cells[lin] = 1  # FREE
                 xa = ko[a] + (k + 1) * isgn
                 xb = ko[b] if stay_b else yv
                 xc = ko[c] if stay_c else zv
-                lin = xa * strides[a] + xb * strides[b] + xc * strides[c]
-                if cells[lin] != 0:
-                    continue  # marked before, and so was its block
-                cells[lin] = 1
-                blk = (
-                    (xa >> shifts[a]) * bstride[a]
-                    + (xb >> shifts[b]) * bstride[b]
-                    + (xc >> shifts[c]) * bstride[c]
-                )
+                blk = (xa >> sh_a) * blk_a + (xb >> sh_b) * blk_b + (xc >> sh_c) * blk_c
                 if marks[blk] == 0:
                     marks[blk] = 1
                     touched[n_touched] = blk
                     n_touched += 1
-    return np.sort(touched[:n_touched])
+            for k in range(split, m):  # multiply (the numpy sweep's flat pass)
+                jf = np.float64(k - k_flat)
+                yv = np.int64(y + jf * inc_y)
+                zv = np.int64(z + jf * inc_z)
+                lin = lin_a + fixed
+                if not stay_b:
+                    lin += yv * sb
+                if not stay_c:
+                    lin += zv * sc
+                lin_a += sa
+                if cells[lin] != 0:
+                    continue  # marked before, and so was its block
+                cells[lin] = 1  # FREE
+                xa = ko[a] + (k + 1) * isgn
+                xb = ko[b] if stay_b else yv
+                xc = ko[c] if stay_c else zv
+                blk = (xa >> sh_a) * blk_a + (xb >> sh_b) * blk_b + (xc >> sh_c) * blk_c
+                if marks[blk] == 0:
+                    marks[blk] = 1
+                    touched[n_touched] = blk
+                    n_touched += 1
+    # Gather the touched blocks' cells, in block order, and leave the scratch zero.
+    order = np.sort(touched[:n_touched])
+    sx = shifts[0]
+    sy = shifts[1]
+    sz = shifts[2]
+    n_vox = np.int64(1) << (sx + sy + sz)
+    out = np.empty((n_touched, n_vox), dtype=np.uint8)
+    blocks = np.empty(n_touched, dtype=np.int64)
+    off_x = (lo[0] >> sx) + _AXIS_OFFSET
+    off_y = (lo[1] >> sy) + _AXIS_OFFSET
+    off_z = (lo[2] >> sz) + _AXIS_OFFSET
+    n_free = 0
+    for i in range(n_touched):
+        t = order[i]
+        marks[t] = 0
+        bx = t // bstride[0]
+        rest = t - bx * bstride[0]
+        by = rest // bstride[1]
+        bz = rest - by * bstride[1]
+        blocks[i] = ((bx + off_x) << (2 * _AXIS_BITS)) | ((by + off_y) << _AXIS_BITS) | (bz + off_z)
+        j = 0
+        for ox in range(np.int64(1) << sx):
+            row_x = ((bx << sx) + ox) * s0
+            for oy in range(np.int64(1) << sy):
+                row_y = row_x + ((by << sy) + oy) * s1 + (bz << sz)
+                for oz in range(np.int64(1) << sz):
+                    c = cells[row_y + oz]
+                    out[i, j] = c
+                    n_free += c == 1
+                    cells[row_y + oz] = 0
+                    j += 1
+    return blocks, out, hit_keys, rows, n_free
 
 
-def _update_blocks(
+def _update_records(
     logodds: np.ndarray,
     version: np.ndarray,
     last_time: np.ndarray,
     slot_version: np.ndarray,
+    slot_keys: np.ndarray,
     slots: np.ndarray,
     cells: np.ndarray,
     steps: np.ndarray,
@@ -259,45 +426,265 @@ def _update_blocks(
     high: np.float32,
     v: int,
     stamp: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """One scan's occupancy update of blocks `slots` (cells (B, V): 0 untouched, else the
-    index of its log-odds step), without decay or statistics, as `occupancy._update_chunk`'s
-    numpy path does it: each touched voxel's value becomes clip(value or 0 + step); changed
-    voxels take version `v` and time `stamp`; nothing is written when nothing changed.
-    Returns log-odds before and after (B, V), the changed mask and the count of changed."""
+    shifts: np.ndarray,
+    seen: bool,
+) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One scan's occupancy update of blocks `slots` (cells (B, V): 0 untouched, else the index
+    of its log-odds step), without decay or statistics, and the voxels the history records, as
+    `occupancy._update_numpy` and `_worth_recording` compute them: each touched voxel's value
+    becomes clip(value or 0 + step); changed voxels take version `v` and time `stamp`; nothing
+    is written when nothing changed.
+
+    Returns the count of changed voxels and, in block then offset order, the packed keys, log-odds
+    before and after and hit flags of the changed voxels that are hit, occupied now or were
+    occupied, and (with `seen`) the packed keys of the voxels that went unknown -> free."""
     n_blocks, n_vox = cells.shape
-    old = np.empty((n_blocks, n_vox), dtype=np.float32)
-    new = np.empty((n_blocks, n_vox), dtype=np.float32)
-    changed = np.zeros((n_blocks, n_vox), dtype=np.bool_)
     count = 0
+    n_keep = 0
+    n_fresh = 0
     for i in range(n_blocks):
         s = slots[i]
         for j in range(n_vox):
-            before = logodds[s, j]
-            old[i, j] = before
             c = cells[i, j]
             if c == 0:
-                new[i, j] = before
                 continue
+            before = logodds[s, j]
             known = not np.isnan(before)
             after = (before if known else np.float32(0.0)) + steps[c]
             after = min(max(after, low), high)
-            new[i, j] = after
-            if not known or after != before:
-                changed[i, j] = True
-                count += 1
+            if known and after == before:
+                continue
+            count += 1
+            if after >= 0 or before >= 0 or c == 2:
+                n_keep += 1
+            if seen and not known and after < 0:
+                n_fresh += 1
+    keys = np.empty(n_keep, dtype=np.int64)
+    old = np.empty(n_keep, dtype=np.float32)
+    new = np.empty(n_keep, dtype=np.float32)
+    hit = np.empty(n_keep, dtype=np.bool_)
+    fresh = np.empty(n_fresh, dtype=np.int64)
     if count == 0:
-        return old, new, changed, 0
+        return 0, keys, old, new, hit, fresh
+    sx = shifts[0]
+    sy = shifts[1]
+    sz = shifts[2]
+    mask = np.int64((1 << _AXIS_BITS) - 1)
+    k = 0
+    f = 0
     for i in range(n_blocks):
         s = slots[i]
-        hit_block = False
+        bkey = slot_keys[s]
+        bx = ((bkey >> (2 * _AXIS_BITS)) & mask) - _AXIS_OFFSET
+        by = ((bkey >> _AXIS_BITS) & mask) - _AXIS_OFFSET
+        bz = (bkey & mask) - _AXIS_OFFSET
+        changed_block = False
         for j in range(n_vox):
-            if cells[i, j] != 0:
-                logodds[s, j] = new[i, j]
-            if changed[i, j]:
-                version[s, j] = v
-                last_time[s, j] = stamp
-                hit_block = True
-        if hit_block:
+            c = cells[i, j]
+            if c == 0:
+                continue
+            before = logodds[s, j]
+            known = not np.isnan(before)
+            after = (before if known else np.float32(0.0)) + steps[c]
+            after = min(max(after, low), high)
+            logodds[s, j] = after
+            if known and after == before:
+                continue
+            version[s, j] = v
+            last_time[s, j] = stamp
+            changed_block = True
+            keep = after >= 0 or before >= 0 or c == 2
+            is_fresh = seen and not known and after < 0
+            if keep or is_fresh:
+                x = (bx << sx) + (j >> (sy + sz))
+                y = (by << sy) + ((j >> sz) & ((1 << sy) - 1))
+                z = (bz << sz) + (j & ((1 << sz) - 1))
+                packed = (
+                    ((x + _AXIS_OFFSET) << (2 * _AXIS_BITS))
+                    | ((y + _AXIS_OFFSET) << _AXIS_BITS)
+                    | (z + _AXIS_OFFSET)
+                )
+                if keep:
+                    keys[k] = packed
+                    old[k] = before
+                    new[k] = after
+                    hit[k] = c == 2
+                    k += 1
+                if is_fresh:
+                    fresh[f] = packed
+                    f += 1
+        if changed_block:
             slot_version[s] = v
-    return old, new, changed, count
+    return count, keys, old, new, hit, fresh
+
+
+def _sort_beams(
+    points: np.ndarray,
+    org: np.ndarray,
+    nr: np.ndarray,
+    max_range: float,
+    no_return_range: float,
+    inv: float,
+    fine_scale: float,
+    key_min: float,
+    key_max: float,
+    fine_limit: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, bool, np.ndarray]:
+    """A scan's beams sorted as `scan.sort_beams` sorts them (the same floating-point operations
+    in the same order): points (N, 3) seen from `org`, `nr` the no-return flags; `inv` is
+    1 / resolution, `fine_scale` CLEAR_SUBDIVISION / resolution, keys must lie in
+    [key_min, key_max] and fine clear cells in [-fine_limit, fine_limit].
+
+    Returns the hit keys (3, H) float64, the hit mask (N,), the clear ends (M, 3) (one beam per
+    fine cell, chosen as `keys.one_per_key` chooses), the counts of clearing and dropped beams,
+    False when the clear cells span too much for one packed index (then nothing is valid: the
+    caller uses the numpy path), and the bounds (2, 3) int64 of the hit keys and of the clear
+    ends' keys (floor(end * inv)), for the traversal's box (a bound is empty: low > high)."""
+    n = points.shape[0]
+    max2 = max_range * max_range
+    hit_mask = np.zeros(n, dtype=np.bool_)
+    clear_mask = np.zeros(n, dtype=np.bool_)
+    # floor(x) lies in [key_min, key_max] exactly when key_min <= x < key_max + 1.
+    k_top = key_max + 1.0
+    n_hit = 0
+    n_clear = 0
+    for i in range(n):
+        t = points[i, 0] - org[0]
+        d2 = t * t
+        t = points[i, 1] - org[1]
+        d2 += t * t
+        t = points[i, 2] - org[2]
+        d2 += t * t
+        if d2 > 0 and d2 <= max2 and not nr[i]:
+            x0 = points[i, 0] * inv
+            x1 = points[i, 1] * inv
+            x2 = points[i, 2] * inv
+            if (
+                x0 >= key_min
+                and x0 < k_top
+                and x1 >= key_min
+                and x1 < k_top
+                and x2 >= key_min
+                and x2 < k_top
+            ):
+                hit_mask[i] = True
+                n_hit += 1
+        else:
+            r = np.sqrt(d2)
+            if np.isfinite(r) and r > 0 and (r > max_range or nr[i]):
+                clear_mask[i] = True
+                n_clear += 1
+    hit_keys = np.empty((3, n_hit), dtype=np.float64)
+    bounds = np.empty((2, 3), dtype=np.int64)
+    bounds[0, :] = np.iinfo(np.int64).max
+    bounds[1, :] = np.iinfo(np.int64).min
+    j = 0
+    for i in range(n):
+        if hit_mask[i]:
+            for a in range(3):
+                k = np.floor(points[i, a] * inv)
+                hit_keys[a, j] = k
+                bounds[0, a] = min(bounds[0, a], np.int64(k))
+                bounds[1, a] = max(bounds[1, a], np.int64(k))
+            j += 1
+    dropped = 0
+    if not np.isfinite(no_return_range):  # then no max range either: only no-returns
+        dropped = n_clear
+        n_clear = 0
+    ends = np.empty((n_clear, 3), dtype=np.float64)
+    fine = np.empty((n_clear, 3), dtype=np.float64)
+    m = 0
+    if n_clear:
+        for i in range(n):
+            if not clear_mask[i]:
+                continue
+            limit = no_return_range if nr[i] and no_return_range < max_range else max_range
+            t = points[i, 0] - org[0]
+            d2 = t * t
+            t = points[i, 1] - org[1]
+            d2 += t * t
+            t = points[i, 2] - org[2]
+            d2 += t * t
+            scale = limit / np.sqrt(d2)
+            inside = True
+            for a in range(3):
+                e = points[i, a] - org[a]
+                e *= scale
+                e += org[a]
+                ends[m, a] = e
+                f = np.floor(e * fine_scale)
+                fine[m, a] = f
+                if f < -fine_limit or f > fine_limit:
+                    inside = False
+            if inside:
+                m += 1
+    cleared = m
+    # One beam per fine cell, as keys.one_per_key picks it.
+    chosen = np.empty(m, dtype=np.int64)
+    n_c = 0
+    if m:
+        lo = np.empty(3, dtype=np.int64)
+        span = np.empty(3, dtype=np.int64)
+        for a in range(3):
+            mn = fine[0, a]
+            mx = fine[0, a]
+            for i in range(m):
+                mn = min(mn, fine[i, a])
+                mx = max(mx, fine[i, a])
+            lo[a] = np.int64(mn)
+            span[a] = np.int64(mx) - lo[a] + 1
+        if np.float64(span[0]) * np.float64(span[1]) * np.float64(span[2]) > 2.0**62:
+            return hit_keys, hit_mask, ends[:0], cleared, dropped, False, bounds
+        lin = np.empty(m, dtype=np.int64)
+        for i in range(m):
+            lin[i] = (
+                np.int64(fine[i, 0] - lo[0]) * (span[1] * span[2])
+                + np.int64(fine[i, 1] - lo[1]) * span[2]
+                + np.int64(fine[i, 2] - lo[2])
+            )
+        bits = 2
+        while (np.int64(1) << (bits - 2)) <= m:
+            bits += 1
+        bits = max(4, bits)  # max(4, m.bit_length() + 2)
+        table = np.empty(np.int64(1) << bits, dtype=np.int64)
+        mask = (np.int64(1) << bits) - 1
+        pend = np.arange(m)
+        slot = np.empty(m, dtype=np.int64)
+        n_p = m
+        for r in range(64):
+            mult = np.int64(_HASH[r % 4]) + np.int64(2 * (r // 4))
+            for i in range(n_p):
+                s = ((lin[pend[i]] * mult) >> (64 - bits)) & mask
+                slot[i] = s
+                table[s] = pend[i]
+            for i in range(n_p):
+                if table[slot[i]] == pend[i]:
+                    chosen[n_c] = pend[i]
+                    n_c += 1
+            left = 0
+            for i in range(n_p):
+                p = pend[i]
+                if lin[table[slot[i]]] != lin[p]:
+                    pend[left] = p
+                    slot[left] = slot[i]
+                    left += 1
+            n_p = left
+            if n_p == 0:
+                break
+        if n_p:  # 64 rounds of collisions: the last of each key that is left, by key
+            rest = pend[:n_p]
+            order = np.argsort(lin[rest], kind="mergesort")
+            for i in range(n_p):
+                here = rest[order[i]]
+                if i == n_p - 1 or lin[rest[order[i + 1]]] != lin[here]:
+                    chosen[n_c] = here
+                    n_c += 1
+    picked = np.empty((n_c, 3), dtype=np.float64)
+    for i in range(n_c):
+        for a in range(3):
+            e = ends[chosen[i], a]
+            picked[i, a] = e
+            k = np.int64(np.floor(e * inv))
+            bounds[0, a] = min(bounds[0, a], k)
+            bounds[1, a] = max(bounds[1, a], k)
+    return hit_keys, hit_mask, picked, cleared, dropped, True, bounds

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -66,6 +67,12 @@ class Evidence(NamedTuple):
 
     @classmethod
     def of(cls, sensor: SensorModel, reliability: float) -> Evidence:
+        """The evidence of `sensor` at `reliability` (cached: its arrays are shared, not to be
+        written)."""
+        return _evidence(sensor, float(reliability))
+
+    @classmethod
+    def compute(cls, sensor: SensorModel, reliability: float) -> Evidence:
         raw = np.zeros(3, dtype=np.float32)
         raw[FREE] = sensor.log_miss * reliability
         raw[HIT] = sensor.log_hit * reliability
@@ -75,6 +82,12 @@ class Evidence(NamedTuple):
             quantise_logodds(np.float32(sensor.log_min)),
             quantise_logodds(np.float32(sensor.log_max)),
         )
+
+
+@functools.lru_cache(maxsize=256)
+def _evidence(sensor: SensorModel, reliability: float) -> Evidence:
+    # Not made read-only: numba would compile its kernels again for read-only arrays.
+    return Evidence.compute(sensor, reliability)
 
 
 class Changes(NamedTuple):
@@ -142,13 +155,14 @@ def _update_chunk(
     update: OccupancyUpdate,
 ) -> None:
     ev = rule.evidence
-    compiled = kernels.occupancy() if rule.half_life is None and not rule.statistics else None
+    compiled = kernels.update() if rule.half_life is None and not rule.statistics else None
     if compiled is not None:
-        old, new, changed, count = compiled(
+        count, keys, before, after, hit, seen = compiled(
             store.channels["logodds"],
             store.channels["version"],
             store.channels["last_time"],
             store.slot_version,
+            store.slot_keys,
             slots,
             cells,
             ev.step,
@@ -156,9 +170,14 @@ def _update_chunk(
             np.float32(ev.high),
             int(v),
             int(stamp),
+            np.asarray(store.shifts, dtype=np.int64),
+            rule.seen,
         )
-    else:
-        old, new, changed, count = _update_numpy(store, slots, cells, rule, v, time, stamp, times)
+        if count:
+            update.changed += count
+            update.chunks.append(Changes(keys, before, after, hit, seen))
+        return
+    old, new, changed, count = _update_numpy(store, slots, cells, rule, v, time, stamp, times)
     if count == 0:
         return
     update.changed += count

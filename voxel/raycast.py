@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from voxel import kernels
+from voxel import kernels, scratch
 from voxel import keys as vk
 from voxel.blocks import CUBE, split_keys
 
@@ -39,10 +39,11 @@ class Traversal:
     cells: np.ndarray  # (B, block voxels) uint8
     hit_keys: np.ndarray  # (U, 3) int64 unique hit voxel keys, in packed-key order
     inverse: np.ndarray | None = None  # (N,) each hit point's row in hit_keys, when asked for
+    free: int = -1  # FREE cells, when counted on the way (-1: count them when asked)
 
     @property
     def free_count(self) -> int:
-        return int(np.count_nonzero(self.cells == FREE))
+        return self.free if self.free >= 0 else int(np.count_nonzero(self.cells == FREE))
 
     @property
     def hit_count(self) -> int:
@@ -214,12 +215,15 @@ def trace(
     resolution: float,
     shifts: tuple[int, int, int] = CUBE,
     want_inverse: bool = False,
+    bounds: np.ndarray | None = None,
 ) -> Traversal:
     """One scan's free and hit voxels: a ray from `origin` to each distinct hit voxel's centre and
     to each of `clear_ends` (world points); free voxels along rays (end voxel excluded), hits win.
 
     `hit_keys` are the hit points' voxel keys as rows (3, N) (float or int, exact integers).
-    Each voxel appears once however many rays pass it, as in OctoMap's update.
+    Each voxel appears once however many rays pass it, as in OctoMap's update. `bounds` (2, 3),
+    when given, are the lowest and highest key of the hits and of the clear ends (saves
+    reading them all again).
     """
     origin = np.asarray(origin, dtype=np.float64).reshape(3)
     hk = np.asarray(hit_keys, dtype=np.float64).reshape(3, -1)
@@ -228,8 +232,13 @@ def trace(
     o_scaled = origin * inv
     key_o = np.floor(o_scaled).astype(np.int64)
     clear_scaled = clear * inv
-    clear_keys = np.floor(clear_scaled).astype(np.int64)
-    lo, dims = _box(key_o, hk, clear_keys.T, shifts=shifts)
+    if bounds is None:
+        clear_keys = np.floor(clear_scaled).astype(np.int64)
+        lo, dims = _box(key_o, hk, clear_keys.T, shifts=shifts)
+    else:
+        b = np.asarray(bounds, dtype=np.int64)
+        rows = b.T if b[0, 0] <= b[1, 0] else np.empty((3, 0), dtype=np.int64)  # none: empty
+        lo, dims = _box(key_o, rows, shifts=shifts)
     total = int(np.prod(dims))
     if total > DENSE_LIMIT:
         packed, inverse = np.unique(vk.pack(hk.T.astype(np.int64)), return_inverse=True)
@@ -239,6 +248,38 @@ def trace(
             blocks=blocks, cells=cells, hit_keys=uniq, inverse=inverse if want_inverse else None
         )
 
+    compiled = kernels.trace()
+    if compiled is not None:
+        sh = np.asarray(shifts, dtype=np.int64)
+        n_blocks = int(np.prod(dims >> sh))
+        cells = scratch.take("cells", total, np.uint8)
+        marks = scratch.take("marks", n_blocks, np.uint8)
+        touched = scratch.take("touched", n_blocks, np.int64)
+        blocks, vals, uniq, rows, free = compiled(
+            o_scaled - lo,
+            np.ascontiguousarray(hk),
+            clear_scaled,
+            key_o,
+            lo,
+            dims,
+            sh,
+            FLAT_BELOW,
+            cells,
+            marks,
+            touched,
+            want_inverse,
+        )
+        scratch.give("cells", cells)
+        scratch.give("marks", marks)
+        scratch.give("touched", touched)
+        return Traversal(
+            blocks=blocks,
+            cells=vals,
+            hit_keys=uniq,
+            inverse=rows if want_inverse else None,
+            free=free,
+        )
+    clear_keys = np.floor(clear_scaled).astype(np.int64)
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
     buf = np.zeros(-(-total // 8) * 8, dtype=np.uint8)  # whole 8-byte words, for `_marked`
     cells = buf[:total]
@@ -257,27 +298,12 @@ def trace(
     hit_cast = hit_lin != start  # a ray whose end lies in the origin voxel marks nothing
     clear_cast = np.any(clear_keys != key_o, axis=1)
     ends = np.concatenate([local[hit_cast] + 0.5, clear_scaled[clear_cast] - lo])
-    compiled = kernels.sweep()
-    if compiled is not None:
-        touched = compiled(
-            o_scaled - lo,
-            ends,
-            strides,
-            dims,
-            np.asarray(shifts),
-            FLAT_BELOW,
-            cells,
-            hit_lin,
-            start,
-        )
-        blocks, vals = _blocks_at(buf, dims, lo, shifts, touched)
-    else:
-        cells[hit_lin] = 0
-        _sweep(o_scaled - lo, ends, strides, lambda x: cells.__setitem__(x, FREE))
-        if ends.shape[0]:
-            cells[start] = FREE
-        cells[hit_lin] = HIT
-        blocks, vals = _blocks_of(buf, dims, lo, shifts)
+    cells[hit_lin] = 0
+    _sweep(o_scaled - lo, ends, strides, lambda x: cells.__setitem__(x, FREE))
+    if ends.shape[0]:
+        cells[start] = FREE
+    cells[hit_lin] = HIT
+    blocks, vals = _blocks_of(buf, dims, lo, shifts)
     point_rows = np.searchsorted(hit_lin, lin) if want_inverse else None
     return Traversal(blocks=blocks, cells=vals, hit_keys=local + lo, inverse=point_rows)
 
@@ -329,22 +355,6 @@ def _blocks_of(
         for i in range(1, 1 << sy):
             touched |= rows[:, :, i]
         bx, by, bz = np.nonzero(touched)
-    return _gather(c6, bx, by, bz, lo, shifts)
-
-
-def _blocks_at(
-    buf: np.ndarray,
-    dims: np.ndarray,
-    lo: np.ndarray,
-    shifts: tuple[int, int, int],
-    touched: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Packed keys and cells of the blocks of a dense box at sorted row-major block indices."""
-    sx, sy, sz = shifts
-    nb = dims >> np.asarray(shifts)
-    c6 = buf[: int(np.prod(dims))].reshape(nb[0], 1 << sx, nb[1], 1 << sy, nb[2], 1 << sz)
-    bx, rest = np.divmod(touched, nb[1] * nb[2])
-    by, bz = np.divmod(rest, nb[2])
     return _gather(c6, bx, by, bz, lo, shifts)
 
 

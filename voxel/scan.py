@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from voxel import kernels
 from voxel import keys as vk
 from voxel.channels import PointChannels
 from voxel.errors import InputError
@@ -117,6 +118,8 @@ class Beams:
     cleared: int  # beams without a hit (no return or beyond max range) that clear free space
     invalid: int  # NaN/inf points, zero-length rays, keys outside the key space
     dropped: int  # no-return beams that cannot be used (sensor without a max range)
+    #: (2, 3) int64 lowest and highest voxel key of the hits and clear ends, when known
+    bounds: np.ndarray | None = None
 
     @property
     def hits(self) -> int:
@@ -126,6 +129,23 @@ class Beams:
 def sort_beams(scan: Scan, sensor: SensorModel, resolution: float) -> Beams:
     """Hits end within max range; beams beyond it clear up to max range, beams without a return
     up to the sensor's `no_return_range`."""
+    compiled = kernels.beams()
+    if compiled is not None:
+        hit_keys, hit_mask, ends, cleared, dropped, ok, bounds = compiled(
+            np.ascontiguousarray(scan.points),
+            scan.origin,
+            scan.no_return,
+            float(sensor.max_range),
+            float(sensor.no_return_range),
+            1.0 / resolution,
+            CLEAR_SUBDIVISION / resolution,
+            float(vk.KEY_MIN),
+            float(vk.KEY_MAX),
+            float(vk.KEY_MAX * CLEAR_SUBDIVISION),
+        )
+        if ok:
+            invalid = scan.points.shape[0] - int(hit_keys.shape[1]) - cleared - dropped
+            return Beams(hit_keys, hit_mask, ends, cleared, invalid, dropped, bounds)
     n = scan.points.shape[0]
     org, nr = scan.origin, scan.no_return
     rows = np.ascontiguousarray(

@@ -31,6 +31,15 @@ class TimeBase:
 
     def stamp(self, t: float | np.ndarray) -> np.ndarray:
         """Stored form (uint32 ms since the base) of times in seconds; moves the base if needed."""
+        if isinstance(t, float):  # one time (a scan's): the same arithmetic on Python integers
+            one = round(t * 1000.0)  # rounds half to even, as np.rint
+            base = one - one % BASE_STEP_MS if self.base_ms is None else self.base_ms
+            if one < base or one - base > TIME_SPAN_MS:
+                new_base = one - one % BASE_STEP_MS if one < base else one - TIME_SPAN_MS // 2
+                self._shift_stored(new_base - base)
+                base = new_base
+            self.base_ms = base
+            return np.array(min(max(one - base, 0), TIME_SPAN_MS), dtype=np.uint32)
         ms = np.rint(np.asarray(t, dtype=np.float64) * 1000.0).astype(np.int64)
         if ms.size == 0:
             return ms.astype(np.uint32)

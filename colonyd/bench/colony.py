@@ -1,4 +1,5 @@
-"""`colonyd bench colony`: N daemons on loopback; propagation, 1M-voxel catch-up, idle cost."""
+"""`colonyd bench colony`: N daemons on loopback; propagation, catch-up (daemons, and step by step
+in one process), idle cost, start to ready."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from colonyd.bench.catchup import catchup_steps, start_to_ready
 from colonyd.bench.launcher import LocalColony
 
 log = logging.getLogger(__name__)
@@ -43,19 +45,42 @@ def propagation_ms(reports: list[dict[str, Any]], agents: list[str]) -> list[flo
     return [max(v) * 1000 for v in applied.values() if len(v) >= need]
 
 
+#: Phases of the benchmark, in the order they run.
+PHASES = ("gossip", "catchup", "steps", "start")
+
+
 def run_colony_bench(
     out_json: Path | str,
     *,
     daemons: int = 4,
     duration: float = 10.0,
-    catchup_voxels: int = 1_000_000,
+    catchup_voxels: int | list[int] = 1_000_000,
+    start_runs: int = 5,
+    phases: list[str] | None = None,
 ) -> dict[str, Any]:
-    """Run the three phases and write the result JSON; returns it."""
+    """Run the phases (all of PHASES unless named) and write the result JSON; returns it.
+
+    gossip: propagation and idle cost of `daemons` daemons; catchup: a newcomer daemon's
+    snapshot of a `bulk:` layer of each size in `catchup_voxels` (the first size's figures also
+    under the keys of one size); steps: the same catch-up step by step in this process (CPU);
+    start: `start_runs` daemons from spawn to READY.
+    """
+    sizes = [catchup_voxels] if isinstance(catchup_voxels, int) else list(catchup_voxels)
+    wanted = set(phases or PHASES)
     work = Path(tempfile.mkdtemp(prefix="colonyd-bench-"))
     result: dict[str, Any] = {"daemons": daemons}
     try:
-        result.update(_propagation_and_idle(work / "gossip", daemons, duration))
-        result.update(_catchup(work / "catchup", catchup_voxels))
+        if "gossip" in wanted:
+            result.update(_propagation_and_idle(work / "gossip", daemons, duration))
+        if "catchup" in wanted:
+            runs = [_catchup(work / f"catchup{n}", n) for n in sizes]
+            result.update(runs[0])
+            result["catchups"] = runs
+        if "steps" in wanted:
+            result["catchup_steps"] = [catchup_steps(n) for n in sizes]
+        if "start" in wanted:
+            result.update(start_to_ready(work / "start", start_runs))
+        result["load_average"] = [round(x, 2) for x in os.getloadavg()]
     finally:
         shutil.rmtree(work, ignore_errors=True)
     out = Path(out_json)
@@ -113,7 +138,7 @@ def _catchup(base: Path, voxels: int) -> dict[str, Any]:
     colony = LocalColony(base, colony="catchup", heartbeat_s=1.0)
     try:
         colony.add("big", [f"bulk:voxels={voxels}"])
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + 120 + voxels / 50_000
         while time.monotonic() < deadline:
             reports = colony.status(timeout=1.0)
             big = next((r for r in reports if r["agent"] == "big"), None)
@@ -124,7 +149,7 @@ def _catchup(base: Path, voxels: int) -> dict[str, Any]:
             raise TimeoutError("the bulk daemon did not publish its layer")
         t0 = time.monotonic()
         colony.add("newcomer")
-        colony.wait_converged(120, ["big", "newcomer"])
+        colony.wait_converged(120 + voxels / 50_000, ["big", "newcomer"])
         wall = time.monotonic() - t0
         rep = next(r for r in colony.status() if r["agent"] == "newcomer")
         catchups = [c for c in rep["metrics"]["catchups"] if c[0] == "big"]

@@ -269,7 +269,7 @@ def run_scenario(sc: Scenario, repeats: int, runs: int = 1) -> dict[str, Any]:
         "speedup_min": round(min(speedups), 2),
         "speedup_max": round(max(speedups), 2),
         "runs": runs,
-        "kernels": "compiled" if kernels.sweep() is not None else "numpy",
+        "kernels": "compiled" if kernels.trace() is not None else "numpy",
         "occupied_agreement": round(iou(grid.occupied_keys(), occ), 4),
         "free_agreement": round(iou(grid.free_keys(), free), 4),
         "occupied_agreement_discretize": round(iou(grid.occupied_keys(), occ_d), 4),

@@ -13,7 +13,7 @@ def kernel_path(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch)
     numba, the optional `fast` extra)."""
     if request.param == "numpy":
         monkeypatch.setenv(kernels.JIT_ENV, "0")
-        assert kernels.sweep() is None
+        assert kernels.trace() is None
     else:
         pytest.importorskip("numba")
         monkeypatch.setenv(kernels.JIT_ENV, "1")

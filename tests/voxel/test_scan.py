@@ -73,3 +73,42 @@ def test_beams_without_a_return_clear_only_up_to_the_free_range() -> None:
     assert np.allclose(np.linalg.norm(beams.clear_ends, axis=1), 2.0)
     with pytest.raises(InputError, match="free_range must be positive, found 0"):
         SensorModel(free_range=0.0)
+
+
+@pytest.mark.parametrize("free_range", [4.0, float("inf")])
+def test_compiled_beams_are_the_numpy_beams(monkeypatch, free_range) -> None:
+    # The compiled sorting (voxel/kernels.py) gives bit-identical beams: the same hits, the same
+    # one beam chosen per fine cell (many beams share cells here), the same counts.
+    pytest.importorskip("numba")
+    from voxel import kernels
+
+    rng = np.random.default_rng(7)
+    origin = np.array([0.013, -0.021, 0.3])
+    d = rng.normal(size=(3000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    pts = origin + d * rng.uniform(0.0, 12.0, (3000, 1))
+    pts[::97] = np.nan
+    pts[5::101] = origin  # zero-length
+    pts[7::103, 0] = 1e9  # key outside the key space
+    pts[::5] = origin + d[::5] * 50.0  # beyond max range: clear up to it, many in one cell
+    nr = rng.random(3000) < 0.2
+    without_range = SensorModel(free_range=free_range)
+    for sensor in (SensorModel(max_range=8.0, free_range=free_range), without_range):
+        scan = Scan.of(pts, origin, time=0.0, reliability=1.0, no_return=nr)
+        out = []
+        for flag in ("0", "1"):
+            monkeypatch.setenv(kernels.JIT_ENV, flag)
+            out.append(sort_beams(scan, sensor, 0.05))
+        assert kernels.beams() is not None
+        numpy_b, compiled_b = out
+        assert compiled_b.clear_ends.shape[0] > 0 or not np.isfinite(sensor.no_return_range)
+        for name in ("hit_keys", "hit_mask", "clear_ends"):
+            np.testing.assert_array_equal(getattr(compiled_b, name), getattr(numpy_b, name))
+        for name in ("cleared", "invalid", "dropped"):
+            assert getattr(compiled_b, name) == getattr(numpy_b, name), name
+        # The bounds the traversal's box is built from: every hit key and clear end's key.
+        keys = np.concatenate(
+            [numpy_b.hit_keys.T, np.floor(numpy_b.clear_ends * (1.0 / 0.05))]
+        ).astype(np.int64)
+        assert compiled_b.bounds is not None
+        np.testing.assert_array_equal(compiled_b.bounds, [keys.min(axis=0), keys.max(axis=0)])
