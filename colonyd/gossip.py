@@ -131,9 +131,10 @@ class Gossip:
         delta: Delta,
         created: float,
         encoded: tuple[Delta, list[bytes]] | None = None,
+        marks: dict[str, float] | None = None,
     ) -> int:
         """Publish an own delta (already logged); returns the bytes sent."""
-        return self.publisher.publish_own(prev, seq, delta, created, encoded)
+        return self.publisher.publish_own(prev, seq, delta, created, encoded, marks)
 
     def encode_own(
         self, prev: int, seq: int, delta: Delta, created: float

@@ -15,6 +15,7 @@ import tempfile
 import time
 from collections import Counter
 from collections.abc import Callable
+from itertools import pairwise
 from pathlib import Path
 from typing import Any, cast
 
@@ -689,60 +690,115 @@ def partition(
 # -------------------------------------------------------------------------------------- busy
 
 
+#: A delta's hand-offs in the order of its path (`Metrics.stages`): at the origin, then at each
+#: replica. A stage is named by the hand-off that ends it and runs from the one before.
+OUT_MARKS = ("created", "logged", "numbered", "encoded", "put", "sent")
+IN_MARKS = ("entered", "queued", "dequeued", "decoded", "admitted", "applied")
+#: Stage names (the mark ending each): what each one is, in docs/RELIABILITY.md.
+STAGES = {
+    "logged": "log",
+    "numbered": "number",
+    "encoded": "encode",
+    "put": "remember",
+    "sent": "put",
+    "entered": "transport",
+    "queued": "copy",
+    "dequeued": "queue",
+    "decoded": "decode",
+    "admitted": "admit",
+    "applied": "apply",
+}
+
+
+def _stats(values: list[float]) -> dict[str, float | None]:
+    return {
+        "p50": percentile(values, 50),
+        "p99": percentile(values, 99),
+        "mean": round(float(np.mean(values)), 2) if values else None,
+    }
+
+
 def stage_breakdown(reports: list[dict[str, Any]]) -> dict[str, dict[str, float | None]]:
-    """Where a delta's time goes (ms, p50 / p99 over deltas and receivers): log (WAL record
-    written; its fsync too with --sync-before-publish), encode (+ put) at the origin,
-    transport, queue wait, decode, apply at the replica."""
-    out_side: dict[tuple[str, int], tuple[float, float, float]] = {}
+    """Where a delta's time goes, ms, per delivery (one delta at one replica, joined by origin
+    and seq): p50 / p99 / mean of every stage between two hand-offs (`STAGES`), of their sum
+    (`total`, creation to application at that replica) and of `unmeasured` (the replica's own
+    propagation sample, wall clock, minus `total`: time outside the marks); `tail_mean`: the mean
+    over the slowest 10 % of deliveries."""
+    out_side: dict[tuple[str, int], dict[str, float]] = {}
     for r in reports:
-        for st in r["metrics"].get("stages", []):
-            if st[0] == "out":
-                out_side[(st[1], int(st[2]))] = (float(st[3]), float(st[4]), float(st[5]))
-    parts: dict[str, list[float]] = {
-        k: [] for k in ("log", "encode", "transport", "queue", "decode", "apply", "total")
-    }
+        for side, origin, seq, marks in r["metrics"].get("stages", []):
+            if side == "out":
+                out_side[(origin, int(seq))] = marks
+    wall: dict[tuple[str, str, int], float] = {}
     for r in reports:
-        for st in r["metrics"].get("stages", []):
-            if st[0] != "in" or (st[1], int(st[2])) not in out_side:
+        for origin, seq, created, at, *_ in r["metrics"].get("samples", []):
+            wall[(r["agent"], origin, int(seq))] = (float(at) - float(created)) * 1000
+    names = [*STAGES.values(), "total", "unmeasured"]
+    parts: dict[str, list[float]] = {k: [] for k in names}
+    for r in reports:
+        for side, origin, seq, marks in r["metrics"].get("stages", []):
+            sent = out_side.get((origin, int(seq)))
+            if side != "in" or sent is None:
                 continue
-            created, logged, sent = out_side[(st[1], int(st[2]))]
-            queued, dequeued, decoded, applied = (float(x) for x in st[3:7])
-            for name, value in (
-                ("log", logged - created),
-                ("encode", sent - logged),
-                ("transport", queued - sent),
-                ("queue", dequeued - queued),
-                ("decode", decoded - dequeued),
-                ("apply", applied - decoded),
-                ("total", applied - created),
-            ):
-                parts[name].append(value * 1000)
-    out: dict[str, dict[str, float | None]] = {
-        k: {
-            "p50": percentile(v, 50),
-            "p99": percentile(v, 99),
-            "mean": round(float(np.mean(v)), 2) if v else None,
-        }
-        for k, v in parts.items()
-    }
-    # The tail: what each stage contributes, on average, to the slowest 10 % of deliveries.
+            times = {**sent, **marks}
+            path = [m for m in OUT_MARKS + IN_MARKS if m in times]
+            for before, after in pairwise(path):
+                parts[STAGES[after]].append((times[after] - times[before]) * 1000)
+            total = (times["applied"] - times["created"]) * 1000
+            parts["total"].append(total)
+            measured = wall.get((r["agent"], origin, int(seq)))
+            if measured is not None:
+                parts["unmeasured"].append(measured - total)
+    out = {k: _stats(v) for k, v in parts.items()}
+    # The tail: what each stage contributes, on average, to the slowest 10 % of deliveries
+    # (every delivery has every stage but `unmeasured`, which is left out here).
     total = np.asarray(parts["total"])
     if len(total):
         slow = total >= np.percentile(total, 90)
-        for k, v in parts.items():
-            out[k]["tail_mean"] = round(float(np.asarray(v)[slow].mean()), 2)
+        for k in STAGES.values():
+            if len(parts[k]) == len(total):
+                out[k]["tail_mean"] = round(float(np.asarray(parts[k])[slow].mean()), 2)
+        out["total"]["tail_mean"] = round(float(total[slow].mean()), 2)
     return out
 
 
 def propagation_ms(reports: list[dict[str, Any]], agents: list[str]) -> list[float]:
     """Per (origin, seq) delta: ms from creation to its application on the last other peer
     (as `bench colony` computes it)."""
-    applied: dict[tuple[str, int], list[float]] = {}
+    return [ms for ms, _ in _slowest(reports, agents).values()]
+
+
+def _slowest(
+    reports: list[dict[str, Any]], agents: list[str]
+) -> dict[tuple[str, int], tuple[float, str]]:
+    """Per delta held by every other peer: (ms to the last of them, how that one got it)."""
+    applied: dict[tuple[str, int], list[tuple[float, str]]] = {}
     for r in reports:
-        for origin, seq, created, at in r["metrics"].get("samples", []):
+        for origin, seq, created, at, *via in r["metrics"].get("samples", []):
             if origin != r["agent"]:
-                applied.setdefault((origin, int(seq)), []).append(float(at) - float(created))
-    return [max(v) * 1000 for v in applied.values() if len(v) >= len(agents) - 1]
+                ms = (float(at) - float(created)) * 1000
+                applied.setdefault((origin, int(seq)), []).append((ms, via[0] if via else "?"))
+    return {k: max(v) for k, v in applied.items() if len(v) >= len(agents) - 1}
+
+
+def delivery_paths(reports: list[dict[str, Any]], agents: list[str]) -> dict[str, Any]:
+    """How the last peer got each delta ("frame": as it arrived; "held": buffered behind a gap;
+    "range": by a repair) and the propagation p99 over deltas that every peer applied as they
+    arrived, with the per-delivery p99 (one replica, not the slowest of them)."""
+    slowest = _slowest(reports, agents)
+    framed = [ms for ms, via in slowest.values() if via == "frame"]
+    deliveries = [
+        (float(at) - float(created)) * 1000
+        for r in reports
+        for origin, _seq, created, at, *_ in r["metrics"].get("samples", [])
+        if origin != r["agent"]
+    ]
+    return {
+        "via": dict(Counter(via for _, via in slowest.values())),
+        "p99_frame_only_ms": percentile(framed, 99),
+        "delivery_p50_ms": percentile(deliveries, 50),
+        "delivery_p99_ms": percentile(deliveries, 99),
+    }
 
 
 def propagation(
@@ -766,6 +822,7 @@ def propagation(
             "p50_ms": percentile(lat, 50),
             "p99_ms": percentile(lat, 99),
             "samples": len(lat),
+            "paths": delivery_paths(reports, agents),
             "stages_ms": stage_breakdown(reports),
         }
     except Exception:
@@ -792,6 +849,8 @@ def busy(base: Path, *, duration: float = 10.0, sync_first: bool = False) -> dic
         "quiet_samples": quiet["samples"],
         "quiet_stages_ms": quiet["stages_ms"],
         "busy_stages_ms": loaded["stages_ms"],
+        "quiet_paths": quiet["paths"],
+        "busy_paths": loaded["paths"],
     }
 
 
