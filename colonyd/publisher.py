@@ -90,9 +90,15 @@ class Publisher:
         """
         marks = {} if marks is None else marks
         own = self.layers.own
-        with own.lock:  # the number is taken (it is in the log) whatever happens next
+        # The number is taken (it is in the log) whatever happens next. One attribute is set
+        # atomically: no need to wait for the grid's lock, which the mapping thread holds while
+        # it integrates a scan (up to tens of ms on a busy core, seconds while kernels load).
+        if own.epoch == self.epoch:
             own.seq = seq
-            own.epoch = self.epoch
+        else:
+            with own.lock:
+                own.seq = seq
+                own.epoch = self.epoch
         marks["numbered"] = time.monotonic()
         wire, payloads = encoded or self.encode_own(prev, seq, delta, created)
         marks["encoded"] = time.monotonic()

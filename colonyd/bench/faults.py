@@ -814,7 +814,7 @@ def propagation(
             colony.add(agent, [f"synthetic:scans={scans},rate=2,points=120,seed={i + 1}"])
             if i == 0:
                 time.sleep(0.3)
-        colony.wait_members(daemons, timeout=30)
+        colony.wait_members(daemons, timeout=90)  # a loaded machine starts slowly
         colony.wait_converged(duration + 60, agents)
         reports = colony.status(samples=True)
         lat = propagation_ms(reports, agents)
