@@ -718,16 +718,18 @@ def _stats(values: list[float]) -> dict[str, float | None]:
     }
 
 
-def stage_breakdown(reports: list[dict[str, Any]]) -> dict[str, dict[str, float | None]]:
+def stage_breakdown(
+    reports: list[dict[str, Any]], since: float = 0.0
+) -> dict[str, dict[str, float | None]]:
     """Where a delta's time goes, ms, per delivery (one delta at one replica, joined by origin
     and seq): p50 / p99 / mean of every stage between two hand-offs (`STAGES`), of their sum
     (`total`, creation to application at that replica) and of `unmeasured` (the replica's own
     propagation sample, wall clock, minus `total`: time outside the marks); `tail_mean`: the mean
-    over the slowest 10 % of deliveries."""
+    over the slowest 10 % of deliveries. Only deltas created at `since` (monotonic) or later."""
     out_side: dict[tuple[str, int], dict[str, float]] = {}
     for r in reports:
         for side, origin, seq, marks in r["metrics"].get("stages", []):
-            if side == "out":
+            if side == "out" and marks["created"] >= since:
                 out_side[(origin, int(seq))] = marks
     wall: dict[tuple[str, str, int], float] = {}
     for r in reports:
@@ -762,36 +764,40 @@ def stage_breakdown(reports: list[dict[str, Any]]) -> dict[str, dict[str, float 
     return out
 
 
-def propagation_ms(reports: list[dict[str, Any]], agents: list[str]) -> list[float]:
-    """Per (origin, seq) delta: ms from creation to its application on the last other peer
-    (as `bench colony` computes it)."""
-    return [ms for ms, _ in _slowest(reports, agents).values()]
+def propagation_ms(
+    reports: list[dict[str, Any]], agents: list[str], since: float = 0.0
+) -> list[float]:
+    """Per (origin, seq) delta created at `since` (epoch s) or later: ms from creation to its
+    application on the last other peer (as `bench colony` computes it)."""
+    return [ms for ms, _ in _slowest(reports, agents, since).values()]
 
 
 def _slowest(
-    reports: list[dict[str, Any]], agents: list[str]
+    reports: list[dict[str, Any]], agents: list[str], since: float = 0.0
 ) -> dict[tuple[str, int], tuple[float, str]]:
     """Per delta held by every other peer: (ms to the last of them, how that one got it)."""
     applied: dict[tuple[str, int], list[tuple[float, str]]] = {}
     for r in reports:
         for origin, seq, created, at, *via in r["metrics"].get("samples", []):
-            if origin != r["agent"]:
+            if origin != r["agent"] and float(created) >= since:
                 ms = (float(at) - float(created)) * 1000
                 applied.setdefault((origin, int(seq)), []).append((ms, via[0] if via else "?"))
     return {k: max(v) for k, v in applied.items() if len(v) >= len(agents) - 1}
 
 
-def delivery_paths(reports: list[dict[str, Any]], agents: list[str]) -> dict[str, Any]:
+def delivery_paths(
+    reports: list[dict[str, Any]], agents: list[str], since: float = 0.0
+) -> dict[str, Any]:
     """How the last peer got each delta ("frame": as it arrived; "held": buffered behind a gap;
     "range": by a repair) and the propagation p99 over deltas that every peer applied as they
     arrived, with the per-delivery p99 (one replica, not the slowest of them)."""
-    slowest = _slowest(reports, agents)
+    slowest = _slowest(reports, agents, since)
     framed = [ms for ms, via in slowest.values() if via == "frame"]
     deliveries = [
         (float(at) - float(created)) * 1000
         for r in reports
         for origin, _seq, created, at, *_ in r["metrics"].get("samples", [])
-        if origin != r["agent"]
+        if origin != r["agent"] and float(created) >= since
     ]
     return {
         "via": dict(Counter(via for _, via in slowest.values())),
@@ -801,29 +807,50 @@ def delivery_paths(reports: list[dict[str, Any]], agents: list[str]) -> dict[str
     }
 
 
+#: Seconds a propagation run maps beyond `duration`: the daemons start mapping at once, and
+#: only the deltas created once all of them are members count.
+JOIN_S = 10.0
+
+#: Counters (summed over the daemons) a propagation run reports.
+PROPAGATION_COUNTS = ("deltas_published", "deltas_applied", "gaps", "inbox_dropped", "duplicates")
+
+
 def propagation(
     base: Path, *, daemons: int = 4, duration: float = 10.0, extra: list[str] | None = None
 ) -> dict[str, Any]:
     """N daemons mapping at 2 deltas/s: propagation (creation to application on the last other
-    peer) p50 / p99, and the stage breakdown."""
-    scans = max(2, int(duration * 2))
+    peer) p50 / p99, and the stage breakdown, over the deltas created once every daemon is a
+    member (those before cannot reach a late starter as frames)."""
+    scans = max(2, int((duration + JOIN_S) * 2))
     colony = LocalColony(base, colony="prop", heartbeat_s=1.0, extra=extra)
     agents = [f"d{i}" for i in range(daemons)]
+    load = [round(os.getloadavg()[0], 1)]
+    t0 = time.monotonic()
     try:
         for i, agent in enumerate(agents):
             colony.add(agent, [f"synthetic:scans={scans},rate=2,points=120,seed={i + 1}"])
             if i == 0:
                 time.sleep(0.3)
         colony.wait_members(daemons, timeout=90)  # a loaded machine starts slowly
+        since, since_mono = time.time(), time.monotonic()
+        joined_s = round(since_mono - t0, 1)
         colony.wait_converged(duration + 60, agents)
+        load.append(round(os.getloadavg()[0], 1))
         reports = colony.status(samples=True)
-        lat = propagation_ms(reports, agents)
+        lat = propagation_ms(reports, agents, since)
+        counts: Counter[str] = Counter()
+        for r in reports:
+            c = r["metrics"]["counts"]
+            counts.update({k: c.get(k, 0) for k in PROPAGATION_COUNTS})
         return {
             "p50_ms": percentile(lat, 50),
             "p99_ms": percentile(lat, 99),
             "samples": len(lat),
-            "paths": delivery_paths(reports, agents),
-            "stages_ms": stage_breakdown(reports),
+            "joined_s": joined_s,
+            "load": load,
+            "counts": dict(counts),
+            "paths": delivery_paths(reports, agents, since),
+            "stages_ms": stage_breakdown(reports, since_mono),
         }
     except Exception:
         log.error("propagation run failed; daemon logs:\n%s", colony.logs())
@@ -851,6 +878,8 @@ def busy(base: Path, *, duration: float = 10.0, sync_first: bool = False) -> dic
         "busy_stages_ms": loaded["stages_ms"],
         "quiet_paths": quiet["paths"],
         "busy_paths": loaded["paths"],
+        "quiet_run": {k: quiet[k] for k in ("joined_s", "load", "counts")},
+        "busy_run": {k: loaded[k] for k in ("joined_s", "load", "counts")},
     }
 
 
