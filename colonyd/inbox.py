@@ -37,10 +37,6 @@ log = logging.getLogger(__name__)
 #: would override every other measurement.
 MIN_FIX_VARIANCE = 1e-6
 
-#: Largest delta frame handled on the Zenoh callback's thread (when the inbox is idle); larger
-#: ones (and everything when the inbox is busy) go through the queue and the worker.
-INLINE_BYTES = 64 << 10
-
 #: An inbox item: (kind "delta" | "hb" | "objects" | "align" | "pose" | "fix" | "join", key
 #: expression or agent, raw frame, monotonic times the Zenoh callback was entered and queued it).
 Item = tuple[str, str, bytes, float, float]
@@ -123,10 +119,7 @@ class Inbox:
             self.metrics.add("dropped_on_purpose")
             return
         raw = sample.payload.to_bytes()
-        item = ("delta", str(sample.key_expr), raw, entered, time.monotonic())
-        # A small delta is applied on Zenoh's thread when the worker is idle: waking the worker
-        # costs a thread hand-off (and a wait for the interpreter lock) on a busy machine.
-        self._worker.put(item, now=len(raw) <= INLINE_BYTES)
+        self._worker.put(("delta", str(sample.key_expr), raw, entered, time.monotonic()))
 
     def _on_hb(self, sample: zenoh.Sample) -> None:
         self._put("hb", sample)

@@ -55,9 +55,8 @@ class Publisher:
         self.part_bytes = part_bytes
         self.hb_now = threading.Event()  # set on a join: send our heartbeat without waiting
         drop = zenoh.CongestionControl.DROP
-        # express: a delta is sent at once, not held to be batched with later messages
         self._deltas = session.declare_publisher(
-            topic_key(namespace, self.own, "delta"), congestion_control=drop, express=True
+            topic_key(namespace, self.own, "delta"), congestion_control=drop
         )
         self._heartbeats = session.declare_publisher(
             topic_key(namespace, self.own, "heartbeat"), congestion_control=drop

@@ -68,10 +68,6 @@ class Worker(Generic[T]):
     network) any other `ColonydError` or `ValueError` counts as `invalid` and anything else as
     `internal`. Every other exception is logged with its stack. `done(item)` runs once per item,
     handled or refused by `put` (a query is dropped there); a refused `put` counts `drops`.
-
-    `put(item, now=True)` handles the item on the caller's thread when the worker is idle (no
-    item queued or in hand): one thread hand-off fewer, and the same order and error handling
-    (items are still handled one at a time, in the order they were put).
     """
 
     def __init__(
@@ -97,40 +93,16 @@ class Worker(Generic[T]):
         self._done = done
         self.stop = stop if stop is not None else threading.Event()
         self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
-        self._busy = threading.Lock()  # held while an item is handled (by any thread)
-        self._count_lock = threading.Lock()
-        self._unfinished = 0  # items put in the queue and not yet handled
 
-    def put(self, item: T, *, now: bool = False) -> bool:
-        """Enqueue `item` for the thread; False if the queue is full (dropped and counted).
-        With `now`, handle it right here if nothing is queued or in hand (see the class)."""
-        if now and self._run_now(item):
-            return True
-        with self._count_lock:
-            self._unfinished += 1
+    def put(self, item: T) -> bool:
+        """Enqueue `item` for the thread; False if the queue is full (dropped and counted)."""
         if self._items.put(item):
             return True
-        with self._count_lock:
-            self._unfinished -= 1
         if self._metrics is not None and self._drops:
             self._metrics.add(self._drops)
         if self._done is not None:
             self._done(item)
         return False
-
-    def _run_now(self, item: T) -> bool:
-        if self.stop.is_set() or not self._thread.is_alive():
-            return False
-        if not self._busy.acquire(blocking=False):
-            return False
-        try:
-            with self._count_lock:
-                if self._unfinished:
-                    return False
-            self._run(item)
-        finally:
-            self._busy.release()
-        return True
 
     def start(self) -> None:
         self._thread.start()
@@ -149,21 +121,13 @@ class Worker(Generic[T]):
             item = self._items.get(timeout=POLL_S)
             if item is None:
                 continue
-            with self._busy:
-                try:
-                    self._run(item)
-                finally:
-                    with self._count_lock:
-                        self._unfinished -= 1
-
-    def _run(self, item: T) -> None:
-        try:
-            self._handle(item)
-        except Exception as exc:  # noqa: BLE001 - one item never kills the worker
-            self._failed(item, exc)
-        finally:
-            if self._done is not None:
-                self._done(item)
+            try:
+                self._handle(item)
+            except Exception as exc:  # noqa: BLE001 - one item never kills the worker
+                self._failed(item, exc)
+            finally:
+                if self._done is not None:
+                    self._done(item)
 
     def _failed(self, item: T, exc: Exception) -> None:
         metrics = self._metrics

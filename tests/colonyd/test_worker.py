@@ -90,36 +90,3 @@ def test_workers_sharing_a_stop_event_stop_together() -> None:
         w.start()
     stop.set()
     assert wait_for(lambda: not any(w.is_alive() for w in workers))
-
-
-def test_put_now_handles_on_the_callers_thread_only_when_the_worker_is_idle() -> None:
-    metrics = Metrics()
-    threads: list[tuple[int, str]] = []
-    release = threading.Event()
-
-    def handle(item: int) -> None:
-        threads.append((item, threading.current_thread().name))
-        if item == 1:
-            release.wait(5)  # the worker holds item 1
-        if item == 4:
-            raise WireError("bad-query", "expected a query")
-
-    w: Worker[int] = Worker("w", handle, Bounded(8), metrics=metrics, hostile=True)
-    assert w.put(0, now=True)  # not started: queued, never handled here
-    w.start()
-    assert wait_for(lambda: [i for i, _ in threads] == [0])
-    assert w.put(1)
-    assert wait_for(lambda: len(threads) == 2)
-    assert w.put(2, now=True) and w.put(3, now=True)  # busy: queued behind 1, in order
-    release.set()
-    assert wait_for(lambda: len(threads) == 4 and w._unfinished == 0)
-    assert w.put(4, now=True)  # idle: handled (and refused, counted) on this thread
-    assert w.put(5, now=True)
-    assert [i for i, _ in threads] == [0, 1, 2, 3, 4, 5]
-    here = threading.current_thread().name
-    assert [name == here for _, name in threads] == [False] * 4 + [True, True]
-    assert metrics.rejected["bad-query"] == 1
-    w.close()
-    assert w.put(6, now=True)  # stopped: queued, never handled
-    time.sleep(0.3)
-    assert [i for i, _ in threads] == [0, 1, 2, 3, 4, 5]
