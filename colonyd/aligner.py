@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import multiprocessing
 import multiprocessing.pool
+import os
 import threading
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -12,12 +13,16 @@ from colonyd.errors import StoppedError
 
 T = TypeVar("T")
 
+#: Niceness added to the registration process: seconds of background CPU that must not take a
+#: core from the daemon's mapping and replication threads on a machine with few cores.
+NICE = 10
+
 
 class Aligner:
     """One spawned worker process for registration (seconds of numpy and Python per attempt):
     in a thread of the daemon it would hold the interpreter lock while peers' deltas wait in the
-    inbox. Spawned, never forked, so no Zenoh session is copied; started on first use; `close`
-    ends it at once, even in the middle of an attempt."""
+    inbox. Spawned, never forked, so no Zenoh session is copied; started on first use, at a
+    lower priority (`NICE`); `close` ends it at once, even in the middle of an attempt."""
 
     def __init__(self) -> None:
         self._pool: multiprocessing.pool.Pool | None = None
@@ -29,7 +34,9 @@ class Aligner:
         if self._closed.is_set():
             raise StoppedError("the aligner is closed: no registration is started")
         if self._pool is None:
-            self._pool = multiprocessing.get_context("spawn").Pool(1)
+            self._pool = multiprocessing.get_context("spawn").Pool(
+                1, initializer=os.nice, initargs=(NICE,)
+            )
         pending = self._pool.apply_async(fn, args, kwargs)
         while True:
             try:

@@ -224,7 +224,7 @@ class CatchUp:
             try:
                 delta = concat([d for _, d in sorted(groups[versions], key=lambda x: x[0])])
                 # a gap it leaves is this repair's own: `_repair` goes on to a snapshot
-                self.replicas.offer(origin, epoch, delta)
+                self.replicas.offer(origin, epoch, delta, via="range")
                 got += 1
             except (ProtocolError, WireError) as exc:
                 self.metrics.reject(exc.reason)

@@ -909,6 +909,7 @@ class Daemon:
         wrote = unsynced = False
         if delta is not None and len(delta):
             created = time.time()
+            marks = {"created": time.monotonic()}
             prev, seq = own.seq, own.seq + 1
             # Logged before anyone sees it; if the log cannot take it (disk full), nothing is
             # published and the same changes are tried again next time.
@@ -923,9 +924,9 @@ class Daemon:
                 self.store.write(seq, delta)
                 encoded, unsynced = None, True
             wrote = True
-            logged = time.time()
-            self.gossip.publish_own(prev, seq, delta, created, encoded)
-            self.metrics.stage("out", self.config.agent_id, seq, created, logged, time.time())
+            marks["logged"] = time.monotonic()
+            self.gossip.publish_own(prev, seq, delta, created, encoded, marks)
+            self.metrics.stage("out", self.config.agent_id, seq, marks)
             self.gossip.push_history()  # with history push on: the records of what was sent
         if delta is not None:
             self._published_local = version

@@ -142,9 +142,10 @@ class Gossip:
         delta: Delta,
         created: float,
         encoded: tuple[Delta, list[bytes]] | None = None,
+        marks: dict[str, float] | None = None,
     ) -> int:
         """Publish an own delta (already logged); returns the bytes sent."""
-        return self.publisher.publish_own(prev, seq, delta, created, encoded)
+        return self.publisher.publish_own(prev, seq, delta, created, encoded, marks)
 
     def push_history(self) -> int:
         """With history push on, publish the own history records not pushed yet."""

@@ -40,8 +40,9 @@ log = logging.getLogger(__name__)
 MIN_FIX_VARIANCE = 1e-6
 
 #: An inbox item: (kind "delta" | "hb" | "objects" | "align" | "pose" | "fix" | "history" |
-#: "join", key expression or agent, raw frame, time queued).
-Item = tuple[str, str, bytes, float]
+#: "join", key expression or agent, raw frame, monotonic times the Zenoh callback was entered
+#: and queued it).
+Item = tuple[str, str, bytes, float, float]
 
 
 class Inbox:
@@ -128,34 +129,41 @@ class Inbox:
 
     # -- zenoh callbacks: enqueue only ----------------------------------------------------
     def _on_delta(self, sample: zenoh.Sample) -> None:
+        entered = time.monotonic()
         if self._drop_rate and self._rng.random() < self._drop_rate:
             self.metrics.add("dropped_on_purpose")
             return
-        self._worker.put(("delta", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
+        raw = sample.payload.to_bytes()
+        self._worker.put(("delta", str(sample.key_expr), raw, entered, time.monotonic()))
 
     def _on_hb(self, sample: zenoh.Sample) -> None:
-        self._worker.put(("hb", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
+        self._put("hb", sample)
 
     def _on_objects(self, sample: zenoh.Sample) -> None:
-        self._worker.put(("objects", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
+        self._put("objects", sample)
 
     def _on_align(self, sample: zenoh.Sample) -> None:
-        self._worker.put(("align", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
+        self._put("align", sample)
 
     def _on_pose(self, sample: zenoh.Sample) -> None:
-        self._worker.put(("pose", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
+        self._put("pose", sample)
 
     def _on_fix_sample(self, sample: zenoh.Sample) -> None:
-        self._worker.put(("fix", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
+        self._put("fix", sample)
+
+    def _put(self, kind: str, sample: zenoh.Sample) -> None:
+        now = time.monotonic()
+        self._worker.put((kind, str(sample.key_expr), sample.payload.to_bytes(), now, now))
 
     def _on_history_sample(self, sample: zenoh.Sample) -> None:
-        self._worker.put(("history", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
+        self._put("history", sample)
 
     def on_member_event(self, agent: str, event: str) -> None:
         """Liveliness join: ask the newcomer (or returning peer) what it holds."""
         self.metrics.add(f"member_{event}")
         if event == "join":
-            self._worker.put(("join", agent, b"", time.time()))
+            now = time.monotonic()
+            self._worker.put(("join", agent, b"", now, now))
 
     # -- lifecycle ------------------------------------------------------------------------
     def start(self, membership: Membership) -> None:
@@ -168,10 +176,10 @@ class Inbox:
 
     # -- the worker -----------------------------------------------------------------------
     def _handle(self, item: Item) -> None:
-        kind, key, raw, queued = item
+        kind, key, raw, entered, queued = item
         try:
             if kind == "delta":
-                self._handle_delta(key, raw, queued)
+                self._handle_delta(key, raw, entered, queued)
             elif kind == "hb":
                 self._handle_hb(key, raw)
             elif kind == "objects":
@@ -193,10 +201,10 @@ class Inbox:
             else:
                 log.warning("rejected %s on %s: %s", kind, key, exc)
 
-    def _handle_delta(self, key: str, raw: bytes, queued: float = 0.0) -> None:
-        dequeued = time.time()
+    def _handle_delta(self, key: str, raw: bytes, entered: float, queued: float) -> None:
+        marks = {"entered": entered, "queued": queued, "dequeued": time.monotonic()}
         msg = expect(self.receiver.decode(raw, key_expr=key), VoxelDelta, f"on {key}")
-        decoded = time.time()
+        marks["decoded"] = time.monotonic()
         if not msg.exact:
             raise WireError("inexact", "expected an exact delta, found a free-space summary")
         d = msg.delta
@@ -204,6 +212,7 @@ class Inbox:
         accept(
             self.receiver, self.metrics, msg, raw
         )  # only now: a frame refused above moved no window
+        marks["admitted"] = time.monotonic()
         delta = self.parts.add(
             (msg.origin, msg.epoch, d.from_version, d.to_version), msg.part, msg.parts, d
         )
@@ -211,9 +220,8 @@ class Inbox:
             return
         if self.replicas.offer(msg.origin, msg.epoch, delta, admitted=msg.parts == 1):
             self._request_repair(msg.origin, [msg.origin])
-        self.metrics.stage(
-            "in", msg.origin, delta.to_version, queued, dequeued, decoded, time.time()
-        )
+        marks["applied"] = time.monotonic()
+        self.metrics.stage("in", msg.origin, delta.to_version, marks)
 
     def _handle_hb(self, key: str, raw: bytes) -> None:
         msg = expect(self.receiver.decode(raw, key_expr=key), Heartbeat, f"on {key}")

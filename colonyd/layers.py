@@ -84,6 +84,9 @@ class Layer:
         self.epoch = 0
         self.seq = 0
         self.lock = threading.RLock()
+        #: Guards `ring` alone (taken inside `lock` where both are), so that the own layer's
+        #: publisher can remember a delta without waiting for a scan's integration.
+        self.ring_lock = threading.Lock()
         self.ring: deque[tuple[int, int, Delta]] = deque(maxlen=ring_size)
         self.ring_bytes = 0
         self.ring_max_bytes = 64 << 20
@@ -149,7 +152,7 @@ class Layer:
 
     def remember(self, prev: int, seq: int, delta: Delta) -> None:
         """Keep a delta (labelled (prev, seq]) for range repair; bounded in count and bytes."""
-        with self.lock:
+        with self.ring_lock:
             if len(self.ring) == self.ring.maxlen:
                 self.ring_bytes -= delta_nbytes(self.ring[0][2])
             self.ring.append((prev, seq, delta))
@@ -177,8 +180,9 @@ class Layer:
             self.grid.history = history
         self.epoch = epoch
         self.seq = 0
-        self.ring.clear()
-        self.ring_bytes = 0
+        with self.ring_lock:
+            self.ring.clear()
+            self.ring_bytes = 0
         self.pending.clear()
 
     def install_snapshot(self, epoch: int, seq: int, chunks: list[Delta]) -> int:
@@ -220,7 +224,7 @@ class Layer:
     def range(self, have: int, want: int) -> list[Delta] | None:
         """Recent deltas (labelled (prev, seq]) taking a replica from `have` to >= min(`want`,
         this layer's seq): [] if that is nothing, None if the ring no longer holds them."""
-        with self.lock:
+        with self.lock, self.ring_lock:
             want = min(want, self.seq)
             if have >= want:
                 return []

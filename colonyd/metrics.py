@@ -13,11 +13,15 @@ class Metrics:
         self._lock = threading.Lock()
         self.counts: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
-        self.applied: deque[tuple[str, int, float, float]] = deque(maxlen=samples)
+        #: Applied peer deltas: (origin, seq, created, applied, via) in epoch seconds; `via` is
+        #: "frame" (the frame just received), "held" (buffered until a gap before it was filled)
+        #: or "range" (fetched by a repair).
+        self.applied: deque[tuple[str, int, float, float, str]] = deque(maxlen=samples)
         self.catchups: deque[tuple[str, int, float]] = deque(maxlen=64)
-        #: Where a delta's time goes: ("out", own, seq, created, logged, sent) at its origin and
-        #: ("in", origin, seq, received, dequeued, decoded, applied) at a replica (epoch seconds).
-        self.stages: deque[tuple[object, ...]] = deque(maxlen=samples)
+        #: Where a delta's time goes: ("out", own, seq, marks) at its origin and ("in", origin,
+        #: seq, marks) at a replica; marks: hand-off name -> time.monotonic() (one clock for
+        #: every process of the machine), in the order of the path (docs/RELIABILITY.md).
+        self.stages: deque[tuple[str, str, int, dict[str, float]]] = deque(maxlen=samples)
 
     def add(self, name: str, n: int = 1) -> None:
         with self._lock:
@@ -28,13 +32,15 @@ class Metrics:
             self.rejected[reason] += 1
             self.counts["rejected"] += 1
 
-    def sample(self, origin: str, seq: int, created: float, applied: float) -> None:
+    def sample(
+        self, origin: str, seq: int, created: float, applied: float, via: str = "frame"
+    ) -> None:
         with self._lock:
-            self.applied.append((origin, seq, created, applied))
+            self.applied.append((origin, seq, created, applied, via))
 
-    def stage(self, *fields: object) -> None:
+    def stage(self, side: str, origin: str, seq: int, marks: dict[str, float]) -> None:
         with self._lock:
-            self.stages.append(fields)
+            self.stages.append((side, origin, seq, marks))
 
     def catchup(self, origin: str, voxels: int, seconds: float) -> None:
         with self._lock:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 
 import numpy as np
 import zenoh
@@ -89,19 +90,32 @@ class Publisher:
         delta: Delta,
         created: float,
         encoded: tuple[Delta, list[bytes]] | None = None,
+        marks: dict[str, float] | None = None,
     ) -> int:
         """Publish an own delta (already logged) as VoxelDelta parts; returns the bytes sent.
 
         `encoded` is what `encode_own` made of it (while the log flushed), else it is made here.
+        `marks` gets the monotonic times of the hand-offs (`Metrics.stages`).
         """
+        marks = {} if marks is None else marks
         own = self.layers.own
-        with own.lock:  # the number is taken (it is in the log) whatever happens next
+        # The number is taken (it is in the log) whatever happens next. One attribute is set
+        # atomically: no need to wait for the grid's lock, which the mapping thread holds while
+        # it integrates a scan (up to tens of ms on a busy core, seconds while kernels load).
+        if own.epoch == self.epoch:
             own.seq = seq
-            own.epoch = self.epoch
+        else:
+            with own.lock:
+                own.seq = seq
+                own.epoch = self.epoch
+        marks["numbered"] = time.monotonic()
         wire, payloads = encoded or self.encode_own(prev, seq, delta, created)
+        marks["encoded"] = time.monotonic()
         own.remember(prev, seq, wire)
+        marks["put"] = time.monotonic()
         for payload in payloads:
             self._deltas.put(payload)
+        marks["sent"] = time.monotonic()
         sent = sum(len(p) for p in payloads)
         self.metrics.add("deltas_published")
         self.metrics.add("bytes_published", sent)

@@ -25,10 +25,13 @@ class Replicas:
                 raise WireError("bad-header", f"delta header invalid: epoch {epoch} {prev}->{seq}")
         self.layers.admit(origin, deltas, replace=replace)
 
-    def offer(self, origin: str, epoch: int, delta: Delta, *, admitted: bool = False) -> bool:
+    def offer(
+        self, origin: str, epoch: int, delta: Delta, *, admitted: bool = False, via: str = "frame"
+    ) -> bool:
         """Fold a whole delta of `origin`'s layer (epoch `epoch`, covering (from, to]) into it;
         True if the layer is left with a gap to repair. `admitted`: the caller has just admitted
-        this very delta (a single-part frame), so its budget is not counted twice."""
+        this very delta (a single-part frame), so its budget is not counted twice. `via` says
+        how it came ("frame" or "range": `Metrics.applied`)."""
         if not admitted:
             self.admit(origin, epoch, [delta])
         layer = self.layers.get(origin, delta.resolution)
@@ -39,7 +42,7 @@ class Replicas:
         elif result.outcome == "stale-epoch":
             self.metrics.add("stale_epoch")
         for s, c in result.drained:
-            self.metrics.sample(origin, s, c, now)
+            self.metrics.sample(origin, s, c, now, via if s == delta.to_version else "held")
         if result.drained:
             self.metrics.add("deltas_applied", len(result.drained))
         if result.missing is not None:

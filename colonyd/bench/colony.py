@@ -38,7 +38,7 @@ def propagation_ms(reports: list[dict[str, Any]], agents: list[str]) -> list[flo
     """Per (origin, seq) delta: ms from creation to its application on the last other peer."""
     applied: dict[tuple[str, int], list[float]] = {}
     for r in reports:
-        for origin, seq, created, at in r["metrics"].get("samples", []):
+        for origin, seq, created, at, *_ in r["metrics"].get("samples", []):
             if origin != r["agent"]:
                 applied.setdefault((origin, int(seq)), []).append(float(at) - float(created))
     need = len(agents) - 1

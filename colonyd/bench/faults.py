@@ -16,6 +16,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from functools import partial
+from itertools import pairwise
 from pathlib import Path
 from typing import Any, cast
 
@@ -701,84 +702,167 @@ def partition(
 # -------------------------------------------------------------------------------------- busy
 
 
-def stage_breakdown(reports: list[dict[str, Any]]) -> dict[str, dict[str, float | None]]:
-    """Where a delta's time goes (ms, p50 / p99 over deltas and receivers): log (WAL record
-    written; its fsync too with --sync-before-publish), encode (+ put) at the origin,
-    transport, queue wait, decode, apply at the replica."""
-    out_side: dict[tuple[str, int], tuple[float, float, float]] = {}
-    for r in reports:
-        for st in r["metrics"].get("stages", []):
-            if st[0] == "out":
-                out_side[(st[1], int(st[2]))] = (float(st[3]), float(st[4]), float(st[5]))
-    parts: dict[str, list[float]] = {
-        k: [] for k in ("log", "encode", "transport", "queue", "decode", "apply", "total")
+#: A delta's hand-offs in the order of its path (`Metrics.stages`): at the origin, then at each
+#: replica. A stage is named by the hand-off that ends it and runs from the one before.
+OUT_MARKS = ("created", "logged", "numbered", "encoded", "put", "sent")
+IN_MARKS = ("entered", "queued", "dequeued", "decoded", "admitted", "applied")
+#: Stage names (the mark ending each): what each one is, in docs/RELIABILITY.md.
+STAGES = {
+    "logged": "log",
+    "numbered": "number",
+    "encoded": "encode",
+    "put": "remember",
+    "sent": "put",
+    "entered": "transport",
+    "queued": "copy",
+    "dequeued": "queue",
+    "decoded": "decode",
+    "admitted": "admit",
+    "applied": "apply",
+}
+
+
+def _stats(values: list[float]) -> dict[str, float | None]:
+    return {
+        "p50": percentile(values, 50),
+        "p99": percentile(values, 99),
+        "mean": round(float(np.mean(values)), 2) if values else None,
     }
+
+
+def stage_breakdown(
+    reports: list[dict[str, Any]], since: float = 0.0
+) -> dict[str, dict[str, float | None]]:
+    """Where a delta's time goes, ms, per delivery (one delta at one replica, joined by origin
+    and seq): p50 / p99 / mean of every stage between two hand-offs (`STAGES`), of their sum
+    (`total`, creation to application at that replica) and of `unmeasured` (the replica's own
+    propagation sample, wall clock, minus `total`: time outside the marks); `tail_mean`: the mean
+    over the slowest 10 % of deliveries. Only deltas created at `since` (monotonic) or later."""
+    out_side: dict[tuple[str, int], dict[str, float]] = {}
     for r in reports:
-        for st in r["metrics"].get("stages", []):
-            if st[0] != "in" or (st[1], int(st[2])) not in out_side:
+        for side, origin, seq, marks in r["metrics"].get("stages", []):
+            if side == "out" and marks["created"] >= since:
+                out_side[(origin, int(seq))] = marks
+    wall: dict[tuple[str, str, int], float] = {}
+    for r in reports:
+        for origin, seq, created, at, *_ in r["metrics"].get("samples", []):
+            wall[(r["agent"], origin, int(seq))] = (float(at) - float(created)) * 1000
+    names = [*STAGES.values(), "total", "unmeasured"]
+    parts: dict[str, list[float]] = {k: [] for k in names}
+    for r in reports:
+        for side, origin, seq, marks in r["metrics"].get("stages", []):
+            sent = out_side.get((origin, int(seq)))
+            if side != "in" or sent is None:
                 continue
-            created, logged, sent = out_side[(st[1], int(st[2]))]
-            queued, dequeued, decoded, applied = (float(x) for x in st[3:7])
-            for name, value in (
-                ("log", logged - created),
-                ("encode", sent - logged),
-                ("transport", queued - sent),
-                ("queue", dequeued - queued),
-                ("decode", decoded - dequeued),
-                ("apply", applied - decoded),
-                ("total", applied - created),
-            ):
-                parts[name].append(value * 1000)
-    out: dict[str, dict[str, float | None]] = {
-        k: {
-            "p50": percentile(v, 50),
-            "p99": percentile(v, 99),
-            "mean": round(float(np.mean(v)), 2) if v else None,
-        }
-        for k, v in parts.items()
-    }
-    # The tail: what each stage contributes, on average, to the slowest 10 % of deliveries.
+            times = {**sent, **marks}
+            path = [m for m in OUT_MARKS + IN_MARKS if m in times]
+            for before, after in pairwise(path):
+                parts[STAGES[after]].append((times[after] - times[before]) * 1000)
+            total = (times["applied"] - times["created"]) * 1000
+            parts["total"].append(total)
+            measured = wall.get((r["agent"], origin, int(seq)))
+            if measured is not None:
+                parts["unmeasured"].append(measured - total)
+    out = {k: _stats(v) for k, v in parts.items()}
+    # The tail: what each stage contributes, on average, to the slowest 10 % of deliveries
+    # (every delivery has every stage but `unmeasured`, which is left out here).
     total = np.asarray(parts["total"])
     if len(total):
         slow = total >= np.percentile(total, 90)
-        for k, v in parts.items():
-            out[k]["tail_mean"] = round(float(np.asarray(v)[slow].mean()), 2)
+        for k in STAGES.values():
+            if len(parts[k]) == len(total):
+                out[k]["tail_mean"] = round(float(np.asarray(parts[k])[slow].mean()), 2)
+        out["total"]["tail_mean"] = round(float(total[slow].mean()), 2)
     return out
 
 
-def propagation_ms(reports: list[dict[str, Any]], agents: list[str]) -> list[float]:
-    """Per (origin, seq) delta: ms from creation to its application on the last other peer
-    (as `bench colony` computes it)."""
-    applied: dict[tuple[str, int], list[float]] = {}
+def propagation_ms(
+    reports: list[dict[str, Any]], agents: list[str], since: float = 0.0
+) -> list[float]:
+    """Per (origin, seq) delta created at `since` (epoch s) or later: ms from creation to its
+    application on the last other peer (as `bench colony` computes it)."""
+    return [ms for ms, _ in _slowest(reports, agents, since).values()]
+
+
+def _slowest(
+    reports: list[dict[str, Any]], agents: list[str], since: float = 0.0
+) -> dict[tuple[str, int], tuple[float, str]]:
+    """Per delta held by every other peer: (ms to the last of them, how that one got it)."""
+    applied: dict[tuple[str, int], list[tuple[float, str]]] = {}
     for r in reports:
-        for origin, seq, created, at in r["metrics"].get("samples", []):
-            if origin != r["agent"]:
-                applied.setdefault((origin, int(seq)), []).append(float(at) - float(created))
-    return [max(v) * 1000 for v in applied.values() if len(v) >= len(agents) - 1]
+        for origin, seq, created, at, *via in r["metrics"].get("samples", []):
+            if origin != r["agent"] and float(created) >= since:
+                ms = (float(at) - float(created)) * 1000
+                applied.setdefault((origin, int(seq)), []).append((ms, via[0] if via else "?"))
+    return {k: max(v) for k, v in applied.items() if len(v) >= len(agents) - 1}
+
+
+def delivery_paths(
+    reports: list[dict[str, Any]], agents: list[str], since: float = 0.0
+) -> dict[str, Any]:
+    """How the last peer got each delta ("frame": as it arrived; "held": buffered behind a gap;
+    "range": by a repair) and the propagation p99 over deltas that every peer applied as they
+    arrived, with the per-delivery p99 (one replica, not the slowest of them)."""
+    slowest = _slowest(reports, agents, since)
+    framed = [ms for ms, via in slowest.values() if via == "frame"]
+    deliveries = [
+        (float(at) - float(created)) * 1000
+        for r in reports
+        for origin, _seq, created, at, *_ in r["metrics"].get("samples", [])
+        if origin != r["agent"] and float(created) >= since
+    ]
+    return {
+        "via": dict(Counter(via for _, via in slowest.values())),
+        "p99_frame_only_ms": percentile(framed, 99),
+        "delivery_p50_ms": percentile(deliveries, 50),
+        "delivery_p99_ms": percentile(deliveries, 99),
+    }
+
+
+#: Seconds a propagation run maps beyond `duration`: the daemons start mapping at once, and
+#: only the deltas created once all of them are members count.
+JOIN_S = 10.0
+
+#: Counters (summed over the daemons) a propagation run reports.
+PROPAGATION_COUNTS = ("deltas_published", "deltas_applied", "gaps", "inbox_dropped", "duplicates")
 
 
 def propagation(
     base: Path, *, daemons: int = 4, duration: float = 10.0, extra: list[str] | None = None
 ) -> dict[str, Any]:
     """N daemons mapping at 2 deltas/s: propagation (creation to application on the last other
-    peer) p50 / p99, and the stage breakdown."""
-    scans = max(2, int(duration * 2))
+    peer) p50 / p99, and the stage breakdown, over the deltas created once every daemon is a
+    member (those before cannot reach a late starter as frames)."""
+    scans = max(2, int((duration + JOIN_S) * 2))
     colony = LocalColony(base, colony="prop", heartbeat_s=1.0, extra=extra)
     agents = [f"d{i}" for i in range(daemons)]
+    load = [round(os.getloadavg()[0], 1)]
+    t0 = time.monotonic()
     try:
         for i, agent in enumerate(agents):
             colony.add(agent, [f"synthetic:scans={scans},rate=2,points=120,seed={i + 1}"])
             if i == 0:
                 time.sleep(0.3)
-        colony.wait_members(daemons, timeout=30)
+        colony.wait_members(daemons, timeout=90)  # a loaded machine starts slowly
+        since, since_mono = time.time(), time.monotonic()
+        joined_s = round(since_mono - t0, 1)
         colony.wait_converged(duration + 60, agents)
+        load.append(round(os.getloadavg()[0], 1))
         reports = colony.status(samples=True)
-        lat = propagation_ms(reports, agents)
+        lat = propagation_ms(reports, agents, since)
+        counts: Counter[str] = Counter()
+        for r in reports:
+            c = r["metrics"]["counts"]
+            counts.update({k: c.get(k, 0) for k in PROPAGATION_COUNTS})
         return {
             "p50_ms": percentile(lat, 50),
             "p99_ms": percentile(lat, 99),
             "samples": len(lat),
-            "stages_ms": stage_breakdown(reports),
+            "joined_s": joined_s,
+            "load": load,
+            "counts": dict(counts),
+            "paths": delivery_paths(reports, agents, since),
+            "stages_ms": stage_breakdown(reports, since_mono),
         }
     except Exception:
         log.error("propagation run failed; daemon logs:\n%s", colony.logs())
@@ -804,6 +888,10 @@ def busy(base: Path, *, duration: float = 10.0, sync_first: bool = False) -> dic
         "quiet_samples": quiet["samples"],
         "quiet_stages_ms": quiet["stages_ms"],
         "busy_stages_ms": loaded["stages_ms"],
+        "quiet_paths": quiet["paths"],
+        "busy_paths": loaded["paths"],
+        "quiet_run": {k: quiet[k] for k in ("joined_s", "load", "counts")},
+        "busy_run": {k: loaded[k] for k in ("joined_s", "load", "counts")},
     }
 
 

@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from colonyd.aligner import Aligner
+from colonyd.aligner import NICE, Aligner
 from colonyd.errors import StoppedError
 
 
@@ -17,6 +17,8 @@ def test_work_runs_in_another_process_and_close_interrupts_it():
     aligner = Aligner()
     try:
         assert aligner.run(os.getpid) != os.getpid()
+        # registration yields the cores to the daemon's threads
+        assert aligner.run(os.nice, 0) == os.nice(0) + NICE
         assert aligner.run(divmod, 7, 2) == (3, 1)
         failed: list[BaseException] = []
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -216,3 +218,43 @@ def test_live_fused_view_recomputes_only_what_changed():
     _, lo = live.view([a], 0.1, moved, weights={"a": 0.5})  # b left, a weighted: no work
     assert live.computed == 4
     np.testing.assert_allclose(lo, 0.5 * fused([a], 0.1, moved)[1], rtol=1e-6)
+
+
+def test_the_publisher_sends_an_own_delta_while_a_scan_holds_the_grid_lock():
+    """Numbering, remembering and putting an own delta never wait for the mapping thread (which
+    holds the own layer's lock while it integrates a scan); a range query still sees it."""
+    import threading
+
+    from colonyd.frames import Sender
+    from colonyd.metrics import Metrics
+    from colonyd.publisher import Publisher
+    from colonyd.runtime import open_session, zenoh_config
+
+    _, ds = deltas(2)
+    layers = Layers("me", 0.1)
+    own = layers.own
+    own.epoch = 3
+    session = open_session(zenoh_config(mode="peer", listen=["tcp/127.0.0.1:0"]))
+    held, release = threading.Event(), threading.Event()
+
+    def integrate() -> None:
+        with own.lock:
+            held.set()
+            release.wait(10)
+
+    mapping = threading.Thread(target=integrate)
+    try:
+        pub = Publisher(session, "t", layers, Sender("me", 3), Metrics(), epoch=3)
+        mapping.start()
+        assert held.wait(5)
+        marks: dict[str, float] = {}
+        t0 = time.monotonic()
+        sent = pub.publish_own(0, 1, ds[0], 1.0, marks=marks)
+        assert time.monotonic() - t0 < 2.0 and sent > 0
+        assert own.seq == 1 and list(marks) == ["numbered", "encoded", "put", "sent"]
+        release.set()
+        mapping.join()
+        assert [(d.from_version, d.to_version) for d in own.range(0, 1)] == [(0, 1)]
+    finally:
+        release.set()
+        session.close()
