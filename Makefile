@@ -16,7 +16,7 @@ demo: $(STAMP)
 	$(BIN)/colonyd demo --out demo-out
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q --durations=15 tests
+	$(BIN)/python -m pytest -q -n 2 --durations=15 tests
 
 # Style: ruff's lint rules and formatting on the whole tree; mypy (strict on voxel and protocol,
 # as pyproject.toml configures it) on every package.
