@@ -148,7 +148,10 @@ def _catchup(base: Path, voxels: int) -> dict[str, Any]:
         else:
             raise TimeoutError("the bulk daemon did not publish its layer")
         t0 = time.monotonic()
-        colony.add("newcomer")
+        newcomer = colony.add("newcomer", start=False)
+        # Room for the layer: the default peer budget (100,000 blocks) refuses 10 M voxels.
+        newcomer.env["COLONYD_MAX_PEER_BLOCKS"] = str(max(100_000, voxels // 16))
+        newcomer.start()
         colony.wait_converged(120 + voxels / 50_000, ["big", "newcomer"])
         wall = time.monotonic() - t0
         rep = next(r for r in colony.status() if r["agent"] == "newcomer")
