@@ -33,24 +33,23 @@ class TimeBase:
         """Stored form (uint32 ms since the base) of times in seconds; moves the base if needed."""
         if isinstance(t, float):  # one time (a scan's): the same arithmetic on Python integers
             one = round(t * 1000.0)  # rounds half to even, as np.rint
-            base = one - one % BASE_STEP_MS if self.base_ms is None else self.base_ms
-            if one < base or one - base > TIME_SPAN_MS:
-                new_base = one - one % BASE_STEP_MS if one < base else one - TIME_SPAN_MS // 2
-                self._shift_stored(new_base - base)
-                base = new_base
-            self.base_ms = base
+            base = self._base_for(one, one)
             return np.array(min(max(one - base, 0), TIME_SPAN_MS), dtype=np.uint32)
         ms = np.rint(np.asarray(t, dtype=np.float64) * 1000.0).astype(np.int64)
         if ms.size == 0:
             return ms.astype(np.uint32)
-        lo, hi = int(ms.min()), int(ms.max())
+        base = self._base_for(int(ms.min()), int(ms.max()))
+        return (ms - base).clip(0, TIME_SPAN_MS).astype(np.uint32)
+
+    def _base_for(self, lo: int, hi: int) -> int:
+        """The base (ms) that stores times lo..hi (ms), moved (stored times shifted) if needed."""
         base = lo - lo % BASE_STEP_MS if self.base_ms is None else self.base_ms
         if lo < base or hi - base > TIME_SPAN_MS:
             new_base = lo - lo % BASE_STEP_MS if lo < base else hi - TIME_SPAN_MS // 2
             self._shift_stored(new_base - base)
             base = new_base
         self.base_ms = base
-        return (ms - base).clip(0, TIME_SPAN_MS).astype(np.uint32)
+        return base
 
     def seconds(self, stored: np.ndarray) -> np.ndarray:
         """Seconds (float64, exactly k / 1000) of stored times."""
