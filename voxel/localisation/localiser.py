@@ -120,17 +120,7 @@ class ScanLocaliser:
             if odometry is not None and self.last_odometry is not None:
                 increment = se2.relative(self.last_odometry, np.asarray(odometry, np.float64))
             self.ekf.predict(increment)
-            result = match(
-                pts,
-                self.local,
-                se2.to_matrix(self.ekf.pose),
-                dof=3,
-                max_distance=p.max_distance,
-                final_distance=p.final_distance,
-                iterations=p.iterations,
-                inflation=p.inflation,
-                sensor=self.sensor,
-            )
+            result = self._match(pts, self.local)
             if result.ok:
                 fused = self.ekf.update(se2.from_matrix(result.pose), result.covariance)
         colony_match: Match | None = None
@@ -191,22 +181,28 @@ class ScanLocaliser:
             self.fix_rejected += 1
         return fused
 
-    def _colony_update(self, pts: np.ndarray, colony: ColonyMap) -> tuple[Match, bool]:
-        """Match the scan against the colony's map from the current estimate; fuse it, gated."""
+    def _match(self, pts: np.ndarray, target: LocalMap | ColonyMap, **extra: int) -> Match:
+        """The scan matched (x, y, yaw) against `target` from the current estimate."""
         p = self.params
         assert self.ekf is not None  # the first step made it
-        result = match(
+        return match(
             pts,
-            colony,
+            target,
             se2.to_matrix(self.ekf.pose),
             dof=3,
             max_distance=p.max_distance,
             final_distance=p.final_distance,
             iterations=p.iterations,
             inflation=p.inflation,
-            min_matched=p.colony_min_matched,
             sensor=self.sensor,
+            **extra,
         )
+
+    def _colony_update(self, pts: np.ndarray, colony: ColonyMap) -> tuple[Match, bool]:
+        """Match the scan against the colony's map from the current estimate; fuse it, gated."""
+        p = self.params
+        assert self.ekf is not None  # the first step made it
+        result = self._match(pts, colony, min_matched=p.colony_min_matched)
         if not result.ok:
             self.colony_failed += 1
             return result, False
