@@ -99,7 +99,15 @@ def test_demo_runs_and_writes_maps(tmp_path):
         assert robot["bytes_sent_per_s"] > 0
         if agent != "cctv-1":  # each robot's same-seed replay alone, and its dead reckoning
             assert 0 < robot["ate_alone_m"] < 0.5 and robot["ate_odometry_m"] > 0, (agent, robot)
-    assert "2D LiDAR robot (lidar-1): ATE" in run.stdout and "alone ->" in run.stdout
+    # Each robot with both figures gets its "alone -> in the colony" line. (A robot with fewer
+    # than 3 recorded poses in this short run has no ATE, and no line: seen once in CI.)
+    gains = [
+        f"{r['carries']} robot ({agent}): ATE"
+        for agent, r in summary["robots"].items()
+        if r["ate_m"] is not None and r["ate_alone_m"] is not None
+    ]
+    assert gains and all(g in run.stdout for g in gains), (gains, run.stdout)
+    assert "alone ->" in run.stdout
     from voxel.ply import read_ply
 
     _, colours = read_ply(out / "map.ply")  # coloured: by class, and by height where unlabelled
