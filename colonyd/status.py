@@ -72,22 +72,24 @@ def query_status(
     if samples:
         params.append("samples=1")
     selector = status_selector(namespace) + ("?" + ";".join(params) if params else "")
-    replies = session.get(
-        selector,
-        consolidation=zenoh.ConsolidationMode.NONE,
-        timeout=timeout,
-    )
+    out = [r for r in json_replies(session, selector, timeout) if "agent" in r]
+    return sorted(out, key=lambda r: r["agent"])
+
+
+def json_replies(session: zenoh.Session, selector: str, timeout: float) -> list[dict[str, Any]]:
+    """The JSON objects every daemon answering `selector` replied (error replies and anything
+    else skipped)."""
     out = []
-    for reply in replies:
+    for reply in session.get(selector, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout):
         if reply.ok is None:
             continue
         try:
-            report = json.loads(reply.ok.payload.to_bytes())
+            answer = json.loads(reply.ok.payload.to_bytes())
         except ValueError:
             continue
-        if isinstance(report, dict) and "agent" in report:
-            out.append(report)
-    return sorted(out, key=lambda r: r["agent"])
+        if isinstance(answer, dict):
+            out.append(answer)
+    return out
 
 
 def alive_members(session: zenoh.Session, namespace: str, timeout: float = 2.0) -> list[str]:

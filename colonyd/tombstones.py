@@ -11,12 +11,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-import zenoh
-
 from colonyd.config import Config
 from colonyd.errors import StatusError
 from colonyd.frames import colony_key
 from colonyd.runtime import get_client_session
+from colonyd.status import json_replies
 from protocol.keyexpr import FORGET, NAME_PATTERN, status_selector
 
 FILE = "forgotten.json"
@@ -83,22 +82,10 @@ def forget_agent(config: Config, agent: str, wait_s: float = 5.0) -> list[dict[s
         key = colony_key(config.colony_key)
         if key is not None:
             params += f";t={t!r};auth={forget_tag(key, agent, t)}"
-        replies = session.get(
-            status_selector(config.key_namespace, FORGET) + "?" + params,
-            consolidation=zenoh.ConsolidationMode.NONE,
-            timeout=wait_s,
-        )
-        answers = []
-        for r in replies:
-            if r.ok is None:
-                continue
-            try:
-                answers.append(json.loads(r.ok.payload.to_bytes()))
-            except ValueError:
-                continue
+        selector = status_selector(config.key_namespace, FORGET) + "?" + params
+        answers = json_replies(session, selector, wait_s)
     finally:
         session.close()
-    answers = [a for a in answers if isinstance(a, dict)]
     if not any(a.get("forgotten") == agent for a in answers):
         errors = sorted({str(a.get("error")) for a in answers if a.get("error")})
         msg = (
