@@ -111,14 +111,19 @@ def by_agent(colony: LocalColony, **kw: Any) -> dict[str, dict[str, Any]]:
 
 
 def reports_of(
-    colony: LocalColony, agents: list[str], *, within: float = 10.0, timeout: float = 1.0
+    colony: LocalColony,
+    agents: list[str],
+    *,
+    within: float = 10.0,
+    timeout: float = 1.0,
+    digest: bool = False,
 ) -> dict[str, dict[str, Any]]:
     """One round of status reports in which every one of `agents` answered (asked again until
     one does, for up to `within` s). A daemon that misses a round's timeout on a loaded machine
     would otherwise read as holding nothing (seq 0)."""
     deadline = time.monotonic() + within
     while True:
-        got = by_agent(colony, timeout=timeout)
+        got = by_agent(colony, timeout=timeout, digest=digest)
         missing = [a for a in agents if a not in got]
         if not missing:
             return got
@@ -279,7 +284,7 @@ def crash(base: Path, *, kills: int = 20, seed: int = 7) -> dict[str, Any]:
                 restart_mismatch += 1
                 log.error("restart %d: layer digest %s, recovered offline %s", i, got, want)
         converge = colony.wait_converged(60, ["a", "b"])
-        reports = by_agent(colony, digest=True)
+        reports = reports_of(colony, ["a", "b"], digest=True)
         figures = {
             "kills": kills,
             "kill_after_ms": kill_ms,
@@ -468,7 +473,7 @@ def _hostile_round(base: Path, closed: bool) -> dict[str, Any]:
     colony.add("b", src(2, 6))
     try:
         colony.wait_converged(40)
-        before = by_agent(colony, digest=True)
+        before = reports_of(colony, ["a", "b"], digest=True)
         s = colony.session()
         ns = colony.namespace
         sent = 0
@@ -519,7 +524,7 @@ def _hostile_round(base: Path, closed: bool) -> dict[str, Any]:
                         del reply
                     queries += 1
         time.sleep(1.5)
-        after = by_agent(colony, digest=True)
+        after = reports_of(colony, ["a", "b"], digest=True)
         per_daemon = {}
         for agent in ("a", "b"):
             c0, c1 = before[agent]["metrics"]["counts"], after[agent]["metrics"]["counts"]
@@ -589,9 +594,9 @@ def disk(base: Path, *, size_mb: float = 6.0) -> dict[str, Any]:
                 return bool(error)
 
             notice_s = wait_for("a reports the full disk", noticed, 20)
-            r0 = by_agent(colony)
+            r0 = reports_of(colony, ["a", "b"])
             time.sleep(3.0)  # several publish and snapshot attempts fail meanwhile
-            r1 = by_agent(colony)
+            r1 = reports_of(colony, ["a", "b"])
             frames = r1["a"]["metrics"]["counts"].get("frames", 0) - r0["a"]["metrics"][
                 "counts"
             ].get("frames", 0)
@@ -606,7 +611,7 @@ def disk(base: Path, *, size_mb: float = 6.0) -> dict[str, Any]:
                 "a publishes again", lambda: seq_of(by_agent(colony), "b", "a") > a_seq_full, 30
             )
             resume = time.monotonic() - t_free
-            cleared = not by_agent(colony)["a"].get("state_error")
+            cleared = not reports_of(colony, ["a"])["a"].get("state_error")
             return {
                 "disk_full_error": error,
                 "disk_noticed_s": round(notice_s, 2),
@@ -918,10 +923,10 @@ def flood(
         colony.wait_members(1 + flooders, timeout=30)
         assert target.proc is not None
         rss_start = peak_rss_mb(target.proc.pid)
-        r0 = by_agent(colony)
+        r0 = reports_of(colony, ["t"])
         t0 = time.monotonic()
         time.sleep(seconds)
-        r1 = by_agent(colony)
+        r1 = reports_of(colony, ["t"])
         dt = time.monotonic() - t0
         c0, c1 = r0["t"]["metrics"]["counts"], r1["t"]["metrics"]["counts"]
         applied = (c1.get("deltas_applied", 0) - c0.get("deltas_applied", 0)) / dt
@@ -1007,7 +1012,7 @@ def saturate(
         s.put(topic_key(colony.namespace, name, "heartbeat"), hb)
     time.sleep(1.0)
     assert target.proc is not None
-    r0 = by_agent(colony)
+    r0 = reports_of(colony, [target.agent])
     count0 = r0[target.agent]["metrics"]["counts"].get("deltas_applied", 0)
     t0 = time.monotonic()
     sent = 0
@@ -1021,10 +1026,11 @@ def saturate(
     last, t_last = count0, t0
     while time.monotonic() - t_last < 1.0:
         time.sleep(0.3)
-        now = by_agent(colony)[target.agent]["metrics"]["counts"].get("deltas_applied", 0)
+        counts = reports_of(colony, [target.agent])[target.agent]["metrics"]["counts"]
+        now = counts.get("deltas_applied", 0)
         if now != last:
             last, t_last = now, time.monotonic()
-    r1 = by_agent(colony)
+    r1 = reports_of(colony, [target.agent])
     c0, c1 = r0[target.agent]["metrics"]["counts"], r1[target.agent]["metrics"]["counts"]
     applied = c1.get("deltas_applied", 0) - count0
     return {
@@ -1086,9 +1092,9 @@ def _colony_run(base: Path, n: int, *, router: str | None, seconds: float) -> di
         colony.wait_members(n, timeout=60)
         converge = colony.wait_converged(120, agents)
         start_to_converged = time.monotonic() - t0
-        r0 = by_agent(colony, timeout=3.0)
+        r0 = reports_of(colony, list(agents), timeout=3.0)
         time.sleep(seconds)  # idle: heartbeats only
-        r1 = by_agent(colony, timeout=3.0)
+        r1 = reports_of(colony, list(agents), timeout=3.0)
         hb = [
             (
                 r1[a]["metrics"]["counts"].get("bytes_heartbeat", 0)
