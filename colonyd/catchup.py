@@ -47,6 +47,7 @@ class Repair:
 
     origin: str
     servers: list[str]
+    asked: float  # time.monotonic() when it was scheduled
 
 
 def complete(msgs: list[Any], what: str) -> bool:
@@ -116,7 +117,13 @@ class CatchUp:
             if origin in self._repairing:
                 return
             self._repairing.add(origin)
-        self._worker.put(Repair(origin, servers))  # a full queue forgets it (done below)
+        # a full queue forgets it (done below)
+        self._worker.put(Repair(origin, servers, time.monotonic()))
+
+    def idle(self) -> bool:
+        """True when no repair is queued or under way."""
+        with self._lock:
+            return not self._repairing
 
     def new_request_id(self) -> int:
         """A fresh random request id (u63)."""
@@ -149,7 +156,7 @@ class CatchUp:
                 layer = self.layers.find(rep.origin)
                 if layer is not None and not layer.pending:
                     return
-            if self._fetch_snapshot(server, rep.origin):
+            if self._fetch_snapshot(server, rep.origin, rep.asked):
                 return
 
     def ask(
@@ -159,9 +166,11 @@ class CatchUp:
         layer: str,
         request: SnapshotRequest | DeltaRangeRequest | HistoryRequest,
         cls: type[SnapshotReply] | type[DeltaRangeReply] | type[HistoryReply],
+        marks: dict[str, float] | None = None,
     ) -> list[Any]:
         """Send a request frame to `server`'s queryable; the replies of type `cls` for `layer`
-        and this request (every other reply is rejected and counted)."""
+        and this request (every other reply is rejected and counted). `marks`, if given, gets
+        "first" (time.monotonic() of the first reply) and "decode_s" (seconds decoding)."""
         replies = self.session.get(
             query_key(self.namespace, server, query, layer),  # type: ignore[arg-type]
             payload=self.sender.encode(request),
@@ -169,9 +178,13 @@ class CatchUp:
             timeout=self.query_timeout_s,
         )
         out: list[Message] = []
+        decode_s = 0.0
         for reply in replies:
             if reply.ok is None:
                 continue
+            t = time.monotonic()
+            if marks is not None:
+                marks.setdefault("first", t)
             raw = reply.ok.payload.to_bytes()
             try:
                 if len(out) >= MAX_REPLY_PARTS:
@@ -192,6 +205,9 @@ class CatchUp:
             except (ProtocolError, WireError) as exc:
                 self.metrics.reject(exc.reason)
                 log.warning("rejected a %s reply from %s: %s", query, server, exc)
+            decode_s += time.monotonic() - t
+        if marks is not None:
+            marks["decode_s"] = decode_s
         return out
 
     def _fetch_range(self, server: str, origin: str, layer: Layer, want: int) -> bool:
@@ -232,13 +248,15 @@ class CatchUp:
                 return False
         return got > 0
 
-    def _fetch_snapshot(self, server: str, origin: str) -> bool:
-        t0 = time.monotonic()
+    def _fetch_snapshot(self, server: str, origin: str, asked: float) -> bool:
+        cpu0, process0 = time.thread_time(), time.process_time()
+        marks = {"asked": asked, "request": time.monotonic()}
         rid = self._rng.getrandbits(63)
         request = SnapshotRequest(
             **self.sender.header(), layer=origin, request_id=rid, max_part_bytes=self.part_bytes
         )
-        msgs = self.ask(server, "snapshot", origin, request, SnapshotReply)
+        msgs = self.ask(server, "snapshot", origin, request, SnapshotReply, marks)
+        marks["received"] = time.monotonic()
         if not complete(msgs, "snapshot"):
             return False
         states = {(m.layer_epoch, m.delta.from_version, m.delta.to_version) for m in msgs}
@@ -256,12 +274,34 @@ class CatchUp:
             self.metrics.reject(exc.reason)
             log.warning("snapshot of %s from %s refused: %s", origin, server, exc)
             return False
+        marks["admitted"] = time.monotonic()
         layer = self.layers.get(origin, chunks[0].resolution)
         voxels = layer.install_snapshot(epoch, seq, chunks)
-        dt = time.monotonic() - t0
+        marks["installed"] = time.monotonic()
+        marks["cpu_s"] = time.thread_time() - cpu0
+        marks["process_cpu_s"] = time.process_time() - process0  # every thread's
+        dt = marks["installed"] - marks["request"]
         self.metrics.add("snapshots_installed")
-        self.metrics.catchup(origin, voxels, dt)
+        self.metrics.catchup(origin, voxels, dt, marks)
         log.info(
-            "caught up %s from %s: %d voxels at seq %d in %.3f s", origin, server, voxels, seq, dt
+            "caught up %s from %s: %d voxels at seq %d in %.3f s (%s)",
+            origin,
+            server,
+            voxels,
+            seq,
+            dt,
+            timeline(marks),
         )
         return True
+
+
+def timeline(marks: dict[str, float]) -> str:
+    """`marks` (time.monotonic() by step, and durations ending in "_s") as the milliseconds of
+    each step after the first, in order: "first +12.3 ms, received +45.6 ms, ..."."""
+    points = sorted((t, k) for k, t in marks.items() if not k.endswith("_s"))
+    if not points:
+        return ""
+    t0 = points[0][0]
+    steps = [f"{k} +{(t - t0) * 1000:.1f} ms" for t, k in points[1:]]
+    steps += [f"{k} {v * 1000:.1f} ms" for k, v in marks.items() if k.endswith("_s")]
+    return ", ".join(steps)

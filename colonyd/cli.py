@@ -407,6 +407,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="voxels of the layer a newcomer catches up with (repeatable; default 1,000,000)",
     )
     b.add_argument(
+        "--catchup-runs",
+        type=int,
+        default=3,
+        help="newcomers, one after another, timed catching up each layer (default 3)",
+    )
+    b.add_argument(
         "--start-runs", type=int, default=5, help="daemons timed from spawn to READY (default 5)"
     )
     b.add_argument(
@@ -724,6 +730,7 @@ def _bench(args: argparse.Namespace) -> int:
             daemons=args.daemons,
             duration=args.duration,
             catchup_voxels=args.catchup_voxels or [1_000_000],
+            catchup_runs=args.catchup_runs,
             start_runs=args.start_runs,
             phases=args.phase,
         )

@@ -87,6 +87,11 @@ MIN_FIX_CONFIDENCE = 0.15
 SIGHTING_CONFIDENCE = 0.5
 #: Observers whose sightings of us are kept at once (each at most 50).
 MAX_SIGHTED = 16
+#: The compiled kernels load once the catch-ups that the first heartbeats start are done (they
+#: share the interpreter lock): a wait of this many seconds for those heartbeats, then until
+#: catch-up is idle, at most KERNELS_WAIT_S in all.
+KERNELS_SETTLE_S = 0.5
+KERNELS_WAIT_S = 10.0
 #: The interpreter's thread switch interval in a daemon (Python's default is 5 ms).
 SWITCH_INTERVAL_S = 0.001
 
@@ -171,8 +176,8 @@ class Daemon:
                 self.notifier.ready(
                     f"colony {cfg.colony} agent {cfg.agent_id} seq {self.layers.own.seq}"
                 )
-                # Compiled kernels (optional) load after ready, before most first scans arrive.
-                threading.Thread(target=kernels.warm, name="kernels", daemon=True).start()
+                if self._sources:  # nothing else integrates scans: no kernels needed
+                    threading.Thread(target=self._warm_kernels, name="kernels", daemon=True).start()
                 log.info(
                     "ready: colony %s, agent %s, epoch %d, seq %d",
                     cfg.colony,
@@ -342,6 +347,18 @@ class Daemon:
                     type_hashes=cfg.ros2_type_hashes,
                 ),
             )
+
+    def _warm_kernels(self) -> None:
+        """Load the compiled kernels (optional; ~0.5 s of CPU) after the first catch-ups, which
+        would otherwise share the interpreter with them; a scan integrated sooner loads them
+        itself."""
+        deadline = time.monotonic() + KERNELS_WAIT_S
+        self.stop.wait(KERNELS_SETTLE_S)
+        while not self.gossip.catchup.idle() and time.monotonic() < deadline:
+            if self.stop.wait(0.05):
+                return
+        if not self.stop.is_set():
+            kernels.warm()
 
     def _start_threads(self) -> None:
         self._threads = [

@@ -144,7 +144,10 @@ class LayerServer:
             self.metrics.add("bytes_served", len(frame))
 
     def _serve_snapshot(self, query: zenoh.Query, key: str, layer: Layer, request: Any) -> None:
+        cpu0 = time.thread_time()
+        marks = {"query": time.monotonic()}
         epoch, _seq, chunks = layer.snapshot(self.chunk_voxels)
+        marks["snapshot"] = time.monotonic()
         if layer.origin == self.own:
             epoch = self.epoch
         common = {
@@ -159,8 +162,12 @@ class LayerServer:
             chunks,
             lambda i, n, c: SnapshotReply(**common, time=time.time(), part=i, parts=n, delta=c),
         )
+        marks["encoded"] = time.monotonic()
         self._reply(query, key, frames)
+        marks["replied"] = time.monotonic()
+        marks["serve_cpu_s"] = time.thread_time() - cpu0
         self.metrics.add("snapshots_served")
+        self.metrics.served(layer.origin, marks)
 
     def _serve_range(self, query: zenoh.Query, key: str, layer: Layer | None, request: Any) -> None:
         """Deltas of (from_version, min(to_version, newest)]: none if that range is empty

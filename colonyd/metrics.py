@@ -17,7 +17,13 @@ class Metrics:
         #: "frame" (the frame just received), "held" (buffered until a gap before it was filled)
         #: or "range" (fetched by a repair).
         self.applied: deque[tuple[str, int, float, float, str]] = deque(maxlen=samples)
-        self.catchups: deque[tuple[str, int, float]] = deque(maxlen=64)
+        #: Installed snapshots: (origin, voxels, seconds from request to installed, marks); marks:
+        #: step name -> time.monotonic() ("request", "first", "received", "admitted",
+        #: "installed") plus "decode_s" and "cpu_s" (this thread's CPU over the catch-up).
+        self.catchups: deque[tuple[str, int, float, dict[str, float]]] = deque(maxlen=64)
+        #: Snapshots served: (layer, marks); marks: "query", "snapshot", "encoded", "replied"
+        #: (time.monotonic(), one clock for every process of the machine).
+        self.serves: deque[tuple[str, dict[str, float]]] = deque(maxlen=64)
         #: Where a delta's time goes: ("out", own, seq, marks) at its origin and ("in", origin,
         #: seq, marks) at a replica; marks: hand-off name -> time.monotonic() (one clock for
         #: every process of the machine), in the order of the path (docs/RELIABILITY.md).
@@ -42,9 +48,15 @@ class Metrics:
         with self._lock:
             self.stages.append((side, origin, seq, marks))
 
-    def catchup(self, origin: str, voxels: int, seconds: float) -> None:
+    def catchup(
+        self, origin: str, voxels: int, seconds: float, marks: dict[str, float] | None = None
+    ) -> None:
         with self._lock:
-            self.catchups.append((origin, voxels, seconds))
+            self.catchups.append((origin, voxels, seconds, dict(marks or {})))
+
+    def served(self, layer: str, marks: dict[str, float]) -> None:
+        with self._lock:
+            self.serves.append((layer, dict(marks)))
 
     def snapshot(self, *, samples: bool = False) -> dict[str, object]:
         with self._lock:
@@ -52,6 +64,7 @@ class Metrics:
                 "counts": dict(self.counts),
                 "rejected": dict(self.rejected),
                 "catchups": [list(c) for c in self.catchups],
+                "serves": [list(c) for c in self.serves],
             }
             if samples:
                 out["samples"] = [list(s) for s in self.applied]

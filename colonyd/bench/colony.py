@@ -7,6 +7,7 @@ import json
 import logging
 import os
 import shutil
+import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -55,15 +56,16 @@ def run_colony_bench(
     daemons: int = 4,
     duration: float = 10.0,
     catchup_voxels: int | list[int] = 1_000_000,
+    catchup_runs: int = 3,
     start_runs: int = 5,
     phases: list[str] | None = None,
 ) -> dict[str, Any]:
     """Run the phases (all of PHASES unless named) and write the result JSON; returns it.
 
     gossip: propagation and idle cost of `daemons` daemons; catchup: a newcomer daemon's
-    snapshot of a `bulk:` layer of each size in `catchup_voxels` (the first size's figures also
-    under the keys of one size); steps: the same catch-up step by step in this process (CPU);
-    start: `start_runs` daemons from spawn to READY.
+    snapshot of a `bulk:` layer of each size in `catchup_voxels`, `catchup_runs` newcomers each
+    (the first size's figures also under the keys of one size); steps: the same catch-up step
+    by step in this process (CPU); start: `start_runs` daemons from spawn to READY.
     """
     sizes = [catchup_voxels] if isinstance(catchup_voxels, int) else list(catchup_voxels)
     wanted = set(phases or PHASES)
@@ -73,7 +75,7 @@ def run_colony_bench(
         if "gossip" in wanted:
             result.update(_propagation_and_idle(work / "gossip", daemons, duration))
         if "catchup" in wanted:
-            runs = [_catchup(work / f"catchup{n}", n) for n in sizes]
+            runs = [_catchup(work / f"catchup{n}", n, catchup_runs) for n in sizes]
             result.update(runs[0])
             result["catchups"] = runs
         if "steps" in wanted:
@@ -134,7 +136,10 @@ def _propagation_and_idle(base: Path, daemons: int, duration: float) -> dict[str
         colony.close()
 
 
-def _catchup(base: Path, voxels: int) -> dict[str, Any]:
+def _catchup(base: Path, voxels: int, runs: int = 1) -> dict[str, Any]:
+    """`runs` newcomers, one after another, each catching up the `bulk:` layer of `voxels`
+    voxels from the same holder: seconds from the snapshot request to the installed layer
+    (min, median, each run) and each run's timeline (ms after the request, both daemons)."""
     colony = LocalColony(base, colony="catchup", heartbeat_s=1.0)
     try:
         colony.add("big", [f"bulk:voxels={voxels}"])
@@ -147,23 +152,57 @@ def _catchup(base: Path, voxels: int) -> dict[str, Any]:
             time.sleep(0.3)
         else:
             raise TimeoutError("the bulk daemon did not publish its layer")
-        t0 = time.monotonic()
-        newcomer = colony.add("newcomer", start=False)
-        # Room for the layer: the default peer budget (100,000 blocks) refuses 10 M voxels.
-        newcomer.env["COLONYD_MAX_PEER_BLOCKS"] = str(max(100_000, voxels // 16))
-        newcomer.start()
-        colony.wait_converged(120 + voxels / 50_000, ["big", "newcomer"])
-        wall = time.monotonic() - t0
-        rep = next(r for r in colony.status() if r["agent"] == "newcomer")
-        catchups = [c for c in rep["metrics"]["catchups"] if c[0] == "big"]
-        got, seconds = (int(catchups[-1][1]), float(catchups[-1][2])) if catchups else (0, wall)
+        done = [_newcomer(colony, f"newcomer{i}", voxels) for i in range(runs)]
+        seconds = [d["catchup_s"] for d in done]
+        walls = [d["catchup_wall_s_incl_process_start"] for d in done]
         return {
-            "catchup_voxels": got,
-            "catchup_s": round(seconds, 3),
-            "catchup_wall_s_incl_process_start": round(wall, 2),
+            "catchup_voxels": done[0]["catchup_voxels"],
+            "catchup_s": round(min(seconds), 3),
+            "catchup_s_median": round(statistics.median(seconds), 3),
+            "catchup_wall_s_incl_process_start": round(min(walls), 2),
+            "catchup_runs": done,
         }
     except Exception:
         log.error("catch-up benchmark failed; daemon logs:\n%s", colony.logs())
         raise
     finally:
         colony.close()
+
+
+def _newcomer(colony: LocalColony, agent: str, voxels: int) -> dict[str, Any]:
+    """Start `agent`, wait for it to hold the bulk layer, stop it; its catch-up figures."""
+    t0 = time.monotonic()
+    newcomer = colony.add(agent, start=False)
+    # Room for the layer: the default peer budget (100,000 blocks) refuses 10 M voxels.
+    newcomer.env["COLONYD_MAX_PEER_BLOCKS"] = str(max(100_000, voxels // 16))
+    newcomer.start()
+    try:
+        colony.wait_converged(120 + voxels / 50_000, ["big", agent])
+        wall = time.monotonic() - t0
+        reports = {r["agent"]: r for r in colony.status()}
+    finally:
+        newcomer.stop()
+    catchups = [c for c in reports[agent]["metrics"]["catchups"] if c[0] == "big"]
+    if not catchups:
+        raise RuntimeError(f"{agent} holds the layer without a snapshot catch-up")
+    _, got, seconds, marks = catchups[-1]
+    serves = reports["big"]["metrics"].get("serves", [])
+    # The serve of this request: the last one that began after it was sent.
+    served = [m for _, m in serves if m["query"] >= marks["request"]]
+    if served:
+        marks = {**served[-1], **marks}
+    request = marks["request"]
+    return {
+        "catchup_voxels": int(got),
+        "catchup_s": round(float(seconds), 3),
+        "catchup_wall_s_incl_process_start": round(wall, 2),
+        "timeline_ms": {
+            k: round((v - request) * 1000, 1)
+            for k, v in sorted(marks.items(), key=lambda kv: kv[1])
+            if not k.endswith("_s")
+        },
+        "decode_ms": round(marks.get("decode_s", 0.0) * 1000, 1),
+        "newcomer_cpu_ms": round(marks.get("cpu_s", 0.0) * 1000, 1),
+        "newcomer_process_cpu_ms": round(marks.get("process_cpu_s", 0.0) * 1000, 1),
+        "server_cpu_ms": round(marks.get("serve_cpu_s", 0.0) * 1000, 1),
+    }

@@ -73,6 +73,10 @@ def test_three_converge_late_joiner_and_garbage(make_colony):
     d = next(r for r in colony.status() if r["agent"] == "d")
     assert {"a", "b", "c"} <= set(d["layers"])
     assert d["metrics"]["counts"].get("snapshots_installed", 0) >= 3
+    # each catch-up reports its timeline, in the order of its steps
+    for _origin, _voxels, seconds, marks in d["metrics"]["catchups"]:
+        steps = [marks[k] for k in ("asked", "request", "first", "received", "admitted")]
+        assert steps == sorted(steps) and marks["installed"] - marks["request"] == seconds
     # `colonyd status` (the console command) sees all four, none behind.
     hub = colony.daemons["a"].endpoint
     base = [

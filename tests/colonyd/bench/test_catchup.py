@@ -19,3 +19,21 @@ def test_a_daemon_is_timed_from_spawn_to_ready(tmp_path) -> None:
     assert out["start_runs"] == 1
     assert 0 < out["start_to_ready_cpu_s_min"] <= out["start_to_ready_wall_s_min"] + 1.0
     assert out["start_to_ready_wall_s_median"] == out["start_to_ready_wall_s_min"]
+
+
+def test_newcomers_catch_up_one_after_another_with_their_timelines(tmp_path) -> None:
+    from colonyd.bench.colony import _catchup
+
+    out = _catchup(tmp_path, 20_000, runs=2)
+    assert [r["catchup_voxels"] for r in out["catchup_runs"]] == [20_000, 20_000]
+    assert out["catchup_s"] <= out["catchup_s_median"]
+    for run in out["catchup_runs"]:
+        line = run["timeline_ms"]
+        # the newcomer's steps in order, the holder's serve between its request and first reply
+        steps = ["request", "query", "snapshot", "encoded", "first", "received", "admitted"]
+        assert [line[k] for k in steps] == sorted(line[k] for k in steps), line
+        assert line["request"] == 0
+        assert abs(line["installed"] - run["catchup_s"] * 1000) < 1.0
+        assert line["asked"] <= 0 and line["admitted"] <= line["installed"]
+        assert 0 < run["decode_ms"] <= line["received"]
+        assert run["server_cpu_ms"] > 0 and run["newcomer_cpu_ms"] > 0

@@ -1,0 +1,23 @@
+"""Catch-up's timeline: marks kept in the metrics and written as one log line."""
+
+from __future__ import annotations
+
+from colonyd.catchup import timeline
+from colonyd.metrics import Metrics
+
+
+def test_a_catch_up_timeline_reads_in_order_of_its_steps() -> None:
+    marks = {"request": 10.0, "installed": 10.25, "first": 10.1, "decode_s": 0.05}
+    assert timeline(marks) == "first +100.0 ms, installed +250.0 ms, decode_s 50.0 ms"
+    assert timeline({"decode_s": 0.1}) == ""
+
+
+def test_metrics_report_catch_ups_and_serves_with_their_marks() -> None:
+    m = Metrics()
+    marks = {"request": 1.0, "installed": 1.5}
+    m.catchup("a", 10, 0.5, marks)
+    marks["installed"] = 9.0  # the metrics keep their own copy
+    m.served("b", {"query": 2.0, "replied": 2.1})
+    out = m.snapshot()
+    assert out["catchups"] == [["a", 10, 0.5, {"request": 1.0, "installed": 1.5}]]
+    assert out["serves"] == [["b", {"query": 2.0, "replied": 2.1}]]
