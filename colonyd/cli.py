@@ -339,6 +339,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b = bsub.add_parser("wire", help="wire-format benchmark")
     _bench_io(b, shared_data=True)
+    b.add_argument(
+        "--scenario",
+        action="append",
+        help="run only this scenario (repeatable; default all): camera_path_50_0.05, "
+        "lidar3d_32k_seq_0.10, redkitchen50_0.05",
+    )
     b = bsub.add_parser(
         "history",
         help="history bytes per record on the wire, replica temporal queries against the "
@@ -707,7 +713,7 @@ def _bench(args: argparse.Namespace) -> int:
     elif args.bench == "wire":
         from colonyd.bench.wire import run_wire_bench
 
-        result = run_wire_bench(args.json, args.shared_data)
+        result = run_wire_bench(args.json, args.shared_data, only=args.scenario)
     elif args.bench == "history":
         from colonyd.bench.history import run_history_bench
 

@@ -15,7 +15,7 @@ import numpy as np
 from colonyd.errors import WireError
 from colonyd.grid import VoxelGrid, new_grid
 from voxel import keys as vk
-from voxel.blocks import BLOCK_SHAPES, block_shifts, split_keys
+from voxel.blocks import BLOCK_SHAPES, block_shifts, count_blocks
 from voxel.delta import Delta
 
 
@@ -254,8 +254,7 @@ class Layer:
         with self.lock:
             store = self.grid.store
             if replace or store.sorted_keys.size == 0:
-                shifts = block_shifts(replica_shape(keys))
-                return int(np.unique(split_keys(keys, shifts)[0]).size)
+                return count_blocks(keys, block_shifts(replica_shape(keys)))
             blocks = np.unique(store.split(keys)[0])
             return int(np.count_nonzero(store.lookup(blocks) < 0))
 

@@ -52,15 +52,19 @@ def unique_packed(packed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if n < 64:
         ub, inv = np.unique(p, return_inverse=True)
         return ub, inv.reshape(-1)
-    k = unpack(p)
-    lo = k.min(axis=0)
-    dims = k.max(axis=0) - lo + 1
-    cells = int(dims[0]) * int(dims[1]) * int(dims[2])
+    # one axis at a time: reductions along axis 0 of an (N, 3) array are several times slower
+    cols = [(p >> (2 * AXIS_BITS)) & AXIS_MASK, (p >> AXIS_BITS) & AXIS_MASK, p & AXIS_MASK]
+    lo = [int(c.min()) for c in cols]
+    dims = [int(c.max()) - x + 1 for c, x in zip(cols, lo, strict=True)]
+    cells = dims[0] * dims[1] * dims[2]
     if cells > DENSE_CELLS_PER_KEY * n + 4096:
         ub, inv = np.unique(p, return_inverse=True)
         return ub, inv.reshape(-1)
-    k -= lo
-    lin = (k[:, 0] * dims[1] + k[:, 1]) * dims[2] + k[:, 2]
+    lin = cols[0] - lo[0]
+    lin *= dims[1]
+    lin += cols[1] - lo[1]
+    lin *= dims[2]
+    lin += cols[2] - lo[2]
     first = np.full(cells, -1, dtype=np.int64)
     first[lin] = np.arange(n)
     held = np.flatnonzero(first >= 0)  # box order is packed order (x-major)

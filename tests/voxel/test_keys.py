@@ -40,3 +40,14 @@ def test_unique_packed_is_numpy_unique_with_inverse(n: int, spread: int) -> None
     ref, ref_inv = np.unique(packed, return_inverse=True)
     np.testing.assert_array_equal(ub, ref)
     np.testing.assert_array_equal(inv, ref_inv.reshape(-1))
+
+
+@pytest.mark.parametrize("shape", ["cube", "planar", "slab"])
+@pytest.mark.parametrize(("n", "spread"), [(0, 1), (10, 5), (50_000, 40), (5000, 10**6)])
+def test_count_blocks_is_the_number_of_distinct_blocks(shape: str, n: int, spread: int) -> None:
+    # dense boxes are marked, sparse ones sorted: the same count either way
+    from voxel.blocks import block_shifts, count_blocks, split_keys
+
+    keys = np.random.default_rng(n + spread).integers(-spread, spread, (n, 3))
+    shifts = block_shifts(shape)
+    assert count_blocks(keys, shifts) == np.unique(split_keys(keys, shifts)[0]).size
