@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from colonyd.bench.launcher import LocalColony
-from colonyd.layers import Layer
+from colonyd.layers import Layer, Layers
 from plugins.bulk import BulkSource
 from protocol.codec import decode, encode
 from protocol.limits import Limits
@@ -45,8 +45,9 @@ def _best_of(fn: Callable[[], T], repeats: int) -> tuple[float, T]:
 def catchup_steps(voxels: int, repeats: int = 3) -> dict[str, Any]:
     """The CPU of each step of a newcomer's snapshot of a `bulk:` layer of `voxels` voxels: the
     server takes the layer's delta in parts, encodes each part's SnapshotReply frame, the
-    newcomer decodes them and installs the snapshot into a fresh layer (what `colonyd run`
-    does between the request and the installed layer, without the network)."""
+    newcomer decodes them, admits them (the peer block budget) and installs the snapshot into a
+    fresh layer (what `colonyd run` does between the request and the installed layer, without
+    the network)."""
     source = BulkSource(voxels=voxels, resolution=0.1, seed=0)
     origin = Layer("big", 0.1)
     origin.offer(1, 0, 1, source.delta())
@@ -73,15 +74,20 @@ def catchup_steps(voxels: int, repeats: int = 3) -> dict[str, Any]:
     def install(chunks: list[Delta]) -> int:
         return Layer("big", 0.1).install_snapshot(1, 1, chunks)
 
+    def admit(chunks: list[Delta]) -> bool:
+        Layers("newcomer", 0.1, max_peer_blocks=voxels).admit("big", chunks, replace=True)
+        return True
+
     serve_s, (_, _, chunks) = _best_of(lambda: origin.snapshot(CHUNK_VOXELS), repeats)
     encode_s, frames = _best_of(lambda: frames_of(chunks), repeats)
     decode_s, replies = _best_of(lambda: [decode(f, limits=_LIMITS) for f in frames], repeats)
     parts = [r.delta for r in replies if isinstance(r, SnapshotReply)]
+    admit_s, _ = _best_of(lambda: admit(parts), repeats)
     install_s, installed = _best_of(lambda: install(parts), repeats)
     if installed != voxels:
         msg = f"catch-up installed {installed} voxels, expected {voxels}"
         raise RuntimeError(msg)
-    total = serve_s + encode_s + decode_s + install_s
+    total = serve_s + encode_s + decode_s + admit_s + install_s
     return {
         "voxels": voxels,
         "parts": len(frames),
@@ -89,6 +95,7 @@ def catchup_steps(voxels: int, repeats: int = 3) -> dict[str, Any]:
         "serve_cpu_s": round(serve_s, 3),
         "encode_cpu_s": round(encode_s, 3),
         "decode_cpu_s": round(decode_s, 3),
+        "admit_cpu_s": round(admit_s, 3),
         "install_cpu_s": round(install_s, 3),
         "total_cpu_s": round(total, 3),
     }
