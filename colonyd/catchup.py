@@ -39,6 +39,17 @@ log = logging.getLogger(__name__)
 MAX_REPLY_PARTS = 4096
 #: Most holders of a layer asked in one repair.
 MAX_SERVERS = 3
+#: A snapshot that did not arrive whole within the query timeout is asked for again with the
+#: timeout doubled, at most this many times over (a large layer served by a busy holder takes
+#: longer than the timeout; asking again as briefly would never get it).
+MAX_DOUBLINGS = 4
+#: Most origins whose incomplete snapshots are remembered.
+MAX_SHORT = 1024
+
+
+def snapshot_timeout(base_s: float, failures: int) -> float:
+    """Query timeout of a snapshot request after `failures` incomplete ones in a row."""
+    return base_s * (1 << min(failures, MAX_DOUBLINGS))
 
 
 @dataclass
@@ -91,6 +102,8 @@ class CatchUp:
         self.membership: Membership | None = None
         self._rng = random.Random()
         self._repairing: set[str] = set()
+        #: Origin -> snapshot requests in a row that did not arrive whole (`snapshot_timeout`).
+        self._short: dict[str, int] = {}
         self._lock = threading.Lock()
         self._worker: Worker[Repair] = Worker(
             "gossip-repair",
@@ -167,15 +180,17 @@ class CatchUp:
         request: SnapshotRequest | DeltaRangeRequest | HistoryRequest,
         cls: type[SnapshotReply] | type[DeltaRangeReply] | type[HistoryReply],
         marks: dict[str, float] | None = None,
+        timeout_s: float | None = None,
     ) -> list[Any]:
         """Send a request frame to `server`'s queryable; the replies of type `cls` for `layer`
         and this request (every other reply is rejected and counted). `marks`, if given, gets
-        "first" (time.monotonic() of the first reply) and "decode_s" (seconds decoding)."""
+        "first" (time.monotonic() of the first reply) and "decode_s" (seconds decoding);
+        `timeout_s` overrides the query timeout."""
         replies = self.session.get(
             query_key(self.namespace, server, query, layer),  # type: ignore[arg-type]
             payload=self.sender.encode(request),
             consolidation=zenoh.ConsolidationMode.NONE,
-            timeout=self.query_timeout_s,
+            timeout=self.query_timeout_s if timeout_s is None else timeout_s,
         )
         out: list[Message] = []
         decode_s = 0.0
@@ -255,10 +270,23 @@ class CatchUp:
         request = SnapshotRequest(
             **self.sender.header(), layer=origin, request_id=rid, max_part_bytes=self.part_bytes
         )
-        msgs = self.ask(server, "snapshot", origin, request, SnapshotReply, marks)
+        short = self._short.get(origin, 0)
+        timeout = snapshot_timeout(self.query_timeout_s, short)
+        msgs = self.ask(server, "snapshot", origin, request, SnapshotReply, marks, timeout)
         marks["received"] = time.monotonic()
         if not complete(msgs, "snapshot"):
+            if len(self._short) >= MAX_SHORT:
+                self._short.clear()  # origins a hostile heartbeat made up: bounded
+            self._short[origin] = short + 1
+            log.info(
+                "no whole snapshot of %s from %s within %.1f s; next time %.1f s",
+                origin,
+                server,
+                timeout,
+                snapshot_timeout(self.query_timeout_s, short + 1),
+            )
             return False
+        self._short.pop(origin, None)
         states = {(m.layer_epoch, m.delta.from_version, m.delta.to_version) for m in msgs}
         if len(states) != 1:
             self.metrics.reject("bad-snapshot")

@@ -21,3 +21,10 @@ def test_metrics_report_catch_ups_and_serves_with_their_marks() -> None:
     out = m.snapshot()
     assert out["catchups"] == [["a", 10, 0.5, {"request": 1.0, "installed": 1.5}]]
     assert out["serves"] == [["b", {"query": 2.0, "replied": 2.1}]]
+
+
+def test_a_snapshot_that_did_not_arrive_whole_is_asked_for_with_a_longer_timeout() -> None:
+    from colonyd.catchup import MAX_DOUBLINGS, snapshot_timeout
+
+    assert [snapshot_timeout(5.0, n) for n in range(4)] == [5.0, 10.0, 20.0, 40.0]
+    assert snapshot_timeout(5.0, 100) == 5.0 * 2**MAX_DOUBLINGS
