@@ -28,3 +28,23 @@ def test_a_snapshot_that_did_not_arrive_whole_is_asked_for_with_a_longer_timeout
 
     assert [snapshot_timeout(5.0, n) for n in range(4)] == [5.0, 10.0, 20.0, 40.0]
     assert snapshot_timeout(5.0, 100) == 5.0 * 2**MAX_DOUBLINGS
+
+
+def test_compiled_kernels_load_once_catch_up_is_idle(monkeypatch) -> None:
+    import threading
+    import time
+    from types import SimpleNamespace
+
+    from colonyd import daemon as dm
+
+    loaded: list[float] = []
+    monkeypatch.setattr(dm.kernels, "warm", lambda: loaded.append(time.monotonic()) or True)
+    monkeypatch.setattr(dm, "KERNELS_SETTLE_S", 0.0)
+    busy_until = time.monotonic() + 0.3
+    catchup = SimpleNamespace(idle=lambda: time.monotonic() >= busy_until)
+    fake = SimpleNamespace(stop=threading.Event(), gossip=SimpleNamespace(catchup=catchup))
+    dm.Daemon._warm_kernels(fake)  # type: ignore[arg-type]
+    assert len(loaded) == 1 and loaded[0] >= busy_until
+    fake.stop.set()  # a daemon stopping meanwhile loads nothing
+    dm.Daemon._warm_kernels(fake)  # type: ignore[arg-type]
+    assert len(loaded) == 1
