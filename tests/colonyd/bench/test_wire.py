@@ -32,3 +32,6 @@ def test_wire_bench_reports_every_field(tmp_path: Path, monkeypatch: pytest.Monk
     assert row["changed_voxels"] > 10_000 and row["occupied_changed"] > 0
     assert row["bytes_per_changed_voxel"] < 1.0
     assert row["bytes_full"] < row["raw_scan_zstd_bytes"]
+    # the faster zstd level, timed beside: a little larger (the level is the sender's choice)
+    assert row["bytes_full"] < row["bytes_full_zstd3"] < 1.3 * row["bytes_full"]
+    assert row["encode_voxels_per_s_zstd3"] > 0
