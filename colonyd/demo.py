@@ -97,16 +97,16 @@ def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> in
                 if late and late.caught_up_at is None and caught_up(reports, LATE[0]):
                     late.caught_up_at = now
                 live.update(_table(reports, run.tracks, now))
-                if (
-                    late_started
-                    and run.colony.converged()[0]
-                    and all(t.aligned_at is not None for t in run.tracks.values())
-                ):
+                converged = late_started and run.colony.converged()[0]
+                if converged and late and late.caught_up_at is None:  # a round that missed it
+                    late.caught_up_at = now  # converged: it holds every layer as its origin
+                if converged and all(t.aligned_at is not None for t in run.tracks.values()):
                     break
-                if late_started and now > duration + 15 and run.colony.converged()[0]:
+                if converged and now > duration + 15:
                     break  # mapping is over; alignment did not complete: say so below
                 time.sleep(0.5)
-        fused, layers = run.maps(MEMBERS[0][0])
+            reports = run.poll_all()  # every member's last report (the summary reads them)
+        fused, layers = run.maps(MEMBERS[0][0], wait_s=30.0)  # a loaded daemon answers late
         seconds = run.now()
         run.close()  # the CPU is the alone replays' now
         for replay in replays.values():

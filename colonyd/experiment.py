@@ -219,7 +219,7 @@ def run_paper(
                     over = run.now() > timeout
                     if run.mapping_done() or over:
                         run.unwatch()
-                        run.poll()  # the last poses
+                        run.poll_all()  # the last poses, and every member's last report
                         done[name] = _finish(run, out, complete=not over)
                         run.close()
                         del active[name]

@@ -100,6 +100,16 @@ class SimRun:
         record(self.reports, self.tracks, self.now())
         return self.reports
 
+    def poll_all(self, within: float = 15.0) -> list[dict[str, Any]]:
+        """Status rounds until every member answered one (or `within` seconds passed): the last
+        round, recorded (a loaded daemon can miss a round's timeout; its report would be {})."""
+        deadline = time.monotonic() + within
+        while True:
+            reports = self.poll()
+            if {r["agent"] for r in reports} >= set(self.tracks) or time.monotonic() > deadline:
+                return reports
+            time.sleep(0.2)
+
     def watch(self, interval: float = 0.25) -> None:
         """Poll in a thread of its own every `interval` seconds until `unwatch` (runs watched
         side by side each keep their pace, however slowly another answers)."""
