@@ -225,9 +225,10 @@ class LocalColony:
 
     # -- observation ----------------------------------------------------------------------
     def session(self) -> zenoh.Session:
-        """The observer's session, connected to every daemon started so far (reopened as
-        daemons are added, so the observer never depends on gossip to reach one)."""
-        endpoints = [d.endpoint for d in self.daemons.values() if d.alive()]
+        """The observer's session, connected to every daemon listening so far (reopened as
+        daemons come up, so the observer never depends on gossip to reach one: a session opened
+        while a daemon was still starting, as on a cold start, never reached it)."""
+        endpoints = [d.endpoint for d in self.daemons.values() if d.alive() and d.listening()]
         if self._session is not None and endpoints != self._session_endpoints:
             self._session.close()
             self._session = None
