@@ -94,8 +94,10 @@ class SimRun:
         d.start()
         self.tracks[agent] = Track(CARRIES.get(agent, "?"), self.now())
 
-    def poll(self, timeout: float = 1.0) -> list[dict[str, Any]]:
-        """One status round, recorded into the tracks."""
+    def poll(self, timeout: float = 3.0) -> list[dict[str, Any]]:
+        """One status round, recorded into the tracks (a round ends once every daemon answered:
+        the timeout only bounds a slow one, which a loaded machine has; with 1 s, rounds missed
+        a busy robot so often that a 5 s run recorded fewer than 3 of its poses)."""
         self.reports = self.colony.status(timeout=timeout)
         record(self.reports, self.tracks, self.now())
         return self.reports
