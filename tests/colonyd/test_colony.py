@@ -246,7 +246,9 @@ def test_lost_deltas_are_repaired_by_range_queries(make_colony):
     # The lossy receiver first: on a loaded machine a could otherwise finish mapping before b
     # is up, and b would take a snapshot instead of live deltas (nothing to drop or repair).
     colony.add("b", extra=["--drop-rate", "0.4"])
-    colony.add("a", src(1, 24))
+    # Deltas at 8 Hz: at the default 2 Hz a start slowed by load (a 4 s stall) left a two deltas
+    # for its 24 scans, and both came through (nothing dropped, nothing to repair).
+    colony.add("a", src(1, 24), extra=["--publish-hz", "8"])
     colony.wait_converged(40)
     b = colony.reports(["b"])["b"]
     counts = b["metrics"]["counts"]
