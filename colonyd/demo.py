@@ -17,6 +17,7 @@ from colonyd.outdir import output_dir
 from colonyd.plots import Panel, draw_colony, draw_errors, track_series
 from colonyd.simrun import AloneReplay, SimRun
 from colonyd.tracks import Track, ate, caught_up, write_tum
+from voxel import kernels
 
 #: The colony: (agent, seed of its sim source). The 3D LiDAR robot joins halfway and catches up.
 MEMBERS = (("depth-1", 1), ("lidar-1", 2), ("cctv-1", 3))
@@ -73,6 +74,9 @@ def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> in
     out = Path(out)
     output_dir(out, "--out")
     console = Console(file=sys.stdout)
+    # Compile the kernels here once (a fresh install has none cached): otherwise every daemon
+    # compiles them at once, answering no status meanwhile (docs/VOXEL.md).
+    kernels.warm()
     work = Path(tempfile.mkdtemp(prefix="colonyd-demo-"))
     run = SimRun(work / "colony", "demo", odometry_noise=ODOMETRY_NOISE)
     replays: dict[str, AloneReplay] = {}
@@ -83,7 +87,7 @@ def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> in
             )
         for agent, seed in MEMBERS:
             run.add(agent, duration, seed)
-        run.colony.wait_members(len(MEMBERS), timeout=30)
+        run.colony.wait_members(len(MEMBERS), timeout=60)  # (a loaded machine starts slowly)
         late_started = False
         reports: list[dict[str, Any]] = []
         with Live(console=console, refresh_per_second=2, transient=False) as live:

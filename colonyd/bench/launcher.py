@@ -346,9 +346,11 @@ class LocalColony:
             time.sleep(0.2)
 
     def wait_members(self, n: int, timeout: float = 30.0) -> None:
+        """Return once `n` daemons answered one status round (a round ends when every daemon
+        answered; its 3 s bound lets a busy one count, which 1 s did not on a loaded machine)."""
         t0 = time.monotonic()
         while time.monotonic() - t0 < timeout:
-            if len(self.status(timeout=1.0)) >= n:
+            if len(self.status(timeout=3.0)) >= n:
                 return
             time.sleep(0.2)
         raise TimeoutError(f"fewer than {n} daemons answered within {timeout:.0f} s")
