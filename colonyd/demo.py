@@ -17,6 +17,7 @@ from colonyd.outdir import output_dir
 from colonyd.plots import Panel, draw_colony, draw_errors, track_series
 from colonyd.simrun import AloneReplay, SimRun
 from colonyd.tracks import Track, ate, caught_up, write_tum
+from voxel import kernels
 
 #: The colony: (agent, seed of its sim source). The 3D LiDAR robot joins halfway and catches up.
 MEMBERS = (("depth-1", 1), ("lidar-1", 2), ("cctv-1", 3))
@@ -73,6 +74,9 @@ def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> in
     out = Path(out)
     output_dir(out, "--out")
     console = Console(file=sys.stdout)
+    # Compile the kernels here once (a fresh install has none cached): otherwise every daemon
+    # compiles them at once, answering no status meanwhile (docs/VOXEL.md).
+    kernels.warm()
     work = Path(tempfile.mkdtemp(prefix="colonyd-demo-"))
     run = SimRun(work / "colony", "demo", odometry_noise=ODOMETRY_NOISE)
     replays: dict[str, AloneReplay] = {}
@@ -83,7 +87,7 @@ def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> in
             )
         for agent, seed in MEMBERS:
             run.add(agent, duration, seed)
-        run.colony.wait_members(len(MEMBERS), timeout=30)
+        run.colony.wait_members(len(MEMBERS), timeout=60)  # (a loaded machine starts slowly)
         late_started = False
         reports: list[dict[str, Any]] = []
         with Live(console=console, refresh_per_second=2, transient=False) as live:
@@ -97,16 +101,16 @@ def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> in
                 if late and late.caught_up_at is None and caught_up(reports, LATE[0]):
                     late.caught_up_at = now
                 live.update(_table(reports, run.tracks, now))
-                if (
-                    late_started
-                    and run.colony.converged()[0]
-                    and all(t.aligned_at is not None for t in run.tracks.values())
-                ):
+                converged = late_started and run.colony.converged()[0]
+                if converged and late and late.caught_up_at is None:  # a round that missed it
+                    late.caught_up_at = now  # converged: it holds every layer as its origin
+                if converged and all(t.aligned_at is not None for t in run.tracks.values()):
                     break
-                if late_started and now > duration + 15 and run.colony.converged()[0]:
+                if converged and now > duration + 15:
                     break  # mapping is over; alignment did not complete: say so below
                 time.sleep(0.5)
-        fused, layers = run.maps(MEMBERS[0][0])
+            reports = run.poll_all()  # every member's last report (the summary reads them)
+        fused, layers = run.maps(MEMBERS[0][0], wait_s=30.0)  # a loaded daemon answers late
         seconds = run.now()
         run.close()  # the CPU is the alone replays' now
         for replay in replays.values():

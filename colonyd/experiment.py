@@ -20,6 +20,7 @@ from colonyd.outdir import output_dir
 from colonyd.plots import Panel, Series, draw_colony, draw_errors
 from colonyd.simrun import SimRun
 from colonyd.tracks import Track, pose_errors, write_tum
+from voxel import kernels
 
 #: The runs: name -> the agents of its colony. Every agent starts at an unknown pose (its own
 #: frame) with realistic wheel odometry; cctv-1 is fixed with a surveyed pose (the anchor).
@@ -203,6 +204,9 @@ def run_paper(
     timeout = timeout if timeout is not None else 6 * duration + 120
     lidar_range = LIDAR_RANGE if lidar_range is None else lidar_range
     console = Console(file=sys.stdout)
+    # Compile the kernels here once (a fresh install has none cached): otherwise every daemon
+    # compiles them at once, answering no status meanwhile (docs/VOXEL.md).
+    kernels.warm()
     work = Path(tempfile.mkdtemp(prefix="colonyd-paper-"))
     began = time.monotonic()
     pending = list(RUNS)
@@ -219,7 +223,7 @@ def run_paper(
                     over = run.now() > timeout
                     if run.mapping_done() or over:
                         run.unwatch()
-                        run.poll()  # the last poses
+                        run.poll_all()  # the last poses, and every member's last report
                         done[name] = _finish(run, out, complete=not over)
                         run.close()
                         del active[name]

@@ -94,11 +94,23 @@ class SimRun:
         d.start()
         self.tracks[agent] = Track(CARRIES.get(agent, "?"), self.now())
 
-    def poll(self, timeout: float = 1.0) -> list[dict[str, Any]]:
-        """One status round, recorded into the tracks."""
+    def poll(self, timeout: float = 3.0) -> list[dict[str, Any]]:
+        """One status round, recorded into the tracks (a round ends once every daemon answered:
+        the timeout only bounds a slow one, which a loaded machine has; with 1 s, rounds missed
+        a busy robot so often that a 5 s run recorded fewer than 3 of its poses)."""
         self.reports = self.colony.status(timeout=timeout)
         record(self.reports, self.tracks, self.now())
         return self.reports
+
+    def poll_all(self, within: float = 15.0) -> list[dict[str, Any]]:
+        """Status rounds until every member answered one (or `within` seconds passed): the last
+        round, recorded (a loaded daemon can miss a round's timeout; its report would be {})."""
+        deadline = time.monotonic() + within
+        while True:
+            reports = self.poll()
+            if {r["agent"] for r in reports} >= set(self.tracks) or time.monotonic() > deadline:
+                return reports
+            time.sleep(0.2)
 
     def watch(self, interval: float = 0.25) -> None:
         """Poll in a thread of its own every `interval` seconds until `unwatch` (runs watched

@@ -63,7 +63,7 @@ def pose_error(found: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(e[:3, 3])), abs(math.degrees(math.atan2(e[1, 0], e[0, 0])))
 
 
-def fused_maps(colony: LocalColony, timeout: float = 10.0) -> dict[str, Any]:
+def fused_maps(colony: LocalColony, timeout: float = 30.0) -> dict[str, Any]:
     """Every daemon's fused map (in its colony frame), by agent."""
     from colonyd.export import query_maps
 
@@ -115,13 +115,16 @@ def run_live(
             reports = colony.status()
             frames_seen = [r["colony_frame"] for r in reports]
             now = time.monotonic()
-            everyone = len(reports) == len(names) and len(frames_seen[0]["agents"]) > 1
+            answered = {r["agent"] for r in reports} == set(names)
+            everyone = answered and len(frames_seen[0]["agents"]) > 1
             for name in names:  # aligned: in the colony frame of every daemon
                 if everyone and all(name in f["agents"] for f in frames_seen):
                     aligned_at.setdefault(name, now)
             if not converged:
                 converged = colony.converged()[0] if not colony._still_mapping(None)[0] else False
-            if converged and all(n in aligned_at for n in positives) and _agree(frames_seen):
+            # (ends on a round every daemon answered: the figures below read that round)
+            settled = answered and all(n in aligned_at for n in positives)
+            if converged and settled and _agree(frames_seen):
                 break
             time.sleep(0.5)
         out["seconds"] = round(time.monotonic() - t0, 1)

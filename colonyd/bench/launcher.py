@@ -82,7 +82,7 @@ class LocalDaemon:
                 return True
         return False
 
-    def wait_listening(self, timeout: float = 15.0) -> None:
+    def wait_listening(self, timeout: float = 30.0) -> None:
         """Return once the daemon listens on its port; TimeoutError if it dies or never does."""
         deadline = time.monotonic() + timeout
         while not self.listening():
@@ -225,9 +225,10 @@ class LocalColony:
 
     # -- observation ----------------------------------------------------------------------
     def session(self) -> zenoh.Session:
-        """The observer's session, connected to every daemon started so far (reopened as
-        daemons are added, so the observer never depends on gossip to reach one)."""
-        endpoints = [d.endpoint for d in self.daemons.values() if d.alive()]
+        """The observer's session, connected to every daemon listening so far (reopened as
+        daemons come up, so the observer never depends on gossip to reach one: a session opened
+        while a daemon was still starting, as on a cold start, never reached it)."""
+        endpoints = [d.endpoint for d in self.daemons.values() if d.alive() and d.listening()]
         if self._session is not None and endpoints != self._session_endpoints:
             self._session.close()
             self._session = None
@@ -305,10 +306,29 @@ class LocalColony:
             time.sleep(0.3)
         raise TimeoutError(f"colony did not converge in {timeout:.0f} s: {reason}")
 
+    def reports(
+        self, agents: Iterable[str], *, within: float = 20.0, timeout: float = 2.0, **query: Any
+    ) -> dict[str, dict[str, Any]]:
+        """One round of status reports, by agent, in which every one of `agents` answered (asked
+        again until one does, for up to `within` s; TimeoutError naming the missing ones). A
+        daemon that misses a round's `timeout` on a loaded machine is otherwise simply absent;
+        `query` goes to `status`."""
+        want = list(agents)
+        deadline = time.monotonic() + within
+        while True:
+            got = {r["agent"]: r for r in self.status(timeout=timeout, **query)}
+            missing = [a for a in want if a not in got]
+            if not missing:
+                return got
+            if time.monotonic() > deadline:
+                msg = f"no status report from {missing} in one round within {within:.0f} s"
+                raise TimeoutError(msg)
+            time.sleep(0.2)
+
     def wait_status(
         self,
         until: Callable[[list[dict[str, Any]]], bool],
-        within: float = 15.0,
+        within: float = 30.0,
         agents: Iterable[str] = (),
         **query: Any,
     ) -> list[dict[str, Any]]:
@@ -325,10 +345,12 @@ class LocalColony:
                 return reports
             time.sleep(0.2)
 
-    def wait_members(self, n: int, timeout: float = 15.0) -> None:
+    def wait_members(self, n: int, timeout: float = 30.0) -> None:
+        """Return once `n` daemons answered one status round (a round ends when every daemon
+        answered; its 3 s bound lets a busy one count, which 1 s did not on a loaded machine)."""
         t0 = time.monotonic()
         while time.monotonic() - t0 < timeout:
-            if len(self.status(timeout=1.0)) >= n:
+            if len(self.status(timeout=3.0)) >= n:
                 return
             time.sleep(0.2)
         raise TimeoutError(f"fewer than {n} daemons answered within {timeout:.0f} s")

@@ -69,8 +69,6 @@ def test_a_more_confident_offer_replaces_a_pair_and_bad_offers_are_refused():
 
 
 def test_offers_reach_the_colony_frame_and_bad_ones_are_refused(make_colony):
-    import time
-
     from colonyd.frames import Sender
     from protocol import Heartbeat
     from protocol.identity import Signer
@@ -89,7 +87,9 @@ def test_offers_reach_the_colony_frame_and_bad_ones_are_refused(make_colony):
     t = _rigid(2.0, -1.0, 35.0)  # a's frame into p's
     good = offer_of(_edge("p", "a", t), p.header())
     bad_frames = offer_of(_edge("p", "a", t), p.header()).model_copy(update={"source_frame": "map"})
-    time.sleep(0.5)  # the heartbeat introduces p's key first
+    colony.wait_status(  # the heartbeat introduces p's key first
+        lambda rs: any(m["agent"] == "p" for r in rs for m in r["members"]), agents=("a",)
+    )
     for offer in (good, bad_frames):
         s.put(topic_key(ns, "p", "align"), p.encode(offer))
     s.put(topic_key(ns, "a", "align"), p.encode(offer_of(_edge("p", "a", t), p.header())))
@@ -100,7 +100,7 @@ def test_offers_reach_the_colony_frame_and_bad_ones_are_refused(make_colony):
             "keyexpr", 0
         )
 
-    (report,) = colony.wait_status(placed, 10, agents=("a",))
+    (report,) = colony.wait_status(placed, 30, agents=("a",))
     frame = report["colony_frame"]
     assert frame["root"] == "a"
     np.testing.assert_allclose(np.array(frame["agents"]["p"]), np.linalg.inv(t), atol=1e-5)

@@ -27,7 +27,7 @@ def test_a_daemon_that_estimates_drifts_less_than_one_that_does_not(make_colony)
     raw.env = {"COLONYD_LOCALISE": "false"}
     raw.start()
     colony.wait_converged(60)
-    reports = {r["agent"]: r for r in colony.status()}
+    reports = colony.reports(["est", "raw"])
     est, dead = reports["est"]["pose_error_m"], reports["raw"]["pose_error_m"]
     assert dead is not None and est is not None
     assert dead > 0.05 and est < 0.5 * dead, (est, dead)

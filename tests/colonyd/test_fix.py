@@ -38,7 +38,9 @@ def test_hostile_and_valid_fixes_reach_a_daemon_as_counted(make_colony):
             Heartbeat(**cam.header(), kind="cctv", frame_id=frame_of("cam"), identity=cam.identity)
         ),
     )
-    colony.wait_status(lambda rs: any(m["agent"] == "cam" for r in rs for m in r["members"]), 10)
+    colony.wait_status(
+        lambda rs: any(m["agent"] == "cam" for r in rs for m in r["members"]), agents=("b",)
+    )
     mallory = Sender("cam", 1, key=key, signer=Signer.generate(), first_seq=500)
     fix_key = topic_key(ns, "cam", "fix")
     s.put(fix_key, _fix(cam, "b", var=0.0))  # claims certainty
@@ -53,7 +55,7 @@ def test_hostile_and_valid_fixes_reach_a_daemon_as_counted(make_colony):
         counts = reports[0]["metrics"]["counts"]
         return counts.get("fix_received", 0) >= 1 and counts.get("fix_for_others", 0) >= 1
 
-    (b,) = colony.wait_status(settled, 10, agents=("b",))
+    (b,) = colony.wait_status(settled, 30, agents=("b",))
     counts, rejected = b["metrics"]["counts"], b["metrics"]["rejected"]
     assert counts.get("fix_received") == 1 and counts.get("fix_for_others") == 1, counts
     assert rejected.get("bad-fix") == 2, rejected

@@ -85,9 +85,9 @@ def test_forgetting_replicates_with_the_origins_decay(make_colony):
     a.start()
     colony.add("b")
     colony.wait_converged(40)
-    deadline = time.monotonic() + 15
+    deadline = time.monotonic() + 30
     while time.monotonic() < deadline:
-        report = {r["agent"]: r for r in colony.status(digest=True)}
+        report = colony.reports(["a", "b"], digest=True)
         la, lb = report["a"]["layers"]["a"], report["b"]["layers"].get("a", {})
         if la["digest"] == lb.get("digest") and lb.get("half_life") == 20.0:
             break
@@ -109,7 +109,7 @@ def test_replicas_equal_the_origin_in_every_channel_and_the_history(make_colony)
     c.env.update({"COLONYD_HISTORY_SYNC_S": "0.5", "COLONYD_PEER_HISTORY_ENTRIES": "10000"})
     c.start()
     colony.wait_converged(60)
-    deadline = time.monotonic() + 20
+    deadline = time.monotonic() + 40
     while time.monotonic() < deadline:
         report = {r["agent"]: r for r in colony.status(digest=True)}
         if set(report) == {"a", "b", "c"}:  # a round every daemon answered
@@ -140,13 +140,12 @@ def test_history_pushed_with_the_deltas_reaches_a_replica_that_never_pulls(make_
     t_start = time.time()
     a.start()
     colony.wait_converged(40)
-    deadline = time.monotonic() + 15
+    deadline = time.monotonic() + 30
     while True:
-        report = {r["agent"]: r for r in colony.status()}
-        if set(report) == {"a", "b"}:
-            held = (report["a"]["layers"]["a"]["history"], report["b"]["layers"]["a"]["history"])
-            if held[0] == held[1] or time.monotonic() > deadline:
-                break
+        report = colony.reports(["a", "b"])
+        held = (report["a"]["layers"]["a"]["history"], report["b"]["layers"]["a"]["history"])
+        if held[0] == held[1] or time.monotonic() > deadline:
+            break
         time.sleep(0.5)
     assert held[0] == held[1] > 100, held
     counts = {x: report[x]["metrics"]["counts"] for x in "ab"}
@@ -168,9 +167,12 @@ def test_history_pushed_with_the_deltas_reaches_a_replica_that_never_pulls(make_
     hello = Heartbeat(**evil.header(), kind="robot", frame_id="evil.odom", identity=evil.identity)
     s = colony.session()
     s.put(topic_key(colony.namespace, "evil", "heartbeat"), evil.encode(hello))  # pinned (TOFU)
-    time.sleep(1.0)
+    colony.wait_status(  # b has heard it (and pinned evil's key) before the history comes
+        lambda rs: any(m["agent"] == "evil" for r in rs if r["agent"] == "b" for m in r["members"]),
+        agents=("b",),
+    )
     s.put(topic_key(colony.namespace, "evil", "history"), evil.encode(forged))
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + 30
     while time.monotonic() < deadline:
         b_report = next((r for r in colony.status() if r["agent"] == "b"), None)
         if b_report and b_report["metrics"]["rejected"].get("bad-history", 0) >= 1:

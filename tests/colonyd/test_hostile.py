@@ -20,7 +20,7 @@ def test_forged_frames_neither_freeze_replication_nor_impersonate(make_colony):
     colony.wait_members(2)
     s = colony.session()
     ns = colony.namespace
-    a_epoch = next(r for r in colony.status() if r["agent"] == "a")["epoch"]
+    a_epoch = colony.reports(["a"])["a"]["epoch"]
     # A key holder forges a frame of a's origin, far ahead in a's sequence, on b's key: it
     # is refused (keyexpr) and must not move b's replay window for a.
     forger = Sender("a", a_epoch, key=colony_key(SECRET), first_seq=10**9)
@@ -39,11 +39,11 @@ def test_forged_frames_neither_freeze_replication_nor_impersonate(make_colony):
         got.set()
 
     sub = s.declare_subscriber(topic_key(ns, "a", "heartbeat"), keep)
-    assert got.wait(5.0), "no heartbeat of a heard"
+    assert got.wait(30.0), "no heartbeat of a heard"
     sub.undeclare()
     s.put(topic_key(ns, "a", "heartbeat"), heard[0])
     colony.wait_converged(30)
-    reports = {r["agent"]: r for r in colony.status()}
+    reports = colony.reports(["a", "b"])
     b_rejected = reports["b"]["metrics"]["rejected"]
     assert b_rejected.get("keyexpr", 0) >= 1, b_rejected
     assert b_rejected.get("replay", 0) <= 1, b_rejected  # the replayed heartbeat, no more
@@ -64,10 +64,10 @@ def test_a_second_daemon_with_a_taken_agent_id_refuses_to_start(make_colony):
     text = twin.log_path.read_text()
     assert "agent id 'a' is already in use in colony 'dup'" in text, text
     assert "expected every daemon to have its own agent_id" in text
-    reports = {r["agent"]: r for r in colony.status()}
+    reports = colony.reports(["a", "b"])
     assert set(reports) == {"a", "b"}  # the first 'a' carries on, unharmed
     assert reports["b"]["layers"]["a"]["epoch"] == reports["a"]["epoch"]
-    colony.wait_converged(10, ["a", "b"])
+    colony.wait_converged(30, ["a", "b"])
 
 
 def test_a_young_daemon_gives_way_to_a_live_twin_it_hears_later(make_colony):
@@ -81,7 +81,7 @@ def test_a_young_daemon_gives_way_to_a_live_twin_it_hears_later(make_colony):
         topic_key(colony.namespace, "a", "heartbeat"),
         twin.encode(Heartbeat(**twin.header(), kind="robot", frame_id="map")),
     )
-    assert a.proc is not None and a.proc.wait(20) == 3
+    assert a.proc is not None and a.proc.wait(60) == 3
     assert "heard a heartbeat of epoch 12345" in a.log_path.read_text()
 
 
@@ -96,7 +96,7 @@ def test_a_key_holder_cannot_forge_another_agents_layer(make_colony):
     a_public = Signer.from_bytes((a.state_dir / "identity.key").read_bytes()).public
     pins = json.loads((colony.daemons["b"].state_dir / "known_agents.json").read_text())
     assert pins["a"] == a_public.hex()  # b pinned a's key on first use
-    before = {r["agent"]: r for r in colony.status(digest=True)}
+    before = colony.reports(["a", "b"], digest=True)
     layer = before["b"]["layers"]["a"]
     s = colony.session()
     mallory = Sender(
@@ -118,7 +118,7 @@ def test_a_key_holder_cannot_forge_another_agents_layer(make_colony):
         b = next(r for r in reports if r["agent"] == "b")
         return b["metrics"]["rejected"].get("identity", 0) >= 2
 
-    reports = colony.wait_status(refused, 10, agents=("b",), digest=True)
+    reports = colony.wait_status(refused, 30, agents=("b",), digest=True)
     b = next(r for r in reports if r["agent"] == "b")
     assert b["metrics"]["rejected"].get("identity", 0) >= 2, b["metrics"]["rejected"]
     assert b["layers"]["a"]["digest"] == layer["digest"]  # nothing of mallory's applied
@@ -126,5 +126,5 @@ def test_a_key_holder_cannot_forge_another_agents_layer(make_colony):
     a.stop()
     a.start()
     colony.wait_converged(30)
-    b2 = next(r for r in colony.status() if r["agent"] == "b")
+    b2 = colony.reports(["b"])["b"]
     assert b2["metrics"]["rejected"].get("identity", 0) == b["metrics"]["rejected"]["identity"]

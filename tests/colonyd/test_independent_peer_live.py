@@ -54,7 +54,7 @@ class Peer:
         for reply in self.session.get(
             key,
             payload=self.frame(mtype, body),
-            timeout=5.0,
+            timeout=30.0,  # the query ends once 'a' answered, however long a loaded one takes
             consolidation=zenoh.ConsolidationMode.NONE,
         ):
             assert reply.ok is not None
@@ -73,7 +73,7 @@ class Peer:
 
         sub = self.session.declare_subscriber(f"colony/{self.ns}/{agent}/heartbeat", keep)
         try:
-            assert ready.wait(10.0), f"no heartbeat of {agent}"
+            assert ready.wait(30.0), f"no heartbeat of {agent}"
         finally:
             sub.undeclare()
         mtype, header, body = peer_decode_frame(got[0], self.key)  # verified with its identity

@@ -31,10 +31,17 @@ def test_a_lidar_robot_matches_its_scans_against_an_aligned_peers_map(make_colon
     colony.wait_members(2, timeout=20)
 
     def fused(reports: list[dict]) -> bool:
-        lidar = next((r for r in reports if r["agent"] == "lidar-1"), None)
-        return lidar is not None and _localisation(lidar).get("colony_accepted", 0) >= 5
+        lidar = next(r for r in reports if r["agent"] == "lidar-1")
+        depth = next(r for r in reports if r["agent"] == "depth-1")
+        seen = [m for m in depth["members"] if m["agent"] == "lidar-1"]
+        return (
+            _localisation(lidar).get("colony_accepted", 0) >= 5
+            and bool(seen)
+            and seen[0]["pose_std_m"] is not None
+        )
 
-    reports = colony.wait_status(fused, 40, agents=("lidar-1",))
+    # (the sims run 40 s from the epoch: the whole run, however late the daemons started)
+    reports = colony.wait_status(fused, 60, agents=("lidar-1", "depth-1"))
     lidar = next(r for r in reports if r["agent"] == "lidar-1")
     counts = _localisation(lidar)
     assert counts["colony_accepted"] >= 5, counts

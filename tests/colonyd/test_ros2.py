@@ -19,6 +19,7 @@ import zenoh
 import zenoh.ext
 
 from colonyd.bench.integrate import iou
+from colonyd.bench.rosrobot import wait_for_subscriber
 from colonyd.mapping import map_source
 from plugins.rosbag import cloud_points
 from tests.shared import SHARED_DATA
@@ -109,16 +110,19 @@ def late_subscriber(endpoint: str) -> dict[str, Any]:
         zenoh_config(mode="peer", listen=["tcp/127.0.0.1:0"], connect=[endpoint])
     )
     try:
-        time.sleep(0.5)
         tokens: dict[str, tuple[str, str]] = {}
-        nodes = []
-        for reply in session.liveliness().get("@ros2_lv/0/**", timeout=2.0):
-            key = str(reply.ok.key_expr) if reply.ok is not None else ""
-            if "/NN/" in key:
-                nodes.append(key.split("/")[-1])
-            elif "/MP/" in key:
-                e = rmw.parse_endpoint(key)
-                tokens[e.topic] = (e.ros_type, e.qos)
+        nodes: list[str] = []
+        deadline = time.monotonic() + 20  # the link and the tokens come up (slowly when loaded)
+        while not (nodes and all(t in tokens for t in types)) and time.monotonic() < deadline:
+            tokens, nodes = {}, []
+            for reply in session.liveliness().get("@ros2_lv/0/**", timeout=2.0):
+                key = str(reply.ok.key_expr) if reply.ok is not None else ""
+                if "/NN/" in key:
+                    nodes.append(key.split("/")[-1])
+                elif "/MP/" in key:
+                    e = rmw.parse_endpoint(key)
+                    tokens[e.topic] = (e.ros_type, e.qos)
+            time.sleep(0.1)
         got["tokens"], got["nodes"] = tokens, sorted(nodes)
         done = threading.Event()
         subs = []
@@ -140,10 +144,25 @@ def late_subscriber(endpoint: str) -> dict[str, Any]:
                     history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
                 )
             )
-        done.wait(10.0)
+        done.wait(30.0)
     finally:
         session.close()
     return got
+
+
+def plane_iou(cells: np.ndarray, occupied: np.ndarray) -> float:
+    """IoU of occupied grid cells (N, 2 keys) and the xy of occupied voxel keys."""
+    plane = np.unique(occupied[:, :2], axis=0)
+    return iou(np.column_stack([cells, np.zeros(len(cells), np.int64)]),
+               np.column_stack([plane, np.zeros(len(plane), np.int64)]))  # fmt: skip
+
+
+def grid_cells(grid: Any, resolution: float) -> np.ndarray:
+    """Keys (N, 2) of the occupied cells of an OccupancyGrid."""
+    cells = np.asarray(grid.data, np.int8).reshape(grid.info.height, grid.info.width)
+    iy, ix = np.nonzero(cells == 100)
+    corner = np.array([grid.info.origin.position.x, grid.info.origin.position.y])
+    return np.round(np.column_stack([ix, iy]) + corner / resolution).astype(np.int64)
 
 
 @pytest.mark.skipif(not CARMEN.is_file(), reason=f"CARMEN log not found at {CARMEN}")
@@ -154,15 +173,29 @@ def test_carmen_log_played_as_laserscan_odometry_tf_maps_like_colonyd_map(
     offline = map_source(f"replay:{CARMEN},stop={n}", 0.1, tmp_path / "offline", progress=False)
     assert offline.frames == n
     ref = read_bt(tmp_path / "offline" / "map.bt")
+    occupied = ref.keys[ref.occupied]
     spec = f"ros2:scan=/scan,odom=/odom,frame=map,max_range=80,frames={n},queue=1000"
     received: dict[str, Any] = {}
+
+    def join_late(endpoint: str) -> None:
+        """A late subscriber's view, once the daemon's output has its last map (a loaded one
+        publishes it a while after the last scan: ask again for up to 30 s)."""
+        deadline = time.monotonic() + 30
+        while True:
+            got = late_subscriber(endpoint)
+            grid = got.get("/colony/map")
+            done = grid is not None and plane_iou(grid_cells(grid, 0.1), occupied) >= 0.99
+            if done or time.monotonic() > deadline:
+                received.update(got)
+                return
+            time.sleep(0.5)
+
     live, source = map_live(
         make_colony, tmp_path, spec, "carmen", CARMEN, n, 60.0, 0.1,
         env={"COLONYD_ROS2_PUBLISH": "true", "COLONYD_ROS2_PERIOD_S": "0.5"},
-        meanwhile=lambda endpoint: received.update(late_subscriber(endpoint)),
+        meanwhile=join_late,
     )  # fmt: skip
     assert source["delivered"] == n and source["skipped"] == 0, source
-    occupied = ref.keys[ref.occupied]
     score = iou(live, occupied)
     print(f"IoU {score:.4f}")  # shown with pytest -s
     assert score >= 0.99, f"occupied IoU {score:.4f} ({len(live)} vs {len(occupied)})"
@@ -172,13 +205,7 @@ def test_carmen_log_played_as_laserscan_odometry_tf_maps_like_colonyd_map(
     assert received["nodes"] == ["colonyd"]
     grid = received["/colony/map"]
     assert grid.header.frame_id == "colony" and grid.info.resolution == pytest.approx(0.1)
-    cells = np.asarray(grid.data, np.int8).reshape(grid.info.height, grid.info.width)
-    iy, ix = np.nonzero(cells == 100)
-    corner = np.array([grid.info.origin.position.x, grid.info.origin.position.y])
-    cell_keys = np.round(np.column_stack([ix, iy]) + corner / 0.1).astype(np.int64)
-    plane = np.unique(occupied[:, :2], axis=0)
-    score = iou(np.column_stack([cell_keys, np.zeros(len(cell_keys), np.int64)]),
-                np.column_stack([plane, np.zeros(len(plane), np.int64)]))  # fmt: skip
+    score = plane_iou(grid_cells(grid, 0.1), occupied)
     print(f"IoU {score:.4f}")  # shown with pytest -s
     assert score >= 0.99, f"OccupancyGrid occupied cells IoU {score:.4f}"
     xyz, _ = cloud_points(received["/colony/cloud"])
@@ -249,9 +276,10 @@ def test_hostile_samples_are_counted_and_logged_and_the_source_goes_on(
             else:
                 session.put(image.key, payload, attachment=attachment)
 
-        import time
-
-        time.sleep(1.0)  # declarations and routes up
+        # The daemon's subscribers are declared before its subscription tokens: once a token is
+        # seen, every topic is subscribed (a fixed sleep lost the first frame when loaded).
+        assert wait_for_subscriber(session, 0, "/cam/depth", 30.0), "no subscriber of /cam/depth"
+        time.sleep(0.3)  # our publishers' declarations reach the daemon (as rosrobot.play)
         good(100.0)
         raw = bytes(rmw.typestore().serialize_cdr(rosmsg.depth_image(101.0, "cam", depth), image_t))
         gid = b"\x01" * 16
@@ -276,7 +304,9 @@ def test_hostile_samples_are_counted_and_logged_and_the_source_goes_on(
         )  # 100 MB, delivered
         gap = rosmsg.depth_image(500.0, "cam", depth)  # no transform near t = 500
         session.put(image.key, bytes(rmw.typestore().serialize_cdr(gap, image_t)), attachment=ok)
-        time.sleep(1.0)
+        colony.wait_status(  # the eight above handled (the 100 MB one takes a while when loaded)
+            lambda rs: bool(rs) and sum(rs[0]["sources"][0]["reasons"].values()) >= 8, within=30
+        )
         legacy = zenoh.ext.z_serialize(
             ("sequence_number", zenoh.ext.Int64(9), "source_timestamp", zenoh.ext.Int64(0),
              "source_gid", gid)
@@ -284,7 +314,7 @@ def test_hostile_samples_are_counted_and_logged_and_the_source_goes_on(
         good(102.0, attachment=legacy)
         good(103.0)
         reports = colony.wait_status(
-            lambda rs: bool(rs) and rs[0]["sources"][0]["delivered"] >= 3, within=20
+            lambda rs: bool(rs) and rs[0]["sources"][0]["delivered"] >= 3, within=30
         )
     finally:
         node.close()
@@ -359,14 +389,23 @@ def test_a_third_party_rmw_zenoh_client_feeds_the_daemon_and_reads_its_map(
     assert reports[0]["sources"][1]["delivered"] == n, reports[0]["sources"]
     assert reports[0]["sources"][0]["delivered"] == 0 and not reports[0]["sources_done"]
     time.sleep(1.5)  # the last map goes out within ros2_period_s
-    got = client("subscribe")
+
+    def sdk_cells(grid: dict[str, Any]) -> np.ndarray:
+        return np.round(np.array(grid["occupied"]) + np.array(grid["corner"]) / 0.1).astype(
+            np.int64
+        )
+
+    deadline = time.monotonic() + 30  # a loaded daemon publishes its last map later: ask again
+    while True:
+        got = client("subscribe")
+        done = "grid" in got and plane_iou(sdk_cells(got["grid"]), occupied) >= 0.99
+        if done or time.monotonic() > deadline:
+            break
+        time.sleep(0.5)
     assert "grid" in got and "cloud" in got, got
     grid = got["grid"]
     assert grid["frame"] == "colony" and grid["resolution"] == pytest.approx(0.1)
-    cells = np.round(np.array(grid["occupied"]) + np.array(grid["corner"]) / 0.1).astype(np.int64)
-    plane = np.unique(occupied[:, :2], axis=0)
-    score = iou(np.column_stack([cells, np.zeros(len(cells), np.int64)]),
-                np.column_stack([plane, np.zeros(len(plane), np.int64)]))  # fmt: skip
+    score = plane_iou(sdk_cells(grid), occupied)
     print(f"IoU {score:.4f}")  # shown with pytest -s
     assert score >= 0.99, f"OccupancyGrid from the SDK: occupied cells IoU {score:.4f}"
     assert got["cloud"]["fields"] == ["x", "y", "z", "rgb"]

@@ -82,14 +82,20 @@ def test_forget_agent_removes_a_layer_from_the_colony_and_repair_respects_it(mak
     answers = json.loads(run.stdout)
     assert "c" in {x["agent"] for x in answers if x.get("forgotten") == "a"}
     # a daemon the request did not reach learns the tombstone from heartbeats
-    deadline = time.monotonic() + 20
+    deadline = time.monotonic() + 30
     while time.monotonic() < deadline:
-        report = {r["agent"]: r for r in colony.status()}
+        report = colony.reports(["b", "c"])
         if all("a" not in report[x]["layers"] for x in ("b", "c")):
             break
         time.sleep(0.5)
     time.sleep(3.0)  # a keeps mapping and publishing; heartbeats keep listing its layer
-    report = {r["agent"]: r for r in colony.status()}
+
+    def refused(reports: list[dict]) -> bool:  # a's deltas since came and were refused
+        return all(
+            r["metrics"]["rejected"].get("forgotten", 0) > 0 for r in reports if r["agent"] != "a"
+        )
+
+    report = {r["agent"]: r for r in colony.wait_status(refused, agents=("a", "b", "c"))}
     assert report["a"]["layers"]["a"]["seq"] > 0
     for x in ("b", "c"):
         assert "a" not in report[x]["layers"], x

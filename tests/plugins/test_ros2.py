@@ -13,6 +13,7 @@ import pytest
 
 from colonyd import rosmsg
 from colonyd.bench.launcher import free_port
+from colonyd.bench.rosrobot import wait_for_subscriber
 from colonyd.rosgraph import RosNode
 from colonyd.runtime import open_session, zenoh_config
 from plugins.checks import pose_matrix
@@ -52,14 +53,24 @@ def sessions() -> Iterator[tuple[Any, Any]]:
         robot.close()
 
 
-def collect(spec: str, session: Any, frames: int, publish: Any) -> list[Observation]:
-    """Observations of `spec` read through `session` while `publish()` runs in a thread."""
+def collect(spec: str, sessions: tuple[Any, Any], frames: int, publish: Any) -> list[Observation]:
+    """Observations of `spec` read through the mapping session while `publish()` runs in a
+    thread, once the robot session sees the source's subscription (a fixed 1 s could lose the
+    first frames to a source still starting on a loaded machine)."""
+    robot, mapper = sessions
+    options = dict(kv.split("=", 1) for kv in spec.split(":", 1)[1].split(","))
+    sensor = next(options[k] for k in ("scan", "cloud", "depth") if k in options)
     stop = threading.Event()
-    source = open_source(spec, session=lambda: session, stop=stop)
-    timer = threading.Timer(20.0, stop.set)
+    source = open_source(spec, session=lambda: mapper, stop=stop)
+    timer = threading.Timer(30.0, stop.set)
     timer.start()
     out: list[Observation] = []
-    thread = threading.Thread(target=lambda: (time.sleep(1.0), publish()))
+
+    def when_subscribed() -> None:
+        if wait_for_subscriber(robot, 0, sensor, 25.0):  # (else: too few frames, said below)
+            publish()
+
+    thread = threading.Thread(target=when_subscribed)
     thread.start()
     try:
         for obs in source:
@@ -93,7 +104,7 @@ def test_point_clouds_are_placed_by_tf_at_their_stamps(sessions: tuple[Any, Any]
             cloud.publish(rosmsg.point_cloud(10.0 + i, "lidar", xyz, None))
 
     try:
-        got = collect("ros2:cloud=/points,odom=/odom,max_range=50", mapper, 3, publish)
+        got = collect("ros2:cloud=/points,odom=/odom,max_range=50", (robot, mapper), 3, publish)
     finally:
         node.close()
     assert len(got) == 3
@@ -122,7 +133,9 @@ def test_float_depth_and_humble_keys_without_type_hash(sessions: tuple[Any, Any]
             image.publish(rosmsg.depth_image(5.0 + i, "cam", depth))
 
     try:
-        got = collect("ros2:depth=/cam/depth,camera_info=/cam/info,frame=map", mapper, 2, publish)
+        got = collect(
+            "ros2:depth=/cam/depth,camera_info=/cam/info,frame=map", (robot, mapper), 2, publish
+        )
     finally:
         node.close()
     assert len(got) == 2
