@@ -15,9 +15,10 @@ from voxel.localisation.scan_match import surface_normals, thin
 if TYPE_CHECKING:
     from scipy.spatial import cKDTree
 
-#: What an alignment between two agents' frames adds to a pose measured against the other's map
-#: (x, y, yaw variances): live alignment is within ~3 cm and 0.2 degrees in the sim office
-#: (docs/BENCHMARKS.md), so 3 cm and 0.3 degrees standard deviation.
+#: The alignment error a colony map assumes when it is given none (x, y, yaw variances about
+#: the agent's origin): live alignment is within ~3 cm and 0.2 degrees in the sim office
+#: (docs/BENCHMARKS.md), so 3 cm and 0.3 degrees standard deviation. The daemon gives each cut
+#: its alignments' own error (`frame_error`).
 ALIGNMENT_VARIANCE = np.diag([0.03**2, 0.03**2, np.radians(0.3) ** 2])
 
 
@@ -27,7 +28,8 @@ class ColonyMap:
 
     `points` are in the agent's own (odometry) frame; for a 2D scanner they are the peers'
     surfaces in a band around the scan height, put onto that height. `covariance` (x, y, yaw) is
-    added to every pose measured against this map: the alignment's own uncertainty.
+    the alignment's error, a small motion of the whole map about the agent's origin
+    (`frame_error`): one error shared by every pose measured against this map.
     """
 
     points: np.ndarray

@@ -58,9 +58,11 @@ class ScanLocaliser:
     Each step: predict with the odometry increment (or widen without odometry), match the scan
     against the agent's own recent map from the predicted pose, fuse the matched pose (gated by
     its Mahalanobis distance); when a `ColonyMap` is given (aligned peers' maps in this agent's
-    frame), match the scan against it too and fuse that as an absolute pose measurement (its
-    covariance plus the alignment's, gated the same way: a bad alignment is refused, not
-    followed); then add the scan to the local map when it is a keyframe.
+    frame), match the scan against it too and fuse that as a pose measured against a map whose
+    error (the alignment's, `ColonyMap.covariance`) the filter estimates with the pose
+    (`PlanarEkf.update_offset`: the alignment's error is counted once, not once per scan; gated
+    the same way: a bad alignment is refused, not followed); then add the scan to the local
+    map when it is a keyframe.
     Reads only odometry, the scan and the peers' maps: never a reference pose.
     """
 
@@ -91,6 +93,7 @@ class ScanLocaliser:
         self.colony_suspended = 0
         self._colony_outcomes: deque[bool] = deque(maxlen=self.params.colony_window)
         self._distrusted: bytes | None = None  # the alignment of a colony map that disagreed
+        self._offset_of: bytes | None = None  # the alignment whose error the filter estimates
         self.fix_accepted = self.fix_rejected = self.fix_stale = 0
         self.history: deque[tuple[float, np.ndarray]] = deque(maxlen=self.params.history)
 
@@ -206,7 +209,10 @@ class ScanLocaliser:
         if not result.ok:
             self.colony_failed += 1
             return result, False
-        fused = self.ekf.update(se2.from_matrix(result.pose), result.covariance + colony.covariance)
+        if self.ekf.offset is None or self._offset_of != colony.alignment:
+            self.ekf.reset_offset(colony.covariance)  # new alignments: a new error to estimate
+            self._offset_of = colony.alignment
+        fused = self.ekf.update_offset(se2.from_matrix(result.pose), result.covariance)
         if fused:
             self.colony_accepted += 1
         else:

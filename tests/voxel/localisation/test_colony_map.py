@@ -171,3 +171,29 @@ def test_a_peers_free_space_orients_its_map_so_a_walls_far_face_is_not_matched()
     # A cut whose surfaces mostly have no free side keeps unsigned normals.
     blind = colony_map(seen, free=lambda p: np.zeros(len(p), bool), **cut)
     assert not blind.oriented and len(blind) == len(unsigned)
+
+
+def test_a_poorly_aligned_colony_map_weighs_what_its_alignment_is_worth() -> None:
+    # The peer's map is 8 cm off (its alignment, honestly, is known to 10 cm); the robot is
+    # right and knows it to 2 cm, and keeps no map of its own (nothing else holds it). Scan
+    # after scan matches the map 8 cm off: the alignment's error is one error, counted once.
+    # (Fused as 30 independent measurements, it dragged the robot 7.5 cm.)
+    truth = np.array([0.4, -0.5, 0.3])
+    off = colony_map(
+        _wall_points(ROOM) + np.array([0.08, 0.0, 0.0]),
+        planar=True,
+        height=0.0,
+        centre=np.zeros(2),
+        radius=10.0,
+        covariance=np.diag([0.1**2, 0.1**2, math.radians(1.0) ** 2]),
+        alignment=b"a",
+    )
+    loc = _drifted(truth, 0.02)
+    loc.local.wants = lambda pose: False  # type: ignore[method-assign]
+    scan = _segments_scan(truth, ROOM)
+    for _ in range(30):
+        loc.step(scan, np.zeros(3), colony=off)
+    assert loc.colony_accepted == 30  # every match fused, none refused
+    np.testing.assert_allclose(loc.ekf.pose[:2], truth[:2], atol=0.01)
+    assert loc.ekf.offset is not None
+    assert loc.ekf.offset.value[0] == pytest.approx(0.08, abs=0.02)  # it learnt the map's error
