@@ -30,6 +30,7 @@ from colonyd.export import encode_map, export_time
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.identity import get_trust, identity_path, load_signer
+from colonyd.landmarks import colony_landmarks
 from colonyd.layers import (
     FusedMap,
     Layers,
@@ -529,6 +530,8 @@ class Daemon:
             )
             if self._fixes and isinstance(estimator, ScanEstimator):
                 self._apply_fixes(estimator)
+            if obs.objects and isinstance(estimator, ScanEstimator):
+                self._apply_landmarks(estimator, obs)
             self.pose_covariance = covariance = estimator.covariance()
         seen = [d for d in obs.objects if d.label.startswith(AGENT_LABEL)]
         if seen:
@@ -603,6 +606,18 @@ class Daemon:
                 "fix_stale" if result is None else "fix_fused" if result else "fix_refused"
             )
         self._fixes.extend(later)
+
+    def _apply_landmarks(self, estimator: ScanEstimator, obs: Observation) -> None:
+        """Fuse the identified objects of `obs` that aligned peers know (paper Alg. 3)."""
+        ids = {d.object_id for d in obs.objects}
+        lists = {}
+        for layer in self.layers.all():
+            objects = [o for o in self.gossip.peer_objects.get(layer.origin) if o.object_id in ids]
+            if objects:
+                lists[layer.origin] = objects
+        if lists:
+            known = colony_landmarks(self.colony_frame(), self.config.agent_id, lists)
+            estimator.landmarks(obs, known)
 
     def _sighted(self, estimator: ScanEstimator, msg: PoseFix) -> None:
         """A fix from an agent not aligned with us: keep it with our estimate at its stamp; once
