@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -15,13 +16,17 @@ from colonyd.frames import Header, frame_of
 from colonyd.layers import Layer
 from protocol import AlignOffer
 from protocol import ObjectCentroid as WireObject
+from voxel.localisation import frame_error
+from voxel.localisation.frame_error import PLANAR
 from voxel.objects import ObjectCentroid
 from voxel.registration import Alignment, AlignParams, Landmarks, MapCloud, align_clouds
 
 
 @dataclass(frozen=True)
 class Edge:
-    """An accepted alignment: `transform` takes points of `target`'s frame into `source`'s."""
+    """An accepted alignment: `transform` takes points of `target`'s frame into `source`'s;
+    `covariance` (x y z roll pitch yaw) is its error as a small motion applied after it, in the
+    source's frame, about the source's origin (`voxel.localisation.frame_error`)."""
 
     source: str
     target: str
@@ -33,14 +38,17 @@ class Edge:
     time: float
 
     def inverse(self) -> Edge:
+        back = np.linalg.inv(self.transform)
+        cov = self.covariance.copy()
+        cov[np.ix_(PLANAR, PLANAR)] = frame_error.moved(frame_error.planar(cov), back)
         return Edge(
             self.target,
             self.source,
-            np.linalg.inv(self.transform),
+            back,
             self.confidence,
             self.inliers,
             self.rmse,
-            self.covariance,
+            cov,
             self.time,
         )
 
@@ -52,6 +60,13 @@ class ColonyFrame:
 
     root: str
     transforms: dict[str, np.ndarray]  # agent -> (4, 4) taking its frame into the colony frame
+    #: agent -> error (x, y, yaw variances, 3x3) of its transform, as a small motion in the
+    #: colony frame about its origin: the errors of the alignments on its path to the root
+    covariances: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def covariance(self, agent: str) -> np.ndarray:
+        """The error of `agent`'s transform (zeros for the root, or without one)."""
+        return self.covariances.get(agent, np.zeros((3, 3)))
 
 
 def layer_cloud(layer: Layer) -> MapCloud:
@@ -86,10 +101,24 @@ def align_layers(
     return aligner.run(align_clouds, a, b, params, objects_a=objects_a, objects_b=objects_b)
 
 
-def edge_of(own: str, peer: str, result: Alignment) -> Edge:
+def edge_of(own: str, peer: str, result: Alignment, scatter: np.ndarray | None = None) -> Edge:
+    """The edge of an accepted registration, with an honest covariance
+    (`frame_error.from_residuals`: the fit's shape, its residual's size, plus `scatter`, how far
+    the previous estimate of this alignment was from this one)."""
+    names = ["x", "y", "z", "roll", "pitch", "yaw"]
     cov = np.zeros((6, 6))
-    n = min(6, result.covariance.shape[0]) if result.covariance.ndim == 2 else 0
-    cov[:n, :n] = result.covariance[:n, :n]
+    if result.covariance.ndim == 2:
+        for i, a in enumerate(result.covariance_params):
+            for j, b in enumerate(result.covariance_params):
+                cov[names.index(a), names.index(b)] = result.covariance[i, j]
+    if "yaw" in result.covariance_params and math.isfinite(result.rmse_m):
+        centre = result.covariance_centre
+        cov[np.ix_(PLANAR, PLANAR)] = frame_error.from_residuals(
+            frame_error.planar(cov),
+            result.rmse_m,
+            np.zeros(2) if centre is None else centre,
+            scatter,
+        )
     return Edge(
         own,
         peer,
@@ -198,14 +227,17 @@ class Alignments:
                 a = parent[a]
             return a
 
-        tree: dict[str, list[tuple[str, np.ndarray]]] = {a: [] for a in nodes}
+        # a -> (b, transform taking b's frame into a's, its error in a's frame)
+        tree: dict[str, list[tuple[str, np.ndarray, np.ndarray]]] = {a: [] for a in nodes}
         for e in edges:  # Kruskal, most confident first
             ra, rb = find(e.source), find(e.target)
             if ra == rb:
                 continue
             parent[ra] = rb
-            tree[e.source].append((e.target, e.transform))
-            tree[e.target].append((e.source, np.linalg.inv(e.transform)))
+            back = e.inverse()
+            cov, cov_back = (frame_error.planar(x.covariance) for x in (e, back))
+            tree[e.source].append((e.target, e.transform, frame_error.floored(cov)))
+            tree[e.target].append((e.source, back.transform, frame_error.floored(cov_back)))
         groups: dict[str, list[str]] = {}
         for a in nodes:
             groups.setdefault(find(a), []).append(a)
@@ -215,11 +247,13 @@ class Alignments:
             largest = min(groups.values(), key=lambda g: (-len(g), min(g)))
             root = min(largest)
         transforms = {root: np.eye(4)}
+        covariances = {root: np.zeros((3, 3))}
         todo = [root]
         while todo:  # each edge (a -> b, T) takes b's frame into a's
             a = todo.pop()
-            for b, t in tree.get(a, []):
+            for b, t, cov in tree.get(a, []):
                 if b not in transforms:
                     transforms[b] = transforms[a] @ t
+                    covariances[b] = covariances[a] + frame_error.moved(cov, transforms[a])
                     todo.append(b)
-        return ColonyFrame(root, transforms)
+        return ColonyFrame(root, transforms, covariances)

@@ -11,6 +11,7 @@ import numpy as np
 from colonyd.alignment import ColonyFrame
 from colonyd.layers import Layer, Layers
 from voxel import keys as vk
+from voxel.localisation import frame_error
 from voxel.localisation.colony_map import ColonyMap, colony_map
 from voxel.occupancy import FREE_STATE, OCCUPIED
 
@@ -45,6 +46,20 @@ def aligned_peers(layers: Layers, frame: ColonyFrame, own: str) -> list[tuple[La
         if layer.origin != own and t is not None and layer.seq > 0:
             out.append((layer, to_own @ t))
     return out
+
+
+def alignment_error(
+    frame: ColonyFrame, own: str, peers: list[tuple[Layer, np.ndarray]]
+) -> np.ndarray:
+    """The error (x, y, yaw covariance about our origin, in our frame) of the transforms taking
+    the peers' frames into ours: the largest of them (a cut merges every peer's surfaces)."""
+    back = np.linalg.inv(frame.transforms[own])
+    errors = [
+        frame_error.moved(frame.covariance(own) + frame.covariance(layer.origin), back)
+        for layer, _ in peers
+    ]
+    worst: np.ndarray = max(errors, key=lambda c: float(np.trace(c[:2, :2])))
+    return frame_error.floored(worst)
 
 
 def key_of(peers: list[tuple[Layer, np.ndarray]]) -> Key:
@@ -124,6 +139,7 @@ class ColonyMaps:
             centre=xy,
             radius=self.radius,
             sources=tuple(k[0] for k in key),
+            covariance=alignment_error(frame, self.own, peers),
             alignment=b"".join(k[0].encode() + k[3] for k in key),
             free=partial(free_in_peers, peers),
             step=max(layer.resolution for layer, _ in peers),

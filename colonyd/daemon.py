@@ -30,6 +30,7 @@ from colonyd.export import encode_map, export_time
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.identity import get_trust, identity_path, load_signer
+from colonyd.landmarks import colony_landmarks
 from colonyd.layers import (
     FusedMap,
     Layers,
@@ -58,8 +59,7 @@ from plugins.source import open_source
 from plugins.stream import Source
 from protocol import PoseFix
 from voxel import kernels
-from voxel.localisation import se2
-from voxel.localisation.colony_map import ALIGNMENT_VARIANCE
+from voxel.localisation import frame_error, se2
 from voxel.localisation.sightings import frame_from_sightings
 
 log = logging.getLogger(__name__)
@@ -547,6 +547,8 @@ class Daemon:
             )
             if self._fixes and isinstance(estimator, ScanEstimator):
                 self._apply_fixes(estimator)
+            if obs.objects and isinstance(estimator, ScanEstimator):
+                self._apply_landmarks(estimator, obs)
             self.pose_covariance = covariance = estimator.covariance()
         seen = [d for d in obs.objects if d.label.startswith(AGENT_LABEL)]
         if seen:
@@ -611,12 +613,28 @@ class Daemon:
             cov = np.asarray(msg.covariance, float).reshape(6, 6)[np.ix_([0, 1, 5], [0, 1, 5])]
             rot = np.eye(3)
             rot[:2, :2] = to_own[:2, :2]
-            cov = rot @ cov @ rot.T + ALIGNMENT_VARIANCE
+            alignment = frame_error.moved(
+                frame.covariance(self.config.agent_id) + frame.covariance(msg.origin),
+                np.linalg.inv(mine),
+            )
+            cov = rot @ cov @ rot.T + frame_error.at(alignment, body[:2, 3])
             result = estimator.fix(se2.from_matrix(body), cov, msg.stamp)
             self.metrics.add(
                 "fix_stale" if result is None else "fix_fused" if result else "fix_refused"
             )
         self._fixes.extend(later)
+
+    def _apply_landmarks(self, estimator: ScanEstimator, obs: Observation) -> None:
+        """Fuse the identified objects of `obs` that aligned peers know (paper Alg. 3)."""
+        ids = {d.object_id for d in obs.objects}
+        lists = {}
+        for layer in self.layers.all():
+            objects = [o for o in self.gossip.peer_objects.get(layer.origin) if o.object_id in ids]
+            if objects:
+                lists[layer.origin] = objects
+        if lists:
+            known = colony_landmarks(self.colony_frame(), self.config.agent_id, lists)
+            estimator.landmarks(obs, known)
 
     def _sighted(self, estimator: ScanEstimator, msg: PoseFix) -> None:
         """A fix from an agent not aligned with us: keep it with our estimate at its stamp; once
@@ -646,7 +664,7 @@ class Daemon:
             SIGHTING_CONFIDENCE,
             len(kept),
             fit.rmse,
-            np.zeros((6, 6)),
+            _sightings_covariance(fit.rmse, fit.spread, np.array([b for _, b in kept])),
             time.time(),
         )
         self._offer(edge, f"from {len(kept)} sightings of us")
@@ -757,8 +775,14 @@ class Daemon:
                     self._withdraw(origin, refusals.pop(origin))
                 continue
             refusals.pop(origin, None)
-            edge = edge_of(own.origin, peer.origin, result)
             before = pending.pop(origin, None)
+            # how far the last estimate of this alignment was from this one: its scatter is
+            # part of its error (frame_error.from_residuals)
+            last = before[0] if before is not None else self._own_edges.get(origin)
+            scatter = (
+                None if last is None else frame_error.difference(last.transform, result.transform)
+            )
+            edge = edge_of(own.origin, peer.origin, result, scatter)
             if (
                 before is not None
                 and before[1] < seqs
@@ -1156,6 +1180,18 @@ class _Laps:
 
     def __call__(self, step: str) -> None:
         self.laps.append((step, time.monotonic()))
+
+
+def _sightings_covariance(rmse: float, spread: float, positions: np.ndarray) -> np.ndarray:
+    """Error of a frame fitted to sightings (6x6, x y z roll pitch yaw, about our origin): the
+    fit's residual in x and y, about the sightings' centroid, and a yaw of that residual over
+    their spread (a lever of `spread` metres)."""
+    planar = np.diag([rmse**2, rmse**2, (rmse / max(spread, 0.1)) ** 2])
+    cov = np.zeros((6, 6))
+    cov[np.ix_(frame_error.PLANAR, frame_error.PLANAR)] = frame_error.floored(
+        frame_error.about(planar, positions[:, :2].mean(axis=0))
+    )
+    return cov
 
 
 def _agree(t1: np.ndarray, t2: np.ndarray, metres: float = 0.25, degrees: float = 2.0) -> bool:

@@ -59,6 +59,18 @@ class ScanEstimator:
         `ScanLocaliser.fix`)."""
         return self.localiser.fix(pose, covariance, stamp)
 
+    def landmarks(self, obs: Observation, known: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
+        """Fuse every object of `obs` whose identity the colony knows (`known`: object id ->
+        its (x, y) in our frame and 2x2 covariance): its position seen from the body now, with
+        a camera's error of 2 cm + 2 % of the range."""
+        for det in obs.objects:
+            entry = known.get(det.object_id)
+            if entry is None:
+                continue
+            body = self.mount[:3, :3] @ det.position + self.mount[:3, 3]
+            sd = 0.02 + 0.02 * float(np.linalg.norm(det.position))
+            self.localiser.landmark(body[:2], np.eye(2) * sd**2, entry[0], entry[1])
+
     def counts(self) -> dict[str, int]:
         """Updates fused and refused so far, by kind."""
         loc = self.localiser
@@ -73,6 +85,8 @@ class ScanEstimator:
             "fix_accepted": loc.fix_accepted,
             "fix_rejected": loc.fix_rejected,
             "fix_stale": loc.fix_stale,
+            "landmark_accepted": loc.landmark_accepted,
+            "landmark_rejected": loc.landmark_rejected,
         }
 
     def covariance(self) -> np.ndarray | None:

@@ -35,6 +35,9 @@ RUNS: dict[str, tuple[str, ...]] = {
 #: The robots whose pose is estimated (one panel each in pose-error.png), and the anchor.
 ROBOTS = ("lidar-1", "depth-1")
 ANCHOR = "cctv-1"
+#: Robots whose camera reads the tagged landmarks' ArUco markers (landmark updates, paper
+#: Alg. 3: the positions the surveyed CCTV publishes for them).
+MARKER_READERS = ("depth-1",)
 #: One seed per agent, the same in every run: an agent sees the same odometry noise alone and in
 #: a colony, so the runs differ only in what is shared.
 AGENT_SEED = {"lidar-1": 1, "depth-1": 2, "cctv-1": 3}
@@ -106,10 +109,13 @@ def agent_options(
     """The `sim:` options of `agent` in a run of `agents`: the run's shared clock (frames a
     daemon is late for are mapped late, not skipped: on a loaded machine a run takes longer, but
     every agent maps every frame, so a run's figures do not depend on the load), lidar-1's short
-    range, and the CCTV told which robots' markers it can see (so that it sends them fixes)."""
+    range, depth-1 reading the landmarks' markers, and the CCTV told which robots' markers it
+    can see (so that it sends them fixes)."""
     options = [f"epoch={epoch:.3f}", "keep_late=1"]
     if agent == "lidar-1":
         options.append(f"lidar_range={lidar_range:g}")
+    if agent in MARKER_READERS:
+        options.append("markers=1")
     if agent == ANCHOR:
         robots = [a for a in ROBOTS if a in agents]
         if robots:

@@ -4,14 +4,14 @@ labels."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
 from plugins.checks import as_array, as_pose, camera_intrinsics
 from plugins.errors import SensorInputError
-from plugins.observation import DepthView, Observation
+from plugins.observation import DepthView, ObjectDetection, Observation
 from voxel.depth import camera_points
 from voxel.sensor import SensorModel
 
@@ -50,8 +50,23 @@ class DepthCamera:
         prob_hit: float = 0.7,
         prob_miss: float = 0.4,
         noise: float = 0.0,
+        markers: str | None = None,
+        marker_length: float = 0.2,
+        marker_classes: dict[int, int] | None = None,
     ) -> None:
         self.K = camera_intrinsics(K, fov, width, height, "depth camera")
+        #: With `markers` (an ArUco dictionary name), ArUco markers in the colour image are
+        #: reported as identified objects (landmarks), placed by the depth at their centre.
+        self.markers: Any = None
+        if markers is not None:
+            from plugins.cctv import CctvCamera  # OpenCV's ArUco detector, as the CCTV's
+
+            self.markers = CctvCamera(
+                K=self.K,
+                dictionary=markers,
+                marker_length=marker_length,
+                marker_classes=marker_classes,
+            )
         self.width, self.height = int(width), int(height)
         if stride < 1:
             msg = f"stride: expected an integer >= 1, found {stride!r}"
@@ -125,6 +140,8 @@ class DepthCamera:
                 reading.normals, "normals", shape=(h, w, 3), dtype=np.float32, finite=False
             )
             extras["normals"] = np.nan_to_num(normals.reshape(-1, 3)[index])
+        if self.markers is not None and colour is not None:
+            extras["objects"] = self._markers(colour, depth)
         body = np.eye(4) if pose is None else as_pose(pose, "pose")
         return Observation(
             sensor=self.name,
@@ -136,6 +153,27 @@ class DepthCamera:
             frame=frame,
             **extras,
         )
+
+    def _markers(self, colour: np.ndarray, depth: np.ndarray) -> tuple[ObjectDetection, ...]:
+        """ArUco markers in the colour image (RGB), each at the median depth of its quad's
+        middle, along the ray through its centre (a small marker's solved range is its worst
+        coordinate; the depth image measures it); markers without depth there are dropped."""
+        import cv2
+
+        found = []
+        for det in self.markers.detect(cv2.cvtColor(colour, cv2.COLOR_RGB2BGR)):
+            centre = det.corners.mean(axis=0)
+            half = max(1, int(0.2 * np.ptp(det.corners[:, 0])))
+            u, v = round(float(centre[0])), round(float(centre[1]))
+            patch = depth[max(v - half, 0) : v + half + 1, max(u - half, 0) : u + half + 1]
+            if not np.any(np.isfinite(patch)):
+                continue
+            z = float(np.nanmedian(patch))
+            ray = np.linalg.solve(self.K, np.array([centre[0], centre[1], 1.0]))
+            pose = det.pose.copy()
+            pose[:3, 3] = ray / ray[2] * z
+            found.append(replace(det, pose=pose))
+        return tuple(found)
 
 
 def fov_of(K: np.ndarray, width: int) -> float:

@@ -350,6 +350,11 @@ class SimOptions(Options):
         description="range of a LiDAR agent's sensor in metres (default 12 for 2D, 30 for 3D): "
         "a short-range scanner (e.g. 4) sees little of a room, as cheap ones do",
     )
+    markers: bool = Field(
+        False,
+        description="a depth agent detects the world's ArUco markers in its colour image and "
+        "reports them as identified objects (landmarks, docs/LOCALISATION.md)",
+    )
 
 
 class SimSource:
@@ -372,6 +377,7 @@ class SimSource:
         realtime: bool = False,
         odometry_noise: str | None = None,
         lidar_range: float | None = None,
+        markers: bool = False,
         epoch: float | None = None,
         keep_late: bool = False,
         robots: str = "",
@@ -432,6 +438,16 @@ class SimSource:
             }
         else:
             params["mount"] = self.rig.mount
+        if markers:
+            if self.agent.sensor != "depth":
+                msg = f"markers: expected a depth agent, found {agent!r} ({self.agent.sensor})"
+                raise SourceSpecError(msg)
+            params["markers"] = self.world.dictionary
+            params["marker_classes"] = {
+                m.marker_id: CLASSES["landmark"] for m in self.world.markers
+            }
+            if self.world.markers:
+                params["marker_length"] = self.world.markers[0].length
         self.adapter: SensorAdapter = load_adapter(self.agent.sensor, **params)
         self.stats = StreamStats()
         self.ground_truth: list[tuple[float, np.ndarray]] = []

@@ -124,3 +124,27 @@ def test_an_agents_new_estimate_replaces_its_old_one_and_confidence_zero_withdra
     np.testing.assert_allclose(edge.transform, _rigid(1.2, 0, 0), atol=1e-12)
     store.put(_edge("a", "b", np.eye(4), 0.0))
     assert store.edges() == [] and set(store.colony(["a", "b"]).transforms) == {"a"}
+
+
+def test_the_colony_frame_carries_each_alignments_error_to_the_agents_on_its_path():
+    from voxel.localisation import frame_error
+
+    cov_b = np.zeros((6, 6))
+    cov_b[np.ix_([0, 1, 5], [0, 1, 5])] = np.diag([4e-4, 1e-4, 3e-5])  # b's offer, in b's frame
+    t_ba = _rigid(2, -3, 40)
+    store = Alignments()
+    store.put(Edge("b", "a", t_ba, 0.9, 100, 0.02, cov_b, 1.0))
+    store.put(_edge("c", "b", _rigid(1, 1, 0), 0.5))  # c hangs below b
+    frame = store.colony(["a", "b", "c"], anchor="a")
+    np.testing.assert_allclose(frame.covariance("a"), 0.0)
+    # b's frame in a's is the inverse of b's offer: its error, moved into a's frame, by sampling
+    rng = np.random.default_rng(2)
+    samples = rng.multivariate_normal(np.zeros(3), frame_error.planar(cov_b), 3000)
+    base = np.linalg.inv(t_ba)
+    seen = [
+        frame_error.difference(base, np.linalg.inv(_rigid(*d[:2], math.degrees(d[2])) @ t_ba))
+        for d in samples
+    ]
+    np.testing.assert_allclose(np.cov(np.array(seen).T), frame.covariance("b"), atol=2e-5)
+    # c adds its own alignment's error (floored) to b's
+    assert np.all(np.diag(frame.covariance("c")) > np.diag(frame.covariance("b")))

@@ -61,6 +61,20 @@ def test_cctv_reports_landmarks_at_their_true_place() -> None:
     assert (obs.class_ids >= 0).any()
 
 
+def test_a_depth_agent_with_markers_places_them_by_its_depth() -> None:
+    source = SimSource(world="office", agent="depth-1", frames=1, start="world", markers=True)
+    obs = next(iter(source))
+    assert obs.truth is not None and obs.objects  # the first view holds two tagged pillars
+    centres = {m.marker_id: np.asarray(m.centre) for m in source.world.markers}
+    for found in obs.objects:
+        seen = obs.truth[:3, :3] @ found.position + obs.truth[:3, 3]
+        assert found.class_id == 5  # landmark
+        assert np.linalg.norm(seen - centres[found.object_id]) < 0.05
+    assert not next(iter(SimSource(world="office", agent="depth-1", frames=1))).objects
+    with pytest.raises(SourceSpecError, match="markers: expected a depth agent"):
+        SimSource(world="office", agent="lidar-1", markers=True)
+
+
 def test_rendered_depth_agrees_with_ground_truth_geometry() -> None:
     source = SimSource(
         world="room", agent="lidar3d-1", frames=3, range_noise=0.0, noise=0.0, start="world"

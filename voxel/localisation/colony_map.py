@@ -15,9 +15,10 @@ from voxel.localisation.scan_match import surface_normals, thin
 if TYPE_CHECKING:
     from scipy.spatial import cKDTree
 
-#: What an alignment between two agents' frames adds to a pose measured against the other's map
-#: (x, y, yaw variances): live alignment is within ~3 cm and 0.2 degrees in the sim office
-#: (docs/BENCHMARKS.md), so 3 cm and 0.3 degrees standard deviation.
+#: The alignment error a colony map assumes when it is given none (x, y, yaw variances about
+#: the agent's origin): live alignment is within ~3 cm and 0.2 degrees in the sim office
+#: (docs/BENCHMARKS.md), so 3 cm and 0.3 degrees standard deviation. The daemon gives each cut
+#: its alignments' own error (`frame_error`).
 ALIGNMENT_VARIANCE = np.diag([0.03**2, 0.03**2, np.radians(0.3) ** 2])
 
 
@@ -27,7 +28,8 @@ class ColonyMap:
 
     `points` are in the agent's own (odometry) frame; for a 2D scanner they are the peers'
     surfaces in a band around the scan height, put onto that height. `covariance` (x, y, yaw) is
-    added to every pose measured against this map: the alignment's own uncertainty.
+    the alignment's error, a small motion of the whole map about the agent's origin
+    (`frame_error`): one error shared by every pose measured against this map.
     """
 
     points: np.ndarray
@@ -103,7 +105,10 @@ def colony_map(
         )
     from scipy.spatial import cKDTree  # loads on first use, not at start-up
 
-    normals, flat = surface_normals(pts, pts, cKDTree(pts), k, planar)
+    tree = cKDTree(pts)
+    normals, flat = surface_normals(pts, pts, tree, k, planar)
+    if not planar:
+        normals, flat = vertical_traces(pts, tree, k, normals, flat)
     good = flat > 0.7
     pts, normals = pts[good], normals[good]
     oriented = False
@@ -112,8 +117,31 @@ def colony_map(
         if sided is not None:
             pts, normals = sided
             oriented = True
-    tree = cKDTree(pts) if len(pts) >= k else None
-    return ColonyMap(pts, normals, tree, c, radius, sources, cov, alignment, oriented)
+    tree_kept = cKDTree(pts) if len(pts) >= k else None
+    return ColonyMap(pts, normals, tree_kept, c, radius, sources, cov, alignment, oriented)
+
+
+def vertical_traces(
+    points: np.ndarray, tree: cKDTree, k: int, normals: np.ndarray, flat: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Normals of a 3D cut where a neighbourhood has no height: a 2D scanner's map holds one
+    slice of each wall, a row of voxels whose plane fit is degenerate (its smallest spread is
+    height, zero: the normal points up and the flatness test passes on rounding). Such a row is
+    taken as the trace of a vertical surface, as a 2D scanner's own map is: its normal and
+    flatness are those of the line fitted in x-y (corners of the slice are dropped, as in 2D)."""
+    _, idx = tree.query(points, k=min(k, len(points)))
+    nb = points[idx]
+    centred = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred) / nb.shape[1]
+    layer = cov[:, 2, 2] < 0.01 * (np.trace(cov, axis1=1, axis2=2) + 1e-12)
+    if not np.any(layer):
+        return normals, flat
+    values, vectors = np.linalg.eigh(cov[layer][:, :2, :2])
+    out_n, out_f = normals.copy(), flat.copy()
+    out_n[layer] = 0.0
+    out_n[layer, :2] = vectors[:, :, 0]
+    out_f[layer] = np.clip(1.0 - values[:, 0] / (values[:, 1] + 1e-12), 0.0, 1.0)
+    return out_n, out_f
 
 
 #: Below this share of surface points with a free side, a cut keeps its normals unsigned.

@@ -31,6 +31,8 @@ class ScanParams:
     iterations: int = 20
     inflation: float = 10.0
     colony_min_matched: int = 60  # correspondences a match against the colony's map needs
+    #: A colony match whose x or y variance exceeds this (m^2) constrains nothing: failed.
+    colony_max_variance: float = 1.0
     #: Of the last `colony_window` matches against the colony's map, more than this share
     #: refused by the gate means that map disagrees with us (a wrong alignment, or a peer whose
     #: map drifted): it is not used again until the alignments change.
@@ -58,9 +60,11 @@ class ScanLocaliser:
     Each step: predict with the odometry increment (or widen without odometry), match the scan
     against the agent's own recent map from the predicted pose, fuse the matched pose (gated by
     its Mahalanobis distance); when a `ColonyMap` is given (aligned peers' maps in this agent's
-    frame), match the scan against it too and fuse that as an absolute pose measurement (its
-    covariance plus the alignment's, gated the same way: a bad alignment is refused, not
-    followed); then add the scan to the local map when it is a keyframe.
+    frame), match the scan against it too and fuse that as a pose measured against a map whose
+    error (the alignment's, `ColonyMap.covariance`) the filter estimates with the pose
+    (`PlanarEkf.update_offset`: the alignment's error is counted once, not once per scan; gated
+    the same way: a bad alignment is refused, not followed); then add the scan to the local
+    map when it is a keyframe.
     Reads only odometry, the scan and the peers' maps: never a reference pose.
     """
 
@@ -91,7 +95,9 @@ class ScanLocaliser:
         self.colony_suspended = 0
         self._colony_outcomes: deque[bool] = deque(maxlen=self.params.colony_window)
         self._distrusted: bytes | None = None  # the alignment of a colony map that disagreed
+        self._offset_of: bytes | None = None  # the alignment whose error the filter estimates
         self.fix_accepted = self.fix_rejected = self.fix_stale = 0
+        self.landmark_accepted = self.landmark_rejected = 0
         self.history: deque[tuple[float, np.ndarray]] = deque(maxlen=self.params.history)
 
     def step(
@@ -181,6 +187,25 @@ class ScanLocaliser:
             self.fix_rejected += 1
         return fused
 
+    def landmark(
+        self,
+        seen: np.ndarray,
+        seen_covariance: np.ndarray,
+        landmark: np.ndarray,
+        landmark_covariance: np.ndarray,
+    ) -> bool | None:
+        """Fuse a landmark (paper Alg. 3): an identified object seen at `seen` (x, y, body
+        frame, now) whose position `landmark` (x, y, this agent's frame) the colony knows
+        (`PlanarEkf.update_landmark`, gated). None before the first step."""
+        if self.ekf is None:
+            return None
+        fused = self.ekf.update_landmark(seen, seen_covariance, landmark, landmark_covariance)
+        if fused:
+            self.landmark_accepted += 1
+        else:
+            self.landmark_rejected += 1
+        return fused
+
     def _match(self, pts: np.ndarray, target: LocalMap | ColonyMap, **extra: int) -> Match:
         """The scan matched (x, y, yaw) against `target` from the current estimate."""
         p = self.params
@@ -203,10 +228,13 @@ class ScanLocaliser:
         p = self.params
         assert self.ekf is not None  # the first step made it
         result = self._match(pts, colony, min_matched=p.colony_min_matched)
-        if not result.ok:
-            self.colony_failed += 1
+        if not result.ok or np.max(np.diag(result.covariance)[:2]) > p.colony_max_variance:
+            self.colony_failed += 1  # too few pairs, or they constrain nothing (all normals up)
             return result, False
-        fused = self.ekf.update(se2.from_matrix(result.pose), result.covariance + colony.covariance)
+        if self.ekf.offset is None or self._offset_of != colony.alignment:
+            self.ekf.reset_offset(colony.covariance)  # new alignments: a new error to estimate
+            self._offset_of = colony.alignment
+        fused = self.ekf.update_offset(se2.from_matrix(result.pose), result.covariance)
         if fused:
             self.colony_accepted += 1
         else:

@@ -88,6 +88,9 @@ class Alignment:
     conflict_extent_m: float = 0.0  # largest connected patch of walls in the other's open space
     #: object evidence: supported, contradicted, matched, the objects' own fit, poses ruled out
     objects: dict[str, object] | None = None
+    #: The point in A's frame (the matched points' centroid) that `covariance`'s rotations are
+    #: about; None when there was no fit.
+    covariance_centre: np.ndarray | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The JSON record `colonyd align` writes (angles in degrees, transform 4x4 row-major)."""
@@ -250,7 +253,9 @@ def align_clouds(
     b_eval = _sample_masked(b.occupied, b_wall, p.eval_samples, rng)
     a_eval = _sample_masked(a.occupied, a_wall, p.eval_samples, rng)
     evidence = evaluate(fine.transform, a_side, *b_eval, b_side, *a_eval, inlier_m)
-    cov, names = _covariance(fine.transform, b_fine, a, a_tree, inlier_m, icp_dof, both_planar)
+    cov, names, centre = _covariance(
+        fine.transform, b_fine, a, a_tree, inlier_m, icp_dof, both_planar
+    )
     verdict = judge(evidence, ambiguity, z_ambiguity, cov, names, p.limits)
     vote = _object_votes(transform, full_a, full_b, oa, ob)
     objection = _objection(vote, fit, transform, b.occupied, p)
@@ -289,6 +294,7 @@ def align_clouds(
         geometric_ambiguity=geometric_ambiguity,
         conflict_extent_m=evidence.conflict_extent,
         objects=_objects_record(vote, fit, ruled_out, len(oa), len(ob)) if used else None,
+        covariance_centre=centre,
     )
 
 
@@ -541,7 +547,8 @@ def _covariance(
     inlier_m: float,
     dof: int,
     both_planar: bool,
-) -> tuple[np.ndarray, list[str]]:
+) -> tuple[np.ndarray, list[str], np.ndarray | None]:
+    """The fit's covariance, its parameter names and the point its rotations are about."""
     moved = apply(t, b_points)
     d, idx = a_tree.query(moved, distance_upper_bound=inlier_m)
     ok = np.isfinite(d)
@@ -552,9 +559,10 @@ def _covariance(
             4: ["x", "y", "z", "yaw"],
             6: ["x", "y", "z", "roll", "pitch", "yaw"],
         }[dof]
-        return np.eye(n) * 1e6, names
+        return np.eye(n) * 1e6, names, None
     normal = normals(a.occupied, a_tree, a.occupied[idx[ok]], both_planar)
-    return covariance(moved[ok], a.occupied[idx[ok]], normal, dof)
+    cov, names = covariance(moved[ok], a.occupied[idx[ok]], normal, dof)
+    return cov, names, moved[ok].mean(axis=0)
 
 
 def _sample(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:

@@ -171,3 +171,48 @@ def test_a_peers_free_space_orients_its_map_so_a_walls_far_face_is_not_matched()
     # A cut whose surfaces mostly have no free side keeps unsigned normals.
     blind = colony_map(seen, free=lambda p: np.zeros(len(p), bool), **cut)
     assert not blind.oriented and len(blind) == len(unsigned)
+
+
+def test_a_poorly_aligned_colony_map_weighs_what_its_alignment_is_worth() -> None:
+    # The peer's map is 8 cm off (its alignment, honestly, is known to 10 cm); the robot is
+    # right and knows it to 2 cm, and keeps no map of its own (nothing else holds it). Scan
+    # after scan matches the map 8 cm off: the alignment's error is one error, counted once.
+    # (Fused as 30 independent measurements, it dragged the robot 7.5 cm.)
+    truth = np.array([0.4, -0.5, 0.3])
+    off = colony_map(
+        _wall_points(ROOM) + np.array([0.08, 0.0, 0.0]),
+        planar=True,
+        height=0.0,
+        centre=np.zeros(2),
+        radius=10.0,
+        covariance=np.diag([0.1**2, 0.1**2, math.radians(1.0) ** 2]),
+        alignment=b"a",
+    )
+    loc = _drifted(truth, 0.02)
+    loc.local.wants = lambda pose: False  # type: ignore[method-assign]
+    scan = _segments_scan(truth, ROOM)
+    for _ in range(30):
+        loc.step(scan, np.zeros(3), colony=off)
+    assert loc.colony_accepted == 30  # every match fused, none refused
+    np.testing.assert_allclose(loc.ekf.pose[:2], truth[:2], atol=0.01)
+    assert loc.ekf.offset is not None
+    assert loc.ekf.offset.value[0] == pytest.approx(0.08, abs=0.02)  # it learnt the map's error
+
+
+def test_a_2d_scanners_map_corrects_a_3d_robot_as_vertical_walls() -> None:
+    # The peer is a 2D LiDAR: its map is one row of voxels per wall, at the scan height. A
+    # depth robot (3D points, walls from the floor up) matches against it: without taking the
+    # rows as traces of vertical walls every normal points up and the match constrains nothing.
+    truth = np.array([0.4, -0.5, 0.3])
+    rows = _wall_points(ROOM, spacing=0.1, height=0.3)
+    peers = colony_map(rows, planar=False, height=0.3, centre=np.zeros(2), radius=10.0, cell=0.1)
+    assert peers.tree is not None
+    assert np.max(np.abs(peers.normals[:, 2])) < 1e-6  # horizontal, across each wall
+    flat = _segments_scan(truth, ROOM)
+    scan = np.concatenate([flat + np.array([0.0, 0.0, z]) for z in (0.1, 0.25, 0.35, 0.6)])
+    loc = ScanLocaliser(planar=False)
+    loc.ekf = PlanarEkf(truth + np.array([0.12, -0.1, 0.03]), np.diag([0.04, 0.04, 0.01]))
+    loc.last_odometry = np.zeros(3)
+    step = loc.step(scan, np.zeros(3), colony=peers)
+    assert step.colony_fused and loc.colony_failed == 0
+    np.testing.assert_allclose(step.pose, truth, atol=0.02)

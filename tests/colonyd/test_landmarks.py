@@ -1,0 +1,72 @@
+"""Landmarks: identified objects that aligned peers know, in our frame with their error, and the
+estimator corrected by seeing them (paper Alg. 3)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from colonyd.alignment import ColonyFrame
+from colonyd.estimator import ScanEstimator
+from colonyd.landmarks import colony_landmarks
+from colonyd.objects import CLUSTER_IDS
+from plugins.observation import ObjectDetection, Observation
+from protocol import ObjectCentroid as WireObject
+from voxel.localisation.ekf import PlanarEkf
+
+
+def _rigid(x: float, y: float, yaw: float) -> np.ndarray:
+    t = np.eye(4)
+    t[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+    t[:2, 3] = (x, y)
+    return t
+
+
+def _object(object_id: int, x: float, y: float, var: float = 1e-4) -> WireObject:
+    cov = [var, 0, 0, 0, var, 0, 0, 0, var]
+    return WireObject(object_id=object_id, class_id=5, position=(x, y, 1.0), covariance=cov,
+                      voxel_count=0, time=0.0)  # fmt: skip
+
+
+def test_a_peers_identified_objects_are_landmarks_in_our_frame_with_the_alignments_error():
+    # The colony frame is the CCTV's; ours is 2 m along its x and turned 90 degrees; the
+    # alignment is known to 0.01 rad in yaw (about the colony's origin).
+    frame = ColonyFrame(
+        "cctv",
+        {"cctv": np.eye(4), "me": _rigid(2.0, 0.0, math.pi / 2), "far": np.eye(4)},
+        {"me": np.diag([0.0, 0.0, 1e-4])},
+    )
+    lists = {
+        "cctv": [_object(7, 2.0, 3.0), _object(CLUSTER_IDS + 1, 0.0, 0.0)],  # a cluster: no id
+        "me": [_object(8, 0.0, 0.0)],  # our own objects are not landmarks
+        "stranger": [_object(9, 0.0, 0.0)],  # not aligned with us
+    }
+    known = colony_landmarks(frame, "me", lists)
+    assert set(known) == {7}
+    xy, cov = known[7]
+    np.testing.assert_allclose(xy, [3.0, 0.0], atol=1e-12)  # (2, 3) in the colony: 3 m ahead
+    # the yaw error e about the colony's origin moves the landmark by e (-3, 2) there, e (2, 3)
+    # here; plus the CCTV's own 1 cm
+    np.testing.assert_allclose(cov, 1e-4 * np.array([[4, 6], [6, 9]]) + 1e-4 * np.eye(2))
+    assert colony_landmarks(ColonyFrame("cctv", {"cctv": np.eye(4)}), "me", lists) == {}
+
+
+def test_an_estimator_that_sees_a_known_landmark_is_pulled_onto_it():
+    est = ScanEstimator(planar=False, mount=np.eye(4))
+    est.localiser.ekf = PlanarEkf(np.array([0.3, 0.0, 0.0]), np.diag([0.04, 0.04, 1e-6]))
+    seen = np.eye(4)
+    seen[:3, 3] = (2.0, 0.5, 0.2)  # truly at the origin: the landmark is at (2, 0.5)
+    obs = Observation(
+        sensor="depth",
+        time=0.0,
+        points=np.zeros((0, 3)),
+        pose=np.eye(4),
+        objects=(ObjectDetection(4, 5, seen), ObjectDetection(5, 5, seen)),  # 5 is unknown
+    )
+    est.landmarks(obs, {4: (np.array([2.0, 0.5]), np.eye(2) * 1e-6)})
+    assert est.counts()["landmark_accepted"] == 1
+    # prior 20 cm, the sighting 2 cm + 2 % of 2.07 m: pulled most of the way back
+    sd = 0.02 + 0.02 * float(np.linalg.norm(seen[:3, 3]))
+    r = sd**2 + 1e-6
+    assert abs(est.localiser.ekf.pose[0] - 0.3 * r / (0.04 + r)) < 1e-3
