@@ -31,6 +31,9 @@ _AXIS_BITS = vk.AXIS_BITS
 _AXIS_OFFSET = 1 << (_AXIS_BITS - 1)
 #: Multipliers of `keys.one_per_key`'s hash rounds.
 _HASH = vk._HASH_MULTIPLIERS
+#: Entries of the sorting's cache of recent hit keys (`_sort_beams`, distinct).
+_RECENT_BITS = 12
+_RECENT = 1 << _RECENT_BITS
 
 _lock = threading.Lock()
 #: Name -> compiled kernel (None: numba absent); empty until loaded.
@@ -85,6 +88,7 @@ def _try_out(
         float(vk.KEY_MIN),
         float(vk.KEY_MAX),
         float(vk.KEY_MAX * 3),
+        True,
     )
     trace(
         np.array([0.5, 0.5, 0.5]),
@@ -529,7 +533,8 @@ def _sort_beams(
     key_min: float,
     key_max: float,
     fine_limit: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, bool, np.ndarray]:
+    distinct: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, bool, np.ndarray, int]:
     """A scan's beams sorted as `scan.sort_beams` sorts them (the same floating-point operations
     in the same order): points (N, 3) seen from `org`, `nr` the no-return flags; `inv` is
     1 / resolution, `fine_scale` CLEAR_SUBDIVISION / resolution, keys must lie in
@@ -538,15 +543,25 @@ def _sort_beams(
     Returns the hit keys (3, H) float64, the hit mask (N,), the clear ends (M, 3) (one beam per
     fine cell, chosen as `keys.one_per_key` chooses), the counts of clearing and dropped beams,
     False when the clear cells span too much for one packed index (then nothing is valid: the
-    caller uses the numpy path), and the bounds (2, 3) int64 of the hit keys and of the clear
-    ends' keys (floor(end * inv)), for the traversal's box (a bound is empty: low > high)."""
+    caller uses the numpy path), the bounds (2, 3) int64 of the hit keys and of the clear
+    ends' keys (floor(end * inv)), for the traversal's box (a bound is empty: low > high), and
+    the count of hit points. With `distinct`, a hit key equal to one of the recent ones (a small
+    cache: neighbouring pixels of a depth image share voxels) is left out: the hit keys are then
+    the same set with fewer repeats (H <= the count of hit points), in the same order."""
     n = points.shape[0]
     max2 = max_range * max_range
     hit_mask = np.zeros(n, dtype=np.bool_)
     clear_mask = np.zeros(n, dtype=np.bool_)
     # floor(x) lies in [key_min, key_max] exactly when key_min <= x < key_max + 1.
     k_top = key_max + 1.0
+    hit_keys = np.empty((3, n), dtype=np.float64)
+    bounds = np.empty((2, 3), dtype=np.int64)
+    bounds[0, :] = np.iinfo(np.int64).max
+    bounds[1, :] = np.iinfo(np.int64).min
+    # Recent hit keys (packed, -1 none), by hash: a direct-mapped cache, a miss only repeats a key.
+    recent = np.full(_RECENT if distinct else 1, -1, dtype=np.int64)
     n_hit = 0
+    n_out = 0
     n_clear = 0
     for i in range(n):
         t = points[i, 0] - org[0]
@@ -569,24 +584,39 @@ def _sort_beams(
             ):
                 hit_mask[i] = True
                 n_hit += 1
+                k0 = np.floor(x0)
+                k1 = np.floor(x1)
+                k2 = np.floor(x2)
+                i0 = np.int64(k0)
+                i1 = np.int64(k1)
+                i2 = np.int64(k2)
+                bounds[0, 0] = min(bounds[0, 0], i0)
+                bounds[1, 0] = max(bounds[1, 0], i0)
+                bounds[0, 1] = min(bounds[0, 1], i1)
+                bounds[1, 1] = max(bounds[1, 1], i1)
+                bounds[0, 2] = min(bounds[0, 2], i2)
+                bounds[1, 2] = max(bounds[1, 2], i2)
+                if distinct:
+                    packed = (
+                        ((i0 + _AXIS_OFFSET) << (2 * _AXIS_BITS))
+                        | ((i1 + _AXIS_OFFSET) << _AXIS_BITS)
+                        | (i2 + _AXIS_OFFSET)
+                    )
+                    h = ((packed * np.int64(_HASH[0])) >> (64 - _RECENT_BITS)) & (_RECENT - 1)
+                    if recent[h] == packed:
+                        continue
+                    recent[h] = packed
+                hit_keys[0, n_out] = k0
+                hit_keys[1, n_out] = k1
+                hit_keys[2, n_out] = k2
+                n_out += 1
         else:
             r = np.sqrt(d2)
             if np.isfinite(r) and r > 0 and (r > max_range or nr[i]):
                 clear_mask[i] = True
                 n_clear += 1
-    hit_keys = np.empty((3, n_hit), dtype=np.float64)
-    bounds = np.empty((2, 3), dtype=np.int64)
-    bounds[0, :] = np.iinfo(np.int64).max
-    bounds[1, :] = np.iinfo(np.int64).min
-    j = 0
-    for i in range(n):
-        if hit_mask[i]:
-            for a in range(3):
-                k = np.floor(points[i, a] * inv)
-                hit_keys[a, j] = k
-                bounds[0, a] = min(bounds[0, a], np.int64(k))
-                bounds[1, a] = max(bounds[1, a], np.int64(k))
-            j += 1
+    if n_out < n:
+        hit_keys = hit_keys[:, :n_out].copy()
     dropped = 0
     if not np.isfinite(no_return_range):  # then no max range either: only no-returns
         dropped = n_clear
@@ -634,7 +664,7 @@ def _sort_beams(
             lo[a] = np.int64(mn)
             span[a] = np.int64(mx) - lo[a] + 1
         if np.float64(span[0]) * np.float64(span[1]) * np.float64(span[2]) > 2.0**62:
-            return hit_keys, hit_mask, ends[:0], cleared, dropped, False, bounds
+            return hit_keys, hit_mask, ends[:0], cleared, dropped, False, bounds, n_hit
         lin = np.empty(m, dtype=np.int64)
         for i in range(m):
             lin[i] = (
@@ -687,4 +717,4 @@ def _sort_beams(
             k = np.int64(np.floor(e * inv))
             bounds[0, a] = min(bounds[0, a], k)
             bounds[1, a] = max(bounds[1, a], k)
-    return hit_keys, hit_mask, picked, cleared, dropped, True, bounds
+    return hit_keys, hit_mask, picked, cleared, dropped, True, bounds, n_hit
