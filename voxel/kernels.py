@@ -340,24 +340,30 @@ def _trace_box(
             y = y0
             z = z0
             split = min(m, k_flat)
+            # Branch-free: a fixed axis has a zero stride and its key in a constant offset.
+            sb_e = 0 if stay_b else sb
+            sc_e = 0 if stay_c else sc
+            off_b = ko[b] if stay_b else 0
+            off_c = ko[c] if stay_c else 0
+            xa = ko[a] + isgn
+            base_lin = lin_a + fixed
             for k in range(split):  # accumulate (the numpy sweep's steps)
                 yv = np.int64(y)
                 zv = np.int64(z)
                 y += inc_y
                 z += inc_z
-                lin = lin_a + fixed
-                if not stay_b:
-                    lin += yv * sb
-                if not stay_c:
-                    lin += zv * sc
-                lin_a += sa
+                lin = base_lin + yv * sb_e + zv * sc_e
+                base_lin += sa
+                xa_k = xa
+                xa += isgn
                 if cells[lin] != 0:
                     continue  # marked before, and so was its block
                 cells[lin] = 1  # FREE
-                xa = ko[a] + (k + 1) * isgn
-                xb = ko[b] if stay_b else yv
-                xc = ko[c] if stay_c else zv
-                blk = (xa >> sh_a) * blk_a + (xb >> sh_b) * blk_b + (xc >> sh_c) * blk_c
+                blk = (
+                    (xa_k >> sh_a) * blk_a
+                    + ((off_b if stay_b else yv) >> sh_b) * blk_b
+                    + ((off_c if stay_c else zv) >> sh_c) * blk_c
+                )
                 if marks[blk] == 0:
                     marks[blk] = 1
                     touched[n_touched] = blk
@@ -366,19 +372,18 @@ def _trace_box(
                 jf = np.float64(k - k_flat)
                 yv = np.int64(y + jf * inc_y)
                 zv = np.int64(z + jf * inc_z)
-                lin = lin_a + fixed
-                if not stay_b:
-                    lin += yv * sb
-                if not stay_c:
-                    lin += zv * sc
-                lin_a += sa
+                lin = base_lin + yv * sb_e + zv * sc_e
+                base_lin += sa
+                xa_k = xa
+                xa += isgn
                 if cells[lin] != 0:
                     continue  # marked before, and so was its block
                 cells[lin] = 1  # FREE
-                xa = ko[a] + (k + 1) * isgn
-                xb = ko[b] if stay_b else yv
-                xc = ko[c] if stay_c else zv
-                blk = (xa >> sh_a) * blk_a + (xb >> sh_b) * blk_b + (xc >> sh_c) * blk_c
+                blk = (
+                    (xa_k >> sh_a) * blk_a
+                    + ((off_b if stay_b else yv) >> sh_b) * blk_b
+                    + ((off_c if stay_c else zv) >> sh_c) * blk_c
+                )
                 if marks[blk] == 0:
                     marks[blk] = 1
                     touched[n_touched] = blk
