@@ -347,7 +347,7 @@ def _trace_box(
             off_c = ko[c] if stay_c else 0
             xa = ko[a] + isgn
             base_lin = lin_a + fixed
-            for k in range(split):  # accumulate (the numpy sweep's steps)
+            for _ in range(split):  # accumulate (the numpy sweep's steps)
                 yv = np.int64(y)
                 zv = np.int64(z)
                 y += inc_y
