@@ -448,33 +448,13 @@ def _update_records(
     before and after and hit flags of the changed voxels that are hit, occupied now or were
     occupied, and (with `seen`) the packed keys of the voxels that went unknown -> free."""
     n_blocks, n_vox = cells.shape
+    # One pass; the outputs are cut to size at the end (at most one entry per touched cell).
+    keys = np.empty(n_blocks * n_vox, dtype=np.int64)
+    old = np.empty(keys.size, dtype=np.float32)
+    new = np.empty(keys.size, dtype=np.float32)
+    hit = np.empty(keys.size, dtype=np.bool_)
+    fresh = np.empty(keys.size if seen else 0, dtype=np.int64)
     count = 0
-    n_keep = 0
-    n_fresh = 0
-    for i in range(n_blocks):
-        s = slots[i]
-        for j in range(n_vox):
-            c = cells[i, j]
-            if c == 0:
-                continue
-            before = logodds[s, j]
-            known = not np.isnan(before)
-            after = (before if known else np.float32(0.0)) + steps[c]
-            after = min(max(after, low), high)
-            if known and after == before:
-                continue
-            count += 1
-            if after >= 0 or before >= 0 or c == 2:
-                n_keep += 1
-            if seen and not known and after < 0:
-                n_fresh += 1
-    keys = np.empty(n_keep, dtype=np.int64)
-    old = np.empty(n_keep, dtype=np.float32)
-    new = np.empty(n_keep, dtype=np.float32)
-    hit = np.empty(n_keep, dtype=np.bool_)
-    fresh = np.empty(n_fresh, dtype=np.int64)
-    if count == 0:
-        return 0, keys, old, new, hit, fresh
     sx = shifts[0]
     sy = shifts[1]
     sz = shifts[2]
@@ -496,11 +476,12 @@ def _update_records(
             known = not np.isnan(before)
             after = (before if known else np.float32(0.0)) + steps[c]
             after = min(max(after, low), high)
-            logodds[s, j] = after
             if known and after == before:
                 continue
+            logodds[s, j] = after
             version[s, j] = v
             last_time[s, j] = stamp
+            count += 1
             changed_block = True
             keep = after >= 0 or before >= 0 or c == 2
             is_fresh = seen and not known and after < 0
@@ -524,7 +505,7 @@ def _update_records(
                     f += 1
         if changed_block:
             slot_version[s] = v
-    return count, keys, old, new, hit, fresh
+    return count, keys[:k], old[:k], new[:k], hit[:k], fresh[:f]
 
 
 def _sort_beams(
@@ -560,9 +541,9 @@ def _sort_beams(
     # floor(x) lies in [key_min, key_max] exactly when key_min <= x < key_max + 1.
     k_top = key_max + 1.0
     hit_keys = np.empty((3, n), dtype=np.float64)
-    bounds = np.empty((2, 3), dtype=np.int64)
-    bounds[0, :] = np.iinfo(np.int64).max
-    bounds[1, :] = np.iinfo(np.int64).min
+    # The hit keys' bounds, in registers through the loop.
+    lo0 = lo1 = lo2 = np.iinfo(np.int64).max
+    hi0 = hi1 = hi2 = np.iinfo(np.int64).min
     # Recent hit keys (packed, -1 none), by hash: a direct-mapped cache, a miss only repeats a key.
     recent = np.full(_RECENT if distinct else 1, -1, dtype=np.int64)
     n_hit = 0
@@ -595,12 +576,12 @@ def _sort_beams(
                 i0 = np.int64(k0)
                 i1 = np.int64(k1)
                 i2 = np.int64(k2)
-                bounds[0, 0] = min(bounds[0, 0], i0)
-                bounds[1, 0] = max(bounds[1, 0], i0)
-                bounds[0, 1] = min(bounds[0, 1], i1)
-                bounds[1, 1] = max(bounds[1, 1], i1)
-                bounds[0, 2] = min(bounds[0, 2], i2)
-                bounds[1, 2] = max(bounds[1, 2], i2)
+                lo0 = min(lo0, i0)
+                hi0 = max(hi0, i0)
+                lo1 = min(lo1, i1)
+                hi1 = max(hi1, i1)
+                lo2 = min(lo2, i2)
+                hi2 = max(hi2, i2)
                 if distinct:
                     packed = (
                         ((i0 + _AXIS_OFFSET) << (2 * _AXIS_BITS))
@@ -622,6 +603,13 @@ def _sort_beams(
                 n_clear += 1
     if n_out < n:
         hit_keys = hit_keys[:, :n_out].copy()
+    bounds = np.empty((2, 3), dtype=np.int64)
+    bounds[0, 0] = lo0
+    bounds[0, 1] = lo1
+    bounds[0, 2] = lo2
+    bounds[1, 0] = hi0
+    bounds[1, 1] = hi1
+    bounds[1, 2] = hi2
     dropped = 0
     if not np.isfinite(no_return_range):  # then no max range either: only no-returns
         dropped = n_clear
