@@ -542,8 +542,8 @@ def _sort_beams(
     k_top = key_max + 1.0
     hit_keys = np.empty((3, n), dtype=np.float64)
     # The hit keys' bounds, in registers through the loop.
-    lo0 = lo1 = lo2 = np.iinfo(np.int64).max
-    hi0 = hi1 = hi2 = np.iinfo(np.int64).min
+    lo0 = lo1 = lo2 = np.int64(np.iinfo(np.int64).max)
+    hi0 = hi1 = hi2 = np.int64(np.iinfo(np.int64).min)
     # Recent hit keys (packed, -1 none), by hash: a direct-mapped cache, a miss only repeats a key.
     recent = np.full(_RECENT if distinct else 1, -1, dtype=np.int64)
     n_hit = 0
@@ -576,12 +576,12 @@ def _sort_beams(
                 i0 = np.int64(k0)
                 i1 = np.int64(k1)
                 i2 = np.int64(k2)
-                lo0 = min(lo0, i0)
-                hi0 = max(hi0, i0)
-                lo1 = min(lo1, i1)
-                hi1 = max(hi1, i1)
-                lo2 = min(lo2, i2)
-                hi2 = max(hi2, i2)
+                lo0 = i0 if i0 < lo0 else lo0
+                hi0 = i0 if i0 > hi0 else hi0
+                lo1 = i1 if i1 < lo1 else lo1
+                hi1 = i1 if i1 > hi1 else hi1
+                lo2 = i2 if i2 < lo2 else lo2
+                hi2 = i2 if i2 > hi2 else hi2
                 if distinct:
                     packed = (
                         ((i0 + _AXIS_OFFSET) << (2 * _AXIS_BITS))
