@@ -1,6 +1,7 @@
 """Compiled kernels (numba, the optional `fast` extra) for integration's hot loops, loaded lazily.
 
-`trace()` (a scan's whole dense traversal: hits, rays, blocks touched) and `update()` (the
+`beams()` (a scan's beams sorted), `trace()` (a scan's whole dense traversal: hits, rays,
+blocks touched), `index()` (the block store's lookup and insertion) and `update()` (the
 occupancy update of a chunk of blocks and the voxels the history records) return a compiled
 kernel, or None when numba is absent, fails, or `COLONY_JIT=0`; the callers then run their
 pure-numpy path, which gives bit-identical results (the kernels repeat its floating-point
@@ -68,15 +69,24 @@ def update() -> Callable[..., Any] | None:
     return _get("update")
 
 
+def index() -> Callable[..., Any] | None:
+    """The compiled lookup and insertion of sorted block keys (see `_index_blocks`), or None."""
+    return _get("index")
+
+
 def warm() -> bool:
     """Import numba and load (or compile and cache) the kernels now; True when they are in use."""
     return trace() is not None
 
 
 def _try_out(
-    trace: Callable[..., Any], update: Callable[..., Any], beams: Callable[..., Any]
+    trace: Callable[..., Any],
+    update: Callable[..., Any],
+    beams: Callable[..., Any],
+    index: Callable[..., Any],
 ) -> None:
     """One tiny call of each kernel: compiles (or loads) them, so a failure shows here."""
+    index(np.array([2, 5], dtype=np.int64), np.array([0, 1], dtype=np.int64), np.arange(4), 2)
     beams(
         np.array([[1.0, 2.0, 0.5], [40.0, 0.0, 0.0]]),
         np.zeros(3),
@@ -128,28 +138,29 @@ def _load() -> None:
     with _lock:
         if "trace" in _compiled:
             return
-        found: dict[str, Callable[..., Any] | None] = {"beams": None, "update": None, "trace": None}
+        names = ("beams", "update", "index", "trace")  # "trace" last: callers test for it first
+        found: dict[str, Callable[..., Any] | None] = dict.fromkeys(names)
         try:
             import numba
         except ImportError:
             _compiled.update(found)
             return
         try:
+            sources = (_trace_box, _update_records, _sort_beams, _index_blocks)
             try:
                 jit = numba.njit(cache=True, nogil=True)
-                kernels = jit(_trace_box), jit(_update_records), jit(_sort_beams)
+                kernels = tuple(jit(f) for f in sources)
             except RuntimeError:  # no writable cache directory: compile at every start
                 log.warning("numba cannot cache here (set NUMBA_CACHE_DIR); compiling in memory")
                 jit = numba.njit(nogil=True)
-                kernels = jit(_trace_box), jit(_update_records), jit(_sort_beams)
+                kernels = tuple(jit(f) for f in sources)
             _try_out(*kernels)
-            found = {"beams": kernels[2], "update": kernels[1], "trace": kernels[0]}
+            found = {"trace": kernels[0], "update": kernels[1], "beams": kernels[2]}
+            found["index"] = kernels[3]
         except Exception as exc:  # noqa: BLE001 - any numba failure leaves the numpy path
             log.warning("compiled kernels unavailable, using numpy: %s", exc)
-        # "trace" last: callers test for it before asking for the others.
-        _compiled["beams"] = found["beams"]
-        _compiled["update"] = found["update"]
-        _compiled["trace"] = found["trace"]
+        for name in names:
+            _compiled[name] = found[name]
 
 
 def _trace_box(
@@ -711,3 +722,58 @@ def _sort_beams(
             bounds[0, a] = min(bounds[0, a], k)
             bounds[1, a] = max(bounds[1, a], k)
     return hit_keys, hit_mask, picked, cleared, dropped, True, bounds, n_hit
+
+
+def _index_blocks(
+    sorted_keys: np.ndarray, sorted_slots: np.ndarray, blocks: np.ndarray, first_free: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+    """Slots of sorted, unique packed block keys `blocks` in a store's index (`sorted_keys`,
+    with `sorted_slots`), as `BlockStore.ensure` computes them without free slots to reuse:
+    missing blocks take slots `first_free`, `first_free` + 1, ... in key order. One merge walk.
+
+    Returns the slots, the new blocks' keys, the index with them (the inputs themselves when
+    none is new), and False when `blocks` are not sorted and unique (then nothing is valid)."""
+    n_old = sorted_keys.size
+    m = blocks.size
+    slots = np.empty(m, dtype=np.int64)
+    i = 0
+    n_new = 0
+    for j in range(m):
+        b = blocks[j]
+        if j > 0 and b <= blocks[j - 1]:
+            return slots, blocks[:0], sorted_keys, sorted_slots, False
+        while i < n_old and sorted_keys[i] < b:
+            i += 1
+        if i < n_old and sorted_keys[i] == b:
+            slots[j] = sorted_slots[i]
+        else:
+            slots[j] = first_free + n_new
+            n_new += 1
+    if n_new == 0:
+        return slots, blocks[:0], sorted_keys, sorted_slots, True
+    new_keys = np.empty(n_new, dtype=np.int64)
+    keys = np.empty(n_old + n_new, dtype=np.int64)
+    held = np.empty(n_old + n_new, dtype=np.int64)
+    i = 0
+    k = 0
+    out = 0
+    for j in range(m):
+        b = blocks[j]
+        if slots[j] < first_free:
+            continue  # held already
+        while i < n_old and sorted_keys[i] < b:
+            keys[out] = sorted_keys[i]
+            held[out] = sorted_slots[i]
+            i += 1
+            out += 1
+        keys[out] = b
+        held[out] = slots[j]
+        new_keys[k] = b
+        k += 1
+        out += 1
+    while i < n_old:
+        keys[out] = sorted_keys[i]
+        held[out] = sorted_slots[i]
+        i += 1
+        out += 1
+    return slots, new_keys, keys, held, True
