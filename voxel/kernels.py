@@ -35,6 +35,9 @@ _HASH = vk._HASH_MULTIPLIERS
 #: Entries of the sorting's cache of recent hit keys (`_sort_beams`, distinct).
 _RECENT_BITS = 12
 _RECENT = 1 << _RECENT_BITS
+#: The low bit of every byte of a 64-bit (32-bit) word.
+_LOW_BITS = np.uint64(0x0101010101010101)
+_LOW_BITS32 = np.uint32(0x01010101)
 
 _lock = threading.Lock()
 #: Name -> compiled kernel (None: numba absent); empty until loaded.
@@ -410,6 +413,17 @@ def _trace_box(
     off_x = (lo[0] >> sx) + _AXIS_OFFSET
     off_y = (lo[1] >> sy) + _AXIS_OFFSET
     off_z = (lo[2] >> sz) + _AXIS_OFFSET
+    # A block's cells lie in runs along z (along y and z when the box is one block high):
+    # copied, counted and cleared 8 or 4 at a time when the runs allow it.
+    whole = dims[2] == (np.int64(1) << sz)
+    run = np.int64(1) << (sy + sz if whole else sz)
+    word = 8 if run % 8 == 0 else (4 if run % 4 == 0 else 1)
+    if cells.size % 8 != 0:
+        word = 1
+    cells64 = cells[: cells.size - cells.size % 8].view(np.uint64)
+    cells32 = cells[: cells.size - cells.size % 8].view(np.uint32)
+    out64 = out.reshape(n_touched * n_vox).view(np.uint64) if word == 8 else cells64[:0]
+    out32 = out.reshape(n_touched * n_vox).view(np.uint32) if word == 4 else cells32[:0]
     n_free = 0
     for i in range(n_touched):
         t = order[i]
@@ -419,17 +433,39 @@ def _trace_box(
         by = rest // bstride[1]
         bz = rest - by * bstride[1]
         blocks[i] = ((bx + off_x) << (2 * _AXIS_BITS)) | ((by + off_y) << _AXIS_BITS) | (bz + off_z)
-        j = 0
+        if word == 1:
+            j = 0
+            for ox in range(np.int64(1) << sx):
+                row_x = ((bx << sx) + ox) * s0
+                for oy in range(np.int64(1) << sy):
+                    row_y = row_x + ((by << sy) + oy) * s1 + (bz << sz)
+                    for oz in range(np.int64(1) << sz):
+                        c = cells[row_y + oz]
+                        out[i, j] = c
+                        n_free += c == 1
+                        cells[row_y + oz] = 0
+                        j += 1
+            continue
+        j = i * n_vox
         for ox in range(np.int64(1) << sx):
             row_x = ((bx << sx) + ox) * s0
-            for oy in range(np.int64(1) << sy):
-                row_y = row_x + ((by << sy) + oy) * s1 + (bz << sz)
-                for oz in range(np.int64(1) << sz):
-                    c = cells[row_y + oz]
-                    out[i, j] = c
-                    n_free += c == 1
-                    cells[row_y + oz] = 0
-                    j += 1
+            for oy in range(1 if whole else np.int64(1) << sy):
+                start = row_x + ((by << sy) + oy) * s1 + (bz << sz)
+                # Cells are 0, 1 (FREE) or 2 (HIT): the low bit of each byte counts FREE.
+                if word == 8:
+                    for r in range(start >> 3, (start + run) >> 3):
+                        v = cells64[r]
+                        out64[j >> 3] = v
+                        n_free += ((v & _LOW_BITS) * _LOW_BITS) >> 56
+                        cells64[r] = 0
+                        j += 8
+                else:
+                    for r in range(start >> 2, (start + run) >> 2):
+                        v = cells32[r]
+                        out32[j >> 2] = v
+                        n_free += (((v & _LOW_BITS32) * _LOW_BITS32) >> 24) & 0xFF
+                        cells32[r] = 0
+                        j += 4
     return blocks, out, hit_keys, rows, n_free
 
 
