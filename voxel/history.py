@@ -8,6 +8,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from voxel import kernels
 from voxel import keys as vk
 from voxel.occupancy import FREE_STATE, Changes, Evidence
 from voxel.raycast import FREE, HIT
@@ -181,12 +182,34 @@ class History:
         `changes` are the occupancy update's chunks (appended one by one, as the update made
         them): hits, and voxels whose state changed or that are or were occupied.
         """
+        compiled = kernels.records()
+        shared = (
+            observer.time,
+            observer.agent,
+            observer.sensor,
+            evidence.raw[FREE],
+            evidence.raw[HIT],
+            observer.error,
+            observer.reliability,
+            observer.bias,
+            observer.version,
+        )
+        no_tags = np.zeros(0, dtype=np.int32)
         for ch in changes:
             self._log_seen(ch.seen, observer.time, observer.version)
             n = int(ch.keys.size)
             if n == 0:
                 continue
             block = self._room(n)
+            if compiled is not None:
+                tags = (
+                    (no_tags, no_tags.view(np.float32))
+                    if objects is None
+                    else objects.lookup(ch.keys)
+                )
+                compiled(self._buf, self.size, ch.keys, ch.before, ch.after, ch.hit, *tags, shared)
+                self.size += n
+                continue
             block["key"] = ch.keys
             block["time"] = observer.time
             block["agent"] = observer.agent

@@ -72,6 +72,11 @@ def update() -> Callable[..., Any] | None:
     return _get("update")
 
 
+def records() -> Callable[..., Any] | None:
+    """The compiled writing of a chunk's history records (see `_fill_records`), or None."""
+    return _get("records")
+
+
 def index() -> Callable[..., Any] | None:
     """The compiled lookup and insertion of sorted block keys (see `_index_blocks`), or None."""
     return _get("index")
@@ -87,9 +92,24 @@ def _try_out(
     update: Callable[..., Any],
     beams: Callable[..., Any],
     index: Callable[..., Any],
+    records: Callable[..., Any],
 ) -> None:
     """One tiny call of each kernel: compiles (or loads) them, so a failure shows here."""
     index(np.array([2, 5], dtype=np.int64), np.array([0, 1], dtype=np.int64), np.arange(4), 2)
+    from voxel.history import RECORD_DTYPE  # (history imports this module)
+
+    one = np.zeros(1, dtype=np.float32)
+    records(
+        np.zeros(2, dtype=RECORD_DTYPE),
+        1,
+        np.zeros(1, dtype=np.int64),
+        one,
+        one,
+        np.zeros(1, dtype=np.bool_),
+        np.zeros(0, dtype=np.int32),
+        one[:0],
+        (0.0, 0, 0, np.float32(-0.4), np.float32(0.8), 0.0, 1.0, 0.0, 1),
+    )
     beams(
         np.array([[1.0, 2.0, 0.5], [40.0, 0.0, 0.0]]),
         np.zeros(3),
@@ -141,7 +161,8 @@ def _load() -> None:
     with _lock:
         if "trace" in _compiled:
             return
-        names = ("beams", "update", "index", "trace")  # "trace" last: callers test for it first
+        # "trace" last: callers test for it first
+        names = ("beams", "update", "index", "records", "trace")
         found: dict[str, Callable[..., Any] | None] = dict.fromkeys(names)
         try:
             import numba
@@ -149,7 +170,7 @@ def _load() -> None:
             _compiled.update(found)
             return
         try:
-            sources = (_trace_box, _update_records, _sort_beams, _index_blocks)
+            sources = (_trace_box, _update_records, _sort_beams, _index_blocks, _fill_records)
             try:
                 jit = numba.njit(cache=True, nogil=True)
                 kernels = tuple(jit(f) for f in sources)
@@ -160,6 +181,7 @@ def _load() -> None:
             _try_out(*kernels)
             found = {"trace": kernels[0], "update": kernels[1], "beams": kernels[2]}
             found["index"] = kernels[3]
+            found["records"] = kernels[4]
         except Exception as exc:  # noqa: BLE001 - any numba failure leaves the numpy path
             log.warning("compiled kernels unavailable, using numpy: %s", exc)
         for name in names:
@@ -813,3 +835,42 @@ def _index_blocks(
         i += 1
         out += 1
     return slots, new_keys, keys, held, True
+
+
+def _fill_records(
+    buf: np.ndarray,
+    start: int,
+    keys: np.ndarray,
+    before: np.ndarray,
+    after: np.ndarray,
+    hit: np.ndarray,
+    object_id: np.ndarray,
+    object_prob: np.ndarray,
+    shared: tuple[float, int, int, np.float32, np.float32, float, float, float, int],
+) -> None:
+    """Write one chunk's history records (RECORD_DTYPE) at `buf[start:]`, as `History.record`'s
+    numpy path writes them: keys, log-odds after, the evidence of a hit or a miss, the state
+    after and whether it flipped, object tags (none: `object_id` empty) and the columns the
+    scan shares: `shared` = (time, agent, sensor, miss evidence, hit evidence, error,
+    reliability, bias, version)."""
+    time, agent, sensor, ev_free, ev_hit, error, reliability, bias, version = shared
+    tagged = object_id.size == keys.size
+    for i in range(keys.size):
+        r = buf[start + i]
+        r.key = keys[i]
+        r.time = time
+        r.agent = agent
+        r.sensor = sensor
+        r.evidence = ev_hit if hit[i] else ev_free
+        a = after[i]
+        b = before[i]
+        r.logodds = a
+        occupied = a >= 0
+        r.state = 1 if occupied else 0
+        r.flip = np.isnan(b) or ((b >= 0) != occupied)
+        r.object_id = object_id[i] if tagged else -1
+        r.object_prob = object_prob[i] if tagged else 0.0
+        r.error = error
+        r.reliability = reliability
+        r.bias = bias
+        r.version = version
