@@ -606,7 +606,8 @@ def _sort_beams(
     n = points.shape[0]
     max2 = max_range * max_range
     hit_mask = np.zeros(n, dtype=np.bool_)
-    clear_mask = np.zeros(n, dtype=np.bool_)
+    clear_at = np.empty(n, dtype=np.int64)  # the clearing beams, and their lengths
+    clear_range = np.empty(n, dtype=np.float64)
     # floor(x) lies in [key_min, key_max] exactly when key_min <= x < key_max + 1.
     k_top = key_max + 1.0
     hit_keys = np.empty((3, n), dtype=np.float64)
@@ -668,7 +669,8 @@ def _sort_beams(
         else:
             r = np.sqrt(d2)
             if np.isfinite(r) and r > 0 and (r > max_range or nr[i]):
-                clear_mask[i] = True
+                clear_at[n_clear] = i
+                clear_range[n_clear] = r
                 n_clear += 1
     if n_out < n:
         hit_keys = hit_keys[:, :n_out].copy()
@@ -687,17 +689,10 @@ def _sort_beams(
     fine = np.empty((n_clear, 3), dtype=np.float64)
     m = 0
     if n_clear:
-        for i in range(n):
-            if not clear_mask[i]:
-                continue
+        for c in range(n_clear):
+            i = clear_at[c]
             limit = no_return_range if nr[i] and no_return_range < max_range else max_range
-            t = points[i, 0] - org[0]
-            d2 = t * t
-            t = points[i, 1] - org[1]
-            d2 += t * t
-            t = points[i, 2] - org[2]
-            d2 += t * t
-            scale = limit / np.sqrt(d2)
+            scale = limit / clear_range[c]
             inside = True
             for a in range(3):
                 e = points[i, a] - org[a]
