@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from voxel import kernels
 from voxel import keys as vk
 from voxel.errors import InputError
 
@@ -208,6 +209,22 @@ class BlockStore:
 
     def ensure(self, blocks: np.ndarray) -> np.ndarray:
         """Slots of unique packed block keys, creating missing blocks."""
+        compiled = None if self.free_slots else kernels.index()
+        if compiled is not None:
+            arr = np.asarray(blocks, dtype=np.int64)
+            found, new_keys, keys, held, ok = compiled(
+                self.sorted_keys, self.sorted_slots, arr, self.count
+            )
+            if ok:
+                n_new = int(new_keys.size)
+                if n_new:
+                    if self.count + n_new > self.capacity:
+                        self._grow(self.count + n_new)
+                    self.slot_keys[self.count : self.count + n_new] = new_keys
+                    self.count += n_new
+                    self.sorted_keys, self.sorted_slots = keys, held
+                slots: np.ndarray = found
+                return slots
         slots = self.lookup(blocks)
         missing = slots < 0
         n_new = int(missing.sum())

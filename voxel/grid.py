@@ -192,7 +192,7 @@ class VoxelGrid:
         bump version. Its records carry the provenance (VOXEL.md, "Provenance"): `error` (e, the
         pose error estimate, m), r = the scan's (sensor) reliability x `agent_reliability`, and
         `bias` (b)."""
-        beams = sort_beams(scan, sensor, self.resolution)
+        beams = sort_beams(scan, sensor, self.resolution, distinct=not scan.channels.any)
         traversal = trace(
             scan.origin,
             beams.hit_keys,

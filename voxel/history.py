@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
 
+from voxel import kernels
 from voxel import keys as vk
-from voxel.occupancy import FREE_STATE, OCCUPIED, Changes, Evidence
+from voxel.occupancy import FREE_STATE, Changes, Evidence
 from voxel.raycast import FREE, HIT
 
 #: Columns of a history record, in storage order.
@@ -51,6 +53,12 @@ RECORD_DTYPE_V3 = np.dtype(
         if n != "version"
     ]
 )
+
+
+def _columns(n: int, alloc: Callable[..., np.ndarray] = np.zeros) -> dict[str, np.ndarray]:
+    """One array of `n` entries per column of the seen log (SEEN_DTYPE)."""
+    names = SEEN_DTYPE.names or ()
+    return {name: alloc(n, dtype=SEEN_DTYPE[name]) for name in names}
 
 
 @dataclass(frozen=True)
@@ -121,8 +129,10 @@ class History:
         self._agent_index: dict[str, int] = {}
         self.dropped = 0
         #: The seen log: voxels that went unknown -> free (20 bytes each instead of a record),
-        #: bounded by `capacity` too (oldest entries dropped first).
-        self._seen = np.zeros(0, dtype=SEEN_DTYPE)
+        #: bounded by `capacity` too (oldest entries dropped first). Held as one array per
+        #: SEEN_DTYPE column: a scan appends ~10^4-10^5 entries, and contiguous columns take
+        #: them ~10x faster than the fields of a 20-byte record.
+        self._seen = _columns(0)
         self.seen_size = 0
 
     def agent_code(self, agent: str) -> int:
@@ -138,6 +148,16 @@ class History:
         n = int(np.asarray(keys).shape[0])
         if n == 0:
             return
+        block = self._room(n)
+        block["key"] = keys
+        block["object_id"] = -1
+        for name, value in columns.items():
+            block[name] = value
+        self.size += n
+
+    def _room(self, n: int) -> np.ndarray:
+        """The buffer's next `n` records (a view; compacted or grown as needed), not yet
+        counted in `size`."""
         if self.size + n > self._buf.shape[0]:
             if self.size + n > self.capacity:
                 self._compact(incoming=n)
@@ -148,12 +168,7 @@ class History:
                 )
                 grown[: self.size] = self._buf[: self.size]
                 self._buf = grown
-        block = self._buf[self.size : self.size + n]
-        block["key"] = keys
-        block["object_id"] = -1
-        for name, value in columns.items():
-            block[name] = value
-        self.size += n
+        return self._buf[self.size : self.size + n]
 
     def record(
         self,
@@ -167,70 +182,103 @@ class History:
         `changes` are the occupancy update's chunks (appended one by one, as the update made
         them): hits, and voxels whose state changed or that are or were occupied.
         """
+        compiled = kernels.records()
+        shared = (
+            observer.time,
+            observer.agent,
+            observer.sensor,
+            evidence.raw[FREE],
+            evidence.raw[HIT],
+            observer.error,
+            observer.reliability,
+            observer.bias,
+            observer.version,
+        )
+        no_tags = np.zeros(0, dtype=np.int32)
         for ch in changes:
             self._log_seen(ch.seen, observer.time, observer.version)
-            if ch.keys.size == 0:
+            n = int(ch.keys.size)
+            if n == 0:
                 continue
+            block = self._room(n)
+            if compiled is not None:
+                tags = (
+                    (no_tags, no_tags.view(np.float32))
+                    if objects is None
+                    else objects.lookup(ch.keys)
+                )
+                compiled(self._buf, self.size, ch.keys, ch.before, ch.after, ch.hit, *tags, shared)
+                self.size += n
+                continue
+            block["key"] = ch.keys
+            block["time"] = observer.time
+            block["agent"] = observer.agent
+            block["sensor"] = observer.sensor
+            block["evidence"] = evidence.raw[FREE]
+            block["evidence"][ch.hit] = evidence.raw[HIT]
+            block["logodds"] = ch.after
             state = ch.after >= 0
+            block["state"] = state  # OCCUPIED (1) or FREE_STATE (0)
             with np.errstate(invalid="ignore"):
-                flip = np.isnan(ch.before) | ((ch.before >= 0) != state)
+                block["flip"] = np.isnan(ch.before) | ((ch.before >= 0) != state)
             if objects is None:
-                obj_id = np.full(ch.keys.size, -1, dtype=np.int32)
-                obj_p = np.zeros(ch.keys.size, dtype=np.float32)
+                block["object_id"] = -1
+                block["object_prob"] = 0.0
             else:
-                obj_id, obj_p = objects.lookup(ch.keys)
-            self.append(
-                ch.keys,
-                time=observer.time,
-                agent=observer.agent,
-                sensor=observer.sensor,
-                evidence=np.where(ch.hit, evidence.raw[HIT], evidence.raw[FREE]),
-                logodds=ch.after,
-                state=np.where(state, OCCUPIED, FREE_STATE),
-                flip=flip,
-                object_id=obj_id,
-                object_prob=obj_p,
-                error=observer.error,
-                reliability=observer.reliability,
-                bias=observer.bias,
-                version=observer.version,
-            )
+                block["object_id"], block["object_prob"] = objects.lookup(ch.keys)
+            block["error"] = observer.error
+            block["reliability"] = observer.reliability
+            block["bias"] = observer.bias
+            block["version"] = observer.version
+            self.size += n
 
     def _log_seen(self, keys: np.ndarray, time: float, version: int) -> None:
         n = int(keys.size)
         if n == 0:
             return
-        if self.seen_size + n > self.capacity:  # drop the oldest quarter (appended in order)
-            keep = max(0, min(self.seen_size, (self.capacity * 3) // 4 - n))
-            self._seen[:keep] = self._seen[self.seen_size - keep : self.seen_size]
-            self.dropped += self.seen_size - keep
-            self.seen_size = keep
-            if self._seen.shape[0] > max(self.capacity, n):  # the bound was lowered
-                self._seen = self._seen[: max(self.capacity, n)].copy()
-        if self.seen_size + n > self._seen.shape[0]:
+        cols = self._seen
+        size = self.seen_size
+        if size + n > self.capacity:  # drop the oldest quarter (appended in order)
+            keep = max(0, min(size, (self.capacity * 3) // 4 - n))
+            for col in cols.values():
+                col[:keep] = col[size - keep : size]
+            self.dropped += size - keep
+            self.seen_size = size = keep
+            if cols["key"].shape[0] > max(self.capacity, n):  # the bound was lowered
+                cols = {k: c[: max(self.capacity, n)].copy() for k, c in cols.items()}
+        if size + n > cols["key"].shape[0]:
             # Uninitialised: only the first seen_size entries are ever read, each written whole
             # (zeroing 1.3 MB was most of a fresh grid's first small scan).
-            grown = np.empty(
+            grown = _columns(
                 min(
-                    max(self._seen.shape[0] * 2, self.seen_size + n, MIN_BUFFER),
+                    max(cols["key"].shape[0] * 2, size + n, MIN_BUFFER),
                     max(self.capacity, n),
                 ),
-                dtype=SEEN_DTYPE,
+                np.empty,
             )
-            grown[: self.seen_size] = self._seen[: self.seen_size]
-            self._seen = grown
-        block = self._seen[self.seen_size : self.seen_size + n]
-        block["key"], block["time"], block["version"] = keys, time, version
-        self.seen_size += n
+            for k, c in grown.items():
+                c[:size] = cols[k][:size]
+            cols = grown
+        self._seen = cols
+        cols["key"][size : size + n] = keys
+        cols["time"][size : size + n] = time
+        cols["version"][size : size + n] = version
+        self.seen_size = size + n
 
     def seen(self) -> np.ndarray:
-        """The seen log (a view; oldest first)."""
-        return self._seen[: self.seen_size]
+        """The seen log (SEEN_DTYPE, a copy; oldest first)."""
+        out = np.empty(self.seen_size, dtype=SEEN_DTYPE)
+        for k, c in self._seen.items():
+            out[k] = c[: self.seen_size]
+        return out
+
+    def _seen_column(self, name: str) -> np.ndarray:
+        """One column of the seen log (a view)."""
+        return self._seen[name][: self.seen_size]
 
     def _seen_at(self, t: float) -> np.ndarray:
         """Packed keys (sorted, unique) seen as free at or before time t."""
-        s = self.seen()
-        return np.unique(s["key"][s["time"] <= t])
+        return np.unique(self._seen_column("key")[self._seen_column("time") <= t])
 
     def _compact(self, incoming: int) -> None:
         rec = self._buf[: self.size]
@@ -311,8 +359,8 @@ class History:
         """Packed keys whose state changed in (t0, t1]."""
         rec = self.view()
         m = rec["flip"] & (rec["time"] > t0) & (rec["time"] <= t1)
-        s = self.seen()
-        fresh = s["key"][(s["time"] > t0) & (s["time"] <= t1)]
+        when = self._seen_column("time")
+        fresh = self._seen_column("key")[(when > t0) & (when <= t1)]
         return np.unique(np.concatenate([rec["key"][m], fresh]))
 
     def drop_keys(self, keys: np.ndarray) -> int:
@@ -327,24 +375,26 @@ class History:
             self.size = kept.size
         if self.size * 2 < self._buf.shape[0] and self._buf.shape[0] > MIN_BUFFER:
             self._buf = self._buf[: max(self.size + self.size // 4, MIN_BUFFER)].copy()
-        s = self.seen()
-        gone_seen = np.isin(s["key"], np.asarray(keys, dtype=np.int64))
+        gone_seen = np.isin(self._seen_column("key"), np.asarray(keys, dtype=np.int64))
         if gone_seen.any():
-            kept_seen = s[~gone_seen]
-            self._seen[: kept_seen.size] = kept_seen
-            self.seen_size = kept_seen.size
-        if self.seen_size * 2 < self._seen.shape[0] and self._seen.shape[0] > MIN_BUFFER:
-            self._seen = self._seen[: max(self.seen_size + self.seen_size // 4, MIN_BUFFER)].copy()
+            left = int(np.count_nonzero(~gone_seen))
+            for col in self._seen.values():
+                col[:left] = col[: self.seen_size][~gone_seen]
+            self.seen_size = left
+        held = self._seen["key"].shape[0]
+        if self.seen_size * 2 < held and held > MIN_BUFFER:
+            cut = max(self.seen_size + self.seen_size // 4, MIN_BUFFER)
+            self._seen = {k: c[:cut].copy() for k, c in self._seen.items()}
         return n + int(np.count_nonzero(gone_seen))
 
     def allocated_bytes(self) -> int:
         """Bytes of the record buffer (its capacity, not only the records held)."""
-        return int(self._buf.nbytes + self._seen.nbytes)
+        return int(self._buf.nbytes + sum(c.nbytes for c in self._seen.values()))
 
     def newest_version(self) -> int:
         """Highest grid version among the records and seen entries held (0 without any)."""
         versions = [
-            int(a.max()) for a in (self.view()["version"], self.seen()["version"]) if a.size
+            int(a.max()) for a in (self.view()["version"], self._seen_column("version")) if a.size
         ]
         return max(versions, default=0)
 
@@ -400,8 +450,9 @@ class History:
     def load(self, records: np.ndarray, agents: list[str], seen: np.ndarray | None = None) -> None:
         """Replace the content with saved records, agent table and seen log."""
         seen = np.zeros(0, SEEN_DTYPE) if seen is None else seen
-        self._seen = np.zeros(max(seen.size, MIN_BUFFER), dtype=SEEN_DTYPE)
-        self._seen[: seen.size] = seen
+        self._seen = _columns(max(seen.size, MIN_BUFFER))
+        for k, c in self._seen.items():
+            c[: seen.size] = seen[k]
         self.seen_size = seen.size
         self._buf = np.zeros(max(records.size, min(self.capacity, MIN_BUFFER)), dtype=RECORD_DTYPE)
         self._buf[: records.size] = records

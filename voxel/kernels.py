@@ -1,6 +1,7 @@
 """Compiled kernels (numba, the optional `fast` extra) for integration's hot loops, loaded lazily.
 
-`trace()` (a scan's whole dense traversal: hits, rays, blocks touched) and `update()` (the
+`beams()` (a scan's beams sorted), `trace()` (a scan's whole dense traversal: hits, rays,
+blocks touched), `index()` (the block store's lookup and insertion) and `update()` (the
 occupancy update of a chunk of blocks and the voxels the history records) return a compiled
 kernel, or None when numba is absent, fails, or `COLONY_JIT=0`; the callers then run their
 pure-numpy path, which gives bit-identical results (the kernels repeat its floating-point
@@ -31,6 +32,12 @@ _AXIS_BITS = vk.AXIS_BITS
 _AXIS_OFFSET = 1 << (_AXIS_BITS - 1)
 #: Multipliers of `keys.one_per_key`'s hash rounds.
 _HASH = vk._HASH_MULTIPLIERS
+#: Entries of the sorting's cache of recent hit keys (`_sort_beams`, distinct).
+_RECENT_BITS = 12
+_RECENT = 1 << _RECENT_BITS
+#: The low bit of every byte of a 64-bit (32-bit) word.
+_LOW_BITS = np.uint64(0x0101010101010101)
+_LOW_BITS32 = np.uint32(0x01010101)
 
 _lock = threading.Lock()
 #: Name -> compiled kernel (None: numba absent); empty until loaded.
@@ -65,15 +72,44 @@ def update() -> Callable[..., Any] | None:
     return _get("update")
 
 
+def records() -> Callable[..., Any] | None:
+    """The compiled writing of a chunk's history records (see `_fill_records`), or None."""
+    return _get("records")
+
+
+def index() -> Callable[..., Any] | None:
+    """The compiled lookup and insertion of sorted block keys (see `_index_blocks`), or None."""
+    return _get("index")
+
+
 def warm() -> bool:
     """Import numba and load (or compile and cache) the kernels now; True when they are in use."""
     return trace() is not None
 
 
 def _try_out(
-    trace: Callable[..., Any], update: Callable[..., Any], beams: Callable[..., Any]
+    trace: Callable[..., Any],
+    update: Callable[..., Any],
+    beams: Callable[..., Any],
+    index: Callable[..., Any],
+    records: Callable[..., Any],
 ) -> None:
     """One tiny call of each kernel: compiles (or loads) them, so a failure shows here."""
+    index(np.array([2, 5], dtype=np.int64), np.array([0, 1], dtype=np.int64), np.arange(4), 2)
+    from voxel.history import RECORD_DTYPE  # (history imports this module)
+
+    one = np.zeros(1, dtype=np.float32)
+    records(
+        np.zeros(2, dtype=RECORD_DTYPE),
+        1,
+        np.zeros(1, dtype=np.int64),
+        one,
+        one,
+        np.zeros(1, dtype=np.bool_),
+        np.zeros(0, dtype=np.int32),
+        one[:0],
+        (0.0, 0, 0, np.float32(-0.4), np.float32(0.8), 0.0, 1.0, 0.0, 1),
+    )
     beams(
         np.array([[1.0, 2.0, 0.5], [40.0, 0.0, 0.0]]),
         np.zeros(3),
@@ -85,6 +121,7 @@ def _try_out(
         float(vk.KEY_MIN),
         float(vk.KEY_MAX),
         float(vk.KEY_MAX * 3),
+        True,
     )
     trace(
         np.array([0.5, 0.5, 0.5]),
@@ -124,28 +161,31 @@ def _load() -> None:
     with _lock:
         if "trace" in _compiled:
             return
-        found: dict[str, Callable[..., Any] | None] = {"beams": None, "update": None, "trace": None}
+        # "trace" last: callers test for it first
+        names = ("beams", "update", "index", "records", "trace")
+        found: dict[str, Callable[..., Any] | None] = dict.fromkeys(names)
         try:
             import numba
         except ImportError:
             _compiled.update(found)
             return
         try:
+            sources = (_trace_box, _update_records, _sort_beams, _index_blocks, _fill_records)
             try:
                 jit = numba.njit(cache=True, nogil=True)
-                kernels = jit(_trace_box), jit(_update_records), jit(_sort_beams)
+                kernels = tuple(jit(f) for f in sources)
             except RuntimeError:  # no writable cache directory: compile at every start
                 log.warning("numba cannot cache here (set NUMBA_CACHE_DIR); compiling in memory")
                 jit = numba.njit(nogil=True)
-                kernels = jit(_trace_box), jit(_update_records), jit(_sort_beams)
+                kernels = tuple(jit(f) for f in sources)
             _try_out(*kernels)
-            found = {"beams": kernels[2], "update": kernels[1], "trace": kernels[0]}
+            found = {"trace": kernels[0], "update": kernels[1], "beams": kernels[2]}
+            found["index"] = kernels[3]
+            found["records"] = kernels[4]
         except Exception as exc:  # noqa: BLE001 - any numba failure leaves the numpy path
             log.warning("compiled kernels unavailable, using numpy: %s", exc)
-        # "trace" last: callers test for it before asking for the others.
-        _compiled["beams"] = found["beams"]
-        _compiled["update"] = found["update"]
-        _compiled["trace"] = found["trace"]
+        for name in names:
+            _compiled[name] = found[name]
 
 
 def _trace_box(
@@ -336,24 +376,30 @@ def _trace_box(
             y = y0
             z = z0
             split = min(m, k_flat)
-            for k in range(split):  # accumulate (the numpy sweep's steps)
+            # Branch-free: a fixed axis has a zero stride and its key in a constant offset.
+            sb_e = 0 if stay_b else sb
+            sc_e = 0 if stay_c else sc
+            off_b = ko[b] if stay_b else 0
+            off_c = ko[c] if stay_c else 0
+            xa = ko[a] + isgn
+            base_lin = lin_a + fixed
+            for _ in range(split):  # accumulate (the numpy sweep's steps)
                 yv = np.int64(y)
                 zv = np.int64(z)
                 y += inc_y
                 z += inc_z
-                lin = lin_a + fixed
-                if not stay_b:
-                    lin += yv * sb
-                if not stay_c:
-                    lin += zv * sc
-                lin_a += sa
+                lin = base_lin + yv * sb_e + zv * sc_e
+                base_lin += sa
+                xa_k = xa
+                xa += isgn
                 if cells[lin] != 0:
                     continue  # marked before, and so was its block
                 cells[lin] = 1  # FREE
-                xa = ko[a] + (k + 1) * isgn
-                xb = ko[b] if stay_b else yv
-                xc = ko[c] if stay_c else zv
-                blk = (xa >> sh_a) * blk_a + (xb >> sh_b) * blk_b + (xc >> sh_c) * blk_c
+                blk = (
+                    (xa_k >> sh_a) * blk_a
+                    + ((off_b if stay_b else yv) >> sh_b) * blk_b
+                    + ((off_c if stay_c else zv) >> sh_c) * blk_c
+                )
                 if marks[blk] == 0:
                     marks[blk] = 1
                     touched[n_touched] = blk
@@ -362,19 +408,18 @@ def _trace_box(
                 jf = np.float64(k - k_flat)
                 yv = np.int64(y + jf * inc_y)
                 zv = np.int64(z + jf * inc_z)
-                lin = lin_a + fixed
-                if not stay_b:
-                    lin += yv * sb
-                if not stay_c:
-                    lin += zv * sc
-                lin_a += sa
+                lin = base_lin + yv * sb_e + zv * sc_e
+                base_lin += sa
+                xa_k = xa
+                xa += isgn
                 if cells[lin] != 0:
                     continue  # marked before, and so was its block
                 cells[lin] = 1  # FREE
-                xa = ko[a] + (k + 1) * isgn
-                xb = ko[b] if stay_b else yv
-                xc = ko[c] if stay_c else zv
-                blk = (xa >> sh_a) * blk_a + (xb >> sh_b) * blk_b + (xc >> sh_c) * blk_c
+                blk = (
+                    (xa_k >> sh_a) * blk_a
+                    + ((off_b if stay_b else yv) >> sh_b) * blk_b
+                    + ((off_c if stay_c else zv) >> sh_c) * blk_c
+                )
                 if marks[blk] == 0:
                     marks[blk] = 1
                     touched[n_touched] = blk
@@ -390,6 +435,17 @@ def _trace_box(
     off_x = (lo[0] >> sx) + _AXIS_OFFSET
     off_y = (lo[1] >> sy) + _AXIS_OFFSET
     off_z = (lo[2] >> sz) + _AXIS_OFFSET
+    # A block's cells lie in runs along z (along y and z when the box is one block high):
+    # copied, counted and cleared 8 or 4 at a time when the runs allow it.
+    whole = dims[2] == (np.int64(1) << sz)
+    run = np.int64(1) << (sy + sz if whole else sz)
+    word = 8 if run % 8 == 0 else (4 if run % 4 == 0 else 1)
+    if cells.size % 8 != 0:
+        word = 1
+    cells64 = cells[: cells.size - cells.size % 8].view(np.uint64)
+    cells32 = cells[: cells.size - cells.size % 8].view(np.uint32)
+    out64 = out.reshape(n_touched * n_vox).view(np.uint64) if word == 8 else cells64[:0]
+    out32 = out.reshape(n_touched * n_vox).view(np.uint32) if word == 4 else cells32[:0]
     n_free = 0
     for i in range(n_touched):
         t = order[i]
@@ -399,17 +455,39 @@ def _trace_box(
         by = rest // bstride[1]
         bz = rest - by * bstride[1]
         blocks[i] = ((bx + off_x) << (2 * _AXIS_BITS)) | ((by + off_y) << _AXIS_BITS) | (bz + off_z)
-        j = 0
+        if word == 1:
+            j = 0
+            for ox in range(np.int64(1) << sx):
+                row_x = ((bx << sx) + ox) * s0
+                for oy in range(np.int64(1) << sy):
+                    row_y = row_x + ((by << sy) + oy) * s1 + (bz << sz)
+                    for oz in range(np.int64(1) << sz):
+                        c = cells[row_y + oz]
+                        out[i, j] = c
+                        n_free += c == 1
+                        cells[row_y + oz] = 0
+                        j += 1
+            continue
+        j = i * n_vox
         for ox in range(np.int64(1) << sx):
             row_x = ((bx << sx) + ox) * s0
-            for oy in range(np.int64(1) << sy):
-                row_y = row_x + ((by << sy) + oy) * s1 + (bz << sz)
-                for oz in range(np.int64(1) << sz):
-                    c = cells[row_y + oz]
-                    out[i, j] = c
-                    n_free += c == 1
-                    cells[row_y + oz] = 0
-                    j += 1
+            for oy in range(1 if whole else np.int64(1) << sy):
+                start = row_x + ((by << sy) + oy) * s1 + (bz << sz)
+                # Cells are 0, 1 (FREE) or 2 (HIT): the low bit of each byte counts FREE.
+                if word == 8:
+                    for r in range(start >> 3, (start + run) >> 3):
+                        v = cells64[r]
+                        out64[j >> 3] = v
+                        n_free += ((v & _LOW_BITS) * _LOW_BITS) >> 56
+                        cells64[r] = 0
+                        j += 8
+                else:
+                    for r in range(start >> 2, (start + run) >> 2):
+                        v = cells32[r]
+                        out32[j >> 2] = v
+                        n_free += (((v & _LOW_BITS32) * _LOW_BITS32) >> 24) & 0xFF
+                        cells32[r] = 0
+                        j += 4
     return blocks, out, hit_keys, rows, n_free
 
 
@@ -439,33 +517,13 @@ def _update_records(
     before and after and hit flags of the changed voxels that are hit, occupied now or were
     occupied, and (with `seen`) the packed keys of the voxels that went unknown -> free."""
     n_blocks, n_vox = cells.shape
+    # One pass; the outputs are cut to size at the end (at most one entry per touched cell).
+    keys = np.empty(n_blocks * n_vox, dtype=np.int64)
+    old = np.empty(keys.size, dtype=np.float32)
+    new = np.empty(keys.size, dtype=np.float32)
+    hit = np.empty(keys.size, dtype=np.bool_)
+    fresh = np.empty(keys.size if seen else 0, dtype=np.int64)
     count = 0
-    n_keep = 0
-    n_fresh = 0
-    for i in range(n_blocks):
-        s = slots[i]
-        for j in range(n_vox):
-            c = cells[i, j]
-            if c == 0:
-                continue
-            before = logodds[s, j]
-            known = not np.isnan(before)
-            after = (before if known else np.float32(0.0)) + steps[c]
-            after = min(max(after, low), high)
-            if known and after == before:
-                continue
-            count += 1
-            if after >= 0 or before >= 0 or c == 2:
-                n_keep += 1
-            if seen and not known and after < 0:
-                n_fresh += 1
-    keys = np.empty(n_keep, dtype=np.int64)
-    old = np.empty(n_keep, dtype=np.float32)
-    new = np.empty(n_keep, dtype=np.float32)
-    hit = np.empty(n_keep, dtype=np.bool_)
-    fresh = np.empty(n_fresh, dtype=np.int64)
-    if count == 0:
-        return 0, keys, old, new, hit, fresh
     sx = shifts[0]
     sy = shifts[1]
     sz = shifts[2]
@@ -487,11 +545,12 @@ def _update_records(
             known = not np.isnan(before)
             after = (before if known else np.float32(0.0)) + steps[c]
             after = min(max(after, low), high)
-            logodds[s, j] = after
             if known and after == before:
                 continue
+            logodds[s, j] = after
             version[s, j] = v
             last_time[s, j] = stamp
+            count += 1
             changed_block = True
             keep = after >= 0 or before >= 0 or c == 2
             is_fresh = seen and not known and after < 0
@@ -515,7 +574,7 @@ def _update_records(
                     f += 1
         if changed_block:
             slot_version[s] = v
-    return count, keys, old, new, hit, fresh
+    return count, keys[:k], old[:k], new[:k], hit[:k], fresh[:f]
 
 
 def _sort_beams(
@@ -529,7 +588,8 @@ def _sort_beams(
     key_min: float,
     key_max: float,
     fine_limit: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, bool, np.ndarray]:
+    distinct: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, bool, np.ndarray, int]:
     """A scan's beams sorted as `scan.sort_beams` sorts them (the same floating-point operations
     in the same order): points (N, 3) seen from `org`, `nr` the no-return flags; `inv` is
     1 / resolution, `fine_scale` CLEAR_SUBDIVISION / resolution, keys must lie in
@@ -538,15 +598,26 @@ def _sort_beams(
     Returns the hit keys (3, H) float64, the hit mask (N,), the clear ends (M, 3) (one beam per
     fine cell, chosen as `keys.one_per_key` chooses), the counts of clearing and dropped beams,
     False when the clear cells span too much for one packed index (then nothing is valid: the
-    caller uses the numpy path), and the bounds (2, 3) int64 of the hit keys and of the clear
-    ends' keys (floor(end * inv)), for the traversal's box (a bound is empty: low > high)."""
+    caller uses the numpy path), the bounds (2, 3) int64 of the hit keys and of the clear
+    ends' keys (floor(end * inv)), for the traversal's box (a bound is empty: low > high), and
+    the count of hit points. With `distinct`, a hit key equal to one of the recent ones (a small
+    cache: neighbouring pixels of a depth image share voxels) is left out: the hit keys are then
+    the same set with fewer repeats (H <= the count of hit points), in the same order."""
     n = points.shape[0]
     max2 = max_range * max_range
     hit_mask = np.zeros(n, dtype=np.bool_)
-    clear_mask = np.zeros(n, dtype=np.bool_)
+    clear_at = np.empty(n, dtype=np.int64)  # the clearing beams, and their lengths
+    clear_range = np.empty(n, dtype=np.float64)
     # floor(x) lies in [key_min, key_max] exactly when key_min <= x < key_max + 1.
     k_top = key_max + 1.0
+    hit_keys = np.empty((3, n), dtype=np.float64)
+    # The hit keys' bounds, in registers through the loop.
+    lo0 = lo1 = lo2 = np.int64(np.iinfo(np.int64).max)
+    hi0 = hi1 = hi2 = np.int64(np.iinfo(np.int64).min)
+    # Recent hit keys (packed, -1 none), by hash: a direct-mapped cache, a miss only repeats a key.
+    recent = np.full(_RECENT if distinct else 1, -1, dtype=np.int64)
     n_hit = 0
+    n_out = 0
     n_clear = 0
     for i in range(n):
         t = points[i, 0] - org[0]
@@ -569,24 +640,47 @@ def _sort_beams(
             ):
                 hit_mask[i] = True
                 n_hit += 1
+                k0 = np.floor(x0)
+                k1 = np.floor(x1)
+                k2 = np.floor(x2)
+                i0 = np.int64(k0)
+                i1 = np.int64(k1)
+                i2 = np.int64(k2)
+                lo0 = i0 if i0 < lo0 else lo0
+                hi0 = i0 if i0 > hi0 else hi0
+                lo1 = i1 if i1 < lo1 else lo1
+                hi1 = i1 if i1 > hi1 else hi1
+                lo2 = i2 if i2 < lo2 else lo2
+                hi2 = i2 if i2 > hi2 else hi2
+                if distinct:
+                    packed = (
+                        ((i0 + _AXIS_OFFSET) << (2 * _AXIS_BITS))
+                        | ((i1 + _AXIS_OFFSET) << _AXIS_BITS)
+                        | (i2 + _AXIS_OFFSET)
+                    )
+                    h = ((packed * np.int64(_HASH[0])) >> (64 - _RECENT_BITS)) & (_RECENT - 1)
+                    if recent[h] == packed:
+                        continue
+                    recent[h] = packed
+                hit_keys[0, n_out] = k0
+                hit_keys[1, n_out] = k1
+                hit_keys[2, n_out] = k2
+                n_out += 1
         else:
             r = np.sqrt(d2)
             if np.isfinite(r) and r > 0 and (r > max_range or nr[i]):
-                clear_mask[i] = True
+                clear_at[n_clear] = i
+                clear_range[n_clear] = r
                 n_clear += 1
-    hit_keys = np.empty((3, n_hit), dtype=np.float64)
+    if n_out < n:
+        hit_keys = hit_keys[:, :n_out].copy()
     bounds = np.empty((2, 3), dtype=np.int64)
-    bounds[0, :] = np.iinfo(np.int64).max
-    bounds[1, :] = np.iinfo(np.int64).min
-    j = 0
-    for i in range(n):
-        if hit_mask[i]:
-            for a in range(3):
-                k = np.floor(points[i, a] * inv)
-                hit_keys[a, j] = k
-                bounds[0, a] = min(bounds[0, a], np.int64(k))
-                bounds[1, a] = max(bounds[1, a], np.int64(k))
-            j += 1
+    bounds[0, 0] = lo0
+    bounds[0, 1] = lo1
+    bounds[0, 2] = lo2
+    bounds[1, 0] = hi0
+    bounds[1, 1] = hi1
+    bounds[1, 2] = hi2
     dropped = 0
     if not np.isfinite(no_return_range):  # then no max range either: only no-returns
         dropped = n_clear
@@ -595,17 +689,10 @@ def _sort_beams(
     fine = np.empty((n_clear, 3), dtype=np.float64)
     m = 0
     if n_clear:
-        for i in range(n):
-            if not clear_mask[i]:
-                continue
+        for c in range(n_clear):
+            i = clear_at[c]
             limit = no_return_range if nr[i] and no_return_range < max_range else max_range
-            t = points[i, 0] - org[0]
-            d2 = t * t
-            t = points[i, 1] - org[1]
-            d2 += t * t
-            t = points[i, 2] - org[2]
-            d2 += t * t
-            scale = limit / np.sqrt(d2)
+            scale = limit / clear_range[c]
             inside = True
             for a in range(3):
                 e = points[i, a] - org[a]
@@ -634,7 +721,7 @@ def _sort_beams(
             lo[a] = np.int64(mn)
             span[a] = np.int64(mx) - lo[a] + 1
         if np.float64(span[0]) * np.float64(span[1]) * np.float64(span[2]) > 2.0**62:
-            return hit_keys, hit_mask, ends[:0], cleared, dropped, False, bounds
+            return hit_keys, hit_mask, ends[:0], cleared, dropped, False, bounds, n_hit
         lin = np.empty(m, dtype=np.int64)
         for i in range(m):
             lin[i] = (
@@ -687,4 +774,98 @@ def _sort_beams(
             k = np.int64(np.floor(e * inv))
             bounds[0, a] = min(bounds[0, a], k)
             bounds[1, a] = max(bounds[1, a], k)
-    return hit_keys, hit_mask, picked, cleared, dropped, True, bounds
+    return hit_keys, hit_mask, picked, cleared, dropped, True, bounds, n_hit
+
+
+def _index_blocks(
+    sorted_keys: np.ndarray, sorted_slots: np.ndarray, blocks: np.ndarray, first_free: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+    """Slots of sorted, unique packed block keys `blocks` in a store's index (`sorted_keys`,
+    with `sorted_slots`), as `BlockStore.ensure` computes them without free slots to reuse:
+    missing blocks take slots `first_free`, `first_free` + 1, ... in key order. One merge walk.
+
+    Returns the slots, the new blocks' keys, the index with them (the inputs themselves when
+    none is new), and False when `blocks` are not sorted and unique (then nothing is valid)."""
+    n_old = sorted_keys.size
+    m = blocks.size
+    slots = np.empty(m, dtype=np.int64)
+    i = 0
+    n_new = 0
+    for j in range(m):
+        b = blocks[j]
+        if j > 0 and b <= blocks[j - 1]:
+            return slots, blocks[:0], sorted_keys, sorted_slots, False
+        while i < n_old and sorted_keys[i] < b:
+            i += 1
+        if i < n_old and sorted_keys[i] == b:
+            slots[j] = sorted_slots[i]
+        else:
+            slots[j] = first_free + n_new
+            n_new += 1
+    if n_new == 0:
+        return slots, blocks[:0], sorted_keys, sorted_slots, True
+    new_keys = np.empty(n_new, dtype=np.int64)
+    keys = np.empty(n_old + n_new, dtype=np.int64)
+    held = np.empty(n_old + n_new, dtype=np.int64)
+    i = 0
+    k = 0
+    out = 0
+    for j in range(m):
+        b = blocks[j]
+        if slots[j] < first_free:
+            continue  # held already
+        while i < n_old and sorted_keys[i] < b:
+            keys[out] = sorted_keys[i]
+            held[out] = sorted_slots[i]
+            i += 1
+            out += 1
+        keys[out] = b
+        held[out] = slots[j]
+        new_keys[k] = b
+        k += 1
+        out += 1
+    while i < n_old:
+        keys[out] = sorted_keys[i]
+        held[out] = sorted_slots[i]
+        i += 1
+        out += 1
+    return slots, new_keys, keys, held, True
+
+
+def _fill_records(
+    buf: np.ndarray,
+    start: int,
+    keys: np.ndarray,
+    before: np.ndarray,
+    after: np.ndarray,
+    hit: np.ndarray,
+    object_id: np.ndarray,
+    object_prob: np.ndarray,
+    shared: tuple[float, int, int, np.float32, np.float32, float, float, float, int],
+) -> None:
+    """Write one chunk's history records (RECORD_DTYPE) at `buf[start:]`, as `History.record`'s
+    numpy path writes them: keys, log-odds after, the evidence of a hit or a miss, the state
+    after and whether it flipped, object tags (none: `object_id` empty) and the columns the
+    scan shares: `shared` = (time, agent, sensor, miss evidence, hit evidence, error,
+    reliability, bias, version)."""
+    time, agent, sensor, ev_free, ev_hit, error, reliability, bias, version = shared
+    tagged = object_id.size == keys.size
+    for i in range(keys.size):
+        r = buf[start + i]
+        r.key = keys[i]
+        r.time = time
+        r.agent = agent
+        r.sensor = sensor
+        r.evidence = ev_hit if hit[i] else ev_free
+        a = after[i]
+        b = before[i]
+        r.logodds = a
+        occupied = a >= 0
+        r.state = 1 if occupied else 0
+        r.flip = np.isnan(b) or ((b >= 0) != occupied)
+        r.object_id = object_id[i] if tagged else -1
+        r.object_prob = object_prob[i] if tagged else 0.0
+        r.error = error
+        r.reliability = reliability
+        r.bias = bias
+        r.version = version

@@ -208,6 +208,27 @@ def _box(
     return lo, hi - lo
 
 
+def _box_of_bounds(
+    origin_key: np.ndarray, bounds: np.ndarray, shifts: tuple[int, int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """`_box` of the origin key and the lowest and highest keys `bounds` (2, 3) (low > high:
+    none), in Python integers: a small scan's box costs microseconds, not a dozen numpy calls."""
+    ko = origin_key.tolist()
+    (l0, l1, l2), (h0, h1, h2) = np.asarray(bounds, dtype=np.int64).tolist()
+    lows, highs = (ko, ko) if l0 > h0 else ([l0, l1, l2], [h0, h1, h2])
+    lo = []
+    dims = []
+    for a in range(3):
+        low = min(ko[a], lows[a])
+        high = max(ko[a], highs[a])
+        margin = int(low != high)
+        sh = shifts[a]
+        start = (low - margin) >> sh << sh
+        lo.append(start)
+        dims.append(((high + margin) >> sh << sh) + (1 << sh) - start)
+    return np.array(lo, dtype=np.int64), np.array(dims, dtype=np.int64)
+
+
 def trace(
     origin: np.ndarray,
     hit_keys: np.ndarray,
@@ -236,10 +257,8 @@ def trace(
         clear_keys = np.floor(clear_scaled).astype(np.int64)
         lo, dims = _box(key_o, hk, clear_keys.T, shifts=shifts)
     else:
-        b = np.asarray(bounds, dtype=np.int64)
-        rows = b.T if b[0, 0] <= b[1, 0] else np.empty((3, 0), dtype=np.int64)  # none: empty
-        lo, dims = _box(key_o, rows, shifts=shifts)
-    total = int(np.prod(dims))
+        lo, dims = _box_of_bounds(key_o, bounds, shifts)
+    total = int(dims[0]) * int(dims[1]) * int(dims[2])
     if total > DENSE_LIMIT:
         packed, inverse = np.unique(vk.pack(hk.T.astype(np.int64)), return_inverse=True)
         uniq = vk.unpack(packed)
@@ -251,7 +270,7 @@ def trace(
     compiled = kernels.trace()
     if compiled is not None:
         sh = np.asarray(shifts, dtype=np.int64)
-        n_blocks = int(np.prod(dims >> sh))
+        n_blocks = total >> (shifts[0] + shifts[1] + shifts[2])
         cells = scratch.take("cells", total, np.uint8)
         marks = scratch.take("marks", n_blocks, np.uint8)
         touched = scratch.take("touched", n_blocks, np.int64)

@@ -120,18 +120,22 @@ class Beams:
     dropped: int  # no-return beams that cannot be used (sensor without a max range)
     #: (2, 3) int64 lowest and highest voxel key of the hits and clear ends, when known
     bounds: np.ndarray | None = None
+    #: Points that hit, when `hit_keys` holds fewer columns (repeated keys left out); else -1
+    hit_points: int = -1
 
     @property
     def hits(self) -> int:
-        return int(self.hit_keys.shape[1])
+        """Points that hit."""
+        return self.hit_points if self.hit_points >= 0 else int(self.hit_keys.shape[1])
 
 
-def sort_beams(scan: Scan, sensor: SensorModel, resolution: float) -> Beams:
+def sort_beams(scan: Scan, sensor: SensorModel, resolution: float, distinct: bool = False) -> Beams:
     """Hits end within max range; beams beyond it clear up to max range, beams without a return
-    up to the sensor's `no_return_range`."""
+    up to the sensor's `no_return_range`. With `distinct` (a scan whose points' rows are not
+    needed, i.e. without channels), the compiled path may leave repeated hit keys out."""
     compiled = kernels.beams()
     if compiled is not None:
-        hit_keys, hit_mask, ends, cleared, dropped, ok, bounds = compiled(
+        hit_keys, hit_mask, ends, cleared, dropped, ok, bounds, n_hit = compiled(
             np.ascontiguousarray(scan.points),
             scan.origin,
             scan.no_return,
@@ -142,10 +146,11 @@ def sort_beams(scan: Scan, sensor: SensorModel, resolution: float) -> Beams:
             float(vk.KEY_MIN),
             float(vk.KEY_MAX),
             float(vk.KEY_MAX * CLEAR_SUBDIVISION),
+            distinct,
         )
         if ok:
-            invalid = scan.points.shape[0] - int(hit_keys.shape[1]) - cleared - dropped
-            return Beams(hit_keys, hit_mask, ends, cleared, invalid, dropped, bounds)
+            invalid = scan.points.shape[0] - n_hit - cleared - dropped
+            return Beams(hit_keys, hit_mask, ends, cleared, invalid, dropped, bounds, n_hit)
     n = scan.points.shape[0]
     org, nr = scan.origin, scan.no_return
     rows = np.ascontiguousarray(

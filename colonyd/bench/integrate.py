@@ -269,6 +269,16 @@ def run_scenario(sc: Scenario, repeats: int, runs: int = 1) -> dict[str, Any]:
         "speedup_min": round(min(speedups), 2),
         "speedup_max": round(max(speedups), 2),
         "runs": runs,
+        # each run's medians, in order: a slow run shows whether ours or OctoMap's side was slow
+        "per_run": [
+            {
+                "ours_ms": round(m[0], 3),
+                "octomap_default_ms": round(m[1], 3),
+                "octomap_discretize_ms": round(m[2], 3),
+                "speedup": round(x, 2),
+            }
+            for m, x in zip(medians, speedups, strict=True)
+        ],
         "kernels": "compiled" if kernels.trace() is not None else "numpy",
         "occupied_agreement": round(iou(grid.occupied_keys(), occ), 4),
         "free_agreement": round(iou(grid.free_keys(), free), 4),

@@ -487,3 +487,27 @@ def test_the_store_shrinks_once_half_its_slots_are_free() -> None:
     assert store.shrink() and store.capacity < 0.7 * cap
     assert store.lookup(np.array([519, 520, 999])).tolist()[0] == -1
     assert (store.lookup(np.arange(520, 1000)) >= 0).all()
+
+
+def test_the_block_index_is_the_same_on_both_paths(kernel_path) -> None:
+    # BlockStore.ensure: the compiled merge walk (sorted, unique keys, no free slot to reuse)
+    # and numpy give the same slots and index; unsorted keys and reused slots take numpy.
+    rng = np.random.default_rng(3)
+    store = BlockStore(capacity=64)
+    seen: dict[int, int] = {}
+    for n in (0, 5, 300, 40, 1000, 0, 200):
+        keys = np.unique(rng.integers(-5000, 5000, n))
+        slots = store.ensure(keys)
+        for k, s in zip(keys.tolist(), slots.tolist(), strict=True):
+            assert seen.setdefault(k, s) == s  # a held block keeps its slot
+        assert sorted(set(seen.values())) == list(range(len(seen)))  # new slots in key order
+        np.testing.assert_array_equal(store.sorted_keys, sorted(seen))
+        np.testing.assert_array_equal(store.sorted_slots, [seen[k] for k in sorted(seen)])
+        np.testing.assert_array_equal(store.slot_keys[store.sorted_slots], store.sorted_keys)
+    shuffled = rng.permutation(np.unique(rng.integers(-6000, 6000, 300)))
+    slots = store.ensure(shuffled)  # unsorted: the numpy path
+    np.testing.assert_array_equal(store.slot_keys[slots], shuffled)
+    store.release(slots[:10])
+    again = store.ensure(np.sort(shuffled[:20]))  # free slots to reuse: the numpy path
+    np.testing.assert_array_equal(store.slot_keys[again], np.sort(shuffled[:20]))
+    assert set(slots[:10].tolist()) <= set(again.tolist())

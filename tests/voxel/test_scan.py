@@ -112,3 +112,36 @@ def test_compiled_beams_are_the_numpy_beams(monkeypatch, free_range) -> None:
         ).astype(np.int64)
         assert compiled_b.bounds is not None
         np.testing.assert_array_equal(compiled_b.bounds, [keys.min(axis=0), keys.max(axis=0)])
+
+
+def test_compiled_distinct_hits_leave_repeats_out(monkeypatch) -> None:
+    # A scan without channels needs no row per hit point: the compiled sorting then leaves
+    # repeated hit keys out (pixels of a depth image share voxels), keeping every distinct key,
+    # the order, the counts and the bounds; the grid built from it is the same.
+    pytest.importorskip("numba")
+    from voxel import kernels
+
+    rng = np.random.default_rng(11)
+    origin = np.array([0.02, -0.01, 0.4])
+    pts = origin + 1.0 + rng.uniform(-0.2, 0.2, (20000, 3))  # ~40 points per 5 cm voxel
+    pts[::7] = pts[::7][::-1]  # not only neighbours repeat
+    sensor = SensorModel(max_range=3.0)
+    scan = Scan.of(pts, origin, time=0.0, reliability=1.0)
+    monkeypatch.setenv(kernels.JIT_ENV, "0")
+    every = sort_beams(scan, sensor, 0.05)
+    monkeypatch.setenv(kernels.JIT_ENV, "1")
+    assert kernels.warm()
+    few = sort_beams(scan, sensor, 0.05, distinct=True)
+    assert few.hit_keys.shape[1] < every.hit_keys.shape[1] // 4
+    assert (few.hits, few.cleared, few.invalid) == (every.hits, every.cleared, every.invalid)
+    np.testing.assert_array_equal(few.hit_mask, every.hit_mask)
+    np.testing.assert_array_equal(
+        np.unique(few.hit_keys, axis=1), np.unique(every.hit_keys, axis=1)
+    )
+    # A subsequence of every hit key, in order: each kept key is the next of its kind.
+    keep = [tuple(k) for k in few.hit_keys.T]
+    j = 0
+    for key in map(tuple, every.hit_keys.T):
+        if j < len(keep) and key == keep[j]:
+            j += 1
+    assert j == len(keep)

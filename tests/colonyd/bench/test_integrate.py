@@ -32,6 +32,11 @@ def test_lidar2d_scenario_agrees_with_octomap(tmp_path: Path) -> None:
     assert set(row) >= FIELDS
     assert row["occupied_agreement"] >= 0.95 and row["free_agreement"] >= 0.9
     assert row["ours_ms"] > 0 and row["octomap_ms"] > 0
+    (run,) = row["per_run"]  # one run: its medians are the row's
+    assert (run["ours_ms"], run["speedup"]) == (
+        pytest.approx(row["ours_ms"], abs=0.01),
+        pytest.approx(row["speedup"], abs=0.01),
+    )
     # memory is deterministic: a planar scan in planar blocks costs less per voxel than OctoMap
     assert row["block_shape"] == "planar"
     assert row["bytes_per_known_voxel"] <= row["octomap_bytes_per_node"]
