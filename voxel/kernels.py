@@ -7,7 +7,9 @@ kernel, or None when numba is absent, fails, or `COLONY_JIT=0`; the callers then
 pure-numpy path, which gives bit-identical results (the kernels repeat its floating-point
 operations one for one). Importing numba and loading the cached machine code take ~0.5 s of
 CPU, so nothing here happens at import: `warm()` does it, off the hot path (a daemon calls it in
-a background thread once ready), and the first call otherwise.
+a background thread once ready), and the first call otherwise. Compiling them (nothing cached
+yet) takes ~11 s of CPU: after `load_in_background()` (a daemon) a call never waits for that,
+it starts the loading in a thread and answers None (the numpy path) until it is done.
 """
 
 from __future__ import annotations
@@ -40,8 +42,11 @@ _LOW_BITS = np.uint64(0x0101010101010101)
 _LOW_BITS32 = np.uint32(0x01010101)
 
 _lock = threading.Lock()
+_start_lock = threading.Lock()
 #: Name -> compiled kernel (None: numba absent); empty until loaded.
 _compiled: dict[str, Callable[..., Any] | None] = {}
+#: Set by `load_in_background`: the thread loading the kernels, once a call asked for them.
+_background: dict[str, threading.Thread | None] = {}
 
 
 def enabled() -> bool:
@@ -53,8 +58,27 @@ def _get(name: str) -> Callable[..., Any] | None:
     if not enabled():
         return None
     if "trace" not in _compiled:
-        _load()
+        if "thread" not in _background:
+            _load()
+        else:
+            _load_soon()
+            return None
     return _compiled[name]
+
+
+def load_in_background() -> None:
+    """From now on a kernel not loaded yet is loaded in a thread while its callers take the numpy
+    path: a daemon's first scan must not hold its map for a compilation."""
+    _background.setdefault("thread", None)
+
+
+def _load_soon() -> None:
+    with _start_lock:  # not `_lock`: a loading in progress holds that one
+        if _background.get("thread") is not None:
+            return
+        thread = threading.Thread(target=_load, name="kernels-load", daemon=True)
+        _background["thread"] = thread
+    thread.start()
 
 
 def trace() -> Callable[..., Any] | None:
@@ -84,7 +108,10 @@ def index() -> Callable[..., Any] | None:
 
 def warm() -> bool:
     """Import numba and load (or compile and cache) the kernels now; True when they are in use."""
-    return trace() is not None
+    if not enabled():
+        return False
+    _load()
+    return _compiled["trace"] is not None
 
 
 def _try_out(
