@@ -16,8 +16,9 @@ from protocol import fields
 from protocol.errors import MalformedError, OversizedError, RangeError, VersionError
 from protocol.keyexpr import NAME_PATTERN
 from protocol.limits import DEFAULT_LIMITS, Limits
-from voxel.history import RECORD_COLUMNS, RECORD_DTYPE, SEEN_DTYPE, HistoryPage
+from voxel.history import RECORD_COLUMNS, HistoryPage
 from voxel.keys import AXIS_BITS
+from voxel.record import RECORD_DTYPE, SEEN_DTYPE
 from voxel.sensor import SENSOR_KINDS
 
 #: Version of the history body layout (field "v").

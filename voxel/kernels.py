@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from voxel import keys as vk
+from voxel.record import RECORD_DTYPE
 
 log = logging.getLogger(__name__)
 
@@ -123,8 +124,6 @@ def _try_out(
 ) -> None:
     """One tiny call of each kernel: compiles (or loads) them, so a failure shows here."""
     index(np.array([2, 5], dtype=np.int64), np.array([0, 1], dtype=np.int64), np.arange(4), 2)
-    from voxel.history import RECORD_DTYPE  # (history imports this module)
-
     one = np.zeros(1, dtype=np.float32)
     records(
         np.zeros(2, dtype=RECORD_DTYPE),

@@ -16,7 +16,8 @@ import zstandard
 
 from voxel.blocks import BlockStore
 from voxel.errors import FileFormatError
-from voxel.history import RECORD_DTYPE, RECORD_DTYPE_V3, RENAMED_V3, SEEN_DTYPE, History
+from voxel.history import RECORD_DTYPE_V3, RENAMED_V3, History
+from voxel.record import RECORD_DTYPE, SEEN_DTYPE
 
 FORMAT = "colony-voxel-snapshot"
 FORMAT_VERSION = 4

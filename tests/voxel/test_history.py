@@ -6,8 +6,9 @@ import numpy as np
 
 from voxel import keys as vk
 from voxel.grid import FREE_STATE, OCCUPIED, VoxelGrid
-from voxel.history import RECORD_DTYPE, SEEN_DTYPE, History, ObjectTags, Observer
+from voxel.history import History, ObjectTags, Observer
 from voxel.occupancy import Changes, Evidence
+from voxel.record import RECORD_DTYPE, SEEN_DTYPE
 from voxel.sensor import SensorModel
 
 RES = 0.1
