@@ -89,7 +89,7 @@ class Inbox:
         self._rng = random.Random()
         #: Per Zenoh callback thread: its clocks when our callback last returned ("idle").
         self._idle = threading.local()
-        #: The inbox thread's clocks when it last finished an item ("waited": then it waits).
+        #: The inbox thread's clocks when it last began to wait for an item ("waited").
         self._waited: dict[str, float] = {}
         self._worker: Worker[Item] = Worker(
             "gossip-inbox",
