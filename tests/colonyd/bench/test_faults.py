@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import errno
 import os
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from colonyd.bench import faults as bench_faults
-from colonyd.bench.faultlab import need_root
+from colonyd.bench.faultlab import Spinner, need_root
 from colonyd.errors import PersistenceError
 from colonyd.persistence import WAL, StateStore
 
@@ -260,3 +262,19 @@ def test_the_stage_breakdown_adds_up_and_splits_each_stage() -> None:
     split = got["total"]["split"]
     assert sum(split.values()) == pytest.approx(got["total"]["p50"])
     assert got["total"]["split_tail"] == pytest.approx(split)  # one delivery: it is the tail
+
+
+def test_the_spinner_keeps_a_core_busy_in_a_session_of_its_own() -> None:
+    with Spinner() as spinner:
+        assert spinner.proc is not None
+        pid = spinner.proc.pid
+        assert os.getsid(pid) == pid  # not a share of the session that started it
+        cpu0 = _cpu_s(pid)
+        time.sleep(0.5)
+        assert _cpu_s(pid) > cpu0  # it spins
+    assert spinner.proc.poll() is not None  # stopped
+
+
+def _cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
