@@ -52,6 +52,7 @@ from colonyd.provenance import agent_bias, agent_reliability, pose_error
 from colonyd.rosout import Ros2Outputs, RosPublishers
 from colonyd.runtime import get_session
 from colonyd.status import StatusServer
+from colonyd.threadclock import stamp
 from colonyd.tombstones import forget_params, load_tombstones, save_tombstones
 from plugins.cctv import AGENT_LABEL
 from plugins.observation import ObjectDetection, Observation
@@ -951,7 +952,8 @@ class Daemon:
         wrote = unsynced = False
         if delta is not None and len(delta):
             created = time.time()
-            marks = {"created": time.monotonic()}
+            marks: dict[str, float] = {}
+            stamp(marks, "created")
             prev, seq = own.seq, own.seq + 1
             # Logged before anyone sees it; if the log cannot take it (disk full), nothing is
             # published and the same changes are tried again next time.
@@ -966,7 +968,7 @@ class Daemon:
                 self.store.write(seq, delta)
                 encoded, unsynced = None, True
             wrote = True
-            marks["logged"] = time.monotonic()
+            stamp(marks, "logged")
             self.gossip.publish_own(prev, seq, delta, created, encoded, marks)
             self.metrics.stage("out", self.config.agent_id, seq, marks)
             self.gossip.push_history()  # with history push on: the records of what was sent

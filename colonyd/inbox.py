@@ -6,7 +6,6 @@ from __future__ import annotations
 import logging
 import random
 import threading
-import time
 from collections.abc import Callable
 
 import zenoh
@@ -19,6 +18,7 @@ from colonyd.metrics import Metrics
 from colonyd.objects import PeerObjects
 from colonyd.replicas import Replicas
 from colonyd.runtime import undeclare
+from colonyd.threadclock import stamp
 from colonyd.worker import Bounded, Worker
 from protocol import (
     AlignOffer,
@@ -40,9 +40,9 @@ log = logging.getLogger(__name__)
 MIN_FIX_VARIANCE = 1e-6
 
 #: An inbox item: (kind "delta" | "hb" | "objects" | "align" | "pose" | "fix" | "history" |
-#: "join", key expression or agent, raw frame, monotonic times the Zenoh callback was entered
-#: and queued it).
-Item = tuple[str, str, bytes, float, float]
+#: "join", key expression or agent, raw frame, a delta's hand-off marks so far: `threadclock`
+#: stamps of the callback thread's last return ("idle"), our callback entered and it queued).
+Item = tuple[str, str, bytes, dict[str, float]]
 
 
 class Inbox:
@@ -87,6 +87,10 @@ class Inbox:
         self._on_history = on_history
         self._drop_rate = drop_rate
         self._rng = random.Random()
+        #: Per Zenoh callback thread: its clocks when our callback last returned ("idle").
+        self._idle = threading.local()
+        #: The inbox thread's clocks when it last began to wait for an item ("waited").
+        self._waited: dict[str, float] = {}
         self._worker: Worker[Item] = Worker(
             "gossip-inbox",
             self._handle,
@@ -95,6 +99,7 @@ class Inbox:
             hostile=True,
             drops="inbox_dropped",
             describe=lambda item: f"{item[0]} on {item[1]}",
+            idle=self._wait,
             stop=stop,
         )
         remote = zenoh.Locality.REMOTE
@@ -129,12 +134,17 @@ class Inbox:
 
     # -- zenoh callbacks: enqueue only ----------------------------------------------------
     def _on_delta(self, sample: zenoh.Sample) -> None:
-        entered = time.monotonic()
+        marks = dict(getattr(self._idle, "marks", {}))
+        stamp(marks, "entered")
         if self._drop_rate and self._rng.random() < self._drop_rate:
             self.metrics.add("dropped_on_purpose")
             return
         raw = sample.payload.to_bytes()
-        self._worker.put(("delta", str(sample.key_expr), raw, entered, time.monotonic()))
+        stamp(marks, "queued")
+        self._worker.put(("delta", str(sample.key_expr), raw, marks))
+        idle: dict[str, float] = {}
+        stamp(idle, "idle")
+        self._idle.marks = idle
 
     def _on_hb(self, sample: zenoh.Sample) -> None:
         self._put("hb", sample)
@@ -152,8 +162,7 @@ class Inbox:
         self._put("fix", sample)
 
     def _put(self, kind: str, sample: zenoh.Sample) -> None:
-        now = time.monotonic()
-        self._worker.put((kind, str(sample.key_expr), sample.payload.to_bytes(), now, now))
+        self._worker.put((kind, str(sample.key_expr), sample.payload.to_bytes(), {}))
 
     def _on_history_sample(self, sample: zenoh.Sample) -> None:
         self._put("history", sample)
@@ -162,8 +171,7 @@ class Inbox:
         """Liveliness join: ask the newcomer (or returning peer) what it holds."""
         self.metrics.add(f"member_{event}")
         if event == "join":
-            now = time.monotonic()
-            self._worker.put(("join", agent, b"", now, now))
+            self._worker.put(("join", agent, b"", {}))
 
     # -- lifecycle ------------------------------------------------------------------------
     def start(self, membership: Membership) -> None:
@@ -176,10 +184,10 @@ class Inbox:
 
     # -- the worker -----------------------------------------------------------------------
     def _handle(self, item: Item) -> None:
-        kind, key, raw, entered, queued = item
+        kind, key, raw, marks = item
         try:
             if kind == "delta":
-                self._handle_delta(key, raw, entered, queued)
+                self._handle_delta(key, raw, marks)
             elif kind == "hb":
                 self._handle_hb(key, raw)
             elif kind == "objects":
@@ -201,10 +209,17 @@ class Inbox:
             else:
                 log.warning("rejected %s on %s: %s", kind, key, exc)
 
-    def _handle_delta(self, key: str, raw: bytes, entered: float, queued: float) -> None:
-        marks = {"entered": entered, "queued": queued, "dequeued": time.monotonic()}
+    def _wait(self) -> None:
+        """The inbox thread is about to wait for an item: its clocks then ("waited")."""
+        waited: dict[str, float] = {}
+        stamp(waited, "waited")
+        self._waited = waited
+
+    def _handle_delta(self, key: str, raw: bytes, marks: dict[str, float]) -> None:
+        marks.update(self._waited)
+        stamp(marks, "dequeued")
         msg = expect(self.receiver.decode(raw, key_expr=key), VoxelDelta, f"on {key}")
-        marks["decoded"] = time.monotonic()
+        stamp(marks, "decoded")
         if not msg.exact:
             raise WireError("inexact", "expected an exact delta, found a free-space summary")
         d = msg.delta
@@ -212,7 +227,7 @@ class Inbox:
         accept(
             self.receiver, self.metrics, msg, raw
         )  # only now: a frame refused above moved no window
-        marks["admitted"] = time.monotonic()
+        stamp(marks, "admitted")
         delta = self.parts.add(
             (msg.origin, msg.epoch, d.from_version, d.to_version), msg.part, msg.parts, d
         )
@@ -220,7 +235,7 @@ class Inbox:
             return
         if self.replicas.offer(msg.origin, msg.epoch, delta, admitted=msg.parts == 1):
             self._request_repair(msg.origin, [msg.origin])
-        marks["applied"] = time.monotonic()
+        stamp(marks, "applied")
         self.metrics.stage("in", msg.origin, delta.to_version, marks)
 
     def _handle_hb(self, key: str, raw: bytes) -> None:

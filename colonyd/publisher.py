@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 
 import numpy as np
 import zenoh
@@ -14,6 +13,7 @@ from colonyd.frames import Sender, frame_of
 from colonyd.layers import Layers, relabel
 from colonyd.metrics import Metrics
 from colonyd.runtime import undeclare
+from colonyd.threadclock import stamp
 from protocol import (
     Heartbeat,
     HistoryReply,
@@ -108,14 +108,14 @@ class Publisher:
             with own.lock:
                 own.seq = seq
                 own.epoch = self.epoch
-        marks["numbered"] = time.monotonic()
+        stamp(marks, "numbered")
         wire, payloads = encoded or self.encode_own(prev, seq, delta, created)
-        marks["encoded"] = time.monotonic()
+        stamp(marks, "encoded")
         own.remember(prev, seq, wire)
-        marks["put"] = time.monotonic()
+        stamp(marks, "put")
         for payload in payloads:
             self._deltas.put(payload)
-        marks["sent"] = time.monotonic()
+        stamp(marks, "sent")
         sent = sum(len(p) for p in payloads)
         self.metrics.add("deltas_published")
         self.metrics.add("bytes_published", sent)

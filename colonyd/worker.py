@@ -68,6 +68,7 @@ class Worker(Generic[T]):
     network) any other `ColonydError` or `ValueError` counts as `invalid` and anything else as
     `internal`. Every other exception is logged with its stack. `done(item)` runs once per item,
     handled or refused by `put` (a query is dropped there); a refused `put` counts `drops`.
+    `idle()` runs on the thread each time it is about to wait for the next item.
     """
 
     def __init__(
@@ -81,6 +82,7 @@ class Worker(Generic[T]):
         drops: str | None = None,
         describe: Callable[[T], str] = str,
         done: Callable[[T], None] | None = None,
+        idle: Callable[[], None] | None = None,
         stop: threading.Event | None = None,
     ) -> None:
         self.name = name
@@ -91,6 +93,7 @@ class Worker(Generic[T]):
         self._drops = drops
         self._describe = describe
         self._done = done
+        self._idle = idle
         self.stop = stop if stop is not None else threading.Event()
         self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
 
@@ -118,6 +121,8 @@ class Worker(Generic[T]):
 
     def _loop(self) -> None:
         while not self.stop.is_set():
+            if self._idle is not None:
+                self._idle()
             item = self._items.get(timeout=POLL_S)
             if item is None:
                 continue

@@ -54,14 +54,18 @@ def peak_rss_mb(pid: int) -> float:
 
 
 class Spinner:
-    """Another process keeping one core busy (a pure-Python loop), stopped by its PID."""
+    """Another process keeping one core busy (a pure-Python loop), stopped by its PID; in a
+    session of its own, so that it takes its core from the machine, not from the share of the
+    session that started it (autogroup, docs/RELIABILITY.md)."""
 
     def __init__(self) -> None:
         self.proc: subprocess.Popen[bytes] | None = None
 
     def __enter__(self) -> Self:
         self.proc = subprocess.Popen(
-            [sys.executable, "-c", "while True: pass"], stdin=subprocess.DEVNULL
+            [sys.executable, "-c", "while True: pass"],
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
         )
         return self
 

@@ -740,14 +740,39 @@ def _stats(values: list[float]) -> dict[str, float | None]:
     }
 
 
-def stage_breakdown(
-    reports: list[dict[str, Any]], since: float = 0.0
-) -> dict[str, dict[str, float | None]]:
+#: Stages that cross threads: the receiving thread's clocks are split from its own earlier
+#: stamp (the Zenoh callback thread's last return; the inbox thread's end of its last item).
+SPLIT_FROM = {"entered": "idle", "dequeued": "waited"}
+#: How a stage's wall time splits (`threadclock`): on a core (`cpu`), runnable but waiting for
+#: one (`runq`), the receiving thread still busy with earlier items (`behind`), and the rest
+#: (`blocked`: the interpreter lock, other locks, I/O; in `transport` also the network and
+#: Zenoh's own threads).
+SPLITS = ("cpu", "runq", "behind", "blocked")
+
+
+def _split(times: dict[str, float], before: str, after: str) -> dict[str, float] | None:
+    """The stage (before, after) split into `SPLITS`, ms, from one thread's stamps; None
+    without them (a daemon on another OS, or marks of another build)."""
+    start = SPLIT_FROM.get(after, before)
+    keys = (f"{start}.cpu", f"{start}.runq", f"{after}.cpu", f"{after}.runq")
+    if start not in times or not all(k in times for k in keys):
+        return None
+    cpu = (times[f"{after}.cpu"] - times[f"{start}.cpu"]) * 1000
+    runq = (times[f"{after}.runq"] - times[f"{start}.runq"]) * 1000
+    behind = max(0.0, times[start] - times[before]) * 1000
+    wall = (times[after] - times[before]) * 1000
+    return {"cpu": cpu, "runq": runq, "behind": behind, "blocked": wall - cpu - runq - behind}
+
+
+def stage_breakdown(reports: list[dict[str, Any]], since: float = 0.0) -> dict[str, dict[str, Any]]:
     """Where a delta's time goes, ms, per delivery (one delta at one replica, joined by origin
     and seq): p50 / p99 / mean of every stage between two hand-offs (`STAGES`), of their sum
     (`total`, creation to application at that replica) and of `unmeasured` (the replica's own
     propagation sample, wall clock, minus `total`: time outside the marks); `tail_mean`: the mean
-    over the slowest 10 % of deliveries. Only deltas created at `since` (monotonic) or later."""
+    over the slowest 10 % of deliveries; `split` / `split_tail`: each stage's mean over all /
+    over the slowest 10 % split into `SPLITS` (where the daemons stamp thread clocks), and the
+    same summed over the stages in `total`. Only deltas created at `since` (monotonic) or
+    later."""
     out_side: dict[tuple[str, int], dict[str, float]] = {}
     for r in reports:
         for side, origin, seq, marks in r["metrics"].get("stages", []):
@@ -759,6 +784,7 @@ def stage_breakdown(
             wall[(r["agent"], origin, int(seq))] = (float(at) - float(created)) * 1000
     names = [*STAGES.values(), "total", "unmeasured"]
     parts: dict[str, list[float]] = {k: [] for k in names}
+    splits: dict[str, list[dict[str, float] | None]] = {k: [] for k in STAGES.values()}
     for r in reports:
         for side, origin, seq, marks in r["metrics"].get("stages", []):
             sent = out_side.get((origin, int(seq)))
@@ -768,21 +794,36 @@ def stage_breakdown(
             path = [m for m in OUT_MARKS + IN_MARKS if m in times]
             for before, after in pairwise(path):
                 parts[STAGES[after]].append((times[after] - times[before]) * 1000)
+                splits[STAGES[after]].append(_split(times, before, after))
             total = (times["applied"] - times["created"]) * 1000
             parts["total"].append(total)
             measured = wall.get((r["agent"], origin, int(seq)))
             if measured is not None:
                 parts["unmeasured"].append(measured - total)
-    out = {k: _stats(v) for k, v in parts.items()}
+    out: dict[str, dict[str, Any]] = {k: dict(_stats(v)) for k, v in parts.items()}
+    total = np.asarray(parts["total"])
+    if not len(total):
+        return out
     # The tail: what each stage contributes, on average, to the slowest 10 % of deliveries
     # (every delivery has every stage but `unmeasured`, which is left out here).
-    total = np.asarray(parts["total"])
-    if len(total):
-        slow = total >= np.percentile(total, 90)
-        for k in STAGES.values():
-            if len(parts[k]) == len(total):
-                out[k]["tail_mean"] = round(float(np.asarray(parts[k])[slow].mean()), 2)
-        out["total"]["tail_mean"] = round(float(total[slow].mean()), 2)
+    slow = total >= np.percentile(total, 90)
+    sums = {"split": np.zeros(len(SPLITS)), "split_tail": np.zeros(len(SPLITS))}
+    for k in STAGES.values():
+        if len(parts[k]) != len(total):
+            continue
+        out[k]["tail_mean"] = round(float(np.asarray(parts[k])[slow].mean()), 2)
+        nan = [float("nan")] * len(SPLITS)
+        table = np.asarray([nan if x is None else [x[n] for n in SPLITS] for x in splits[k]])
+        stamped = ~np.isnan(table[:, 0])
+        for name, rows in (("split", table[stamped]), ("split_tail", table[slow & stamped])):
+            if not len(rows):
+                continue
+            means = rows.mean(axis=0)
+            out[k][name] = {n: round(float(v), 2) for n, v in zip(SPLITS, means, strict=True)}
+            sums[name] += means
+    out["total"]["tail_mean"] = round(float(total[slow].mean()), 2)
+    for name, v in sums.items():
+        out["total"][name] = {n: round(float(x), 2) for n, x in zip(SPLITS, v, strict=True)}
     return out
 
 

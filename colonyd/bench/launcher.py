@@ -62,6 +62,9 @@ class LocalDaemon:
                 stdout=log,
                 stderr=log,
                 env={**os.environ, **self.env},
+                # A session of its own, as systemd starts a service: where the kernel shares CPU
+                # time by session (autogroup), the colony is not one share of the machine.
+                start_new_session=True,
             )
         finally:
             log.close()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -27,6 +28,10 @@ def test_three_converge_late_joiner_and_garbage(make_colony):
         colony.add(agent, src(i + 1))
     colony.wait_members(3)
     colony.wait_converged(30)
+    # Each daemon runs in a session of its own, as systemd starts a service (autogroup shares
+    # CPU time by session: docs/RELIABILITY.md).
+    for d in colony.daemons.values():
+        assert d.proc is not None and os.getsid(d.proc.pid) == d.proc.pid
     # A peer sending garbage is ignored and counted, by reason.
     s = colony.session()
     ns = colony.namespace

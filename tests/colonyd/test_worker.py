@@ -90,3 +90,21 @@ def test_workers_sharing_a_stop_event_stop_together() -> None:
         w.start()
     stop.set()
     assert wait_for(lambda: not any(w.is_alive() for w in workers))
+
+
+def test_idle_runs_on_the_thread_before_each_wait() -> None:
+    events: list[tuple[str, object]] = []
+    w: Worker[int] = Worker(
+        "t",
+        lambda item: events.append(("item", item)),
+        Bounded(4),
+        idle=lambda: events.append(("idle", threading.current_thread().name)),
+    )
+    w.start()
+    assert wait_for(lambda: len(events) >= 1)
+    assert w.put(7)
+    assert wait_for(lambda: ("item", 7) in events and events[-1][0] == "idle")
+    w.close()
+    at = events.index(("item", 7))
+    assert events[at - 1] == ("idle", "t")  # it was waiting (stamped) when 7 came
+    assert events[at + 1] == ("idle", "t")  # and waits again after it

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import errno
 import os
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from colonyd.bench import faults as bench_faults
-from colonyd.bench.faultlab import need_root
+from colonyd.bench.faultlab import Spinner, need_root
 from colonyd.errors import PersistenceError
 from colonyd.persistence import WAL, StateStore
 
@@ -186,3 +188,93 @@ def test_a_partition_in_network_namespaces_heals(tmp_path):
     assert got["partition_minority_progress"] > 0, got  # so did c, alone
     assert got["partition_majority_saw_c"] == 0, got  # the cut really separated them
     assert got["partition_heal_s"] < 30, got
+
+
+def _marks(names: list[str], times: list[float], clock: float = 0.0) -> dict[str, float]:
+    """Marks at `times` on one thread, with its clocks: from `times[0]` on, half the wall time on
+    a core and a quarter waiting for one (counted from `clock`)."""
+    out: dict[str, float] = {}
+    for name, t in zip(names, times, strict=True):
+        out[name] = t
+        out[f"{name}.cpu"] = clock + (t - times[0]) / 2
+        out[f"{name}.runq"] = clock + (t - times[0]) / 4
+    return out
+
+
+def test_the_stage_breakdown_adds_up_and_splits_each_stage() -> None:
+    t = [100.0 + 0.002 * i for i in range(6)]
+    out = _marks(list(bench_faults.OUT_MARKS), t)  # 5 stages of 2 ms at the origin
+    sent = out["sent"]
+    # the Zenoh callback thread returned last 10 ms before the delta was sent (idle since);
+    # the inbox thread finished an earlier item 3 ms after this one was queued
+    callback = ["idle", "entered", "queued"]
+    inbox = ["waited", "dequeued", "decoded", "admitted", "applied"]
+    marks = {
+        **_marks(callback, [sent - 0.010, sent + 0.004, sent + 0.005], clock=5.0),
+        **_marks(inbox, [sent + 0.008 + 0.002 * i for i in range(5)], clock=7.0),
+    }
+    # idle time is neither CPU nor runq: the callback thread's clocks start at its wake-up
+    for name in callback:
+        marks[f"{name}.cpu"] = 5.0 + max(0.0, marks[name] - (sent + 0.002)) / 2
+        marks[f"{name}.runq"] = 5.0 + max(0.0, marks[name] - (sent + 0.002)) / 4
+    created = 1000.0
+    at = created + (marks["applied"] - out["created"])
+    reports = [
+        {"agent": "a", "metrics": {"stages": [["out", "a", 1, out]], "samples": []}},
+        {
+            "agent": "b",
+            "metrics": {"stages": [["in", "a", 1, marks]], "samples": [["a", 1, created, at]]},
+        },
+    ]
+    got = bench_faults.stage_breakdown(reports)
+    walls = {k: v["p50"] for k, v in got.items() if k not in ("total", "unmeasured")}
+    assert walls == pytest.approx(
+        {
+            "log": 2,
+            "number": 2,
+            "encode": 2,
+            "remember": 2,
+            "put": 2,
+            "transport": 4,
+            "copy": 1,
+            "queue": 5,
+            "decode": 2,
+            "admit": 2,
+            "apply": 2,
+        }
+    )
+    assert got["total"]["p50"] == pytest.approx(sum(walls.values()))
+    assert got["unmeasured"]["p50"] == pytest.approx(0.0, abs=1e-6)
+    # a stage on one thread: half its wall on a core, a quarter runnable, a quarter blocked
+    assert got["decode"]["split"] == pytest.approx(
+        {"cpu": 1.0, "runq": 0.5, "behind": 0.0, "blocked": 0.5}
+    )
+    # crossing threads, the receiving thread's clocks from its own earlier stamp: the inbox
+    # thread was 3 ms behind (busy until `waited`), then 2 ms: 1 on a core, 0.5 runnable
+    assert got["queue"]["split"] == pytest.approx(
+        {"cpu": 1.0, "runq": 0.5, "behind": 3.0, "blocked": 0.5}
+    )
+    # the callback thread woke 2 ms into the 4 ms of transport (1 ms CPU, 0.5 runq); the rest
+    # is the network, Zenoh's own threads and the interpreter lock
+    assert got["transport"]["split"] == pytest.approx(
+        {"cpu": 1.0, "runq": 0.5, "behind": 0.0, "blocked": 2.5}
+    )
+    split = got["total"]["split"]
+    assert sum(split.values()) == pytest.approx(got["total"]["p50"])
+    assert got["total"]["split_tail"] == pytest.approx(split)  # one delivery: it is the tail
+
+
+def test_the_spinner_keeps_a_core_busy_in_a_session_of_its_own() -> None:
+    with Spinner() as spinner:
+        assert spinner.proc is not None
+        pid = spinner.proc.pid
+        assert os.getsid(pid) == pid  # not a share of the session that started it
+        cpu0 = _cpu_s(pid)
+        time.sleep(0.5)
+        assert _cpu_s(pid) > cpu0  # it spins
+    assert spinner.proc.poll() is not None  # stopped
+
+
+def _cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
