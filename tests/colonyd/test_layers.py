@@ -251,7 +251,8 @@ def test_the_publisher_sends_an_own_delta_while_a_scan_holds_the_grid_lock():
         t0 = time.monotonic()
         sent = pub.publish_own(0, 1, ds[0], 1.0, marks=marks)
         assert time.monotonic() - t0 < 2.0 and sent > 0
-        assert own.seq == 1 and list(marks) == ["numbered", "encoded", "put", "sent"]
+        stages = [m for m in marks if "." not in m]  # "m.cpu", "m.runq": the thread's clocks
+        assert own.seq == 1 and stages == ["numbered", "encoded", "put", "sent"]
         release.set()
         mapping.join()
         assert [(d.from_version, d.to_version) for d in own.range(0, 1)] == [(0, 1)]
