@@ -12,13 +12,17 @@ from voxel import kernels
 from voxel.grid import VoxelGrid
 
 
-def test_in_background_mode_a_scan_takes_the_numpy_path_while_the_kernels_load(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
+@pytest.fixture
+def unloaded(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Kernels on, none loaded yet in this process, no background mode."""
     pytest.importorskip("numba")
     monkeypatch.setenv(kernels.JIT_ENV, "1")
     monkeypatch.setattr(kernels, "_compiled", {})
     monkeypatch.setattr(kernels, "_background", {})
+
+
+@pytest.mark.usefixtures("unloaded")
+def test_in_background_mode_a_scan_takes_the_numpy_path_while_the_kernels_load() -> None:
     kernels.load_in_background()
     grid = VoxelGrid(0.1)
     pts = np.random.default_rng(1).uniform(-2, 2, size=(500, 3))
@@ -45,12 +49,7 @@ def test_in_background_mode_a_scan_takes_the_numpy_path_while_the_kernels_load(
     assert grid_digest(numpy_grid) == grid_digest(compiled_grid)
 
 
-def test_without_background_mode_the_first_call_loads_them(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    pytest.importorskip("numba")
-    monkeypatch.setenv(kernels.JIT_ENV, "1")
-    monkeypatch.setattr(kernels, "_compiled", {})
-    monkeypatch.setattr(kernels, "_background", {})
+@pytest.mark.usefixtures("unloaded")
+def test_without_background_mode_the_first_call_loads_them() -> None:
     assert kernels.trace() is not None
     assert kernels.warm()
