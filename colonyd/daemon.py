@@ -352,8 +352,8 @@ class Daemon:
 
     def _warm_kernels(self) -> None:
         """Load the compiled kernels (optional; ~0.5 s of CPU) after the first catch-ups, which
-        would otherwise share the interpreter with them; a scan integrated sooner loads them
-        itself."""
+        would otherwise share the interpreter with them; a scan integrated sooner starts their
+        loading in a thread and takes the numpy path meanwhile (`kernels.load_in_background`)."""
         deadline = time.monotonic() + KERNELS_WAIT_S
         self.stop.wait(KERNELS_SETTLE_S)
         while not self.gossip.catchup.idle() and time.monotonic() < deadline:

@@ -18,8 +18,9 @@ class Metrics:
         #: or "range" (fetched by a repair).
         self.applied: deque[tuple[str, int, float, float, str]] = deque(maxlen=samples)
         #: Installed snapshots: (origin, voxels, seconds from request to installed, marks); marks:
-        #: step name -> time.monotonic() ("request", "first", "received", "admitted",
-        #: "installed") plus "decode_s" and "cpu_s" (this thread's CPU over the catch-up).
+        #: step name -> time.monotonic() ("asked", "request", "first", "received", "admitted",
+        #: "installed") plus "decode_s", "cpu_s" (the repair thread's CPU over the catch-up) and
+        #: "process_cpu_s" (every thread's).
         self.catchups: deque[tuple[str, int, float, dict[str, float]]] = deque(maxlen=64)
         #: Snapshots served: (layer, marks); marks: "query", "snapshot", "encoded", "replied"
         #: (time.monotonic(), one clock for every process of the machine).

@@ -46,8 +46,18 @@ _lock = threading.Lock()
 _start_lock = threading.Lock()
 #: Name -> compiled kernel (None: numba absent); empty until loaded.
 _compiled: dict[str, Callable[..., Any] | None] = {}
-#: Set by `load_in_background`: the thread loading the kernels, once a call asked for them.
-_background: dict[str, threading.Thread | None] = {}
+
+
+class _Loading:
+    """How kernels not loaded yet are loaded: by the first call (`background` False), or in
+    `thread`, started by the first call, while callers take the numpy path."""
+
+    def __init__(self) -> None:
+        self.background = False
+        self.thread: threading.Thread | None = None
+
+
+_loading = _Loading()
 
 
 def enabled() -> bool:
@@ -59,7 +69,7 @@ def _get(name: str) -> Callable[..., Any] | None:
     if not enabled():
         return None
     if "trace" not in _compiled:
-        if "thread" not in _background:
+        if not _loading.background:
             _load()
         else:
             _load_soon()
@@ -70,15 +80,15 @@ def _get(name: str) -> Callable[..., Any] | None:
 def load_in_background() -> None:
     """From now on a kernel not loaded yet is loaded in a thread while its callers take the numpy
     path: a daemon's first scan must not hold its map for a compilation."""
-    _background.setdefault("thread", None)
+    _loading.background = True
 
 
 def _load_soon() -> None:
     with _start_lock:  # not `_lock`: a loading in progress holds that one
-        if _background.get("thread") is not None:
+        if _loading.thread is not None:
             return
         thread = threading.Thread(target=_load, name="kernels-load", daemon=True)
-        _background["thread"] = thread
+        _loading.thread = thread
     thread.start()
 
 

@@ -18,7 +18,7 @@ def unloaded(monkeypatch: pytest.MonkeyPatch) -> None:
     pytest.importorskip("numba")
     monkeypatch.setenv(kernels.JIT_ENV, "1")
     monkeypatch.setattr(kernels, "_compiled", {})
-    monkeypatch.setattr(kernels, "_background", {})
+    monkeypatch.setattr(kernels, "_loading", kernels._Loading())
 
 
 @pytest.mark.usefixtures("unloaded")
@@ -38,7 +38,7 @@ def test_in_background_mode_a_scan_takes_the_numpy_path_while_the_kernels_load()
         worker.start()
         assert done.wait(30), "the scan waited for the kernels' loading"
         assert "trace" not in kernels._compiled
-        loader = kernels._background["thread"]
+        loader = kernels._loading.thread
         assert loader is not None and loader.is_alive()
     loader.join(60)
     assert kernels._compiled["trace"] is not None
