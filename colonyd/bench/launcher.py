@@ -20,10 +20,40 @@ from colonyd.runtime import open_session, zenoh_config
 from colonyd.status import alive_members, query_status
 
 _GIVEN: set[int] = set()
+#: where daemons' ports come from: below the kernel's ephemeral range, so no outgoing
+#: connection and no `bind(port 0)` (Zenoh's own sockets, other test workers) can take a port
+#: between our pick and the daemon's bind
+PORT_FLOOR = 20000
+
+
+def _ephemeral_floor() -> int:
+    try:
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
+def _bindable(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
 
 
 def free_port() -> int:
-    """A currently free TCP port on 127.0.0.1, never the same twice in one process."""
+    """A currently free TCP port on 127.0.0.1, never the same twice in one process, taken from
+    below the ephemeral range (each process starts at its own offset) when there is room."""
+    hi = _ephemeral_floor()
+    span = hi - PORT_FLOOR
+    if span >= 1000:
+        first = (os.getpid() * 7919) % span
+        for i in range(span):
+            port = PORT_FLOOR + (first + len(_GIVEN) + i) % span
+            if port not in _GIVEN and _bindable(port):
+                _GIVEN.add(port)
+                return port
     while True:
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
             s.bind(("127.0.0.1", 0))
