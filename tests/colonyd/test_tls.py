@@ -107,23 +107,28 @@ def test_mutual_tls_between_daemons(make_colony, tmp_path):
     colony.add("b")
     assert a.endpoint.startswith("tls/")
     colony.wait_converged(30)
-    # Someone whose certificate another CA signed gets no link: no member is visible to it.
-    other = make_pki(tmp_path / "rogue", "rogue-ca", "member")
-    rogue = open_session(
-        zenoh_config(
-            mode="peer",
-            listen=["tls/127.0.0.1:0"],
-            connect=[a.endpoint],
-            multicast=False,
-            gossip=True,
-            extra_file=other,
+
+    def members_seen_with(extra_file: Path) -> list[str]:
+        session = open_session(
+            zenoh_config(
+                mode="peer",
+                listen=["tls/127.0.0.1:0"],
+                connect=[a.endpoint],
+                multicast=False,
+                gossip=True,
+                extra_file=extra_file,
+            )
         )
-    )
-    try:
-        time.sleep(1.0)
-        assert alive_members(rogue, colony.namespace, timeout=1.0) == []
-    finally:
-        rogue.close()
+        try:
+            time.sleep(1.0)
+            return alive_members(session, colony.namespace, timeout=1.0)
+        finally:
+            session.close()
+
+    # The control: a member's certificate sees the colony within the same window...
+    assert members_seen_with(conf) == ["a", "b"]
+    # ...someone whose certificate another CA signed gets no link: no member is visible to it.
+    assert members_seen_with(make_pki(tmp_path / "rogue", "rogue-ca", "member")) == []
     # Nor does a plain TCP session on the same port.
     plain = open_session(
         zenoh_config(
