@@ -899,8 +899,7 @@ class Daemon:
         rounds = 0
         while not self.stop.wait(self.config.objects_s):
             try:
-                with own.lock:
-                    changed = self.objects.refresh(own.grid, int(own.grid.version))
+                changed = self.objects.refresh(own.grid, own.lock)
                 rounds += 1
                 if changed is not None or (self.objects.current and rounds % OBJECTS_REPEAT == 0):
                     self.gossip.publish_objects(to_wire(self.objects.current))

@@ -207,9 +207,14 @@ class Layer:
             return n
 
     # -- serving side ---------------------------------------------------------------------
-    def snapshot(self, chunk_voxels: int) -> tuple[int, int, list[Delta]]:
-        """(epoch, seq, chunks) of the whole layer, wire-labelled (0, seq]."""
+    def snapshot(
+        self, chunk_voxels: int, marks: dict[str, float] | None = None
+    ) -> tuple[int, int, list[Delta]]:
+        """(epoch, seq, chunks) of the whole layer, wire-labelled (0, seq]; `marks` gets
+        "locked" (time.monotonic() when the layer's lock was taken)."""
         with self.lock:
+            if marks is not None:
+                marks["locked"] = time.monotonic()
             full = self.grid.delta_since(0)
             epoch, seq = self.epoch, self.seq
         n = len(full)
