@@ -130,7 +130,7 @@ class LayerServer:
         timeout_ms = getattr(request, "timeout_ms", 0)
         deadline = arrived.at + timeout_ms / 1000 if timeout_ms else math.inf
         try:
-            _check(deadline)  # waited in the queue longer than its requester waits
+            _check(deadline, "in the queue")  # waited longer than its requester waits
             layer = self.layers.find(request.layer)
             if parsed.kind == "snapshot":
                 if layer is not None and layer.seq > 0:
@@ -143,11 +143,11 @@ class LayerServer:
         except Abandoned as exc:
             self.metrics.add("queries_abandoned")
             log.info(
-                "stopped answering %s from %s: its requester waited %.1f s%s",
+                "stopped answering %s from %s: its requester waited %d ms (%s)",
                 key,
                 request.origin,
-                timeout_ms / 1000,
-                f" ({exc})" if str(exc) else "",
+                timeout_ms,
+                exc,
             )
 
     def _layer_epoch(self, layer: Layer) -> int:

@@ -222,4 +222,5 @@ def _newcomer(colony: LocalColony, agent: str, voxels: int) -> dict[str, Any]:
         "newcomer_cpu_ms": round(marks.get("cpu_s", 0.0) * 1000, 1),
         "newcomer_process_cpu_ms": round(marks.get("process_cpu_s", 0.0) * 1000, 1),
         "server_cpu_ms": round(marks.get("serve_cpu_s", 0.0) * 1000, 1),
+        "server_process_cpu_ms": round(marks.get("serve_process_cpu_s", 0.0) * 1000, 1),
     }
