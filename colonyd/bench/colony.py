@@ -194,7 +194,8 @@ def _newcomer(colony: LocalColony, agent: str, voxels: int) -> dict[str, Any]:
     newcomer.start()
     try:
         _wait_caught_up(colony, agent, 120 + voxels / 50_000)
-        colony.wait_converged(120 + voxels / 50_000, ["big", agent])
+        # a digest of 10 M voxels takes seconds, more on a busy machine
+        colony.wait_converged(120 + voxels / 50_000, ["big", agent], 2.0 + voxels / 500_000)
         wall = time.monotonic() - t0
         reports = {r["agent"]: r for r in colony.status()}
     finally:
