@@ -185,12 +185,15 @@ class CatchUp:
         """Send a request frame to `server`'s queryable; the replies of type `cls` for `layer`
         and this request (every other reply is rejected and counted). `marks`, if given, gets
         "first" (time.monotonic() of the first reply) and "decode_s" (seconds decoding);
-        `timeout_s` overrides the query timeout."""
+        `timeout_s` overrides the query timeout, which the request carries (`timeout_ms`)."""
+        timeout = self.query_timeout_s if timeout_s is None else timeout_s
+        # the request says how long we wait: a holder stops working for it after that
+        request = request.model_copy(update={"timeout_ms": min(int(timeout * 1000), 0xFFFF_FFFF)})
         replies = self.session.get(
             query_key(self.namespace, server, query, layer),  # type: ignore[arg-type]
             payload=self.sender.encode(request),
             consolidation=zenoh.ConsolidationMode.NONE,
-            timeout=self.query_timeout_s if timeout_s is None else timeout_s,
+            timeout=timeout,
         )
         out: list[Message] = []
         decode_s = 0.0

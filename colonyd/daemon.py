@@ -43,6 +43,7 @@ from colonyd.layers import (
 from colonyd.logs import setup_logging
 from colonyd.mapping import integrate_observation
 from colonyd.membership import Membership, agent_alive
+from colonyd.memory import limit_arenas
 from colonyd.metrics import Metrics
 from colonyd.notify import Notifier
 from colonyd.objects import OwnObjects, to_wire
@@ -160,6 +161,7 @@ class Daemon:
 
     # -- table of contents ----------------------------------------------------------------
     def run(self) -> int:
+        limit_arenas()  # before any thread allocates (colonyd/memory.py)
         self._install_signals()
         cfg = self.config
         if cfg.export_dir is not None:  # found unwritable now, not at shutdown
@@ -899,8 +901,7 @@ class Daemon:
         rounds = 0
         while not self.stop.wait(self.config.objects_s):
             try:
-                with own.lock:
-                    changed = self.objects.refresh(own.grid, int(own.grid.version))
+                changed = self.objects.refresh(own.grid, own.lock)
                 rounds += 1
                 if changed is not None or (self.objects.current and rounds % OBJECTS_REPEAT == 0):
                     self.gossip.publish_objects(to_wire(self.objects.current))

@@ -139,13 +139,19 @@ class Sender:
         """Frame bytes of `msg`: signed with our identity, authenticated with the colony key."""
         return encode(msg, key=self._key, signer=self._signer)
 
-    def encode_all(self, msgs: Sequence[Message]) -> list[bytes]:
-        """Frames of `msgs` as this origin's, with consecutive fresh seqs (parts of one reply)."""
+    def encode_all(
+        self, msgs: Sequence[Message], before: Callable[[int], None] | None = None
+    ) -> list[bytes]:
+        """Frames of `msgs` as this origin's, with consecutive fresh seqs (parts of one reply);
+        `before(i)` is called before encoding the i-th (it may raise to stop)."""
         first = self.take(len(msgs))
         head = {"origin": self.origin, "epoch": self.epoch}
-        return [
-            self.encode(m.model_copy(update={**head, "seq": first + i})) for i, m in enumerate(msgs)
-        ]
+        out: list[bytes] = []
+        for i, m in enumerate(msgs):
+            if before is not None:
+                before(i)
+            out.append(self.encode(m.model_copy(update={**head, "seq": first + i})))
+        return out
 
 
 def concat(parts: list[Delta]) -> Delta:

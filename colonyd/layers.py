@@ -6,7 +6,7 @@ import hashlib
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -51,11 +51,16 @@ def delta_nbytes(delta: Delta) -> int:
 BLOCK_VOXELS = max(1 << sum(shifts) for shifts in BLOCK_SHAPES.values())
 
 
-def replica_shape(keys: np.ndarray) -> str:
-    """Block shape an empty replica takes for its first voxels `keys` (N, 3): "planar" when they
-    all lie in one z layer (a 2D scanner's map, a third of the memory of cubes), else "cube"."""
-    z = keys[:, 2]
-    return "planar" if len(z) and z.min() == z.max() else "cube"
+def replica_shape(keys: np.ndarray | Sequence[np.ndarray]) -> str:
+    """Block shape an empty replica takes for its first voxels `keys` (N, 3), or those of several
+    arrays together (a snapshot's parts): "planar" when they all lie in one z layer (a 2D
+    scanner's map, a third of the memory of cubes), else "cube"."""
+    parts = [keys] if isinstance(keys, np.ndarray) else list(keys)
+    zs = [k[:, 2] for k in parts if len(k)]
+    if not zs:
+        return "cube"
+    lo, hi = min(int(z.min()) for z in zs), max(int(z.max()) for z in zs)
+    return "planar" if lo == hi else "cube"
 
 
 @dataclass
@@ -131,9 +136,10 @@ class Layer:
             self._drain(result)
             return result
 
-    def _fit_blocks(self, keys: np.ndarray) -> None:
+    def _fit_blocks(self, keys: np.ndarray | Sequence[np.ndarray]) -> None:
         """An empty replica takes the block shape of its first voxels (`replica_shape`)."""
-        if len(keys) and self.grid.store.sorted_keys.size == 0:
+        parts = [keys] if isinstance(keys, np.ndarray) else list(keys)
+        if any(len(k) for k in parts) and self.grid.store.sorted_keys.size == 0:
             shape = replica_shape(keys)
             if self.grid.store.shifts != block_shifts(shape):
                 history = self.grid.history  # paged in already (HistorySync): kept
@@ -192,9 +198,7 @@ class Layer:
                 return 0
             pending = self.pending if epoch == self.epoch else {}
             self._reset(epoch)
-            self._fit_blocks(
-                np.concatenate([c.keys for c in chunks]) if chunks else np.empty((0, 3))
-            )
+            self._fit_blocks([c.keys for c in chunks])  # not concatenated: 24 B a voxel
             n = 0
             for chunk in chunks:
                 if len(chunk):
@@ -207,9 +211,14 @@ class Layer:
             return n
 
     # -- serving side ---------------------------------------------------------------------
-    def snapshot(self, chunk_voxels: int) -> tuple[int, int, list[Delta]]:
-        """(epoch, seq, chunks) of the whole layer, wire-labelled (0, seq]."""
+    def snapshot(
+        self, chunk_voxels: int, marks: dict[str, float] | None = None
+    ) -> tuple[int, int, list[Delta]]:
+        """(epoch, seq, chunks) of the whole layer, wire-labelled (0, seq]; `marks` gets
+        "locked" (time.monotonic() when the layer's lock was taken)."""
         with self.lock:
+            if marks is not None:
+                marks["locked"] = time.monotonic()
             full = self.grid.delta_since(0)
             epoch, seq = self.epoch, self.seq
         n = len(full)
@@ -246,16 +255,18 @@ class Layer:
         """Voxel blocks allocated by this layer's grid (its memory; 64 voxels each)."""
         return int(self.grid.store.sorted_keys.size)
 
-    def new_blocks(self, keys: np.ndarray, *, replace: bool = False) -> int:
-        """Blocks that applying voxels at `keys` would allocate, in the block shape this layer's
-        grid has or (when it is empty, or `replace`d by a snapshot of `keys`) will take."""
-        if not len(keys):
+    def new_blocks(self, keys: np.ndarray | Sequence[np.ndarray], *, replace: bool = False) -> int:
+        """Blocks that applying voxels at `keys` (one array, or several taken together: a
+        snapshot's parts) would allocate, in the block shape this layer's grid has or (when it
+        is empty, or `replace`d by a snapshot of `keys`) will take."""
+        parts = [keys] if isinstance(keys, np.ndarray) else [k for k in keys if len(k)]
+        if not any(len(k) for k in parts):
             return 0
         with self.lock:
             store = self.grid.store
             if replace or store.sorted_keys.size == 0:
-                return count_blocks(keys, block_shifts(replica_shape(keys)))
-            blocks = np.unique(store.split(keys)[0])
+                return count_blocks(parts, block_shifts(replica_shape(parts)))
+            blocks = np.unique(np.concatenate([np.unique(store.split(k)[0]) for k in parts]))
             return int(np.count_nonzero(store.lookup(blocks) < 0))
 
     def known_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
@@ -358,7 +369,7 @@ class Layers:
                     f"held + a snapshot of {voxels} voxels for {origin!r}"
                 )
                 raise WireError("over-budget", text)
-            new = layer.new_blocks(np.concatenate(keys) if keys else np.empty((0, 3)), replace=True)
+            new = layer.new_blocks(keys, replace=True)  # the parts together, not concatenated
         else:
             new = sum(layer.new_blocks(k) for k in keys)
         if used + new > self.max_peer_blocks:

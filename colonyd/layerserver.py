@@ -3,9 +3,12 @@ holds."""
 
 from __future__ import annotations
 
+import logging
+import math
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import zenoh
@@ -33,8 +36,22 @@ from protocol.keyexpr import parse_key, query_declaration
 from voxel.delta import Delta
 from voxel.history import HistoryPage
 
+log = logging.getLogger(__name__)
+
 #: Most history records one reply carries (a request may ask for fewer).
 MAX_HISTORY_RECORDS = 200_000
+
+
+@dataclass
+class Arrived:
+    """A query as the Zenoh callback took it."""
+
+    query: zenoh.Query
+    at: float  # time.monotonic() then
+
+
+class Abandoned(Exception):
+    """The requester of a query has stopped waiting for its replies (its `timeout_ms` passed)."""
 
 
 class LayerServer:
@@ -63,20 +80,24 @@ class LayerServer:
         self.epoch = epoch
         self.chunk_voxels = chunk_voxels
         self.part_bytes = part_bytes
-        self._worker: Worker[zenoh.Query] = Worker(
+        self._worker: Worker[Arrived] = Worker(
             "gossip-serve",
             self._answer,
             Bounded(64),
             metrics=metrics,
             drops="queries_dropped",
-            describe=lambda q: f"a query on {q.key_expr}",
-            done=lambda q: q.drop(),
+            describe=lambda a: f"a query on {a.query.key_expr}",
+            done=lambda a: a.query.drop(),
             stop=stop,
         )
         self._queryables = [
-            session.declare_queryable(query_declaration(namespace, self.own, q), self._worker.put)
+            session.declare_queryable(query_declaration(namespace, self.own, q), self._arrived)
             for q in ("snapshot", "deltas", "history")
         ]
+
+    def _arrived(self, query: zenoh.Query) -> None:
+        """The queryables' callback (a Zenoh thread): stamp and enqueue."""
+        self._worker.put(Arrived(query, time.monotonic()))
 
     def start(self) -> None:
         self._worker.start()
@@ -85,7 +106,8 @@ class LayerServer:
         self._worker.close()
         undeclare(*self._queryables)
 
-    def _answer(self, query: zenoh.Query) -> None:
+    def _answer(self, arrived: Arrived) -> None:
+        query = arrived.query
         key = str(query.key_expr)
         parsed = parse_key(key)
         if parsed.origin != self.own or parsed.layer is None:
@@ -105,29 +127,56 @@ class LayerServer:
             text = f"expected layer {parsed.layer!r}, found {request.layer!r}"
             raise WireError("bad-query", text)
         accept(self.receiver, self.metrics, request, raw)
-        layer = self.layers.find(request.layer)
-        if parsed.kind == "snapshot":
-            if layer is not None and layer.seq > 0:
-                self._serve_snapshot(query, key, layer, request)
-            return
-        if parsed.kind == "history":
-            self._serve_history(query, key, layer, request)
-            return
-        self._serve_range(query, key, layer, request)
+        timeout_ms = getattr(request, "timeout_ms", 0)
+        deadline = arrived.at + timeout_ms / 1000 if timeout_ms else math.inf
+        try:
+            _check(deadline, "in the queue")  # waited longer than its requester waits
+            layer = self.layers.find(request.layer)
+            if parsed.kind == "snapshot":
+                if layer is not None and layer.seq > 0:
+                    self._serve_snapshot(query, key, layer, request, arrived.at, deadline)
+                return
+            if parsed.kind == "history":
+                self._serve_history(query, key, layer, request, deadline)
+                return
+            self._serve_range(query, key, layer, request, deadline)
+        except Abandoned as exc:
+            self.metrics.add("queries_abandoned")
+            log.info(
+                "stopped answering %s from %s: its requester waited %d ms (%s)",
+                key,
+                request.origin,
+                timeout_ms,
+                exc,
+            )
 
     def _layer_epoch(self, layer: Layer) -> int:
         return self.epoch if layer.origin == self.own else layer.epoch
 
     def _fit(
-        self, request: Any, chunks: list[Delta], make: Callable[[int, int, Delta], Message]
+        self,
+        request: Any,
+        chunks: list[Delta],
+        make: Callable[[int, int, Delta], Message],
+        deadline: float = math.inf,
+        marks: dict[str, float] | None = None,
     ) -> list[bytes]:
         """Reply frames `make(part, parts, chunk)` of `chunks`, each frame within the request's
         `max_part_bytes` (and ours): parts that come out too large are cut finer and re-encoded
-        (one encoding per part in the common case)."""
+        (one encoding per part in the common case). Raises Abandoned before a part once
+        `deadline` (time.monotonic()) has passed; `marks` gets "encoded_first", when the first
+        part's frame was done."""
         max_frame = min(self.part_bytes, request.max_part_bytes)
         limit = max_frame - FRAME_OVERHEAD - 128  # >= 640: max_part_bytes is at least 1024
+
+        def before(i: int) -> None:
+            if i == 1 and marks is not None:
+                marks.setdefault("encoded_first", time.monotonic())
+            _check(deadline, f"{i} of {len(chunks)} parts encoded")
+
         while True:
-            frames = self.sender.encode_all([make(i, len(chunks), c) for i, c in enumerate(chunks)])
+            msgs = [make(i, len(chunks), c) for i, c in enumerate(chunks)]
+            frames = self.sender.encode_all(msgs, before=before)
             big = [i for i, f in enumerate(frames) if len(f) > max_frame]
             if not big:
                 return frames
@@ -138,38 +187,79 @@ class LayerServer:
                 chunks[i : i + 1] = split_delta(chunks[i], limit)
             limit //= 2  # still too large next time: the frame around a body grew, cut finer
 
-    def _reply(self, query: zenoh.Query, key: str, frames: list[bytes]) -> None:
-        for frame in frames:
+    def _reply(
+        self,
+        query: zenoh.Query,
+        key: str,
+        frames: list[bytes],
+        deadline: float = math.inf,
+        marks: dict[str, float] | None = None,
+    ) -> None:
+        """Send `frames` (stopping with Abandoned once `deadline` has passed); `marks` gets
+        "first_reply", when the first was handed to Zenoh."""
+        for i, frame in enumerate(frames):
+            _check(deadline, f"{i} of {len(frames)} parts sent")
             query.reply(key, frame)
             self.metrics.add("bytes_served", len(frame))
+            if i == 0 and marks is not None:
+                marks["first_reply"] = time.monotonic()
 
-    def _serve_snapshot(self, query: zenoh.Query, key: str, layer: Layer, request: Any) -> None:
-        cpu0 = time.thread_time()
-        marks = {"query": time.monotonic()}
-        epoch, _seq, chunks = layer.snapshot(self.chunk_voxels)
-        marks["snapshot"] = time.monotonic()
-        if layer.origin == self.own:
-            epoch = self.epoch
-        common = {
-            "origin": self.own,
-            "layer": layer.origin,
-            "request_id": request.request_id,
-            "frame_id": frame_of(layer.origin),
-            "layer_epoch": epoch,
-        }
-        frames = self._fit(
-            request,
-            chunks,
-            lambda i, n, c: SnapshotReply(**common, time=time.time(), part=i, parts=n, delta=c),
-        )
-        marks["encoded"] = time.monotonic()
-        self._reply(query, key, frames)
-        marks["replied"] = time.monotonic()
-        marks["serve_cpu_s"] = time.thread_time() - cpu0
+    def _serve_snapshot(
+        self,
+        query: zenoh.Query,
+        key: str,
+        layer: Layer,
+        request: Any,
+        arrived: float,
+        deadline: float,
+    ) -> None:
+        """The layer's snapshot in parts; its timeline in `metrics.serves` (also when abandoned):
+        "arrived" (the Zenoh callback took the query), "query" (this worker did), "locked" (the
+        layer's lock taken), "snapshot" (its content copied), "encoded_first", "encoded" (every
+        part's frame), "first_reply", "replied", and the thread's and process's CPU seconds."""
+        cpu0, process0 = time.thread_time(), time.process_time()
+        marks = {"arrived": arrived, "query": time.monotonic()}
+        try:
+            epoch, _seq, chunks = layer.snapshot(self.chunk_voxels, marks)
+            marks["snapshot"] = time.monotonic()
+            _check(deadline, "snapshot made")
+            if layer.origin == self.own:
+                epoch = self.epoch
+            common = {
+                "origin": self.own,
+                "layer": layer.origin,
+                "request_id": request.request_id,
+                "frame_id": frame_of(layer.origin),
+                "layer_epoch": epoch,
+            }
+            frames = self._fit(
+                request,
+                chunks,
+                lambda i, n, c: SnapshotReply(**common, time=time.time(), part=i, parts=n, delta=c),
+                deadline,
+                marks,
+            )
+            marks["encoded"] = time.monotonic()
+            marks.setdefault("encoded_first", marks["encoded"])
+            self._reply(query, key, frames, deadline, marks)
+            marks["replied"] = time.monotonic()
+        except Abandoned:
+            marks["abandoned"] = time.monotonic()
+            raise
+        finally:
+            marks["serve_cpu_s"] = time.thread_time() - cpu0
+            marks["serve_process_cpu_s"] = time.process_time() - process0  # every thread's
+            self.metrics.served(layer.origin, marks)
         self.metrics.add("snapshots_served")
-        self.metrics.served(layer.origin, marks)
 
-    def _serve_range(self, query: zenoh.Query, key: str, layer: Layer | None, request: Any) -> None:
+    def _serve_range(
+        self,
+        query: zenoh.Query,
+        key: str,
+        layer: Layer | None,
+        request: Any,
+        deadline: float = math.inf,
+    ) -> None:
         """Deltas of (from_version, min(to_version, newest)]: none if that range is empty
         (`complete`, no delta), `complete` False if it is no longer held or the layer is not."""
         deltas = None
@@ -192,12 +282,18 @@ class LayerServer:
             request,
             list(deltas),
             lambda i, n, c: DeltaRangeReply(**common, time=time.time(), part=i, parts=n, delta=c),
+            deadline,
         )
-        self._reply(query, key, frames)
+        self._reply(query, key, frames, deadline)
         self.metrics.add("ranges_served")
 
     def _serve_history(
-        self, query: zenoh.Query, key: str, layer: Layer | None, request: Any
+        self,
+        query: zenoh.Query,
+        key: str,
+        layer: Layer | None,
+        request: Any,
+        deadline: float = math.inf,
     ) -> None:
         """History records of versions above `from_version`, a page of whole versions, in parts
         that each fit `max_part_bytes` (`layer_epoch` 0: the layer is not held)."""
@@ -241,5 +337,11 @@ class LayerServer:
                     HistoryPage(p.records[:half], p.agents, p.seen[:seen_half]),
                     HistoryPage(p.records[half:], p.agents, p.seen[seen_half:]),
                 ]
-        self._reply(query, key, frames)
+        self._reply(query, key, frames, deadline)
         self.metrics.add("histories_served")
+
+
+def _check(deadline: float, where: str = "") -> None:
+    """Raise Abandoned once `deadline` (time.monotonic()) has passed."""
+    if time.monotonic() > deadline:
+        raise Abandoned(where)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -13,7 +14,14 @@ from colonyd.grid import VoxelGrid
 from plugins.cctv import AGENT_LABEL
 from plugins.observation import Observation
 from protocol import ObjectCentroid as WireObject
-from voxel.objects import ObjectCentroid, ObjectTracker, extract_objects, moved
+from voxel.objects import (
+    LabelledVoxels,
+    ObjectCentroid,
+    ObjectTracker,
+    cluster_objects,
+    labelled_voxels,
+    moved,
+)
 
 #: Tracked clusters take ids from here up; below it are the ids sensors give (markers, instances).
 CLUSTER_IDS = 1 << 40
@@ -79,13 +87,21 @@ class OwnObjects:
                 s.m2 = s.m2 + np.outer(step, p - s.mean)
                 s.time = max(s.time, obs.time)
 
-    def refresh(self, grid: VoxelGrid, version: int) -> list[ObjectCentroid] | None:
-        """The object list if it changed since the last refresh (`grid` at `version`), else None."""
+    def refresh(
+        self, grid: VoxelGrid, lock: AbstractContextManager[object] | None = None
+    ) -> list[ObjectCentroid] | None:
+        """The object list if it changed since the last refresh, else None. `lock` (the layer's)
+        is held only while the grid's version and labelled voxels are read: the clustering, and
+        scikit-learn's first import (~1 s), run without it, so a snapshot served or a scan
+        integrated meanwhile does not wait for them."""
+        voxels: LabelledVoxels | None = None
+        with lock if lock is not None else nullcontext():
+            version = int(grid.version)
+            if version != self._version:
+                voxels = labelled_voxels(grid, exclude=self.structure)
         found: list[ObjectCentroid] = []
         if version != self._version:
-            found = extract_objects(
-                grid, exclude=self.structure, min_voxels=self.min_voxels, link=self.link
-            )
+            found = cluster_objects(voxels, min_voxels=self.min_voxels, link=self.link)
         with self._lock:
             tracked = (
                 self._tracker.update(found) if version != self._version else self._tracker.objects

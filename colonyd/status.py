@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import zenoh
@@ -17,9 +18,20 @@ from protocol import KeyExprError
 from protocol.keyexpr import alive_subscription, parse_key, status_key, status_selector
 
 
+@dataclass
+class _Asked:
+    """A query as the Zenoh callback took it."""
+
+    query: zenoh.Query
+    at: float  # time.monotonic() then
+
+
 class StatusServer:
     """Answers `colony/<ns>/<agent>/<report>` queries (status: `answer(params)` as JSON; export:
-    the map bytes `answer(params)` returns; None: no reply), one at a time on a worker."""
+    the map bytes `answer(params)` returns; None: no reply), one at a time on a worker. A query
+    whose `timeout_ms` parameter passed while it waited in the queue is dropped unanswered: its
+    requester has gone (a watcher asking for digests of a large layer every few hundred ms would
+    otherwise queue passes over the layer nobody waits for)."""
 
     def __init__(
         self,
@@ -30,21 +42,26 @@ class StatusServer:
         report: str = "status",
     ) -> None:
         self._answer_params = answer
-        self._worker: Worker[zenoh.Query] = Worker(
+        self._worker: Worker[_Asked] = Worker(
             report,
             self._answer,
             Bounded(16),
-            describe=lambda q: f"a {report} query on {q.key_expr}",
-            done=lambda q: q.drop(),
+            describe=lambda a: f"a {report} query on {a.query.key_expr}",
+            done=lambda a: a.query.drop(),
         )
         self._queryable = session.declare_queryable(
-            status_key(namespace, agent, report), self._worker.put
+            status_key(namespace, agent, report),
+            lambda q: self._worker.put(_Asked(q, time.monotonic())),
         )
         self._worker.start()
 
-    def _answer(self, query: zenoh.Query) -> None:
+    def _answer(self, asked: _Asked) -> None:
+        query = asked.query
         # zenoh's stub types Parameters.__iter__ as returning a list, not an iterator
         params = {str(k): str(v) for k, v in query.parameters}  # type: ignore[attr-defined]
+        waits = params.pop("timeout_ms", "")
+        if waits.isdigit() and int(waits) and time.monotonic() - asked.at > int(waits) / 1000:
+            return  # its requester has gone
         body = self._answer_params(params)
         if body is None:  # nothing to say (an export of a layer not held)
             return
@@ -66,12 +83,12 @@ def query_status(
     timeout: float = 3.0,
 ) -> list[dict[str, Any]]:
     """One status report per daemon reachable in the namespace, sorted by agent id."""
-    params = []
+    params = [f"timeout_ms={int(timeout * 1000)}"]  # the server drops it once we have gone
     if digest:
         params.append("digest=1")
     if samples:
         params.append("samples=1")
-    selector = status_selector(namespace) + ("?" + ";".join(params) if params else "")
+    selector = status_selector(namespace) + "?" + ";".join(params)
     out = [r for r in json_replies(session, selector, timeout) if "agent" in r]
     return sorted(out, key=lambda r: r["agent"])
 

@@ -292,6 +292,9 @@ class SnapshotRequest(Message):
     request_id: U63
     #: Largest reply part the requester accepts.
     max_part_bytes: Annotated[int, Field(ge=1024, le=1 << 30)] = 4 << 20
+    #: How long the requester waits for replies after sending it, ms (0: not said); a server
+    #: may drop the work of a request it cannot answer within that.
+    timeout_ms: U32 = 0
 
 
 class SnapshotReply(Message):
@@ -330,6 +333,9 @@ class DeltaRangeRequest(Message):
     from_version: U63
     to_version: U63
     max_part_bytes: Annotated[int, Field(ge=1024, le=1 << 30)] = 4 << 20
+    #: How long the requester waits for replies after sending it, ms (0: not said); a server
+    #: may drop the work of a request it cannot answer within that.
+    timeout_ms: U32 = 0
 
     @model_validator(mode="after")
     def _ordered(self) -> DeltaRangeRequest:
@@ -432,6 +438,9 @@ class HistoryRequest(Message):
     from_version: U63
     max_records: Annotated[int, Field(ge=1, le=1_000_000)] = 200_000
     max_part_bytes: Annotated[int, Field(ge=1024, le=1 << 30)] = 4 << 20
+    #: How long the requester waits for replies after sending it, ms (0: not said); a server
+    #: may drop the work of a request it cannot answer within that.
+    timeout_ms: U32 = 0
 
 
 class HistoryReply(Message):

@@ -3,6 +3,8 @@ channel."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from voxel import kernels
@@ -79,27 +81,37 @@ def split_keys(
 DENSE_BLOCKS_PER_KEY = 4
 
 
-def count_blocks(keys: np.ndarray, shifts: tuple[int, int, int] = CUBE) -> int:
-    """Distinct blocks holding voxel keys (N, 3): marked in a dense box of blocks when they fill
-    it well (a map's voxels do), else counted by sorting."""
-    k = np.asarray(keys)
-    n = k.shape[0]
+def count_blocks(
+    keys: np.ndarray | Sequence[np.ndarray], shifts: tuple[int, int, int] = CUBE
+) -> int:
+    """Distinct blocks holding voxel keys (N, 3), or the keys of several arrays together (the
+    parts of a snapshot, one at a time: never concatenated): marked in a dense box of blocks
+    when they fill it well (a map's voxels do), else counted by sorting."""
+    parts = [np.asarray(keys)] if isinstance(keys, np.ndarray) else [np.asarray(k) for k in keys]
+    parts = [k for k in parts if k.shape[0]]
+    n = sum(k.shape[0] for k in parts)
     if n == 0:
         return 0
-    # one column at a time: reductions along axis 0 of an (N, 3) array are several times slower
-    cols = [k[:, i].astype(np.int64) >> s for i, s in enumerate(shifts)]
-    lo = [int(c.min()) for c in cols]
-    dims = [int(c.max()) - x + 1 for c, x in zip(cols, lo, strict=True)]
+    # one column at a time: reductions along axis 0 of an (N, 3) array are several times slower;
+    # a shift keeps the order, so the blocks' bounds are the voxels' bounds shifted
+    lo = [min(int(k[:, i].min()) for k in parts) >> s for i, s in enumerate(shifts)]
+    hi = [max(int(k[:, i].max()) for k in parts) >> s for i, s in enumerate(shifts)]
+    dims = [h - x + 1 for h, x in zip(hi, lo, strict=True)]
     cells = dims[0] * dims[1] * dims[2]
     if cells > DENSE_BLOCKS_PER_KEY * n + 4096:
-        return int(np.unique(vk.pack(np.stack(cols, axis=1))).size)
-    lin = cols[0] - lo[0]
-    lin *= dims[1]
-    lin += cols[1] - lo[1]
-    lin *= dims[2]
-    lin += cols[2] - lo[2]
+        packed = [
+            np.unique(vk.pack(np.stack([k[:, i] >> s for i, s in enumerate(shifts)], axis=1)))
+            for k in parts
+        ]
+        return int(np.unique(np.concatenate(packed)).size)
     box = np.zeros(cells, dtype=bool)
-    box[lin] = True
+    for k in parts:
+        lin = (k[:, 0].astype(np.int64) >> shifts[0]) - lo[0]
+        lin *= dims[1]
+        lin += (k[:, 1].astype(np.int64) >> shifts[1]) - lo[1]
+        lin *= dims[2]
+        lin += (k[:, 2].astype(np.int64) >> shifts[2]) - lo[2]
+        box[lin] = True
     return int(np.count_nonzero(box))
 
 

@@ -113,8 +113,11 @@ def records() -> Callable[..., Any] | None:
 
 
 def index() -> Callable[..., Any] | None:
-    """The compiled lookup and insertion of sorted block keys (see `_index_blocks`), or None."""
-    return _get("index")
+    """The compiled lookup and insertion of sorted block keys (see `_index_blocks`) once the
+    kernels are loaded, else None; never starts their loading: a replica inserting the blocks of
+    its first snapshot would otherwise share the interpreter with numba's import (~0.5 s of CPU)
+    halfway through the install (a daemon without sources then never loads them)."""
+    return _compiled.get("index") if enabled() else None
 
 
 def warm() -> bool:

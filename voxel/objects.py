@@ -29,37 +29,36 @@ class ObjectCentroid:
     time: float  # latest change among its voxels
 
 
-def extract_objects(
+@dataclass(frozen=True)
+class LabelledVoxels:
+    """The occupied voxels of a grid whose best object class passed `labelled_voxels`' filters."""
+
+    centres: np.ndarray  # (N, 3) metres
+    classes: np.ndarray  # (N,) int64, each voxel's most probable class
+    probabilities: np.ndarray  # (N,) that class's probability
+    times: np.ndarray  # (N,) last observation times
+    resolution: float
+
+
+def labelled_voxels(
     grid: VoxelGrid,
     *,
     min_probability: float = 0.3,
-    min_voxels: int = 4,
-    id_cell: float = 0.5,
     exclude: frozenset[int] = frozenset(),
-    link: float = 1.8,
-) -> list[ObjectCentroid]:
-    """Cluster occupied, class-labelled voxels of `grid` into objects (DBSCAN per class).
-
-    Voxels whose best class probability is below `min_probability`, or whose class is in
-    `exclude` (structure such as walls and floors), are ignored; voxels within `link` voxels of
-    each other (DBSCAN eps; 1.8 joins 26-connected voxels) form a cluster, and clusters smaller
-    than `min_voxels` are outliers. The centroid covariance is the voxel scatter over the count,
-    plus the voxel quantisation. `object_id` is the class and the centroid's `id_cell` cell
-    (`ObjectTracker` keeps ids stable as centroids move).
-    """
-    from sklearn.cluster import DBSCAN
-
-    if min_voxels < 1 or not 0.0 <= min_probability <= 1.0:
-        msg = (
-            "need min_voxels >= 1 and min_probability in [0, 1], "
-            f"found {min_voxels!r}, {min_probability!r}"
-        )
+) -> LabelledVoxels | None:
+    """The occupied, class-labelled voxels of `grid` (copies: the grid may change afterwards),
+    None if there are none. Voxels whose best class probability is below `min_probability`, or
+    whose class is in `exclude` (structure such as walls and floors), are left out. This is the
+    only step of `extract_objects` that reads the grid (a daemon holds its layer's lock for it
+    alone, not for the clustering)."""
+    if not 0.0 <= min_probability <= 1.0:
+        msg = f"need min_probability in [0, 1], found {min_probability!r}"
         raise InputError(msg)
     if "class_ids" not in grid.store.channels:
-        return []
+        return None
     keys = grid.occupied_keys()
     if keys.shape[0] == 0:
-        return []
+        return None
     ids = grid.channel_at_keys("class_ids", keys)
     probs = grid.channel_at_keys("class_probs", keys)
     best = probs.argmax(axis=1)
@@ -69,10 +68,35 @@ def extract_objects(
     keep = (cls >= 0) & (p >= min_probability)
     if exclude:
         keep &= ~np.isin(cls, np.fromiter(exclude, np.int64))
+    if not keep.any():
+        return None
     keys, cls, p = keys[keep], cls[keep], p[keep]
-    times = grid.channel_at_keys("last_time", keys) if keys.size else np.empty(0)
+    times = np.asarray(grid.channel_at_keys("last_time", keys))
     res = grid.resolution
-    centres = vk.keys_to_centers(keys, res)
+    return LabelledVoxels(vk.keys_to_centers(keys, res), cls, p, times, res)
+
+
+def cluster_objects(
+    voxels: LabelledVoxels | None,
+    *,
+    min_voxels: int = 4,
+    id_cell: float = 0.5,
+    link: float = 1.8,
+) -> list[ObjectCentroid]:
+    """Cluster labelled voxels into objects (DBSCAN per class): voxels within `link` voxels of
+    each other (DBSCAN eps; 1.8 joins 26-connected voxels) form a cluster, and clusters smaller
+    than `min_voxels` are outliers. The centroid covariance is the voxel scatter over the count,
+    plus the voxel quantisation. `object_id` is the class and the centroid's `id_cell` cell
+    (`ObjectTracker` keeps ids stable as centroids move). scikit-learn is imported only when
+    there is something to cluster (its first import costs ~1 s of CPU)."""
+    if min_voxels < 1:
+        raise InputError(f"need min_voxels >= 1, found {min_voxels!r}")
+    if voxels is None or voxels.classes.size == 0:
+        return []
+    from sklearn.cluster import DBSCAN
+
+    res = voxels.resolution
+    cls, p, times, centres = voxels.classes, voxels.probabilities, voxels.times, voxels.centres
     out: list[ObjectCentroid] = []
     for c in np.unique(cls):  # one pass per class present, vectorised inside
         m = cls == c
@@ -100,6 +124,27 @@ def extract_objects(
                 )
             )
     return out
+
+
+def extract_objects(
+    grid: VoxelGrid,
+    *,
+    min_probability: float = 0.3,
+    min_voxels: int = 4,
+    id_cell: float = 0.5,
+    exclude: frozenset[int] = frozenset(),
+    link: float = 1.8,
+) -> list[ObjectCentroid]:
+    """Cluster occupied, class-labelled voxels of `grid` into objects (DBSCAN per class):
+    `labelled_voxels` then `cluster_objects`, whose docstrings say what each argument does."""
+    if min_voxels < 1 or not 0.0 <= min_probability <= 1.0:
+        msg = (
+            "need min_voxels >= 1 and min_probability in [0, 1], "
+            f"found {min_voxels!r}, {min_probability!r}"
+        )
+        raise InputError(msg)
+    voxels = labelled_voxels(grid, min_probability=min_probability, exclude=exclude)
+    return cluster_objects(voxels, min_voxels=min_voxels, id_cell=id_cell, link=link)
 
 
 class ObjectTracker:

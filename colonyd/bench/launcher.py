@@ -289,10 +289,13 @@ class LocalColony:
     def members(self) -> list[str]:
         return alive_members(self.session(), self.namespace)
 
-    def converged(self, agents: list[str] | None = None) -> tuple[bool, str]:
-        """True when every listed daemon holds every listed origin's layer, identical to it."""
+    def converged(
+        self, agents: list[str] | None = None, status_timeout: float = 2.0
+    ) -> tuple[bool, str]:
+        """True when every listed daemon holds every listed origin's layer, identical to it
+        (`status_timeout`: for the digests, a pass over every layer a daemon holds)."""
         agents = agents or [a for a, d in self.daemons.items() if d.alive()]
-        reports = {r["agent"]: r for r in self.status(digest=True)}
+        reports = {r["agent"]: r for r in self.status(digest=True, timeout=status_timeout)}
         missing = [a for a in agents if a not in reports]
         if missing:
             return False, f"no status from {missing}"
@@ -322,8 +325,11 @@ class LocalColony:
                 return True, f"{agent} is still mapping"
         return False, ""
 
-    def wait_converged(self, timeout: float, agents: list[str] | None = None) -> float:
-        """Seconds until converged; raises TimeoutError with the last reason."""
+    def wait_converged(
+        self, timeout: float, agents: list[str] | None = None, status_timeout: float = 2.0
+    ) -> float:
+        """Seconds until converged; raises TimeoutError with the last reason. `status_timeout`:
+        of each round of status with digests (longer for layers of millions of voxels)."""
         t0 = time.monotonic()
         reason = "not checked"
         while time.monotonic() - t0 < timeout:
@@ -333,7 +339,7 @@ class LocalColony:
             if mapping:
                 time.sleep(0.3)
                 continue
-            ok, reason = self.converged(agents)
+            ok, reason = self.converged(agents, status_timeout)
             if ok:
                 return time.monotonic() - t0
             time.sleep(0.3)

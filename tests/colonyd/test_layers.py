@@ -92,8 +92,11 @@ def test_replica_of_a_planar_layer_takes_planar_blocks():
     assert planar.new_blocks(origin.delta_since(0).keys) == 0
     _, seq, chunks = planar.snapshot(chunk_voxels=100)
     copy = Layer("p", 0.05)
+    # the parts are counted together as the blocks they will fill, in the shape they will take
+    assert copy.new_blocks([c.keys for c in chunks], replace=True) == origin.store.count
     copy.install_snapshot(1, seq, chunks)
     assert copy.grid.store.shifts == (3, 3, 0) and copy.grid.content_equal(origin)
+    assert copy.new_blocks([c.keys for c in chunks]) == 0
     _, ds = deltas(1)
     three_d = Layer("c", 0.1)
     three_d.offer(1, 0, 1, ds[0])

@@ -125,7 +125,7 @@ def sample_messages(rng: np.random.Generator | None = None) -> list[Message]:
             rmse=0.04,
             pairs=[(5, 9), (6, 11)],
         ),
-        SnapshotRequest(**common, layer="robot-2", request_id=77),
+        SnapshotRequest(**common, layer="robot-2", request_id=77, timeout_ms=5000),
         SnapshotReply(
             **common,
             layer="robot-1",

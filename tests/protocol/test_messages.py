@@ -91,6 +91,10 @@ def test_sensor_info_round_trips_a_sensor_model() -> None:
             "greater than or equal",
         ),
         (
+            lambda: SnapshotRequest(**COMMON, layer="r", request_id=1, timeout_ms=1 << 32),
+            "less than or equal",
+        ),
+        (
             lambda: SnapshotReply(
                 **COMMON,
                 layer="r",

@@ -51,3 +51,6 @@ def test_count_blocks_is_the_number_of_distinct_blocks(shape: str, n: int, sprea
     keys = np.random.default_rng(n + spread).integers(-spread, spread, (n, 3))
     shifts = block_shifts(shape)
     assert count_blocks(keys, shifts) == np.unique(split_keys(keys, shifts)[0]).size
+    # the parts of a snapshot together, overlapping blocks and an empty part included
+    parts = [keys[: n // 3], keys[n // 4 :], keys[:0]]
+    assert count_blocks(parts, shifts) == count_blocks(keys, shifts)

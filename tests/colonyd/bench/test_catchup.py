@@ -26,14 +26,18 @@ def test_newcomers_catch_up_one_after_another_with_their_timelines(tmp_path) -> 
 
     out = _catchup(tmp_path, 20_000, runs=2)
     assert [r["catchup_voxels"] for r in out["catchup_runs"]] == [20_000, 20_000]
-    assert out["catchup_s"] <= out["catchup_s_median"]
+    assert out["catchup_s"] <= out["catchup_s_median"] <= out["catchup_s_max"]
+    each = [r["catchup_s"] for r in out["catchup_runs"]]
+    assert out["catchup_s_each"] == each and out["catchup_s_first"] == each[0]
     for run in out["catchup_runs"]:
         line = run["timeline_ms"]
         # the newcomer's steps in order, the holder's serve between its request and first reply
-        steps = ["request", "query", "snapshot", "encoded", "first", "received", "admitted"]
+        steps = ["request", "arrived", "query", "locked", "snapshot", "encoded_first", "encoded"]
+        steps += ["first_reply", "first", "received", "admitted"]
         assert [line[k] for k in steps] == sorted(line[k] for k in steps), line
         assert line["request"] == 0
         assert abs(line["installed"] - run["catchup_s"] * 1000) < 1.0
         assert line["asked"] <= 0 and line["admitted"] <= line["installed"]
         assert 0 < run["decode_ms"] <= line["received"]
         assert run["server_cpu_ms"] > 0 and run["newcomer_cpu_ms"] > 0
+        assert run["server_process_cpu_ms"] >= run["server_cpu_ms"] - 1.0  # every thread

@@ -1,0 +1,46 @@
+"""The status server on two real Zenoh sessions in one process (loopback, multicast off): a query
+whose requester has gone while it waited in the queue is dropped, not answered."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from colonyd.status import StatusServer, json_replies, query_status
+from protocol.keyexpr import status_selector
+from tests.colonyd.test_runtime import _pair
+
+
+def test_a_status_query_whose_requester_has_gone_is_not_answered() -> None:
+    ns = "status-test"
+    a, b = _pair()
+    answered: list[dict[str, str]] = []
+
+    def answer(params: dict[str, str]) -> dict[str, object]:
+        answered.append(params)
+        time.sleep(1.0)  # a digest of a large layer
+        return {"agent": "a", "n": len(answered)}
+
+    server = StatusServer(a, ns, "a", answer)
+    try:
+        time.sleep(0.5)  # the queryable reaches b
+        # three at once, each waiting 0.1 s: the first is taken at once (and answered too late),
+        # the other two are still queued when their requesters have gone
+        asks = [
+            threading.Thread(target=query_status, args=(b, ns), kwargs={"timeout": 0.1})
+            for _ in range(3)
+        ]
+        for t in asks:
+            t.start()
+        for t in asks:
+            t.join()
+        time.sleep(1.2)  # the first one's answer is done
+        assert len(answered) == 1
+        assert "timeout_ms" not in answered[0]  # taken by the server, not passed on
+        # one that waits is answered, and so is one that does not say how long it waits
+        assert [r["n"] for r in query_status(b, ns, timeout=5.0)] == [2]
+        assert [r["n"] for r in json_replies(b, status_selector(ns), 5.0)] == [3]
+    finally:
+        server.close()
+        b.close()
+        a.close()
