@@ -172,6 +172,7 @@ def _try_out(
         np.zeros(8, dtype=np.uint8),
         np.zeros(8, dtype=np.int64),
         True,
+        1.0,
     )
     lo = np.full((1, 1), np.nan, dtype=np.float32)
     stamp = np.zeros((1, 1), dtype=np.uint32)
@@ -237,6 +238,7 @@ def _trace_box(
     marks: np.ndarray,
     touched: np.ndarray,
     want_rows: bool,
+    scan_ratio: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """One scan's traversal in a dense box (lower corner `lo`, block-aligned, sides `dims`), as
     `raycast.trace`'s numpy path computes it: hit voxels at keys `hk` (3, H) (exact integers in
@@ -255,6 +257,11 @@ def _trace_box(
     in the same order, so the visited voxels are bit-identical to the numpy path's. Runs step by
     accumulation up to the step `k_flat` at which the numpy sweep has fewer than `flat_below` runs
     left, and are enumerated by multiplication from there, as it does.
+
+    A scan whose box has at most `scan_ratio` 8-byte words of cells per crossing (dense: depth
+    frames, 2D scans) marks cells without reading them, two runs at a time, and finds its blocks
+    by reading the box after; a sparser one (a few long rays in a large box) marks each new
+    cell's block as it goes. Both give the same result.
     """
     s2 = np.int64(1)
     s1 = dims[2]
@@ -281,16 +288,6 @@ def _trace_box(
             uniq[n_uniq] = lin
             n_uniq += 1
     hit_lin = np.sort(uniq[:n_uniq])
-    for i in range(n_uniq):
-        x = hit_lin[i] // s0
-        rest = hit_lin[i] - x * s0
-        y = rest // s1
-        z = rest - y * s1
-        blk = (x >> shifts[0]) * bstride[0] + (y >> shifts[1]) * bstride[1] + (z >> shifts[2])
-        if marks[blk] == 0:
-            marks[blk] = 1
-            touched[n_touched] = blk
-            n_touched += 1
     rows = np.empty(n_hits if want_rows else 0, dtype=np.int64)
     if want_rows:
         for i in range(n_hits):
@@ -352,11 +349,13 @@ def _trace_box(
             longest = max(longest, counts[r, a])
     hist = np.zeros(longest + 1, dtype=np.int64)
     runs = 0
+    crossings = 0
     for r in range(n_rays):
         for a in range(3):
             if counts[r, a] > 0:
                 hist[counts[r, a]] += 1
                 runs += 1
+                crossings += counts[r, a]
     k_flat = 0
     if runs >= flat_below:
         seen = 0
@@ -365,101 +364,306 @@ def _trace_box(
             if seen >= flat_below:
                 k_flat = v
                 break
-    if n_rays > 0:
-        if cells[start] == 0:
-            cells[start] = 1  # FREE
-        blk = (ko0 >> shifts[0]) * bstride[0] + (ko1 >> shifts[1]) * bstride[1] + (ko2 >> shifts[2])
-        if marks[blk] == 0:
-            marks[blk] = 1
-            touched[n_touched] = blk
-            n_touched += 1
-    # Pass 2: every run, as `_sequences` sets it up and `_sweep` / `_enumerate` step it.
-    for r in range(n_rays):
+    # A dense scan (its box not much larger than its crossings) marks cells only, its blocks are
+    # found by scanning the box after; a sparse one marks the blocks of the cells it marks.
+    total = dims[0] * dims[1] * dims[2]
+    if np.float64(total >> 3) <= scan_ratio * np.float64(crossings):
+        # Each run's constants, axis by axis (neighbouring rays' runs side by side, of similar
+        # lengths), as in the sparse sweep below.
+        r_m = np.empty(runs, dtype=np.int64)
+        r_lin = np.empty(runs, dtype=np.int64)
+        r_sa = np.empty(runs, dtype=np.int64)
+        r_sb = np.empty(runs, dtype=np.int64)
+        r_sc = np.empty(runs, dtype=np.int64)
+        r_y = np.empty(runs, dtype=np.float64)
+        r_iy = np.empty(runs, dtype=np.float64)
+        r_z = np.empty(runs, dtype=np.float64)
+        r_iz = np.empty(runs, dtype=np.float64)
+        n_r = 0
         for a in range(3):
-            m = counts[r, a]
-            if m <= 0:
+            for r in range(n_rays):
+                m = counts[r, a]
+                if m <= 0:
+                    continue
+                b = 1 if a == 0 else 0
+                c = 1 if a == 2 else 2
+                d_a = ends[r, a] - o[a]
+                stay_b = np.int64(np.floor(ends[r, b])) == ko[b]
+                stay_c = np.int64(np.floor(ends[r, c])) == ko[c]
+                if stay_b and not stay_c:
+                    b, c = c, b
+                    stay_b, stay_c = stay_c, stay_b
+                sgn = np.sign(d_a)
+                isgn = np.int64(sgn)
+                dist0 = np.float64(ko[a] + (1 if sgn > 0 else 0)) - o[a]
+                rb = (ends[r, b] - o[b]) / d_a
+                rc = (ends[r, c] - o[c]) / d_a
+                r_y[n_r] = 0.5 if stay_b else o[b] + dist0 * rb
+                r_iy[n_r] = 0.0 if stay_b else sgn * rb
+                r_z[n_r] = 0.5 if stay_c else o[c] + dist0 * rc
+                r_iz[n_r] = 0.0 if stay_c else sgn * rc
+                r_m[n_r] = m
+                r_sa[n_r] = strides[a] * isgn
+                # A fixed axis has a zero stride and its key in the constant term.
+                r_sb[n_r] = 0 if stay_b else strides[b]
+                r_sc[n_r] = 0 if stay_c else strides[c]
+                r_lin[n_r] = (
+                    (ko[a] + isgn) * strides[a]
+                    + (ko[b] * strides[b] if stay_b else 0)
+                    + (ko[c] * strides[c] if stay_c else 0)
+                )
+                n_r += 1
+        if n_rays > 0:
+            cells[start] = 1  # FREE
+        # Crossings before k_flat accumulate (the numpy sweep's steps), two runs at a time: each
+        # run's coordinates are a chain of additions, and two chains overlap in the CPU. Cells are
+        # marked FREE unconditionally (a store, no load or branch); hits are marked again after.
+        i = 0
+        while i < runs:
+            j = i + 1 if i + 1 < runs else i
+            ma = min(r_m[i], k_flat)
+            mb = min(r_m[j], k_flat) if j != i else 0
+            la = r_lin[i]
+            sa_a = r_sa[i]
+            sb_a = r_sb[i]
+            sc_a = r_sc[i]
+            ya = r_y[i]
+            iya = r_iy[i]
+            za = r_z[i]
+            iza = r_iz[i]
+            lb = r_lin[j]
+            sa_b = r_sa[j]
+            sb_b = r_sb[j]
+            sc_b = r_sc[j]
+            yb = r_y[j]
+            iyb = r_iy[j]
+            zb = r_z[j]
+            izb = r_iz[j]
+            both = min(ma, mb)
+            if sc_a == 0 and sc_b == 0:  # z fixed in both (a planar scan): y alone moves
+                for _ in range(both):
+                    yva = np.int64(ya)
+                    ya += iya
+                    yvb = np.int64(yb)
+                    yb += iyb
+                    cells[la + yva * sb_a] = 1
+                    cells[lb + yvb * sb_b] = 1
+                    la += sa_a
+                    lb += sa_b
+            else:
+                for _ in range(both):
+                    yva = np.int64(ya)
+                    zva = np.int64(za)
+                    ya += iya
+                    za += iza
+                    yvb = np.int64(yb)
+                    zvb = np.int64(zb)
+                    yb += iyb
+                    zb += izb
+                    cells[la + yva * sb_a + zva * sc_a] = 1
+                    cells[lb + yvb * sb_b + zvb * sc_b] = 1
+                    la += sa_a
+                    lb += sa_b
+            for _ in range(both, ma):
+                yva = np.int64(ya)
+                zva = np.int64(za)
+                ya += iya
+                za += iza
+                cells[la + yva * sb_a + zva * sc_a] = 1
+                la += sa_a
+            for _ in range(both, mb):
+                yvb = np.int64(yb)
+                zvb = np.int64(zb)
+                yb += iyb
+                zb += izb
+                cells[lb + yvb * sb_b + zvb * sc_b] = 1
+                lb += sa_b
+            r_lin[i] = la
+            r_y[i] = ya
+            r_z[i] = za
+            if j != i:
+                r_lin[j] = lb
+                r_y[j] = yb
+                r_z[j] = zb
+            i += 2
+        # Crossings from k_flat on multiply (the numpy sweep's flat pass): no chain between them.
+        for i in range(runs):
+            m = r_m[i]
+            if m <= k_flat:
                 continue
-            b = 1 if a == 0 else 0
-            c = 1 if a == 2 else 2
-            d_a = ends[r, a] - o[a]
-            stay_b = np.int64(np.floor(ends[r, b])) == ko[b]
-            stay_c = np.int64(np.floor(ends[r, c])) == ko[c]
-            if stay_b and not stay_c:
-                b, c = c, b
-                stay_b, stay_c = stay_c, stay_b
-            sgn = np.sign(d_a)
-            isgn = np.int64(sgn)
-            dist0 = np.float64(ko[a] + (1 if sgn > 0 else 0)) - o[a]
-            rb = (ends[r, b] - o[b]) / d_a
-            rc = (ends[r, c] - o[c]) / d_a
-            y0 = 0.5 if stay_b else o[b] + dist0 * rb
-            inc_y = 0.0 if stay_b else sgn * rb
-            z0 = 0.5 if stay_c else o[c] + dist0 * rc
-            inc_z = 0.0 if stay_c else sgn * rc
-            # Per run constants; the axis-a term of the linear index advances by one stride
-            # per crossing. Crossings before k_flat accumulate, later ones multiply (as numpy).
-            sa = strides[a] * isgn
-            sb = strides[b]
-            sc = strides[c]
-            lin_a = (ko[a] + isgn) * strides[a]
-            fixed = (ko[b] * sb if stay_b else 0) + (ko[c] * sc if stay_c else 0)
-            blk_a = bstride[a]
-            blk_b = bstride[b]
-            blk_c = bstride[c]
-            sh_a = shifts[a]
-            sh_b = shifts[b]
-            sh_c = shifts[c]
-            y = y0
-            z = z0
-            split = min(m, k_flat)
-            # Branch-free: a fixed axis has a zero stride and its key in a constant offset.
-            sb_e = 0 if stay_b else sb
-            sc_e = 0 if stay_c else sc
-            off_b = ko[b] if stay_b else 0
-            off_c = ko[c] if stay_c else 0
-            xa = ko[a] + isgn
-            base_lin = lin_a + fixed
-            for _ in range(split):  # accumulate (the numpy sweep's steps)
-                yv = np.int64(y)
-                zv = np.int64(z)
-                y += inc_y
-                z += inc_z
-                lin = base_lin + yv * sb_e + zv * sc_e
-                base_lin += sa
-                xa_k = xa
-                xa += isgn
-                if cells[lin] != 0:
-                    continue  # marked before, and so was its block
-                cells[lin] = 1  # FREE
-                blk = (
-                    (xa_k >> sh_a) * blk_a
-                    + ((off_b if stay_b else yv) >> sh_b) * blk_b
-                    + ((off_c if stay_c else zv) >> sh_c) * blk_c
-                )
-                if marks[blk] == 0:
-                    marks[blk] = 1
-                    touched[n_touched] = blk
-                    n_touched += 1
-            for k in range(split, m):  # multiply (the numpy sweep's flat pass)
-                jf = np.float64(k - k_flat)
-                yv = np.int64(y + jf * inc_y)
-                zv = np.int64(z + jf * inc_z)
-                lin = base_lin + yv * sb_e + zv * sc_e
-                base_lin += sa
-                xa_k = xa
-                xa += isgn
-                if cells[lin] != 0:
-                    continue  # marked before, and so was its block
-                cells[lin] = 1  # FREE
-                blk = (
-                    (xa_k >> sh_a) * blk_a
-                    + ((off_b if stay_b else yv) >> sh_b) * blk_b
-                    + ((off_c if stay_c else zv) >> sh_c) * blk_c
-                )
-                if marks[blk] == 0:
-                    marks[blk] = 1
-                    touched[n_touched] = blk
-                    n_touched += 1
+            la = r_lin[i]
+            sa_a = r_sa[i]
+            sb_a = r_sb[i]
+            sc_a = r_sc[i]
+            ya = r_y[i]
+            iya = r_iy[i]
+            za = r_z[i]
+            iza = r_iz[i]
+            if sc_a == 0:
+                for k in range(m - k_flat):
+                    yva = np.int64(ya + np.float64(k) * iya)
+                    cells[la + yva * sb_a] = 1
+                    la += sa_a
+            else:
+                for k in range(m - k_flat):
+                    jf = np.float64(k)
+                    yva = np.int64(ya + jf * iya)
+                    zva = np.int64(za + jf * iza)
+                    cells[la + yva * sb_a + zva * sc_a] = 1
+                    la += sa_a
+        for i in range(n_uniq):
+            cells[hit_lin[i]] = 2  # HIT: hits win
+        # The touched blocks: the box read in words of one block's run (a block's cells lie in
+        # runs along z, or along y and z when the box is one block high), a non-zero word marks
+        # its block; then the marks in block order.
+        whole_box = dims[2] == (np.int64(1) << shifts[2])
+        run_len = np.int64(1) << (shifts[1] + shifts[2] if whole_box else shifts[2])
+        ws = 8 if run_len % 8 == 0 else (4 if run_len % 4 == 0 else 1)
+        if whole_box:
+            n_rows = dims[0]
+            row_len = s0
+            sh_in = shifts[1] + shifts[2]
+        else:
+            n_rows = dims[0] * dims[1]
+            row_len = dims[2]
+            sh_in = shifts[2]
+        n_w = row_len // ws
+        w64 = cells[: cells.size - cells.size % 8].view(np.uint64)
+        w32 = cells[: cells.size - cells.size % 4].view(np.uint32)
+        for row in range(n_rows):
+            if whole_box:
+                bbase = (row >> shifts[0]) * bstride[0]
+            else:
+                x = row // dims[1]
+                y = row - x * dims[1]
+                bbase = (x >> shifts[0]) * bstride[0] + (y >> shifts[1]) * bstride[1]
+            w0 = row * n_w
+            if ws == 8:
+                for q in range(n_w):
+                    if w64[w0 + q] != 0:
+                        marks[bbase + ((q << 3) >> sh_in)] = 1
+            elif ws == 4:
+                for q in range(n_w):
+                    if w32[w0 + q] != 0:
+                        marks[bbase + ((q << 2) >> sh_in)] = 1
+            else:
+                for q in range(n_w):
+                    if cells[w0 + q] != 0:
+                        marks[bbase + (q >> sh_in)] = 1
+        for t in range(nb[0] * nb[1] * nb[2]):
+            if marks[t] != 0:
+                touched[n_touched] = t
+                n_touched += 1
+    else:
+        for i in range(n_uniq):
+            x = hit_lin[i] // s0
+            rest = hit_lin[i] - x * s0
+            y = rest // s1
+            z = rest - y * s1
+            blk = (x >> shifts[0]) * bstride[0] + (y >> shifts[1]) * bstride[1] + (z >> shifts[2])
+            if marks[blk] == 0:
+                marks[blk] = 1
+                touched[n_touched] = blk
+                n_touched += 1
+        if n_rays > 0:
+            if cells[start] == 0:
+                cells[start] = 1  # FREE
+            blk = (
+                (ko0 >> shifts[0]) * bstride[0]
+                + (ko1 >> shifts[1]) * bstride[1]
+                + (ko2 >> shifts[2])
+            )
+            if marks[blk] == 0:
+                marks[blk] = 1
+                touched[n_touched] = blk
+                n_touched += 1
+        # Pass 2: every run, as `_sequences` sets it up and `_sweep` / `_enumerate` step it.
+        for r in range(n_rays):
+            for a in range(3):
+                m = counts[r, a]
+                if m <= 0:
+                    continue
+                b = 1 if a == 0 else 0
+                c = 1 if a == 2 else 2
+                d_a = ends[r, a] - o[a]
+                stay_b = np.int64(np.floor(ends[r, b])) == ko[b]
+                stay_c = np.int64(np.floor(ends[r, c])) == ko[c]
+                if stay_b and not stay_c:
+                    b, c = c, b
+                    stay_b, stay_c = stay_c, stay_b
+                sgn = np.sign(d_a)
+                isgn = np.int64(sgn)
+                dist0 = np.float64(ko[a] + (1 if sgn > 0 else 0)) - o[a]
+                rb = (ends[r, b] - o[b]) / d_a
+                rc = (ends[r, c] - o[c]) / d_a
+                y0 = 0.5 if stay_b else o[b] + dist0 * rb
+                inc_y = 0.0 if stay_b else sgn * rb
+                z0 = 0.5 if stay_c else o[c] + dist0 * rc
+                inc_z = 0.0 if stay_c else sgn * rc
+                # Per run constants; the axis-a term of the linear index advances by one stride
+                # per crossing. Crossings before k_flat accumulate, later ones multiply (as numpy).
+                sa = strides[a] * isgn
+                sb = strides[b]
+                sc = strides[c]
+                lin_a = (ko[a] + isgn) * strides[a]
+                fixed = (ko[b] * sb if stay_b else 0) + (ko[c] * sc if stay_c else 0)
+                blk_a = bstride[a]
+                blk_b = bstride[b]
+                blk_c = bstride[c]
+                sh_a = shifts[a]
+                sh_b = shifts[b]
+                sh_c = shifts[c]
+                y = y0
+                z = z0
+                split = min(m, k_flat)
+                # Branch-free: a fixed axis has a zero stride and its key in a constant offset.
+                sb_e = 0 if stay_b else sb
+                sc_e = 0 if stay_c else sc
+                off_b = ko[b] if stay_b else 0
+                off_c = ko[c] if stay_c else 0
+                xa = ko[a] + isgn
+                base_lin = lin_a + fixed
+                for _ in range(split):  # accumulate (the numpy sweep's steps)
+                    yv = np.int64(y)
+                    zv = np.int64(z)
+                    y += inc_y
+                    z += inc_z
+                    lin = base_lin + yv * sb_e + zv * sc_e
+                    base_lin += sa
+                    xa_k = xa
+                    xa += isgn
+                    if cells[lin] != 0:
+                        continue  # marked before, and so was its block
+                    cells[lin] = 1  # FREE
+                    blk = (
+                        (xa_k >> sh_a) * blk_a
+                        + ((off_b if stay_b else yv) >> sh_b) * blk_b
+                        + ((off_c if stay_c else zv) >> sh_c) * blk_c
+                    )
+                    if marks[blk] == 0:
+                        marks[blk] = 1
+                        touched[n_touched] = blk
+                        n_touched += 1
+                for k in range(split, m):  # multiply (the numpy sweep's flat pass)
+                    jf = np.float64(k - k_flat)
+                    yv = np.int64(y + jf * inc_y)
+                    zv = np.int64(z + jf * inc_z)
+                    lin = base_lin + yv * sb_e + zv * sc_e
+                    base_lin += sa
+                    xa_k = xa
+                    xa += isgn
+                    if cells[lin] != 0:
+                        continue  # marked before, and so was its block
+                    cells[lin] = 1  # FREE
+                    blk = (
+                        (xa_k >> sh_a) * blk_a
+                        + ((off_b if stay_b else yv) >> sh_b) * blk_b
+                        + ((off_c if stay_c else zv) >> sh_c) * blk_c
+                    )
+                    if marks[blk] == 0:
+                        marks[blk] = 1
+                        touched[n_touched] = blk
+                        n_touched += 1
     # Gather the touched blocks' cells, in block order, and leave the scratch zero.
     order = np.sort(touched[:n_touched])
     sx = shifts[0]
