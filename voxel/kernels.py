@@ -1,15 +1,15 @@
 """Compiled kernels (numba, the optional `fast` extra) for integration's hot loops, loaded lazily.
 
-`beams()` (a scan's beams sorted), `trace()` (a scan's whole dense traversal: hits, rays,
-blocks touched), `index()` (the block store's lookup and insertion) and `update()` (the
-occupancy update of a chunk of blocks and the voxels the history records) return a compiled
-kernel, or None when numba is absent, fails, or `COLONY_JIT=0`; the callers then run their
-pure-numpy path, which gives bit-identical results (the kernels repeat its floating-point
-operations one for one). Importing numba and loading the cached machine code take ~0.5 s of
-CPU, so nothing here happens at import: `warm()` does it, off the hot path (a daemon calls it in
-a background thread once ready), and the first call otherwise. Compiling them (nothing cached
-yet) takes ~11 s of CPU: after `load_in_background()` (a daemon) a call never waits for that,
-it starts the loading in a thread and answers None (the numpy path) until it is done.
+`beams()` (a scan's beams sorted), `trace()` (a scan's whole dense traversal: hits, rays, blocks
+touched), `index()` (the block store's lookup and insertion) and `update()` (the occupancy update
+of a chunk of blocks and the voxels the history records) return a compiled kernel, or None when
+numba is absent, fails, or `COLONY_JIT=0` (read at import); the callers then run their pure-numpy
+path, which gives bit-identical results (the kernels repeat its floating-point operations one for
+one). Importing numba and loading the cached machine code take ~0.5 s of CPU, so nothing here
+happens at import: `warm()` does it, off the hot path (a daemon calls it in a background thread
+once ready), and the first call otherwise. Compiling them (nothing cached yet) takes ~11 s of CPU:
+after `load_in_background()` (a daemon) a call never waits for that, it starts the loading in a
+thread and answers None (the numpy path) until it is done.
 """
 
 from __future__ import annotations
@@ -60,9 +60,21 @@ class _Loading:
 _loading = _Loading()
 
 
+class _Switch:
+    """Whether the compiled kernels are used: COLONY_JIT read once, at import (every kernel
+    fetch reading the environment cost ~1 us, five times a scan)."""
+
+    def __init__(self) -> None:
+        self.on = os.environ.get(JIT_ENV, "1") != "0"
+
+
+_switch = _Switch()
+
+
 def enabled() -> bool:
-    """True unless the compiled kernels are turned off with COLONY_JIT=0."""
-    return os.environ.get(JIT_ENV, "1") != "0"
+    """True unless the compiled kernels are turned off (COLONY_JIT=0 when the process started;
+    tests switch `_switch.on` to run both paths)."""
+    return _switch.on
 
 
 def _get(name: str) -> Callable[..., Any] | None:
@@ -768,6 +780,15 @@ def _update_records(
     sy = shifts[1]
     sz = shifts[2]
     mask = np.int64((1 << _AXIS_BITS) - 1)
+    # A voxel's packed key is its block's first voxel's packed key plus its offset's: the fields
+    # do not carry into each other.
+    offs = np.empty(n_vox, dtype=np.int64)
+    for j in range(n_vox):
+        offs[j] = (
+            ((j >> (sy + sz)) << (2 * _AXIS_BITS))
+            | (((j >> sz) & ((1 << sy) - 1)) << _AXIS_BITS)
+            | (j & ((1 << sz) - 1))
+        )
     k = 0
     f = 0
     for i in range(n_blocks):
@@ -776,6 +797,11 @@ def _update_records(
         bx = ((bkey >> (2 * _AXIS_BITS)) & mask) - _AXIS_OFFSET
         by = ((bkey >> _AXIS_BITS) & mask) - _AXIS_OFFSET
         bz = (bkey & mask) - _AXIS_OFFSET
+        first = (
+            ((bx << sx) + _AXIS_OFFSET) << (2 * _AXIS_BITS)
+            | (((by << sy) + _AXIS_OFFSET) << _AXIS_BITS)
+            | ((bz << sz) + _AXIS_OFFSET)
+        )
         changed_block = False
         for j in range(n_vox):
             c = cells[i, j]
@@ -795,14 +821,7 @@ def _update_records(
             keep = after >= 0 or before >= 0 or c == 2
             is_fresh = seen and not known and after < 0
             if keep or is_fresh:
-                x = (bx << sx) + (j >> (sy + sz))
-                y = (by << sy) + ((j >> sz) & ((1 << sy) - 1))
-                z = (bz << sz) + (j & ((1 << sz) - 1))
-                packed = (
-                    ((x + _AXIS_OFFSET) << (2 * _AXIS_BITS))
-                    | ((y + _AXIS_OFFSET) << _AXIS_BITS)
-                    | (z + _AXIS_OFFSET)
-                )
+                packed = first + offs[j]
                 if keep:
                     keys[k] = packed
                     old[k] = before
@@ -866,17 +885,18 @@ def _sort_beams(
         d2 += t * t
         t = points[i, 2] - org[2]
         d2 += t * t
-        if d2 > 0 and d2 <= max2 and not nr[i]:
+        # Tests combined without branches (`&`): most points pass them all.
+        if (d2 > 0) & (d2 <= max2) & (not nr[i]):
             x0 = points[i, 0] * inv
             x1 = points[i, 1] * inv
             x2 = points[i, 2] * inv
             if (
-                x0 >= key_min
-                and x0 < k_top
-                and x1 >= key_min
-                and x1 < k_top
-                and x2 >= key_min
-                and x2 < k_top
+                (x0 >= key_min)
+                & (x0 < k_top)
+                & (x1 >= key_min)
+                & (x1 < k_top)
+                & (x2 >= key_min)
+                & (x2 < k_top)
             ):
                 hit_mask[i] = True
                 n_hit += 1
@@ -886,12 +906,6 @@ def _sort_beams(
                 i0 = np.int64(k0)
                 i1 = np.int64(k1)
                 i2 = np.int64(k2)
-                lo0 = i0 if i0 < lo0 else lo0
-                hi0 = i0 if i0 > hi0 else hi0
-                lo1 = i1 if i1 < lo1 else lo1
-                hi1 = i1 if i1 > hi1 else hi1
-                lo2 = i2 if i2 < lo2 else lo2
-                hi2 = i2 if i2 > hi2 else hi2
                 if distinct:
                     packed = (
                         ((i0 + _AXIS_OFFSET) << (2 * _AXIS_BITS))
@@ -900,8 +914,14 @@ def _sort_beams(
                     )
                     h = ((packed * np.int64(_HASH[0])) >> (64 - _RECENT_BITS)) & (_RECENT - 1)
                     if recent[h] == packed:
-                        continue
+                        continue  # a repeated key: in the bounds already
                     recent[h] = packed
+                lo0 = i0 if i0 < lo0 else lo0
+                hi0 = i0 if i0 > hi0 else hi0
+                lo1 = i1 if i1 < lo1 else lo1
+                hi1 = i1 if i1 > hi1 else hi1
+                lo2 = i2 if i2 < lo2 else lo2
+                hi2 = i2 if i2 > hi2 else hi2
                 hit_keys[0, n_out] = k0
                 hit_keys[1, n_out] = k1
                 hit_keys[2, n_out] = k2

@@ -181,7 +181,7 @@ def test_the_compiled_sweep_visits_what_the_numpy_sweep_visits(monkeypatch, flat
         keys = vk.points_to_keys(hits, RES).T
         out = []
         for flag in ("0", "1"):
-            monkeypatch.setenv(kernels.JIT_ENV, flag)
+            monkeypatch.setattr(kernels._switch, "on", flag == "1")
             out.append(trace(origin, keys, clear_ends, RES, shifts, want_inverse=True))
         assert kernels.trace() is not None
         numpy_tr, compiled_tr = out

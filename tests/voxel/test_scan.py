@@ -97,7 +97,7 @@ def test_compiled_beams_are_the_numpy_beams(monkeypatch, free_range) -> None:
         scan = Scan.of(pts, origin, time=0.0, reliability=1.0, no_return=nr)
         out = []
         for flag in ("0", "1"):
-            monkeypatch.setenv(kernels.JIT_ENV, flag)
+            monkeypatch.setattr(kernels._switch, "on", flag == "1")
             out.append(sort_beams(scan, sensor, 0.05))
         assert kernels.beams() is not None
         numpy_b, compiled_b = out
@@ -127,9 +127,9 @@ def test_compiled_distinct_hits_leave_repeats_out(monkeypatch) -> None:
     pts[::7] = pts[::7][::-1]  # not only neighbours repeat
     sensor = SensorModel(max_range=3.0)
     scan = Scan.of(pts, origin, time=0.0, reliability=1.0)
-    monkeypatch.setenv(kernels.JIT_ENV, "0")
+    monkeypatch.setattr(kernels._switch, "on", False)
     every = sort_beams(scan, sensor, 0.05)
-    monkeypatch.setenv(kernels.JIT_ENV, "1")
+    monkeypatch.setattr(kernels._switch, "on", True)
     assert kernels.warm()
     few = sort_beams(scan, sensor, 0.05, distinct=True)
     assert few.hit_keys.shape[1] < every.hit_keys.shape[1] // 4
