@@ -875,6 +875,13 @@ def _sort_beams(
     hi0 = hi1 = hi2 = np.int64(np.iinfo(np.int64).min)
     # Recent hit keys (packed, -1 none), by hash: a direct-mapped cache, a miss only repeats a key.
     recent = np.full(_RECENT if distinct else 1, -1, dtype=np.int64)
+    # A hit lies within max range of the origin: when that ball lies inside the key space (a
+    # voxel to spare for rounding), every hit's key does, and its test is left out.
+    inside = True
+    for a in range(3):
+        reach = max_range * inv + 1.0
+        if not (org[a] * inv - reach >= key_min and org[a] * inv + reach < k_top):
+            inside = False
     n_hit = 0
     n_out = 0
     n_clear = 0
@@ -890,7 +897,7 @@ def _sort_beams(
             x0 = points[i, 0] * inv
             x1 = points[i, 1] * inv
             x2 = points[i, 2] * inv
-            if (
+            if inside or (
                 (x0 >= key_min)
                 & (x0 < k_top)
                 & (x1 >= key_min)
