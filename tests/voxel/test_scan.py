@@ -155,8 +155,8 @@ def test_compiled_sorting_checks_hit_keys_only_where_the_ball_leaves_the_key_spa
     # inside the key space; near its edge (here 40 m reaches beyond it) each hit is tested, and
     # hits past the edge are invalid, as on the numpy path.
     pytest.importorskip("numba")
-    from voxel import keys as vk
     from voxel import kernels
+    from voxel import keys as vk
 
     res = 0.05
     origin = np.array([vk.KEY_MAX * res - 20.0, 0.1, -0.2])
