@@ -973,7 +973,8 @@ def _sort_beams(
             if inside:
                 m += 1
     cleared = m
-    # One beam per fine cell, as keys.one_per_key picks it.
+    # One beam per fine cell, the last of its cell, in order (as keys.one_per_key picks them):
+    # one pass from the last beam back over a hash table of the cells seen (linear probing).
     chosen = np.empty(m, dtype=np.int64)
     n_c = 0
     if m:
@@ -999,40 +1000,28 @@ def _sort_beams(
         bits = 2
         while (np.int64(1) << (bits - 2)) <= m:
             bits += 1
-        bits = max(4, bits)  # max(4, m.bit_length() + 2)
-        table = np.empty(np.int64(1) << bits, dtype=np.int64)
+        bits = max(4, bits)  # max(4, m.bit_length() + 2): a table at most a quarter full
+        table = np.full(np.int64(1) << bits, -1, dtype=np.int64)
         mask = (np.int64(1) << bits) - 1
-        pend = np.arange(m)
-        slot = np.empty(m, dtype=np.int64)
-        n_p = m
-        for r in range(64):
-            mult = np.int64(_HASH[r % 4]) + np.int64(2 * (r // 4))
-            for i in range(n_p):
-                s = ((lin[pend[i]] * mult) >> (64 - bits)) & mask
-                slot[i] = s
-                table[s] = pend[i]
-            for i in range(n_p):
-                if table[slot[i]] == pend[i]:
-                    chosen[n_c] = pend[i]
-                    n_c += 1
-            left = 0
-            for i in range(n_p):
-                p = pend[i]
-                if lin[table[slot[i]]] != lin[p]:
-                    pend[left] = p
-                    slot[left] = slot[i]
-                    left += 1
-            n_p = left
-            if n_p == 0:
-                break
-        if n_p:  # 64 rounds of collisions: the last of each key that is left, by key
-            rest = pend[:n_p]
-            order = np.argsort(lin[rest], kind="mergesort")
-            for i in range(n_p):
-                here = rest[order[i]]
-                if i == n_p - 1 or lin[rest[order[i + 1]]] != lin[here]:
-                    chosen[n_c] = here
-                    n_c += 1
+        mult = np.int64(_HASH[0])
+        last = np.zeros(m, dtype=np.bool_)
+        # From the last beam back: the first of a cell seen is its last beam (one_per_key's).
+        for i in range(m - 1, -1, -1):
+            key = lin[i]
+            s = ((key * mult) >> (64 - bits)) & mask
+            while True:
+                v = table[s]
+                if v == key:
+                    break
+                if v < 0:
+                    table[s] = key
+                    last[i] = True
+                    break
+                s = (s + 1) & mask
+        for i in range(m):
+            if last[i]:
+                chosen[n_c] = i
+                n_c += 1
     picked = np.empty((n_c, 3), dtype=np.float64)
     for i in range(n_c):
         for a in range(3):
