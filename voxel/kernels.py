@@ -1,15 +1,15 @@
 """Compiled kernels (numba, the optional `fast` extra) for integration's hot loops, loaded lazily.
 
-`beams()` (a scan's beams sorted), `trace()` (a scan's whole dense traversal: hits, rays,
-blocks touched), `index()` (the block store's lookup and insertion) and `update()` (the
-occupancy update of a chunk of blocks and the voxels the history records) return a compiled
-kernel, or None when numba is absent, fails, or `COLONY_JIT=0`; the callers then run their
-pure-numpy path, which gives bit-identical results (the kernels repeat its floating-point
-operations one for one). Importing numba and loading the cached machine code take ~0.5 s of
-CPU, so nothing here happens at import: `warm()` does it, off the hot path (a daemon calls it in
-a background thread once ready), and the first call otherwise. Compiling them (nothing cached
-yet) takes ~11 s of CPU: after `load_in_background()` (a daemon) a call never waits for that,
-it starts the loading in a thread and answers None (the numpy path) until it is done.
+`beams()` (a scan's beams sorted), `trace()` (a scan's whole dense traversal: hits, rays, blocks
+touched), `index()` (the block store's lookup and insertion) and `update()` (the occupancy update
+of a chunk of blocks and the voxels the history records) return a compiled kernel, or None when
+numba is absent, fails, or `COLONY_JIT=0` (read at import); the callers then run their pure-numpy
+path, which gives bit-identical results (the kernels repeat its floating-point operations one for
+one). Importing numba and loading the cached machine code take ~0.5 s of CPU, so nothing here
+happens at import: `warm()` does it, off the hot path (a daemon calls it in a background thread
+once ready), and the first call otherwise. Compiling them (nothing cached yet) takes ~11 s of CPU:
+after `load_in_background()` (a daemon) a call never waits for that, it starts the loading in a
+thread and answers None (the numpy path) until it is done.
 """
 
 from __future__ import annotations
@@ -60,9 +60,21 @@ class _Loading:
 _loading = _Loading()
 
 
+class _Switch:
+    """Whether the compiled kernels are used: COLONY_JIT read once, at import (every kernel
+    fetch reading the environment cost ~1 us, five times a scan)."""
+
+    def __init__(self) -> None:
+        self.on = os.environ.get(JIT_ENV, "1") != "0"
+
+
+_switch = _Switch()
+
+
 def enabled() -> bool:
-    """True unless the compiled kernels are turned off with COLONY_JIT=0."""
-    return os.environ.get(JIT_ENV, "1") != "0"
+    """True unless the compiled kernels are turned off (COLONY_JIT=0 when the process started;
+    tests switch `_switch.on` to run both paths)."""
+    return _switch.on
 
 
 def _get(name: str) -> Callable[..., Any] | None:
@@ -175,6 +187,7 @@ def _try_out(
         np.zeros(8, dtype=np.uint8),
         np.zeros(8, dtype=np.int64),
         True,
+        1.0,
     )
     lo = np.full((1, 1), np.nan, dtype=np.float32)
     stamp = np.zeros((1, 1), dtype=np.uint32)
@@ -240,6 +253,7 @@ def _trace_box(
     marks: np.ndarray,
     touched: np.ndarray,
     want_rows: bool,
+    scan_ratio: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """One scan's traversal in a dense box (lower corner `lo`, block-aligned, sides `dims`), as
     `raycast.trace`'s numpy path computes it: hit voxels at keys `hk` (3, H) (exact integers in
@@ -258,6 +272,11 @@ def _trace_box(
     in the same order, so the visited voxels are bit-identical to the numpy path's. Runs step by
     accumulation up to the step `k_flat` at which the numpy sweep has fewer than `flat_below` runs
     left, and are enumerated by multiplication from there, as it does.
+
+    A scan whose box has at most `scan_ratio` 8-byte words of cells per crossing (dense: depth
+    frames, 2D scans) marks cells without reading them, two runs at a time, and finds its blocks
+    by reading the box after; a sparser one (a few long rays in a large box) marks each new
+    cell's block as it goes. Both give the same result.
     """
     s2 = np.int64(1)
     s1 = dims[2]
@@ -284,16 +303,6 @@ def _trace_box(
             uniq[n_uniq] = lin
             n_uniq += 1
     hit_lin = np.sort(uniq[:n_uniq])
-    for i in range(n_uniq):
-        x = hit_lin[i] // s0
-        rest = hit_lin[i] - x * s0
-        y = rest // s1
-        z = rest - y * s1
-        blk = (x >> shifts[0]) * bstride[0] + (y >> shifts[1]) * bstride[1] + (z >> shifts[2])
-        if marks[blk] == 0:
-            marks[blk] = 1
-            touched[n_touched] = blk
-            n_touched += 1
     rows = np.empty(n_hits if want_rows else 0, dtype=np.int64)
     if want_rows:
         for i in range(n_hits):
@@ -355,11 +364,13 @@ def _trace_box(
             longest = max(longest, counts[r, a])
     hist = np.zeros(longest + 1, dtype=np.int64)
     runs = 0
+    crossings = 0
     for r in range(n_rays):
         for a in range(3):
             if counts[r, a] > 0:
                 hist[counts[r, a]] += 1
                 runs += 1
+                crossings += counts[r, a]
     k_flat = 0
     if runs >= flat_below:
         seen = 0
@@ -368,101 +379,306 @@ def _trace_box(
             if seen >= flat_below:
                 k_flat = v
                 break
-    if n_rays > 0:
-        if cells[start] == 0:
-            cells[start] = 1  # FREE
-        blk = (ko0 >> shifts[0]) * bstride[0] + (ko1 >> shifts[1]) * bstride[1] + (ko2 >> shifts[2])
-        if marks[blk] == 0:
-            marks[blk] = 1
-            touched[n_touched] = blk
-            n_touched += 1
-    # Pass 2: every run, as `_sequences` sets it up and `_sweep` / `_enumerate` step it.
-    for r in range(n_rays):
+    # A dense scan (its box not much larger than its crossings) marks cells only, its blocks are
+    # found by scanning the box after; a sparse one marks the blocks of the cells it marks.
+    total = dims[0] * dims[1] * dims[2]
+    if np.float64(total >> 3) <= scan_ratio * np.float64(crossings):
+        # Each run's constants, axis by axis (neighbouring rays' runs side by side, of similar
+        # lengths), as in the sparse sweep below.
+        r_m = np.empty(runs, dtype=np.int64)
+        r_lin = np.empty(runs, dtype=np.int64)
+        r_sa = np.empty(runs, dtype=np.int64)
+        r_sb = np.empty(runs, dtype=np.int64)
+        r_sc = np.empty(runs, dtype=np.int64)
+        r_y = np.empty(runs, dtype=np.float64)
+        r_iy = np.empty(runs, dtype=np.float64)
+        r_z = np.empty(runs, dtype=np.float64)
+        r_iz = np.empty(runs, dtype=np.float64)
+        n_r = 0
         for a in range(3):
-            m = counts[r, a]
-            if m <= 0:
+            for r in range(n_rays):
+                m = counts[r, a]
+                if m <= 0:
+                    continue
+                b = 1 if a == 0 else 0
+                c = 1 if a == 2 else 2
+                d_a = ends[r, a] - o[a]
+                stay_b = np.int64(np.floor(ends[r, b])) == ko[b]
+                stay_c = np.int64(np.floor(ends[r, c])) == ko[c]
+                if stay_b and not stay_c:
+                    b, c = c, b
+                    stay_b, stay_c = stay_c, stay_b
+                sgn = np.sign(d_a)
+                isgn = np.int64(sgn)
+                dist0 = np.float64(ko[a] + (1 if sgn > 0 else 0)) - o[a]
+                rb = (ends[r, b] - o[b]) / d_a
+                rc = (ends[r, c] - o[c]) / d_a
+                r_y[n_r] = 0.5 if stay_b else o[b] + dist0 * rb
+                r_iy[n_r] = 0.0 if stay_b else sgn * rb
+                r_z[n_r] = 0.5 if stay_c else o[c] + dist0 * rc
+                r_iz[n_r] = 0.0 if stay_c else sgn * rc
+                r_m[n_r] = m
+                r_sa[n_r] = strides[a] * isgn
+                # A fixed axis has a zero stride and its key in the constant term.
+                r_sb[n_r] = 0 if stay_b else strides[b]
+                r_sc[n_r] = 0 if stay_c else strides[c]
+                r_lin[n_r] = (
+                    (ko[a] + isgn) * strides[a]
+                    + (ko[b] * strides[b] if stay_b else 0)
+                    + (ko[c] * strides[c] if stay_c else 0)
+                )
+                n_r += 1
+        if n_rays > 0:
+            cells[start] = 1  # FREE
+        # Crossings before k_flat accumulate (the numpy sweep's steps), two runs at a time: each
+        # run's coordinates are a chain of additions, and two chains overlap in the CPU. Cells are
+        # marked FREE unconditionally (a store, no load or branch); hits are marked again after.
+        i = 0
+        while i < runs:
+            j = i + 1 if i + 1 < runs else i
+            ma = min(r_m[i], k_flat)
+            mb = min(r_m[j], k_flat) if j != i else 0
+            la = r_lin[i]
+            sa_a = r_sa[i]
+            sb_a = r_sb[i]
+            sc_a = r_sc[i]
+            ya = r_y[i]
+            iya = r_iy[i]
+            za = r_z[i]
+            iza = r_iz[i]
+            lb = r_lin[j]
+            sa_b = r_sa[j]
+            sb_b = r_sb[j]
+            sc_b = r_sc[j]
+            yb = r_y[j]
+            iyb = r_iy[j]
+            zb = r_z[j]
+            izb = r_iz[j]
+            both = min(ma, mb)
+            if sc_a == 0 and sc_b == 0:  # z fixed in both (a planar scan): y alone moves
+                for _ in range(both):
+                    yva = np.int64(ya)
+                    ya += iya
+                    yvb = np.int64(yb)
+                    yb += iyb
+                    cells[la + yva * sb_a] = 1
+                    cells[lb + yvb * sb_b] = 1
+                    la += sa_a
+                    lb += sa_b
+            else:
+                for _ in range(both):
+                    yva = np.int64(ya)
+                    zva = np.int64(za)
+                    ya += iya
+                    za += iza
+                    yvb = np.int64(yb)
+                    zvb = np.int64(zb)
+                    yb += iyb
+                    zb += izb
+                    cells[la + yva * sb_a + zva * sc_a] = 1
+                    cells[lb + yvb * sb_b + zvb * sc_b] = 1
+                    la += sa_a
+                    lb += sa_b
+            for _ in range(both, ma):
+                yva = np.int64(ya)
+                zva = np.int64(za)
+                ya += iya
+                za += iza
+                cells[la + yva * sb_a + zva * sc_a] = 1
+                la += sa_a
+            for _ in range(both, mb):
+                yvb = np.int64(yb)
+                zvb = np.int64(zb)
+                yb += iyb
+                zb += izb
+                cells[lb + yvb * sb_b + zvb * sc_b] = 1
+                lb += sa_b
+            r_lin[i] = la
+            r_y[i] = ya
+            r_z[i] = za
+            if j != i:
+                r_lin[j] = lb
+                r_y[j] = yb
+                r_z[j] = zb
+            i += 2
+        # Crossings from k_flat on multiply (the numpy sweep's flat pass): no chain between them.
+        for i in range(runs):
+            m = r_m[i]
+            if m <= k_flat:
                 continue
-            b = 1 if a == 0 else 0
-            c = 1 if a == 2 else 2
-            d_a = ends[r, a] - o[a]
-            stay_b = np.int64(np.floor(ends[r, b])) == ko[b]
-            stay_c = np.int64(np.floor(ends[r, c])) == ko[c]
-            if stay_b and not stay_c:
-                b, c = c, b
-                stay_b, stay_c = stay_c, stay_b
-            sgn = np.sign(d_a)
-            isgn = np.int64(sgn)
-            dist0 = np.float64(ko[a] + (1 if sgn > 0 else 0)) - o[a]
-            rb = (ends[r, b] - o[b]) / d_a
-            rc = (ends[r, c] - o[c]) / d_a
-            y0 = 0.5 if stay_b else o[b] + dist0 * rb
-            inc_y = 0.0 if stay_b else sgn * rb
-            z0 = 0.5 if stay_c else o[c] + dist0 * rc
-            inc_z = 0.0 if stay_c else sgn * rc
-            # Per run constants; the axis-a term of the linear index advances by one stride
-            # per crossing. Crossings before k_flat accumulate, later ones multiply (as numpy).
-            sa = strides[a] * isgn
-            sb = strides[b]
-            sc = strides[c]
-            lin_a = (ko[a] + isgn) * strides[a]
-            fixed = (ko[b] * sb if stay_b else 0) + (ko[c] * sc if stay_c else 0)
-            blk_a = bstride[a]
-            blk_b = bstride[b]
-            blk_c = bstride[c]
-            sh_a = shifts[a]
-            sh_b = shifts[b]
-            sh_c = shifts[c]
-            y = y0
-            z = z0
-            split = min(m, k_flat)
-            # Branch-free: a fixed axis has a zero stride and its key in a constant offset.
-            sb_e = 0 if stay_b else sb
-            sc_e = 0 if stay_c else sc
-            off_b = ko[b] if stay_b else 0
-            off_c = ko[c] if stay_c else 0
-            xa = ko[a] + isgn
-            base_lin = lin_a + fixed
-            for _ in range(split):  # accumulate (the numpy sweep's steps)
-                yv = np.int64(y)
-                zv = np.int64(z)
-                y += inc_y
-                z += inc_z
-                lin = base_lin + yv * sb_e + zv * sc_e
-                base_lin += sa
-                xa_k = xa
-                xa += isgn
-                if cells[lin] != 0:
-                    continue  # marked before, and so was its block
-                cells[lin] = 1  # FREE
-                blk = (
-                    (xa_k >> sh_a) * blk_a
-                    + ((off_b if stay_b else yv) >> sh_b) * blk_b
-                    + ((off_c if stay_c else zv) >> sh_c) * blk_c
-                )
-                if marks[blk] == 0:
-                    marks[blk] = 1
-                    touched[n_touched] = blk
-                    n_touched += 1
-            for k in range(split, m):  # multiply (the numpy sweep's flat pass)
-                jf = np.float64(k - k_flat)
-                yv = np.int64(y + jf * inc_y)
-                zv = np.int64(z + jf * inc_z)
-                lin = base_lin + yv * sb_e + zv * sc_e
-                base_lin += sa
-                xa_k = xa
-                xa += isgn
-                if cells[lin] != 0:
-                    continue  # marked before, and so was its block
-                cells[lin] = 1  # FREE
-                blk = (
-                    (xa_k >> sh_a) * blk_a
-                    + ((off_b if stay_b else yv) >> sh_b) * blk_b
-                    + ((off_c if stay_c else zv) >> sh_c) * blk_c
-                )
-                if marks[blk] == 0:
-                    marks[blk] = 1
-                    touched[n_touched] = blk
-                    n_touched += 1
+            la = r_lin[i]
+            sa_a = r_sa[i]
+            sb_a = r_sb[i]
+            sc_a = r_sc[i]
+            ya = r_y[i]
+            iya = r_iy[i]
+            za = r_z[i]
+            iza = r_iz[i]
+            if sc_a == 0:
+                for k in range(m - k_flat):
+                    yva = np.int64(ya + np.float64(k) * iya)
+                    cells[la + yva * sb_a] = 1
+                    la += sa_a
+            else:
+                for k in range(m - k_flat):
+                    jf = np.float64(k)
+                    yva = np.int64(ya + jf * iya)
+                    zva = np.int64(za + jf * iza)
+                    cells[la + yva * sb_a + zva * sc_a] = 1
+                    la += sa_a
+        for i in range(n_uniq):
+            cells[hit_lin[i]] = 2  # HIT: hits win
+        # The touched blocks: the box read in words of one block's run (a block's cells lie in
+        # runs along z, or along y and z when the box is one block high), a non-zero word marks
+        # its block; then the marks in block order.
+        whole_box = dims[2] == (np.int64(1) << shifts[2])
+        run_len = np.int64(1) << (shifts[1] + shifts[2] if whole_box else shifts[2])
+        ws = 8 if run_len % 8 == 0 else (4 if run_len % 4 == 0 else 1)
+        if whole_box:
+            n_rows = dims[0]
+            row_len = s0
+            sh_in = shifts[1] + shifts[2]
+        else:
+            n_rows = dims[0] * dims[1]
+            row_len = dims[2]
+            sh_in = shifts[2]
+        n_w = row_len // ws
+        w64 = cells[: cells.size - cells.size % 8].view(np.uint64)
+        w32 = cells[: cells.size - cells.size % 4].view(np.uint32)
+        for row in range(n_rows):
+            if whole_box:
+                bbase = (row >> shifts[0]) * bstride[0]
+            else:
+                x = row // dims[1]
+                y = row - x * dims[1]
+                bbase = (x >> shifts[0]) * bstride[0] + (y >> shifts[1]) * bstride[1]
+            w0 = row * n_w
+            if ws == 8:
+                for q in range(n_w):
+                    if w64[w0 + q] != 0:
+                        marks[bbase + ((q << 3) >> sh_in)] = 1
+            elif ws == 4:
+                for q in range(n_w):
+                    if w32[w0 + q] != 0:
+                        marks[bbase + ((q << 2) >> sh_in)] = 1
+            else:
+                for q in range(n_w):
+                    if cells[w0 + q] != 0:
+                        marks[bbase + (q >> sh_in)] = 1
+        for t in range(nb[0] * nb[1] * nb[2]):
+            if marks[t] != 0:
+                touched[n_touched] = t
+                n_touched += 1
+    else:
+        for i in range(n_uniq):
+            x = hit_lin[i] // s0
+            rest = hit_lin[i] - x * s0
+            y = rest // s1
+            z = rest - y * s1
+            blk = (x >> shifts[0]) * bstride[0] + (y >> shifts[1]) * bstride[1] + (z >> shifts[2])
+            if marks[blk] == 0:
+                marks[blk] = 1
+                touched[n_touched] = blk
+                n_touched += 1
+        if n_rays > 0:
+            if cells[start] == 0:
+                cells[start] = 1  # FREE
+            blk = (
+                (ko0 >> shifts[0]) * bstride[0]
+                + (ko1 >> shifts[1]) * bstride[1]
+                + (ko2 >> shifts[2])
+            )
+            if marks[blk] == 0:
+                marks[blk] = 1
+                touched[n_touched] = blk
+                n_touched += 1
+        # Pass 2: every run, as `_sequences` sets it up and `_sweep` / `_enumerate` step it.
+        for r in range(n_rays):
+            for a in range(3):
+                m = counts[r, a]
+                if m <= 0:
+                    continue
+                b = 1 if a == 0 else 0
+                c = 1 if a == 2 else 2
+                d_a = ends[r, a] - o[a]
+                stay_b = np.int64(np.floor(ends[r, b])) == ko[b]
+                stay_c = np.int64(np.floor(ends[r, c])) == ko[c]
+                if stay_b and not stay_c:
+                    b, c = c, b
+                    stay_b, stay_c = stay_c, stay_b
+                sgn = np.sign(d_a)
+                isgn = np.int64(sgn)
+                dist0 = np.float64(ko[a] + (1 if sgn > 0 else 0)) - o[a]
+                rb = (ends[r, b] - o[b]) / d_a
+                rc = (ends[r, c] - o[c]) / d_a
+                y0 = 0.5 if stay_b else o[b] + dist0 * rb
+                inc_y = 0.0 if stay_b else sgn * rb
+                z0 = 0.5 if stay_c else o[c] + dist0 * rc
+                inc_z = 0.0 if stay_c else sgn * rc
+                # Per run constants; the axis-a term of the linear index advances by one stride
+                # per crossing. Crossings before k_flat accumulate, later ones multiply (as numpy).
+                sa = strides[a] * isgn
+                sb = strides[b]
+                sc = strides[c]
+                lin_a = (ko[a] + isgn) * strides[a]
+                fixed = (ko[b] * sb if stay_b else 0) + (ko[c] * sc if stay_c else 0)
+                blk_a = bstride[a]
+                blk_b = bstride[b]
+                blk_c = bstride[c]
+                sh_a = shifts[a]
+                sh_b = shifts[b]
+                sh_c = shifts[c]
+                y = y0
+                z = z0
+                split = min(m, k_flat)
+                # Branch-free: a fixed axis has a zero stride and its key in a constant offset.
+                sb_e = 0 if stay_b else sb
+                sc_e = 0 if stay_c else sc
+                off_b = ko[b] if stay_b else 0
+                off_c = ko[c] if stay_c else 0
+                xa = ko[a] + isgn
+                base_lin = lin_a + fixed
+                for _ in range(split):  # accumulate (the numpy sweep's steps)
+                    yv = np.int64(y)
+                    zv = np.int64(z)
+                    y += inc_y
+                    z += inc_z
+                    lin = base_lin + yv * sb_e + zv * sc_e
+                    base_lin += sa
+                    xa_k = xa
+                    xa += isgn
+                    if cells[lin] != 0:
+                        continue  # marked before, and so was its block
+                    cells[lin] = 1  # FREE
+                    blk = (
+                        (xa_k >> sh_a) * blk_a
+                        + ((off_b if stay_b else yv) >> sh_b) * blk_b
+                        + ((off_c if stay_c else zv) >> sh_c) * blk_c
+                    )
+                    if marks[blk] == 0:
+                        marks[blk] = 1
+                        touched[n_touched] = blk
+                        n_touched += 1
+                for k in range(split, m):  # multiply (the numpy sweep's flat pass)
+                    jf = np.float64(k - k_flat)
+                    yv = np.int64(y + jf * inc_y)
+                    zv = np.int64(z + jf * inc_z)
+                    lin = base_lin + yv * sb_e + zv * sc_e
+                    base_lin += sa
+                    xa_k = xa
+                    xa += isgn
+                    if cells[lin] != 0:
+                        continue  # marked before, and so was its block
+                    cells[lin] = 1  # FREE
+                    blk = (
+                        (xa_k >> sh_a) * blk_a
+                        + ((off_b if stay_b else yv) >> sh_b) * blk_b
+                        + ((off_c if stay_c else zv) >> sh_c) * blk_c
+                    )
+                    if marks[blk] == 0:
+                        marks[blk] = 1
+                        touched[n_touched] = blk
+                        n_touched += 1
     # Gather the touched blocks' cells, in block order, and leave the scratch zero.
     order = np.sort(touched[:n_touched])
     sx = shifts[0]
@@ -567,6 +783,15 @@ def _update_records(
     sy = shifts[1]
     sz = shifts[2]
     mask = np.int64((1 << _AXIS_BITS) - 1)
+    # A voxel's packed key is its block's first voxel's packed key plus its offset's: the fields
+    # do not carry into each other.
+    offs = np.empty(n_vox, dtype=np.int64)
+    for j in range(n_vox):
+        offs[j] = (
+            ((j >> (sy + sz)) << (2 * _AXIS_BITS))
+            | (((j >> sz) & ((1 << sy) - 1)) << _AXIS_BITS)
+            | (j & ((1 << sz) - 1))
+        )
     k = 0
     f = 0
     for i in range(n_blocks):
@@ -575,6 +800,11 @@ def _update_records(
         bx = ((bkey >> (2 * _AXIS_BITS)) & mask) - _AXIS_OFFSET
         by = ((bkey >> _AXIS_BITS) & mask) - _AXIS_OFFSET
         bz = (bkey & mask) - _AXIS_OFFSET
+        first = (
+            ((bx << sx) + _AXIS_OFFSET) << (2 * _AXIS_BITS)
+            | (((by << sy) + _AXIS_OFFSET) << _AXIS_BITS)
+            | ((bz << sz) + _AXIS_OFFSET)
+        )
         changed_block = False
         for j in range(n_vox):
             c = cells[i, j]
@@ -594,14 +824,7 @@ def _update_records(
             keep = after >= 0 or before >= 0 or c == 2
             is_fresh = seen and not known and after < 0
             if keep or is_fresh:
-                x = (bx << sx) + (j >> (sy + sz))
-                y = (by << sy) + ((j >> sz) & ((1 << sy) - 1))
-                z = (bz << sz) + (j & ((1 << sz) - 1))
-                packed = (
-                    ((x + _AXIS_OFFSET) << (2 * _AXIS_BITS))
-                    | ((y + _AXIS_OFFSET) << _AXIS_BITS)
-                    | (z + _AXIS_OFFSET)
-                )
+                packed = first + offs[j]
                 if keep:
                     keys[k] = packed
                     old[k] = before
@@ -655,6 +878,13 @@ def _sort_beams(
     hi0 = hi1 = hi2 = np.int64(np.iinfo(np.int64).min)
     # Recent hit keys (packed, -1 none), by hash: a direct-mapped cache, a miss only repeats a key.
     recent = np.full(_RECENT if distinct else 1, -1, dtype=np.int64)
+    # A hit lies within max range of the origin: when that ball lies inside the key space (a
+    # voxel to spare for rounding), every hit's key does, and its test is left out.
+    inside = True
+    for a in range(3):
+        reach = max_range * inv + 1.0
+        if not (org[a] * inv - reach >= key_min and org[a] * inv + reach < k_top):
+            inside = False
     n_hit = 0
     n_out = 0
     n_clear = 0
@@ -665,17 +895,18 @@ def _sort_beams(
         d2 += t * t
         t = points[i, 2] - org[2]
         d2 += t * t
-        if d2 > 0 and d2 <= max2 and not nr[i]:
+        # Tests combined without branches (`&`): most points pass them all.
+        if (d2 > 0) & (d2 <= max2) & (not nr[i]):
             x0 = points[i, 0] * inv
             x1 = points[i, 1] * inv
             x2 = points[i, 2] * inv
-            if (
-                x0 >= key_min
-                and x0 < k_top
-                and x1 >= key_min
-                and x1 < k_top
-                and x2 >= key_min
-                and x2 < k_top
+            if inside or (
+                (x0 >= key_min)
+                & (x0 < k_top)
+                & (x1 >= key_min)
+                & (x1 < k_top)
+                & (x2 >= key_min)
+                & (x2 < k_top)
             ):
                 hit_mask[i] = True
                 n_hit += 1
@@ -685,12 +916,6 @@ def _sort_beams(
                 i0 = np.int64(k0)
                 i1 = np.int64(k1)
                 i2 = np.int64(k2)
-                lo0 = i0 if i0 < lo0 else lo0
-                hi0 = i0 if i0 > hi0 else hi0
-                lo1 = i1 if i1 < lo1 else lo1
-                hi1 = i1 if i1 > hi1 else hi1
-                lo2 = i2 if i2 < lo2 else lo2
-                hi2 = i2 if i2 > hi2 else hi2
                 if distinct:
                     packed = (
                         ((i0 + _AXIS_OFFSET) << (2 * _AXIS_BITS))
@@ -699,8 +924,14 @@ def _sort_beams(
                     )
                     h = ((packed * np.int64(_HASH[0])) >> (64 - _RECENT_BITS)) & (_RECENT - 1)
                     if recent[h] == packed:
-                        continue
+                        continue  # a repeated key: in the bounds already
                     recent[h] = packed
+                lo0 = i0 if i0 < lo0 else lo0
+                hi0 = i0 if i0 > hi0 else hi0
+                lo1 = i1 if i1 < lo1 else lo1
+                hi1 = i1 if i1 > hi1 else hi1
+                lo2 = i2 if i2 < lo2 else lo2
+                hi2 = i2 if i2 > hi2 else hi2
                 hit_keys[0, n_out] = k0
                 hit_keys[1, n_out] = k1
                 hit_keys[2, n_out] = k2
@@ -745,7 +976,8 @@ def _sort_beams(
             if inside:
                 m += 1
     cleared = m
-    # One beam per fine cell, as keys.one_per_key picks it.
+    # One beam per fine cell, the last of its cell, in order (as keys.one_per_key picks them):
+    # one pass from the last beam back over a hash table of the cells seen (linear probing).
     chosen = np.empty(m, dtype=np.int64)
     n_c = 0
     if m:
@@ -771,40 +1003,28 @@ def _sort_beams(
         bits = 2
         while (np.int64(1) << (bits - 2)) <= m:
             bits += 1
-        bits = max(4, bits)  # max(4, m.bit_length() + 2)
-        table = np.empty(np.int64(1) << bits, dtype=np.int64)
+        bits = max(4, bits)  # max(4, m.bit_length() + 2): a table at most a quarter full
+        table = np.full(np.int64(1) << bits, -1, dtype=np.int64)
         mask = (np.int64(1) << bits) - 1
-        pend = np.arange(m)
-        slot = np.empty(m, dtype=np.int64)
-        n_p = m
-        for r in range(64):
-            mult = np.int64(_HASH[r % 4]) + np.int64(2 * (r // 4))
-            for i in range(n_p):
-                s = ((lin[pend[i]] * mult) >> (64 - bits)) & mask
-                slot[i] = s
-                table[s] = pend[i]
-            for i in range(n_p):
-                if table[slot[i]] == pend[i]:
-                    chosen[n_c] = pend[i]
-                    n_c += 1
-            left = 0
-            for i in range(n_p):
-                p = pend[i]
-                if lin[table[slot[i]]] != lin[p]:
-                    pend[left] = p
-                    slot[left] = slot[i]
-                    left += 1
-            n_p = left
-            if n_p == 0:
-                break
-        if n_p:  # 64 rounds of collisions: the last of each key that is left, by key
-            rest = pend[:n_p]
-            order = np.argsort(lin[rest], kind="mergesort")
-            for i in range(n_p):
-                here = rest[order[i]]
-                if i == n_p - 1 or lin[rest[order[i + 1]]] != lin[here]:
-                    chosen[n_c] = here
-                    n_c += 1
+        mult = np.int64(_HASH[0])
+        last = np.zeros(m, dtype=np.bool_)
+        # From the last beam back: the first of a cell seen is its last beam (one_per_key's).
+        for i in range(m - 1, -1, -1):
+            key = lin[i]
+            s = ((key * mult) >> (64 - bits)) & mask
+            while True:
+                v = table[s]
+                if v == key:
+                    break
+                if v < 0:
+                    table[s] = key
+                    last[i] = True
+                    break
+                s = (s + 1) & mask
+        for i in range(m):
+            if last[i]:
+                chosen[n_c] = i
+                n_c += 1
     picked = np.empty((n_c, 3), dtype=np.float64)
     for i in range(n_c):
         for a in range(3):

@@ -91,10 +91,11 @@ _HASH_MULTIPLIERS = (
 
 
 def one_per_key(keys: np.ndarray) -> np.ndarray:
-    """Indices of exactly one row per distinct key of integer keys (3, N), without sorting.
+    """Indices, ascending, of the last row of each distinct key of integer keys (3, N).
 
-    Rows are hashed into a table about four times their number; each slot keeps one writer and
-    rows whose key differs from their slot's winner (a collision) go round again with another hash.
+    Rows are hashed into a table about four times their number; each slot keeps its last writer
+    (so a key's winner is its last row) and rows whose key differs from their slot's winner (a
+    collision) go round again with another hash. Only the chosen indices are sorted.
     """
     k = np.asarray(keys)
     n = k.shape[1]
@@ -122,4 +123,4 @@ def one_per_key(keys: np.ndarray) -> np.ndarray:
     else:  # pragma: no cover - 64 rounds of collisions: fall back to sorting what is left
         _, last = np.unique(lin[pending][::-1], return_index=True)
         chosen.append(pending[::-1][last])
-    return np.concatenate(chosen)
+    return np.sort(np.concatenate(chosen))

@@ -23,6 +23,10 @@ FLAT_BELOW = 3000
 #: Crossings enumerated per chunk of that pass.
 FLAT_CHUNK = 1 << 14
 
+#: The compiled traversal reads its box for the touched blocks when the box has at most this many
+#: 8-byte words of cells per ray crossing (else it marks blocks as it marks cells).
+SCAN_RATIO = 1.0
+
 #: Largest dense scratch volume (cells); a scan whose box is larger is split into wedges.
 DENSE_LIMIT = 96_000_000
 #: Wedges per split, and the fewest rays worth splitting (fewer are traced sparsely).
@@ -287,6 +291,7 @@ def trace(
             marks,
             touched,
             want_inverse,
+            SCAN_RATIO,
         )
         scratch.give("cells", cells)
         scratch.give("marks", marks)

@@ -12,10 +12,10 @@ def kernel_path(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch)
     """Runs a test once on the pure-numpy path and once on the compiled one (skipped without
     numba, the optional `fast` extra)."""
     if request.param == "numpy":
-        monkeypatch.setenv(kernels.JIT_ENV, "0")
+        monkeypatch.setattr(kernels._switch, "on", False)
         assert kernels.trace() is None
     else:
         pytest.importorskip("numba")
-        monkeypatch.setenv(kernels.JIT_ENV, "1")
+        monkeypatch.setattr(kernels._switch, "on", True)
         assert kernels.warm()
     return str(request.param)

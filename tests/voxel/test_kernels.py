@@ -16,7 +16,7 @@ from voxel.grid import VoxelGrid
 def unloaded(monkeypatch: pytest.MonkeyPatch) -> None:
     """Kernels on, none loaded yet in this process, no background mode."""
     pytest.importorskip("numba")
-    monkeypatch.setenv(kernels.JIT_ENV, "1")
+    monkeypatch.setattr(kernels._switch, "on", True)
     monkeypatch.setattr(kernels, "_compiled", {})
     monkeypatch.setattr(kernels, "_loading", kernels._Loading())
 

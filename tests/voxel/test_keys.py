@@ -23,6 +23,9 @@ def test_one_per_key_picks_exactly_one_row_of_every_distinct_key(n, span):
         picked = [tuple(k) for k in keys[:, chosen].T.tolist()]
         assert len(picked) == len(set(picked)) == len(distinct)
         assert set(picked) == distinct
+        # the last row of each key, in order (the compiled beam sorting picks the same)
+        last = {key: i for i, key in enumerate(map(tuple, keys.T.tolist()))}
+        assert chosen.tolist() == sorted(last.values())
 
 
 def test_pack_round_trips_the_whole_key_space():

@@ -156,15 +156,20 @@ def test_rays_along_an_axis_and_ends_on_voxel_faces(kernel_path):
     assert (free, hit) == _reference(origin, flat, flat[:2] * 1.5)
 
 
-@pytest.mark.parametrize("flat_below", [3000, 40, 1])
-def test_the_compiled_sweep_visits_what_the_numpy_sweep_visits(monkeypatch, flat_below):
+@pytest.mark.parametrize(
+    ("flat_below", "scan_ratio"), [(3000, 1.0), (40, 1.0), (1, 1.0), (40, 0.0), (40, np.inf)]
+)
+def test_the_compiled_sweep_visits_what_the_numpy_sweep_visits(monkeypatch, flat_below, scan_ratio):
     # Both paths must give bit-identical traversals, also where the numpy sweep switches from
-    # stepping runs to enumerating them (FLAT_BELOW) at some step of the longest runs.
+    # stepping runs to enumerating them (FLAT_BELOW) at some step of the longest runs, and
+    # whichever way the compiled one finds the touched blocks (SCAN_RATIO 0: as it marks cells;
+    # inf: by reading the box after).
     pytest.importorskip("numba")
     import voxel.raycast as rc
     from voxel import kernels
 
     monkeypatch.setattr(rc, "FLAT_BELOW", flat_below)
+    monkeypatch.setattr(rc, "SCAN_RATIO", scan_ratio)
     rng = np.random.default_rng(flat_below)
     for shifts in [(2, 2, 2), (3, 3, 0), (0, 1, 3)]:
         origin = rng.uniform(-0.05, 0.05, size=3)
@@ -176,7 +181,7 @@ def test_the_compiled_sweep_visits_what_the_numpy_sweep_visits(monkeypatch, flat
         keys = vk.points_to_keys(hits, RES).T
         out = []
         for flag in ("0", "1"):
-            monkeypatch.setenv(kernels.JIT_ENV, flag)
+            monkeypatch.setattr(kernels._switch, "on", flag == "1")
             out.append(trace(origin, keys, clear_ends, RES, shifts, want_inverse=True))
         assert kernels.trace() is not None
         numpy_tr, compiled_tr = out

@@ -97,7 +97,7 @@ def test_compiled_beams_are_the_numpy_beams(monkeypatch, free_range) -> None:
         scan = Scan.of(pts, origin, time=0.0, reliability=1.0, no_return=nr)
         out = []
         for flag in ("0", "1"):
-            monkeypatch.setenv(kernels.JIT_ENV, flag)
+            monkeypatch.setattr(kernels._switch, "on", flag == "1")
             out.append(sort_beams(scan, sensor, 0.05))
         assert kernels.beams() is not None
         numpy_b, compiled_b = out
@@ -127,9 +127,9 @@ def test_compiled_distinct_hits_leave_repeats_out(monkeypatch) -> None:
     pts[::7] = pts[::7][::-1]  # not only neighbours repeat
     sensor = SensorModel(max_range=3.0)
     scan = Scan.of(pts, origin, time=0.0, reliability=1.0)
-    monkeypatch.setenv(kernels.JIT_ENV, "0")
+    monkeypatch.setattr(kernels._switch, "on", False)
     every = sort_beams(scan, sensor, 0.05)
-    monkeypatch.setenv(kernels.JIT_ENV, "1")
+    monkeypatch.setattr(kernels._switch, "on", True)
     assert kernels.warm()
     few = sort_beams(scan, sensor, 0.05, distinct=True)
     assert few.hit_keys.shape[1] < every.hit_keys.shape[1] // 4
@@ -145,3 +145,38 @@ def test_compiled_distinct_hits_leave_repeats_out(monkeypatch) -> None:
         if j < len(keep) and key == keep[j]:
             j += 1
     assert j == len(keep)
+
+
+@pytest.mark.parametrize("max_range", [3.0, 40.0])
+def test_compiled_sorting_checks_hit_keys_only_where_the_ball_leaves_the_key_space(
+    monkeypatch, max_range
+) -> None:
+    # The compiled sorting leaves out the key-space test of a hit when the sensor's ball lies
+    # inside the key space; near its edge (here 40 m reaches beyond it) each hit is tested, and
+    # hits past the edge are invalid, as on the numpy path.
+    pytest.importorskip("numba")
+    from voxel import kernels
+    from voxel import keys as vk
+
+    res = 0.05
+    origin = np.array([vk.KEY_MAX * res - 20.0, 0.1, -0.2])
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    pts = origin + d * rng.uniform(0.5, 60.0, (4000, 1))
+    scan = Scan.of(pts, origin, time=0.0, reliability=1.0)
+    sensor = SensorModel(max_range=max_range)
+    out = []
+    for on in (False, True):
+        monkeypatch.setattr(kernels._switch, "on", on)
+        out.append(sort_beams(scan, sensor, res))
+    assert kernels.beams() is not None
+    numpy_b, compiled_b = out
+    assert numpy_b.invalid > 0 if max_range > 20.0 else numpy_b.invalid == 0
+    for name in ("hit_keys", "hit_mask", "clear_ends"):
+        np.testing.assert_array_equal(getattr(compiled_b, name), getattr(numpy_b, name))
+    assert (compiled_b.hits, compiled_b.cleared, compiled_b.invalid) == (
+        numpy_b.hits,
+        numpy_b.cleared,
+        numpy_b.invalid,
+    )
