@@ -24,6 +24,7 @@ from protocol.errors import (
 )
 from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.summary import MAX_LEVEL, FreeSummary
+from voxel import kernels
 from voxel.delta import CHANNEL_SPECS, SCALAR_PREFIX, Delta
 from voxel.errors import DeltaError
 from voxel.keys import KEY_MAX, KEY_MIN, pack
@@ -80,12 +81,7 @@ def significance(delta: Delta, prev_logodds: np.ndarray | None = None) -> np.nda
         tier[occ] = Tier.OCCUPIED
         tier[free] = Tier.FREE
         return tier
-    prev = np.asarray(prev_logodds, dtype=np.float32).reshape(-1)
-    if prev.shape[0] != lo.shape[0]:
-        msg = (
-            f"prev_logodds needs one value per voxel: expected {lo.shape[0]}, found {prev.shape[0]}"
-        )
-        raise ValueError(msg)
+    prev = _previous(delta, prev_logodds)
     with np.errstate(invalid="ignore"):
         was_occ = prev >= 0
     was_unknown = np.isnan(prev)
@@ -95,6 +91,17 @@ def significance(delta: Delta, prev_logodds: np.ndarray | None = None) -> np.nda
     tier[free & was_unknown] = Tier.FREE_NEW
     tier[free & ~was_occ & ~was_unknown] = Tier.FREE
     return tier
+
+
+def _previous(delta: Delta, prev_logodds: np.ndarray) -> np.ndarray:
+    """`prev_logodds` as float32, one per voxel of `delta` (else ValueError)."""
+    prev = np.asarray(prev_logodds, dtype=np.float32).reshape(-1)
+    if prev.shape[0] != len(delta):
+        msg = (
+            f"prev_logodds needs one value per voxel: expected {len(delta)}, found {prev.shape[0]}"
+        )
+        raise ValueError(msg)
+    return prev
 
 
 # --------------------------------------------------------------------------- encoding
@@ -338,13 +345,17 @@ def _channel_column(name: str, values: np.ndarray, ref: float) -> list[Any]:
     return [name, k, values.astype(_WIRE_DTYPE[name]).tobytes()]
 
 
+def _check_block_shift(bs: int) -> None:
+    if bs not in BLOCK_SHIFTS:
+        msg = f"block_shift must be one of {BLOCK_SHIFTS}, found {bs}"
+        raise ValueError(msg)
+
+
 def _sections(
     delta: Delta, prev_logodds: np.ndarray | None, bs: int
 ) -> list[tuple[int, np.ndarray | None, np.ndarray]]:
     """(tier, voxel order or None for "as given", sorted composites) of each non-empty tier."""
-    if bs not in BLOCK_SHIFTS:
-        msg = f"block_shift must be one of {BLOCK_SHIFTS}, found {bs}"
-        raise ValueError(msg)
+    _check_block_shift(bs)
     _check_delta_keys(delta.keys)
     comp_all = _composite(delta.keys, bs)
     tiers = significance(delta, prev_logodds)
@@ -363,17 +374,89 @@ def _sections(
     return out
 
 
+def _compiled_columns(
+    keys: np.ndarray, lo: np.ndarray | None, prev: np.ndarray | None, bs: int
+) -> tuple[list[list[Any]], np.ndarray | None] | None:
+    """([tier, key columns of `_encode_keys`...] per section, wire order or None for "as given")
+    of valid keys by the compiled kernel, tiers of `lo` (and `prev`; no `lo`: one section, tier
+    0), or None to take the numpy path (no kernel, or keys too spread out for it)."""
+    kernel = kernels.wire_keys()
+    if kernel is None:
+        return None
+    none = np.zeros(0, dtype=np.float32)
+    mode = 0 if lo is None else 1 if prev is None else 2
+    status, identity, perm, table, blocks, counts, bitmaps, gaps = kernel(
+        np.ascontiguousarray(keys, dtype=np.int64),
+        none if lo is None else np.ascontiguousarray(lo, dtype=np.float32),
+        none if prev is None else prev,
+        mode,
+        bs,
+    )
+    if status == kernels.WIRE_TOO_WIDE:
+        return None
+    if status == kernels.WIRE_DUPLICATE:
+        msg = "delta keys must be unique, found duplicates"
+        raise DeltaError(msg)
+    blocks = blocks.astype("<i4", copy=False)
+    counts = counts.astype("<u2", copy=False)
+    gaps = gaps.astype("<u2", copy=False)
+    sections: list[list[Any]] = []
+    b0 = d0 = g0 = 0
+    for tier, n, m, b1, d1, g1 in table.tolist():
+        sections.append(
+            [
+                tier,
+                n,
+                m,
+                blocks[:, b0:b1].tobytes(),
+                counts[b0:b1].tobytes(),
+                bitmaps[d0:d1].tobytes(),
+                gaps[g0:g1].tobytes(),
+            ]
+        )
+        b0, d0, g0 = b1, d1, g1
+    return sections, None if identity else perm
+
+
+def _key_sections(
+    delta: Delta, prev_logodds: np.ndarray | None, bs: int
+) -> tuple[list[list[Any]], np.ndarray | None]:
+    """([tier, key columns...] of each non-empty tier, wire order or None for "as given")."""
+    _check_block_shift(bs)
+    _check_delta_keys(delta.keys)
+    prev = None if prev_logodds is None else _previous(delta, prev_logodds)
+    compiled = _compiled_columns(delta.keys, delta.logodds, prev, bs)
+    if compiled is not None:
+        return compiled
+    sections: list[list[Any]] = []
+    order_parts: list[np.ndarray] = []
+    identity = True
+    for tier, order, comp in _sections(delta, prev, bs):
+        identity = identity and order is None
+        order_parts.append(np.arange(len(delta)) if order is None else order)
+        sections.append([tier, *_encode_keys(comp, bs)])
+    if identity:
+        return sections, None
+    return sections, np.concatenate(order_parts)
+
+
 def wire_order(
     delta: Delta,
     prev_logodds: np.ndarray | None = None,
     block_shift: int = DEFAULT_BLOCK_SHIFT,
 ) -> np.ndarray:
     """Permutation putting the voxels of `delta` in wire order (tier, then block, then offset)."""
-    parts = [
-        np.arange(len(delta)) if order is None else order
-        for _, order, _ in _sections(delta, prev_logodds, block_shift)
-    ]
-    return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+    perm = _key_sections(delta, prev_logodds, block_shift)[1]
+    return np.arange(len(delta)) if perm is None else perm
+
+
+def _summary_keys(keys: np.ndarray, bs: int) -> tuple[list[Any], np.ndarray | None]:
+    """(key columns, order or None for "as given") of a summary's keys, one section."""
+    compiled = _compiled_columns(keys, None, None, bs)
+    if compiled is not None:
+        return compiled[0][0][1:], compiled[1]
+    order, comp = _block_sort(_composite(keys, bs), bs)
+    return _encode_keys(comp, bs), order
 
 
 def encode_delta(
@@ -389,16 +472,8 @@ def encode_delta(
     (see `quantum_exponent`; 2**-5 for OctoMap's clamping range).
     """
     bs = block_shift
-    sections: list[list[Any]] = []
-    order_parts: list[np.ndarray] = []
-    identity = True
-    for tier, order, comp in _sections(delta, prev_logodds, bs):
-        identity = identity and order is None
-        order_parts.append(np.arange(len(delta)) if order is None else order)
-        sections.append([int(tier), *_encode_keys(comp, bs)])
-    perm = np.concatenate(order_parts) if order_parts else np.zeros(0, dtype=np.int64)
-    if identity:
-        perm = slice(None)  # type: ignore[assignment]
+    sections, order = _key_sections(delta, prev_logodds, bs)
+    perm: np.ndarray | slice = slice(None) if order is None else order
     lo = delta.logodds[perm]
     q = quantum_exponent(
         delta.logodds if summary is None else np.r_[delta.logodds, summary.logodds]
@@ -424,12 +499,12 @@ def encode_delta(
     }
     if summary is not None and len(summary):
         _check_delta_keys(summary.keys, summary.level)
-        order, comp = _block_sort(_composite(summary.keys, bs), bs)
-        logodds = summary.logodds if order is None else summary.logodds[order]
+        columns, sorder = _summary_keys(summary.keys, bs)
+        logodds = summary.logodds if sorder is None else summary.logodds[sorder]
         rel = _relative_ms(np.array([summary.time]), delta.time)[0]
         body["sum"] = [
             int(summary.level),
-            *_encode_keys(comp, bs),
+            *columns,
             quantise(logodds, q).tobytes(),
             int(rel),
         ]
