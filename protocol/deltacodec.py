@@ -182,8 +182,11 @@ def _absolute_times(rel: np.ndarray, ref: float) -> np.ndarray:
     return out
 
 
-def _time_columns(times: np.ndarray, ref: float) -> tuple[bytes, bytes]:
-    """(table, index): unique relative ms times (int64) and each voxel's index into the table."""
+def _time_columns(
+    times: np.ndarray, ref: float, order: np.ndarray | None = None
+) -> tuple[bytes, bytes]:
+    """(table, index): unique relative ms times (int64) and each voxel's index into the table,
+    voxels in `order` (None: as given)."""
     t = np.asarray(times, dtype=np.float64)
     if t.size == 0:
         return b"", b""
@@ -193,6 +196,8 @@ def _time_columns(times: np.ndarray, ref: float) -> tuple[bytes, bytes]:
     rel = _relative_ms(t, ref)
     if rel.min() == rel.max():
         return rel[:1].astype("<i8").tobytes(), b""
+    if order is not None:
+        rel = rel[order]
     table, index = np.unique(rel, return_inverse=True)
     dtype = "u1" if table.size <= 1 << 8 else "<u2" if table.size <= 1 << 16 else "<u4"
     return table.astype("<i8").tobytes(), index.astype(dtype).tobytes()
@@ -341,8 +346,8 @@ def _channel_column(name: str, values: np.ndarray, ref: float) -> list[Any]:
         table, index = _time_columns(values, ref)
         return [name, k, table, index]
     if name.startswith(SCALAR_PREFIX):
-        return [name, k, values.astype("<f4").tobytes()]
-    return [name, k, values.astype(_WIRE_DTYPE[name]).tobytes()]
+        return [name, k, values.astype("<f4", copy=False).tobytes()]
+    return [name, k, values.astype(_WIRE_DTYPE[name], copy=False).tobytes()]
 
 
 def _check_block_shift(bs: int) -> None:
@@ -473,12 +478,15 @@ def encode_delta(
     """
     bs = block_shift
     sections, order = _key_sections(delta, prev_logodds, bs)
-    perm: np.ndarray | slice = slice(None) if order is None else order
-    lo = delta.logodds[perm]
+
+    def wired(values: np.ndarray) -> np.ndarray:
+        return values if order is None else np.take(values, order, axis=0)
+
+    lo = wired(delta.logodds)
     q = quantum_exponent(
         delta.logodds if summary is None else np.r_[delta.logodds, summary.logodds]
     )
-    table, index = _time_columns(delta.last_time[perm], delta.time)
+    table, index = _time_columns(delta.last_time, delta.time, order)
     body: dict[str, Any] = {
         "v": CODEC_VERSION,
         "res": float(delta.resolution),
@@ -493,7 +501,7 @@ def encode_delta(
         "tt": table,
         "ti": index,
         "ch": [
-            _channel_column(name, values[perm], delta.time)
+            _channel_column(name, wired(values), delta.time)
             for name, values in sorted(delta.channels.items())
         ],
     }

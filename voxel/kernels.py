@@ -1059,7 +1059,7 @@ def _wire_keys(
         last = k
         perm[i] = i
     if not ordered:
-        # LSD radix sort over the bits in use, digits of up to 16 bits (fewer for small n).
+        # LSD radix sort over the bits in use, digits of up to 12 bits (fewer for small n).
         top = np.int64(0)
         for i in range(n):
             top = max(top, ka[i])
@@ -1067,7 +1067,7 @@ def _wire_keys(
         while (np.int64(1) << bits) <= top:
             bits += 1
         widest = 8
-        while widest < 16 and (np.int64(1) << widest) < n:
+        while widest < 12 and (np.int64(1) << widest) < n:
             widest += 1
         passes = (bits + widest - 1) // widest
         d = (bits + passes - 1) // passes
