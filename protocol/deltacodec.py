@@ -677,8 +677,9 @@ def _int(value: Any, what: str, lo: int, hi: int) -> int:
 
 def _decode_keys(
     sec: list[Any], at: int, what: str, bs: int, level: int, max_voxels: int
-) -> tuple[np.ndarray, int]:
-    """Keys (n, 3) of the key columns sec[at:at+6], validated; returns (keys, n)."""
+) -> tuple[np.ndarray, int, np.ndarray | None]:
+    """Keys (n, 3) of the key columns sec[at:at+6], validated; returns (keys, n, their
+    composites, or None when not computed)."""
     n = _int(sec[at], f"{what} voxel count", 0, max_voxels)
     m = _int(sec[at + 1], f"{what} block count", 0, n)
     if (n == 0) != (m == 0):
@@ -721,9 +722,15 @@ def _decode_keys(
     nd = int(dense.sum())
     bitmaps = np.frombuffer(_bin(sec, at + 4, f"{what} bitmaps", bitmap_bytes * nd), dtype=np.uint8)
     nsparse = n - int(counts[dense].sum())
-    gaps = np.frombuffer(_bin(sec, at + 5, f"{what} offsets", 2 * nsparse), dtype="<u2").astype(
-        np.int64
-    )
+    raw_gaps = np.frombuffer(_bin(sec, at + 5, f"{what} offsets", 2 * nsparse), dtype="<u2")
+    voxels = kernels.wire_voxels()
+    if voxels is not None and n:
+        ok, keys, comp = voxels(
+            np.ascontiguousarray(blocks), counts, bitmaps, raw_gaps, n, bs, KEY_MIN
+        )
+        if ok:
+            return keys, n, comp
+    gaps = raw_gaps.astype(np.int64)
     start = np.cumsum(counts) - counts
     if nd == m:
         off = np.empty(n, dtype=np.int64)
@@ -776,7 +783,7 @@ def _decode_keys(
     keys[:, 0] += off >> (2 * bs)
     keys[:, 1] += (off >> bs) & (edge - 1)
     keys[:, 2] += off & (edge - 1)
-    return keys, n
+    return keys, n, None
 
 
 def _decode_times(table_raw: Any, index_raw: Any, n: int, ref: float, what: str) -> np.ndarray:
@@ -903,6 +910,7 @@ def decode_delta_with_summary(
         msg = f"delta body: expected at most {_MAX_SECTIONS} sections, found {len(sections)}"
         raise MalformedError(msg)
     key_parts = []
+    comp_parts: list[np.ndarray | None] = []
     total = 0
     last_tier = -1
     for i, sec in enumerate(sections):
@@ -918,8 +926,9 @@ def decode_delta_with_summary(
             msg = f"{what}: expected tiers in increasing order, found {tier} after {last_tier}"
             raise MalformedError(msg)
         last_tier = tier
-        keys, count = _decode_keys(sec, 1, what, bs, 0, n - total)
+        keys, count, comp = _decode_keys(sec, 1, what, bs, 0, n - total)
         key_parts.append(keys)
+        comp_parts.append(comp)
         total += count
     if total != n:
         msg = f"delta body: expected sections holding n={n} voxels, found {total}"
@@ -927,7 +936,9 @@ def decode_delta_with_summary(
     keys = np.concatenate(key_parts) if key_parts else np.zeros((0, 3), np.int64)
     if len(key_parts) > 1:
         # Each section is sorted by (block, offset): a stable sort merges the sorted runs.
-        packed = np.sort(_composite(keys, bs), kind="stable")
+        known = [c for c in comp_parts if c is not None]
+        comp_all = np.concatenate(known) if len(known) == len(comp_parts) else _composite(keys, bs)
+        packed = np.sort(comp_all, kind="stable")
         if np.any(packed[1:] == packed[:-1]):
             msg = "delta body: expected each voxel at most once, found a voxel in two sections"
             raise MalformedError(msg)
@@ -979,7 +990,7 @@ def _decode_summary(
         )
         raise MalformedError(msg)
     level = _int(entry[0], f"{what} level", 1, MAX_LEVEL)
-    keys, n = _decode_keys(entry, 1, what, bs, level, max(max_cells, 0))
+    keys, n, _ = _decode_keys(entry, 1, what, bs, level, max(max_cells, 0))
     codes = np.frombuffer(_bin(entry, 7, f"{what} log-odds", n), dtype=np.int8)
     if n and (codes.max() >= 0 or codes.min() == UNKNOWN_CODE):
         msg = f"{what}: expected free (negative) log-odds codes, found {int(codes.max())}"

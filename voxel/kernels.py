@@ -913,7 +913,8 @@ def _fill_records(
 
 _codec_lock = threading.Lock()
 _codec_start_lock = threading.Lock()
-#: "keys" -> the compiled `_wire_keys` (None: numba absent or failing); empty until loaded.
+#: "keys", "voxels" -> the compiled `_wire_keys`, `_wire_voxels` (None: numba absent or failing);
+#: empty until loaded.
 _codec_compiled: dict[str, Callable[..., Any] | None] = {}
 _codec_loading = _Loading()  # only its thread is used: the mode is `_loading.background`
 
@@ -936,6 +937,12 @@ def wire_keys() -> Callable[..., Any] | None:
     return _codec_compiled["keys"]
 
 
+def wire_voxels() -> Callable[..., Any] | None:
+    """The compiled keys of a decoded section (see `_wire_voxels`), or None to use the numpy
+    path; loaded as `wire_keys()` loads."""
+    return _codec_compiled["voxels"] if wire_keys() is not None else None
+
+
 def warm_codec() -> bool:
     """Import numba and load (or compile and cache) the codec's kernel now, as `warm()` does the
     integration's; True when it is in use."""
@@ -949,24 +956,36 @@ def _load_codec() -> None:
     with _codec_lock:
         if "keys" in _codec_compiled:
             return
-        found: Callable[..., Any] | None = None
+        found: dict[str, Callable[..., Any] | None] = {"keys": None, "voxels": None}
         try:
             import numba
         except ImportError:
-            _codec_compiled["keys"] = None
+            _codec_compiled.update(found)
             return
         try:
             try:
-                kernel = numba.njit(cache=True, nogil=True)(_wire_keys)
+                jit = numba.njit(cache=True, nogil=True)
+                keys, voxels = jit(_wire_keys), jit(_wire_voxels)
             except RuntimeError:  # no writable cache directory: compile at every start
                 log.warning("numba cannot cache here (set NUMBA_CACHE_DIR); compiling in memory")
-                kernel = numba.njit(nogil=True)(_wire_keys)
+                jit = numba.njit(nogil=True)
+                keys, voxels = jit(_wire_keys), jit(_wire_voxels)
             one = np.zeros(2, dtype=np.float32)
-            kernel(np.array([[0, 0, 0], [5, 0, 1]], dtype=np.int64), one, one, 2, 4)
-            found = kernel
+            keys(np.array([[0, 0, 0], [5, 0, 1]], dtype=np.int64), one, one, 2, 4)
+            voxels(  # bitmaps and gaps as a decoder has them: read-only views of bytes
+                np.zeros((1, 3), dtype=np.int64),
+                np.ones(1, dtype=np.int64),
+                np.frombuffer(b"", dtype=np.uint8),
+                np.frombuffer(b"\0\0", dtype="<u2"),
+                1,
+                4,
+                vk.KEY_MIN,
+            )
+            found = {"keys": keys, "voxels": voxels}
         except Exception as exc:  # noqa: BLE001 - any numba failure leaves the numpy path
-            log.warning("compiled codec kernel unavailable, using numpy: %s", exc)
-        _codec_compiled["keys"] = found
+            log.warning("compiled codec kernels unavailable, using numpy: %s", exc)
+        _codec_compiled["voxels"] = found["voxels"]
+        _codec_compiled["keys"] = found["keys"]  # last: callers test for it first
 
 
 #: Tiers of `protocol.deltacodec.Tier`, by value.
@@ -1173,3 +1192,81 @@ def _wire_keys(
         sections[s, 4] = nd
         sections[s, 5] = ng
     return WIRE_OK, ordered, perm, sections, blocks, counts, bitmaps, gaps
+
+
+def _wire_voxels(
+    blocks: np.ndarray,
+    counts: np.ndarray,
+    bitmaps: np.ndarray,
+    gaps: np.ndarray,
+    n: int,
+    bs: int,
+    key_min: int,
+) -> tuple[bool, np.ndarray, np.ndarray]:
+    """Keys (n, 3) of one section's voxels from its validated blocks (m, 3) (int64 keys) and
+    counts (m,) (int64, 1..block voxels, summing to n), dense blocks' bitmaps (uint8, bit order
+    little) and sparse blocks' offset gaps (uint16), as `protocol.deltacodec` decodes them; and
+    each voxel's composite (its `_composite` with `key_min` the smallest key). False when the
+    bitmaps or gaps are not valid (a bitmap's population is not its block's count, a zero gap
+    after a block's first, an offset beyond the block): then nothing is valid and the caller's
+    numpy path says why."""
+    m = counts.shape[0]
+    obits = 3 * bs
+    nvox = np.int64(1) << obits
+    emask = (np.int64(1) << bs) - 1
+    axis = 21 - bs
+    bb = nvox >> 3
+    dense_at = nvox // _WIRE_BITMAP_DIVISOR
+    keys = np.empty((n, 3), dtype=np.int64)
+    comp = np.empty(n, dtype=np.int64)
+    bmin = key_min >> bs
+    at = 0
+    nd = 0
+    ng = 0
+    for b in range(m):
+        c = counts[b]
+        bx = blocks[b, 0]
+        by = blocks[b, 1]
+        bz = blocks[b, 2]
+        head = (((bx - bmin) << (2 * axis)) | ((by - bmin) << axis) | (bz - bmin)) << obits
+        x0 = bx << bs
+        y0 = by << bs
+        z0 = bz << bs
+        if c >= dense_at:
+            base = nd * bb
+            found = 0
+            for j in range(bb):
+                byte = np.int64(bitmaps[base + j])
+                while byte != 0 and found < c:
+                    low = byte & -byte
+                    bit = 0
+                    while (np.int64(1) << bit) != low:
+                        bit += 1
+                    off = (j << 3) + bit
+                    keys[at + found, 0] = x0 + (off >> (2 * bs))
+                    keys[at + found, 1] = y0 + ((off >> bs) & emask)
+                    keys[at + found, 2] = z0 + (off & emask)
+                    comp[at + found] = head | off
+                    found += 1
+                    byte ^= low
+                if byte != 0:
+                    return False, keys, comp
+            if found != c:
+                return False, keys, comp
+            nd += 1
+        else:
+            pos = np.int64(-1)
+            for i in range(c):
+                g = np.int64(gaps[ng])
+                ng += 1
+                if i > 0 and g == 0:
+                    return False, keys, comp
+                pos = g if i == 0 else pos + g
+                if pos >= nvox:
+                    return False, keys, comp
+                keys[at + i, 0] = x0 + (pos >> (2 * bs))
+                keys[at + i, 1] = y0 + ((pos >> bs) & emask)
+                keys[at + i, 2] = z0 + (pos & emask)
+                comp[at + i] = head | pos
+        at += c
+    return True, keys, comp

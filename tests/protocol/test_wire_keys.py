@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -16,6 +17,7 @@ from protocol.deltacodec import (
     summarise_free,
     wire_order,
 )
+from protocol.errors import ProtocolError
 from tests.protocol.helpers import assert_delta_close, make_delta
 from tests.shared import SHARED_DATA
 from voxel import kernels
@@ -158,3 +160,81 @@ def test_in_background_mode_encoding_takes_the_numpy_path_while_the_kernel_loads
     loader.join(120)
     assert kernels.wire_keys() is not None
     assert encode_delta(delta) == numpy
+
+
+def _decoded(data: bytes, monkeypatch: pytest.MonkeyPatch, jit: str) -> Delta | str:
+    monkeypatch.setenv(kernels.JIT_ENV, jit)
+    try:
+        return decode_delta(data)
+    except ProtocolError as exc:
+        return f"{type(exc).__name__}: {exc}"
+    finally:
+        monkeypatch.setenv(kernels.JIT_ENV, "1")
+
+
+def _same_decoding(data: bytes, monkeypatch: pytest.MonkeyPatch) -> Delta | str:
+    """The decoding of `data` (or its error) on the compiled path, asserted equal to numpy's."""
+    pytest.importorskip("numba")
+    monkeypatch.setattr(kernels, "_loading", kernels._Loading())
+    assert kernels.warm_codec()
+    compiled = _decoded(data, monkeypatch, "1")
+    numpy = _decoded(data, monkeypatch, "0")
+    if isinstance(compiled, str) or isinstance(numpy, str):
+        assert compiled == numpy
+        return compiled
+    assert np.array_equal(compiled.keys, numpy.keys)
+    assert np.array_equal(compiled.logodds, numpy.logodds, equal_nan=True)
+    assert np.array_equal(compiled.last_time, numpy.last_time, equal_nan=True)
+    return compiled
+
+
+@pytest.mark.parametrize("block_shift", [2, 3, 4])
+def test_real_and_random_deltas_decode_the_same_on_both_paths(
+    monkeypatch: pytest.MonkeyPatch, kitchen: list[tuple[Delta, np.ndarray]], block_shift: int
+) -> None:
+    rng = np.random.default_rng(block_shift)
+    cases = [*kitchen, (make_delta(rng, 20000, spread=30), None), (make_delta(rng, 50), None)]
+    for delta, prev in cases:
+        data = encode_delta(delta, prev_logodds=prev, block_shift=block_shift)
+        back = _same_decoding(data, monkeypatch)
+        assert isinstance(back, Delta)
+        assert_delta_close(delta, back)
+
+
+@pytest.mark.parametrize(
+    ("column", "change"),
+    [
+        (5, "flip"),  # a bitmap bit more or less than the block's count
+        (6, "zero"),  # a zero gap after a block's first offset
+        (6, "big"),  # an offset beyond the block
+    ],
+)
+def test_hostile_bitmaps_and_gaps_are_refused_alike_on_both_paths(
+    monkeypatch: pytest.MonkeyPatch, column: int, change: str
+) -> None:
+    rng = np.random.default_rng(7)
+    dense = np.stack(np.meshgrid(*[np.arange(0, 12)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    sparse = rng.integers(-3000, 3000, size=(400, 3))
+    keys = np.unique(np.r_[dense, sparse], axis=0)
+    lo = np.where(rng.random(len(keys)) < 0.5, 1.0, -1.0).astype(np.float32)
+    # and in each section a sparse block of several voxels
+    runs = np.array([[x, x, z] for x in (5000, 6000) for z in range(10)])
+    keys = np.r_[keys, runs]
+    lo = np.r_[lo, np.repeat(np.array([1.0, -1.0], np.float32), 10)]
+    body = msgpack.unpackb(encode_delta(Delta(0.1, 0, 1, keys, lo, np.zeros(len(keys)))), raw=False)
+    for sec in body["sec"]:
+        raw = bytearray(sec[column])
+        assert raw, "the test delta has both dense and sparse blocks in every section"
+        if change == "flip":
+            raw[len(raw) // 2] ^= 0x10
+        elif change == "zero":
+            counts = np.frombuffer(sec[4], dtype="<u2")
+            sparse_counts = counts[counts < (1 << 12) // 16]
+            second = int(np.argmax(sparse_counts > 1))
+            at = int(sparse_counts[:second].sum()) + 1  # a block's second offset
+            raw[2 * at : 2 * at + 2] = b"\0\0"
+        else:
+            raw[-2:] = (60000).to_bytes(2, "little")
+        sec[column] = bytes(raw)
+    out = _same_decoding(msgpack.packb(body, use_bin_type=True), monkeypatch)
+    assert isinstance(out, str), "a corrupted body must be refused"
