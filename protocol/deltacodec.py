@@ -390,10 +390,11 @@ def _compiled_columns(
         return None
     none = np.zeros(0, dtype=np.float32)
     mode = 0 if lo is None else 1 if prev is None else 2
+    # Writable, contiguous: the types the kernel was compiled for (another would compile anew).
     status, identity, perm, table, blocks, counts, bitmaps, gaps = kernel(
-        np.ascontiguousarray(keys, dtype=np.int64),
-        none if lo is None else np.ascontiguousarray(lo, dtype=np.float32),
-        none if prev is None else prev,
+        np.require(keys, np.int64, ("C", "W")),
+        none if lo is None else np.require(lo, np.float32, ("C", "W")),
+        none if prev is None else np.require(prev, np.float32, ("C", "W")),
         mode,
         bs,
     )
