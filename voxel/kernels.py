@@ -1075,15 +1075,13 @@ def _wire_keys(
         ka[i] = k
         if k <= last:
             ordered = False
-        last = k
+        last = max(last, k)
         perm[i] = i
     if not ordered:
-        # LSD radix sort over the bits in use, digits of up to 12 bits (fewer for small n).
-        top = np.int64(0)
-        for i in range(n):
-            top = max(top, ka[i])
+        # LSD radix sort over the bits in use (`last` is the largest key), digits of up to 12
+        # bits (fewer for small n); every digit's histogram in one pass.
         bits = 1
-        while (np.int64(1) << bits) <= top:
+        while (np.int64(1) << bits) <= last:
             bits += 1
         widest = 8
         while widest < 12 and (np.int64(1) << widest) < n:
@@ -1093,42 +1091,40 @@ def _wire_keys(
         dmask = (np.int64(1) << d) - 1
         kb = np.empty(n, dtype=np.int64)
         ib = np.empty(n, dtype=np.int64)
-        hist = np.empty((np.int64(1) << d) + 1, dtype=np.int64)
-        shift = 0
-        for _ in range(passes):
-            hist[:] = 0
+        hist = np.zeros((passes, (np.int64(1) << d) + 1), dtype=np.int64)
+        for i in range(n):
+            k = ka[i]
+            for q in range(passes):
+                hist[q, ((k >> (q * d)) & dmask) + 1] += 1
+        for q in range(passes):
+            h = hist[q]
+            if h.max() == n:  # every voxel has this digit: nothing moves
+                continue
+            for j in range(1, h.size):
+                h[j] += h[j - 1]
+            shift = q * d
             for i in range(n):
-                hist[((ka[i] >> shift) & dmask) + 1] += 1
-            if hist.max() < n:  # else every voxel has this digit: nothing moves
-                for j in range(1, hist.size):
-                    hist[j] += hist[j - 1]
-                for i in range(n):
-                    j = (ka[i] >> shift) & dmask
-                    at = hist[j]
-                    hist[j] = at + 1
-                    kb[at] = ka[i]
-                    ib[at] = perm[i]
-                ka, kb = kb, ka
-                perm, ib = ib, perm
-            shift += d
-        for i in range(1, n):
-            if ka[i] == ka[i - 1]:
-                return WIRE_DUPLICATE, False, perm, sections, blocks, counts, bitmaps, gaps
-    # Blocks: runs of one (tier, block); a section per tier.
+                j = (ka[i] >> shift) & dmask
+                at = h[j]
+                h[j] = at + 1
+                kb[at] = ka[i]
+                ib[at] = perm[i]
+            ka, kb = kb, ka
+            perm, ib = ib, perm
+    # Blocks: runs of one (tier, block), a section per tier; a key twice is refused.
     n_sec = 0
     for t in range(6):
         if present[t]:
             n_sec += 1
+    start = np.empty(n + 1, dtype=np.int64)
+    start[0] = 0
     n_blocks = 1
     for i in range(1, n):
+        if ka[i] == ka[i - 1]:
+            return WIRE_DUPLICATE, False, perm, sections, blocks, counts, bitmaps, gaps
         if (ka[i] >> obits) != (ka[i - 1] >> obits):
+            start[n_blocks] = i
             n_blocks += 1
-    start = np.empty(n_blocks + 1, dtype=np.int64)
-    m = 0
-    for i in range(n):
-        if i == 0 or (ka[i] >> obits) != (ka[i - 1] >> obits):
-            start[m] = i
-            m += 1
     start[n_blocks] = n
     dense_at = nvox // _WIRE_BITMAP_DIVISOR
     n_dense = 0
