@@ -363,6 +363,7 @@ class Daemon:
                 return
         if not self.stop.is_set():
             kernels.warm()
+            kernels.warm_codec()
 
     def _start_threads(self) -> None:
         self._threads = [

@@ -24,6 +24,7 @@ from protocol.errors import (
 )
 from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.summary import MAX_LEVEL, FreeSummary
+from voxel import kernels
 from voxel.delta import CHANNEL_SPECS, SCALAR_PREFIX, Delta
 from voxel.errors import DeltaError
 from voxel.keys import KEY_MAX, KEY_MIN, pack
@@ -80,12 +81,7 @@ def significance(delta: Delta, prev_logodds: np.ndarray | None = None) -> np.nda
         tier[occ] = Tier.OCCUPIED
         tier[free] = Tier.FREE
         return tier
-    prev = np.asarray(prev_logodds, dtype=np.float32).reshape(-1)
-    if prev.shape[0] != lo.shape[0]:
-        msg = (
-            f"prev_logodds needs one value per voxel: expected {lo.shape[0]}, found {prev.shape[0]}"
-        )
-        raise ValueError(msg)
+    prev = _previous(delta, prev_logodds)
     with np.errstate(invalid="ignore"):
         was_occ = prev >= 0
     was_unknown = np.isnan(prev)
@@ -95,6 +91,17 @@ def significance(delta: Delta, prev_logodds: np.ndarray | None = None) -> np.nda
     tier[free & was_unknown] = Tier.FREE_NEW
     tier[free & ~was_occ & ~was_unknown] = Tier.FREE
     return tier
+
+
+def _previous(delta: Delta, prev_logodds: np.ndarray) -> np.ndarray:
+    """`prev_logodds` as float32, one per voxel of `delta` (else ValueError)."""
+    prev = np.asarray(prev_logodds, dtype=np.float32).reshape(-1)
+    if prev.shape[0] != len(delta):
+        msg = (
+            f"prev_logodds needs one value per voxel: expected {len(delta)}, found {prev.shape[0]}"
+        )
+        raise ValueError(msg)
+    return prev
 
 
 # --------------------------------------------------------------------------- encoding
@@ -175,8 +182,11 @@ def _absolute_times(rel: np.ndarray, ref: float) -> np.ndarray:
     return out
 
 
-def _time_columns(times: np.ndarray, ref: float) -> tuple[bytes, bytes]:
-    """(table, index): unique relative ms times (int64) and each voxel's index into the table."""
+def _time_columns(
+    times: np.ndarray, ref: float, order: np.ndarray | None = None
+) -> tuple[bytes, bytes]:
+    """(table, index): unique relative ms times (int64) and each voxel's index into the table,
+    voxels in `order` (None: as given)."""
     t = np.asarray(times, dtype=np.float64)
     if t.size == 0:
         return b"", b""
@@ -186,6 +196,8 @@ def _time_columns(times: np.ndarray, ref: float) -> tuple[bytes, bytes]:
     rel = _relative_ms(t, ref)
     if rel.min() == rel.max():
         return rel[:1].astype("<i8").tobytes(), b""
+    if order is not None:
+        rel = rel[order]
     table, index = np.unique(rel, return_inverse=True)
     dtype = "u1" if table.size <= 1 << 8 else "<u2" if table.size <= 1 << 16 else "<u4"
     return table.astype("<i8").tobytes(), index.astype(dtype).tobytes()
@@ -334,17 +346,21 @@ def _channel_column(name: str, values: np.ndarray, ref: float) -> list[Any]:
         table, index = _time_columns(values, ref)
         return [name, k, table, index]
     if name.startswith(SCALAR_PREFIX):
-        return [name, k, values.astype("<f4").tobytes()]
-    return [name, k, values.astype(_WIRE_DTYPE[name]).tobytes()]
+        return [name, k, values.astype("<f4", copy=False).tobytes()]
+    return [name, k, values.astype(_WIRE_DTYPE[name], copy=False).tobytes()]
+
+
+def _check_block_shift(bs: int) -> None:
+    if bs not in BLOCK_SHIFTS:
+        msg = f"block_shift must be one of {BLOCK_SHIFTS}, found {bs}"
+        raise ValueError(msg)
 
 
 def _sections(
     delta: Delta, prev_logodds: np.ndarray | None, bs: int
 ) -> list[tuple[int, np.ndarray | None, np.ndarray]]:
     """(tier, voxel order or None for "as given", sorted composites) of each non-empty tier."""
-    if bs not in BLOCK_SHIFTS:
-        msg = f"block_shift must be one of {BLOCK_SHIFTS}, found {bs}"
-        raise ValueError(msg)
+    _check_block_shift(bs)
     _check_delta_keys(delta.keys)
     comp_all = _composite(delta.keys, bs)
     tiers = significance(delta, prev_logodds)
@@ -363,17 +379,90 @@ def _sections(
     return out
 
 
+def _compiled_columns(
+    keys: np.ndarray, lo: np.ndarray | None, prev: np.ndarray | None, bs: int
+) -> tuple[list[list[Any]], np.ndarray | None] | None:
+    """([tier, key columns of `_encode_keys`...] per section, wire order or None for "as given")
+    of valid keys by the compiled kernel, tiers of `lo` (and `prev`; no `lo`: one section, tier
+    0), or None to take the numpy path (no kernel, or keys too spread out for it)."""
+    kernel = kernels.wire_keys()
+    if kernel is None:
+        return None
+    none = np.zeros(0, dtype=np.float32)
+    mode = 0 if lo is None else 1 if prev is None else 2
+    # Writable, contiguous: the types the kernel was compiled for (another would compile anew).
+    status, identity, perm, table, blocks, counts, bitmaps, gaps = kernel(
+        np.require(keys, np.int64, ("C", "W")),
+        none if lo is None else np.require(lo, np.float32, ("C", "W")),
+        none if prev is None else np.require(prev, np.float32, ("C", "W")),
+        mode,
+        bs,
+    )
+    if status == kernels.WIRE_TOO_WIDE:
+        return None
+    if status == kernels.WIRE_DUPLICATE:
+        msg = "delta keys must be unique, found duplicates"
+        raise DeltaError(msg)
+    blocks = blocks.astype("<i4", copy=False)
+    counts = counts.astype("<u2", copy=False)
+    gaps = gaps.astype("<u2", copy=False)
+    sections: list[list[Any]] = []
+    b0 = d0 = g0 = 0
+    for tier, n, m, b1, d1, g1 in table.tolist():
+        sections.append(
+            [
+                tier,
+                n,
+                m,
+                blocks[:, b0:b1].tobytes(),
+                counts[b0:b1].tobytes(),
+                bitmaps[d0:d1].tobytes(),
+                gaps[g0:g1].tobytes(),
+            ]
+        )
+        b0, d0, g0 = b1, d1, g1
+    return sections, None if identity else perm
+
+
+def _key_sections(
+    delta: Delta, prev_logodds: np.ndarray | None, bs: int
+) -> tuple[list[list[Any]], np.ndarray | None]:
+    """([tier, key columns...] of each non-empty tier, wire order or None for "as given")."""
+    _check_block_shift(bs)
+    _check_delta_keys(delta.keys)
+    prev = None if prev_logodds is None else _previous(delta, prev_logodds)
+    compiled = _compiled_columns(delta.keys, delta.logodds, prev, bs)
+    if compiled is not None:
+        return compiled
+    sections: list[list[Any]] = []
+    order_parts: list[np.ndarray] = []
+    identity = True
+    for tier, order, comp in _sections(delta, prev, bs):
+        identity = identity and order is None
+        order_parts.append(np.arange(len(delta)) if order is None else order)
+        sections.append([tier, *_encode_keys(comp, bs)])
+    if identity:
+        return sections, None
+    return sections, np.concatenate(order_parts)
+
+
 def wire_order(
     delta: Delta,
     prev_logodds: np.ndarray | None = None,
     block_shift: int = DEFAULT_BLOCK_SHIFT,
 ) -> np.ndarray:
     """Permutation putting the voxels of `delta` in wire order (tier, then block, then offset)."""
-    parts = [
-        np.arange(len(delta)) if order is None else order
-        for _, order, _ in _sections(delta, prev_logodds, block_shift)
-    ]
-    return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+    perm = _key_sections(delta, prev_logodds, block_shift)[1]
+    return np.arange(len(delta)) if perm is None else perm
+
+
+def _summary_keys(keys: np.ndarray, bs: int) -> tuple[list[Any], np.ndarray | None]:
+    """(key columns, order or None for "as given") of a summary's keys, one section."""
+    compiled = _compiled_columns(keys, None, None, bs)
+    if compiled is not None:
+        return compiled[0][0][1:], compiled[1]
+    order, comp = _block_sort(_composite(keys, bs), bs)
+    return _encode_keys(comp, bs), order
 
 
 def encode_delta(
@@ -389,21 +478,16 @@ def encode_delta(
     (see `quantum_exponent`; 2**-5 for OctoMap's clamping range).
     """
     bs = block_shift
-    sections: list[list[Any]] = []
-    order_parts: list[np.ndarray] = []
-    identity = True
-    for tier, order, comp in _sections(delta, prev_logodds, bs):
-        identity = identity and order is None
-        order_parts.append(np.arange(len(delta)) if order is None else order)
-        sections.append([int(tier), *_encode_keys(comp, bs)])
-    perm = np.concatenate(order_parts) if order_parts else np.zeros(0, dtype=np.int64)
-    if identity:
-        perm = slice(None)  # type: ignore[assignment]
-    lo = delta.logodds[perm]
+    sections, order = _key_sections(delta, prev_logodds, bs)
+
+    def wired(values: np.ndarray) -> np.ndarray:
+        return values if order is None else np.take(values, order, axis=0)
+
+    lo = wired(delta.logodds)
     q = quantum_exponent(
         delta.logodds if summary is None else np.r_[delta.logodds, summary.logodds]
     )
-    table, index = _time_columns(delta.last_time[perm], delta.time)
+    table, index = _time_columns(delta.last_time, delta.time, order)
     body: dict[str, Any] = {
         "v": CODEC_VERSION,
         "res": float(delta.resolution),
@@ -418,18 +502,18 @@ def encode_delta(
         "tt": table,
         "ti": index,
         "ch": [
-            _channel_column(name, values[perm], delta.time)
+            _channel_column(name, wired(values), delta.time)
             for name, values in sorted(delta.channels.items())
         ],
     }
     if summary is not None and len(summary):
         _check_delta_keys(summary.keys, summary.level)
-        order, comp = _block_sort(_composite(summary.keys, bs), bs)
-        logodds = summary.logodds if order is None else summary.logodds[order]
+        columns, sorder = _summary_keys(summary.keys, bs)
+        logodds = summary.logodds if sorder is None else summary.logodds[sorder]
         rel = _relative_ms(np.array([summary.time]), delta.time)[0]
         body["sum"] = [
             int(summary.level),
-            *_encode_keys(comp, bs),
+            *columns,
             quantise(logodds, q).tobytes(),
             int(rel),
         ]
@@ -594,8 +678,9 @@ def _int(value: Any, what: str, lo: int, hi: int) -> int:
 
 def _decode_keys(
     sec: list[Any], at: int, what: str, bs: int, level: int, max_voxels: int
-) -> tuple[np.ndarray, int]:
-    """Keys (n, 3) of the key columns sec[at:at+6], validated; returns (keys, n)."""
+) -> tuple[np.ndarray, int, np.ndarray | None]:
+    """Keys (n, 3) of the key columns sec[at:at+6], validated; returns (keys, n, their
+    composites, or None when not computed)."""
     n = _int(sec[at], f"{what} voxel count", 0, max_voxels)
     m = _int(sec[at + 1], f"{what} block count", 0, n)
     if (n == 0) != (m == 0):
@@ -638,9 +723,15 @@ def _decode_keys(
     nd = int(dense.sum())
     bitmaps = np.frombuffer(_bin(sec, at + 4, f"{what} bitmaps", bitmap_bytes * nd), dtype=np.uint8)
     nsparse = n - int(counts[dense].sum())
-    gaps = np.frombuffer(_bin(sec, at + 5, f"{what} offsets", 2 * nsparse), dtype="<u2").astype(
-        np.int64
-    )
+    raw_gaps = np.frombuffer(_bin(sec, at + 5, f"{what} offsets", 2 * nsparse), dtype="<u2")
+    voxels = kernels.wire_voxels()
+    if voxels is not None and n:
+        ok, keys, comp = voxels(
+            np.ascontiguousarray(blocks), counts, bitmaps, raw_gaps, n, bs, KEY_MIN
+        )
+        if ok:
+            return keys, n, comp
+    gaps = raw_gaps.astype(np.int64)
     start = np.cumsum(counts) - counts
     if nd == m:
         off = np.empty(n, dtype=np.int64)
@@ -693,7 +784,7 @@ def _decode_keys(
     keys[:, 0] += off >> (2 * bs)
     keys[:, 1] += (off >> bs) & (edge - 1)
     keys[:, 2] += off & (edge - 1)
-    return keys, n
+    return keys, n, None
 
 
 def _decode_times(table_raw: Any, index_raw: Any, n: int, ref: float, what: str) -> np.ndarray:
@@ -820,6 +911,7 @@ def decode_delta_with_summary(
         msg = f"delta body: expected at most {_MAX_SECTIONS} sections, found {len(sections)}"
         raise MalformedError(msg)
     key_parts = []
+    comp_parts: list[np.ndarray | None] = []
     total = 0
     last_tier = -1
     for i, sec in enumerate(sections):
@@ -835,8 +927,9 @@ def decode_delta_with_summary(
             msg = f"{what}: expected tiers in increasing order, found {tier} after {last_tier}"
             raise MalformedError(msg)
         last_tier = tier
-        keys, count = _decode_keys(sec, 1, what, bs, 0, n - total)
+        keys, count, comp = _decode_keys(sec, 1, what, bs, 0, n - total)
         key_parts.append(keys)
+        comp_parts.append(comp)
         total += count
     if total != n:
         msg = f"delta body: expected sections holding n={n} voxels, found {total}"
@@ -844,7 +937,9 @@ def decode_delta_with_summary(
     keys = np.concatenate(key_parts) if key_parts else np.zeros((0, 3), np.int64)
     if len(key_parts) > 1:
         # Each section is sorted by (block, offset): a stable sort merges the sorted runs.
-        packed = np.sort(_composite(keys, bs), kind="stable")
+        known = [c for c in comp_parts if c is not None]
+        comp_all = np.concatenate(known) if len(known) == len(comp_parts) else _composite(keys, bs)
+        packed = np.sort(comp_all, kind="stable")
         if np.any(packed[1:] == packed[:-1]):
             msg = "delta body: expected each voxel at most once, found a voxel in two sections"
             raise MalformedError(msg)
@@ -896,7 +991,7 @@ def _decode_summary(
         )
         raise MalformedError(msg)
     level = _int(entry[0], f"{what} level", 1, MAX_LEVEL)
-    keys, n = _decode_keys(entry, 1, what, bs, level, max(max_cells, 0))
+    keys, n, _ = _decode_keys(entry, 1, what, bs, level, max(max_cells, 0))
     codes = np.frombuffer(_bin(entry, 7, f"{what} log-odds", n), dtype=np.int8)
     if n and (codes.max() >= 0 or codes.min() == UNKNOWN_CODE):
         msg = f"{what}: expected free (negative) log-odds codes, found {int(codes.max())}"

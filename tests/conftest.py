@@ -17,3 +17,4 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     from voxel import kernels
 
     kernels.warm()
+    kernels.warm_codec()

@@ -1128,3 +1128,364 @@ def _fill_records(
         r.reliability = reliability
         r.bias = bias
         r.version = version
+
+
+# ------------------------------------------------------------------------------------------------
+# The delta codec's key columns (protocol.deltacodec), loaded apart from the integration kernels
+# above (their own lock and cache entry; the same COLONY_JIT switch and background mode).
+
+_codec_lock = threading.Lock()
+_codec_start_lock = threading.Lock()
+#: "keys", "voxels" -> the compiled `_wire_keys`, `_wire_voxels` (None: numba absent or failing);
+#: empty until loaded.
+_codec_compiled: dict[str, Callable[..., Any] | None] = {}
+_codec_loading = _Loading()  # only its thread is used: the mode is `_loading.background`
+
+
+def wire_keys() -> Callable[..., Any] | None:
+    """The compiled wire order and key columns of a delta (see `_wire_keys`), or None to use the
+    numpy path. Loaded by the first call, or in a thread after `load_in_background()`."""
+    if not enabled():
+        return None
+    if "keys" not in _codec_compiled:
+        if not _loading.background:
+            _load_codec()
+        else:
+            with _codec_start_lock:
+                if _codec_loading.thread is None:
+                    thread = threading.Thread(target=_load_codec, name="codec-load", daemon=True)
+                    _codec_loading.thread = thread
+                    thread.start()
+            return None
+    return _codec_compiled["keys"]
+
+
+def wire_voxels() -> Callable[..., Any] | None:
+    """The compiled keys of a decoded section (see `_wire_voxels`), or None to use the numpy
+    path; loaded as `wire_keys()` loads."""
+    return _codec_compiled["voxels"] if wire_keys() is not None else None
+
+
+def warm_codec() -> bool:
+    """Import numba and load (or compile and cache) the codec's kernel now, as `warm()` does the
+    integration's; True when it is in use."""
+    if not enabled():
+        return False
+    _load_codec()
+    return _codec_compiled["keys"] is not None
+
+
+def _load_codec() -> None:
+    with _codec_lock:
+        if "keys" in _codec_compiled:
+            return
+        found: dict[str, Callable[..., Any] | None] = {"keys": None, "voxels": None}
+        try:
+            import numba
+        except ImportError:
+            _codec_compiled.update(found)
+            return
+        try:
+            try:
+                jit = numba.njit(cache=True, nogil=True)
+                keys, voxels = jit(_wire_keys), jit(_wire_voxels)
+            except RuntimeError:  # no writable cache directory: compile at every start
+                log.warning("numba cannot cache here (set NUMBA_CACHE_DIR); compiling in memory")
+                jit = numba.njit(nogil=True)
+                keys, voxels = jit(_wire_keys), jit(_wire_voxels)
+            one = np.zeros(2, dtype=np.float32)
+            keys(np.array([[0, 0, 0], [5, 0, 1]], dtype=np.int64), one, one, 2, 4)
+            voxels(  # bitmaps and gaps as a decoder has them: read-only views of bytes
+                np.zeros((1, 3), dtype=np.int64),
+                np.ones(1, dtype=np.int64),
+                np.frombuffer(b"", dtype=np.uint8),
+                np.frombuffer(b"\0\0", dtype="<u2"),
+                1,
+                4,
+                vk.KEY_MIN,
+            )
+            found = {"keys": keys, "voxels": voxels}
+        except Exception as exc:  # noqa: BLE001 - any numba failure leaves the numpy path
+            log.warning("compiled codec kernels unavailable, using numpy: %s", exc)
+        _codec_compiled["voxels"] = found["voxels"]
+        _codec_compiled["keys"] = found["keys"]  # last: callers test for it first
+
+
+#: Tiers of `protocol.deltacodec.Tier`, by value.
+_OCCUPIED_NEW, _OCCUPIED, _CLEARED, _UNKNOWN, _FREE_NEW, _FREE = range(6)
+#: `_wire_keys`' status: done, keys too spread out for its packed sort keys, a key twice.
+WIRE_OK, WIRE_TOO_WIDE, WIRE_DUPLICATE = range(3)
+#: A block with at least (block voxels) / this many voxels travels as a bitmap (as deltacodec).
+_WIRE_BITMAP_DIVISOR = 16
+
+
+def _wire_keys(
+    keys: np.ndarray, lo: np.ndarray, prev: np.ndarray, mode: int, bs: int
+) -> tuple[int, bool, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Wire order and key columns of keys (n, 3) (int64, within the key range), as
+    `protocol.deltacodec` computes them: voxels by significance tier, then block (2**bs a side,
+    x, y, z) and in-block offset (x-major), one section per tier present. `mode` 0: one section
+    (a summary's keys; `lo`, `prev` unused); 1: tiers of the log-odds `lo` (float32); 2: tiers of
+    `lo` and the values before, `prev` (float32).
+
+    Returns (status, identity, perm, sections, blocks, counts, bitmaps, gaps): status WIRE_OK,
+    else nothing else is valid (WIRE_TOO_WIDE: the caller takes the numpy path; WIRE_DUPLICATE:
+    a key twice); identity when the keys are in wire order already; perm (n,) the wire order;
+    per section a row of sections (S, 6): tier, voxels, blocks, and the ends of its blocks, of
+    its bitmaps and of its gaps in the next columns; blocks (3, M) int32 each section's block
+    keys, the first absolute and the rest as differences; counts (M,) uint16 voxels per block;
+    bitmaps (D, block voxels / 8) uint8 of the dense blocks (bit order little); gaps (G,)
+    uint16 the offsets of the sparse blocks' voxels, the first of a block absolute, the rest as
+    differences. One sort: an LSD radix sort of one int64 per voxel (tier, block in the keys'
+    box of blocks, offset)."""
+    n = keys.shape[0]
+    obits = 3 * bs
+    nvox = np.int64(1) << obits
+    emask = (np.int64(1) << bs) - 1
+    perm = np.empty(n, dtype=np.int64)
+    sections = np.zeros((0, 6), dtype=np.int64)
+    blocks = np.zeros((3, 0), dtype=np.int32)
+    counts = np.zeros(0, dtype=np.uint16)
+    bitmaps = np.zeros((0, nvox >> 3), dtype=np.uint8)
+    gaps = np.zeros(0, dtype=np.uint16)
+    if n == 0:
+        return WIRE_OK, True, perm, sections, blocks, counts, bitmaps, gaps
+    bmin = np.empty(3, dtype=np.int64)
+    bmax = np.empty(3, dtype=np.int64)
+    for a in range(3):
+        bmin[a] = keys[0, a] >> bs
+        bmax[a] = bmin[a]
+    for i in range(1, n):
+        for a in range(3):
+            b = keys[i, a] >> bs
+            if b < bmin[a]:
+                bmin[a] = b
+            elif b > bmax[a]:
+                bmax[a] = b
+    dx = bmax[0] - bmin[0] + 1
+    dy = bmax[1] - bmin[1] + 1
+    dz = bmax[2] - bmin[2] + 1
+    cells = dx * dy * dz
+    if np.float64(dx) * np.float64(dy) * np.float64(dz) * np.float64(nvox) * 6.0 > 2.0**62:
+        return WIRE_TOO_WIDE, False, perm, sections, blocks, counts, bitmaps, gaps
+    # One sort key per voxel; in order already (and so distinct) when each exceeds the last.
+    ka = np.empty(n, dtype=np.int64)
+    present = np.zeros(6, dtype=np.int64)
+    ordered = True
+    last = np.int64(-1)
+    for i in range(n):
+        t = 0
+        if mode != 0:
+            v = lo[i]
+            if v >= 0:
+                t = _OCCUPIED if mode == 1 or prev[i] >= 0 else _OCCUPIED_NEW
+            elif v < 0:
+                if mode == 1:
+                    t = _FREE
+                else:
+                    p = prev[i]
+                    t = _CLEARED if p >= 0 else (_FREE_NEW if np.isnan(p) else _FREE)
+            else:
+                t = _UNKNOWN
+        present[t] += 1
+        x = keys[i, 0]
+        y = keys[i, 1]
+        z = keys[i, 2]
+        lin = ((x >> bs) - bmin[0]) * dy + ((y >> bs) - bmin[1])
+        lin = lin * dz + ((z >> bs) - bmin[2])
+        off = ((x & emask) << (2 * bs)) | ((y & emask) << bs) | (z & emask)
+        k = ((t * cells + lin) << obits) | off
+        ka[i] = k
+        if k <= last:
+            ordered = False
+        last = max(last, k)
+        perm[i] = i
+    if not ordered:
+        # LSD radix sort over the bits in use (`last` is the largest key), digits of up to 12
+        # bits (fewer for small n); every digit's histogram in one pass.
+        bits = 1
+        while (np.int64(1) << bits) <= last:
+            bits += 1
+        widest = 8
+        while widest < 12 and (np.int64(1) << widest) < n:
+            widest += 1
+        passes = (bits + widest - 1) // widest
+        d = (bits + passes - 1) // passes
+        dmask = (np.int64(1) << d) - 1
+        kb = np.empty(n, dtype=np.int64)
+        ib = np.empty(n, dtype=np.int64)
+        hist = np.zeros((passes, (np.int64(1) << d) + 1), dtype=np.int64)
+        for i in range(n):
+            k = ka[i]
+            for q in range(passes):
+                hist[q, ((k >> (q * d)) & dmask) + 1] += 1
+        for q in range(passes):
+            h = hist[q]
+            if h.max() == n:  # every voxel has this digit: nothing moves
+                continue
+            for j in range(1, h.size):
+                h[j] += h[j - 1]
+            shift = q * d
+            for i in range(n):
+                j = (ka[i] >> shift) & dmask
+                at = h[j]
+                h[j] = at + 1
+                kb[at] = ka[i]
+                ib[at] = perm[i]
+            ka, kb = kb, ka
+            perm, ib = ib, perm
+    # Blocks: runs of one (tier, block), a section per tier; a key twice is refused.
+    n_sec = 0
+    for t in range(6):
+        if present[t]:
+            n_sec += 1
+    start = np.empty(n + 1, dtype=np.int64)
+    start[0] = 0
+    n_blocks = 1
+    for i in range(1, n):
+        if ka[i] == ka[i - 1]:
+            return WIRE_DUPLICATE, False, perm, sections, blocks, counts, bitmaps, gaps
+        if (ka[i] >> obits) != (ka[i - 1] >> obits):
+            start[n_blocks] = i
+            n_blocks += 1
+    start[n_blocks] = n
+    dense_at = nvox // _WIRE_BITMAP_DIVISOR
+    n_dense = 0
+    dense_voxels = 0
+    for b in range(n_blocks):
+        c = start[b + 1] - start[b]
+        if c >= dense_at:
+            n_dense += 1
+            dense_voxels += c
+    sections = np.zeros((n_sec, 6), dtype=np.int64)
+    blocks = np.empty((3, n_blocks), dtype=np.int32)
+    counts = np.empty(n_blocks, dtype=np.uint16)
+    bitmaps = np.zeros((n_dense, nvox >> 3), dtype=np.uint8)
+    gaps = np.empty(n - dense_voxels, dtype=np.uint16)
+    s = -1
+    tier_now = -1
+    px = py = pz = np.int64(0)
+    nd = 0
+    ng = 0
+    for b in range(n_blocks):
+        head = ka[start[b]] >> obits
+        t = head // cells
+        lin = head - t * cells
+        bz = lin % dz
+        lin //= dz
+        by = lin % dy
+        bx = lin // dy + bmin[0]
+        by += bmin[1]
+        bz += bmin[2]
+        if t != tier_now:
+            s += 1
+            tier_now = t
+            sections[s, 0] = t
+            blocks[0, b] = bx
+            blocks[1, b] = by
+            blocks[2, b] = bz
+        else:
+            blocks[0, b] = bx - px
+            blocks[1, b] = by - py
+            blocks[2, b] = bz - pz
+        px = bx
+        py = by
+        pz = bz
+        c = start[b + 1] - start[b]
+        counts[b] = c
+        sections[s, 1] += c
+        sections[s, 2] += 1
+        if c >= dense_at:
+            for i in range(start[b], start[b + 1]):
+                off = ka[i] & (nvox - 1)
+                bitmaps[nd, off >> 3] |= np.uint8(1 << (off & 7))
+            nd += 1
+        else:
+            prior = np.int64(0)
+            for i in range(start[b], start[b + 1]):
+                off = ka[i] & (nvox - 1)
+                gaps[ng] = off - prior
+                prior = off
+                ng += 1
+        sections[s, 3] = b + 1
+        sections[s, 4] = nd
+        sections[s, 5] = ng
+    return WIRE_OK, ordered, perm, sections, blocks, counts, bitmaps, gaps
+
+
+def _wire_voxels(
+    blocks: np.ndarray,
+    counts: np.ndarray,
+    bitmaps: np.ndarray,
+    gaps: np.ndarray,
+    n: int,
+    bs: int,
+    key_min: int,
+) -> tuple[bool, np.ndarray, np.ndarray]:
+    """Keys (n, 3) of one section's voxels from its validated blocks (m, 3) (int64 keys) and
+    counts (m,) (int64, 1..block voxels, summing to n), dense blocks' bitmaps (uint8, bit order
+    little) and sparse blocks' offset gaps (uint16), as `protocol.deltacodec` decodes them; and
+    each voxel's composite (its `_composite` with `key_min` the smallest key). False when the
+    bitmaps or gaps are not valid (a bitmap's population is not its block's count, a zero gap
+    after a block's first, an offset beyond the block): then nothing is valid and the caller's
+    numpy path says why."""
+    m = counts.shape[0]
+    obits = 3 * bs
+    nvox = np.int64(1) << obits
+    emask = (np.int64(1) << bs) - 1
+    axis = 21 - bs
+    bb = nvox >> 3
+    dense_at = nvox // _WIRE_BITMAP_DIVISOR
+    keys = np.empty((n, 3), dtype=np.int64)
+    comp = np.empty(n, dtype=np.int64)
+    bmin = key_min >> bs
+    at = 0
+    nd = 0
+    ng = 0
+    for b in range(m):
+        c = counts[b]
+        bx = blocks[b, 0]
+        by = blocks[b, 1]
+        bz = blocks[b, 2]
+        head = (((bx - bmin) << (2 * axis)) | ((by - bmin) << axis) | (bz - bmin)) << obits
+        x0 = bx << bs
+        y0 = by << bs
+        z0 = bz << bs
+        if c >= dense_at:
+            base = nd * bb
+            found = 0
+            for j in range(bb):
+                byte = np.int64(bitmaps[base + j])
+                while byte != 0 and found < c:
+                    low = byte & -byte
+                    bit = 0
+                    while (np.int64(1) << bit) != low:
+                        bit += 1
+                    off = (j << 3) + bit
+                    keys[at + found, 0] = x0 + (off >> (2 * bs))
+                    keys[at + found, 1] = y0 + ((off >> bs) & emask)
+                    keys[at + found, 2] = z0 + (off & emask)
+                    comp[at + found] = head | off
+                    found += 1
+                    byte ^= low
+                if byte != 0:
+                    return False, keys, comp
+            if found != c:
+                return False, keys, comp
+            nd += 1
+        else:
+            pos = np.int64(-1)
+            for i in range(c):
+                g = np.int64(gaps[ng])
+                ng += 1
+                if i > 0 and g == 0:
+                    return False, keys, comp
+                pos = g if i == 0 else pos + g
+                if pos >= nvox:
+                    return False, keys, comp
+                keys[at + i, 0] = x0 + (pos >> (2 * bs))
+                keys[at + i, 1] = y0 + ((pos >> bs) & emask)
+                keys[at + i, 2] = z0 + (pos & emask)
+                comp[at + i] = head | pos
+        at += c
+    return True, keys, comp

@@ -21,6 +21,7 @@ from protocol.deltacodec import fit_delta
 from protocol.fields import DEFAULT_LEVEL
 from protocol.limits import Limits
 from protocol.messages import VoxelDelta
+from voxel import kernels
 from voxel.delta import Delta
 from voxel.depth import camera_points
 from voxel.grid import VoxelGrid
@@ -255,6 +256,8 @@ def run_wire_bench(
 
     Without `shared_data`, the checkout's sibling `../shared/data` is used when it exists.
     """
+    kernels.warm()  # compiled kernels load before timing, as a daemon loads them at start
+    kernels.warm_codec()
     results = [
         run_scenario(sc, repeats)
         for sc in scenarios(shared_data_dir(shared_data))
