@@ -34,13 +34,13 @@ def both(monkeypatch: pytest.MonkeyPatch) -> Callable[[Callable[[], bytes]], byt
     monkeypatch.setattr(kernels, "_loading", kernels._Loading())  # no background mode here
 
     def run(encode: Callable[[], bytes]) -> bytes:
-        monkeypatch.setenv(kernels.JIT_ENV, "1")
+        monkeypatch.setattr(kernels._switch, "on", True)
         assert kernels.wire_keys() is not None
         compiled = encode()
-        monkeypatch.setenv(kernels.JIT_ENV, "0")
+        monkeypatch.setattr(kernels._switch, "on", False)
         assert kernels.wire_keys() is None
         numpy = encode()
-        monkeypatch.setenv(kernels.JIT_ENV, "1")
+        monkeypatch.setattr(kernels._switch, "on", True)
         assert compiled == numpy
         return compiled
 
@@ -135,7 +135,7 @@ def test_duplicate_keys_are_refused_on_both_paths(
 ) -> None:
     pytest.importorskip("numba")
     monkeypatch.setattr(kernels, "_loading", kernels._Loading())
-    monkeypatch.setenv(kernels.JIT_ENV, jit)
+    monkeypatch.setattr(kernels._switch, "on", jit == "1")
     keys = np.array([[1, 2, 3], [40, 9, 9], [1, 2, 3], [0, 0, 0]])
     delta = Delta(0.05, 0, 1, keys, [0.1, 0.2, 0.3, -1.0], np.zeros(4))
     with pytest.raises(DeltaError, match="unique"):
@@ -146,7 +146,7 @@ def test_in_background_mode_encoding_takes_the_numpy_path_while_the_kernel_loads
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     pytest.importorskip("numba")
-    monkeypatch.setenv(kernels.JIT_ENV, "1")
+    monkeypatch.setattr(kernels._switch, "on", True)
     monkeypatch.setattr(kernels, "_codec_compiled", {})
     monkeypatch.setattr(kernels, "_codec_loading", kernels._Loading())
     monkeypatch.setattr(kernels, "_loading", kernels._Loading())
@@ -163,13 +163,13 @@ def test_in_background_mode_encoding_takes_the_numpy_path_while_the_kernel_loads
 
 
 def _decoded(data: bytes, monkeypatch: pytest.MonkeyPatch, jit: str) -> Delta | str:
-    monkeypatch.setenv(kernels.JIT_ENV, jit)
+    monkeypatch.setattr(kernels._switch, "on", jit == "1")
     try:
         return decode_delta(data)
     except ProtocolError as exc:
         return f"{type(exc).__name__}: {exc}"
     finally:
-        monkeypatch.setenv(kernels.JIT_ENV, "1")
+        monkeypatch.setattr(kernels._switch, "on", True)
 
 
 def _same_decoding(data: bytes, monkeypatch: pytest.MonkeyPatch) -> Delta | str:
