@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import multiprocessing.pool
 import os
@@ -18,11 +19,24 @@ T = TypeVar("T")
 NICE = 10
 
 
+def background() -> None:
+    """Make the calling process background work (the worker's initializer): `NICE`, and on
+    Linux the SCHED_IDLE policy, under which any ordinary thread that wakes up takes the core
+    at once. Niceness alone did not do that: the kernel shares the CPU between sessions
+    (autogroup) or cgroups before niceness counts, so a woken Zenoh or inbox thread of any
+    daemon still waited behind the registration processes, which run for seconds every
+    `align_s`: they were the largest part of the propagation tail left once the collector's
+    pauses were gone (docs/RELIABILITY.md, "Busy CPU")."""
+    os.nice(NICE)
+    with contextlib.suppress(AttributeError, OSError):  # not Linux: niceness only
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+
+
 class Aligner:
     """One spawned worker process for registration (seconds of numpy and Python per attempt):
     in a thread of the daemon it would hold the interpreter lock while peers' deltas wait in the
-    inbox. Spawned, never forked, so no Zenoh session is copied; started on first use, at a
-    lower priority (`NICE`); `close` ends it at once, even in the middle of an attempt."""
+    inbox. Spawned, never forked, so no Zenoh session is copied; started on first use, as
+    background work (`background`); `close` ends it at once, even in the middle of an attempt."""
 
     def __init__(self) -> None:
         self._pool: multiprocessing.pool.Pool | None = None
@@ -34,9 +48,7 @@ class Aligner:
         if self._closed.is_set():
             raise StoppedError("the aligner is closed: no registration is started")
         if self._pool is None:
-            self._pool = multiprocessing.get_context("spawn").Pool(
-                1, initializer=os.nice, initargs=(NICE,)
-            )
+            self._pool = multiprocessing.get_context("spawn").Pool(1, initializer=background)
         pending = self._pool.apply_async(fn, args, kwargs)
         while True:
             try:

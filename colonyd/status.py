@@ -9,6 +9,7 @@ from typing import Any
 
 import zenoh
 
+from colonyd.activity import Activity
 from colonyd.config import Config
 from colonyd.errors import StatusError
 from colonyd.runtime import get_client_session, undeclare
@@ -28,6 +29,7 @@ class StatusServer:
         agent: str,
         answer: Callable[[dict[str, str]], Any],
         report: str = "status",
+        activity: Activity | None = None,
     ) -> None:
         self._answer_params = answer
         self._worker: Worker[zenoh.Query] = Worker(
@@ -36,6 +38,7 @@ class StatusServer:
             Bounded(16),
             describe=lambda q: f"a {report} query on {q.key_expr}",
             done=lambda q: q.drop(),
+            activity=activity,
         )
         self._queryable = session.declare_queryable(
             status_key(namespace, agent, report), self._worker.put

@@ -889,7 +889,7 @@ def propagation(
 ) -> dict[str, Any]:
     """N daemons mapping at 2 deltas/s: propagation (creation to application on the last other
     peer) p50 / p99, and the stage breakdown, over the deltas created once every daemon is a
-    member (those before cannot reach a late starter as frames)."""
+    member (those before cannot reach a late starter as frames) and warm (start-up over)."""
     scans = max(2, int((duration + JOIN_S) * 2))
     colony = LocalColony(base, colony="prop", heartbeat_s=1.0, extra=extra)
     agents = [f"d{i}" for i in range(daemons)]
@@ -901,6 +901,8 @@ def propagation(
             if i == 0:
                 time.sleep(0.3)
         colony.wait_members(daemons, timeout=90)  # a loaded machine starts slowly
+        # and every daemon's start-up is over (kernels loaded, first-use imports done: `warm`)
+        colony.wait_status(lambda reps: all(r.get("warm") for r in reps), 60, agents)
         since, since_mono = time.time(), time.monotonic()
         joined_s = round(since_mono - t0, 1)
         colony.wait_converged(duration + 60, agents)

@@ -17,8 +17,11 @@ def test_work_runs_in_another_process_and_close_interrupts_it():
     aligner = Aligner()
     try:
         assert aligner.run(os.getpid) != os.getpid()
-        # registration yields the cores to the daemon's threads
+        # registration yields the cores to the daemon's threads: niceness, and on Linux the
+        # idle policy (a waking thread of any session preempts it)
         assert aligner.run(os.nice, 0) == os.nice(0) + NICE
+        if hasattr(os, "SCHED_IDLE"):
+            assert aligner.run(os.sched_getscheduler, 0) == os.SCHED_IDLE
         assert aligner.run(divmod, 7, 2) == (3, 1)
         failed: list[BaseException] = []
 
