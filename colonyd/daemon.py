@@ -100,7 +100,7 @@ KERNELS_WAIT_S = 10.0
 #: reports (`warm` in its status) and what they allocate is frozen out of the collector's passes
 #: at once (`heap.Freezer`) rather than a few at a time as the jobs first run.
 WARM_IMPORTS = (
-    "sklearn.cluster",
+    "sklearn.cluster",  # only where objects are clustered: with sources and `objects_s`
     "scipy.spatial",
     "scipy.spatial.transform",
     "scipy.ndimage",
@@ -383,7 +383,10 @@ class Daemon:
             return
         if self._sources:
             kernels.warm()
+        clusters = bool(self._sources) and self.config.objects_s > 0
         for name in WARM_IMPORTS:
+            if name.startswith("sklearn") and not clusters:
+                continue  # ~90 MB of modules (RSS) a daemon that clusters nothing never needs
             try:
                 importlib.import_module(name)
             except ImportError as exc:  # the job that needs it says so when it runs

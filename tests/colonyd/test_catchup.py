@@ -47,6 +47,7 @@ def test_compiled_kernels_load_once_catch_up_is_idle(monkeypatch) -> None:
         stop=threading.Event(),
         warm=threading.Event(),
         _sources=["synthetic:"],
+        config=SimpleNamespace(objects_s=2.0),
         gossip=SimpleNamespace(catchup=catchup),
     )
     dm.Daemon._warm_up(fake)  # type: ignore[arg-type]
