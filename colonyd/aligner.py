@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import multiprocessing.pool
 import os
 import threading
+import time
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -18,11 +20,45 @@ T = TypeVar("T")
 NICE = 10
 
 
+#: Niceness of the registration process's own session where the kernel shares the CPU by
+#: session (autogroup): the lowest, so that its session weighs ~1.5 % of an ordinary one.
+AUTOGROUP_NICE = 19
+#: Linux's per-session CPU weight of the calling process (sched_autogroup_enabled).
+AUTOGROUP = "/proc/self/autogroup"
+
+
+def background() -> None:
+    """Make the calling process background work (the worker's initializer): `NICE`; on Linux
+    the SCHED_IDLE policy (a thread that wakes on its core takes it at once), and a session of
+    its own at autogroup niceness `AUTOGROUP_NICE`. Niceness alone did not keep registration
+    off the daemons' cores: where the kernel shares the CPU between sessions (autogroup) first,
+    the worker weighed as much as its daemon's whole session, and with SCHED_IDLE alone it still
+    took cores that woken Zenoh and inbox threads waited for. Registration runs for seconds
+    every `align_s`; it was the largest part of the propagation tail left once the collector's
+    pauses were gone (docs/RELIABILITY.md, "Busy CPU")."""
+    os.nice(NICE)
+    with contextlib.suppress(AttributeError, OSError):  # not Linux: niceness only
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    try:
+        os.setsid()
+    except (AttributeError, OSError):
+        return
+    for _ in range(20):  # unprivileged writes are rate-limited machine-wide (EAGAIN)
+        try:
+            with open(AUTOGROUP, "w") as f:
+                f.write(str(AUTOGROUP_NICE))
+            return
+        except BlockingIOError:
+            time.sleep(0.1)
+        except OSError:  # no autogroup here: the session alone changes nothing
+            return
+
+
 class Aligner:
     """One spawned worker process for registration (seconds of numpy and Python per attempt):
     in a thread of the daemon it would hold the interpreter lock while peers' deltas wait in the
-    inbox. Spawned, never forked, so no Zenoh session is copied; started on first use, at a
-    lower priority (`NICE`); `close` ends it at once, even in the middle of an attempt."""
+    inbox. Spawned, never forked, so no Zenoh session is copied; started on first use, as
+    background work (`background`); `close` ends it at once, even in the middle of an attempt."""
 
     def __init__(self) -> None:
         self._pool: multiprocessing.pool.Pool | None = None
@@ -34,9 +70,7 @@ class Aligner:
         if self._closed.is_set():
             raise StoppedError("the aligner is closed: no registration is started")
         if self._pool is None:
-            self._pool = multiprocessing.get_context("spawn").Pool(
-                1, initializer=os.nice, initargs=(NICE,)
-            )
+            self._pool = multiprocessing.get_context("spawn").Pool(1, initializer=background)
         pending = self._pool.apply_async(fn, args, kwargs)
         while True:
             try:

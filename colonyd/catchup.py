@@ -112,6 +112,7 @@ class CatchUp:
             describe=lambda rep: f"repair of {rep.origin}",
             done=self._done,
             stop=stop,
+            activity=metrics.activity,
         )
 
     def start(self, membership: Membership) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import faulthandler
+import importlib
 import itertools
 import logging
 import math
@@ -20,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from colonyd import heap
 from colonyd.aligner import Aligner
 from colonyd.alignment import ColonyFrame, Edge, align_layers, edge_of
 from colonyd.colonymap import ColonyMaps
@@ -94,6 +96,17 @@ MAX_SIGHTED = 16
 #: catch-up is idle, at most KERNELS_WAIT_S in all.
 KERNELS_SETTLE_S = 0.5
 KERNELS_WAIT_S = 10.0
+#: Modules the periodic jobs import on first use (object clustering, alignment, localisation),
+#: imported with the kernels' loading instead, so that the daemon's start-up ends at a moment it
+#: reports (`warm` in its status) and what they allocate is frozen out of the collector's passes
+#: at once (`heap.Freezer`) rather than a few at a time as the jobs first run.
+WARM_IMPORTS = (
+    "sklearn.cluster",  # only where objects are clustered: with sources and `objects_s`
+    "scipy.spatial",
+    "scipy.spatial.transform",
+    "scipy.ndimage",
+    "scipy.fft",
+)
 #: The interpreter's thread switch interval in a daemon (Python's default is 5 ms).
 SWITCH_INTERVAL_S = 0.001
 
@@ -136,6 +149,9 @@ class Daemon:
         self._published_local = 0
         self._last_snapshot = time.monotonic()
         self._sources_done = threading.Event()
+        #: Start-up is over: kernels loaded, first-use imports done (`_warm_up`).
+        self.warm = threading.Event()
+        self.freezer = heap.Freezer()  # start-up's objects out of the collector's passes
         self.objects = OwnObjects(frozenset(config.structure_classes))
         self.aligner = Aligner()  # registration in a worker process, started on first use
         self._estimators: dict[str, Estimator] = {}  # per source spec
@@ -163,6 +179,7 @@ class Daemon:
     def run(self) -> int:
         limit_arenas()  # before any thread allocates (colonyd/memory.py)
         self._install_signals()
+        self.metrics.activity.watch_gc()
         cfg = self.config
         if cfg.export_dir is not None:  # found unwritable now, not at shutdown
             output_dir(cfg.export_dir, "export_dir")
@@ -180,8 +197,7 @@ class Daemon:
                 self.notifier.ready(
                     f"colony {cfg.colony} agent {cfg.agent_id} seq {self.layers.own.seq}"
                 )
-                if self._sources:  # nothing else integrates scans: no kernels needed
-                    threading.Thread(target=self._warm_kernels, name="kernels", daemon=True).start()
+                threading.Thread(target=self._warm_up, name="warm-up", daemon=True).start()
                 log.info(
                     "ready: colony %s, agent %s, epoch %d, seq %d",
                     cfg.colony,
@@ -325,7 +341,9 @@ class Daemon:
             history_push=cfg.history_push,
         )
         self.membership = Membership(self.session, ns, cfg.agent_id, self.gossip.on_member_event)
-        self.status_server = StatusServer(self.session, ns, cfg.agent_id, self.report)
+        self.status_server = StatusServer(
+            self.session, ns, cfg.agent_id, self.report, activity=self.metrics.activity
+        )
         self.export_server = StatusServer(
             self.session, ns, cfg.agent_id, self.export_map, report="export"
         )
@@ -352,18 +370,31 @@ class Daemon:
                 ),
             )
 
-    def _warm_kernels(self) -> None:
-        """Load the compiled kernels (optional; ~0.5 s of CPU) after the first catch-ups, which
-        would otherwise share the interpreter with them; a scan integrated sooner starts their
-        loading in a thread and takes the numpy path meanwhile (`kernels.load_in_background`)."""
+    def _warm_up(self) -> None:
+        """Load the compiled kernels (optional; ~0.5 s of CPU; only when there are sources:
+        nothing else integrates scans) and import `WARM_IMPORTS` after the first catch-ups,
+        which would otherwise share the interpreter with them; then `warm` is set. A scan
+        integrated sooner starts the kernels' loading in a thread and takes the numpy path
+        meanwhile (`kernels.load_in_background`)."""
         deadline = time.monotonic() + KERNELS_WAIT_S
         self.stop.wait(KERNELS_SETTLE_S)
         while not self.gossip.catchup.idle() and time.monotonic() < deadline:
             if self.stop.wait(0.05):
                 return
-        if not self.stop.is_set():
+        if self.stop.is_set():
+            return
+        if self._sources:
             kernels.warm()
             kernels.warm_codec()
+        clusters = bool(self._sources) and self.config.objects_s > 0
+        for name in WARM_IMPORTS:
+            if name.startswith("sklearn") and not clusters:
+                continue  # ~90 MB of modules (RSS) a daemon that clusters nothing never needs
+            try:
+                importlib.import_module(name)
+            except ImportError as exc:  # the job that needs it says so when it runs
+                log.debug("warm-up: cannot import %s: %s", name, exc)
+        self.warm.set()
 
     def _start_threads(self) -> None:
         self._threads = [
@@ -406,13 +437,16 @@ class Daemon:
         next_wd = 0.0
         while not self.stop.is_set():
             now = time.monotonic()
+            with self.metrics.activity.timed("freeze"):
+                self.freezer()  # what imports left, out of every later collector pass
             if self.reload.is_set():
                 self.reload.clear()
                 self._reload()
             if now >= next_hb or self.gossip.hb_now.is_set():
                 self.gossip.hb_now.clear()
                 try:
-                    self.gossip.heartbeat(self.config.kind, self.pose)
+                    with self.metrics.activity.timed("heartbeat"):
+                        self.gossip.heartbeat(self.config.kind, self.pose)
                     if self.pose_matrix is not None:
                         self.gossip.publisher.publish_pose(self.pose_matrix, self.pose_covariance)
                 except PersistenceError as exc:  # no frame numbers could be reserved
@@ -527,7 +561,8 @@ class Daemon:
                 if self.stop.is_set():
                     break
                 try:
-                    self._integrate(own, obs, source)
+                    with self.metrics.activity.timed("integrate"):
+                        self._integrate(own, obs, source)
                 except ValueError as exc:  # one bad frame (voxel/plugin input errors)
                     self.metrics.reject("bad-frame")
                     log.warning("source %s: frame skipped: %s", source.spec, exc)
@@ -680,7 +715,8 @@ class Daemon:
         """Give every scan estimator the aligned peers' map near its robot, in our frame."""
         while not self.stop.wait(self.config.colony_map_s):
             try:
-                self._refresh_colony_maps()
+                with self.metrics.activity.timed("colony-map"):
+                    self._refresh_colony_maps()
             except Exception:
                 log.exception("colony map refresh failed")
 
@@ -748,7 +784,8 @@ class Daemon:
                     self._offer(edge, "final maps")
             if own.seq == 0 or not grown or max(grown.values()) <= 0:
                 continue
-            self._estimate_bias()
+            with self.metrics.activity.timed("bias"):
+                self._estimate_bias()
             origin = max(grown, key=lambda o: (grown[o], o))  # the pair with most new data
             peer = self.layers.find(origin)
             if peer is None:
@@ -757,9 +794,10 @@ class Daemon:
             seqs = own.seq + peer.seq
             attempted[origin] = (seqs, (len(own_objects), len(peer_objects)))
             try:
-                result = align_layers(
-                    own, peer, self.config.align_dof, own_objects, peer_objects, self.aligner
-                )
+                with self.metrics.activity.timed("align"):
+                    result = align_layers(
+                        own, peer, self.config.align_dof, own_objects, peer_objects, self.aligner
+                    )
             except ValueError as exc:  # too little of a map to align yet
                 self.attempts[peer.origin] = {"aligned": False, "reason": str(exc)}
                 pending.pop(origin, None)
@@ -902,7 +940,8 @@ class Daemon:
         rounds = 0
         while not self.stop.wait(self.config.objects_s):
             try:
-                changed = self.objects.refresh(own.grid, own.lock)
+                with self.metrics.activity.timed("objects"):
+                    changed = self.objects.refresh(own.grid, own.lock)
                 rounds += 1
                 if changed is not None or (self.objects.current and rounds % OBJECTS_REPEAT == 0):
                     self.gossip.publish_objects(to_wire(self.objects.current))
@@ -916,7 +955,8 @@ class Daemon:
             if self.stop.is_set():
                 break
             try:
-                self._publish_once()
+                with self.metrics.activity.timed("publish"):
+                    self._publish_once()
             except PersistenceError as exc:
                 self._state_failed(exc)
             except ColonydError as exc:
@@ -979,11 +1019,12 @@ class Daemon:
             with own.lock:
                 own.grid.settle(version)  # forgotten voxels are in a logged, published delta
         if unsynced:
-            self.store.sync()
+            with self.metrics.activity.timed("sync"):
+                self.store.sync()
         due = time.monotonic() - self._last_snapshot >= self.config.snapshot_s
         if not final and own.seq > 0 and (due or self.store.wal_bytes > (64 << 20)):
             self._last_snapshot = time.monotonic()  # a failed one is retried after snapshot_s
-            with own.lock:
+            with self.metrics.activity.timed("snapshot"), own.lock:
                 self.store.snapshot(own.grid, own.seq, self._published_local)
             wrote = True
         if wrote and self.state_error:
@@ -1113,6 +1154,8 @@ class Daemon:
             "pose_matrix": None if self.pose_matrix is None else self.pose_matrix.tolist(),
             "truth_matrix": None if self.truth_matrix is None else self.truth_matrix.tolist(),
             "sources_done": self._sources_done.is_set() or not self.config.sources,
+            "warm": self.warm.is_set(),
+            "heap_freezes": self.freezer.count,
             "sources": [
                 {
                     "spec": s.spec,

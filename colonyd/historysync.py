@@ -82,7 +82,8 @@ class HistorySync:
                 if layer.origin == self.layers.own_id or layer.seq == 0:
                     continue
                 try:
-                    self.pull(layer)
+                    with self.metrics.activity.timed("history-pull"):
+                        self.pull(layer)
                 except Exception:
                     log.exception("history sync of %s failed", layer.origin)
 

@@ -101,6 +101,7 @@ class Inbox:
             describe=lambda item: f"{item[0]} on {item[1]}",
             idle=self._wait,
             stop=stop,
+            label=lambda item: f"inbox-{item[0]}",
         )
         remote = zenoh.Locality.REMOTE
         self._subs = [

@@ -5,6 +5,8 @@ from __future__ import annotations
 import threading
 from collections import Counter, deque
 
+from colonyd.activity import Activity, thread_names
+
 
 class Metrics:
     """Thread-safe counters plus the most recent propagation samples."""
@@ -29,6 +31,8 @@ class Metrics:
         #: seq, marks) at a replica; marks: hand-off name -> time.monotonic() (one clock for
         #: every process of the machine), in the order of the path (docs/RELIABILITY.md).
         self.stages: deque[tuple[str, str, int, dict[str, float]]] = deque(maxlen=samples)
+        #: What the threads were busy with: collector passes and timed jobs (`Activity`).
+        self.activity = Activity()
 
     def add(self, name: str, n: int = 1) -> None:
         with self._lock:
@@ -70,4 +74,7 @@ class Metrics:
             if samples:
                 out["samples"] = [list(s) for s in self.applied]
                 out["stages"] = [list(s) for s in self.stages]
-            return out
+        if samples:
+            out["activity"] = self.activity.snapshot()
+            out["threads"] = thread_names()
+        return out

@@ -10,6 +10,7 @@ from typing import Any
 
 import zenoh
 
+from colonyd.activity import Activity
 from colonyd.config import Config
 from colonyd.errors import StatusError
 from colonyd.runtime import get_client_session, undeclare
@@ -40,6 +41,7 @@ class StatusServer:
         agent: str,
         answer: Callable[[dict[str, str]], Any],
         report: str = "status",
+        activity: Activity | None = None,
     ) -> None:
         self._answer_params = answer
         self._worker: Worker[_Asked] = Worker(
@@ -48,6 +50,7 @@ class StatusServer:
             Bounded(16),
             describe=lambda a: f"a {report} query on {a.query.key_expr}",
             done=lambda a: a.query.drop(),
+            activity=activity,
         )
         self._queryable = session.declare_queryable(
             status_key(namespace, agent, report),

@@ -5,9 +5,11 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 from typing import Generic, TypeVar
 
+from colonyd.activity import Activity
 from colonyd.errors import ColonydError, WireError
 from colonyd.metrics import Metrics
 from protocol import ProtocolError
@@ -68,7 +70,9 @@ class Worker(Generic[T]):
     network) any other `ColonydError` or `ValueError` counts as `invalid` and anything else as
     `internal`. Every other exception is logged with its stack. `done(item)` runs once per item,
     handled or refused by `put` (a query is dropped there); a refused `put` counts `drops`.
-    `idle()` runs on the thread each time it is about to wait for the next item.
+    `idle()` runs on the thread each time it is about to wait for the next item. Each item's
+    handling goes to `activity` (by default the metrics'), named `label(item)` or the worker's
+    name.
     """
 
     def __init__(
@@ -84,8 +88,12 @@ class Worker(Generic[T]):
         done: Callable[[T], None] | None = None,
         idle: Callable[[], None] | None = None,
         stop: threading.Event | None = None,
+        activity: Activity | None = None,
+        label: Callable[[T], str] | None = None,
     ) -> None:
         self.name = name
+        self._activity = activity if activity is not None or metrics is None else metrics.activity
+        self._label = label
         self._handle = handle
         self._items = items
         self._metrics = metrics
@@ -126,6 +134,7 @@ class Worker(Generic[T]):
             item = self._items.get(timeout=POLL_S)
             if item is None:
                 continue
+            start = time.monotonic()
             try:
                 self._handle(item)
             except Exception as exc:  # noqa: BLE001 - one item never kills the worker
@@ -133,6 +142,9 @@ class Worker(Generic[T]):
             finally:
                 if self._done is not None:
                     self._done(item)
+                if self._activity is not None:
+                    name = self._label(item) if self._label is not None else self.name
+                    self._activity.record(name, start, time.monotonic())
 
     def _failed(self, item: T, exc: Exception) -> None:
         metrics = self._metrics

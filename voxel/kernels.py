@@ -132,6 +132,11 @@ def index() -> Callable[..., Any] | None:
     return _compiled.get("index") if enabled() else None
 
 
+def loaded() -> bool:
+    """True once the kernels were loaded (or found unavailable): numba's objects are in place."""
+    return "trace" in _compiled
+
+
 def warm() -> bool:
     """Import numba and load (or compile and cache) the kernels now; True when they are in use."""
     if not enabled():

@@ -34,6 +34,7 @@ from colonyd.bench.faultlab import (
 )
 from colonyd.bench.launcher import LocalColony, LocalDaemon, free_port
 from colonyd.runtime import open_session, zenoh_config
+from voxel import kernels
 
 log = logging.getLogger(__name__)
 
@@ -833,6 +834,43 @@ def stage_breakdown(reports: list[dict[str, Any]], since: float = 0.0) -> dict[s
     return out
 
 
+def tail_activity(reports: list[dict[str, Any]], since: float = 0.0) -> dict[str, dict[str, float]]:
+    """What the daemons were busy with while the slowest deliveries travelled: per activity
+    (`Metrics.activity`: collector passes `gc0`-`gc2`, periodic jobs, worker items) and role
+    (at the delta's `origin`, at the `replica` applying it, at an `other` daemon), the share of
+    the slowest 10 % of deliveries whose path (creation to application) it overlapped, and the
+    same share over all deliveries: an activity behind the tail has a much larger `tail` share
+    than `all`. Only deltas created at `since` (monotonic) or later."""
+    acts = {r["agent"]: r["metrics"].get("activity", []) for r in reports}
+    created: dict[tuple[str, int], float] = {}
+    for r in reports:
+        for side, origin, seq, marks in r["metrics"].get("stages", []):
+            if side == "out" and marks["created"] >= since:
+                created[(origin, int(seq))] = marks["created"]
+    paths: list[tuple[float, float, str, str]] = []  # (created, applied, origin, replica)
+    for r in reports:
+        for side, origin, seq, marks in r["metrics"].get("stages", []):
+            t0 = created.get((origin, int(seq)))
+            if side == "in" and t0 is not None and "applied" in marks:
+                paths.append((t0, marks["applied"], origin, r["agent"]))
+    if not paths:
+        return {}
+    took = np.asarray([t1 - t0 for t0, t1, _, _ in paths])
+    slow = took >= np.percentile(took, 90)
+    hits: dict[str, np.ndarray] = {}
+    for i, (t0, t1, origin, replica) in enumerate(paths):
+        for agent, entries in acts.items():
+            role = "origin" if agent == origin else "replica" if agent == replica else "other"
+            for name, _thread, start, end in entries:
+                if start < t1 and end > t0 and not (role == "replica" and name == "inbox-delta"):
+                    hits.setdefault(f"{name}@{role}", np.zeros(len(paths), bool))[i] = True
+    out = {
+        k: {"tail": round(float(v[slow].mean()), 3), "all": round(float(v.mean()), 3)}
+        for k, v in hits.items()
+    }
+    return dict(sorted(out.items(), key=lambda kv: -kv[1]["tail"]))
+
+
 def propagation_ms(
     reports: list[dict[str, Any]], agents: list[str], since: float = 0.0
 ) -> list[float]:
@@ -889,7 +927,7 @@ def propagation(
 ) -> dict[str, Any]:
     """N daemons mapping at 2 deltas/s: propagation (creation to application on the last other
     peer) p50 / p99, and the stage breakdown, over the deltas created once every daemon is a
-    member (those before cannot reach a late starter as frames)."""
+    member (those before cannot reach a late starter as frames) and warm (start-up over)."""
     scans = max(2, int((duration + JOIN_S) * 2))
     colony = LocalColony(base, colony="prop", heartbeat_s=1.0, extra=extra)
     agents = [f"d{i}" for i in range(daemons)]
@@ -901,6 +939,8 @@ def propagation(
             if i == 0:
                 time.sleep(0.3)
         colony.wait_members(daemons, timeout=90)  # a loaded machine starts slowly
+        # and every daemon's start-up is over (kernels loaded, first-use imports done: `warm`)
+        colony.wait_status(lambda reps: all(r.get("warm") for r in reps), 60, agents)
         since, since_mono = time.time(), time.monotonic()
         joined_s = round(since_mono - t0, 1)
         colony.wait_converged(duration + 60, agents)
@@ -920,6 +960,7 @@ def propagation(
             "counts": dict(counts),
             "paths": delivery_paths(reports, agents, since),
             "stages_ms": stage_breakdown(reports, since_mono),
+            "tail_activity": tail_activity(reports, since_mono),
         }
     except Exception:
         log.error("propagation run failed; daemon logs:\n%s", colony.logs())
@@ -930,7 +971,10 @@ def propagation(
 
 def busy(base: Path, *, duration: float = 10.0, sync_first: bool = False) -> dict[str, Any]:
     """Propagation with 4 daemons, quiet and while another process keeps one core busy
-    (`sync_first`: each delta fsync'ed before it is published)."""
+    (`sync_first`: each delta fsync'ed before it is published). The compiled kernels are
+    compiled into their cache first: with none (a fresh checkout, an edited kernels module)
+    every daemon would compile them in the measured window, ~11 s of CPU each."""
+    kernels.warm()
     extra = ["--sync-before-publish"] if sync_first else None
     quiet = propagation(base / "quiet", duration=duration, extra=extra)
     with Spinner():
@@ -945,6 +989,8 @@ def busy(base: Path, *, duration: float = 10.0, sync_first: bool = False) -> dic
         "quiet_samples": quiet["samples"],
         "quiet_stages_ms": quiet["stages_ms"],
         "busy_stages_ms": loaded["stages_ms"],
+        "quiet_tail_activity": quiet["tail_activity"],
+        "busy_tail_activity": loaded["tail_activity"],
         "quiet_paths": quiet["paths"],
         "busy_paths": loaded["paths"],
         "quiet_run": {k: quiet[k] for k in ("joined_s", "load", "counts")},

@@ -7,8 +7,13 @@ import time
 
 import pytest
 
-from colonyd.aligner import NICE, Aligner
+from colonyd.aligner import AUTOGROUP, AUTOGROUP_NICE, NICE, Aligner
 from colonyd.errors import StoppedError
+
+
+def _autogroup() -> str:
+    with open(AUTOGROUP) as f:
+        return f.read()
 
 
 def test_work_runs_in_another_process_and_close_interrupts_it():
@@ -17,8 +22,15 @@ def test_work_runs_in_another_process_and_close_interrupts_it():
     aligner = Aligner()
     try:
         assert aligner.run(os.getpid) != os.getpid()
-        # registration yields the cores to the daemon's threads
+        # registration yields the cores to the daemon's threads: niceness, and on Linux the
+        # idle policy (a waking thread of any session preempts it)
         assert aligner.run(os.nice, 0) == os.nice(0) + NICE
+        if hasattr(os, "SCHED_IDLE"):
+            assert aligner.run(os.sched_getscheduler, 0) == os.SCHED_IDLE
+            # in a session of its own, weighing least where CPU is shared by session
+            assert aligner.run(os.getsid, 0) != os.getsid(0)
+            if os.path.exists(AUTOGROUP):
+                assert aligner.run(_autogroup).split()[-1] == str(AUTOGROUP_NICE)
         assert aligner.run(divmod, 7, 2) == (3, 1)
         failed: list[BaseException] = []
 

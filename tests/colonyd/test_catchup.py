@@ -31,6 +31,7 @@ def test_a_snapshot_that_did_not_arrive_whole_is_asked_for_with_a_longer_timeout
 
 
 def test_compiled_kernels_load_once_catch_up_is_idle(monkeypatch) -> None:
+    import sys
     import threading
     import time
     from types import SimpleNamespace
@@ -42,9 +43,19 @@ def test_compiled_kernels_load_once_catch_up_is_idle(monkeypatch) -> None:
     monkeypatch.setattr(dm, "KERNELS_SETTLE_S", 0.0)
     busy_until = time.monotonic() + 0.3
     catchup = SimpleNamespace(idle=lambda: time.monotonic() >= busy_until)
-    fake = SimpleNamespace(stop=threading.Event(), gossip=SimpleNamespace(catchup=catchup))
-    dm.Daemon._warm_kernels(fake)  # type: ignore[arg-type]
+    fake = SimpleNamespace(
+        stop=threading.Event(),
+        warm=threading.Event(),
+        _sources=["synthetic:"],
+        config=SimpleNamespace(objects_s=2.0),
+        gossip=SimpleNamespace(catchup=catchup),
+    )
+    dm.Daemon._warm_up(fake)  # type: ignore[arg-type]
     assert len(loaded) == 1 and loaded[0] >= busy_until
+    assert fake.warm.is_set()  # start-up over: the status says so
+    for name in dm.WARM_IMPORTS:
+        assert name in sys.modules
     fake.stop.set()  # a daemon stopping meanwhile loads nothing
-    dm.Daemon._warm_kernels(fake)  # type: ignore[arg-type]
-    assert len(loaded) == 1
+    fake.warm.clear()
+    dm.Daemon._warm_up(fake)  # type: ignore[arg-type]
+    assert len(loaded) == 1 and not fake.warm.is_set()

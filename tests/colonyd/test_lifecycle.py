@@ -40,6 +40,20 @@ def test_notify_watchdog_reload_and_clean_sigterm(make_colony, tmp_path):
         sock.close()
 
 
+def test_start_up_ends_warm_with_its_objects_frozen_out_of_the_collector(make_colony):
+    colony = make_colony("warm")
+    colony.add("a", ["synthetic:scans=4,rate=4,points=100"])
+    reports = colony.wait_status(lambda r: r[0].get("warm"), 60, ["a"], samples=True)
+    report = reports[0]
+    assert report["warm"], "start-up (kernels, first-use imports) did not end within 60 s"
+    # frozen after start-up, and again once the kernels and first-use imports were in
+    assert report["heap_freezes"] >= 2
+    passes = [name for name, *_ in report["metrics"]["activity"] if name.startswith("gc")]
+    threads = set(report["metrics"]["threads"].values())
+    assert {"gossip-inbox", "publisher"} <= threads  # by kernel thread id, as perf names them
+    assert all(name in ("gc0", "gc1", "gc2") for name in passes)
+
+
 def test_colony_key_closes_the_colony(make_colony):
     colony = make_colony("keyed", extra=["--colony-key", "correct horse battery staple"])
     colony.add("a", ["synthetic:scans=3,rate=4,points=100,seed=1"])

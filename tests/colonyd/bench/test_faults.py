@@ -278,3 +278,25 @@ def test_the_spinner_keeps_a_core_busy_in_a_session_of_its_own() -> None:
 def _cpu_s(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def test_the_tail_activity_names_what_overlapped_the_slowest_deliveries() -> None:
+    # 20 deltas of a, 1 s apart, each applied at b 5 ms after creation, but the last two 80 ms
+    # after, while b's collector ran a full pass; c aligned during one fast delta
+    out, into = [], []
+    for seq in range(1, 21):
+        t0 = 100.0 + seq
+        took = 0.080 if seq > 18 else 0.005
+        out.append(["out", "a", seq, {"created": t0}])
+        into.append(["in", "a", seq, {"applied": t0 + took}])
+    passes = [["gc2", "MainThread", 100.0 + s + 0.001, 100.0 + s + 0.079] for s in (19, 20)]
+    reports = [
+        {"agent": "a", "metrics": {"stages": out, "activity": []}},
+        {"agent": "b", "metrics": {"stages": into, "activity": passes}},
+        {"agent": "c", "metrics": {"stages": [], "activity": [["align", "x", 105.0, 105.01]]}},
+    ]
+    got = bench_faults.tail_activity(reports)
+    assert next(iter(got)) == "gc2@replica"
+    assert got["gc2@replica"] == {"tail": 1.0, "all": 0.1}
+    assert got["align@other"] == {"tail": 0.0, "all": 0.05}
+    assert bench_faults.tail_activity(reports, since=200.0) == {}  # nothing created since
