@@ -74,10 +74,10 @@ class ScanEstimator:
     def counts(self) -> dict[str, int]:
         """Updates fused and refused so far, by kind."""
         loc = self.localiser
-        ekf, correction = loc.ekf, loc.correction
+        ekf = loc.ekf
         return {
-            "updates_accepted": correction.accepted + (0 if ekf is None else ekf.accepted),
-            "updates_rejected": correction.rejected + (0 if ekf is None else ekf.rejected),
+            "updates_accepted": 0 if ekf is None else ekf.accepted,
+            "updates_rejected": 0 if ekf is None else ekf.rejected,
             "colony_accepted": loc.colony_accepted,
             "colony_rejected": loc.colony_rejected,
             "colony_failed": loc.colony_failed,
@@ -90,9 +90,10 @@ class ScanEstimator:
         }
 
     def covariance(self) -> np.ndarray | None:
-        if self.localiser.ekf is None:
+        ekf = self.localiser.ekf
+        if ekf is None:
             return None
-        planar = self.localiser.covariance  # x, y, yaw
+        planar = ekf.covariance  # x, y, yaw
         cov = np.zeros((6, 6))
         cov[np.ix_([0, 1, 5], [0, 1, 5])] = planar
         return cov

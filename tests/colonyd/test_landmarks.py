@@ -13,6 +13,7 @@ from colonyd.landmarks import colony_landmarks
 from colonyd.objects import CLUSTER_IDS
 from plugins.observation import ObjectDetection, Observation
 from protocol import ObjectCentroid as WireObject
+from voxel.localisation.ekf import PlanarEkf
 
 
 def _rigid(x: float, y: float, yaw: float) -> np.ndarray:
@@ -53,7 +54,7 @@ def test_a_peers_identified_objects_are_landmarks_in_our_frame_with_the_alignmen
 
 def test_an_estimator_that_sees_a_known_landmark_is_pulled_onto_it():
     est = ScanEstimator(planar=False, mount=np.eye(4))
-    est.localiser.believe(np.array([0.3, 0.0, 0.0]), np.diag([0.04, 0.04, 1e-6]))
+    est.localiser.ekf = PlanarEkf(np.array([0.3, 0.0, 0.0]), np.diag([0.04, 0.04, 1e-6]))
     seen = np.eye(4)
     seen[:3, 3] = (2.0, 0.5, 0.2)  # truly at the origin: the landmark is at (2, 0.5)
     obs = Observation(
@@ -68,4 +69,4 @@ def test_an_estimator_that_sees_a_known_landmark_is_pulled_onto_it():
     # prior 20 cm, the sighting 2 cm + 2 % of 2.07 m: pulled most of the way back
     sd = 0.02 + 0.02 * float(np.linalg.norm(seen[:3, 3]))
     r = sd**2 + 1e-6
-    assert abs(est.localiser.pose[0] - 0.3 * r / (0.04 + r)) < 1e-3
+    assert abs(est.localiser.ekf.pose[0] - 0.3 * r / (0.04 + r)) < 1e-3

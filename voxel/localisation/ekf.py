@@ -189,14 +189,11 @@ class PlanarEkf:
         landmark: np.ndarray,
         landmark_covariance: np.ndarray,
         gate: float | None = GATE_2DOF,
-        right: np.ndarray | None = None,
     ) -> bool:
         """Fuse a landmark (paper Alg. 3): an object whose position (x, y) `landmark` in this
         agent's frame is known with `landmark_covariance` (2x2), seen at `seen` (x, y) in the
         body frame with `seen_covariance` (2x2). The measurement is R(yaw)^T (landmark -
-        position); its covariance adds both. `right`: the state is a correction and the body
-        pose is the state composed with this pose (x, y, yaw). False (and no change) when gated
-        out."""
+        position); its covariance adds both. False (and no change) when gated out."""
         z = np.asarray(seen, np.float64).reshape(-1)
         r_seen = np.asarray(seen_covariance, np.float64)
         lm = np.asarray(landmark, np.float64).reshape(-1)
@@ -213,8 +210,7 @@ class PlanarEkf:
                 f"{z.shape}, {r_seen.shape}, {lm.shape}, {r_lm.shape}"
             )
             raise LocalisationError(msg)
-        state = self.kf.x.ravel()
-        x = state if right is None else se2.compose(state, np.asarray(right, np.float64))
+        x = self.kf.x.ravel()
         c, s = math.cos(x[2]), math.sin(x[2])
         rt = np.array([[c, s], [-s, c]])  # world -> body
         d = lm - x[:2]
@@ -222,9 +218,6 @@ class PlanarEkf:
         jac = np.zeros((2, 3))
         jac[:, :2] = -rt
         jac[:, 2] = np.array([[-s, c], [-c, -s]]) @ d
-        if right is not None:  # d(body pose) / d(state): the state's yaw turns the body about it
-            w = x[:2] - state[:2]
-            jac = jac @ np.array([[1.0, 0.0, -w[1]], [0.0, 1.0, w[0]], [0.0, 0.0, 1.0]])
         noise = r_seen + rt @ r_lm @ rt.T
         return self._fuse(jac, y, noise, gate)
 
@@ -254,14 +247,6 @@ class PlanarEkf:
         self.kf.P = 0.5 * (new_p + new_p.T)
         self.accepted += 1
         return True
-
-    def widen(self, covariance: np.ndarray) -> None:
-        """Add `covariance` (3x3) to the state's: process noise that no odometry measured."""
-        c = np.asarray(covariance, np.float64)
-        if c.shape != (3, 3) or not np.all(np.isfinite(c)):
-            msg = f"widen: expected a finite 3x3 covariance, found shape {c.shape}"
-            raise LocalisationError(msg)
-        self.kf.P = self.kf.P + 0.5 * (c + c.T)
 
     def reset_offset(self, covariance: np.ndarray) -> None:
         """Start estimating a new shared map's error: zero, with `covariance` (x, y, yaw about

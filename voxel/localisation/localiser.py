@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from voxel.localisation import frame_error, se2
+from voxel.localisation import se2
 from voxel.localisation.colony_map import ColonyMap
 from voxel.localisation.ekf import MotionNoise, PlanarEkf
 from voxel.localisation.scan_match import LocalMap, Match, match, thin
@@ -38,9 +38,6 @@ class ScanParams:
     #: map drifted): it is not used again until the alignments change.
     colony_window: int = 20
     colony_refusals: float = 0.3
-    #: Scans a distrusted colony map is left out before it is tried again (the correction's
-    #: covariance has grown by then, with every keyframe of the robot's own map).
-    colony_pause: int = 100
     history: int = 100  # (time, pose) of the last steps, to carry a late fix to the present
     fix_tolerance: float = 0.15  # seconds between a fix's stamp and the nearest step
 
@@ -60,22 +57,14 @@ class Step:
 class ScanLocaliser:
     """Pose of a ground agent with a 2D or 3D range sensor, in its own odometry frame.
 
-    Two filters. The **tracker** (`ekf`) follows the robot in its own recent map: each step it
-    predicts with the odometry increment (or widens without odometry), matches the scan against
-    the recent map from the predicted pose, fuses the matched pose (gated by its Mahalanobis
-    distance) and adds the scan to the recent map when it is a keyframe. The **correction**
-    (`correction`) is a small planar motion C applied to the tracker's pose, where everything
-    absolute is fused: matches against a `ColonyMap` (aligned peers' maps in this agent's frame,
-    as a pose measured against a map whose error, the alignment's `ColonyMap.covariance`, is
-    estimated with C: `PlanarEkf.update_offset`, the alignment's error counted once, not once per
-    scan), fixes and landmarks. The estimate is C composed with the tracker's pose.
-
-    The recent map is built from the tracker's poses, so a colony correction never moves the
-    tracker against its own map (which pulled it straight back, or sent it another way at a
-    corner): the robot alone and the robot in a colony track identically, and the colony only
-    moves C. C's covariance grows with every keyframe by the tracker's covariance there (a map
-    made of keyframes drifts by their errors): the honest weight of a correction, where the
-    tracker's own covariance, a few millimetres, refused every real one.
+    Each step: predict with the odometry increment (or widen without odometry), match the scan
+    against the agent's own recent map from the predicted pose, fuse the matched pose (gated by
+    its Mahalanobis distance); when a `ColonyMap` is given (aligned peers' maps in this agent's
+    frame), match the scan against it too and fuse that as a pose measured against a map whose
+    error (the alignment's, `ColonyMap.covariance`) the filter estimates with the pose
+    (`PlanarEkf.update_offset`: the alignment's error is counted once, not once per scan; gated
+    the same way: a bad alignment is refused, not followed); then add the scan to the local
+    map when it is a keyframe.
     Reads only odometry, the scan and the peers' maps: never a reference pose.
     """
 
@@ -100,16 +89,12 @@ class ScanLocaliser:
         )
         self.motion = motion
         self.ekf: PlanarEkf | None = None
-        #: C: the correction taking the tracker's frame (its recent map) into the estimate's.
-        self.correction = PlanarEkf(np.zeros(3), covariance=np.zeros((3, 3)), motion=motion)
         self.last_odometry: np.ndarray | None = None
         self.rng = np.random.default_rng(0)
         self.colony_accepted = self.colony_rejected = self.colony_failed = 0
         self.colony_suspended = 0
         self._colony_outcomes: deque[bool] = deque(maxlen=self.params.colony_window)
         self._distrusted: bytes | None = None  # the alignment of a colony map that disagreed
-        self._paused = 0  # scans the distrusted colony map has been left out
-        self._moved = np.eye(3) * 1e-12  # the odometry's noise since the last keyframe
         self._offset_of: bytes | None = None  # the alignment whose error the filter estimates
         self.fix_accepted = self.fix_rejected = self.fix_stale = 0
         self.landmark_accepted = self.landmark_rejected = 0
@@ -141,81 +126,25 @@ class ScanLocaliser:
             if odometry is not None and self.last_odometry is not None:
                 increment = se2.relative(self.last_odometry, np.asarray(odometry, np.float64))
             self.ekf.predict(increment)
-            self._moved = self._moved + self.ekf.kf.Q
-            result = self._match(pts, self.local, self.ekf.pose)
+            result = self._match(pts, self.local)
             if result.ok:
                 fused = self.ekf.update(se2.from_matrix(result.pose), result.covariance)
-        own = self.ekf.pose
-        m = se2.to_matrix(own)
-        if self.local.wants(m):
-            self.local.add(pts @ m[:3, :3].T + m[:3, 3], m, m[:3, :3] @ self.sensor + m[:3, 3])
-            # The new keyframe is placed with the tracker's error relative to the map it was
-            # matched against: its covariance, but no more than the odometry's since the last
-            # keyframe (where the map does not constrain the tracker, as along a corridor, its
-            # covariance holds all the drift so far, not this keyframe's share of it).
-            drift = np.linalg.inv(
-                np.linalg.inv(self.ekf.covariance) + np.linalg.inv(self._moved + 1e-12 * np.eye(3))
-            )
-            self.correction.widen(self._to_correction(drift))
-            self._moved = np.eye(3) * 1e-12
         colony_match: Match | None = None
         colony_fused = False
         if colony is not None and colony.tree is not None:
             if self._distrusted is not None and colony.alignment == self._distrusted:
                 self.colony_suspended += 1
-                self._paused += 1
-                if self._paused >= p.colony_pause:  # tried again, with C grown since
-                    self._distrusted = None
             else:
                 self._distrusted = None
                 colony_match, colony_fused = self._colony_update(pts, colony)
         self.last_odometry = None if odometry is None else np.asarray(odometry, np.float64).copy()
-        pose = self.pose
+        pose = self.ekf.pose
         if time is not None:
             self.history.append((float(time), pose))
+        m = se2.to_matrix(pose)
+        if self.local.wants(m):
+            self.local.add(pts @ m[:3, :3].T + m[:3, 3], m, m[:3, :3] @ self.sensor + m[:3, 3])
         return Step(pose, result, fused, colony_match, colony_fused)
-
-    @property
-    def pose(self) -> np.ndarray:
-        """The estimate (x, y, yaw): the correction composed with the tracker's pose."""
-        own = np.zeros(3) if self.ekf is None else self.ekf.pose
-        return se2.compose(self.correction.pose, own)
-
-    @property
-    def covariance(self) -> np.ndarray:
-        """The estimate's covariance (x, y, yaw about the body): the tracker's, turned by the
-        correction, plus the correction's at the body."""
-        own = np.zeros((3, 3)) if self.ekf is None else self.ekf.covariance
-        c = self.correction.pose
-        rot = _rotation(c[2])
-        out: np.ndarray = rot @ own @ rot.T + frame_error.at(
-            self.correction.covariance, self.pose[:2] - c[:2]
-        )
-        return out
-
-    def believe(self, pose: np.ndarray, covariance: np.ndarray) -> None:
-        """Start (or restart) the estimate at `pose` with `covariance` (x, y, yaw about the
-        body), all of it the correction's: the tracker starts there, certain of it."""
-        self.ekf = PlanarEkf(np.asarray(pose, np.float64), motion=self.motion)
-        self.correction = PlanarEkf(
-            np.zeros(3), covariance=frame_error.about(covariance, pose[:2]), motion=self.motion
-        )
-
-    def _to_correction(self, covariance: np.ndarray) -> np.ndarray:
-        """A covariance (x, y, yaw about the body) of the tracker's pose as one of C."""
-        c = self.correction.pose
-        rot = _rotation(c[2])
-        return frame_error.about(rot @ covariance @ rot.T, self.pose[:2] - c[:2])
-
-    def _of_correction(
-        self, pose: np.ndarray, covariance: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """A measured body pose (x, y, yaw) and its covariance as a measurement of C: the pose
-        composed with the inverse of the tracker's."""
-        assert self.ekf is not None  # the first step made it
-        z = np.asarray(pose, np.float64)
-        zc = se2.compose(z, se2.relative(self.ekf.pose, np.zeros(3)))
-        return zc, frame_error.about(np.asarray(covariance, np.float64), z[:2] - zc[:2])
 
     def pose_at(self, stamp: float) -> np.ndarray | None:
         """The estimate (x, y, yaw) of the recent step nearest `stamp`, if one is within
@@ -244,16 +173,14 @@ class ScanLocaliser:
         if self.ekf is None or then is None:
             self.fix_stale += 1
             return None
-        motion = se2.relative(then, self.pose)
+        motion = se2.relative(then, self.ekf.pose)
         z = se2.compose(np.asarray(pose, np.float64), motion)
         m = self.ekf.motion
         d = math.hypot(motion[0], motion[1])
         widen = np.diag(
             [m.trans**2 * d, m.trans**2 * d, m.rot**2 * abs(motion[2]) + m.rot_per_m**2 * d]
         )
-        fused = self.correction.update(
-            *self._of_correction(z, np.asarray(covariance, np.float64) + widen)
-        )
+        fused = self.ekf.update(z, np.asarray(covariance, np.float64) + widen)
         if fused:
             self.fix_accepted += 1
         else:
@@ -272,24 +199,21 @@ class ScanLocaliser:
         (`PlanarEkf.update_landmark`, gated). None before the first step."""
         if self.ekf is None:
             return None
-        fused = self.correction.update_landmark(
-            seen, seen_covariance, landmark, landmark_covariance, right=self.ekf.pose
-        )
+        fused = self.ekf.update_landmark(seen, seen_covariance, landmark, landmark_covariance)
         if fused:
             self.landmark_accepted += 1
         else:
             self.landmark_rejected += 1
         return fused
 
-    def _match(
-        self, pts: np.ndarray, target: LocalMap | ColonyMap, start: np.ndarray, **extra: int
-    ) -> Match:
-        """The scan matched (x, y, yaw) against `target` from the pose `start`."""
+    def _match(self, pts: np.ndarray, target: LocalMap | ColonyMap, **extra: int) -> Match:
+        """The scan matched (x, y, yaw) against `target` from the current estimate."""
         p = self.params
+        assert self.ekf is not None  # the first step made it
         return match(
             pts,
             target,
-            se2.to_matrix(start),
+            se2.to_matrix(self.ekf.pose),
             dof=3,
             max_distance=p.max_distance,
             final_distance=p.final_distance,
@@ -303,17 +227,14 @@ class ScanLocaliser:
         """Match the scan against the colony's map from the current estimate; fuse it, gated."""
         p = self.params
         assert self.ekf is not None  # the first step made it
-        result = self._match(pts, colony, self.pose, min_matched=p.colony_min_matched)
+        result = self._match(pts, colony, min_matched=p.colony_min_matched)
         if not result.ok or np.max(np.diag(result.covariance)[:2]) > p.colony_max_variance:
             self.colony_failed += 1  # too few pairs, or they constrain nothing (all normals up)
             return result, False
-        correction = self.correction
-        if correction.offset is None or self._offset_of != colony.alignment:
-            correction.reset_offset(colony.covariance)  # new alignments: a new error to estimate
+        if self.ekf.offset is None or self._offset_of != colony.alignment:
+            self.ekf.reset_offset(colony.covariance)  # new alignments: a new error to estimate
             self._offset_of = colony.alignment
-        fused = correction.update_offset(
-            *self._of_correction(se2.from_matrix(result.pose), result.covariance)
-        )
+        fused = self.ekf.update_offset(se2.from_matrix(result.pose), result.covariance)
         if fused:
             self.colony_accepted += 1
         else:
@@ -324,12 +245,5 @@ class ScanLocaliser:
             outcomes.count(False) > p.colony_refusals * len(outcomes)
         ):
             self._distrusted = colony.alignment
-            self._paused = 0
             outcomes.clear()
         return result, fused
-
-
-def _rotation(yaw: float) -> np.ndarray:
-    """3x3 turning the (x, y) part of a planar covariance by `yaw`."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
