@@ -45,9 +45,6 @@ class ColonyMap:
     #: True when every normal faces the free side of its surface (`orient_by_free_space`);
     #: voxel centres alone carry no side they were seen from, and then normals are unsigned.
     oriented: bool = False
-    #: A 3D cut whose surfaces are one row of voxels (a 2D scanner's map, `vertical_traces`):
-    #: the row's height, at which a 3D scan is matched against it (`flattened`); else None.
-    row_height: float | None = None
 
     def __len__(self) -> int:
         return len(self.points)
@@ -121,31 +118,7 @@ def colony_map(
             pts, normals = sided
             oriented = True
     tree_kept = cKDTree(pts) if len(pts) >= k else None
-    row = None
-    if not planar and len(pts):
-        z = float(np.median(pts[:, 2]))
-        if np.mean(np.abs(pts[:, 2] - z) <= ROW_BAND) >= ROW_SHARE:
-            row = z
-    return ColonyMap(pts, normals, tree_kept, c, radius, sources, cov, alignment, oriented, row)
-
-
-#: A 3D cut is one row (a 2D scanner's map) when this share of its points lies within
-#: `ROW_BAND` metres of their median height.
-ROW_SHARE = 0.9
-ROW_BAND = 0.1
-
-
-def flattened(points: np.ndarray, height: float, low: float, high: float) -> np.ndarray:
-    """A 3D scan (N, 3, body frame, z up from the floor) as the 2D scanner that made a row
-    cut would have seen it: the points between `low` and `high` (walls and furniture, not the
-    floor or the ceiling) moved onto the row's `height`. Against a single row of voxels a 3D
-    scan otherwise pairs only its few points near that height (at least 60 needed: depth-1
-    failed most of its matches against lidar-1's map where its estimate slid)."""
-    pts = np.asarray(points, np.float64)
-    keep = (pts[:, 2] >= low) & (pts[:, 2] <= high)
-    out = pts[keep].copy()
-    out[:, 2] = height
-    return out
+    return ColonyMap(pts, normals, tree_kept, c, radius, sources, cov, alignment, oriented)
 
 
 def vertical_traces(

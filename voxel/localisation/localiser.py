@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from voxel.localisation import se2
-from voxel.localisation.colony_map import ColonyMap, flattened
+from voxel.localisation.colony_map import ColonyMap
 from voxel.localisation.ekf import MotionNoise, PlanarEkf
 from voxel.localisation.scan_match import LocalMap, Match, match, thin
 
@@ -38,10 +38,6 @@ class ScanParams:
     #: map drifted): it is not used again until the alignments change.
     colony_window: int = 20
     colony_refusals: float = 0.3
-    #: A 3D scan matched against a 2D scanner's map (`ColonyMap.row_height`): its points
-    #: between these heights (m above the floor), flattened onto the row.
-    row_low: float = 0.1
-    row_high: float = 2.0
     history: int = 100  # (time, pose) of the last steps, to carry a late fix to the present
     fix_tolerance: float = 0.15  # seconds between a fix's stamp and the nearest step
 
@@ -231,8 +227,6 @@ class ScanLocaliser:
         """Match the scan against the colony's map from the current estimate; fuse it, gated."""
         p = self.params
         assert self.ekf is not None  # the first step made it
-        if colony.row_height is not None and not self.local.planar:
-            pts = thin(flattened(pts, colony.row_height, p.row_low, p.row_high), p.scan_cell)
         result = self._match(pts, colony, min_matched=p.colony_min_matched)
         if not result.ok or np.max(np.diag(result.covariance)[:2]) > p.colony_max_variance:
             self.colony_failed += 1  # too few pairs, or they constrain nothing (all normals up)

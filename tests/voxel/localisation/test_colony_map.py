@@ -216,36 +216,3 @@ def test_a_2d_scanners_map_corrects_a_3d_robot_as_vertical_walls() -> None:
     step = loc.step(scan, np.zeros(3), colony=peers)
     assert step.colony_fused and loc.colony_failed == 0
     np.testing.assert_allclose(step.pose, truth, atol=0.02)
-
-
-def test_a_3d_scan_above_a_2d_scanners_row_is_flattened_onto_it() -> None:
-    # The depth camera sees the walls from 0.6 m up only; the 2D scanner's map is one row of
-    # voxels at 0.3 m. Matched as it is, the scan has no point near the row: too few pairs.
-    # Flattened onto the row (walls are vertical), it is pulled onto the truth.
-    truth = np.array([0.4, -0.5, 0.3])
-    rows = _wall_points(ROOM, spacing=0.1, height=0.3)
-    peers = colony_map(rows, planar=False, height=0.3, centre=np.zeros(2), radius=10.0, cell=0.1)
-    assert peers.row_height == pytest.approx(0.3)
-    flat = _segments_scan(truth, ROOM)
-    upper = np.concatenate([flat + np.array([0.0, 0.0, z]) for z in (0.6, 0.9, 1.2, 1.6)])
-    floor = np.column_stack([np.linspace(0.3, 2.0, 200), np.zeros(200), np.zeros(200)])
-    scan = np.concatenate([upper, floor])  # the floor is not flattened onto the walls
-    believed = truth + np.array([0.12, -0.1, 0.03])
-    loc = ScanLocaliser(planar=False)
-    loc.ekf = PlanarEkf(believed, np.diag([0.04, 0.04, 0.01]))
-    loc.last_odometry = np.zeros(3)
-    step = loc.step(scan, np.zeros(3), colony=peers)
-    assert step.colony_fused and loc.colony_failed == 0
-    np.testing.assert_allclose(step.pose, truth, atol=0.02)
-    # A map with height (a depth robot's walls from the floor up) is matched in 3D, as before.
-    walls = np.concatenate([rows + np.array([0.0, 0.0, z]) for z in (-0.2, 0.3, 0.8, 1.3)])
-    tall = colony_map(walls, planar=False, height=0.3, centre=np.zeros(2), radius=10.0, cell=0.1)
-    assert tall.row_height is None
-    import dataclasses
-
-    unflattened = ScanLocaliser(planar=False)
-    unflattened.ekf = PlanarEkf(believed, np.diag([0.04, 0.04, 0.01]))
-    unflattened.last_odometry = np.zeros(3)
-    as_3d = dataclasses.replace(peers, row_height=None)  # the same row, matched in 3D
-    unflattened.step(scan, np.zeros(3), colony=as_3d)
-    assert unflattened.colony_failed == 1  # no scan point within 0.15 m of the row
