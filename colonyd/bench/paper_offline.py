@@ -1,7 +1,8 @@
 """The paper experiment's two robots offline, deterministic: one robot alone and with the other's
 map, for A/B of estimator changes without the live runs' timing chaos.
 
-`python -m colonyd.bench.paper_offline --seed S [--lidar-range R] [--rng N] [--json FILE]`
+`python -m colonyd.bench.paper_offline --seed S [--lidar-range R] [--rng N] [--duration S]
+[--json FILE]`
 
 Each robot's sim source (the experiment's spec and seed, not paced) runs through its estimator
 and maps from the estimate, as `colonyd localize` does. The peer's map (its estimated-pose voxel
@@ -45,10 +46,12 @@ DURATION_S = 60.0
 class Run:
     """One robot's path through its estimator: estimated and true sensor poses, its map."""
 
-    def __init__(self, agent: str, seed: int, lidar_range: float) -> None:
+    def __init__(
+        self, agent: str, seed: int, lidar_range: float, duration: float = DURATION_S
+    ) -> None:
         options = f"lidar_range={lidar_range:g}" if agent == "lidar-1" else ""
         self.spec = sim_spec(
-            agent, DURATION_S, seed, odometry_noise="realistic", realtime=False, options=options
+            agent, duration, seed, odometry_noise="realistic", realtime=False, options=options
         )
         self.estimates: list[np.ndarray] = []
         self.truths: list[np.ndarray] = []
@@ -130,17 +133,22 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--lidar-range", type=float, default=4.0)
     parser.add_argument("--rng", type=int, default=0, help="seed of the scans' subsample")
+    parser.add_argument("--duration", type=float, default=DURATION_S, help="seconds of path")
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
-    lidar = Run("lidar-1", 100 * args.seed + 1, args.lidar_range)
-    depth = Run("depth-1", 100 * args.seed + 2, args.lidar_range)
+
+    def robot(agent: str) -> Run:
+        seed = 100 * args.seed + (1 if agent == "lidar-1" else 2)
+        return Run(agent, seed, args.lidar_range, args.duration)
+
+    lidar, depth = robot("lidar-1"), robot("depth-1")
     out: dict[str, Any] = {"seed": args.seed, "lidar_range": args.lidar_range, "rng": args.rng}
     out["lidar_alone"] = round(lidar.go(rng=args.rng), 4)
     out["depth_alone"] = round(depth.go(rng=args.rng), 4)
-    with_lidar = Run("depth-1", 100 * args.seed + 2, args.lidar_range)
+    with_lidar = robot("depth-1")
     out["depth_with_lidar"] = round(with_lidar.go(lidar, rng=args.rng), 4)
     out["depth_counts"] = with_lidar.counts
-    with_depth = Run("lidar-1", 100 * args.seed + 1, args.lidar_range)
+    with_depth = robot("lidar-1")
     out["lidar_with_depth"] = round(with_depth.go(depth, rng=args.rng, sign=-1.0), 4)
     out["lidar_counts"] = with_depth.counts
     print(json.dumps(out))
