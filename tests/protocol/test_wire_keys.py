@@ -3,6 +3,7 @@ the same bytes, byte for byte, on real and random deltas."""
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 
 import msgpack
@@ -142,24 +143,26 @@ def test_duplicate_keys_are_refused_on_both_paths(
         encode_delta(delta)
 
 
-def test_in_background_mode_encoding_takes_the_numpy_path_while_the_kernel_loads(
+def test_in_background_mode_the_codec_waits_for_warm_codec_and_never_starts_the_loading(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     pytest.importorskip("numba")
     monkeypatch.setattr(kernels._switch, "on", True)
     monkeypatch.setattr(kernels, "_codec_compiled", {})
-    monkeypatch.setattr(kernels, "_codec_loading", kernels._Loading())
     monkeypatch.setattr(kernels, "_loading", kernels._Loading())
     kernels.load_in_background()
     delta = make_delta(np.random.default_rng(3), 2000)
-    with kernels._codec_lock:  # a loading in progress (a compilation) holds the lock
-        numpy = encode_delta(delta)
-        assert "keys" not in kernels._codec_compiled
-        loader = kernels._codec_loading.thread
-        assert loader is not None and loader.is_alive()
-    loader.join(120)
-    assert kernels.wire_keys() is not None
+    before = {t.name for t in threading.enumerate()}
+    numpy = encode_delta(delta)  # a newcomer's first decode must not share the core with numba
+    decoded = decode_delta(numpy)
+    assert kernels.wire_keys() is None and kernels.wire_voxels() is None
+    assert "keys" not in kernels._codec_compiled
+    assert {t.name for t in threading.enumerate()} <= before  # no loading thread either
+    assert kernels.warm_codec()  # the daemon's warm-up thread loads them
+    assert kernels.wire_keys() is not None and kernels.wire_voxels() is not None
     assert encode_delta(delta) == numpy
+    again = decode_delta(numpy)
+    assert np.array_equal(again.keys, decoded.keys)
 
 
 def _decoded(data: bytes, monkeypatch: pytest.MonkeyPatch, jit: str) -> Delta | str:
