@@ -157,7 +157,9 @@ class Config(BaseSettings):
     )
     ring_size: int = Field(64, ge=1, description="recent deltas kept per layer for gap repair")
     max_message_mb: float = Field(64.0, gt=0, description="largest accepted decoded message")
-    query_timeout_s: float = Field(5.0, gt=0, description="range/snapshot query timeout")
+    query_timeout_s: float = Field(
+        5.0, gt=0, allow_inf_nan=False, description="range/snapshot query timeout"
+    )
     snapshot_chunk_voxels: int = Field(250_000, ge=1000, description="voxels per snapshot reply")
     half_life_s: float | None = Field(
         None,

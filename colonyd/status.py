@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,6 +26,14 @@ class _Asked:
 
     query: zenoh.Query
     at: float  # time.monotonic() then
+
+
+def asked_timeout_ms(text: str) -> int:
+    """A query's `timeout_ms` parameter: 1 to 10 decimal digits, at most 2^32 - 1; anything
+    else (a peer's bytes) is ignored as if absent (0: no deadline)."""
+    if not re.fullmatch(r"[0-9]{1,10}", text):
+        return 0
+    return min(int(text), 0xFFFF_FFFF)
 
 
 class StatusServer:
@@ -62,8 +71,8 @@ class StatusServer:
         query = asked.query
         # zenoh's stub types Parameters.__iter__ as returning a list, not an iterator
         params = {str(k): str(v) for k, v in query.parameters}  # type: ignore[attr-defined]
-        waits = params.pop("timeout_ms", "")
-        if waits.isdigit() and int(waits) and time.monotonic() - asked.at > int(waits) / 1000:
+        waits = asked_timeout_ms(params.pop("timeout_ms", ""))
+        if waits and time.monotonic() - asked.at > waits / 1000:
             return  # its requester has gone
         body = self._answer_params(params)
         if body is None:  # nothing to say (an export of a layer not held)

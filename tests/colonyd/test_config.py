@@ -149,3 +149,13 @@ def test_identity_command_prints_a_stable_public_key(tmp_path):
     assert (
         bad.returncode == 1 and "expected 32 raw Ed25519 private key bytes, found 5" in bad.stderr
     )
+
+
+def test_an_infinite_query_timeout_is_refused_with_a_clear_error() -> None:
+    import pytest
+    from pydantic import ValidationError
+
+    from colonyd.config import Config
+
+    with pytest.raises(ValidationError, match="query_timeout_s"):
+        Config(query_timeout_s=float("inf"))

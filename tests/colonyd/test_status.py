@@ -44,3 +44,12 @@ def test_a_status_query_whose_requester_has_gone_is_not_answered() -> None:
         server.close()
         b.close()
         a.close()
+
+
+def test_a_timeout_ms_parameter_from_the_network_is_parsed_or_ignored() -> None:
+    from colonyd.status import asked_timeout_ms
+
+    assert asked_timeout_ms("250") == 250
+    assert asked_timeout_ms("9999999999") == 0xFFFF_FFFF
+    for hostile in ("", "²", "-5", "1e3", "5.0", "1" * 400, " 5"):
+        assert asked_timeout_ms(hostile) == 0, hostile  # no ValueError, no OverflowError
