@@ -64,18 +64,28 @@ class HistorySync:
         self.stop = stop
         self.membership: Membership | None = None
         self._thread = threading.Thread(target=self._loop, name="history-sync", daemon=True)
+        #: a pushed page left a gap: pull at once, even when `period_s` is 0 (pulls off)
+        self._repair = threading.Event()
 
     def start(self, membership: Membership) -> None:
         self.membership = membership
-        if self.period_s > 0:
-            self._thread.start()
+        self._thread.start()
 
     def close(self) -> None:
+        self._repair.set()  # wakes the loop, which then sees `stop`
         if self._thread.is_alive():
             self._thread.join(timeout=5.0)
 
     def _loop(self) -> None:
-        while not self.stop.wait(self.period_s):
+        while not self.stop.is_set():
+            periodic = not self._repair.wait(self.period_s if self.period_s > 0 else 1.0)
+            if self.stop.is_set():
+                return
+            if periodic and self.period_s <= 0:
+                continue  # pulls off: only a gap in pushed history makes this thread pull
+            if not periodic:
+                self.metrics.add("history_repairs")
+            self._repair.clear()
             for layer in self.layers.all():
                 if self.stop.is_set():
                     return
@@ -96,11 +106,15 @@ class HistorySync:
     def offer(self, layer: Layer, epoch: int, after: int, page: HistoryPage) -> int:
         """Merge `page` (records of versions above `after` of `layer` at `epoch`) into the
         replica's history, within its share of the budget, unless it is of another epoch or
-        leaves a gap (versions between the newest held and `after`: the pull fills it).
+        leaves a gap (versions between the newest held and `after`: a pull fills it, at once, even
+        with periodic pulls off).
         Returns records and entries taken."""
         with layer.lock:
             history = layer.grid.history
-            if layer.epoch != epoch or after > history.newest_version():
+            if layer.epoch != epoch:
+                return 0
+            if after > history.newest_version():  # a page before this one was missed
+                self._repair.set()
                 return 0
             history.capacity = self.share()  # past it, the oldest are dropped
             n = history.merge(page)
