@@ -128,6 +128,18 @@ def test_replicas_equal_the_origin_in_every_channel_and_the_history(make_colony)
     assert np.array_equal(ka, kb) and np.array_equal(va, vb) and len(ka) > 1000
 
 
+def _history_of_a_alike(colony, within: float = 30.0):
+    """Reports of a and b once both hold as many of a's history records (or after `within`
+    seconds), and those two counts."""
+    deadline = time.monotonic() + within
+    while True:
+        report = colony.reports(["a", "b"])
+        held = (report["a"]["layers"]["a"]["history"], report["b"]["layers"]["a"]["history"])
+        if held[0] == held[1] or time.monotonic() > deadline:
+            return report, held
+        time.sleep(0.5)
+
+
 def test_history_pushed_with_the_deltas_reaches_a_replica_that_never_pulls(make_colony):
     """History push (opt-in): the origin publishes its new records with each delta and a
     replica whose pull is off holds the origin's history, answering temporal queries alike."""
@@ -140,13 +152,7 @@ def test_history_pushed_with_the_deltas_reaches_a_replica_that_never_pulls(make_
     t_start = time.time()
     a.start()
     colony.wait_converged(40)
-    deadline = time.monotonic() + 30
-    while True:
-        report = colony.reports(["a", "b"])
-        held = (report["a"]["layers"]["a"]["history"], report["b"]["layers"]["a"]["history"])
-        if held[0] == held[1] or time.monotonic() > deadline:
-            break
-        time.sleep(0.5)
+    report, held = _history_of_a_alike(colony)
     assert held[0] == held[1] > 100, held
     counts = {x: report[x]["metrics"]["counts"] for x in "ab"}
     assert counts["a"].get("history_pushed", 0) >= held[0]
@@ -198,13 +204,7 @@ def test_a_push_only_replica_that_joined_late_pulls_the_history_it_missed(make_c
     b.env.update({"COLONYD_HISTORY_PUSH": "true", "COLONYD_HISTORY_SYNC_S": "0"})
     b.start()
     colony.wait_converged(40)
-    deadline = time.monotonic() + 30
-    while True:
-        report = colony.reports(["a", "b"])
-        held = (report["a"]["layers"]["a"]["history"], report["b"]["layers"]["a"]["history"])
-        if held[0] == held[1] or time.monotonic() > deadline:
-            break
-        time.sleep(0.5)
+    report, held = _history_of_a_alike(colony)
     assert held[0] == held[1] > 100, held
     assert report["b"]["metrics"]["counts"].get("history_repairs", 0) >= 1
     assert report["a"]["metrics"]["counts"].get("histories_served", 0) >= 1
