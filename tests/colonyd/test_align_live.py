@@ -24,6 +24,6 @@ def test_office_agents_at_unknown_poses_share_one_aligned_frame(tmp_path):
     # objects backed a pose; an attempt made before the peer's objects were published (a loaded
     # machine) may align by geometry alone, never against them
     assert any("objects" in a["method"] and a["objects"]["supported"] >= 2 for a in used), used
-    assert all(a["objects"]["contradicted"] == 0 for a in used), used
+    assert all(a["objects"]["contradicted"] == 0 for a in used if a["objects"]), used
     refused = r["attempts"]["room"]
     assert all(not a["aligned"] and a["reason"] for a in refused.values()), refused
