@@ -56,6 +56,8 @@ class Run:
         self.estimates: list[np.ndarray] = []
         self.truths: list[np.ndarray] = []
         self.counts: dict[str, int] = {}
+        self.covariances: list[np.ndarray] = []  # the filter's (x, y, yaw) covariance per frame
+        self.mount = np.eye(4)
         self.grid: VoxelGrid | None = None
 
     def go(self, peer: Run | None = None, rng: int = 0, sign: float = 1.0) -> float:
@@ -67,7 +69,7 @@ class Run:
         estimator: Any = None
         cut: ColonyMap | None = None
         frames = len(source)
-        self.estimates, self.truths = [], []
+        self.estimates, self.truths, self.covariances = [], [], []
         for i, obs in enumerate(source):
             if estimator is None:
                 estimator = get_estimator(adapter, obs)
@@ -89,10 +91,39 @@ class Run:
                 raise ValueError(msg)
             self.estimates.append(pose)
             self.truths.append(obs.truth)
+            if isinstance(estimator, ScanEstimator) and estimator.localiser.ekf is not None:
+                self.covariances.append(estimator.localiser.ekf.covariance)
         self.grid = grid
         if isinstance(estimator, ScanEstimator):
+            self.mount = estimator.mount
             self.counts = {k: v for k, v in estimator.counts().items() if k.startswith("colony")}
         return absolute_trajectory_error(np.array(self.truths), np.array(self.estimates)).rmse
+
+    def consistency(self) -> dict[str, float]:
+        """How honest the filter's covariance was: the body pose error in the robot's own frame
+        (truth put there by the first frame, evaluation only) against the covariance the filter
+        claimed at each frame. `nees_mean`: mean normalised estimation error squared (3 when
+        the covariance is honest, far above when overconfident); `nees_over`: share of frames
+        above the 95 % chi-square bound (7.81; 0.05 when honest); `error_m` / `sigma_m`: median
+        position error and claimed position standard deviation."""
+        if len(self.covariances) != len(self.estimates) or not self.estimates:
+            return {}
+        frame = self.truths[0] @ np.linalg.inv(self.estimates[0])  # the robot's frame, world
+        back, unmount = np.linalg.inv(frame), np.linalg.inv(self.mount)
+        nees, errors, sigmas = [], [], []
+        for est, truth, cov in zip(self.estimates, self.truths, self.covariances, strict=True):
+            e = se2.from_matrix(back @ truth @ unmount) - se2.from_matrix(est @ unmount)
+            e[2] = se2.wrap(float(e[2]))
+            nees.append(float(e @ np.linalg.solve(cov + 1e-12 * np.eye(3), e)))
+            errors.append(float(np.hypot(e[0], e[1])))
+            sigmas.append(float(np.sqrt(cov[0, 0] + cov[1, 1])))
+        n = np.array(nees[1:] or nees)
+        return {
+            "nees_mean": round(float(n.mean()), 2),
+            "nees_over": round(float((n > 7.81).mean()), 3),
+            "error_m": round(float(np.median(errors)), 4),
+            "sigma_m": round(float(np.median(sigmas)), 4),
+        }
 
     def cut_for(
         self, robot: Run, pose: np.ndarray, estimator: ScanEstimator, sign: float
@@ -144,13 +175,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     lidar, depth = robot("lidar-1"), robot("depth-1")
     out: dict[str, Any] = {"seed": args.seed, "lidar_range": args.lidar_range, "rng": args.rng}
     out["lidar_alone"] = round(lidar.go(rng=args.rng), 4)
+    out["lidar_alone_consistency"] = lidar.consistency()
     out["depth_alone"] = round(depth.go(rng=args.rng), 4)
+    out["depth_alone_consistency"] = depth.consistency()
     with_lidar = robot("depth-1")
     out["depth_with_lidar"] = round(with_lidar.go(lidar, rng=args.rng), 4)
     out["depth_counts"] = with_lidar.counts
+    out["depth_with_lidar_consistency"] = with_lidar.consistency()
     with_depth = robot("lidar-1")
     out["lidar_with_depth"] = round(with_depth.go(depth, rng=args.rng, sign=-1.0), 4)
     out["lidar_counts"] = with_depth.counts
+    out["lidar_with_depth_consistency"] = with_depth.consistency()
     print(json.dumps(out))
     if args.json is not None:
         with args.json.open("a", encoding="ascii") as f:
