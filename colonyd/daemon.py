@@ -941,7 +941,7 @@ class Daemon:
         while not self.stop.wait(self.config.objects_s):
             try:
                 with self.metrics.activity.timed("objects"):
-                    changed = self.objects.refresh(own.grid, own.lock)
+                    changed = self.objects.refresh(own)
                 rounds += 1
                 if changed is not None or (self.objects.current and rounds % OBJECTS_REPEAT == 0):
                     self.gossip.publish_objects(to_wire(self.objects.current))

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import threading
 import time
-from contextlib import AbstractContextManager, nullcontext
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
 
 from colonyd.errors import WireError
 from colonyd.grid import VoxelGrid
+from colonyd.layers import Layer
 from plugins.cctv import AGENT_LABEL
 from plugins.observation import Observation
 from protocol import ObjectCentroid as WireObject
@@ -63,6 +64,8 @@ class OwnObjects:
         self._tracker = ObjectTracker(gate=gate, first_id=CLUSTER_IDS)
         self._sightings: dict[int, _Sighting] = {}
         self._lock = threading.Lock()
+        #: The grid and version the tracker last saw (a weak reference: a replaced grid goes).
+        self._grid: weakref.ref[VoxelGrid] | None = None
         self._version = -1
         self.current: list[ObjectCentroid] = []
 
@@ -87,26 +90,28 @@ class OwnObjects:
                 s.m2 = s.m2 + np.outer(step, p - s.mean)
                 s.time = max(s.time, obs.time)
 
-    def refresh(
-        self, grid: VoxelGrid, lock: AbstractContextManager[object] | None = None
-    ) -> list[ObjectCentroid] | None:
-        """The object list if it changed since the last refresh, else None. `lock` (the layer's)
-        is held only while the grid's version and labelled voxels are read: the clustering, and
-        scikit-learn's first import (~1 s), run without it, so a snapshot served or a scan
-        integrated meanwhile does not wait for them."""
+    def refresh(self, layer: Layer) -> list[ObjectCentroid] | None:
+        """The object list of `layer` (the own layer) if it changed since the last refresh, else
+        None. The layer's grid (which a snapshot install or a restore replaces), its version and
+        its labelled voxels are read under the layer's lock, together: a grid replaced meanwhile
+        is never read unlocked, and a new grid is clustered afresh even at the version the old
+        one had. The clustering, and scikit-learn's first import (~1 s), run without the lock,
+        so a snapshot served or a scan integrated meanwhile does not wait for them."""
         voxels: LabelledVoxels | None = None
-        with lock if lock is not None else nullcontext():
-            version = int(grid.version)
-            if version != self._version:
+        with layer.lock:
+            grid, version = layer.grid, int(layer.grid.version)
+            read = weakref.ref(grid)  # not the grid itself: a replaced grid may be freed
+            changed = self._grid is None or self._grid() is not grid or version != self._version
+            if changed:
                 voxels = labelled_voxels(grid, exclude=self.structure)
+            del grid
         found: list[ObjectCentroid] = []
-        if version != self._version:
+        if changed:
             found = cluster_objects(voxels, min_voxels=self.min_voxels, link=self.link)
         with self._lock:
-            tracked = (
-                self._tracker.update(found) if version != self._version else self._tracker.objects
-            )
-            self._version = version
+            tracked = self._tracker.update(found) if changed else self._tracker.objects
+            if changed:
+                self._grid, self._version = read, version
             identified = [
                 ObjectCentroid(
                     object_id=oid,
