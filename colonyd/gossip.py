@@ -152,10 +152,16 @@ class Gossip:
         return self.publisher.push_history() if self.history_push else 0
 
     def _take_history(self, msg: HistoryReply) -> None:
-        """A peer's pushed history (inbox thread): into its replica when it follows on."""
+        """A peer's pushed history (inbox thread): into its replica when it follows on; one
+        that came before the replica held the layer is remembered, and the layer pulled once it
+        arrives."""
+        if msg.records is None:
+            return
         layer = self.layers.find(msg.origin)
-        if layer is not None and layer.seq > 0 and msg.records is not None:
-            self.history.offer(layer, msg.layer_epoch, msg.from_version, msg.records)
+        if layer is None or layer.seq == 0:
+            self.history.dropped(msg.origin, msg.layer_epoch)  # pulled once the layer arrives
+            return
+        self.history.offer(layer, msg.layer_epoch, msg.from_version, msg.records)
 
     def encode_own(
         self, prev: int, seq: int, delta: Delta, created: float

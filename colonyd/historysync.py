@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 
 import numpy as np
 
@@ -20,6 +21,10 @@ log = logging.getLogger(__name__)
 MAX_PAGES_PER_ROUND = 16
 #: Fewest history entries a peer layer may keep, however many layers share the budget.
 MIN_LAYER_ENTRIES = 10_000
+#: Seconds between checks for layers whose pushed pages came before the replica held them.
+ARRIVAL_CHECK_S = 1.0
+#: Most origins whose dropped pushed pages are remembered (a hostile peer cannot invent many).
+MAX_DROPPED = 256
 
 
 def join_pages(msgs: list[HistoryReply]) -> HistoryPage | None:
@@ -41,8 +46,11 @@ def join_pages(msgs: list[HistoryReply]) -> HistoryPage | None:
 class HistorySync:
     """Every `period_s`, each peer layer asks a holder (its origin first) for the history
     records newer than the newest it holds, page by page (HistoryRequest, docs/PROTOCOL.md).
-    Peer layers keep at most `budget` history entries together (records and seen-log entries
-    each), split evenly: past its share a layer drops its oldest."""
+    With pushes (`offer`), a page that leaves a gap makes it pull at once, and a page that came
+    before the replica held its layer (dropped) makes it pull that layer once the layer arrives,
+    even when `period_s` is 0 (periodic pulls off). Peer layers keep at most `budget` history
+    entries together (records and seen-log entries each), split evenly: past its share a layer
+    drops its oldest."""
 
     def __init__(
         self,
@@ -66,6 +74,10 @@ class HistorySync:
         self._thread = threading.Thread(target=self._loop, name="history-sync", daemon=True)
         #: a pushed page left a gap: pull at once, even when `period_s` is 0 (pulls off)
         self._repair = threading.Event()
+        #: origin -> epoch of a pushed page dropped because the replica did not hold the layer
+        #: (or not that epoch) yet: pulled once it does
+        self._dropped: dict[str, int] = {}
+        self._dropped_lock = threading.Lock()
 
     def start(self, membership: Membership) -> None:
         self.membership = membership
@@ -77,16 +89,28 @@ class HistorySync:
             self._thread.join(timeout=5.0)
 
     def _loop(self) -> None:
+        next_pull = time.monotonic() + self.period_s
         while not self.stop.is_set():
-            periodic = not self._repair.wait(self.period_s if self.period_s > 0 else 1.0)
+            wait = ARRIVAL_CHECK_S
+            if self.period_s > 0:
+                wait = min(wait, max(0.0, next_pull - time.monotonic()))
+            gap = self._repair.wait(wait)
             if self.stop.is_set():
                 return
-            if periodic and self.period_s <= 0:
-                continue  # pulls off: only a gap in pushed history makes this thread pull
+            self._repair.clear()
+            arrived = self._arrived()
+            periodic = self.period_s > 0 and time.monotonic() >= next_pull
+            if periodic:
+                next_pull = time.monotonic() + self.period_s
+            if gap or periodic:
+                todo = self.layers.all()
+            elif arrived:
+                todo = arrived  # pulls off: only the layers whose pushed pages were dropped
+            else:
+                continue
             if not periodic:
                 self.metrics.add("history_repairs")
-            self._repair.clear()
-            for layer in self.layers.all():
+            for layer in todo:
                 if self.stop.is_set():
                     return
                 if layer.origin == self.layers.own_id or layer.seq == 0:
@@ -97,6 +121,29 @@ class HistorySync:
                 except Exception:
                     log.exception("history sync of %s failed", layer.origin)
 
+    def dropped(self, origin: str, epoch: int) -> None:
+        """A pushed page of `origin`'s layer at `epoch` came before this replica held that layer
+        (or that epoch of it) and was dropped: its history is pulled once the layer arrives."""
+        self.metrics.add("history_dropped")
+        with self._dropped_lock:
+            if origin in self._dropped or len(self._dropped) < MAX_DROPPED:
+                self._dropped[origin] = max(epoch, self._dropped.get(origin, 0))
+
+    def _arrived(self) -> list[Layer]:
+        """The layers whose pushed pages were dropped and which the replica now holds (at that
+        epoch or a later one), each forgotten from then on (pulled once); origins forgotten
+        colony-wide are let go."""
+        out = []
+        with self._dropped_lock:
+            for origin, epoch in list(self._dropped.items()):
+                layer = self.layers.find(origin)
+                if layer is not None and layer.seq > 0 and layer.epoch >= epoch:
+                    out.append(layer)
+                    del self._dropped[origin]
+                elif origin in self.layers.forgotten:
+                    del self._dropped[origin]
+        return out
+
     def share(self) -> int:
         """History entries (records, and seen-log entries alike) each peer layer may keep: the
         budget split evenly among the peer layers held; each keeps its newest."""
@@ -105,13 +152,16 @@ class HistorySync:
 
     def offer(self, layer: Layer, epoch: int, after: int, page: HistoryPage) -> int:
         """Merge `page` (records of versions above `after` of `layer` at `epoch`) into the
-        replica's history, within its share of the budget, unless it is of another epoch or
-        leaves a gap (versions between the newest held and `after`: a pull fills it, at once, even
-        with periodic pulls off).
+        replica's history, within its share of the budget, unless it is of another epoch (a later
+        one than the replica holds: pulled once the replica holds it) or leaves a gap (versions
+        between the newest held and `after`: a pull fills it, at once, even with periodic pulls
+        off).
         Returns records and entries taken."""
         with layer.lock:
             history = layer.grid.history
             if layer.epoch != epoch:
+                if epoch > layer.epoch:
+                    self.dropped(layer.origin, epoch)
                 return 0
             if after > history.newest_version():  # a page before this one was missed
                 self._repair.set()

@@ -10,8 +10,10 @@ import time
 
 import numpy as np
 
+from colonyd.bench.launcher import free_port
 from colonyd.export import query_maps
 from colonyd.frames import Sender
+from colonyd.runtime import open_session, undeclare, zenoh_config
 from protocol import Heartbeat, HistoryReply
 from protocol.identity import Signer
 from protocol.keyexpr import topic_key
@@ -208,3 +210,56 @@ def test_a_push_only_replica_that_joined_late_pulls_the_history_it_missed(make_c
     assert held[0] == held[1] > 100, held
     assert report["b"]["metrics"]["counts"].get("history_repairs", 0) >= 1
     assert report["a"]["metrics"]["counts"].get("histories_served", 0) >= 1
+
+
+def test_a_pushed_page_that_came_before_the_layer_is_pulled_once_the_layer_arrives(make_colony):
+    """A push-only replica (pulls off) hears an origin's pushed page before it holds the
+    origin's layer and drops it; no push follows (the origin has stopped mapping): once the
+    layer arrives the replica pulls its history. The page is a's own frame, recorded while a
+    mapped and put again (with a's heartbeat, which pins a's key) while a is down."""
+    colony = make_colony("early")
+    ns, port = colony.namespace, free_port()
+    observer = open_session(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"], gossip=False))
+    frames: dict[str, list[bytes]] = {"heartbeat": [], "history": []}
+    subs = [
+        observer.declare_subscriber(
+            topic_key(ns, "a", kind), lambda s, kind=kind: frames[kind].append(s.payload.to_bytes())
+        )
+        for kind in frames
+    ]
+    try:
+        a = colony.add(
+            "a",
+            ["synthetic:scans=8,rate=4,points=240,seed=3"],
+            start=False,
+            extra=["--connect", f"tcp/127.0.0.1:{port}"],
+        )
+        a.env["COLONYD_HISTORY_PUSH"] = "true"
+        a.start()
+        colony.wait_converged(40)
+        held = colony.reports(["a"])["a"]["layers"]["a"]["history"]
+        assert held > 100 and frames["history"] and frames["heartbeat"], (held, len(frames))
+        a.stop()  # its final snapshot keeps the history
+        at = a.args.index("--source")
+        del a.args[at : at + 2]
+        b = colony.add("b", start=False, extra=["--connect", f"tcp/127.0.0.1:{port}"])
+        b.env.update({"COLONYD_HISTORY_PUSH": "true", "COLONYD_HISTORY_SYNC_S": "0"})
+        b.start()
+        b.wait_listening()
+        deadline = time.monotonic() + 30
+        while True:  # a's frames put again until b has heard one (its subscriptions are up)
+            observer.put(topic_key(ns, "a", "heartbeat"), frames["heartbeat"][-1])
+            observer.put(topic_key(ns, "a", "history"), frames["history"][-1])
+            counts = colony.reports(["b"])["b"]["metrics"]["counts"]
+            if counts.get("history_dropped", 0) >= 1 or time.monotonic() > deadline:
+                break
+            time.sleep(0.5)
+        assert counts.get("history_dropped", 0) >= 1, counts
+        a.start()  # without its source: nothing new is mapped, so nothing more is pushed
+        report, held_now = _history_of_a_alike(colony)
+        assert held_now == (held, held), held_now
+        assert report["b"]["metrics"]["counts"].get("history_repairs", 0) >= 1
+        assert report["a"]["metrics"]["counts"].get("history_pushed", 0) == 0
+    finally:
+        undeclare(*subs)
+        observer.close()
