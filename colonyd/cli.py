@@ -223,6 +223,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _config_flags(p, (*_CLIENT_FLAGS, "colony_key"))
     p.add_argument("forget_id", metavar="ID", help="the agent whose layer to forget")
+    p.add_argument(
+        "--wait",
+        type=float,
+        default=None,
+        help="seconds to keep asking until a daemon takes the request (default 15)",
+    )
 
     p = sub.add_parser(
         "changes",
@@ -507,10 +513,11 @@ def main(argv: list[str] | None = None) -> int:
         config = load_config(args.config, **flags)
         if cmd == "forget-agent":
             from colonyd.logs import setup_logging
-            from colonyd.tombstones import forget_agent
+            from colonyd.tombstones import FORGET_WAIT_S, forget_agent
 
             setup_logging("warning")
-            answers = forget_agent(config, args.forget_id)
+            wait = FORGET_WAIT_S if args.wait is None else args.wait
+            answers = forget_agent(config, args.forget_id, wait_s=wait)
             sys.stdout.write(json.dumps(answers) + "\n")
             return EXIT_OK
         if cmd == "changes":

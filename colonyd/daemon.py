@@ -56,7 +56,7 @@ from colonyd.rosout import Ros2Outputs, RosPublishers
 from colonyd.runtime import get_session
 from colonyd.status import StatusServer
 from colonyd.threadclock import stamp
-from colonyd.tombstones import forget_params, load_tombstones, save_tombstones
+from colonyd.tombstones import OWN_LAYER, forget_params, load_tombstones, save_tombstones
 from plugins.cctv import AGENT_LABEL
 from plugins.observation import ObjectDetection, Observation
 from plugins.source import open_source
@@ -1100,7 +1100,7 @@ class Daemon:
             log.warning("refused a forget request: %s", exc)
             return {"agent": cfg.agent_id, "forgotten": None, "error": str(exc)}
         if agent == cfg.agent_id:
-            return {"agent": cfg.agent_id, "forgotten": None, "error": "own layer"}
+            return {"agent": cfg.agent_id, "forgotten": None, "error": OWN_LAYER}
         new = self.layers.forget_agent(agent)
         if new:
             log.warning("forgot the layer of %s (forget-agent request)", agent)

@@ -21,6 +21,12 @@ from protocol.keyexpr import FORGET, NAME_PATTERN, status_selector
 FILE = "forgotten.json"
 #: How far a forget request's time may be from the daemon's clock, seconds.
 FRESH_S = 60.0
+#: What a daemon answers when asked to forget its own layer (not a refusal of the request).
+OWN_LAYER = "own layer"
+#: Seconds `forget-agent` keeps asking until a daemon takes the request, and the most one round
+#: waits for answers (a session just opened may not reach any queryable in its first round).
+FORGET_WAIT_S = 15.0
+FORGET_ROUND_S = 3.0
 
 
 def load_tombstones(state_dir: Path) -> set[str]:
@@ -69,28 +75,59 @@ def forget_params(params: dict[str, str], key: bytes | None, now: float) -> str:
     return agent
 
 
-def forget_agent(config: Config, agent: str, wait_s: float = 5.0) -> list[dict[str, Any]]:
+def forget_selector(config: Config, agent: str, timeout: float) -> str:
+    """The forget query for `agent`, with a fresh time and its tag when a colony key is
+    configured, and `timeout_ms` (a daemon drops it unanswered once its requester has gone)."""
+    t = time.time()
+    params = f"agent={agent};timeout_ms={int(timeout * 1000)}"
+    key = colony_key(config.colony_key)
+    if key is not None:
+        params += f";t={t!r};auth={forget_tag(key, agent, t)}"
+    return status_selector(config.key_namespace, FORGET) + "?" + params
+
+
+def forget_agent(
+    config: Config,
+    agent: str,
+    wait_s: float = FORGET_WAIT_S,
+    round_s: float = FORGET_ROUND_S,
+) -> list[dict[str, Any]]:
     """Ask every reachable daemon to forget `agent`'s layer (each then tells the rest in its
-    heartbeats); their answers, sorted by agent. StatusError when no daemon took it."""
+    heartbeats); their answers, sorted by agent. Asked again, in rounds of at most `round_s`,
+    until a daemon took it, one refused it (a bad colony key: asking again changes nothing) or
+    `wait_s` passed; StatusError then, saying what came back in how many rounds."""
     if not re.fullmatch(NAME_PATTERN, agent):
         msg = f"agent: expected a name matching {NAME_PATTERN}, found {agent!r}"
         raise StatusError(msg)
+    if not wait_s > 0:
+        raise StatusError(f"--wait: expected seconds > 0, found {wait_s!r}")
     session = get_client_session(config, "forget-agent")
+    answers: dict[str, dict[str, Any]] = {}
+    rounds = 0
+    start = time.monotonic()
     try:
-        t = time.time()
-        params = f"agent={agent}"
-        key = colony_key(config.colony_key)
-        if key is not None:
-            params += f";t={t!r};auth={forget_tag(key, agent, t)}"
-        selector = status_selector(config.key_namespace, FORGET) + "?" + params
-        answers = json_replies(session, selector, wait_s)
+        while True:
+            rounds += 1
+            timeout = max(0.5, min(round_s, start + wait_s - time.monotonic()))
+            for answer in json_replies(session, forget_selector(config, agent, timeout), timeout):
+                answers[str(answer.get("agent"))] = answer
+            took = any(a.get("forgotten") == agent for a in answers.values())
+            refused = any(a.get("error") not in (None, OWN_LAYER) for a in answers.values())
+            if took or refused or time.monotonic() - start >= wait_s:
+                break
+            time.sleep(0.2)
     finally:
         session.close()
-    if not any(a.get("forgotten") == agent for a in answers):
-        errors = sorted({str(a.get("error")) for a in answers if a.get("error")})
+    if not took:
+        errors = sorted({str(a.get("error")) for a in answers.values() if a.get("error")})
+        found = f"{len(answers)} answers{': ' + '; '.join(errors) if errors else ''}"
+        if not answers:
+            where = ", ".join(config.connect) if config.connect else "multicast"
+            found = f"no answer from a daemon reached through {where}"
         msg = (
             f"expected a daemon of namespace {config.key_namespace!r} to forget {agent!r}, "
-            f"found {len(answers)} answers{': ' + '; '.join(errors) if errors else ''}"
+            f"found {found} in {rounds} round{'s' if rounds > 1 else ''} over "
+            f"{time.monotonic() - start:.1f} s"
         )
         raise StatusError(msg)
-    return sorted(answers, key=lambda a: str(a.get("agent")))
+    return sorted(answers.values(), key=lambda a: str(a.get("agent")))

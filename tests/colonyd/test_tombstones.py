@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 import time
@@ -10,6 +11,7 @@ import time
 import numpy as np
 import pytest
 
+from colonyd.bench.launcher import free_port
 from colonyd.errors import WireError
 from colonyd.layers import Layers
 from colonyd.tombstones import forget_params, forget_tag, load_tombstones, save_tombstones
@@ -100,3 +102,50 @@ def test_forget_agent_removes_a_layer_from_the_colony_and_repair_respects_it(mak
     for x in ("b", "c"):
         assert "a" not in report[x]["layers"], x
         assert report[x]["metrics"]["rejected"].get("forgotten", 0) > 0, x
+
+
+def _forget_cli(namespace: str, endpoint: str, *extra: str) -> list[str]:
+    return [
+        sys.executable, "-m", "colonyd", "forget-agent", "--colony", "tomb",
+        "--namespace", namespace, "--no-multicast", "--connect", endpoint, *extra,
+    ]  # fmt: skip
+
+
+def test_forget_agent_asks_again_until_a_daemon_that_came_up_late_takes_it(make_colony):
+    """The request goes out before the daemon it connects to is up (a single query then found
+    nobody and gave up): it is asked again until the daemon answers."""
+    colony = make_colony("tomb")
+    x = colony.add("x", start=False)
+    proc = subprocess.Popen(
+        [*_forget_cli(colony.namespace, x.endpoint, "ghost")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        time.sleep(1.0)
+        x.start()
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+    assert proc.returncode == 0, err
+    assert [(a["agent"], a["forgotten"]) for a in json.loads(out)] == [("x", "ghost")]
+
+
+def test_forget_agent_gives_up_after_its_wait_and_says_so(tmp_path):
+    """Nobody to ask: it gives up after --wait seconds, saying where it looked and how long."""
+    nobody = f"tcp/127.0.0.1:{free_port()}"
+    run = subprocess.run(
+        [*_forget_cli("nowhere", nobody, "ghost", "--wait", "1.5")],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert run.returncode == 1, run.stderr
+    assert f"found no answer from a daemon reached through {nobody} in " in run.stderr
+    assert re.search(r"rounds over 1\.[5-9] s", run.stderr), run.stderr
+    bad = subprocess.run(
+        [*_forget_cli("nowhere", nobody, "ghost", "--wait", "0")],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert bad.returncode == 1 and "--wait: expected seconds > 0, found 0.0" in bad.stderr
