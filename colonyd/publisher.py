@@ -25,7 +25,7 @@ from protocol import (
     VoxelDelta,
     delta_messages,
 )
-from protocol.keyexpr import topic_key
+from protocol.keyexpr import Topic, topic_key
 from voxel.delta import Delta
 
 #: Most layers one heartbeat lists.
@@ -57,28 +57,20 @@ class Publisher:
         self.epoch = epoch
         self.part_bytes = part_bytes
         self.hb_now = threading.Event()  # set on a join: send our heartbeat without waiting
-        drop = zenoh.CongestionControl.DROP
-        self._deltas = session.declare_publisher(
-            topic_key(namespace, self.own, "delta"), congestion_control=drop
-        )
-        self._heartbeats = session.declare_publisher(
-            topic_key(namespace, self.own, "heartbeat"), congestion_control=drop
-        )
-        self._objects = session.declare_publisher(
-            topic_key(namespace, self.own, "objects"), congestion_control=drop
-        )
-        self._align = session.declare_publisher(
-            topic_key(namespace, self.own, "align"), congestion_control=drop
-        )
-        self._pose = session.declare_publisher(
-            topic_key(namespace, self.own, "pose"), congestion_control=drop
-        )
-        self._fix = session.declare_publisher(
-            topic_key(namespace, self.own, "fix"), congestion_control=drop
-        )
-        self._history = session.declare_publisher(
-            topic_key(namespace, self.own, "history"), congestion_control=drop
-        )
+
+        def publisher(topic: Topic) -> zenoh.Publisher:
+            return session.declare_publisher(
+                topic_key(namespace, self.own, topic),
+                congestion_control=zenoh.CongestionControl.DROP,
+            )
+
+        self._deltas = publisher("delta")
+        self._heartbeats = publisher("heartbeat")
+        self._objects = publisher("objects")
+        self._align = publisher("align")
+        self._pose = publisher("pose")
+        self._fix = publisher("fix")
+        self._history = publisher("history")
         #: The highest own history version pushed (`push_history`); what the layer held at start
         #: (restored from the state directory) is for replicas to page.
         self.history_pushed = layers.own.grid.history.newest_version()

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 
 def shared_data_dir(given: Path | None) -> Path | None:
@@ -20,3 +23,21 @@ def write_results(out_json: Path, results: list[dict[str, Any]]) -> None:
     out_json = Path(out_json)
     out_json.parent.mkdir(parents=True, exist_ok=True)
     out_json.write_text(json.dumps(results, indent=2) + "\n")
+
+
+def redkitchen_depths(shared_data: Path) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The 7-Scenes redkitchen-50 frames of `shared_data`, in order: (depth in metres, 0 where
+    the sensor gave none, intrinsics K (3, 3), reference pose camera-to-world (4, 4)).
+    plugins.errors.ParseError names a file that is unreadable or not a 16-bit depth PNG."""
+    from plugins.sevenscenes import (
+        SEVEN_SCENES_K,
+        read_depth_png,
+        read_matrix,
+        seven_scenes_frames,
+    )
+
+    for frame in seven_scenes_frames(shared_data / "redkitchen-50"):
+        raw = read_depth_png(frame.depth).astype(np.float64)
+        raw[(raw == 0) | (raw == 65535)] = 0
+        pose = frame.pose if isinstance(frame.pose, np.ndarray) else read_matrix(frame.pose, (4, 4))
+        yield raw / 1000.0, SEVEN_SCENES_K, pose

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from colonyd.bench.files import shared_data_dir, write_results
+from colonyd.bench.files import redkitchen_depths, shared_data_dir, write_results
 from colonyd.bench.scenes import KINECT, camera_pose, depth_frame, lidar2d_scan, lidar3d_scan
 from colonyd.errors import ConfigError
 from voxel import kernels
@@ -58,19 +58,8 @@ def _lidar3d() -> Iterator[Frame]:
 
 def _redkitchen(shared_data: Path) -> Callable[[], Iterator[Frame]]:
     def frames() -> Iterator[Frame]:
-        import cv2
-
-        folder = shared_data / "redkitchen-50" / "frames"
-        k = np.array([[585.0, 0, 320.0], [0, 585.0, 240.0], [0, 0, 1]])
-        for path in sorted(folder.glob("frame-*.depth.png")):
-            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if image is None:
-                msg = f"{path}: expected a readable 16-bit depth PNG, found an unreadable file"
-                raise ConfigError(msg)
-            raw = image.astype(np.float64)
-            raw[(raw == 0) | (raw == 65535)] = 0
-            pose = np.loadtxt(str(path).replace(".depth.png", ".pose.txt"))
-            yield Frame(back_project(raw / 1000.0, k, pose).points, pose[:3, 3].copy())
+        for depth, k, pose in redkitchen_depths(shared_data):
+            yield Frame(back_project(depth, k, pose).points, pose[:3, 3].copy())
 
     return frames
 

@@ -13,9 +13,8 @@ from typing import Any, TypeVar
 import numpy as np
 import zstandard
 
-from colonyd.bench.files import shared_data_dir, write_results
+from colonyd.bench.files import redkitchen_depths, shared_data_dir, write_results
 from colonyd.bench.scenes import KINECT, camera_pose, depth_frame, lidar3d_scan
-from colonyd.errors import ConfigError
 from protocol.codec import decode, encode
 from protocol.deltacodec import fit_delta
 from protocol.fields import DEFAULT_LEVEL
@@ -118,23 +117,16 @@ def _lidar_sequence(scans: int = 8) -> Iterator[Frame]:
 
 def _redkitchen(shared_data: Path) -> Callable[[], Iterator[Frame]]:
     def frames() -> Iterator[Frame]:
-        import cv2
-
         sensor = SensorModel(max_range=5.0, kind="depth")
-        k = np.array([[585.0, 0, 320.0], [0, 585.0, 240.0], [0, 0, 1]])
-        for path in sorted((shared_data / "redkitchen-50" / "frames").glob("frame-*.depth.png")):
-            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if image is None:
-                msg = f"{path}: expected a readable 16-bit depth PNG, found an unreadable file"
-                raise ConfigError(msg)
-            raw = image.astype(np.float64)
-            raw[(raw == 0) | (raw == 65535)] = 0
-            depth = raw / 1000.0
-            pose = np.loadtxt(str(path).replace(".depth.png", ".pose.txt"))
+        for depth, k, pose in redkitchen_depths(shared_data):
             local, _ = camera_points(depth, k)
 
             def integrate(
-                grid: VoxelGrid, t: float, depth: np.ndarray = depth, pose: np.ndarray = pose
+                grid: VoxelGrid,
+                t: float,
+                depth: np.ndarray = depth,
+                k: np.ndarray = k,
+                pose: np.ndarray = pose,
             ) -> object:
                 return grid.integrate_depth(depth, k, pose, time=t, sensor=sensor)
 

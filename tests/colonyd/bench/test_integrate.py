@@ -53,15 +53,16 @@ def test_unknown_scenario_is_a_config_error(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("module", ["integrate", "wire"])
 def test_unreadable_depth_png_names_the_file(tmp_path: Path, module: str) -> None:
+    """Both benchmarks read the frames through one reader (`redkitchen_depths`)."""
     import importlib
 
-    from colonyd.errors import ConfigError
+    from plugins.errors import ParseError
 
     frames = tmp_path / "redkitchen-50" / "frames"
     frames.mkdir(parents=True)
     (frames / "frame-000000.depth.png").write_bytes(b"not a png")
     bench = importlib.import_module(f"colonyd.bench.{module}")
     with pytest.raises(
-        ConfigError, match=r"frame-000000\.depth\.png: expected a readable 16-bit depth PNG"
+        ParseError, match=r"frame-000000\.depth\.png: expected a readable 16-bit PNG"
     ):
         next(iter(bench._redkitchen(tmp_path)()))
