@@ -221,6 +221,7 @@ def test_keyframes_enter_and_leave_with_the_pose_correlation() -> None:
     f.reset_offset(np.eye(3) * 0.04)
     f.add_keyframe(7)
     pose, error, cov = f.keyframe(7)
+    np.testing.assert_allclose(pose, f.pose)
     np.testing.assert_allclose(cov, f.covariance)
     np.testing.assert_allclose(error, 0.0)
     f.add_keyframe(8)
