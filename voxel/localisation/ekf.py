@@ -152,8 +152,10 @@ class PlanarEkf:
         """Where the current pose appears in keyframe `key`'s map (placed with the error the
         filter now estimates for it)."""
         i = self._keys.index(key)
-        seen, _, _ = _seen_from(self._key_poses[i], self._mean[self._key_slice(i)], self.pose)
-        return seen
+        placed = self._key_poses[i][None]
+        seen, _, _ = _seen_from(placed, self._mean[self._key_slice(i)][None], self.pose)
+        out: np.ndarray = seen[0]
+        return out
 
     def _key_slice(self, i: int) -> slice:
         first = (3 if self._has_offset else 0) + 3 * i
@@ -247,20 +249,22 @@ class PlanarEkf:
         predicted = np.zeros(3)  # sum of the weighted moves of the pose by the keyframes
         h_pose = np.zeros((3, 3))
         h_rest = np.zeros((3, len(self._mean)))
+        weights = np.linalg.solve(total[None], info)  # (G, 3, 3): each keyframe's in the match
         index = {k: i for i, k in enumerate(self._keys)}
-        for key, share in zip(keys.tolist(), info, strict=True):
-            weight = np.linalg.solve(total, share)  # the keyframe's weight in the match
-            i = index.get(int(key))
-            if i is None:
-                h_pose += weight
-                continue
-            k = self._key_slice(i)
-            moved, d_pose, d_key = _seen_from(self._key_poses[i], self._mean[k], x)
+        where = np.array([index.get(int(k), -1) for k in keys.tolist()], np.int64)
+        known = where >= 0
+        h_pose += weights[~known].sum(axis=0)  # unknown keyframes: placed without error
+        if np.any(known):
+            w, i = weights[known], where[known]
+            first = 3 if self._has_offset else 0
+            errors = self._mean[first:].reshape(-1, 3)[i]
+            moved, d_pose, d_key = _seen_from(np.array(self._key_poses)[i], errors, x)
             step = moved - x
-            step[2] = se2.wrap(float(step[2]))
-            predicted += weight @ step
-            h_pose += weight @ d_pose
-            h_rest[:, k] = weight @ d_key
+            step[:, 2] = (step[:, 2] + math.pi) % (2 * math.pi) - math.pi
+            predicted = np.einsum("gij,gj->i", w, step)
+            h_pose += np.einsum("gij,gjk->ik", w, d_pose)
+            cols = first + 3 * i[:, None] + np.arange(3)  # (G', 3)
+            h_rest[:, cols.ravel()] = np.einsum("gij,gjk->igk", w, d_key).reshape(3, -1)
         y = z - x - predicted
         y[2] = se2.wrap(float(y[2]))
         return self._fuse(h_pose, h_rest, y, r, gate)
@@ -409,18 +413,20 @@ def _checked_pose(pose: np.ndarray, covariance: np.ndarray) -> tuple[np.ndarray,
 def _seen_from(
     placed: np.ndarray, error: np.ndarray, pose: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Where `pose` appears in a keyframe's map: the keyframe was placed at `placed` while it
-    truly was at `placed + error`, so its map is the world moved by the rotation -error[2] about
-    the placed position and the translation -error[:2]. The pose seen, its Jacobian by the pose
-    and by the error (3x3 each)."""
-    c, s = math.cos(error[2]), math.sin(error[2])
-    back = np.array([[c, s], [-s, c]])  # R(-error yaw)
-    v = pose[:2] - placed[:2] - error[:2]
-    xy = placed[:2] + back @ v
-    seen = np.array([xy[0], xy[1], se2.wrap(float(pose[2] - error[2]))])
-    d_pose = np.eye(3)
-    d_pose[:2, :2] = back
-    d_key = -np.eye(3)
-    d_key[:2, :2] = -back
-    d_key[:2, 2] = back @ np.array([v[1], -v[0]])
+    """Where `pose` (3,) appears in keyframes' maps: a keyframe placed at `placed` (G, 3) while
+    it truly was at `placed + error` (G, 3) has a map that is the world moved by the rotation
+    -error[2] about the placed position and the translation -error[:2]. The poses seen (G, 3),
+    their Jacobians by the pose and by the error (G, 3, 3 each)."""
+    c, s = np.cos(error[:, 2]), np.sin(error[:, 2])
+    back = np.stack([np.stack([c, s], -1), np.stack([-s, c], -1)], -2)  # R(-error yaw)
+    v = pose[:2] - placed[:, :2] - error[:, :2]
+    xy = placed[:, :2] + np.einsum("gij,gj->gi", back, v)
+    yaw = (pose[2] - error[:, 2] + math.pi) % (2 * math.pi) - math.pi
+    seen = np.column_stack([xy, yaw])
+    n = len(placed)
+    d_pose = np.tile(np.eye(3), (n, 1, 1))
+    d_pose[:, :2, :2] = back
+    d_key = np.tile(-np.eye(3), (n, 1, 1))
+    d_key[:, :2, :2] = -back
+    d_key[:, :2, 2] = np.einsum("gij,gj->gi", back, np.column_stack([v[:, 1], -v[:, 0]]))
     return seen, d_pose, d_key
