@@ -58,13 +58,14 @@ class ScanLocaliser:
     """Pose of a ground agent with a 2D or 3D range sensor, in its own odometry frame.
 
     Each step: predict with the odometry increment (or widen without odometry), match the scan
-    against the agent's own recent map from the predicted pose, fuse the matched pose (gated by
-    its Mahalanobis distance); when a `ColonyMap` is given (aligned peers' maps in this agent's
+    against the agent's own recent map from the predicted pose, fuse the matched pose relative to
+    the keyframes it was matched against (`PlanarEkf.update_relative`: the map was placed by the
+    estimate, so it measures only the error grown since; gated by its Mahalanobis distance); when a `ColonyMap` is given (aligned peers' maps in this agent's
     frame), match the scan against it too and fuse that as a pose measured against a map whose
     error (the alignment's, `ColonyMap.covariance`) the filter estimates with the pose
     (`PlanarEkf.update_offset`: the alignment's error is counted once, not once per scan; gated
     the same way: a bad alignment is refused, not followed); then add the scan to the local
-    map when it is a keyframe.
+    map when it is a keyframe, its error to the filter's state (`PlanarEkf.add_keyframe`).
     Reads only odometry, the scan and the peers' maps: never a reference pose.
     """
 
