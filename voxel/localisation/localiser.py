@@ -61,8 +61,9 @@ class ScanLocaliser:
     against the agent's own recent map from the predicted pose, fuse the matched pose relative to
     the keyframes it was matched against (`PlanarEkf.update_relative`: the map was placed by the
     estimate, so it measures only the error grown since; gated by its Mahalanobis distance);
-    when a `ColonyMap` is given (aligned peers' maps in this agent's frame), match the scan against it too and fuse that as a pose measured against a map whose
-    error (the alignment's, `ColonyMap.covariance`) the filter estimates with the pose
+    when a `ColonyMap` is given (aligned peers' maps in this agent's frame), match the scan
+    against it too and fuse that as a pose measured against a map whose error (the
+    alignment's, `ColonyMap.covariance`) the filter estimates with the pose
     (`PlanarEkf.update_offset`: the alignment's error is counted once, not once per scan; gated
     the same way: a bad alignment is refused, not followed); then add the scan to the local
     map when it is a keyframe, its error to the filter's state (`PlanarEkf.add_keyframe`).
