@@ -1,5 +1,6 @@
 """Extended Kalman filter over a planar pose (x, y, yaw) with filterpy: odometry predicts, pose
-measurements update."""
+measurements update; the errors of the agent's keyframes and of a shared map are estimated with
+the pose."""
 
 from __future__ import annotations
 
@@ -34,14 +35,6 @@ class MotionNoise:
     rot_per_m: float = 0.03  # rad per sqrt(m)
     still: float = 1e-4  # variance floor per step (m^2, rad^2)
     no_odometry: float = 0.3  # standard deviation per step (m, rad) when there is no odometry
-
-
-def _jacobian_h(x: np.ndarray) -> np.ndarray:
-    return np.eye(3)
-
-
-def _hx(x: np.ndarray) -> np.ndarray:
-    return x
 
 
 def _residual(z: np.ndarray, hx: np.ndarray) -> np.ndarray:
@@ -79,13 +72,26 @@ class Offset:
 
 
 class PlanarEkf:
-    """Pose (x, y, yaw) and covariance of one ground agent.
+    """Pose (x, y, yaw) and covariance of one ground agent, with the errors of what it is
+    measured against.
 
-    Optionally also the error of one shared map (`Offset`, `reset_offset`): every match against
-    that map shares the alignment's error, so fusing them as independent measurements would
-    count the alignment once per scan and carry the robot into the alignment's error. Estimated
-    as part of the state, the alignment's error is counted once: however many scans match a
-    poor alignment, it moves the pose no more than its covariance against the pose's allows.
+    **Keyframes** (`add_keyframe`): the agent's own map is built from its estimate, so a match
+    against it measures the pose relative to the poses the map's keyframes were placed at, not
+    in the world: the map's error is the estimate's error when those keyframes were taken. Each
+    keyframe's error (a small correction (x, y, yaw) of the pose it was placed at) is part of
+    the state, entering with the pose's covariance and fully correlated with the pose; odometry
+    then decorrelates them. A match against recent keyframes measures only the error grown
+    since (`update_relative`): the covariance keeps growing like odometry's, and shrinks only
+    when the match reaches keyframes that are better known than the present (a loop closure).
+    An absolute measurement (`update`, `update_landmark`, `update_offset`) also corrects the
+    keyframes in proportion to their correlation with the pose: recent keyframes move with the
+    pose, so the own map does not pull a correct fix back.
+
+    **Offset** (`reset_offset`): the error of one shared map. Every match against that map
+    shares the alignment's error, so fusing them as independent measurements would count the
+    alignment once per scan and carry the robot into the alignment's error. Estimated as part
+    of the state, the alignment's error is counted once: however many scans match a poor
+    alignment, it moves the pose no more than its covariance against the pose's allows.
     """
 
     def __init__(
@@ -103,7 +109,13 @@ class PlanarEkf:
             else np.asarray(covariance, np.float64).copy()
         )
         self.accepted = self.rejected = 0
-        self.offset: Offset | None = None
+        # The rest of the state: the offset (3, first when there is one), then 3 per keyframe.
+        self._mean = np.zeros(0)  # (m,)
+        self._cov = np.zeros((0, 0))  # (m, m)
+        self._cross = np.zeros((3, 0))  # (3, m): cov(pose, rest)
+        self._has_offset = False
+        self._keys: list[int] = []
+        self._key_poses: list[np.ndarray] = []  # the pose each keyframe was placed at
 
     @property
     def pose(self) -> np.ndarray:
@@ -116,6 +128,64 @@ class PlanarEkf:
         """Current 3x3 covariance."""
         covariance: np.ndarray = self.kf.P.copy()
         return covariance
+
+    @property
+    def offset(self) -> Offset | None:
+        """The shared map's error (a copy), once `reset_offset` started estimating it."""
+        if not self._has_offset:
+            return None
+        return Offset(self._mean[:3].copy(), self._cov[:3, :3].copy(), self._cross[:, :3].copy())
+
+    @property
+    def keyframes(self) -> list[int]:
+        """Ids of the keyframes whose errors are estimated, oldest first."""
+        return list(self._keys)
+
+    def keyframe(self, key: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A keyframe's pose as placed, its estimated error (a correction of that pose) and the
+        error's covariance."""
+        i = self._keys.index(key)
+        k = self._key_slice(i)
+        return self._key_poses[i].copy(), self._mean[k].copy(), self._cov[k, k].copy()
+
+    def seen_from(self, key: int) -> np.ndarray:
+        """Where the current pose appears in keyframe `key`'s map (placed with the error the
+        filter now estimates for it)."""
+        i = self._keys.index(key)
+        placed = self._key_poses[i][None]
+        seen, _, _ = _seen_from(placed, self._mean[self._key_slice(i)][None], self.pose)
+        out: np.ndarray = seen[0]
+        return out
+
+    def _key_slice(self, i: int) -> slice:
+        first = (3 if self._has_offset else 0) + 3 * i
+        return slice(first, first + 3)
+
+    def add_keyframe(self, key: int) -> None:
+        """Start estimating the error of a keyframe placed at the current pose: the pose's
+        error, so its covariance and correlations are the pose's."""
+        p, x = self.kf.P, self._cross
+        self._mean = np.concatenate([self._mean, np.zeros(3)])
+        self._cov = np.block([[self._cov, x.T], [x, p]])
+        self._cross = np.hstack([x, p])
+        self._keys.append(int(key))
+        self._key_poses.append(self.pose)
+
+    def keep_keyframes(self, keys: list[int]) -> None:
+        """Stop estimating the errors of keyframes not in `keys` (the map dropped them)."""
+        wanted = set(keys)
+        drop = [i for i, k in enumerate(self._keys) if k not in wanted]
+        if not drop:
+            return
+        rows = np.concatenate(
+            [np.arange(self._key_slice(i).start, self._key_slice(i).stop) for i in drop]
+        )
+        keep = np.setdiff1d(np.arange(len(self._mean)), rows)
+        self._mean = self._mean[keep]
+        self._cov = self._cov[np.ix_(keep, keep)]
+        self._cross = self._cross[:, keep]
+        self._keys = [k for i, k in enumerate(self._keys) if i not in drop]
+        self._key_poses = [p for i, p in enumerate(self._key_poses) if i not in drop]
 
     def predict(self, increment: np.ndarray | None) -> None:
         """Move by an odometry increment (dx, dy, dyaw) in the body frame; None: no odometry (stand
@@ -140,11 +210,10 @@ class PlanarEkf:
         g = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         self.kf.Q = g @ q_u @ g.T
         self.kf.predict(u)
-        if self.offset is not None:
-            self.offset.cross = self.kf.F @ self.offset.cross
+        self._cross = self.kf.F @ self._cross
 
     def innovation(self, pose: np.ndarray, covariance: np.ndarray) -> float:
-        """Squared Mahalanobis distance of a pose measurement from the prediction."""
+        """Squared Mahalanobis distance of an absolute pose measurement from the prediction."""
         y = _residual(np.asarray(pose, np.float64).reshape(3, 1), self.kf.x.copy())
         s = self.kf.P + covariance
         return float((y.T @ np.linalg.solve(s, y))[0, 0])
@@ -152,35 +221,53 @@ class PlanarEkf:
     def update(
         self, pose: np.ndarray, covariance: np.ndarray, gate: float | None = GATE_3DOF
     ) -> bool:
-        """Fuse a measured pose (x, y, yaw) with its covariance; False (and no change) when gated
-        out."""
-        z = np.asarray(pose, np.float64).reshape(3, 1)
-        r = np.asarray(covariance, np.float64)
-        if (
-            z.shape != (3, 1)
-            or r.shape != (3, 3)
-            or not (np.all(np.isfinite(z)) and np.all(np.isfinite(r)))
-        ):
-            msg = (
-                "pose measurement: expected (x, y, yaw) and a finite 3x3 covariance, found "
-                f"{z.ravel()} and shape {r.shape}"
-            )
-            raise LocalisationError(msg)
-        if gate is not None and self.innovation(z, r) > gate:
-            self.rejected += 1
-            return False
-        self.kf.update(z, _jacobian_h, _hx, R=r, residual=_residual)
-        self.kf.x[2, 0] = se2.wrap(float(self.kf.x[2, 0]))
-        off = self.offset
-        if off is not None:  # the offset learns from the pose through their correlation
-            gain = off.cross.T @ self.kf.SI  # (3, 3)
-            off.value = off.value + (gain @ self.kf.y).ravel()
-            off.value[2] = se2.wrap(float(off.value[2]))
-            off.covariance = off.covariance - gain @ off.cross
-            off.covariance = 0.5 * (off.covariance + off.covariance.T)
-            off.cross = off.cross - self.kf.K @ off.cross
-        self.accepted += 1
-        return True
+        """Fuse an absolute measured pose (x, y, yaw) with its covariance; False (and no change)
+        when gated out."""
+        z, r = _checked_pose(pose, covariance)
+        y = _residual(z.reshape(3, 1), self.kf.x.copy()).ravel()
+        return self._fuse(np.eye(3), None, y, r, gate)
+
+    def update_relative(
+        self,
+        pose: np.ndarray,
+        covariance: np.ndarray,
+        keys: np.ndarray,
+        information: np.ndarray,
+        gate: float | None = GATE_3DOF,
+    ) -> bool:
+        """Fuse a pose (x, y, yaw) matched against the agent's own map, whose correspondences
+        came from keyframes `keys` (G,), each giving `information` (G, 3, 3) of the match (its
+        pairs' share of the Hessian). The map near the agent is each keyframe's points placed
+        by that keyframe's pose, so the match measures the pose moved by the keyframes' errors,
+        each weighted by its share of the information. A keyframe the filter does not know
+        counts as placed without error. False (and no change) when gated out."""
+        z, r = _checked_pose(pose, covariance)
+        keys = np.asarray(keys).reshape(-1)
+        info = np.asarray(information, np.float64).reshape(len(keys), 3, 3)
+        total = info.sum(axis=0) + 1e-9 * np.eye(3)
+        x = self.pose
+        predicted = np.zeros(3)  # sum of the weighted moves of the pose by the keyframes
+        h_pose = np.zeros((3, 3))
+        h_rest = np.zeros((3, len(self._mean)))
+        weights = np.linalg.solve(total[None], info)  # (G, 3, 3): each keyframe's in the match
+        index = {k: i for i, k in enumerate(self._keys)}
+        where = np.array([index.get(int(k), -1) for k in keys.tolist()], np.int64)
+        known = where >= 0
+        h_pose += weights[~known].sum(axis=0)  # unknown keyframes: placed without error
+        if np.any(known):
+            w, i = weights[known], where[known]
+            first = 3 if self._has_offset else 0
+            errors = self._mean[first:].reshape(-1, 3)[i]
+            moved, d_pose, d_key = _seen_from(np.array(self._key_poses)[i], errors, x)
+            step = moved - x
+            step[:, 2] = (step[:, 2] + math.pi) % (2 * math.pi) - math.pi
+            predicted = np.einsum("gij,gj->i", w, step)
+            h_pose += np.einsum("gij,gjk->ik", w, d_pose)
+            cols = first + 3 * i[:, None] + np.arange(3)  # (G', 3)
+            h_rest[:, cols.ravel()] = np.einsum("gij,gjk->igk", w, d_key).reshape(3, -1)
+        y = z - x - predicted
+        y[2] = se2.wrap(float(y[2]))
+        return self._fuse(h_pose, h_rest, y, r, gate)
 
     def update_landmark(
         self,
@@ -219,43 +306,66 @@ class PlanarEkf:
         jac[:, :2] = -rt
         jac[:, 2] = np.array([[-s, c], [-c, -s]]) @ d
         noise = r_seen + rt @ r_lm @ rt.T
-        return self._fuse(jac, y, noise, gate)
+        return self._fuse(jac, None, y, noise, gate)
 
-    def _fuse(self, jac: np.ndarray, y: np.ndarray, noise: np.ndarray, gate: float | None) -> bool:
-        """A measurement of the pose alone (Jacobian `jac` (k, 3), innovation `y` (k,), noise
-        (k, k)): gated, fused (Joseph form), the offset's estimate kept consistent."""
-        p = self.kf.P
-        innov = jac @ p @ jac.T + noise
+    def _fuse(
+        self,
+        h_pose: np.ndarray,
+        h_rest: np.ndarray | None,
+        y: np.ndarray,
+        noise: np.ndarray,
+        gate: float | None,
+    ) -> bool:
+        """A measurement of the state (Jacobians `h_pose` (k, 3) and `h_rest` (k, m), None:
+        of the pose alone; innovation `y` (k,), noise (k, k)): gated, then fused into the
+        pose, the offset and the keyframes' errors together."""
+        p, cross, rest = self.kf.P, self._cross, self._cov
+        m = len(self._mean)
+        hr = np.zeros((len(y), m)) if h_rest is None else h_rest
+        ph_pose = p @ h_pose.T + cross @ hr.T  # (3, k): cov(pose, measurement)
+        ph_rest = cross.T @ h_pose.T + rest @ hr.T  # (m, k)
+        innov = h_pose @ ph_pose + hr @ ph_rest + noise
+        innov = 0.5 * (innov + innov.T)
         if gate is not None and float(y @ np.linalg.solve(innov, y)) > gate:
             self.rejected += 1
             return False
         si = np.linalg.inv(innov)
-        gain = p @ jac.T @ si
-        x = self.kf.x.ravel() + gain @ y
+        k_pose, k_rest = ph_pose @ si, ph_rest @ si
+        x = self.kf.x.ravel() + k_pose @ y
         x[2] = se2.wrap(float(x[2]))
-        i_kh = np.eye(3) - gain @ jac
-        off = self.offset
-        if off is not None:
-            hx = jac @ off.cross  # (k, 3)
-            off.value = off.value + hx.T @ si @ y
-            off.value[2] = se2.wrap(float(off.value[2]))
-            off.covariance = off.covariance - hx.T @ si @ hx
-            off.covariance = 0.5 * (off.covariance + off.covariance.T)
-            off.cross = i_kh @ off.cross
         self.kf.x = x.reshape(3, 1)
-        new_p = i_kh @ p @ i_kh.T + gain @ noise @ gain.T
+        new_p = p - k_pose @ ph_pose.T
         self.kf.P = 0.5 * (new_p + new_p.T)
+        if m:
+            self._mean = self._mean + k_rest @ y
+            self._cross = cross - k_pose @ ph_rest.T
+            new_rest = rest - k_rest @ ph_rest.T
+            self._cov = 0.5 * (new_rest + new_rest.T)
+            for i in range(2, m, 3):  # every block's yaw
+                self._mean[i] = se2.wrap(float(self._mean[i]))
         self.accepted += 1
         return True
 
     def reset_offset(self, covariance: np.ndarray) -> None:
         """Start estimating a new shared map's error: zero, with `covariance` (x, y, yaw about
-        the origin: the alignment's), uncorrelated with the pose."""
+        the origin: the alignment's), uncorrelated with the pose and the keyframes."""
         c = np.asarray(covariance, np.float64)
         if c.shape != (3, 3) or not np.all(np.isfinite(c)):
             msg = f"offset: expected a finite 3x3 covariance, found shape {c.shape}"
             raise LocalisationError(msg)
-        self.offset = Offset(np.zeros(3), c.copy(), np.zeros((3, 3)))
+        if not self._has_offset:
+            m = len(self._mean)
+            self._mean = np.concatenate([np.zeros(3), self._mean])
+            self._cov = np.block(
+                [[np.zeros((3, 3)), np.zeros((3, m))], [np.zeros((m, 3)), self._cov]]
+            )
+            self._cross = np.hstack([np.zeros((3, 3)), self._cross])
+            self._has_offset = True
+        self._mean[:3] = 0.0
+        self._cov[:3, :] = 0.0
+        self._cov[:, :3] = 0.0
+        self._cov[:3, :3] = c
+        self._cross[:, :3] = 0.0
 
     def update_offset(
         self, pose: np.ndarray, covariance: np.ndarray, gate: float | None = GATE_3DOF
@@ -263,44 +373,60 @@ class PlanarEkf:
         """Fuse a pose (x, y, yaw) measured against the shared map whose error `offset` holds
         (`reset_offset` first): the measurement is the true pose moved by that error, so it
         corrects pose and error together. False (and no change) when gated out."""
-        off = self.offset
-        if off is None:
+        if not self._has_offset:
             msg = "offset update: expected reset_offset() before the first update"
             raise LocalisationError(msg)
-        z = np.asarray(pose, np.float64).reshape(3)
-        r = np.asarray(covariance, np.float64)
-        if r.shape != (3, 3) or not (np.all(np.isfinite(z)) and np.all(np.isfinite(r))):
-            msg = (
-                "pose measurement: expected (x, y, yaw) and a finite 3x3 covariance, found "
-                f"{z} and shape {r.shape}"
-            )
-            raise LocalisationError(msg)
+        z, r = _checked_pose(pose, covariance)
         x = self.kf.x.ravel()
-        b = off.value
+        b = self._mean[:3]
         c, s = math.cos(b[2]), math.sin(b[2])
         rot = np.array([[c, -s], [s, c]])
         moved = rot @ x[:2]
         h = np.array([moved[0] + b[0], moved[1] + b[1], x[2] + b[2]])
         h_x = np.eye(3)
         h_x[:2, :2] = rot
-        h_b = np.eye(3)
+        h_b = np.zeros((3, len(self._mean)))
+        h_b[:, :3] = np.eye(3)
         h_b[:2, 2] = (-moved[1], moved[0])
-        jac = np.hstack([h_x, h_b])  # (3, 6)
-        p6 = np.block([[self.kf.P, off.cross], [off.cross.T, off.covariance]])
         y = z - h
         y[2] = se2.wrap(float(y[2]))
-        innov = jac @ p6 @ jac.T + r
-        if gate is not None and float(y @ np.linalg.solve(innov, y)) > gate:
-            self.rejected += 1
-            return False
-        gain = p6 @ jac.T @ np.linalg.inv(innov)  # (6, 3)
-        state = np.concatenate([x, b]) + gain @ y
-        i_kh = np.eye(6) - gain @ jac
-        p6 = i_kh @ p6 @ i_kh.T + gain @ r @ gain.T
-        p6 = 0.5 * (p6 + p6.T)
-        state[2], state[5] = se2.wrap(float(state[2])), se2.wrap(float(state[5]))
-        self.kf.x = state[:3].reshape(3, 1)
-        self.kf.P = p6[:3, :3].copy()
-        self.offset = Offset(state[3:].copy(), p6[3:, 3:].copy(), p6[:3, 3:].copy())
-        self.accepted += 1
-        return True
+        return self._fuse(h_x, h_b, y, r, gate)
+
+
+def _checked_pose(pose: np.ndarray, covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A pose measurement (3,) and its covariance (3, 3), or an error saying what was wrong."""
+    z = np.asarray(pose, np.float64).reshape(-1)
+    r = np.asarray(covariance, np.float64)
+    if (
+        z.shape != (3,)
+        or r.shape != (3, 3)
+        or not (np.all(np.isfinite(z)) and np.all(np.isfinite(r)))
+    ):
+        msg = (
+            "pose measurement: expected (x, y, yaw) and a finite 3x3 covariance, found "
+            f"{z} and shape {r.shape}"
+        )
+        raise LocalisationError(msg)
+    return z, r
+
+
+def _seen_from(
+    placed: np.ndarray, error: np.ndarray, pose: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where `pose` (3,) appears in keyframes' maps: a keyframe placed at `placed` (G, 3) while
+    it truly was at `placed + error` (G, 3) has a map that is the world moved by the rotation
+    -error[2] about the placed position and the translation -error[:2]. The poses seen (G, 3),
+    their Jacobians by the pose and by the error (G, 3, 3 each)."""
+    c, s = np.cos(error[:, 2]), np.sin(error[:, 2])
+    back = np.stack([np.stack([c, s], -1), np.stack([-s, c], -1)], -2)  # R(-error yaw)
+    v = pose[:2] - placed[:, :2] - error[:, :2]
+    xy = placed[:, :2] + np.einsum("gij,gj->gi", back, v)
+    yaw = (pose[2] - error[:, 2] + math.pi) % (2 * math.pi) - math.pi
+    seen = np.column_stack([xy, yaw])
+    n = len(placed)
+    d_pose = np.tile(np.eye(3), (n, 1, 1))
+    d_pose[:, :2, :2] = back
+    d_key = np.tile(-np.eye(3), (n, 1, 1))
+    d_key[:, :2, :2] = -back
+    d_key[:, :2, 2] = np.einsum("gij,gj->gi", back, np.column_stack([v[:, 1], -v[:, 0]]))
+    return seen, d_pose, d_key

@@ -58,13 +58,15 @@ class ScanLocaliser:
     """Pose of a ground agent with a 2D or 3D range sensor, in its own odometry frame.
 
     Each step: predict with the odometry increment (or widen without odometry), match the scan
-    against the agent's own recent map from the predicted pose, fuse the matched pose (gated by
-    its Mahalanobis distance); when a `ColonyMap` is given (aligned peers' maps in this agent's
-    frame), match the scan against it too and fuse that as a pose measured against a map whose
-    error (the alignment's, `ColonyMap.covariance`) the filter estimates with the pose
+    against the agent's own recent map from the predicted pose, fuse the matched pose relative to
+    the keyframes it was matched against (`PlanarEkf.update_relative`: the map was placed by the
+    estimate, so it measures only the error grown since; gated by its Mahalanobis distance);
+    when a `ColonyMap` is given (aligned peers' maps in this agent's frame), match the scan
+    against it too and fuse that as a pose measured against a map whose error (the
+    alignment's, `ColonyMap.covariance`) the filter estimates with the pose
     (`PlanarEkf.update_offset`: the alignment's error is counted once, not once per scan; gated
     the same way: a bad alignment is refused, not followed); then add the scan to the local
-    map when it is a keyframe.
+    map when it is a keyframe, its error to the filter's state (`PlanarEkf.add_keyframe`).
     Reads only odometry, the scan and the peers' maps: never a reference pose.
     """
 
@@ -127,8 +129,13 @@ class ScanLocaliser:
                 increment = se2.relative(self.last_odometry, np.asarray(odometry, np.float64))
             self.ekf.predict(increment)
             result = self._match(pts, self.local)
-            if result.ok:
-                fused = self.ekf.update(se2.from_matrix(result.pose), result.covariance)
+            if result.ok and result.labels is not None and result.information is not None:
+                fused = self.ekf.update_relative(
+                    se2.from_matrix(result.pose),
+                    result.covariance,
+                    result.labels,
+                    result.information,
+                )
         colony_match: Match | None = None
         colony_fused = False
         if colony is not None and colony.tree is not None:
@@ -143,7 +150,12 @@ class ScanLocaliser:
             self.history.append((float(time), pose))
         m = se2.to_matrix(pose)
         if self.local.wants(m):
-            self.local.add(pts @ m[:3, :3].T + m[:3, 3], m, m[:3, :3] @ self.sensor + m[:3, 3])
+            key = self.local.add(
+                pts @ m[:3, :3].T + m[:3, 3], m, m[:3, :3] @ self.sensor + m[:3, 3]
+            )
+            if key is not None:
+                self.ekf.add_keyframe(key)
+                self.ekf.keep_keyframes(self.local.ids)
         return Step(pose, result, fused, colony_match, colony_fused)
 
     def pose_at(self, stamp: float) -> np.ndarray | None:
@@ -207,13 +219,18 @@ class ScanLocaliser:
         return fused
 
     def _match(self, pts: np.ndarray, target: LocalMap | ColonyMap, **extra: int) -> Match:
-        """The scan matched (x, y, yaw) against `target` from the current estimate."""
+        """The scan matched (x, y, yaw) against `target` from the current estimate (for the own
+        map: where the estimate appears in the newest keyframe's map, which the filter may have
+        corrected since it was placed)."""
         p = self.params
         assert self.ekf is not None  # the first step made it
+        start = self.ekf.pose
+        if target is self.local and self.ekf.keyframes:
+            start = self.ekf.seen_from(self.ekf.keyframes[-1])
         return match(
             pts,
             target,
-            se2.to_matrix(self.ekf.pose),
+            se2.to_matrix(start),
             dof=3,
             max_distance=p.max_distance,
             final_distance=p.final_distance,

@@ -87,7 +87,9 @@ class LocalMap:
 
     A new keyframe is taken when the agent has moved `key_distance` metres or turned `key_angle`
     radians since the last one. Normals face the keyframe's viewpoint (`oriented`), so `match`
-    does not pair a scan of a wall's far face with the near face in the map.
+    does not pair a scan of a wall's far face with the near face in the map. Every keyframe has
+    an id (counting from 0), and every point the id of its keyframe (`labels`), so a match can
+    say which keyframes it was measured against.
     """
 
     oriented = True
@@ -110,10 +112,12 @@ class LocalMap:
             raise LocalisationError(msg)
         self.planar, self.cell, self.k = planar, cell, k
         self.key_distance, self.key_angle = key_distance, key_angle
-        self.frames: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=keyframes)
+        self.frames: deque[tuple[np.ndarray, np.ndarray, int]] = deque(maxlen=keyframes)
         self.last_key: np.ndarray | None = None
+        self.next_id = 0
         self.points = np.zeros((0, 3))
         self.normals = np.zeros((0, 3))
+        self.labels = np.zeros(0, np.int64)
         self.tree: cKDTree | None = None
 
     def __len__(self) -> int:
@@ -128,12 +132,17 @@ class LocalMap:
         turned = math.acos(max(-1.0, min(1.0, (np.trace(rel) - 1.0) / 2.0)))
         return moved >= self.key_distance or turned >= self.key_angle
 
+    @property
+    def ids(self) -> list[int]:
+        """The ids of the keyframes held, oldest first."""
+        return [f[2] for f in self.frames]
+
     def add(
         self, points_map: np.ndarray, pose: np.ndarray, viewpoint: np.ndarray | None = None
-    ) -> None:
+    ) -> int | None:
         """Add a keyframe's points (already in the map frame): normals from the map around them,
         facing `viewpoint` (the sensor's position in the map frame; default the pose's), then a
-        new tree.
+        new tree. Its id, or None when it held too few points to keep.
 
         Older keyframes keep the normals they were given, so a keyframe costs one scan's normals
         and two tree builds, however long the window.
@@ -148,7 +157,16 @@ class LocalMap:
             eye = self.last_key[:3, 3] if viewpoint is None else viewpoint
             normals = orient(normals, new, eye)
             keep = flat > 0.7  # corners and clutter have no reliable normal
-            self.frames.append((new[keep], normals[keep]))
+            added = self.next_id
+            self.next_id += 1
+            self.frames.append((new[keep], normals[keep], added))
+        else:
+            added = None
+        self.labels = (
+            np.concatenate([np.full(len(f[0]), f[2], np.int64) for f in self.frames])
+            if self.frames
+            else np.zeros(0, np.int64)
+        )
         self.points = (
             np.concatenate([f[0] for f in self.frames]) if self.frames else np.zeros((0, 3))
         )
@@ -158,6 +176,7 @@ class LocalMap:
         from scipy.spatial import cKDTree  # loads on first use, not at start-up
 
         self.tree = cKDTree(self.points) if len(self.points) >= self.k else None
+        return added
 
 
 @dataclass(frozen=True)
@@ -173,6 +192,11 @@ class Match:
     iterations: int
     ok: bool
     reason: str = ""
+    #: When the target labels its points (`LocalMap.labels`): the labels the final
+    #: correspondences came from (G,) and the information (dof, dof) each label's pairs gave
+    #: (their share of the Gauss-Newton Hessian; they sum to it).
+    labels: np.ndarray | None = None
+    information: np.ndarray | None = None
 
 
 def _increment(delta: np.ndarray, centre: np.ndarray, dof: int) -> np.ndarray:
@@ -219,6 +243,8 @@ def match(
     constrain (a corridor's length) keeps a large variance. When the target's normals are
     `oriented`, a correspondence whose map normal faces away from the sensor (at `sensor`, body
     frame; default the body's origin) is dropped: the scan sees the other face of that surface.
+    A target with `labels` (one integer per point) gets each label's share of the final
+    Hessian back (`Match.labels`, `Match.information`).
     """
     if dof not in (3, 6):
         msg = f"dof: expected 3 (x, y, yaw) or 6, found {dof}"
@@ -234,6 +260,9 @@ def match(
     matched, rmse, it = 0, math.inf, 0
     h = np.eye(dof)
     sigma2 = 1.0
+    j = np.zeros((0, dof))
+    w = np.zeros(0)
+    paired = np.zeros(0, np.int64)
     for it in range(1, iterations + 1):
         limit = max_distance if it <= half else final_distance
         moved = rot + trans
@@ -254,7 +283,8 @@ def match(
                 False,
                 f"{matched} correspondences, expected at least {min_matched}",
             )
-        p, q, n = moved[ok], local.points[idx[ok]], local.normals[idx[ok]]
+        paired = idx[ok]
+        p, q, n = moved[ok], local.points[paired], local.normals[paired]
         r = np.einsum("ij,ij->i", p - q, n)
         w = 1.0 / (1.0 + (r / robust_scale) ** 2)
         lever = p - t[:3, 3]
@@ -273,4 +303,10 @@ def match(
         if it > half and float(np.linalg.norm(delta)) < 1e-5:
             break
     cov = inflation * max(sigma2, 1e-4) * np.linalg.inv(h + 1e-6 * np.eye(dof))
-    return Match(t, cov, matched, rmse, it, True)
+    labels = getattr(local, "labels", None)
+    if labels is None or len(paired) == 0:
+        return Match(t, cov, matched, rmse, it, True)
+    groups, which = np.unique(np.asarray(labels)[paired], return_inverse=True)
+    info = np.zeros((len(groups), dof, dof))
+    np.add.at(info, which, np.einsum("ni,nj->nij", j * w[:, None], j))
+    return Match(t, cov, matched, rmse, it, True, labels=groups, information=info)

@@ -121,3 +121,117 @@ def test_a_landmark_far_from_where_it_should_be_is_gated_out() -> None:
     np.testing.assert_allclose(f.pose, [1.0, 2.0, 0.0])
     with pytest.raises(LocalisationError, match="landmark: expected finite"):
         f.update_landmark(np.zeros(3), np.eye(2), np.zeros(2), np.eye(2))
+
+
+def _walk(f: PlanarEkf, steps: int, key_every: int, first_key: int = 0) -> list[int]:
+    """Drive `f` straight along x by 0.1 m steps, a keyframe every `key_every` steps, every step
+    matched (exactly, 1 cm) against the newest keyframe only. The keyframes' ids."""
+    keys = [first_key]
+    f.add_keyframe(first_key)
+    for i in range(1, steps + 1):
+        f.predict(np.array([0.1, 0.0, 0.0]))
+        info = np.eye(3)[None]
+        assert f.update_relative(f.pose, np.eye(3) * 1e-4, np.array([keys[-1]]), info)
+        if i % key_every == 0:
+            keys.append(first_key + len(keys))
+            f.add_keyframe(keys[-1])
+    return keys
+
+
+def test_own_map_matches_measure_the_error_grown_since_the_keyframe() -> None:
+    # Known answer (one keyframe, no turn, its heading known so that no lever mixes): the
+    # keyframe's error is the pose's at its time (P_ref), odometry adds Q, and a match against
+    # it measures only the growth: the covariance becomes P_ref + (Q^-1 + R^-1)^-1, never
+    # below what the keyframe had.
+    p_ref = np.diag([0.01, 0.02, 0.0])
+    f = PlanarEkf(np.zeros(3), covariance=p_ref, motion=MotionNoise(rot=0.0, rot_per_m=0.0))
+    f.add_keyframe(0)
+    f.predict(np.array([1.0, 0.0, 0.0]))
+    q = f.covariance - p_ref
+    r = np.diag([1e-4, 4e-4, 1e-6])
+    assert f.update_relative(np.array([1.05, 0.0, 0.0]), r, np.array([0]), np.eye(3)[None])
+    np.testing.assert_allclose(
+        f.covariance, p_ref + np.linalg.inv(np.linalg.inv(q) + np.linalg.inv(r)), atol=1e-9
+    )
+    # The pose moves by the growth's share of the disagreement.
+    gain = q[0, 0] / (q[0, 0] + r[0, 0])
+    assert f.pose[0] == pytest.approx(1.0 + 0.05 * gain, abs=1e-9)
+
+
+def test_own_map_alone_lets_the_covariance_grow_like_odometry() -> None:
+    f = PlanarEkf(np.zeros(3))
+    _walk(f, 50, key_every=3)
+    at_5m = f.covariance
+    _walk(f, 50, key_every=3, first_key=100)
+    at_10m = f.covariance
+    # Absolute fusion would hold it at ~1 cm^2 / n; relative, it grows with the distance driven.
+    assert at_5m[1, 1] > 1e-3  # over 3 cm across the path after 5 m
+    assert at_10m[1, 1] > 1.5 * at_5m[1, 1]
+    assert at_10m[2, 2] > at_5m[2, 2] > 1e-4
+
+
+def test_a_revisit_of_an_old_keyframe_closes_the_loop() -> None:
+    f = PlanarEkf(np.zeros(3), covariance=np.diag([1e-4, 1e-4, 1e-6]))
+    keys = _walk(f, 60, key_every=3)
+    before = f.covariance
+    assert before[1, 1] > 0.01  # > 10 cm after 6 m of own-map matches
+    # Back near the start (same heading, drifted 0.3 m in y), a match against the first
+    # keyframe alone: the pose is pulled onto it and the covariance shrinks to about the
+    # keyframe's own plus the match's.
+    f.kf.x = np.array([[0.2], [0.3], [0.0]])
+    assert f.update_relative(
+        np.array([0.2, 0.0, 0.0]), np.eye(3) * 1e-4, np.array([keys[0]]), np.eye(3)[None], gate=None
+    )
+    assert abs(f.pose[1]) < 0.02
+    assert f.covariance[1, 1] < 0.05 * before[1, 1]
+    # The recent keyframes, correlated with the pose, moved with it.
+    _, error, _ = f.keyframe(keys[-1])
+    assert error[1] == pytest.approx(-0.3, abs=0.03)
+
+
+def test_an_absolute_fix_after_drift_is_accepted_and_the_own_map_follows() -> None:
+    f = PlanarEkf(np.zeros(3), covariance=np.diag([1e-4, 1e-4, 1e-6]))
+    keys = _walk(f, 80, key_every=3)
+    sd = math.sqrt(f.covariance[1, 1])
+    assert sd > 0.1  # honest after 8 m of odometry and own-map matches
+    # A colony fix 25 cm across the path, known to 3 cm: within the gate, and it moves the pose.
+    fix = f.pose + np.array([0.0, 0.25, 0.0])
+    assert f.update(fix, np.diag([0.03**2, 0.03**2, 1e-4]))
+    assert f.pose[1] == pytest.approx(0.25, abs=0.02)
+    # The newest keyframes were placed with (nearly) the pose's error: they are corrected too,
+    # so the next match against them (reading the pose in their uncorrected map) does not pull
+    # the estimate back.
+    _, error, _ = f.keyframe(keys[-1])
+    assert error[1] == pytest.approx(0.25, abs=0.03)
+    seen = f.seen_from(keys[-1])
+    assert seen[1] == pytest.approx(0.0, abs=0.03)  # where the pose appears in that map
+    assert f.update_relative(seen, np.eye(3) * 1e-4, np.array([keys[-1]]), np.eye(3)[None])
+    assert f.pose[1] == pytest.approx(0.25, abs=0.02)
+    # The old filter (own-map matches fused as absolute poses) was millimetres sure and
+    # refused the same fix.
+    g = PlanarEkf(np.zeros(3), covariance=np.diag([1e-4, 1e-4, 1e-6]))
+    for _ in range(80):
+        g.predict(np.array([0.1, 0.0, 0.0]))
+        g.update(g.pose, np.eye(3) * 1e-4)
+    assert not g.update(g.pose + np.array([0.0, 0.25, 0.0]), np.diag([0.03**2, 0.03**2, 1e-4]))
+
+
+def test_keyframes_enter_and_leave_with_the_pose_correlation() -> None:
+    f = PlanarEkf(np.zeros(3), covariance=np.diag([0.01, 0.02, 0.001]))
+    f.reset_offset(np.eye(3) * 0.04)
+    f.add_keyframe(7)
+    pose, error, cov = f.keyframe(7)
+    np.testing.assert_allclose(pose, f.pose)
+    np.testing.assert_allclose(cov, f.covariance)
+    np.testing.assert_allclose(error, 0.0)
+    f.add_keyframe(8)
+    f.keep_keyframes([8])
+    assert f.keyframes == [8]
+    assert f.offset is not None
+    np.testing.assert_allclose(f.offset.covariance, np.eye(3) * 0.04)
+    # A keyframe unknown to the filter counts as placed without error: an absolute update.
+    g = PlanarEkf(np.zeros(3), covariance=np.eye(3) * 0.01)
+    assert g.update_relative(
+        np.array([0.2, 0.0, 0.0]), np.eye(3) * 0.01, np.array([3]), np.eye(3)[None]
+    )
+    np.testing.assert_allclose(g.pose, [0.1, 0.0, 0.0], atol=1e-9)
