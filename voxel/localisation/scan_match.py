@@ -297,7 +297,9 @@ def patch_covariance(
     there) come from the residuals' within- and between-patch spread (one-way ANOVA); sc is at
     least `floor` (the map's own resolution: a patch is not known better than that). A
     direction only few patches constrain keeps the variance of those few patches, however
-    many points lie on them: N points on one wall count as one measurement, not N."""
+    many points lie on them: N points on one wall count as one measurement, not N. A patch of
+    0.25 m (`match`'s default) is about the span of the k = 8 neighbours a map normal is
+    fitted to: the residuals that share a normal's error."""
     dof = j.shape[1]
     h = j.T @ (j * w[:, None]) + 1e-6 * np.eye(dof)
     hinv = np.linalg.inv(h)
@@ -361,13 +363,17 @@ def match(
     body frame; default the body's origin) is dropped: the scan sees the other face of that
     surface.
 
-    The covariance (times `inflation`) counts independent constraints, not points: residuals
-    on one `patch`-sized piece of surface share its error (`patch_covariance`; Censi 2007 and
-    Bengtsson & Baerveldt 2003 on why the inverse Hessian alone is overconfident). `probe`
-    (default: dof 3) then looks for a second minimum along the least constrained direction:
-    Gauss-Newton restarted a map cell or two standard deviations either side; a restart that
-    ends elsewhere with a score (`_score`) as good widens the covariance to cover it (a wall's
-    length, a repeating structure; the ambiguity the Hessian at one minimum cannot see).
+    The covariance (times `inflation`) covers the three sources of error Censi (2007, "An
+    accurate closed-form estimate of ICP's covariance") lists. Sensor noise, counting
+    independent constraints, not points: residuals on one `patch`-sized piece of surface share
+    its error (`patch_covariance`), at least the map cell's; under-constrained directions keep
+    the inverse Hessian's large variance. Wrong convergence, which the Hessian at one minimum
+    cannot see and which Brossard, Bonnabel & Barrau (2020, "A new approach to 3D ICP covariance
+    estimation", RA-L) find dominates real ICP errors: `probe` (default: dof 3) restarts
+    Gauss-Newton half a final distance, a map cell or two standard deviations either side
+    along the least constrained horizontal direction; a restart that ends elsewhere with as good
+    a score (`_score`) widens the covariance to cover it (a wall's length, a repeating
+    structure). The returned pose is always the first run's.
     """
     if dof not in (3, 6):
         msg = f"dof: expected 3 (x, y, yaw) or 6, found {dof}"
@@ -411,10 +417,11 @@ def _ambiguity(
     solve: dict[str, Any],
 ) -> np.ndarray:
     """Covariance (3x3) to add for other minima along the least constrained horizontal direction
-    (dof 3): restarts `best` a map cell or two standard deviations either side along it (yaw
-    following, as the covariance couples it), each run with half the iterations; one that ends
-    more than a standard deviation away, scoring no worse than `best`, adds its offset's outer
-    product (half each side)."""
+    (dof 3): restarts `best` half of `final_distance`, a map cell or two standard deviations
+    (the most of them) either side along it (yaw following, as the covariance couples it), on
+    at most `PROBE_POINTS` of the scan, each run with a third of the iterations; one that ends
+    more than a standard deviation away, scoring at most `PROBE_TOLERANCE` times `best`'s, adds
+    its offset's outer product (half each side)."""
     values, vectors = np.linalg.eigh(cov[:2, :2])
     u = vectors[:, -1]
     sd = math.sqrt(max(float(values[-1]), 0.0))
