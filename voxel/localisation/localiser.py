@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -29,7 +30,7 @@ class ScanParams:
     max_distance: float = 0.5
     final_distance: float = 0.15
     iterations: int = 20
-    inflation: float = 10.0
+    inflation: float = 1.0  # times the matcher's covariance (`match`: honest without it)
     colony_min_matched: int = 60  # correspondences a match against the colony's map needs
     #: A colony match whose x or y variance exceeds this (m^2) constrains nothing: failed.
     colony_max_variance: float = 1.0
@@ -218,7 +219,7 @@ class ScanLocaliser:
             self.landmark_rejected += 1
         return fused
 
-    def _match(self, pts: np.ndarray, target: LocalMap | ColonyMap, **extra: int) -> Match:
+    def _match(self, pts: np.ndarray, target: LocalMap | ColonyMap, **extra: Any) -> Match:
         """The scan matched (x, y, yaw) against `target` from the current estimate (for the own
         map: where the estimate appears in the newest keyframe's map, which the filter may have
         corrected since it was placed)."""

@@ -5,12 +5,18 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from voxel.errors import LocalisationError
+from voxel.localisation import se2
+
+#: At most this many scan points in a restart (a regular subsample of the scan).
+PROBE_POINTS = 500
+#: A restart's score (mean Cauchy loss) at most this times the best one's: as good a fit.
+PROBE_TOLERANCE = 1.05
 
 if TYPE_CHECKING:
     from scipy.spatial import cKDTree
@@ -218,71 +224,59 @@ def _increment(delta: np.ndarray, centre: np.ndarray, dof: int) -> np.ndarray:
     return m
 
 
-def match(
-    points_body: np.ndarray,
+@dataclass
+class _Solution:
+    """Where one Gauss-Newton run ended: the pose and its last linearisation (the matched
+    residuals `r`, Jacobian rows `j`, Cauchy weights `w`, matched map points `q`); `ok` False
+    when too few correspondences remained."""
+
+    pose: np.ndarray
+    ok: bool = False
+    matched: int = 0
+    iterations: int = 0
+    rmse: float = math.inf
+    sigma2: float = 1.0
+    j: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    w: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    r: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    q: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    paired: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # map indices
+
+
+def _solve(
+    src: np.ndarray,
     local: MatchTarget,
     init: np.ndarray,
     *,
-    dof: int = 3,
-    max_distance: float = 0.5,
-    final_distance: float = 0.15,
-    iterations: int = 20,
-    robust_scale: float = 0.05,
-    min_matched: int = 30,
-    inflation: float = 10.0,
-    sensor: np.ndarray | None = None,
-) -> Match:
-    """Refine the body pose `init` (4x4) so the scan `points_body` (N, 3, body frame) lies on the
-    local map (or any `MatchTarget`: the colony's map near the agent).
-
-    Gauss-Newton on point-to-plane distances (point-to-line for 2D maps) with Cauchy weights;
-    correspondences within `max_distance`, shrinking to `final_distance` in the second half.
-    dof 3 moves x, y, yaw (a ground robot); dof 6 moves everything. The covariance is the
-    Gauss-Newton inverse Hessian times the residual variance, times `inflation` (neighbouring
-    residuals are correlated, so the raw one is overconfident); a direction the map does not
-    constrain (a corridor's length) keeps a large variance. When the target's normals are
-    `oriented`, a correspondence whose map normal faces away from the sensor (at `sensor`, body
-    frame; default the body's origin) is dropped: the scan sees the other face of that surface.
-    A target with `labels` (one integer per point) gets each label's share of the final
-    Hessian back (`Match.labels`, `Match.information`).
-    """
-    if dof not in (3, 6):
-        msg = f"dof: expected 3 (x, y, yaw) or 6, found {dof}"
-        raise LocalisationError(msg)
+    dof: int,
+    distances: tuple[float, float],
+    iterations: int,
+    robust_scale: float,
+    min_matched: int,
+    eye: np.ndarray,
+) -> _Solution:
+    """Gauss-Newton on point-to-plane distances from `init`: correspondences within
+    distances[0], then distances[1] in the second half of the iterations."""
+    tree = local.tree
+    assert tree is not None, "a target with points"
     t = np.asarray(init, np.float64).copy()
-    if local.tree is None:
-        return Match(t, np.eye(dof) * 1e6, 0, math.inf, 0, False, "empty map")
-    src = np.asarray(points_body, np.float64)
     rot, trans = src @ t[:3, :3].T, t[:3, 3]
     oriented = bool(getattr(local, "oriented", False))
-    eye = np.zeros(3) if sensor is None else np.asarray(sensor, np.float64).reshape(3)
     half = max(1, iterations // 2)
-    matched, rmse, it = 0, math.inf, 0
-    h = np.eye(dof)
-    sigma2 = 1.0
-    j = np.zeros((0, dof))
-    w = np.zeros(0)
-    paired = np.zeros(0, np.int64)
+    out = _Solution(t)
     for it in range(1, iterations + 1):
-        limit = max_distance if it <= half else final_distance
+        limit = distances[0] if it <= half else distances[1]
         moved = rot + trans
-        d, idx = local.tree.query(moved, distance_upper_bound=limit)
+        d, idx = tree.query(moved, distance_upper_bound=limit)
         ok = np.isfinite(d)
         if oriented:
             view = t[:3, :3] @ eye + t[:3, 3] - moved
             facing = np.einsum("ij,ij->i", local.normals[np.where(ok, idx, 0)], view) >= 0.0
             ok &= facing
-        matched = int(ok.sum())
-        if matched < min_matched:
-            return Match(
-                t,
-                np.eye(dof) * 1e6,
-                matched,
-                math.inf,
-                it,
-                False,
-                f"{matched} correspondences, expected at least {min_matched}",
-            )
+        out.matched, out.iterations = int(ok.sum()), it
+        if out.matched < min_matched:
+            out.pose, out.ok = t, False
+            return out
         paired = idx[ok]
         p, q, n = moved[ok], local.points[paired], local.normals[paired]
         r = np.einsum("ij,ij->i", p - q, n)
@@ -295,18 +289,211 @@ def match(
         h = j.T @ (j * w[:, None])
         g = j.T @ (w * r)
         delta = -np.linalg.solve(h + 1e-6 * np.eye(dof), g)
-        step = _increment(delta, t[:3, 3], dof)
-        t = step @ t
+        t = _increment(delta, t[:3, 3], dof) @ t
         rot, trans = src @ t[:3, :3].T, t[:3, 3]
-        rmse = float(np.sqrt(np.sum(w * r**2) / np.sum(w)))
-        sigma2 = float(np.sum(w * r**2) / max(np.sum(w) - dof, 1.0))
+        out.rmse = float(np.sqrt(np.sum(w * r**2) / np.sum(w)))
+        out.sigma2 = float(np.sum(w * r**2) / max(np.sum(w) - dof, 1.0))
+        out.j, out.w, out.r, out.q, out.paired = j, w, r, q, paired
         if it > half and float(np.linalg.norm(delta)) < 1e-5:
             break
-    cov = inflation * max(sigma2, 1e-4) * np.linalg.inv(h + 1e-6 * np.eye(dof))
+    out.pose, out.ok = t, True
+    return out
+
+
+def _group(points: np.ndarray, size: float) -> tuple[np.ndarray, int]:
+    """Index (M,) of the `size`-sized cell each point lies in, and the number of cells."""
+    keys = np.floor(points / size).astype(np.int64)
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    packed = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    _, inverse = np.unique(packed, return_inverse=True)
+    inverse = inverse.ravel()
+    return inverse, int(inverse.max()) + 1 if len(inverse) else 0
+
+
+def patch_covariance(
+    j: np.ndarray, w: np.ndarray, r: np.ndarray, q: np.ndarray, patch: float, floor: float
+) -> tuple[np.ndarray, dict[str, float]]:
+    """Covariance of the weighted least-squares estimate when residuals are correlated within
+    surface patches: the sandwich H^-1 (J^T W S W J) H^-1, S = sw^2 I + sc^2 B (B: 1 for two
+    residuals on the same `patch`-sized cell of the map, 0 otherwise; a cluster-robust
+    variance, Liang & Zeger 1986).
+
+    sw^2 (independent noise) and sc^2 (a patch's shared error: its normal, the sensor's bias
+    there) come from the residuals' within- and between-patch spread (one-way ANOVA); sc is at
+    least `floor` (the map's own resolution: a patch is not known better than that). A
+    direction only few patches constrain keeps the variance of those few patches, however
+    many points lie on them: N points on one wall count as one measurement, not N. A patch of
+    0.25 m (`match`'s default) is about the span of the k = 8 neighbours a map normal is
+    fitted to: the residuals that share a normal's error."""
+    dof = j.shape[1]
+    h = j.T @ (j * w[:, None]) + 1e-6 * np.eye(dof)
+    hinv = np.linalg.inv(h)
+    g, count = _group(q, patch)
+    sw = np.bincount(g, weights=w, minlength=count)
+    mean = np.bincount(g, weights=w * r, minlength=count) / np.maximum(sw, 1e-12)
+    within = float(np.sum(w * (r - mean[g]) ** 2) / max(float(np.sum(w)) - count, 1.0))
+    within = max(within, 1e-4)  # a residual is not known better than 1 cm (as before)
+    grand = float(np.sum(w * r) / np.sum(w))
+    size = float(np.sum(w)) / count  # weighted points per patch
+    between = float(np.sum(sw * (mean - grand) ** 2) / max(count - 1, 1))
+    shared = max((between - within) / max(size, 1.0), floor**2)
+    wj = j * w[:, None]
+    sums = np.stack([np.bincount(g, weights=wj[:, k], minlength=count) for k in range(dof)], 1)
+    # the 1e-6 prior that keeps H invertible, as a measurement of the same noise: a direction
+    # nothing constrains keeps a variance of ~1e6 * within, as the plain inverse Hessian gives
+    meat = within * (wj.T @ wj + 1e-6 * np.eye(dof)) + shared * (sums.T @ sums)
+    cov = hinv @ meat @ hinv
+    return 0.5 * (cov + cov.T), {"within": within, "shared": shared, "patches": float(count)}
+
+
+def _score(
+    src: np.ndarray, local: MatchTarget, pose: np.ndarray, limit: float, scale: float
+) -> float:
+    """Mean Cauchy loss of the scan at `pose` (point-to-plane, a point without a map point
+    within `limit` costs as much as one at `limit`): how well a pose explains the scan."""
+    tree = local.tree
+    assert tree is not None, "a target with points"
+    moved = src @ pose[:3, :3].T + pose[:3, 3]
+    d, idx = tree.query(moved, distance_upper_bound=limit)
+    ok = np.isfinite(d)
+    r = np.full(len(src), limit)
+    i = idx[ok]
+    r[ok] = np.einsum("ij,ij->i", moved[ok] - local.points[i], local.normals[i])
+    return float(np.mean(np.log1p((r / scale) ** 2)))
+
+
+def match(
+    points_body: np.ndarray,
+    local: MatchTarget,
+    init: np.ndarray,
+    *,
+    dof: int = 3,
+    max_distance: float = 0.5,
+    final_distance: float = 0.15,
+    iterations: int = 20,
+    robust_scale: float = 0.05,
+    min_matched: int = 30,
+    inflation: float = 1.0,
+    sensor: np.ndarray | None = None,
+    patch: float = 0.25,
+    probe: bool | None = None,
+) -> Match:
+    """Refine the body pose `init` (4x4) so the scan `points_body` (N, 3, body frame) lies on the
+    local map (or any `MatchTarget`: the colony's map near the agent).
+
+    Gauss-Newton on point-to-plane distances (point-to-line for 2D maps) with Cauchy weights;
+    correspondences within `max_distance`, shrinking to `final_distance` in the second half.
+    dof 3 moves x, y, yaw (a ground robot); dof 6 moves everything. When the target's normals
+    are `oriented`, a correspondence whose map normal faces away from the sensor (at `sensor`,
+    body frame; default the body's origin) is dropped: the scan sees the other face of that
+    surface. A target with `labels` (one integer per point) gets each label's share of the
+    final Hessian back (`Match.labels`, `Match.information`).
+
+    The covariance (times `inflation`) covers the three sources of error Censi (2007, "An
+    accurate closed-form estimate of ICP's covariance") lists. Sensor noise, counting
+    independent constraints, not points: residuals on one `patch`-sized piece of surface share
+    its error (`patch_covariance`), at least the map cell's; under-constrained directions keep
+    the inverse Hessian's large variance. Wrong convergence, which the Hessian at one minimum
+    cannot see and which Brossard, Bonnabel & Barrau (2020, "A new approach to 3D ICP covariance
+    estimation", RA-L) find dominates real ICP errors: `probe` (default: dof 3) restarts
+    Gauss-Newton half a final distance, a map cell or two standard deviations either side
+    along the least constrained horizontal direction; a restart that ends elsewhere with as good
+    a score (`_score`) widens the covariance to cover it (a wall's length, a repeating
+    structure). The returned pose is always the first run's.
+    """
+    if dof not in (3, 6):
+        msg = f"dof: expected 3 (x, y, yaw) or 6, found {dof}"
+        raise LocalisationError(msg)
+    t = np.asarray(init, np.float64).copy()
+    if local.tree is None:
+        return Match(t, np.eye(dof) * 1e6, 0, math.inf, 0, False, "empty map")
+    src = np.asarray(points_body, np.float64)
+    eye = np.zeros(3) if sensor is None else np.asarray(sensor, np.float64).reshape(3)
+    solve: dict[str, Any] = dict(
+        dof=dof, robust_scale=robust_scale, min_matched=min_matched, eye=eye
+    )
+    best = _solve(
+        src, local, t, distances=(max_distance, final_distance), iterations=iterations, **solve
+    )
+    if not best.ok:
+        return Match(
+            best.pose,
+            np.eye(dof) * 1e6,
+            best.matched,
+            math.inf,
+            best.iterations,
+            False,
+            f"{best.matched} correspondences, expected at least {min_matched}",
+        )
+    cell = float(getattr(local, "cell", 0.05))
+    cov, _ = patch_covariance(best.j, best.w, best.r, best.q, patch, cell / math.sqrt(12.0))
+    if probe if probe is not None else dof == 3:
+        cov = cov + _ambiguity(src, local, best, cov, cell, final_distance, iterations, solve)
+    cov = inflation * cov
     labels = getattr(local, "labels", None)
-    if labels is None or len(paired) == 0:
-        return Match(t, cov, matched, rmse, it, True)
-    groups, which = np.unique(np.asarray(labels)[paired], return_inverse=True)
+    if labels is None or len(best.paired) == 0:
+        return Match(best.pose, cov, best.matched, best.rmse, best.iterations, True)
+    groups, which = np.unique(np.asarray(labels)[best.paired], return_inverse=True)
     info = np.zeros((len(groups), dof, dof))
-    np.add.at(info, which, np.einsum("ni,nj->nij", j * w[:, None], j))
-    return Match(t, cov, matched, rmse, it, True, labels=groups, information=info)
+    np.add.at(info, which.ravel(), np.einsum("ni,nj->nij", best.j * best.w[:, None], best.j))
+    return Match(
+        best.pose,
+        cov,
+        best.matched,
+        best.rmse,
+        best.iterations,
+        True,
+        labels=groups,
+        information=info,
+    )
+
+
+def _ambiguity(
+    src: np.ndarray,
+    local: MatchTarget,
+    best: _Solution,
+    cov: np.ndarray,
+    cell: float,
+    final_distance: float,
+    iterations: int,
+    solve: dict[str, Any],
+) -> np.ndarray:
+    """Covariance (3x3) to add for other minima along the least constrained horizontal direction
+    (dof 3): restarts `best` half of `final_distance`, a map cell or two standard deviations
+    (the most of them) either side along it (yaw following, as the covariance couples it), on
+    at most `PROBE_POINTS` of the scan, each run with a third of the iterations; one that ends
+    more than a standard deviation away, scoring at most `PROBE_TOLERANCE` times `best`'s, adds
+    its offset's outer product (half each side)."""
+    values, vectors = np.linalg.eigh(cov[:2, :2])
+    u = vectors[:, -1]
+    sd = math.sqrt(max(float(values[-1]), 0.0))
+    step = max(cell, 2.0 * sd, 0.5 * final_distance)
+    along = np.array([u[0], u[1], 0.0])
+    along[2] = float(cov[2, :2] @ np.linalg.solve(cov[:2, :2] + 1e-12 * np.eye(2), u))
+    src = src[:: max(1, -(-len(src) // PROBE_POINTS))]  # a subsample: a restart only looks
+    base = _score(src, local, best.pose, final_distance, solve["robust_scale"])
+    here = se2.from_matrix(best.pose)
+    extra = np.zeros((3, 3))
+    for sign in (-1.0, 1.0):
+        start = _increment(sign * step * along, best.pose[:3, 3], 3) @ best.pose
+        other = _solve(
+            src,
+            local,
+            start,
+            distances=(final_distance, final_distance),
+            iterations=max(2, iterations // 3),
+            **solve,
+        )
+        if not other.ok:
+            continue
+        delta = se2.from_matrix(other.pose) - here
+        delta[2] = math.remainder(float(delta[2]), 2.0 * math.pi)
+        far = float(delta[:2] @ np.linalg.solve(cov[:2, :2] + 1e-12 * np.eye(2), delta[:2]))
+        if (
+            far > 1.0
+            and _score(src, local, other.pose, final_distance, solve["robust_scale"])
+            <= base * PROBE_TOLERANCE
+        ):
+            extra += 0.5 * np.outer(delta, delta)
+    return extra

@@ -148,3 +148,58 @@ def test_scan_localiser_beats_biased_odometry_in_a_room() -> None:
     assert err_odo > 0.3
     assert err_est < 0.1
     assert loc.ekf is not None and loc.ekf.accepted > 150
+
+
+def _noisy_match(
+    walls: list, beams: int, start: np.ndarray, truth: np.ndarray | None = None, **kw: object
+) -> tuple[np.ndarray, np.ndarray]:
+    """The pose and standard deviations (x, y, yaw) of a scan with 5 mm noise matched from
+    `start` against a map of the same walls seen from the origin."""
+    truth = np.zeros(3) if truth is None else truth
+    local = _map_of(walls, np.zeros(3), beams=1440)
+    scan = _segments_scan(truth, walls, beams, noise=0.005, rng=np.random.default_rng(3))
+    result = match(scan, local, se2.to_matrix(start), **kw)  # type: ignore[arg-type]
+    assert result.ok
+    return se2.from_matrix(result.pose), np.sqrt(np.diag(result.covariance))
+
+
+def test_a_single_wall_leaves_its_length_free_and_fixes_the_distance_to_it() -> None:
+    _, sd = _noisy_match([((-10, 2), (10, 2))], 720, np.array([0.02, -0.01, 0.0]))
+    assert sd[1] < 0.02  # across: a centimetre or two
+    assert sd[0] > 10 * sd[1]  # along: nothing but the wall's ends far away
+
+
+def test_a_corner_constrains_both_directions() -> None:
+    _, sd = _noisy_match([((-0.5, 2), (6, 2)), ((-0.5, 2), (-0.5, -6))], 720, np.zeros(3))
+    assert sd[0] < 0.02 and sd[1] < 0.02
+    assert 1 / 3 < sd[0] / sd[1] < 3
+
+
+def test_four_times_the_points_do_not_quarter_the_variance() -> None:
+    # Points on the same piece of wall share its error: more of them narrow the covariance
+    # far less than independent measurements would (variance / 4).
+    _, few = _noisy_match(ROOM, 360, np.zeros(3))
+    _, many = _noisy_match(ROOM, 1440, np.zeros(3))
+    ratio = (many / few) ** 2
+    assert np.all(ratio[:2] > 0.5), ratio
+
+
+def test_a_second_minimum_along_a_repeating_wall_widens_the_covariance() -> None:
+    # A wall with a 12 cm square-wave relief and one across it far below: started 7 cm off, the
+    # match settles on the copy 12 cm away; the restarts along the wall find the true one as
+    # good, and the variance along the wall covers both (without them: a millimetre).
+    period, walls = 0.12, [((-5.0, -1.0), (5.0, -1.0))]
+    for k in range(-30, 30):
+        x0, mid = k * period, k * period + period / 2
+        walls += [((x0, 1.0), (mid, 1.0)), ((mid, 1.0), (mid, 1.05))]
+        walls += [((mid, 1.05), (x0 + period, 1.05)), ((x0 + period, 1.05), (x0 + period, 1.0))]
+    local = LocalMap(planar=True, cell=0.01)
+    local.add(_segments_scan(np.zeros(3), walls, 2880), np.eye(4))
+    scan = _segments_scan(np.zeros(3), walls, 2880, noise=0.003, rng=np.random.default_rng(1))
+    start = se2.to_matrix(np.array([0.072, 0.0, 0.0]))
+    alone = match(scan, local, start, probe=False)
+    probed = match(scan, local, start)
+    assert se2.from_matrix(alone.pose)[0] == pytest.approx(period, abs=0.01)  # the wrong copy
+    np.testing.assert_array_equal(probed.pose, alone.pose)  # the restarts move nothing
+    assert math.sqrt(alone.covariance[0, 0]) < 0.01
+    assert math.sqrt(probed.covariance[0, 0]) > period / 2
