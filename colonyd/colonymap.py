@@ -229,6 +229,7 @@ class ColonyMaps:
             "points": len(last.map),
             "build_ms": round(last.seconds * 1000, 2),
             "built": last.time,
+            "centre": np.round(last.map.centre, 4).tolist(),
             "covariance": _listed(last.map.covariance),
             "peers": {
                 origin: {

@@ -7,12 +7,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from colonyd.alignment import Edge, offer_of
 from colonyd.errors import WireError
 from colonyd.frames import Sender, colony_key, frame_of
 from colonyd.inbox import check_pose_covariance
-from protocol import Heartbeat, Pose
+from protocol import Heartbeat, Pose, VoxelDelta
 from protocol.identity import Signer
 from protocol.keyexpr import topic_key
+from voxel.delta import Delta
+from voxel.localisation import frame_error
 
 SECRET = "correct horse battery staple"
 
@@ -94,3 +97,56 @@ def test_a_hostile_pose_covariance_is_refused_counted_and_changes_nothing(make_c
     seen = next(m for m in b["members"] if m["agent"] == "peer")
     assert seen["pose"][0] == 1.0, seen  # the good Pose's, not a refused one's
     assert seen["pose_std_m"] == pytest.approx(np.sqrt(0.04 + 0.09)), seen
+
+
+def test_a_colony_map_holds_its_peers_reported_pose_covariance(make_colony):
+    """A localising lidar robot aligned (by the peer's offer) with a peer that reports a known
+    pose covariance: its status shows the colony map's covariance with the peer's in it."""
+    colony = make_colony("peercov", extra=["--colony-key", SECRET])
+    spec = "sim:world=office,agent=lidar-1,frames=200,seed=1,odometry_noise=realistic"
+    d = colony.add("b", [spec], start=False)
+    d.env = {"COLONYD_COLONY_MAP_S": "0.3"}
+    d.start()
+    colony.wait_members(1)
+    s, ns, key = colony.session(), colony.namespace, colony_key(SECRET)
+    peer = Sender("peer", 1, key=key, signer=Signer.generate())
+    s.put(
+        topic_key(ns, "peer", "heartbeat"),
+        peer.encode(
+            Heartbeat(
+                **peer.header(), kind="robot", frame_id=frame_of("peer"), identity=peer.identity
+            )
+        ),
+    )
+    colony.wait_status(
+        lambda rs: any(m["agent"] == "peer" for r in rs for m in r["members"]), agents=("b",)
+    )
+    x = np.arange(-30, 30)  # a wall at y = 1.05 m, at the scan's height, in the peer's frame
+    keys = np.column_stack([x, np.full(len(x), 10), np.full(len(x), 3)])
+    wall = Delta(0.1, 0, 1, keys, np.full(len(x), 2.0), np.ones(len(x)))
+    s.put(
+        topic_key(ns, "peer", "delta"),
+        peer.encode(VoxelDelta(**peer.header(), frame_id=frame_of("peer"), delta=wall)),
+    )
+    offered = np.diag([0.02**2, 0.03**2, 0.0, 0.0, 0.0, np.radians(0.5) ** 2])
+    edge = Edge("peer", "b", np.eye(4), 1.0, 100, 0.02, offered, 0.0)
+    s.put(topic_key(ns, "peer", "align"), peer.encode(offer_of(edge, peer.header())))
+    s.put(topic_key(ns, "peer", "pose"), _pose(peer, 1.0, GOOD))
+
+    def cut(reports: list[dict]) -> dict | None:
+        entries = [v for k, v in reports[0]["localisation"].items() if k.startswith("sim:")]
+        made = entries[0].get("colony_map") if entries else None
+        part = (made or {}).get("peers", {}).get("peer")
+        return made if part and part["reported_pose_covariance"] is not None else None
+
+    (b,) = colony.wait_status(lambda rs: cut(rs) is not None, 30, agents=("b",))
+    made = cut([b])
+    assert made is not None and made["sources"] == ["peer"] and made["points"] > 0, made
+    part = made["peers"]["peer"]
+    np.testing.assert_allclose(part["reported_pose_covariance"], GOOD, atol=1e-9)
+    # its pose error about the cut's centre (identity alignment: our frame is the peer's)
+    pose = frame_error.about(GOOD, np.array(made["centre"]))
+    np.testing.assert_allclose(part["pose_covariance"], pose, atol=1e-6)
+    total = frame_error.floored(np.array(part["alignment_covariance"]) + pose)
+    np.testing.assert_allclose(made["covariance"], total, atol=1e-6)
+    assert np.trace(np.array(made["covariance"])[:2, :2]) > 0.04 + 0.09, made  # more than GOOD
