@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 from functools import partial
 
 import numpy as np
@@ -31,6 +32,7 @@ class Build:
     key: Key
     seconds: float
     time: float
+    errors: dict[str, PeerError]
 
 
 def aligned_peers(layers: Layers, frame: ColonyFrame, own: str) -> list[tuple[Layer, np.ndarray]]:
@@ -48,17 +50,74 @@ def aligned_peers(layers: Layers, frame: ColonyFrame, own: str) -> list[tuple[La
     return out
 
 
-def alignment_error(
-    frame: ColonyFrame, own: str, peers: list[tuple[Layer, np.ndarray]]
-) -> np.ndarray:
-    """The error (x, y, yaw covariance about our origin, in our frame) of the transforms taking
-    the peers' frames into ours: the largest of them (a cut merges every peer's surfaces)."""
+def alignment_error(frame: ColonyFrame, own: str, origin: str) -> np.ndarray:
+    """The error (x, y, yaw covariance about our origin, in our frame) of the transform taking
+    `origin`'s frame into ours."""
     back = np.linalg.inv(frame.transforms[own])
-    errors = [
-        frame_error.moved(frame.covariance(own) + frame.covariance(layer.origin), back)
-        for layer, _ in peers
-    ]
-    worst: np.ndarray = max(errors, key=lambda c: float(np.trace(c[:2, :2])))
+    return frame_error.moved(frame.covariance(own) + frame.covariance(origin), back)
+
+
+def peer_map_error(pose: np.ndarray, to_own: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The error (x, y, yaw covariance about our origin, in our frame) that a peer's pose
+    covariance `pose` (x, y, yaw, in its frame) gives its map near `centre` (x, y, our frame);
+    `to_own` takes its frame into ours.
+
+    A pose error (dx, dy, dyaw) at the place a map was made moves that place's surfaces by
+    (dx, dy) and turns them by dyaw about it: a motion about `centre` (put into the peer's frame),
+    then re-expressed about the peer's origin (`frame_error.about`) and moved into our frame
+    (`frame_error.moved`). The peer's *current* covariance stands in for the error its map had
+    where it was made, which it does not report: a proxy, right when the peer mapped our
+    surroundings recently or has been as (un)sure of itself since, too small when it was lost
+    there and has closed a loop elsewhere since, too large when it mapped here sure of itself
+    and is lost now."""
+    back = np.linalg.inv(to_own)
+    c = back[:2, :2] @ np.asarray(centre, np.float64)[:2] + back[:2, 3]
+    return frame_error.moved(frame_error.about(pose, c), to_own)
+
+
+@dataclass(frozen=True)
+class PeerError:
+    """One aligned peer's share of a cut's error: its alignment's and its own pose's (both
+    x, y, yaw covariances about our origin, in our frame) and the pose covariance it reported
+    (x, y, yaw, its frame; None when it sent no Pose)."""
+
+    alignment: np.ndarray
+    pose: np.ndarray
+    reported: np.ndarray | None
+
+    @property
+    def total(self) -> np.ndarray:
+        out: np.ndarray = self.alignment + self.pose
+        return out
+
+
+def peer_errors(
+    frame: ColonyFrame,
+    own: str,
+    peers: list[tuple[Layer, np.ndarray]],
+    poses: Mapping[str, np.ndarray],
+    centre: np.ndarray,
+) -> dict[str, PeerError]:
+    """Each aligned peer's error near `centre` (x, y, our frame): its alignment's plus what its
+    reported pose covariance (`poses`, origin -> x, y, yaw in its frame) gives its map there."""
+    out = {}
+    for layer, to_own in peers:
+        reported = poses.get(layer.origin)
+        pose = np.zeros((3, 3)) if reported is None else peer_map_error(reported, to_own, centre)
+        out[layer.origin] = PeerError(alignment_error(frame, own, layer.origin), pose, reported)
+    return out
+
+
+def cut_error(errors: Mapping[str, PeerError]) -> np.ndarray:
+    """The error of a cut (x, y, yaw covariance about our origin, in our frame) from its peers':
+    the largest (by position variance) of each peer's alignment plus pose error, floored.
+
+    A cut merges every peer's surfaces, and one match against it is pulled by each peer's error
+    in proportion to the surfaces it holds in view; the peers' errors are independent, so the
+    match's is at most the worst peer's (a peer alone in view), never their sum. The largest is
+    the honest bound without knowing which peer's surfaces a scan will see."""
+    totals = [e.total for e in errors.values()]
+    worst: np.ndarray = max(totals, key=lambda c: float(np.trace(c[:2, :2])))
     return frame_error.floored(worst)
 
 
@@ -115,9 +174,17 @@ class ColonyMaps:
         self.radius = min(sensor_range, 30.0) + MARGIN_M
         self.last: Build | None = None
 
-    def refresh(self, layers: Layers, frame: ColonyFrame, pose: np.ndarray) -> ColonyMap | None:
+    def refresh(
+        self,
+        layers: Layers,
+        frame: ColonyFrame,
+        pose: np.ndarray,
+        poses: Mapping[str, np.ndarray] | None = None,
+    ) -> ColonyMap | None:
         """The cut for a robot at sensor pose `pose` (4x4, own frame); None without aligned
-        peers."""
+        peers. Its covariance (`cut_error`) holds the alignments' errors and the peers' own pose
+        covariances (`poses`, origin -> x, y, yaw in its frame, as their Pose messages last said),
+        updated on every call even when the surfaces are kept."""
         started = time.perf_counter()
         peers = aligned_peers(layers, frame, self.own)
         key = key_of(peers)
@@ -129,7 +196,13 @@ class ColonyMaps:
         if last is not None and last.map.covers(xy, self.radius - MARGIN_M):
             same = [(o, e, m) for o, e, _, m in last.key] == [(o, e, m) for o, e, _, m in key]
             if last.key == key or (same and time.time() - last.time < self.grown_s):
+                errors = peer_errors(frame, self.own, peers, poses or {}, last.map.centre)
+                covariance = cut_error(errors)
+                if not np.array_equal(covariance, last.map.covariance):
+                    kept = replace(last.map, covariance=covariance)  # same surfaces, shared
+                    last = self.last = replace(last, map=kept, errors=errors)
                 return last.map
+        errors = peer_errors(frame, self.own, peers, poses or {}, xy)
         cut = colony_map(
             peer_centres(peers),
             cell=0.05 if self.planar else 0.1,  # a 3D cut: voxel centres, at most 20,000
@@ -139,12 +212,12 @@ class ColonyMaps:
             centre=xy,
             radius=self.radius,
             sources=tuple(k[0] for k in key),
-            covariance=alignment_error(frame, self.own, peers),
+            covariance=cut_error(errors),
             alignment=b"".join(k[0].encode() + k[3] for k in key),
             free=partial(free_in_peers, peers),
             step=max(layer.resolution for layer, _ in peers),
         )
-        self.last = Build(cut, key, time.perf_counter() - started, time.time())
+        self.last = Build(cut, key, time.perf_counter() - started, time.time(), errors)
         return cut
 
     def report(self) -> dict[str, object] | None:
@@ -156,4 +229,19 @@ class ColonyMaps:
             "points": len(last.map),
             "build_ms": round(last.seconds * 1000, 2),
             "built": last.time,
+            "centre": np.round(last.map.centre, 4).tolist(),
+            "covariance": _listed(last.map.covariance),
+            "peers": {
+                origin: {
+                    "alignment_covariance": _listed(e.alignment),
+                    "pose_covariance": _listed(e.pose),
+                    "reported_pose_covariance": None if e.reported is None else _listed(e.reported),
+                }
+                for origin, e in last.errors.items()
+            },
         }
+
+
+def _listed(cov: np.ndarray) -> list[list[float]]:
+    out: list[list[float]] = np.round(cov, 9).tolist()
+    return out

@@ -736,7 +736,8 @@ class Daemon:
                     height=estimator.height,
                     sensor_range=estimator.sensor_range,
                 )
-            estimator.colony = maps.refresh(self.layers, frame, pose)
+            poses = self.membership.pose_covariances()
+            estimator.colony = maps.refresh(self.layers, frame, pose, poses)
 
     def _localisation_report(self) -> dict[str, Any]:
         out: dict[str, Any] = {"estimate_ms": round(self._estimate_s * 1000, 2)}

@@ -4,10 +4,12 @@ handled in order."""
 from __future__ import annotations
 
 import logging
+import math
 import random
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
+import numpy as np
 import zenoh
 
 from colonyd.alignment import Alignments, edge_from_offer
@@ -38,6 +40,45 @@ log = logging.getLogger(__name__)
 #: The smallest x, y (m^2) and yaw (rad^2) variance a PoseFix may claim: a fix claiming certainty
 #: would override every other measurement.
 MIN_FIX_VARIANCE = 1e-6
+
+#: The largest position (m^2) and angle (rad^2) variances a Pose may claim: beyond, a covariance
+#: says nothing a map can use (100 m, a full turn) and only risks overflow downstream.
+MAX_POSE_VARIANCE = (1e4, 1e4, 1e4, (2 * math.pi) ** 2, (2 * math.pi) ** 2, (2 * math.pi) ** 2)
+
+#: Relative tolerance of a Pose covariance's asymmetry and negative eigenvalues (of its largest
+#: variance): rounding in the sender's filter, not a matrix that is not a covariance.
+POSE_COVARIANCE_TOLERANCE = 1e-6
+
+
+def check_pose_covariance(values: Sequence[float]) -> np.ndarray:
+    """The 6x6 covariance (x y z roll pitch yaw) of a Pose, checked: finite, symmetric and
+    positive semi-definite within `POSE_COVARIANCE_TOLERANCE`, variances within
+    `MAX_POSE_VARIANCE` (all zeros: a sender without one). WireError("bad-pose-covariance")
+    saying what was found otherwise."""
+    c = np.asarray(values, np.float64)
+    if c.shape != (36,) or not np.all(np.isfinite(c)):
+        text = f"expected 36 finite covariance values, found shape {c.shape} or non-finite ones"
+        raise WireError("bad-pose-covariance", text)
+    c = c.reshape(6, 6)
+    d = np.diag(c)
+    if np.any(d < 0) or np.any(d > MAX_POSE_VARIANCE):
+        text = (
+            f"expected variances in [0, {MAX_POSE_VARIANCE}] (x y z roll pitch yaw), found "
+            f"{', '.join(f'{v:.3g}' for v in d)}"
+        )
+        raise WireError("bad-pose-covariance", text)
+    tol = POSE_COVARIANCE_TOLERANCE * max(float(d.max()), 1e-12)
+    asym = float(np.abs(c - c.T).max())
+    if asym > tol:
+        raise WireError(
+            "bad-pose-covariance", f"expected a symmetric covariance, found {asym:.3g} apart"
+        )
+    low = float(np.linalg.eigvalsh(0.5 * (c + c.T)).min())
+    if low < -tol:
+        text = f"expected a positive semi-definite covariance, found an eigenvalue {low:.3g}"
+        raise WireError("bad-pose-covariance", text)
+    return c
+
 
 #: An inbox item: (kind "delta" | "hb" | "objects" | "align" | "pose" | "fix" | "history" |
 #: "join", key expression or agent, raw frame, a delta's hand-off marks so far: `threadclock`
@@ -274,6 +315,7 @@ class Inbox:
         if msg.frame_id != frame_of(msg.origin):
             text = f"expected a pose in {frame_of(msg.origin)!r}, found frame {msg.frame_id!r}"
             raise WireError("bad-pose", text)
+        check_pose_covariance(msg.covariance)  # a bad one: the whole Pose ignored, counted
         if self.membership is None or self.membership.find(msg.origin) is None:
             raise WireError("unknown-member", f"expected a pose of a member, found {msg.origin!r}")
         accept(self.receiver, self.metrics, msg, raw)

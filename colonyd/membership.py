@@ -7,11 +7,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 import zenoh
 
 from colonyd.runtime import undeclare
 from protocol import Heartbeat, KeyExprError, Pose
 from protocol.keyexpr import alive_key, alive_subscription, parse_key
+from voxel.localisation import frame_error
 
 #: How long a starting daemon looks for a live member with its own agent id (peers reached
 #: through gossip answer within ~0.1 s here).
@@ -47,6 +49,8 @@ class Member:
     last_seen: float = field(default_factory=time.time)
     pose: list[float] = field(default_factory=list)
     pose_std_m: float | None = None  # position standard deviation of its last Pose message
+    #: x, y, yaw covariance (its frame) of its last Pose message (validated by the inbox)
+    pose_covariance: np.ndarray | None = None
     layers: dict[str, tuple[int, int]] = field(default_factory=dict)
 
 
@@ -115,7 +119,18 @@ class Membership:
             m.pose = list(msg.position)
             cov = msg.covariance
             m.pose_std_m = float(max(0.0, cov[0] + cov[7] + cov[14]) ** 0.5)
+            planar = frame_error.planar(np.array(cov))
+            m.pose_covariance = 0.5 * (planar + planar.T)
             return True
+
+    def pose_covariances(self) -> dict[str, np.ndarray]:
+        """Each member's x, y, yaw covariance (its frame) from its last Pose message."""
+        with self._lock:
+            return {
+                a: m.pose_covariance
+                for a, m in self.members.items()
+                if m.pose_covariance is not None
+            }
 
     def alive(self) -> list[str]:
         with self._lock:

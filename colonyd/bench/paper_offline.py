@@ -2,7 +2,7 @@
 map, for A/B of estimator changes without the live runs' timing chaos.
 
 `python -m colonyd.bench.paper_offline --seed S [--lidar-range R] [--rng N] [--duration S]
-[--json FILE]`
+[--no-peer-covariance] [--json FILE]`
 
 Each robot's sim source (the experiment's spec and seed, not paced) runs through its estimator
 and maps from the estimate, as `colonyd localize` does. The peer's map (its estimated-pose voxel
@@ -10,7 +10,11 @@ grid at the end of its path) is put into the robot's frame by a fixture alignmen
 transform between the two frames with a fixed error (3 cm, -5 cm, 0.5 degrees about the
 robot's origin; its opposite for lidar-1) and the honest-error covariance measured live (6 cm,
 12 cm, 1.2 degrees, docs/LOCALISATION.md), and given to the estimator from the middle of the
-path (live first contact came at ~31 s of 60). The simulator's truth builds that fixture and
+path (live first contact came at ~31 s of 60). As the daemon does (`colonyd.colonymap`), the
+cut's covariance also holds the peer's own pose uncertainty: its filter's covariance at the
+frame nearest in time to the robot's contact (when the cut is made), as an error of its map
+about the cut's centre, moved into the robot's frame (`--no-peer-covariance`: the alignment's
+alone, as before). The simulator's truth builds that fixture and
 evaluates; no estimator reads it (as the "perfect peer map" diagnosis in docs/LOCALISATION.md).
 `--rng` draws the scans' subsample with another seed: how far a run moves when nothing but
 that changes (the noise to compare against).
@@ -26,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from colonyd.colonymap import peer_map_error
 from colonyd.estimator import ScanEstimator, get_estimator
 from colonyd.mapping import integrate_observation
 from colonyd.simrun import sim_spec
@@ -57,19 +62,27 @@ class Run:
         self.truths: list[np.ndarray] = []
         self.counts: dict[str, int] = {}
         self.covariances: list[np.ndarray] = []  # the filter's (x, y, yaw) covariance per frame
+        self.times: list[float] = []  # the time of each frame with a covariance
         self.mount = np.eye(4)
         self.grid: VoxelGrid | None = None
 
-    def go(self, peer: Run | None = None, rng: int = 0, sign: float = 1.0) -> float:
+    def go(
+        self,
+        peer: Run | None = None,
+        rng: int = 0,
+        sign: float = 1.0,
+        peer_covariance: bool = True,
+    ) -> float:
         """Run the path (with `peer`'s map from the middle on, its alignment off by `sign`
-        times `ALIGNMENT_ERROR`); the ATE."""
+        times `ALIGNMENT_ERROR`, its pose covariance in the cut's if `peer_covariance`); the
+        ATE."""
         source = open_source(self.spec, resolution=0.1)
         adapter = source.adapter
         grid = VoxelGrid(0.1, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
         estimator: Any = None
         cut: ColonyMap | None = None
         frames = len(source)
-        self.estimates, self.truths, self.covariances = [], [], []
+        self.estimates, self.truths, self.covariances, self.times = [], [], [], []
         for i, obs in enumerate(source):
             if estimator is None:
                 estimator = get_estimator(adapter, obs)
@@ -77,7 +90,8 @@ class Run:
             if peer is not None and i >= frames // 2 and self.estimates:
                 pose = self.estimates[-1]
                 if cut is None or not cut.covers(pose[:2, 3], cut.radius - 2.0):
-                    cut = peer.cut_for(self, pose, estimator, sign)
+                    at = obs.time if peer_covariance else None
+                    cut = peer.cut_for(self, pose, estimator, sign, at)
                 estimator.colony = cut
             pose = estimator(obs)
             integrate_observation(
@@ -93,6 +107,7 @@ class Run:
             self.truths.append(obs.truth)
             if isinstance(estimator, ScanEstimator) and estimator.localiser.ekf is not None:
                 self.covariances.append(estimator.localiser.ekf.covariance)
+                self.times.append(obs.time)
         self.grid = grid
         if isinstance(estimator, ScanEstimator):
             self.mount = estimator.mount
@@ -126,9 +141,16 @@ class Run:
         }
 
     def cut_for(
-        self, robot: Run, pose: np.ndarray, estimator: ScanEstimator, sign: float
+        self,
+        robot: Run,
+        pose: np.ndarray,
+        estimator: ScanEstimator,
+        sign: float,
+        at: float | None = None,
     ) -> ColonyMap:
-        """This run's map near `robot`'s pose, in its frame through the fixture alignment."""
+        """This run's map near `robot`'s pose, in its frame through the fixture alignment; its
+        covariance the alignment's, plus (at time `at`) this run's pose covariance then, as the
+        error of its map about the cut's centre (`colonymap.peer_map_error`)."""
         assert self.grid is not None, "run the peer first"
         grid = self.grid
         ours = self.truths[0] @ np.linalg.inv(self.estimates[0])  # our frame in the world
@@ -142,6 +164,10 @@ class Run:
             out: np.ndarray = (state == FREE_STATE) & (state != OCCUPIED)
             return out
 
+        covariance = ALIGNMENT_COVARIANCE
+        if at is not None and self.covariances:
+            i = int(np.argmin(np.abs(np.array(self.times) - at)))
+            covariance = covariance + peer_map_error(self.covariances[i], m, pose[:2, 3])
         planar = estimator.planar
         return colony_map(
             centres @ m[:3, :3].T + m[:3, 3],
@@ -152,7 +178,7 @@ class Run:
             centre=pose[:2, 3],
             radius=min(estimator.sensor_range, 30.0) + 2.0,
             sources=("peer",),
-            covariance=ALIGNMENT_COVARIANCE,
+            covariance=covariance,
             alignment=b"fixture",
             free=free,
             step=grid.resolution,
@@ -165,6 +191,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--lidar-range", type=float, default=4.0)
     parser.add_argument("--rng", type=int, default=0, help="seed of the scans' subsample")
     parser.add_argument("--duration", type=float, default=DURATION_S, help="seconds of path")
+    parser.add_argument(
+        "--peer-covariance",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="add the peer's pose covariance to its map's (as the daemon does; default on)",
+    )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
 
@@ -174,16 +206,21 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     lidar, depth = robot("lidar-1"), robot("depth-1")
     out: dict[str, Any] = {"seed": args.seed, "lidar_range": args.lidar_range, "rng": args.rng}
+    out["peer_covariance"] = args.peer_covariance
     out["lidar_alone"] = round(lidar.go(rng=args.rng), 4)
     out["lidar_alone_consistency"] = lidar.consistency()
     out["depth_alone"] = round(depth.go(rng=args.rng), 4)
     out["depth_alone_consistency"] = depth.consistency()
     with_lidar = robot("depth-1")
-    out["depth_with_lidar"] = round(with_lidar.go(lidar, rng=args.rng), 4)
+    out["depth_with_lidar"] = round(
+        with_lidar.go(lidar, rng=args.rng, peer_covariance=args.peer_covariance), 4
+    )
     out["depth_counts"] = with_lidar.counts
     out["depth_with_lidar_consistency"] = with_lidar.consistency()
     with_depth = robot("lidar-1")
-    out["lidar_with_depth"] = round(with_depth.go(depth, rng=args.rng, sign=-1.0), 4)
+    out["lidar_with_depth"] = round(
+        with_depth.go(depth, rng=args.rng, sign=-1.0, peer_covariance=args.peer_covariance), 4
+    )
     out["lidar_counts"] = with_depth.counts
     out["lidar_with_depth_consistency"] = with_depth.consistency()
     print(json.dumps(out))

@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 
 from colonyd.alignment import ColonyFrame
-from colonyd.colonymap import ColonyMaps
+from colonyd.colonymap import ColonyMaps, PeerError, cut_error, peer_map_error
 from colonyd.layers import Layers
 from voxel.delta import Delta
+from voxel.localisation import frame_error
 
 
 def _layers() -> Layers:
@@ -49,3 +50,62 @@ def test_the_cut_holds_the_peers_wall_in_our_frame_and_is_kept_until_something_c
     assert report is not None and report["sources"] == ["peer"] and report["points"] > 0
     alone = ColonyFrame("me", {"me": np.eye(4)})  # not aligned with anyone: no colony map
     assert maps.refresh(layers, alone, np.eye(4)) is None and maps.report() is None
+
+
+def _turn(dx: float, yaw_deg: float) -> np.ndarray:
+    t = np.eye(4)
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    t[:2, :2] = [[c, -s], [s, c]]
+    t[0, 3] = dx
+    return t
+
+
+POSE = np.diag([0.01, 0.04, 1e-4])  # a peer's x, y, yaw covariance, its frame
+
+
+def test_a_peers_pose_error_about_the_cut_is_its_covariance_moved_into_our_frame() -> None:
+    # the cut at our origin, the peer's frame 1.03 m along x: its error about the cut is itself
+    np.testing.assert_allclose(peer_map_error(POSE, _turn(1.03, 0), np.zeros(2)), POSE, atol=1e-15)
+    # about a cut 2 m along x: a yaw error about it moves our origin sideways by 2 m x the angle
+    want = np.array([[0.01, 0.0, 0.0], [0.0, 0.04 + 4e-4, -2e-4], [0.0, -2e-4, 1e-4]])
+    np.testing.assert_allclose(peer_map_error(POSE, _turn(1.03, 0), np.array([2.0, 0.0])), want)
+    # a peer frame turned 90 degrees: its x error is our y error
+    turned = peer_map_error(POSE, _turn(0.0, 90), np.zeros(2))
+    np.testing.assert_allclose(turned, np.diag([0.04, 0.01, 1e-4]), atol=1e-15)
+
+
+def test_the_cuts_error_is_the_worst_peers_alignment_plus_pose_floored() -> None:
+    small, big, zero = np.diag([1e-4, 1e-4, 1e-6]), np.diag([0.01, 0.02, 1e-4]), np.zeros((3, 3))
+    errors = {
+        "a": PeerError(small, big, None),  # the largest: its alignment plus its pose
+        "b": PeerError(big, zero, None),
+        "c": PeerError(small, small, None),
+    }
+    np.testing.assert_allclose(cut_error(errors), small + big)
+    # a peer claiming certainty, aligned perfectly: no better than the floor
+    np.testing.assert_allclose(cut_error({"d": PeerError(zero, zero, zero)}), frame_error.FLOOR)
+
+
+def test_the_cut_carries_the_peers_reported_pose_covariance_and_follows_it() -> None:
+    layers = _layers()
+    frame = ColonyFrame(
+        "me", {"me": np.eye(4), "peer": _turn(1.03, 0)}, {"me": np.zeros((3, 3)), "peer": POSE / 4}
+    )
+    maps = ColonyMaps("me", planar=True, height=0.3, sensor_range=2.0)
+    alone = maps.refresh(layers, frame, np.eye(4))  # the peer sent no Pose: its alignment's
+    assert alone is not None
+    np.testing.assert_allclose(alone.covariance, POSE / 4, atol=1e-12)
+    cut = maps.refresh(layers, frame, np.eye(4), {"peer": POSE})
+    assert cut is not None and cut.points is alone.points  # the same surfaces, kept
+    np.testing.assert_allclose(cut.covariance, POSE / 4 + POSE, atol=1e-12)
+    assert maps.refresh(layers, frame, np.eye(4), {"peer": POSE}) is cut  # nothing changed
+    report = maps.report()
+    assert report is not None
+    np.testing.assert_allclose(report["covariance"], POSE * 1.25, atol=1e-12)
+    part = report["peers"]["peer"]
+    np.testing.assert_allclose(part["alignment_covariance"], POSE / 4, atol=1e-12)
+    np.testing.assert_allclose(part["pose_covariance"], POSE, atol=1e-12)
+    np.testing.assert_allclose(part["reported_pose_covariance"], POSE, atol=1e-12)
+    lost = maps.refresh(layers, frame, np.eye(4), {"peer": POSE * 100, "stranger": POSE})
+    assert lost is not None and lost.points is alone.points
+    np.testing.assert_allclose(lost.covariance, POSE / 4 + POSE * 100, atol=1e-12)
