@@ -89,6 +89,24 @@ def test_corridor_leaves_its_length_unconstrained() -> None:
     assert sd[0] > 20 * sd[1]  # along the corridor: no information
 
 
+def test_a_match_says_which_keyframes_it_used_and_how_much() -> None:
+    # Two keyframes of the room from two poses: the match's correspondences come from both, and
+    # their shares of the information add up to the Hessian behind the covariance.
+    local = LocalMap(planar=True, key_distance=0.25)
+    for pose in (np.zeros(3), np.array([1.0, 0.5, 0.3])):
+        m = se2.to_matrix(pose)
+        key = local.add(_segments_scan(pose, ROOM) @ m[:3, :3].T + m[:3, 3], m)
+        assert key == local.ids[-1]
+    assert local.ids == [0, 1] and set(np.unique(local.labels).tolist()) == {0, 1}
+    truth = np.array([0.5, 0.2, 0.1])
+    result = match(_segments_scan(truth, ROOM), local, se2.to_matrix(truth + 0.03))
+    assert result.ok and result.labels is not None and result.information is not None
+    assert result.labels.tolist() == [0, 1]
+    total = result.information.sum(axis=0)
+    scaled = result.covariance @ total  # a multiple of the identity: cov = c * H^-1
+    np.testing.assert_allclose(scaled, scaled[0, 0] * np.eye(3), atol=1e-3 * scaled[0, 0])
+
+
 #: A 10 cm thick wall (faces at x = -0.05 and +0.05) and a long wall at y = 3 seen from both sides
 #: of it: only the thin wall constrains x.
 THIN_WALL = [((-0.05, -2), (-0.05, 2)), ((0.05, -2), (0.05, 2)), ((-4, 3), (4, 3))]
