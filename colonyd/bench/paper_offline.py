@@ -18,12 +18,27 @@ alone, as before). The simulator's truth builds that fixture and
 evaluates; no estimator reads it (as the "perfect peer map" diagnosis in docs/LOCALISATION.md).
 `--rng` draws the scans' subsample with another seed: how far a run moves when nothing but
 that changes (the noise to compare against).
+
+Diagnostics (bounds, docs/BENCHMARKS.md "Bounds"; none changes the estimator's code):
+`--perfect-peer` gives lidar-1 depth-1's map built from depth-1's true poses (the best map a
+peer could give: truth builds this fixture, as it builds the alignment); `--exact-alignment`
+puts the peer's map in without the fixture's error; `--contact F` gives the peer's map from
+that fraction of the path on (0: from the start; default 0.5; comma-separated: each);
+`--relax` (comma-separated: each) `nosuspend` never suspends the colony map for refusals,
+`nogate` also fuses every colony match ungated, `inflate` adds (5 cm, 5 cm, 1 degree)^2 to
+the filter's covariance before each colony match (what an honest state covariance of that
+size would let through), `inflate-nosuspend` both; `--keyframes K` sizes lidar-1's local
+map; `--lidar-noise M` sets lidar-1's range noise (standard deviation, m); `--lidar-only`
+skips depth-1 with lidar-1's map; `--profile S` adds lidar-1's error every S seconds of path
+(true position, fitted error, and, in its own frame from the first pose, the error along and
+across its heading and in heading).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from collections import deque
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -46,15 +61,56 @@ from voxel.occupancy import FREE_STATE, OCCUPIED
 ALIGNMENT_ERROR = (0.03, -0.05, float(np.radians(0.5)))
 ALIGNMENT_COVARIANCE = np.diag([0.06**2, 0.12**2, float(np.radians(1.2)) ** 2])
 DURATION_S = 60.0
+#: `--relax inflate`: added to the filter's (x, y, yaw) covariance before each colony match.
+INFLATION = np.diag([0.05**2, 0.05**2, float(np.radians(1.0)) ** 2])
+
+
+RELAXED = ("none", "nosuspend", "nogate", "inflate", "inflate-nosuspend")
+
+
+def relax(estimator: ScanEstimator, how: str) -> None:
+    """Diagnostic only: loosen how `estimator` takes colony matches. `nosuspend`: the colony
+    map is never suspended for refusals; `nogate`: nor is any match gated (every one fused);
+    `inflate`: the state covariance is widened by `INFLATION` before each colony match (gate
+    and suspension as they are); `inflate-nosuspend`: both."""
+    loc = estimator.localiser
+    ekf = loc.ekf
+    assert ekf is not None, "relax after the first step"
+    if how in ("nosuspend", "nogate", "inflate-nosuspend"):
+        loc.params = replace(loc.params, colony_refusals=1.0)
+    if how == "nogate":
+        plain = ekf.update_offset
+
+        def ungated(pose: np.ndarray, covariance: np.ndarray, gate: float | None = None) -> bool:
+            return plain(pose, covariance, gate=None)
+
+        setattr(ekf, "update_offset", ungated)  # noqa: B010 - an instance's method, diagnostic
+    if how.startswith("inflate"):
+        update = loc._colony_update
+
+        def widened(pts: np.ndarray, colony: ColonyMap) -> Any:
+            ekf.kf.P = ekf.kf.P + INFLATION
+            return update(pts, colony)
+
+        setattr(loc, "_colony_update", widened)  # noqa: B010 - an instance's method, diagnostic
 
 
 class Run:
     """One robot's path through its estimator: estimated and true sensor poses, its map."""
 
     def __init__(
-        self, agent: str, seed: int, lidar_range: float, duration: float = DURATION_S
+        self,
+        agent: str,
+        seed: int,
+        lidar_range: float,
+        duration: float = DURATION_S,
+        keyframes: int | None = None,
+        lidar_noise: float | None = None,
     ) -> None:
         options = f"lidar_range={lidar_range:g}" if agent == "lidar-1" else ""
+        if agent == "lidar-1" and lidar_noise is not None:
+            options += f",range_noise={lidar_noise:g}"
+        self.keyframes = keyframes
         self.spec = sim_spec(
             agent, duration, seed, odometry_noise="realistic", realtime=False, options=options
         )
@@ -71,11 +127,13 @@ class Run:
         peer: Run | None = None,
         rng: int = 0,
         sign: float = 1.0,
+        contact: float = 0.5,
+        relaxed: str = "none",
         peer_covariance: bool = True,
     ) -> float:
-        """Run the path (with `peer`'s map from the middle on, its alignment off by `sign`
-        times `ALIGNMENT_ERROR`, its pose covariance in the cut's if `peer_covariance`); the
-        ATE."""
+        """Run the path (with `peer`'s map from `contact` of the path on, its alignment off by
+        `sign` times `ALIGNMENT_ERROR`, its pose covariance in the cut's if `peer_covariance`;
+        `relaxed`: see `relax`); the ATE."""
         source = open_source(self.spec, resolution=0.1)
         adapter = source.adapter
         grid = VoxelGrid(0.1, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
@@ -87,7 +145,11 @@ class Run:
             if estimator is None:
                 estimator = get_estimator(adapter, obs)
                 estimator.localiser.rng = np.random.default_rng(rng)
-            if peer is not None and i >= frames // 2 and self.estimates:
+                if self.keyframes is not None:
+                    estimator.localiser.local.frames = deque(maxlen=self.keyframes)
+            elif relaxed != "none" and i == 1:
+                relax(estimator, relaxed)
+            if peer is not None and i >= max(1, int(frames * contact)) and self.estimates:
                 pose = self.estimates[-1]
                 if cut is None or not cut.covers(pose[:2, 3], cut.radius - 2.0):
                     at = obs.time if peer_covariance else None
@@ -113,6 +175,54 @@ class Run:
             self.mount = estimator.mount
             self.counts = {k: v for k, v in estimator.counts().items() if k.startswith("colony")}
         return absolute_trajectory_error(np.array(self.truths), np.array(self.estimates)).rmse
+
+    def perfect(self) -> None:
+        """Diagnostic fixture: this robot's map built from its true poses (its estimates are
+        the truth), the best map it could give a peer. No estimator runs."""
+        source = open_source(self.spec, resolution=0.1)
+        adapter = source.adapter
+        grid = VoxelGrid(0.1, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
+        self.estimates, self.truths, self.covariances = [], [], []
+        for obs in source:
+            if obs.truth is None:
+                msg = f"{self.spec}: expected the simulator's truth to build from, found none"
+                raise ValueError(msg)
+            integrate_observation(
+                grid,
+                replace(obs, pose=obs.truth),
+                sensor=adapter.sensor_model,
+                reliability=adapter.reliability,
+            )
+            self.estimates.append(obs.truth)
+            self.truths.append(obs.truth)
+        self.grid = grid
+
+    def profile(self, every: float, rate: float = 10.0) -> list[list[float]]:
+        """Every `every` seconds of path: [t, true x, true y, fitted error, along, across,
+        heading error in degrees] (evaluation only). The fitted error is the ATE's (after the
+        Umeyama fit); along / across / heading are the body's error in its own frame from the
+        first pose, along and across its true heading."""
+        truths, estimates = np.array(self.truths), np.array(self.estimates)
+        fitted = absolute_trajectory_error(truths, estimates).errors
+        frame = self.truths[0] @ np.linalg.inv(self.estimates[0])
+        back, unmount = np.linalg.inv(frame), np.linalg.inv(self.mount)
+        rows = []
+        for i in range(0, len(truths), max(1, round(every * rate))):
+            t = se2.from_matrix(back @ truths[i] @ unmount)
+            e = t - se2.from_matrix(estimates[i] @ unmount)
+            c, s = np.cos(t[2]), np.sin(t[2])
+            rows.append(
+                [
+                    round(i / rate, 1),
+                    round(float(truths[i][0, 3]), 2),
+                    round(float(truths[i][1, 3]), 2),
+                    round(float(fitted[i]), 3),
+                    round(float(c * e[0] + s * e[1]), 3),
+                    round(float(-s * e[0] + c * e[1]), 3),
+                    round(float(np.degrees(se2.wrap(float(e[2])))), 2),
+                ]
+            )
+        return rows
 
     def consistency(self) -> dict[str, float]:
         """How honest the filter's covariance was: the body pose error in the robot's own frame
@@ -185,6 +295,23 @@ class Run:
         )
 
 
+def _relaxed(text: str) -> list[str]:
+    out = text.split(",")
+    for how in out:
+        if how not in RELAXED:
+            msg = f"expected comma-separated names of {RELAXED}, found {how!r}"
+            raise argparse.ArgumentTypeError(msg)
+    return out
+
+
+def _fractions(text: str) -> list[float]:
+    out = [float(x) for x in text.split(",")]
+    if not all(0.0 <= x < 1.0 for x in out):
+        msg = f"expected comma-separated fractions in [0, 1), found {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return out
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m colonyd.bench.paper_offline")
     parser.add_argument("--seed", type=int, default=1)
@@ -198,31 +325,80 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         help="add the peer's pose covariance to its map's (as the daemon does; default on)",
     )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
+    diag = parser.add_argument_group("diagnostics (bounds; truth builds fixtures only)")
+    diag.add_argument(
+        "--perfect-peer", action="store_true", help="depth-1's map from its true poses"
+    )
+    diag.add_argument(
+        "--contact",
+        type=_fractions,
+        default=[0.5],
+        help="comma-separated fractions of the path before the peer's map",
+    )
+    diag.add_argument(
+        "--relax", type=_relaxed, default=["none"], help=f"comma-separated, of {RELAXED}"
+    )
+    diag.add_argument("--keyframes", type=int, help="lidar-1's local map size (default 100)")
+    diag.add_argument(
+        "--lidar-noise", type=float, help="lidar-1's range noise in m (the sim's default 0.01)"
+    )
+    diag.add_argument(
+        "--exact-alignment", action="store_true", help="the peer's map without alignment error"
+    )
+    diag.add_argument("--lidar-only", action="store_true", help="skip depth-1 with lidar-1's map")
+    diag.add_argument("--profile", type=float, help="lidar-1's error every this many seconds")
     args = parser.parse_args(argv)
 
     def robot(agent: str) -> Run:
         seed = 100 * args.seed + (1 if agent == "lidar-1" else 2)
-        return Run(agent, seed, args.lidar_range, args.duration)
+        keyframes = args.keyframes if agent == "lidar-1" else None
+        noise = args.lidar_noise if agent == "lidar-1" else None
+        return Run(agent, seed, args.lidar_range, args.duration, keyframes, noise)
 
     lidar, depth = robot("lidar-1"), robot("depth-1")
     out: dict[str, Any] = {"seed": args.seed, "lidar_range": args.lidar_range, "rng": args.rng}
     out["peer_covariance"] = args.peer_covariance
+    for name in (
+        "perfect_peer",
+        "contact",
+        "relax",
+        "keyframes",
+        "duration",
+        "exact_alignment",
+        "lidar_noise",
+    ):
+        if getattr(args, name) != parser.get_default(name):
+            out[name] = getattr(args, name)
     out["lidar_alone"] = round(lidar.go(rng=args.rng), 4)
     out["lidar_alone_consistency"] = lidar.consistency()
-    out["depth_alone"] = round(depth.go(rng=args.rng), 4)
-    out["depth_alone_consistency"] = depth.consistency()
-    with_lidar = robot("depth-1")
-    out["depth_with_lidar"] = round(
-        with_lidar.go(lidar, rng=args.rng, peer_covariance=args.peer_covariance), 4
-    )
-    out["depth_counts"] = with_lidar.counts
-    out["depth_with_lidar_consistency"] = with_lidar.consistency()
-    with_depth = robot("lidar-1")
-    out["lidar_with_depth"] = round(
-        with_depth.go(depth, rng=args.rng, sign=-1.0, peer_covariance=args.peer_covariance), 4
-    )
-    out["lidar_counts"] = with_depth.counts
-    out["lidar_with_depth_consistency"] = with_depth.consistency()
+    if args.profile:
+        out["lidar_alone_profile"] = lidar.profile(args.profile)
+    if args.perfect_peer:
+        depth.perfect()
+    else:
+        out["depth_alone"] = round(depth.go(rng=args.rng), 4)
+        out["depth_alone_consistency"] = depth.consistency()
+    if not args.lidar_only:
+        with_lidar = robot("depth-1")
+        out["depth_with_lidar"] = round(
+            with_lidar.go(lidar, rng=args.rng, peer_covariance=args.peer_covariance), 4
+        )
+        out["depth_counts"] = with_lidar.counts
+        out["depth_with_lidar_consistency"] = with_lidar.consistency()
+    sign = 0.0 if args.exact_alignment else -1.0
+    for contact in args.contact:  # every variant with the same peer map (the first: plain keys)
+        for how in args.relax:
+            tail = (
+                "" if (contact, how) == (args.contact[0], args.relax[0]) else f"@{how}@{contact:g}"
+            )
+            with_depth = robot("lidar-1")
+            out[f"lidar_with_depth{tail}"] = round(
+                with_depth.go(depth, args.rng, sign, contact, how, args.peer_covariance), 4
+            )
+            out[f"lidar_counts{tail}"] = with_depth.counts
+            out[f"lidar_with_depth_consistency{tail}"] = with_depth.consistency()
+            if args.profile:
+                out[f"lidar_with_depth_profile{tail}"] = with_depth.profile(args.profile)
     print(json.dumps(out))
     if args.json is not None:
         with args.json.open("a", encoding="ascii") as f:

@@ -22,3 +22,24 @@ def test_paper_offline_runs_both_robots_alone_and_with_the_others_map(tmp_path):
         assert 0.0 < honest["sigma_m"] < 0.5 and 0.0 <= honest["error_m"] < 0.5, run
     assert got["peer_covariance"] is True  # the daemon's behaviour: the peer's own pose error too
     assert json.loads(out.read_text().splitlines()[-1]) == got
+
+
+def test_paper_offline_bounds_diagnostics_run_lidar_against_a_perfect_peer_map():
+    got = main(
+        [
+            "--seed", "1", "--duration", "3", "--perfect-peer", "--lidar-only",
+            "--relax", "none,nogate", "--contact", "0.5,0", "--profile", "1", "--keyframes", "60",
+        ]
+    )  # fmt: skip
+    assert "depth_alone" not in got and "depth_with_lidar" not in got  # no estimator for depth-1
+    keys = ("lidar_with_depth", "lidar_with_depth@nogate@0.5", "lidar_with_depth@none@0")
+    for key in (*keys, "lidar_with_depth@nogate@0"):
+        assert 0.0 <= got[key] < 0.5, key
+    # from the start, every scan but the first was tried against the peer's map
+    assert sum(got["lidar_counts@none@0"].values()) == 29
+    assert sum(got["lidar_counts"].values()) == 15
+    assert not got["lidar_counts@nogate@0"]["colony_rejected"]  # ungated: nothing refused
+    rows = got["lidar_alone_profile"]
+    assert [r[0] for r in rows] == [0.0, 1.0, 2.0]
+    assert all(len(r) == 7 and r[3] >= 0.0 for r in rows)
+    assert got["keyframes"] == 60 and got["perfect_peer"] is True
