@@ -736,7 +736,7 @@ class Daemon:
                     height=estimator.height,
                     sensor_range=estimator.sensor_range,
                 )
-            poses = self.membership.pose_covariances()
+            poses = self.membership.pose_covariances() if self.config.colony_peer_pose else {}
             estimator.colony = maps.refresh(self.layers, frame, pose, poses)
 
     def _localisation_report(self) -> dict[str, Any]:

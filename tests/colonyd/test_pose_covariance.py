@@ -99,13 +99,15 @@ def test_a_hostile_pose_covariance_is_refused_counted_and_changes_nothing(make_c
     assert seen["pose_std_m"] == pytest.approx(np.sqrt(0.04 + 0.09)), seen
 
 
-def test_a_colony_map_holds_its_peers_reported_pose_covariance(make_colony):
+@pytest.mark.parametrize("peer_pose", [True, False])
+def test_a_colony_map_holds_its_peers_reported_pose_covariance(make_colony, peer_pose):
     """A localising lidar robot aligned (by the peer's offer) with a peer that reports a known
-    pose covariance: its status shows the colony map's covariance with the peer's in it."""
+    pose covariance: its status shows the colony map's covariance with the peer's in it (not
+    with `colony_peer_pose` off)."""
     colony = make_colony("peercov", extra=["--colony-key", SECRET])
     spec = "sim:world=office,agent=lidar-1,frames=200,seed=1,odometry_noise=realistic"
     d = colony.add("b", [spec], start=False)
-    d.env = {"COLONYD_COLONY_MAP_S": "0.3"}
+    d.env = {"COLONYD_COLONY_MAP_S": "0.3", "COLONYD_COLONY_PEER_POSE": str(peer_pose).lower()}
     d.start()
     colony.wait_members(1)
     s, ns, key = colony.session(), colony.namespace, colony_key(SECRET)
@@ -137,12 +139,20 @@ def test_a_colony_map_holds_its_peers_reported_pose_covariance(make_colony):
         entries = [v for k, v in reports[0]["localisation"].items() if k.startswith("sim:")]
         made = entries[0].get("colony_map") if entries else None
         part = (made or {}).get("peers", {}).get("peer")
-        return made if part and part["reported_pose_covariance"] is not None else None
+        posed = any(m["agent"] == "peer" and m["pose_std_m"] for m in reports[0]["members"])
+        if not part or not posed or (peer_pose and part["reported_pose_covariance"] is None):
+            return None
+        return made
 
     (b,) = colony.wait_status(lambda rs: cut(rs) is not None, 30, agents=("b",))
     made = cut([b])
     assert made is not None and made["sources"] == ["peer"] and made["points"] > 0, made
     part = made["peers"]["peer"]
+    if not peer_pose:  # the Pose arrived (members), the colony map left it out
+        assert part["reported_pose_covariance"] is None, part
+        total = frame_error.floored(np.array(part["alignment_covariance"]))
+        np.testing.assert_allclose(made["covariance"], total, atol=1e-9)
+        return
     np.testing.assert_allclose(part["reported_pose_covariance"], GOOD, atol=1e-9)
     # its pose error about the cut's centre (identity alignment: our frame is the peer's)
     pose = frame_error.about(GOOD, np.array(made["centre"]))
