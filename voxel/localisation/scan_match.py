@@ -385,8 +385,9 @@ def match(
     independent constraints, not points: residuals on one `patch`-sized piece of surface share
     its error (`patch_covariance`), at least the map cell's; a degenerate direction
     (`DEGENERATE`; Zhang, Kaess & Singh 2016) gets the variance of no information. Wrong
-    convergence, which the Hessian at one minimum cannot see and which Brossard, Bonnabel & Barrau (2020, "A new approach to 3D ICP covariance
-    estimation", RA-L) find dominates real ICP errors: `probe` (default: dof 3) restarts
+    convergence, which the Hessian at one minimum cannot see and which Brossard, Bonnabel &
+    Barrau (2020, "A new approach to 3D ICP covariance estimation", RA-L) find dominates real
+    ICP errors: `probe` (default: dof 3) restarts
     Gauss-Newton half a final distance, a map cell or two standard deviations either side
     along the least constrained horizontal direction; a restart that ends elsewhere with as good
     a score (`_score`) widens the covariance to cover it (a wall's length, a repeating
