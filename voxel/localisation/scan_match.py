@@ -13,6 +13,9 @@ import numpy as np
 from voxel.errors import LocalisationError
 from voxel.localisation import se2
 
+#: A direction of the Gauss-Newton Hessian with less than this share of its largest eigenvalue
+#: is degenerate (`patch_covariance`).
+DEGENERATE = 0.01
 #: At most this many scan points in a restart (a regular subsample of the scan).
 PROBE_POINTS = 500
 #: A restart's score (mean Cauchy loss) at most this times the best one's: as good a fit.
@@ -344,6 +347,20 @@ def patch_covariance(
     # nothing constrains keeps a variance of ~1e6 * within, as the plain inverse Hessian gives
     meat = within * (wj.T @ wj + 1e-6 * np.eye(dof)) + shared * (sums.T @ sums)
     cov = hinv @ meat @ hinv
+    # Degenerate directions (Zhang, Kaess & Singh 2016): where H holds less than `DEGENERATE`
+    # of its strongest direction's information, that little is the normals' noise (a wall's
+    # normals tilted by a degree "constrain" its length), not the surface: unconstrained there.
+    # Rotations are compared in metres at the scan's effective lever arm (rotation information
+    # over translation information, each per axis).
+    t, rot = (slice(0, 2), slice(2, 3)) if dof == 3 else (slice(0, 3), slice(3, 6))
+    lever2 = float(np.trace(h[rot, rot]) / max(float(np.trace(h[t, t])), 1e-12))
+    scale = np.ones(dof)
+    scale[rot] = 1.0 / math.sqrt(max(lever2, 1e-6))
+    values, vectors = np.linalg.eigh(h * np.outer(scale, scale))
+    weak = values < DEGENERATE * values[-1]
+    if weak.any():
+        v = vectors[:, weak] * scale[:, None]  # back to the pose's units
+        cov = cov + 1e6 * within * (v @ v.T)  # as the 1e-6 prior alone would give
     return 0.5 * (cov + cov.T), {"within": within, "shared": shared, "patches": float(count)}
 
 
@@ -393,10 +410,11 @@ def match(
     The covariance (times `inflation`) covers the three sources of error Censi (2007, "An
     accurate closed-form estimate of ICP's covariance") lists. Sensor noise, counting
     independent constraints, not points: residuals on one `patch`-sized piece of surface share
-    its error (`patch_covariance`), at least the map cell's; under-constrained directions keep
-    the inverse Hessian's large variance. Wrong convergence, which the Hessian at one minimum
-    cannot see and which Brossard, Bonnabel & Barrau (2020, "A new approach to 3D ICP covariance
-    estimation", RA-L) find dominates real ICP errors: `probe` (default: dof 3) restarts
+    its error (`patch_covariance`), at least the map cell's; a degenerate direction
+    (`DEGENERATE`; Zhang, Kaess & Singh 2016) gets the variance of no information. Wrong
+    convergence, which the Hessian at one minimum cannot see and which Brossard, Bonnabel &
+    Barrau (2020, "A new approach to 3D ICP covariance estimation", RA-L) find dominates real
+    ICP errors: `probe` (default: dof 3) restarts
     Gauss-Newton half a final distance, a map cell or two standard deviations either side
     along the least constrained horizontal direction; a restart that ends elsewhere with as good
     a score (`_score`) widens the covariance to cover it (a wall's length, a repeating
