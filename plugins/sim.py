@@ -34,6 +34,10 @@ OPTICAL = np.array(
 
 SENSORS = ("depth", "lidar2d", "lidar3d", "cctv")
 
+#: A robot's body radius in plan (m): a moving agent's path keeps its centre at least this far
+#: from every box and cylinder standing on the floor (tests/plugins/test_sim.py checks it).
+ROBOT_RADIUS = 0.25
+
 
 @dataclass(frozen=True)
 class AgentSpec:
