@@ -118,7 +118,7 @@ AGENTS: dict[str, dict[str, AgentSpec]] = {
         ),
     },
     "office": {
-        # West room's south (under the landmark at (-3, -2)), east along y = 0 through the
+        # North-east past the landmark at (-3, -2) (ahead at the start), east along y = 0 through the
         # doorway, up to the east room's north-east, back west above the landmark at (2, 1),
         # through the doorway and west along y = 0.
         "depth-1": AgentSpec(
@@ -126,7 +126,7 @@ AGENTS: dict[str, dict[str, AgentSpec]] = {
             "depth",
             (
                 (-5.0, -2.6),
-                (-2.4, -2.6),
+                (-3.5, -1.4),
                 (-1.0, -1.0),
                 (-1.0, 0.0),
                 (3.0, 0.0),
@@ -165,7 +165,7 @@ AGENTS: dict[str, dict[str, AgentSpec]] = {
             "lidar3d",
             (
                 (-4.0, -3.0),
-                (-1.6, -2.7),
+                (-3.7, -1.5),
                 (-0.8, 0.0),
                 (0.8, 0.0),
                 (2.5, -2.0),
@@ -173,7 +173,7 @@ AGENTS: dict[str, dict[str, AgentSpec]] = {
                 (3.0, 0.2),
                 (0.8, 0.0),
                 (-0.8, 0.0),
-                (-3.8, -1.2),
+                (-1.6, -2.7),
             ),
             marker=28,
         ),
