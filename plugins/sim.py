@@ -118,9 +118,9 @@ AGENTS: dict[str, dict[str, AgentSpec]] = {
         ),
     },
     "office": {
-        # North-east past the landmark at (-3, -2) (ahead at the start), east along y = 0 through the
-        # doorway, up to the east room's north-east, back west above the landmark at (2, 1),
-        # through the doorway and west along y = 0.
+        # North-east past the landmark at (-3, -2) (ahead at the start), east along y = 0
+        # through the doorway, up to the east room's north-east, back west above the landmark
+        # at (2, 1), through the doorway and west along y = 0.
         "depth-1": AgentSpec(
             "depth-1",
             "depth",
