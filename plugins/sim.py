@@ -34,6 +34,10 @@ OPTICAL = np.array(
 
 SENSORS = ("depth", "lidar2d", "lidar3d", "cctv")
 
+#: A robot's body radius in plan (m): a moving agent's path keeps its centre at least this far
+#: from every box and cylinder standing on the floor (tests/plugins/test_sim.py checks it).
+ROBOT_RADIUS = 0.25
+
 
 @dataclass(frozen=True)
 class AgentSpec:
@@ -90,18 +94,23 @@ def boards_at(agent: AgentSpec, body: np.ndarray) -> list[Marker]:
     return boards
 
 
+#: The sim worlds' agents. A moving agent's path keeps its body (a disc of ROBOT_RADIUS) clear
+#: of every solid, aiming for 0.3-0.35 m from its centre to the nearest surface; in the office it
+#: crosses between the rooms only through the doorway (x = 0, |y| < 0.6), along y = 0.
+#: depth-1 and lidar-1 each tour both rooms on overlapping paths (they see common objects and
+#: each other's areas); cctv-1 watches the west room's south half, cctv-2 the east room's north.
 AGENTS: dict[str, dict[str, AgentSpec]] = {
     "room": {
         "depth-1": AgentSpec(
             "depth-1", "depth", ((-2.0, -2.0), (2.0, -2.0), (2.0, 0.5), (-2.0, 0.0)), marker=20
         ),
         "lidar-1": AgentSpec(
-            "lidar-1", "lidar2d", ((-2.2, -2.2), (2.2, -2.2), (2.2, 2.2), (-2.2, 2.2)), marker=24
+            "lidar-1", "lidar2d", ((-2.4, -2.2), (2.2, -2.2), (2.2, 2.2), (-2.4, 2.2)), marker=24
         ),
         "lidar3d-1": AgentSpec(
             "lidar3d-1",
             "lidar3d",
-            ((0.0, -2.0), (2.0, 0.0), (0.0, 2.3), (-2.3, 0.0)),
+            ((0.0, -2.0), (1.9, 0.0), (0.0, 2.2), (-2.4, 2.3), (-2.3, 0.0)),
             marker=28,
         ),
         "cctv-1": AgentSpec(
@@ -109,22 +118,63 @@ AGENTS: dict[str, dict[str, AgentSpec]] = {
         ),
     },
     "office": {
+        # North-east past the landmark at (-3, -2) (ahead at the start), east along y = 0
+        # through the doorway, up to the east room's north-east, back west above the landmark
+        # at (2, 1), through the doorway and west along y = 0.
         "depth-1": AgentSpec(
             "depth-1",
             "depth",
-            ((-5.0, -3.0), (-1.0, -1.0), (-1.0, 0.0), (3.0, 0.0), (5.0, 2.0), (-5.0, 0.0)),
+            (
+                (-5.0, -2.6),
+                (-3.5, -1.4),
+                (-1.0, -1.0),
+                (-1.0, 0.0),
+                (3.0, 0.0),
+                (4.9, 1.6),
+                (0.8, 1.9),
+                (0.8, 0.0),
+                (-5.0, 0.0),
+            ),
             marker=20,
         ),
+        # East along y = 0 through the doorway, round the east room (south-east corner, west of
+        # the bin at (5.2, 0.5), its north), back through the doorway and round the west room
+        # (its 10 m north wall, above the box at (-3.9, 2.9)).
         "lidar-1": AgentSpec(
             "lidar-1",
             "lidar2d",
-            ((-5.0, 0.0), (-1.0, 0.0), (2.5, 0.0), (5.0, -3.0), (5.0, 3.0), (-5.0, 3.5)),
+            (
+                (-5.0, 0.0),
+                (-1.0, 0.0),
+                (2.5, 0.0),
+                (3.3, -1.7),
+                (4.9, -2.2),
+                (5.0, -0.5),
+                (4.3, 1.0),
+                (3.5, 2.6),
+                (0.8, 2.6),
+                (0.8, 0.0),
+                (-0.8, 0.0),
+                (-0.8, 3.65),
+                (-5.0, 3.65),
+            ),
             marker=24,
         ),
         "lidar3d-1": AgentSpec(
             "lidar3d-1",
             "lidar3d",
-            ((-4.0, -3.0), (-0.8, 0.0), (2.5, -2.0), (5.0, 1.5), (0.8, 0.0)),
+            (
+                (-4.0, -3.0),
+                (-3.7, -1.5),
+                (-0.8, 0.0),
+                (0.8, 0.0),
+                (2.5, -2.0),
+                (4.8, 1.6),
+                (3.0, 0.2),
+                (0.8, 0.0),
+                (-0.8, 0.0),
+                (-1.6, -2.7),
+            ),
             marker=28,
         ),
         "cctv-1": AgentSpec(

@@ -9,7 +9,7 @@ from colonyd.bench.align_live import PAIR_DEG, PAIR_M, run_live
 def test_office_agents_at_unknown_poses_share_one_aligned_frame(tmp_path):
     agents = (("office", "depth-1"), ("office", "lidar3d-1"), ("room", "lidar3d-1"))
     names = ("depth", "lidar3d", "room")
-    r = run_live(tmp_path, agents, names=names, frames=60, noise=0.0, align_s=1.0, timeout=120)
+    r = run_live(tmp_path, agents, names=names, frames=150, noise=0.0, align_s=1.0, timeout=120)
     assert r["converged"], r
     assert r["same_frame_everywhere"], r  # every daemon computed the same colony frame
     assert r["colony_frame_agents"] == ["depth", "lidar3d"], r

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from plugins.errors import SourceSpecError
-from plugins.sim import AGENTS, SimSource
+from plugins.sim import AGENTS, ROBOT_RADIUS, Path, SimSource
+from plugins.world import WORLDS, get_world
 
 
 def test_same_seed_same_stream_other_seed_other_noise() -> None:
@@ -117,3 +118,34 @@ def test_a_late_reader_skips_frames_unless_told_to_keep_them() -> None:
     kept = list(SimSource(world="room", agent="lidar-1", frames=5, epoch=epoch, keep_late=True))
     assert skipped == []
     assert [o.time - epoch for o in kept] == pytest.approx([0.0, 0.1, 0.2, 0.3, 0.4])
+
+
+def test_robots_paths_keep_their_bodies_clear_of_every_solid() -> None:
+    # Sampled along one loop of each moving agent's path in each world: the body (a disc of
+    # ROBOT_RADIUS) never overlaps a box or cylinder standing on the floor, walls included.
+    failures = []
+    for world_name in WORLDS:
+        world = get_world(world_name)
+        boxes = [b for b in world.boxes if b.lo[2] < 1.0 and b.hi[2] > 0.0]
+        lo = np.array([b.lo[:2] for b in boxes])
+        hi = np.array([b.hi[:2] for b in boxes])
+        cylinders = [c for c in world.cylinders if c.z0 < 1.0 and c.z1 > 0.0]
+        centres = np.array([c.centre for c in cylinders]).reshape(-1, 2)
+        radii = np.array([c.radius for c in cylinders])
+        for name, agent in AGENTS[world_name].items():
+            if not agent.waypoints:
+                continue
+            path = Path(agent.waypoints, agent.speed, agent.turn_rate)
+            times = np.arange(0.0, path.period, 0.02)
+            xy = np.array([path(t)[:2] for t in times])
+            gap = np.maximum(np.maximum(lo[None] - xy[:, None], xy[:, None] - hi[None]), 0.0)
+            to_box = np.linalg.norm(gap, axis=2)  # (T, boxes): 0 inside
+            to_cyl = np.linalg.norm(xy[:, None] - centres[None], axis=2) - radii[None]
+            clear = np.minimum(to_box.min(axis=1), to_cyl.min(axis=1, initial=np.inf))
+            worst = int(np.argmin(clear))
+            if clear[worst] < ROBOT_RADIUS:
+                failures.append(
+                    f"{world_name} {name} at t={times[worst]:.2f} s, (x, y) = "
+                    f"{xy[worst].round(2).tolist()}: {clear[worst]:.3f} m from a solid"
+                )
+    assert failures == [], f"bodies of radius {ROBOT_RADIUS} m overlap solids: {failures}"
