@@ -130,10 +130,9 @@ class Config(BaseSettings):
         "robot also matches its scans against (0: its own map only)",
     )
     colony_peer_pose: bool = Field(
-        False,
+        True,
         description="add each peer's reported pose covariance (its Pose messages) to the error "
-        "of its map in the colony map (default false: the alignments' error alone; measured "
-        "no gain, docs/BENCHMARKS.md)",
+        "of its map in the colony map (false: the alignments' error alone; docs/BENCHMARKS.md)",
     )
     align_s: float = Field(
         5.0, ge=0, description="seconds between alignment attempts with peers (0: none)"

@@ -2,7 +2,7 @@
 map, for A/B of estimator changes without the live runs' timing chaos.
 
 `python -m colonyd.bench.paper_offline --seed S [--lidar-range R] [--rng N] [--duration S]
-[--peer-covariance] [--json FILE]`
+[--no-peer-covariance] [--json FILE]`
 
 Each robot's sim source (the experiment's spec and seed, not paced) runs through its estimator
 and maps from the estimate, as `colonyd localize` does. The peer's map (its estimated-pose voxel
@@ -10,12 +10,12 @@ grid at the end of its path) is put into the robot's frame by a fixture alignmen
 transform between the two frames with a fixed error (3 cm, -5 cm, 0.5 degrees about the
 robot's origin; its opposite for lidar-1) and the honest-error covariance measured live (6 cm,
 12 cm, 1.2 degrees, docs/LOCALISATION.md), and given to the estimator from the middle of the
-path (live first contact came at ~31 s of 60). With `--peer-covariance` (the daemon's
-`colony_peer_pose`, off by default in both), the cut's covariance also holds the peer's own pose
-uncertainty: its filter's covariance at the frame nearest in time to the robot's contact (when
-the cut is made), as an error of its map about the cut's centre, moved into the robot's
-frame. The simulator's truth builds that fixture and
-evaluates; no estimator reads it (as the "perfect peer map" diagnosis in docs/LOCALISATION.md).
+path (live first contact came at ~31 s of 60). Unless `--no-peer-covariance` (the
+daemon's `colony_peer_pose`, on by default in both), the cut's covariance also holds the
+peer's own pose uncertainty: its filter's covariance at the frame nearest in time to the
+robot's contact (when the cut is made), as an error of its map about the cut's centre, moved
+into the robot's frame. The simulator's truth builds that fixture and evaluates; no estimator
+reads it (as the "perfect peer map" diagnosis in docs/LOCALISATION.md).
 `--rng` draws the scans' subsample with another seed: how far a run moves when nothing but
 that changes (the noise to compare against).
 
@@ -321,9 +321,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument(
         "--peer-covariance",
         action=argparse.BooleanOptionalAction,
-        default=False,
+        default=True,
         help="add the peer's pose covariance to its map's (the daemon's colony_peer_pose; "
-        "default off, as the daemon's)",
+        "default on, as the daemon's)",
     )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     diag = parser.add_argument_group("diagnostics (bounds; truth builds fixtures only)")

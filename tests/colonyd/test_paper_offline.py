@@ -20,7 +20,7 @@ def test_paper_offline_runs_both_robots_alone_and_with_the_others_map(tmp_path):
         honest = got[f"{run}_consistency"]
         assert honest["nees_mean"] > 0.0 and 0.0 <= honest["nees_over"] <= 1.0, run
         assert 0.0 < honest["sigma_m"] < 0.5 and 0.0 <= honest["error_m"] < 0.5, run
-    assert got["peer_covariance"] is False  # the daemon's default: the alignment's error alone
+    assert got["peer_covariance"] is True  # the daemon's default: the peer's own pose error too
     assert json.loads(out.read_text().splitlines()[-1]) == got
 
 
