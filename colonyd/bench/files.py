@@ -18,6 +18,15 @@ def shared_data_dir(given: Path | None) -> Path | None:
     return candidate if candidate.is_dir() else None
 
 
+def print_and_append(out: dict[str, Any], path: Path | None) -> None:
+    """Print one result as a JSON line, and append it to `path` (when given): a harness's runs,
+    one line each."""
+    print(json.dumps(out))
+    if path is not None:
+        with path.open("a", encoding="ascii") as f:
+            f.write(json.dumps(out) + "\n")
+
+
 def write_results(out_json: Path, results: list[dict[str, Any]]) -> None:
     """Write a benchmark's result list as indented JSON, creating the folder."""
     out_json = Path(out_json)

@@ -24,17 +24,17 @@ worst 20-frame window.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from colonyd.bench.files import print_and_append
 from colonyd.estimator import ScanEstimator, get_estimator
 from colonyd.simrun import sim_spec
 from plugins.source import open_source
 from voxel.localisation import se2
-from voxel.localisation.scan_match import LocalMap, match, thin
+from voxel.localisation.scan_match import LocalMap, thin
 
 #: Standard deviations of the prediction error the truth case starts each match from (x, y, yaw).
 START_ERROR = (0.03, 0.03, float(np.radians(1.0)))
@@ -126,17 +126,7 @@ def measure(agent: str, seed: int, lidar_range: float, duration: float) -> dict[
             )
         else:
             start = true + rng.normal(0.0, START_ERROR)
-            m = match(
-                pts,
-                truth_map,
-                se2.to_matrix(start),
-                dof=3,
-                max_distance=p.max_distance,
-                final_distance=p.final_distance,
-                iterations=p.iterations,
-                inflation=p.inflation,
-                sensor=loc.sensor,
-            )
+            m = loc.match_from(pts, truth_map, start)
             if m.ok:
                 e = se2.from_matrix(m.pose) - true
                 e[2] = se2.wrap(float(e[2]))
@@ -189,10 +179,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     for agent in agents:
         seed = 100 * args.seed + (1 if agent == "lidar-1" else 2)
         out[agent] = measure(agent, seed, args.lidar_range, args.duration)
-    print(json.dumps(out))
-    if args.json is not None:
-        with args.json.open("a", encoding="ascii") as f:
-            f.write(json.dumps(out) + "\n")
+    print_and_append(out, args.json)
     return out
 
 

@@ -37,7 +37,6 @@ across its heading and in heading).
 from __future__ import annotations
 
 import argparse
-import json
 from collections import deque
 from dataclasses import replace
 from pathlib import Path
@@ -45,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from colonyd.bench.files import print_and_append
 from colonyd.colonymap import peer_map_error
 from colonyd.estimator import ScanEstimator, get_estimator
 from colonyd.mapping import integrate_observation
@@ -400,10 +400,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             out[f"lidar_with_depth_consistency{tail}"] = with_depth.consistency()
             if args.profile:
                 out[f"lidar_with_depth_profile{tail}"] = with_depth.profile(args.profile)
-    print(json.dumps(out))
-    if args.json is not None:
-        with args.json.open("a", encoding="ascii") as f:
-            f.write(json.dumps(out) + "\n")
+    print_and_append(out, args.json)
     return out
 
 

@@ -13,7 +13,7 @@ import numpy as np
 from voxel.localisation import se2
 from voxel.localisation.colony_map import ColonyMap
 from voxel.localisation.ekf import MotionNoise, PlanarEkf
-from voxel.localisation.scan_match import LocalMap, Match, match, thin
+from voxel.localisation.scan_match import LocalMap, Match, MatchTarget, match, thin
 
 
 @dataclass(frozen=True)
@@ -223,11 +223,18 @@ class ScanLocaliser:
         """The scan matched (x, y, yaw) against `target` from the current estimate (for the own
         map: where the estimate appears in the newest keyframe's map, which the filter may have
         corrected since it was placed)."""
-        p = self.params
         assert self.ekf is not None  # the first step made it
         start = self.ekf.pose
         if target is self.local and self.ekf.keyframes:
             start = self.ekf.seen_from(self.ekf.keyframes[-1])
+        return self.match_from(pts, target, start, **extra)
+
+    def match_from(
+        self, pts: np.ndarray, target: MatchTarget, start: np.ndarray, **extra: Any
+    ) -> Match:
+        """The scan (body frame, thinned) matched (x, y, yaw) against `target` from the body pose
+        `start` (x, y, yaw), with this localiser's matching parameters."""
+        p = self.params
         return match(
             pts,
             target,
