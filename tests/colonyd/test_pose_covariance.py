@@ -67,9 +67,8 @@ def _pose(sender: Sender, x: float, planar: np.ndarray) -> bytes:
     )
 
 
-def test_a_hostile_pose_covariance_is_refused_counted_and_changes_nothing(make_colony):
-    colony = make_colony("posecov", extra=["--colony-key", SECRET])
-    colony.add("b")
+def _forged_member(colony):
+    """A session on `colony` and a signed peer "peer" it announced, once b lists it."""
     colony.wait_members(1)
     s, ns, key = colony.session(), colony.namespace, colony_key(SECRET)
     peer = Sender("peer", 1, key=key, signer=Signer.generate())
@@ -84,6 +83,13 @@ def test_a_hostile_pose_covariance_is_refused_counted_and_changes_nothing(make_c
     colony.wait_status(
         lambda rs: any(m["agent"] == "peer" for r in rs for m in r["members"]), agents=("b",)
     )
+    return s, ns, peer
+
+
+def test_a_hostile_pose_covariance_is_refused_counted_and_changes_nothing(make_colony):
+    colony = make_colony("posecov", extra=["--colony-key", SECRET])
+    colony.add("b")
+    s, ns, peer = _forged_member(colony)
     pose_key = topic_key(ns, "peer", "pose")
     s.put(pose_key, _pose(peer, 1.0, GOOD))
     for x, bad in ((2.0, ASYMMETRIC), (3.0, INDEFINITE), (4.0, HUGE)):
@@ -109,20 +115,7 @@ def test_a_colony_map_holds_its_peers_reported_pose_covariance(make_colony, peer
     d = colony.add("b", [spec], start=False)
     d.env = {"COLONYD_COLONY_MAP_S": "0.3", "COLONYD_COLONY_PEER_POSE": str(peer_pose).lower()}
     d.start()
-    colony.wait_members(1)
-    s, ns, key = colony.session(), colony.namespace, colony_key(SECRET)
-    peer = Sender("peer", 1, key=key, signer=Signer.generate())
-    s.put(
-        topic_key(ns, "peer", "heartbeat"),
-        peer.encode(
-            Heartbeat(
-                **peer.header(), kind="robot", frame_id=frame_of("peer"), identity=peer.identity
-            )
-        ),
-    )
-    colony.wait_status(
-        lambda rs: any(m["agent"] == "peer" for r in rs for m in r["members"]), agents=("b",)
-    )
+    s, ns, peer = _forged_member(colony)
     x = np.arange(-30, 30)  # a wall at y = 1.05 m, at the scan's height, in the peer's frame
     keys = np.column_stack([x, np.full(len(x), 10), np.full(len(x), 3)])
     wall = Delta(0.1, 0, 1, keys, np.full(len(x), 2.0), np.ones(len(x)))
