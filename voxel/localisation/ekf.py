@@ -341,8 +341,8 @@ class PlanarEkf:
             self._cross = cross - k_pose @ ph_rest.T
             new_rest = rest - k_rest @ ph_rest.T
             self._cov = 0.5 * (new_rest + new_rest.T)
-            for i in range(2, m, 3):  # every block's yaw
-                self._mean[i] = se2.wrap(float(self._mean[i]))
+            yaws = self._mean[2::3]  # every block's yaw, wrapped as se2.wrap does
+            self._mean[2::3] = np.remainder(yaws + math.pi, 2.0 * math.pi) - math.pi
         self.accepted += 1
         return True
 
