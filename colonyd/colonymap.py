@@ -115,10 +115,12 @@ def cut_error(errors: Mapping[str, PeerError]) -> np.ndarray:
     A cut merges every peer's surfaces, and one match against it is pulled by each peer's error
     in proportion to the surfaces it holds in view; the peers' errors are independent, so the
     match's is at most the worst peer's (a peer alone in view), never their sum. The largest is
-    the honest bound without knowing which peer's surfaces a scan will see."""
+    the honest bound without knowing which peer's surfaces a scan will see. Made positive
+    semi-definite (`frame_error.positive`): the peers' covariances are checked only to a
+    tolerance, and the estimator refuses one that is not a covariance."""
     totals = [e.total for e in errors.values()]
     worst: np.ndarray = max(totals, key=lambda c: float(np.trace(c[:2, :2])))
-    return frame_error.floored(worst)
+    return frame_error.floored(frame_error.positive(worst))
 
 
 def key_of(peers: list[tuple[Layer, np.ndarray]]) -> Key:

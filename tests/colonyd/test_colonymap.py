@@ -4,12 +4,16 @@ again only when an alignment changes or the robot's scans would reach past the c
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from colonyd.alignment import ColonyFrame
 from colonyd.colonymap import ColonyMaps, PeerError, cut_error, peer_map_error
+from colonyd.inbox import check_pose_covariance
 from colonyd.layers import Layers
 from voxel.delta import Delta
+from voxel.errors import LocalisationError
 from voxel.localisation import frame_error
+from voxel.localisation.ekf import PlanarEkf
 
 
 def _layers() -> Layers:
@@ -84,6 +88,26 @@ def test_the_cuts_error_is_the_worst_peers_alignment_plus_pose_floored() -> None
     np.testing.assert_allclose(cut_error(errors), small + big)
     # a peer claiming certainty, aligned perfectly: no better than the floor
     np.testing.assert_allclose(cut_error({"d": PeerError(zero, zero, zero)}), frame_error.FLOOR)
+
+
+def test_a_pose_covariance_checked_to_a_tolerance_gives_the_filter_a_covariance() -> None:
+    # A Pose whose z variance (1e4) dwarfs the rest passes the check with its x, y, yaw block
+    # indefinite (eigenvalue -0.004, within 1e-6 of 1e4): the cut's error is still a covariance,
+    # which the estimator's filter takes; unprojected, the filter refuses it.
+    planar = np.array([[0.01, 0.014, 0.0], [0.014, 0.01, 0.0], [0.0, 0.0, 1e-4]])
+    cov = np.zeros((6, 6))
+    cov[2, 2] = 1e4
+    cov[np.ix_([0, 1, 5], [0, 1, 5])] = planar
+    reported = frame_error.planar(check_pose_covariance(cov.ravel()))
+    pose = peer_map_error(reported, _turn(1.03, 0), np.array([1.0, 2.0]))
+    assert np.linalg.eigvalsh(pose).min() < -1e-3
+    error = cut_error({"peer": PeerError(frame_error.FLOOR, pose, reported)})
+    assert np.linalg.eigvalsh(error).min() > 0
+    f = PlanarEkf(np.zeros(3))
+    f.reset_offset(error)
+    f.widen_offset(error * 2)
+    with pytest.raises(LocalisationError, match="semi-definite"):
+        f.widen_offset(frame_error.FLOOR + pose)
 
 
 def test_the_cut_carries_the_peers_reported_pose_covariance_and_follows_it() -> None:

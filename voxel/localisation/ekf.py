@@ -64,11 +64,13 @@ def _filter_class() -> Any:
 class Offset:
     """The error of a map the pose is measured against (a colony map: a peer's surfaces put into
     this agent's frame by an alignment), estimated with the pose: a small motion (x, y, yaw)
-    about the agent's origin, its covariance and its cross-covariance with the pose."""
+    about the agent's origin, its covariance and its cross-covariance with the pose, and the
+    prior covariance accounted for so far (`reset_offset`'s, grown by `widen_offset`)."""
 
     value: np.ndarray  # (3,)
     covariance: np.ndarray  # (3, 3)
     cross: np.ndarray  # (3, 3): cov(pose, offset)
+    accounted: np.ndarray  # (3, 3)
 
 
 class PlanarEkf:
@@ -91,7 +93,9 @@ class PlanarEkf:
     shares the alignment's error, so fusing them as independent measurements would count the
     alignment once per scan and carry the robot into the alignment's error. Estimated as part
     of the state, the alignment's error is counted once: however many scans match a poor
-    alignment, it moves the pose no more than its covariance against the pose's allows.
+    alignment, it moves the pose no more than its covariance against the pose's allows. The
+    map's error may grow after the reset (its peer drifts or gets lost): `widen_offset` adds the
+    growth as process noise.
     """
 
     def __init__(
@@ -114,6 +118,7 @@ class PlanarEkf:
         self._cov = np.zeros((0, 0))  # (m, m)
         self._cross = np.zeros((3, 0))  # (3, m): cov(pose, rest)
         self._has_offset = False
+        self._offset_prior = np.zeros((3, 3))  # the offset's prior covariance accounted for
         self._keys: list[int] = []
         self._key_poses: list[np.ndarray] = []  # the pose each keyframe was placed at
 
@@ -134,7 +139,12 @@ class PlanarEkf:
         """The shared map's error (a copy), once `reset_offset` started estimating it."""
         if not self._has_offset:
             return None
-        return Offset(self._mean[:3].copy(), self._cov[:3, :3].copy(), self._cross[:, :3].copy())
+        return Offset(
+            self._mean[:3].copy(),
+            self._cov[:3, :3].copy(),
+            self._cross[:, :3].copy(),
+            self._offset_prior.copy(),
+        )
 
     @property
     def keyframes(self) -> list[int]:
@@ -349,10 +359,7 @@ class PlanarEkf:
     def reset_offset(self, covariance: np.ndarray) -> None:
         """Start estimating a new shared map's error: zero, with `covariance` (x, y, yaw about
         the origin: the alignment's), uncorrelated with the pose and the keyframes."""
-        c = np.asarray(covariance, np.float64)
-        if c.shape != (3, 3) or not np.all(np.isfinite(c)):
-            msg = f"offset: expected a finite 3x3 covariance, found shape {c.shape}"
-            raise LocalisationError(msg)
+        c = _checked_covariance(covariance, "offset")
         if not self._has_offset:
             m = len(self._mean)
             self._mean = np.concatenate([np.zeros(3), self._mean])
@@ -366,6 +373,32 @@ class PlanarEkf:
         self._cov[:, :3] = 0.0
         self._cov[:3, :3] = c
         self._cross[:, :3] = 0.0
+        self._offset_prior = c.copy()
+
+    def widen_offset(self, covariance: np.ndarray) -> np.ndarray:
+        """The shared map's error now has the prior `covariance` (x, y, yaw about the origin), as
+        its sources say today (a peer that drifted or got lost since `reset_offset`): add, as
+        process noise, its growth beyond what is accounted for, and return that noise (3x3).
+
+        The map's error is modelled as a random walk: b' = b + w, w independent of everything
+        else, so the offset's mean and its correlations with the pose and the keyframes stay and
+        its covariance gains cov(w) = Q. Q is `covariance` minus the prior accounted for so far,
+        where that is positive semi-definite; otherwise its positive part (the directions in
+        which the error grew; an eigenvalue below zero is a source more certain than before,
+        which is no evidence that the map here improved: only a measurement shrinks the
+        filter's covariance). What the filter learnt from matches is kept: it only widens."""
+        if not self._has_offset:
+            msg = "offset widening: expected reset_offset() first"
+            raise LocalisationError(msg)
+        c = _checked_covariance(covariance, "offset widening")
+        if np.array_equal(c, self._offset_prior):
+            return np.zeros((3, 3))
+        values, vectors = np.linalg.eigh(c - self._offset_prior)
+        q: np.ndarray = (vectors * np.maximum(values, 0.0)) @ vectors.T
+        q = 0.5 * (q + q.T)
+        self._cov[:3, :3] += q
+        self._offset_prior = self._offset_prior + q
+        return q
 
     def update_offset(
         self, pose: np.ndarray, covariance: np.ndarray, gate: float | None = GATE_3DOF
@@ -391,6 +424,31 @@ class PlanarEkf:
         y = z - h
         y[2] = se2.wrap(float(y[2]))
         return self._fuse(h_x, h_b, y, r, gate)
+
+
+#: Relative asymmetry and negative eigenvalue (of the largest variance) a covariance may have:
+#: rounding, not a wrong matrix.
+COVARIANCE_TOLERANCE = 1e-6
+
+
+def _checked_covariance(covariance: np.ndarray, what: str) -> np.ndarray:
+    """A 3x3 covariance (symmetrised), or an error saying what was wrong: finite, symmetric and
+    positive semi-definite within `COVARIANCE_TOLERANCE` of its largest variance."""
+    c = np.asarray(covariance, np.float64)
+    if c.shape != (3, 3) or not np.all(np.isfinite(c)):
+        msg = f"{what}: expected a finite 3x3 covariance, found shape {c.shape}"
+        raise LocalisationError(msg)
+    tol = COVARIANCE_TOLERANCE * max(float(np.abs(np.diag(c)).max()), 1e-12)
+    asym = float(np.abs(c - c.T).max())
+    if asym > tol:
+        msg = f"{what}: expected a symmetric covariance, found entries {asym:.3g} apart"
+        raise LocalisationError(msg)
+    c = 0.5 * (c + c.T)
+    low = float(np.linalg.eigvalsh(c).min())
+    if low < -tol:
+        msg = f"{what}: expected a positive semi-definite covariance, found an eigenvalue {low:.3g}"
+        raise LocalisationError(msg)
+    return c
 
 
 def _checked_pose(pose: np.ndarray, covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -74,6 +74,20 @@ def floored(cov: np.ndarray) -> np.ndarray:
     return out
 
 
+def positive(cov: np.ndarray) -> np.ndarray:
+    """`cov` made a covariance: symmetrised, its negative eigenvalues raised to zero (the nearest
+    positive semi-definite matrix). A peer's covariance is checked positive semi-definite only
+    to a tolerance of its largest variance (its z may dwarf its x, y, yaw), and a filter fed a
+    negative variance trusts a measurement more than certainty."""
+    c = _check(cov)
+    out: np.ndarray = 0.5 * (c + c.T)
+    values, vectors = np.linalg.eigh(out)
+    if values[0] < 0.0:
+        out = (vectors * np.maximum(values, 0.0)) @ vectors.T
+        out = 0.5 * (out + out.T)
+    return out
+
+
 def difference(t1: np.ndarray, t2: np.ndarray) -> np.ndarray:
     """The small motion (x, y, yaw), applied after `t1`, that gives `t2` (both 4x4, same frames)."""
     d = np.asarray(t2, np.float64) @ np.linalg.inv(np.asarray(t1, np.float64))

@@ -259,6 +259,8 @@ class ScanLocaliser:
         if self.ekf.offset is None or self._offset_of != colony.alignment:
             self.ekf.reset_offset(colony.covariance)  # new alignments: a new error to estimate
             self._offset_of = colony.alignment
+        else:  # the same alignments; a peer that drifted or got lost since widens their error
+            self.ekf.widen_offset(colony.covariance)
         fused = self.ekf.update_offset(se2.from_matrix(result.pose), result.covariance)
         if fused:
             self.colony_accepted += 1

@@ -216,3 +216,37 @@ def test_a_2d_scanners_map_corrects_a_3d_robot_as_vertical_walls() -> None:
     step = loc.step(scan, np.zeros(3), colony=peers)
     assert step.colony_fused and loc.colony_failed == 0
     np.testing.assert_allclose(step.pose, truth, atol=0.02)
+
+
+def test_a_peer_that_gets_lost_widens_its_maps_error_without_a_new_alignment() -> None:
+    # The peer's map is right and the peer sure of itself (1 cm): the robot (right, 2 cm) learns
+    # that the map's error is small. Then the peer gets lost: its map near the robot is now
+    # 15 cm off and it says so (20 cm), the alignment unchanged. The map's error follows what
+    # the peer says (`widen_offset`): its matches are taken at that worth, neither refused for
+    # disagreeing with what the filter had learnt nor dragging the robot onto the lost map.
+    truth = np.array([0.4, -0.5, 0.3])
+    sure = np.diag([0.01**2, 0.01**2, math.radians(0.1) ** 2])
+    lost = np.diag([0.2**2, 0.2**2, math.radians(0.1) ** 2])
+    cut = {"planar": True, "height": 0.0, "centre": np.zeros(2), "radius": 10.0}
+    right = colony_map(_wall_points(ROOM), covariance=sure, alignment=b"a", **cut)
+    off = colony_map(
+        _wall_points(ROOM) + np.array([0.15, 0.0, 0.0]), covariance=lost, alignment=b"a", **cut
+    )
+    loc = _drifted(truth, 0.02)
+    loc.local.wants = lambda pose: False  # type: ignore[method-assign]
+    scan = _segments_scan(truth, ROOM)
+    for _ in range(10):
+        loc.step(scan, np.zeros(3), colony=right)
+    assert loc.colony_accepted == 10 and loc.ekf.offset is not None
+    learnt = loc.ekf.offset.covariance
+    assert learnt[0, 0] < sure[0, 0]
+    loc.step(scan, np.zeros(3), colony=off)
+    widened = loc.ekf.offset
+    assert widened is not None
+    np.testing.assert_allclose(widened.accounted, lost)
+    assert loc.colony_accepted == 11  # fused at its worth, not refused
+    for _ in range(19):
+        loc.step(scan, np.zeros(3), colony=off)
+    assert (loc.colony_accepted, loc.colony_rejected, loc.colony_suspended) == (30, 0, 0)
+    np.testing.assert_allclose(loc.ekf.pose[:2], truth[:2], atol=0.01)
+    assert loc.ekf.offset.value[0] == pytest.approx(0.15, abs=0.03)  # it learnt the map's error

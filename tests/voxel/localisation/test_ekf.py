@@ -83,6 +83,89 @@ def test_a_shared_maps_error_is_counted_once_however_often_it_is_matched() -> No
         PlanarEkf(np.zeros(3)).update_offset(np.zeros(3), np.eye(3))
 
 
+def test_a_shared_maps_error_that_grows_is_process_noise_and_never_shrinks() -> None:
+    # The map's error is a random walk: when its sources say it is now known to b^2 + d (a peer
+    # got lost) the filter adds Q = d to the offset's covariance, whatever it had learnt, and
+    # keeps its mean and its correlation with the pose.
+    p, b, r = 0.02, 0.1, 0.01
+    f = PlanarEkf(np.zeros(3), covariance=np.diag([p**2, p**2, 1e-6]))
+    prior = np.diag([b**2, b**2, 1e-6])
+    f.reset_offset(prior)
+    for _ in range(20):
+        assert f.update_offset(np.array([0.03, 0.0, 0.0]), np.eye(3) * r**2)
+    learnt = f.offset
+    assert learnt is not None and learnt.covariance[0, 0] < b**2 / 4  # the matches taught it
+    pose, cov = f.pose, f.covariance
+    d = np.diag([0.05**2, 0.02**2, 1e-5])
+    np.testing.assert_allclose(f.widen_offset(prior + d), d, atol=1e-15)
+    widened = f.offset
+    assert widened is not None
+    np.testing.assert_allclose(widened.covariance, learnt.covariance + d, atol=1e-15)
+    np.testing.assert_allclose(widened.accounted, prior + d, atol=1e-15)
+    np.testing.assert_array_equal(widened.value, learnt.value)
+    np.testing.assert_array_equal(widened.cross, learnt.cross)
+    np.testing.assert_array_equal(f.pose, pose)
+    np.testing.assert_array_equal(f.covariance, cov)
+    # The peer is sure of itself again: no evidence that the map here improved, nothing changes;
+    # the same covariance twice adds nothing; then only growth beyond the most accounted counts.
+    assert not f.widen_offset(prior).any() and not f.widen_offset(prior + d).any()
+    np.testing.assert_allclose(f.offset.covariance, widened.covariance, atol=1e-15)
+    np.testing.assert_allclose(f.widen_offset(prior + 2 * d), d, atol=1e-15)
+    # Growth in one direction and shrinking in another: only the positive part is added.
+    g = PlanarEkf(np.zeros(3))
+    g.reset_offset(np.diag([0.01, 0.04, 1e-4]))
+    np.testing.assert_allclose(
+        g.widen_offset(np.diag([0.04, 0.01, 1e-4])), np.diag([0.03, 0.0, 0.0]), atol=1e-15
+    )
+    # ... also when the growth is not along an axis: R diag(0.02, -0.02) R^T, R 45 degrees.
+    h = PlanarEkf(np.zeros(3))
+    h.reset_offset(np.diag([0.05, 0.05, 1e-4]))
+    q = h.widen_offset(np.array([[0.05, 0.02, 0.0], [0.02, 0.05, 0.0], [0.0, 0.0, 1e-4]]))
+    np.testing.assert_allclose(q[:2, :2], [[0.01, 0.01], [0.01, 0.01]], atol=1e-12)
+    assert h.offset is not None
+    np.testing.assert_allclose(h.offset.covariance[:2, :2], [[0.06, 0.01], [0.01, 0.06]])
+
+
+def test_a_widened_offset_lets_a_disagreeing_map_move_the_pose_less() -> None:
+    # Linear known answer (pose and offset uncorrelated, yaw 0 at the origin): one match of
+    # variance r^2 moves the pose by p^2 / (p^2 + b^2 + q + r^2) of the disagreement once the
+    # offset's prior b^2 was widened by q.
+    p, b, q, r = 0.05, 0.05, 0.1**2, 0.01
+    for widen, expected in (
+        (0.0, p**2 / (p**2 + b**2 + r**2)),
+        (q, p**2 / (p**2 + b**2 + q + r**2)),
+    ):
+        f = PlanarEkf(np.zeros(3), covariance=np.diag([p**2, p**2, 1e-6]))
+        f.reset_offset(np.diag([b**2, b**2, 1e-6]))
+        f.widen_offset(np.diag([b**2 + widen, b**2 + widen, 1e-6]))
+        assert f.update_offset(np.array([0.1, 0.0, 0.0]), np.eye(3) * r**2)
+        assert f.pose[0] == pytest.approx(0.1 * expected, rel=1e-9)
+
+
+def test_an_offset_covariance_that_is_not_one_is_refused_and_changes_nothing() -> None:
+    f = PlanarEkf(np.zeros(3))
+    with pytest.raises(LocalisationError, match="reset_offset"):
+        f.widen_offset(np.eye(3))
+    f.reset_offset(np.eye(3) * 0.01)
+    before = f.offset
+    for bad, says in (
+        (np.full((3, 3), np.nan), "finite 3x3"),
+        (np.eye(2), r"finite 3x3 covariance, found shape \(2, 2\)"),
+        (np.array([[0.01, 0.005, 0.0], [0.0, 0.01, 0.0], [0.0, 0.0, 0.01]]), "symmetric"),
+        (np.array([[0.01, 0.1, 0.0], [0.1, 0.01, 0.0], [0.0, 0.0, 0.01]]), "semi-definite"),
+        (np.diag([-1.0, 0.01, 0.01]), "semi-definite"),
+    ):
+        with pytest.raises(LocalisationError, match=says):
+            f.widen_offset(bad)
+        with pytest.raises(LocalisationError, match=says):
+            PlanarEkf(np.zeros(3)).reset_offset(bad)
+    after = f.offset
+    assert before is not None and after is not None
+    np.testing.assert_array_equal(after.covariance, before.covariance)
+    np.testing.assert_array_equal(after.accounted, before.accounted)
+    f.widen_offset(np.eye(3) * 0.01 + 1e-12 * np.triu(np.ones((3, 3)), 1))  # rounding: kept
+
+
 def test_an_offset_gate_refuses_a_map_far_beyond_both_errors() -> None:
     f = PlanarEkf(np.zeros(3), covariance=np.diag([1e-4, 1e-4, 1e-6]))
     f.reset_offset(np.diag([1e-4, 1e-4, 1e-6]))

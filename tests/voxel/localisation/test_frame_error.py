@@ -56,3 +56,16 @@ def test_an_alignments_covariance_is_its_residual_not_residual_over_root_n() -> 
     )
     with pytest.raises(LocalisationError, match="residual >= 0"):
         frame_error.from_residuals(fit, math.nan, np.zeros(2))
+
+
+def test_a_matrix_that_is_nearly_a_covariance_is_made_one() -> None:
+    good = np.diag([0.01, 0.04, 1e-4])
+    np.testing.assert_array_equal(frame_error.positive(good), good)  # a covariance: unchanged
+    # eigenvalues 0.024 and -0.004 along (1, 1) and (1, -1): the negative one raised to zero
+    bad = np.array([[0.01, 0.014, 0.0], [0.014, 0.01, 0.0], [0.0, 0.0, 1e-4]])
+    want = np.array([[0.012, 0.012, 0.0], [0.012, 0.012, 0.0], [0.0, 0.0, 1e-4]])
+    fixed = frame_error.positive(bad)
+    np.testing.assert_allclose(fixed, want, atol=1e-15)
+    assert np.linalg.eigvalsh(fixed).min() >= -1e-18
+    with pytest.raises(LocalisationError, match="finite 3x3"):
+        frame_error.positive(np.full((3, 3), np.inf))
