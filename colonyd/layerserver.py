@@ -153,6 +153,19 @@ class LayerServer:
     def _layer_epoch(self, layer: Layer) -> int:
         return self.epoch if layer.origin == self.own else layer.epoch
 
+    def _header(self, request: Any, epoch: int, *, framed: bool = True) -> dict[str, Any]:
+        """The fields every reply to `request` carries: us, the layer, the request, the layer's
+        epoch (0: not held) and, `framed`, the layer's frame."""
+        out: dict[str, Any] = {
+            "origin": self.own,
+            "layer": request.layer,
+            "request_id": request.request_id,
+            "layer_epoch": epoch,
+        }
+        if framed:
+            out["frame_id"] = frame_of(request.layer)
+        return out
+
     def _fit(
         self,
         request: Any,
@@ -174,18 +187,37 @@ class LayerServer:
                 marks.setdefault("encoded_first", time.monotonic())
             _check(deadline, f"{i} of {len(chunks)} parts encoded")
 
+        def split(chunk: Delta, again: int) -> list[Delta]:
+            # still too large the next time: the frame around a body grew, cut finer
+            if limit >> again < MIN_PART_BODY:
+                text = f"expected parts within {max_frame} bytes, found a voxel too large for one"
+                raise WireError("oversized", text)
+            return split_delta(chunk, limit >> again)
+
+        return self._frames_within(max_frame, chunks, make, split, before)
+
+    def _frames_within(
+        self,
+        max_frame: int,
+        pieces: list[Any],
+        make: Callable[[int, int, Any], Message],
+        split: Callable[[Any, int], list[Any]],
+        before: Callable[[int], None] | None = None,
+    ) -> list[bytes]:
+        """Frames of `make(part, parts, piece)` for `pieces`, each within `max_frame` bytes: a
+        piece whose frame is larger is replaced by `split(piece, round)` (round 0, 1, ... for
+        the times pieces were split before) and every part encoded again. `before(i)` is called
+        before the i-th frame is encoded."""
+        again = 0
         while True:
-            msgs = [make(i, len(chunks), c) for i, c in enumerate(chunks)]
+            msgs = [make(i, len(pieces), p) for i, p in enumerate(pieces)]
             frames = self.sender.encode_all(msgs, before=before)
             big = [i for i, f in enumerate(frames) if len(f) > max_frame]
             if not big:
                 return frames
-            if limit < MIN_PART_BODY:
-                text = f"expected parts within {max_frame} bytes, found a voxel too large for one"
-                raise WireError("oversized", text)
             for i in reversed(big):
-                chunks[i : i + 1] = split_delta(chunks[i], limit)
-            limit //= 2  # still too large next time: the frame around a body grew, cut finer
+                pieces[i : i + 1] = split(pieces[i], again)
+            again += 1
 
     def _reply(
         self,
@@ -225,13 +257,7 @@ class LayerServer:
             _check(deadline, "snapshot made")
             if layer.origin == self.own:
                 epoch = self.epoch
-            common = {
-                "origin": self.own,
-                "layer": layer.origin,
-                "request_id": request.request_id,
-                "frame_id": frame_of(layer.origin),
-                "layer_epoch": epoch,
-            }
+            common = self._header(request, epoch)
             frames = self._fit(
                 request,
                 chunks,
@@ -267,13 +293,7 @@ class LayerServer:
         if layer is not None and layer.seq > 0:
             epoch = self._layer_epoch(layer)
             deltas = layer.range(request.from_version, request.to_version)
-        common = {
-            "origin": self.own,
-            "layer": request.layer,
-            "request_id": request.request_id,
-            "frame_id": frame_of(request.layer),
-            "layer_epoch": epoch,
-        }
+        common = self._header(request, epoch)
         if not deltas:
             msg = DeltaRangeReply(**common, time=time.time(), complete=deltas is not None)
             self._reply(query, key, self.sender.encode_all([msg]))
@@ -305,38 +325,29 @@ class LayerServer:
                     request.from_version, min(request.max_records, MAX_HISTORY_RECORDS)
                 )
         common = {
-            "origin": self.own,
-            "layer": request.layer,
-            "request_id": request.request_id,
-            "layer_epoch": epoch,
+            **self._header(request, epoch, framed=False),
             "from_version": request.from_version,
             "to_version": to,
             "more": more,
         }
-        pieces: list[HistoryPage | None] = [page if page and page.records.size else None]
         max_frame = min(self.part_bytes, request.max_part_bytes)
-        while True:
-            frames = self.sender.encode_all(
-                [
-                    HistoryReply(**common, time=time.time(), part=i, parts=len(pieces), records=p)
-                    for i, p in enumerate(pieces)
-                ]
-            )
-            big = [i for i, f in enumerate(frames) if len(f) > max_frame]
-            if not big:
-                break
-            for i in reversed(big):
-                p = pieces[i]
-                if p is None or p.records.size + p.seen.size < 2:
-                    text = (
-                        f"expected history parts within {max_frame} bytes, found a record too large"
-                    )
-                    raise WireError("oversized", text)
-                half, seen_half = p.records.size // 2, p.seen.size // 2
-                pieces[i : i + 1] = [
-                    HistoryPage(p.records[:half], p.agents, p.seen[:seen_half]),
-                    HistoryPage(p.records[half:], p.agents, p.seen[seen_half:]),
-                ]
+
+        def halves(p: HistoryPage | None, _again: int) -> list[HistoryPage | None]:
+            if p is None or p.records.size + p.seen.size < 2:
+                text = f"expected history parts within {max_frame} bytes, found a record too large"
+                raise WireError("oversized", text)
+            half, seen_half = p.records.size // 2, p.seen.size // 2
+            return [
+                HistoryPage(p.records[:half], p.agents, p.seen[:seen_half]),
+                HistoryPage(p.records[half:], p.agents, p.seen[seen_half:]),
+            ]
+
+        frames = self._frames_within(
+            max_frame,
+            [page if page and page.records.size else None],
+            lambda i, n, p: HistoryReply(**common, time=time.time(), part=i, parts=n, records=p),
+            halves,
+        )
         self._reply(query, key, frames, deadline)
         self.metrics.add("histories_served")
 

@@ -214,6 +214,24 @@ def _try_out(
     )
 
 
+def _compiled_or_in_memory(
+    numba: Any, sources: tuple[Callable[..., Any], ...]
+) -> tuple[Callable[..., Any], ...]:
+    """`sources` to be compiled by numba (lazily, at their first call), their machine code
+    cached on disk, or kept in memory where no cache directory is writable. The helpers they
+    call (`_HELPERS`) are made the same way first and bound to their names in this module:
+    numba resolves a kernel's globals when it compiles it, and calls only compiled functions."""
+    try:
+        jit = numba.njit(cache=True, nogil=True)
+        helpers = {name: jit(f) for name, f in _HELPERS.items()}
+    except RuntimeError:  # no writable cache directory: compile at every start
+        log.warning("numba cannot cache here (set NUMBA_CACHE_DIR); compiling in memory")
+        jit = numba.njit(nogil=True)
+        helpers = {name: jit(f) for name, f in _HELPERS.items()}
+    globals().update(helpers)
+    return tuple(jit(f) for f in sources)
+
+
 def _load() -> None:
     with _lock:
         if "trace" in _compiled:
@@ -228,13 +246,7 @@ def _load() -> None:
             return
         try:
             sources = (_trace_box, _update_records, _sort_beams, _index_blocks, _fill_records)
-            try:
-                jit = numba.njit(cache=True, nogil=True)
-                kernels = tuple(jit(f) for f in sources)
-            except RuntimeError:  # no writable cache directory: compile at every start
-                log.warning("numba cannot cache here (set NUMBA_CACHE_DIR); compiling in memory")
-                jit = numba.njit(nogil=True)
-                kernels = tuple(jit(f) for f in sources)
+            kernels = _compiled_or_in_memory(numba, sources)
             _try_out(*kernels)
             found = {"trace": kernels[0], "update": kernels[1], "beams": kernels[2]}
             found["index"] = kernels[3]
@@ -405,23 +417,11 @@ def _trace_box(
                 m = counts[r, a]
                 if m <= 0:
                     continue
-                b = 1 if a == 0 else 0
-                c = 1 if a == 2 else 2
-                d_a = ends[r, a] - o[a]
-                stay_b = np.int64(np.floor(ends[r, b])) == ko[b]
-                stay_c = np.int64(np.floor(ends[r, c])) == ko[c]
-                if stay_b and not stay_c:
-                    b, c = c, b
-                    stay_b, stay_c = stay_c, stay_b
-                sgn = np.sign(d_a)
-                isgn = np.int64(sgn)
-                dist0 = np.float64(ko[a] + (1 if sgn > 0 else 0)) - o[a]
-                rb = (ends[r, b] - o[b]) / d_a
-                rc = (ends[r, c] - o[c]) / d_a
-                r_y[n_r] = 0.5 if stay_b else o[b] + dist0 * rb
-                r_iy[n_r] = 0.0 if stay_b else sgn * rb
-                r_z[n_r] = 0.5 if stay_c else o[c] + dist0 * rc
-                r_iz[n_r] = 0.0 if stay_c else sgn * rc
+                b, c, stay_b, stay_c, isgn, y0, inc_y, z0, inc_z = _run_start(ends, r, a, o, ko)
+                r_y[n_r] = y0
+                r_iy[n_r] = inc_y
+                r_z[n_r] = z0
+                r_iz[n_r] = inc_z
                 r_m[n_r] = m
                 r_sa[n_r] = strides[a] * isgn
                 # A fixed axis has a zero stride and its key in the constant term.
@@ -603,23 +603,7 @@ def _trace_box(
                 m = counts[r, a]
                 if m <= 0:
                     continue
-                b = 1 if a == 0 else 0
-                c = 1 if a == 2 else 2
-                d_a = ends[r, a] - o[a]
-                stay_b = np.int64(np.floor(ends[r, b])) == ko[b]
-                stay_c = np.int64(np.floor(ends[r, c])) == ko[c]
-                if stay_b and not stay_c:
-                    b, c = c, b
-                    stay_b, stay_c = stay_c, stay_b
-                sgn = np.sign(d_a)
-                isgn = np.int64(sgn)
-                dist0 = np.float64(ko[a] + (1 if sgn > 0 else 0)) - o[a]
-                rb = (ends[r, b] - o[b]) / d_a
-                rc = (ends[r, c] - o[c]) / d_a
-                y0 = 0.5 if stay_b else o[b] + dist0 * rb
-                inc_y = 0.0 if stay_b else sgn * rb
-                z0 = 0.5 if stay_c else o[c] + dist0 * rc
-                inc_z = 0.0 if stay_c else sgn * rc
+                b, c, stay_b, stay_c, isgn, y0, inc_y, z0, inc_z = _run_start(ends, r, a, o, ko)
                 # Per run constants; the axis-a term of the linear index advances by one stride
                 # per crossing. Crossings before k_flat accumulate, later ones multiply (as numpy).
                 sa = strides[a] * isgn
@@ -749,6 +733,37 @@ def _trace_box(
                         cells32[r] = 0
                         j += 4
     return blocks, out, hit_keys, rows, n_free
+
+
+def _run_start(ends: np.ndarray, r: int, a: int, o: np.ndarray, ko: np.ndarray) -> tuple[Any, ...]:
+    """The set-up of ray `r`'s run of crossings along axis `a` (`ends` (R, 3) and the origin `o`
+    box-local, in voxels; `ko` the origin's voxel), as `raycast._sequences` computes it: the two
+    other axes b and c (a fixed one second), whether each stays in the origin's voxel row, the
+    step's sign (int), and the coordinates along b and c at the first crossing and their
+    increments per crossing (0.5 and 0 on a fixed axis). Shared by both passes of `_trace_box`
+    (compiled with it, `_load`)."""
+    b = 1 if a == 0 else 0
+    c = 1 if a == 2 else 2
+    d_a = ends[r, a] - o[a]
+    stay_b = np.int64(np.floor(ends[r, b])) == ko[b]
+    stay_c = np.int64(np.floor(ends[r, c])) == ko[c]
+    if stay_b and not stay_c:
+        b, c = c, b
+        stay_b, stay_c = stay_c, stay_b
+    sgn = np.sign(d_a)
+    isgn = np.int64(sgn)
+    dist0 = np.float64(ko[a] + (1 if sgn > 0 else 0)) - o[a]
+    rb = (ends[r, b] - o[b]) / d_a
+    rc = (ends[r, c] - o[c]) / d_a
+    y0 = 0.5 if stay_b else o[b] + dist0 * rb
+    inc_y = 0.0 if stay_b else sgn * rb
+    z0 = 0.5 if stay_c else o[c] + dist0 * rc
+    inc_z = 0.0 if stay_c else sgn * rc
+    return b, c, stay_b, stay_c, isgn, y0, inc_y, z0, inc_z
+
+
+#: Helpers the kernels call, as written (`_jitted` compiles them first).
+_HELPERS: dict[str, Callable[..., Any]] = {"_run_start": _run_start}
 
 
 def _update_records(
@@ -1185,13 +1200,7 @@ def _load_codec() -> None:
             _codec_compiled.update(found)
             return
         try:
-            try:
-                jit = numba.njit(cache=True, nogil=True)
-                keys, voxels = jit(_wire_keys), jit(_wire_voxels)
-            except RuntimeError:  # no writable cache directory: compile at every start
-                log.warning("numba cannot cache here (set NUMBA_CACHE_DIR); compiling in memory")
-                jit = numba.njit(nogil=True)
-                keys, voxels = jit(_wire_keys), jit(_wire_voxels)
+            keys, voxels = _compiled_or_in_memory(numba, (_wire_keys, _wire_voxels))
             one = np.zeros(2, dtype=np.float32)
             keys(np.array([[0, 0, 0], [5, 0, 1]], dtype=np.int64), one, one, 2, 4)
             voxels(  # bitmaps and gaps as a decoder has them: read-only views of bytes
