@@ -235,9 +235,13 @@ class Alignments:
                 continue
             parent[ra] = rb
             back = e.inverse()
-            cov, cov_back = (frame_error.planar(x.covariance) for x in (e, back))
-            tree[e.source].append((e.target, e.transform, frame_error.floored(cov)))
-            tree[e.target].append((e.source, back.transform, frame_error.floored(cov_back)))
+            # a peer's offer: finite (the protocol), maybe not a covariance: made one
+            cov, cov_back = (
+                frame_error.floored(frame_error.positive(frame_error.planar(x.covariance)))
+                for x in (e, back)
+            )
+            tree[e.source].append((e.target, e.transform, cov))
+            tree[e.target].append((e.source, back.transform, cov_back))
         groups: dict[str, list[str]] = {}
         for a in nodes:
             groups.setdefault(find(a), []).append(a)

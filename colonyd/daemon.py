@@ -650,7 +650,8 @@ class Daemon:
                 continue
             to_own = np.linalg.inv(mine) @ theirs
             body = to_own @ msg.matrix()
-            cov = np.asarray(msg.covariance, float).reshape(6, 6)[np.ix_([0, 1, 5], [0, 1, 5])]
+            # checked to a tolerance of its largest variance (inbox): its x, y, yaw made positive
+            cov = frame_error.positive(frame_error.planar(np.asarray(msg.covariance, float)))
             rot = np.eye(3)
             rot[:2, :2] = to_own[:2, :2]
             alignment = frame_error.moved(

@@ -50,15 +50,17 @@ MAX_POSE_VARIANCE = (1e4, 1e4, 1e4, (2 * math.pi) ** 2, (2 * math.pi) ** 2, (2 *
 POSE_COVARIANCE_TOLERANCE = 1e-6
 
 
-def check_pose_covariance(values: Sequence[float]) -> np.ndarray:
-    """The 6x6 covariance (x y z roll pitch yaw) of a Pose, checked: finite, symmetric and
-    positive semi-definite within `POSE_COVARIANCE_TOLERANCE`, variances within
-    `MAX_POSE_VARIANCE` (all zeros: a sender without one). WireError("bad-pose-covariance")
-    saying what was found otherwise."""
+def check_pose_covariance(
+    values: Sequence[float], reason: str = "bad-pose-covariance"
+) -> np.ndarray:
+    """The 6x6 covariance (x y z roll pitch yaw) of a Pose or a PoseFix, checked: finite,
+    symmetric and positive semi-definite within `POSE_COVARIANCE_TOLERANCE`, variances within
+    `MAX_POSE_VARIANCE` (all zeros: a sender without one). WireError(`reason`) saying what was
+    found otherwise."""
     c = np.asarray(values, np.float64)
     if c.shape != (36,) or not np.all(np.isfinite(c)):
         text = f"expected 36 finite covariance values, found shape {c.shape} or non-finite ones"
-        raise WireError("bad-pose-covariance", text)
+        raise WireError(reason, text)
     c = c.reshape(6, 6)
     d = np.diag(c)
     if np.any(d < 0) or np.any(d > MAX_POSE_VARIANCE):
@@ -66,17 +68,15 @@ def check_pose_covariance(values: Sequence[float]) -> np.ndarray:
             f"expected variances in [0, {MAX_POSE_VARIANCE}] (x y z roll pitch yaw), found "
             f"{', '.join(f'{v:.3g}' for v in d)}"
         )
-        raise WireError("bad-pose-covariance", text)
+        raise WireError(reason, text)
     tol = POSE_COVARIANCE_TOLERANCE * max(float(d.max()), 1e-12)
     asym = float(np.abs(c - c.T).max())
     if asym > tol:
-        raise WireError(
-            "bad-pose-covariance", f"expected a symmetric covariance, found {asym:.3g} apart"
-        )
+        raise WireError(reason, f"expected a symmetric covariance, found {asym:.3g} apart")
     low = float(np.linalg.eigvalsh(0.5 * (c + c.T)).min())
     if low < -tol:
         text = f"expected a positive semi-definite covariance, found an eigenvalue {low:.3g}"
-        raise WireError("bad-pose-covariance", text)
+        raise WireError(reason, text)
     return c
 
 
@@ -326,6 +326,7 @@ class Inbox:
         if msg.frame_id != frame_of(msg.origin):
             text = f"expected a fix in {frame_of(msg.origin)!r}, found frame {msg.frame_id!r}"
             raise WireError("bad-fix", text)
+        check_pose_covariance(msg.covariance, "bad-fix")  # the filter's measurement noise
         variances = [msg.covariance[i] for i in (0, 7, 35)]  # x, y, yaw
         if not all(v >= MIN_FIX_VARIANCE for v in variances):
             text = (

@@ -148,3 +148,13 @@ def test_the_colony_frame_carries_each_alignments_error_to_the_agents_on_its_pat
     np.testing.assert_allclose(np.cov(np.array(seen).T), frame.covariance("b"), atol=2e-5)
     # c adds its own alignment's error (floored) to b's
     assert np.all(np.diag(frame.covariance("c")) > np.diag(frame.covariance("b")))
+
+
+def test_an_offer_whose_covariance_is_not_one_still_gives_the_colony_frame_covariances():
+    # Finite (the protocol checks that much), but indefinite: -0.06 along x = -y.
+    cov = np.zeros((6, 6))
+    cov[np.ix_([0, 1, 5], [0, 1, 5])] = [[0.04, 0.1, 0.0], [0.1, 0.04, 0.0], [0.0, 0.0, 1e-4]]
+    store = Alignments()
+    store.put(Edge("b", "a", _rigid(2, -3, 40), 0.9, 100, 0.02, cov, 1.0))
+    frame = store.colony(["a", "b"], anchor="a")
+    assert np.linalg.eigvalsh(frame.covariance("b")).min() > -1e-12  # unprojected: -0.002

@@ -159,3 +159,19 @@ def test_an_infinite_query_timeout_is_refused_with_a_clear_error() -> None:
 
     with pytest.raises(ValidationError, match="query_timeout_s"):
         Config(query_timeout_s=float("inf"))
+
+
+def test_every_config_field_has_a_row_in_the_daemons_options_table():
+    import re
+    from pathlib import Path
+
+    from colonyd.config import Config
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "DAEMON.md").read_text()
+    named = set()
+    for first_cell in re.findall(r"^\| ([^|]+) \|", doc, re.M):
+        named |= set(re.findall(r"`([a-z_0-9]+)`", first_cell))
+    missing = sorted(set(Config.model_fields) - named)
+    assert not missing, (
+        f"expected a row in docs/DAEMON.md for every config field, not for {missing}"
+    )

@@ -13,7 +13,16 @@ from protocol.keyexpr import topic_key
 SECRET = "correct horse battery staple"
 
 
-def _fix(sender: Sender, target: str, *, frame: str | None = None, var: float = 0.01) -> bytes:
+def _fix(
+    sender: Sender,
+    target: str,
+    *,
+    frame: str | None = None,
+    var: float = 0.01,
+    xy: float = 0.0,
+) -> bytes:
+    covariance = np.eye(6) * var
+    covariance[0, 1] = covariance[1, 0] = xy  # x-y correlation
     return sender.encode(
         PoseFix(
             **sender.header(),
@@ -21,7 +30,7 @@ def _fix(sender: Sender, target: str, *, frame: str | None = None, var: float = 
             frame_id=frame or frame_of(sender.origin),
             stamp=1.0,
             **PoseFix.split_matrix(np.eye(4)),
-            covariance=[var * (i % 7 == 0) for i in range(36)],
+            covariance=covariance.ravel().tolist(),
         )
     )
 
@@ -45,6 +54,7 @@ def test_hostile_and_valid_fixes_reach_a_daemon_as_counted(make_colony):
     fix_key = topic_key(ns, "cam", "fix")
     s.put(fix_key, _fix(cam, "b", var=0.0))  # claims certainty
     s.put(fix_key, _fix(cam, "b", frame="b.odom"))  # not in the sender's frame
+    s.put(fix_key, _fix(cam, "b", xy=0.1))  # not a covariance: variance -0.09 along x = -y
     s.put(fix_key, _fix(cam, "b")[:-40])  # truncated
     s.put(fix_key, _fix(mallory, "b"))  # not cam's identity
     s.put(topic_key(ns, "b", "fix"), _fix(cam, "b"))  # on another origin's key
@@ -58,7 +68,7 @@ def test_hostile_and_valid_fixes_reach_a_daemon_as_counted(make_colony):
     (b,) = colony.wait_status(settled, 30, agents=("b",))
     counts, rejected = b["metrics"]["counts"], b["metrics"]["rejected"]
     assert counts.get("fix_received") == 1 and counts.get("fix_for_others") == 1, counts
-    assert rejected.get("bad-fix") == 2, rejected
+    assert rejected.get("bad-fix") == 3, rejected
     assert rejected.get("identity", 0) >= 1, rejected
     assert rejected.get("keyexpr", 0) >= 1, rejected
     assert (
