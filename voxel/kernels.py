@@ -219,17 +219,18 @@ def _compiled_or_in_memory(
 ) -> tuple[Callable[..., Any], ...]:
     """`sources` to be compiled by numba (lazily, at their first call), their machine code
     cached on disk, or kept in memory where no cache directory is writable. The helpers they
-    call (`_HELPERS`) are made the same way first and bound to their names in this module:
-    numba resolves a kernel's globals when it compiles it, and calls only compiled functions."""
+    call (`_HELPERS`) are bound to their names in this module first, compiled to be inlined
+    into their callers (numba resolves a kernel's globals when it compiles it, and calls only
+    compiled functions; inlined, a helper costs no call in the kernels' inner loops)."""
+    inline = numba.njit(nogil=True, inline="always")
+    globals().update({name: inline(f) for name, f in _HELPERS.items()})
     try:
         jit = numba.njit(cache=True, nogil=True)
-        helpers = {name: jit(f) for name, f in _HELPERS.items()}
+        return tuple(jit(f) for f in sources)
     except RuntimeError:  # no writable cache directory: compile at every start
         log.warning("numba cannot cache here (set NUMBA_CACHE_DIR); compiling in memory")
         jit = numba.njit(nogil=True)
-        helpers = {name: jit(f) for name, f in _HELPERS.items()}
-    globals().update(helpers)
-    return tuple(jit(f) for f in sources)
+        return tuple(jit(f) for f in sources)
 
 
 def _load() -> None:
@@ -762,7 +763,7 @@ def _run_start(ends: np.ndarray, r: int, a: int, o: np.ndarray, ko: np.ndarray) 
     return b, c, stay_b, stay_c, isgn, y0, inc_y, z0, inc_z
 
 
-#: Helpers the kernels call, as written (`_jitted` compiles them first).
+#: Helpers the kernels call, as written (`_compiled_or_in_memory` compiles them first).
 _HELPERS: dict[str, Callable[..., Any]] = {"_run_start": _run_start}
 
 
