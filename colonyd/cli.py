@@ -150,6 +150,18 @@ def _lidar_range(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _world(p: argparse.ArgumentParser) -> None:
+    from colonyd.experiment import WORLDS
+
+    p.add_argument(
+        "--world",
+        choices=WORLDS,
+        default=WORLDS[0],
+        help="the sim world (default office; hall: the paper's sparse environment, 18 x 12 m, "
+        "docs/LOCALISATION.md)",
+    )
+
+
 def _bench_io(b: argparse.ArgumentParser, *, shared_data: bool = False) -> None:
     """The flags every benchmark takes: where its JSON goes (and where the real data is)."""
     b.add_argument("--json", type=Path, required=True, help="write the results here (JSON)")
@@ -399,6 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--duration", type=float, default=60.0, help="seconds per run (default 60)")
     b.add_argument("--parallel", type=int, default=2, help="runs at the same time (default 2)")
     _lidar_range(b)
+    _world(b)
     b.add_argument(
         "--out-dir", type=Path, default=None, help="keep each seed's outputs here (seed-N/)"
     )
@@ -481,7 +494,7 @@ def build_parser() -> argparse.ArgumentParser:
     esub = p.add_subparsers(dest="experiment", required=True)
     e = esub.add_parser(
         "paper",
-        help="sim office robots localising alone and sharing (depth-alone, lidar-alone, "
+        help="sim robots localising alone and sharing (depth-alone, lidar-alone, "
         "lidar+depth, lidar+depth+cctv): pose error against the sim's truth",
     )
     e.add_argument("--out", type=Path, required=True, help="where trajectories, pictures go")
@@ -494,6 +507,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     e.add_argument("--parallel", type=int, default=2, help="runs at the same time (default 2)")
     _lidar_range(e)
+    _world(e)
     e.add_argument(
         "--timeout",
         type=float,
@@ -642,6 +656,7 @@ def main(argv: list[str] | None = None) -> int:
             parallel=args.parallel,
             timeout=args.timeout,
             lidar_range=args.lidar_range,
+            world=args.world,
         )
         sys.stdout.write(f"wrote {args.out}: results.json, pose-error.png, <run>/\n")
         return EXIT_OK
@@ -712,6 +727,7 @@ def _bench(args: argparse.Namespace) -> int:
             duration=args.duration,
             parallel=args.parallel,
             lidar_range=args.lidar_range,
+            world=args.world,
             timeout=args.timeout,
             out_dir=args.out_dir,
             command=" ".join(["colonyd", *sys.argv[1:]]),

@@ -1,4 +1,4 @@
-"""The paper's experiment: sim office robots localising alone and sharing, as real daemons on
+"""The paper's experiment: sim robots localising alone and sharing, as real daemons on
 loopback; their pose error against the sim's truth (read here only, to evaluate)."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from colonyd.errors import StatusError
+from colonyd.errors import ConfigError, StatusError
 from colonyd.outdir import output_dir
 from colonyd.plots import Panel, Series, draw_colony, draw_errors
 from colonyd.simrun import SimRun
@@ -45,6 +45,9 @@ ODOMETRY_NOISE = "realistic"
 #: lidar-1's range (m): a short-range 2D LiDAR, like cheap ones. With the sim's 12 m it sees
 #: every wall of the office from anywhere and is at 0.02 m alone (docs/LOCALISATION.md).
 LIDAR_RANGE = 4.0
+#: The sim worlds the experiment runs in: the furnished office (default) and the paper's "relatively
+#: sparse environment", the hall (docs/LOCALISATION.md "The sparse hall").
+WORLDS = ("office", "hall")
 #: Seconds from starting a run's daemons to its shared clock's zero (`epoch=`): every agent's path
 #: starts then, so a daemon slow to start does not skip the first frames.
 EPOCH_DELAY_S = 15.0
@@ -88,10 +91,12 @@ def _round(x: float | None, digits: int = 4) -> float | None:
     return None if x is None else round(x, digits)
 
 
-def _start(base: Path, name: str, seed: int, duration: float, lidar_range: float) -> SimRun:
+def _start(
+    base: Path, name: str, seed: int, duration: float, lidar_range: float, world: str
+) -> SimRun:
     agents = RUNS[name]
     env = {"COLONYD_ANCHOR": ANCHOR} if ANCHOR in agents else {}
-    run = SimRun(base / name, name, env=env, odometry_noise=ODOMETRY_NOISE)
+    run = SimRun(base / name, name, env=env, odometry_noise=ODOMETRY_NOISE, world=world)
     epoch = time.time() + EPOCH_DELAY_S
     for agent in agents:
         run.add(
@@ -197,14 +202,18 @@ def run_paper(
     timeout: float | None = None,
     progress: bool = True,
     lidar_range: float | None = None,
+    world: str = "office",
 ) -> dict[str, Any]:
-    """Run every run of `RUNS` (at most `parallel` at a time), each for `duration` seconds of sim
-    time (a run whose sources are not done after `timeout` seconds, default 6 x duration + 120,
-    is evaluated as far as it got and marked incomplete); write trajectories, pictures and
-    results.json into `out`; return the results."""
+    """Run every run of `RUNS` in the sim `world` (at most `parallel` at a time), each for
+    `duration` seconds of sim time (a run whose sources are not done after `timeout` seconds,
+    default 6 x duration + 120, is evaluated as far as it got and marked incomplete); write
+    trajectories, pictures and results.json into `out`; return the results."""
     from rich.console import Console
     from rich.live import Live
 
+    if world not in WORLDS:
+        msg = f"world: expected one of {', '.join(WORLDS)}, found {world!r}"
+        raise ConfigError(msg)
     out = Path(out)
     output_dir(out, "--out")
     timeout = timeout if timeout is not None else 6 * duration + 120
@@ -223,7 +232,7 @@ def run_paper(
             while pending or active:
                 while pending and len(active) < max(1, parallel):
                     name = pending.pop(0)
-                    active[name] = _start(work, name, seed, duration, lidar_range)
+                    active[name] = _start(work, name, seed, duration, lidar_range, world)
                     active[name].watch()
                 for name, run in list(active.items()):
                     over = run.now() > timeout
@@ -242,6 +251,7 @@ def run_paper(
         shutil.rmtree(work, ignore_errors=True)
     results = {
         "seed": seed,
+        "world": world,
         "duration_s": duration,
         "lidar_range_m": lidar_range,
         "odometry_noise": ODOMETRY_NOISE,
@@ -252,20 +262,22 @@ def run_paper(
         "updates": {name: done[name].updates for name in RUNS},
     }
     (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
-    draw_errors(out / "pose-error.png", _panels(done), note="vertical: first contact", axis="sim")
+    draw_errors(
+        out / "pose-error.png", _panels(done, world), note="vertical: first contact", axis="sim"
+    )
     if progress:
         console.print(results_table(results))
     return results
 
 
-def _panels(done: dict[str, RunResult]) -> list[Panel]:
+def _panels(done: dict[str, RunResult], world: str) -> list[Panel]:
     """One panel per robot, one line per run it took part in, over the robot's sim time (frames
     mapped / frame rate: the same axis however fast a loaded machine ran each daemon)."""
     from plugins.sim import AGENTS
 
     panels = []
     for robot in ROBOTS:
-        rate = AGENTS["office"][robot].rate
+        rate = AGENTS[world][robot].rate
         series = []
         for name, result in done.items():
             track = result.tracks.get(robot)
@@ -288,7 +300,8 @@ def results_table(results: dict[str, Any]) -> Any:
     from rich.table import Table
 
     table = Table(
-        title=f"paper experiment, seed {results['seed']}, {results['duration_s']:.0f} s "
+        title=f"paper experiment, sim {results.get('world', 'office')}, seed {results['seed']}, "
+        f"{results['duration_s']:.0f} s "
         f"per run, {results['odometry_noise']} odometry ({results['seconds']:.0f} s in all)",
         caption="pose error after the Umeyama fit (m): ATE RMSE, at the last pose, largest "
         "after first contact; first contact with a peer (s from the run's start)",

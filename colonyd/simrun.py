@@ -1,4 +1,4 @@
-"""A sim colony run: real daemons on loopback mapping sim-office agents from unknown start poses,
+"""A sim colony run: real daemons on loopback mapping sim agents from unknown start poses,
 watched through their status (the demo and the paper's experiment both are such runs)."""
 
 from __future__ import annotations
@@ -70,8 +70,10 @@ class SimRun:
         *,
         env: dict[str, str] | None = None,
         odometry_noise: str | None = None,
+        world: str = "office",
     ) -> None:
         self.name = name
+        self.world = world
         self.colony = LocalColony(base, colony="sim", heartbeat_s=0.5)
         self.env = {**RUN_ENV, **(env or {})}
         self.odometry_noise = odometry_noise
@@ -88,7 +90,14 @@ class SimRun:
     def add(self, agent: str, duration: float, seed: int, options: str = "") -> None:
         """Start `agent`'s daemon mapping its sim source for `duration` seconds (`options`: more
         options of its `sim:` spec)."""
-        spec = sim_spec(agent, duration, seed, odometry_noise=self.odometry_noise, options=options)
+        spec = sim_spec(
+            agent,
+            duration,
+            seed,
+            world=self.world,
+            odometry_noise=self.odometry_noise,
+            options=options,
+        )
         d = self.colony.add(agent, [spec], start=False)
         d.env = dict(self.env)
         d.start()

@@ -23,7 +23,7 @@ from plugins.observation import Observation
 from plugins.odometry import odometry_noise_of
 from plugins.spec import Options, SourceSpec, parse_options
 from plugins.stream import SourceContext, StreamStats
-from plugins.world import CLASSES, WORLDS, Marker, World, get_world
+from plugins.world import CLASSES, HALL_SCALE, WORLDS, Marker, World, get_world
 from voxel.depth import pixel_rays
 from voxel.localisation.odometry import WheelOdometer
 
@@ -184,6 +184,35 @@ AGENTS: dict[str, dict[str, AgentSpec]] = {
             "cctv-2", "cctv", fixed=look_at((5.8, 3.8, 2.5), (2.0, 1.0, 0.8)), rate=1.0
         ),
     },
+}
+
+
+def _scaled(agent: AgentSpec, scale: float) -> AgentSpec:
+    """`agent` with its waypoints scaled by `scale` in plan (for a world scaled so)."""
+    return replace(agent, waypoints=tuple((x * scale, y * scale) for x, y in agent.waypoints))
+
+
+# The hall (plugins.world.hall_world: the office scaled by HALL_SCALE in plan, no dividing wall):
+# the office's paths and CCTV poses scaled alike (the routes through the doorway kept), so both
+# robots tour the same places in the same order, 1.5 times as far apart.
+AGENTS["hall"] = {
+    **{
+        name: _scaled(agent, HALL_SCALE)
+        for name, agent in AGENTS["office"].items()
+        if agent.sensor != "cctv"
+    },
+    "cctv-1": AgentSpec(
+        "cctv-1",
+        "cctv",
+        fixed=look_at((-5.8 * HALL_SCALE, -3.8 * HALL_SCALE, 2.5), (-3.0, -1.5, 0.8)),
+        rate=1.0,
+    ),
+    "cctv-2": AgentSpec(
+        "cctv-2",
+        "cctv",
+        fixed=look_at((5.8 * HALL_SCALE, 3.8 * HALL_SCALE, 2.5), (3.0, 1.5, 0.8)),
+        rate=1.0,
+    ),
 }
 
 

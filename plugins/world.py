@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -426,26 +427,61 @@ def room_world() -> World:
 def office_world() -> World:
     """A 12 x 8 m office: two rooms joined by a 1.2 m doorway, boxes, bins and four tagged
     landmarks."""
+    return _office("office", 1.0, divided=True)
+
+
+#: The hall's scale in plan against the office (docs/LOCALISATION.md "A sparse hall").
+HALL_SCALE = 1.5
+
+
+def hall_world() -> World:
+    """An 18 x 12 m hall, the paper's "relatively sparse environment": the office's furniture
+    (the same boxes, bins and four tagged landmarks, of the same sizes) with every position
+    scaled by HALL_SCALE in plan, and no dividing wall. From most of its floor a 4 m scanner
+    sees one or two objects and no wall."""
+    return _office("hall", HALL_SCALE, divided=False)
+
+
+def _office(name: str, scale: float, *, divided: bool) -> World:
+    """The office's walls and furniture, positions (not sizes) scaled by `scale` in plan;
+    `divided`: with the dividing wall and its doorway."""
     cls, col = CLASSES["wall"], (200, 200, 205)
-    boxes = [
-        *_walls(-6.0, -4.0, 6.0, 4.0, 2.7),
-        Box((-0.05, -4.0, 0.0), (0.05, -0.6, 2.7), cls, colour=col),
-        Box((-0.05, 0.6, 0.0), (0.05, 4.0, 2.7), cls, colour=col),
-        Box((-4.5, 2.5, 0.0), (-3.3, 3.3, 0.75), CLASSES["box"], 1, (40, 90, 160)),
-        Box((3.0, -3.4, 0.0), (3.8, -2.6, 1.0), CLASSES["box"], 2, (60, 160, 60)),
-        Box((4.4, 2.2, 0.0), (5.2, 3.0, 0.5), CLASSES["box"], 3, (160, 60, 60)),
-    ]
+
+    def moved(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> tuple[Any, Any]:
+        """lo, hi moved so that their centre is scaled in plan (the same box at scale 1)."""
+        shift = [(scale - 1.0) * (a + b) / 2 for a, b in zip(lo[:2], hi[:2], strict=True)]
+        return (lo[0] + shift[0], lo[1] + shift[1], lo[2]), (
+            hi[0] + shift[0],
+            hi[1] + shift[1],
+            hi[2],
+        )
+
+    boxes = _walls(-6.0 * scale, -4.0 * scale, 6.0 * scale, 4.0 * scale, 2.7)
+    if divided:
+        boxes += [
+            Box((-0.05, -4.0, 0.0), (0.05, -0.6, 2.7), cls, colour=col),
+            Box((-0.05, 0.6, 0.0), (0.05, 4.0, 2.7), cls, colour=col),
+        ]
+    for lo, hi, object_id, colour in (
+        ((-4.5, 2.5, 0.0), (-3.3, 3.3, 0.75), 1, (40, 90, 160)),
+        ((3.0, -3.4, 0.0), (3.8, -2.6, 1.0), 2, (60, 160, 60)),
+        ((4.4, 2.2, 0.0), (5.2, 3.0, 0.5), 3, (160, 60, 60)),
+    ):
+        boxes.append(Box(*moved(lo, hi), CLASSES["box"], object_id, colour))
     markers: list[Marker] = []
     for i, (x, y) in enumerate([(-3.0, -2.0), (-1.5, 1.5), (2.0, 1.0), (4.0, -1.0)]):
-        box, ms = _landmark(10 + i, x, y, 4 * i)
+        box, ms = _landmark(10 + i, x * scale, y * scale, 4 * i)
         boxes.append(box)
         markers += ms
     cylinders = [
-        Cylinder((-4.8, -3.2), 0.2, 0.0, 0.9, CLASSES["cylinder"], 20),
-        Cylinder((1.2, -2.5), 0.3, 0.0, 1.1, CLASSES["cylinder"], 21),
-        Cylinder((5.2, 0.5), 0.25, 0.0, 1.0, CLASSES["cylinder"], 22),
+        Cylinder((x * scale, y * scale), r, 0.0, h, CLASSES["cylinder"], object_id)
+        for (x, y), r, h, object_id in (
+            ((-4.8, -3.2), 0.2, 0.9, 20),
+            ((1.2, -2.5), 0.3, 1.1, 21),
+            ((5.2, 0.5), 0.25, 1.0, 22),
+        )
     ]
-    return World(name="office", boxes=boxes, cylinders=cylinders, markers=markers)
+    return World(name=name, boxes=boxes, cylinders=cylinders, markers=markers)
 
 
 def box_room(side: float, height: float = 2.5) -> World:
@@ -492,7 +528,7 @@ def furnished_room(thick: float = 0.1) -> World:
     return World(name="furnished", boxes=[*slabs, *boxes], floor=None)
 
 
-WORLDS = {"room": room_world, "office": office_world}
+WORLDS = {"room": room_world, "office": office_world, "hall": hall_world}
 
 
 def get_world(name: str) -> World:

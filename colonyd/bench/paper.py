@@ -90,6 +90,7 @@ def run_paper_bench(
     duration: float = 60.0,
     parallel: int = 2,
     lidar_range: float | None = None,
+    world: str = "office",
     timeout: float | None = None,
     out_dir: Path | None = None,
     command: str | None = None,
@@ -110,6 +111,7 @@ def run_paper_bench(
                 duration=duration,
                 parallel=parallel,
                 lidar_range=lidar_range,
+                world=world,
                 timeout=timeout,
             )
             load = {"start": before, "end": _load()}  # the machine is shared: results' context

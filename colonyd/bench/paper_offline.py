@@ -1,8 +1,8 @@
 """The paper experiment's two robots offline, deterministic: one robot alone and with the other's
 map, for A/B of estimator changes without the live runs' timing chaos.
 
-`python -m colonyd.bench.paper_offline --seed S [--lidar-range R] [--rng N] [--duration S]
-[--no-peer-covariance] [--json FILE]`
+`python -m colonyd.bench.paper_offline --seed S [--world W] [--lidar-range R] [--rng N]
+[--duration S] [--no-peer-covariance] [--json FILE]`
 
 Each robot's sim source (the experiment's spec and seed, not paced) runs through its estimator
 and maps from the estimate, as `colonyd localize` does. The peer's map (its estimated-pose voxel
@@ -106,13 +106,20 @@ class Run:
         duration: float = DURATION_S,
         keyframes: int | None = None,
         lidar_noise: float | None = None,
+        world: str = "office",
     ) -> None:
         options = f"lidar_range={lidar_range:g}" if agent == "lidar-1" else ""
         if agent == "lidar-1" and lidar_noise is not None:
             options += f",range_noise={lidar_noise:g}"
         self.keyframes = keyframes
         self.spec = sim_spec(
-            agent, duration, seed, odometry_noise="realistic", realtime=False, options=options
+            agent,
+            duration,
+            seed,
+            world=world,
+            odometry_noise="realistic",
+            realtime=False,
+            options=options,
         )
         self.estimates: list[np.ndarray] = []
         self.truths: list[np.ndarray] = []
@@ -317,6 +324,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--lidar-range", type=float, default=4.0)
     parser.add_argument("--rng", type=int, default=0, help="seed of the scans' subsample")
+    parser.add_argument(
+        "--world",
+        choices=("office", "hall"),
+        default="office",
+        help="the sim world (default office; hall: the sparse one, docs/LOCALISATION.md)",
+    )
     parser.add_argument("--duration", type=float, default=DURATION_S, help="seconds of path")
     parser.add_argument(
         "--peer-covariance",
@@ -354,7 +367,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         seed = 100 * args.seed + (1 if agent == "lidar-1" else 2)
         keyframes = args.keyframes if agent == "lidar-1" else None
         noise = args.lidar_noise if agent == "lidar-1" else None
-        return Run(agent, seed, args.lidar_range, args.duration, keyframes, noise)
+        return Run(agent, seed, args.lidar_range, args.duration, keyframes, noise, args.world)
 
     lidar, depth = robot("lidar-1"), robot("depth-1")
     out: dict[str, Any] = {"seed": args.seed, "lidar_range": args.lidar_range, "rng": args.rng}
@@ -367,6 +380,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "duration",
         "exact_alignment",
         "lidar_noise",
+        "world",
     ):
         if getattr(args, name) != parser.get_default(name):
             out[name] = getattr(args, name)

@@ -31,6 +31,8 @@ def test_experiment_paper_writes_every_output(tmp_path):
             "5",
             "--parallel",
             "4",
+            "--world",  # the sparse hall: the option reaches every daemon's source (the default,
+            "hall",  # the office, is the same code with another world's name)
         ],
         check=False,
         capture_output=True,
@@ -39,6 +41,7 @@ def test_experiment_paper_writes_every_output(tmp_path):
     )
     assert run.returncode == 0, run.stdout + run.stderr
     results = json.loads((out / "results.json").read_text())
+    assert results["world"] == "hall"
     assert set(results["runs"]) == set(RUNS)
     for name, agents in RUNS.items():
         assert set(results["runs"][name]) == set(agents), name
@@ -55,6 +58,10 @@ def test_experiment_paper_writes_every_output(tmp_path):
         assert set(results["updates"][name]) == set(agents), name
         if "lidar-1" in agents:  # its estimator matched scans against its own map
             assert results["updates"][name]["lidar-1"]["updates_accepted"] > 0, name
+        if "lidar-1" in agents:  # in the hall it starts east from (-7.5, 0), beyond the office
+            rows = (out / name / "lidar-1.groundtruth.tum").read_text().splitlines()
+            xy = np.array([[float(v) for v in row.split()[1:3]] for row in rows])
+            assert xy[:, 0].min() < -6.0 and np.abs(xy[:, 1]).max() < 0.3, xy
         if len(agents) == 1:  # alone: nobody to meet
             assert results["runs"][name][agents[0]]["first_contact_s"] is None
     for picture in ["pose-error.png", *(f"{name}/topdown.png" for name in RUNS)]:

@@ -43,3 +43,11 @@ def test_paper_offline_bounds_diagnostics_run_lidar_against_a_perfect_peer_map()
     assert [r[0] for r in rows] == [0.0, 1.0, 2.0]
     assert all(len(r) == 7 and r[3] >= 0.0 for r in rows)
     assert got["keyframes"] == 60 and got["perfect_peer"] is True
+
+
+def test_paper_offline_runs_in_the_sparse_hall():
+    got = main(["--seed", "1", "--duration", "2", "--world", "hall", "--lidar-only"])
+    assert got["world"] == "hall"
+    for key in ("lidar_alone", "depth_alone", "lidar_with_depth"):
+        assert 0.0 <= got[key] < 0.5, key
+    assert sum(got["lidar_counts"].values()) > 0  # from mid-path, tried against depth-1's map
