@@ -347,7 +347,10 @@ class History:
         """Drop every record of packed `keys` (voxels forgotten: unknown again) and return the
         buffer's memory when it is mostly empty. Returns records dropped."""
         rec = self.view()
-        gone = np.isin(rec["key"], np.asarray(keys, dtype=np.int64))
+        # one sort of the keys serves both look-ups: np.isin hashed every key on each call
+        # (~1.5 s for a forget of 1.5 M voxels, even against an empty column)
+        wanted = np.sort(np.asarray(keys, dtype=np.int64).reshape(-1))
+        gone = _member(rec["key"], wanted)
         n = int(np.count_nonzero(gone))
         if n:
             kept = rec[~gone]
@@ -355,7 +358,7 @@ class History:
             self.size = kept.size
         if self.size * 2 < self._buf.shape[0] and self._buf.shape[0] > MIN_BUFFER:
             self._buf = self._buf[: max(self.size + self.size // 4, MIN_BUFFER)].copy()
-        gone_seen = np.isin(self._seen_column("key"), np.asarray(keys, dtype=np.int64))
+        gone_seen = _member(self._seen_column("key"), wanted)
         if gone_seen.any():
             left = int(np.count_nonzero(~gone_seen))
             for col in self._seen.values():
@@ -439,3 +442,11 @@ class History:
         self.size = records.size
         self.agents = list(agents)
         self._agent_index = {a: i for i, a in enumerate(self.agents)}
+
+
+def _member(values: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
+    """np.isin(values, sorted_keys) by binary search in the sorted keys."""
+    if values.size == 0 or sorted_keys.size == 0:
+        return np.zeros(values.shape, dtype=bool)
+    pos = np.minimum(np.searchsorted(sorted_keys, values), sorted_keys.size - 1)
+    return np.asarray(sorted_keys[pos] == values)

@@ -32,6 +32,8 @@ def test_work_runs_in_another_process_and_close_interrupts_it():
             if os.path.exists(AUTOGROUP):
                 assert aligner.run(_autogroup).split()[-1] == str(AUTOGROUP_NICE)
         assert aligner.run(divmod, 7, 2) == (3, 1)
+        with pytest.raises(ZeroDivisionError):  # the worker's error, raised here (same worker)
+            aligner.run(divmod, 1, 0)
         failed: list[BaseException] = []
 
         def slow() -> None:
@@ -52,5 +54,3 @@ def test_work_runs_in_another_process_and_close_interrupts_it():
             aligner.run(divmod, 1, 1)
     finally:
         aligner.close()
-    with pytest.raises(ZeroDivisionError):
-        Aligner().run(divmod, 1, 0)

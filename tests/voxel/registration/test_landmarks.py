@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -52,8 +53,26 @@ def test_objects_fit_refuses_too_few_and_reports_symmetry() -> None:
 
 # The sim office: two rooms of one shape, so geometry alone cannot tell them apart; a depth
 # camera's objects (class-labelled) can, against a 3D LiDAR's map that has no classes.
+# depth-1's first 20 s (200 frames) take in both rooms; lidar3d-1's first 3 s (30 frames) the
+# west room alone, which fits either room of depth-1's map by geometry.
+Mapped = tuple[MapCloud, Landmarks, np.ndarray]
+
+
 @pytest.fixture(scope="module")
-def office() -> dict[str, tuple[MapCloud, Landmarks, np.ndarray]]:
+def office() -> Callable[[str, str, int], Mapped]:
+    """The map, objects and true start pose of (world, agent, frames), each built once and only
+    when a test asks for it (xdist may spread this module's tests over workers)."""
+    built: dict[tuple[str, str, int], Mapped] = {}
+
+    def get(world: str, agent: str, frames: int = 120) -> Mapped:
+        if (world, agent, frames) not in built:
+            built[world, agent, frames] = _mapped(world, agent, frames)
+        return built[world, agent, frames]
+
+    return get
+
+
+def _mapped(world: str, agent: str, frames: int) -> Mapped:
     from colonyd.mapping import integrate_observation
     from plugins.checks import pose_matrix
     from plugins.sim import AGENTS, Path
@@ -61,34 +80,22 @@ def office() -> dict[str, tuple[MapCloud, Landmarks, np.ndarray]]:
     from voxel.grid import VoxelGrid
     from voxel.objects import extract_objects
 
-    out = {}
-    for world, agent, frames in (
-        ("office", "depth-1", 120),
-        ("office", "lidar3d-1", 120),
-        ("office", "lidar-1", 120),
-        ("room", "depth-1", 120),
-        # depth-1's first 20 s take in both rooms; lidar3d-1's first 3 s the west room alone,
-        # which fits either room of depth-1's map by geometry
-        ("office", "depth-1", 200),
-        ("office", "lidar3d-1", 30),
-    ):
-        spec = f"sim:world={world},agent={agent},frames={frames},noise=0"
-        src = open_source(spec, resolution=0.1)
-        grid = VoxelGrid(0.1, block_shape="planar" if agent == "lidar-1" else "cube")
-        for obs in src:
-            integrate_observation(grid, obs, sensor=src.adapter.sensor_model, reliability=1.0)
-        d = grid.delta_since(0)
-        known = ~np.isnan(d.logodds)
-        cloud = MapCloud.from_keys(0.1, d.keys[known], d.logodds[known] >= 0, agent)
-        objs = extract_objects(grid, exclude=frozenset({1, 2}), min_voxels=20, link=3.0)
-        s = AGENTS[world][agent]
-        x, y, yaw = Path(s.waypoints, s.speed, s.turn_rate)(0.0)  # evaluation only
-        out[f"{world}:{agent}" + ("" if frames == 120 else f"@{frames}")] = (
-            cloud,
-            Landmarks.of([(o.class_id, o.position) for o in objs]),
-            pose_matrix(x, y, 0.0, yaw),
-        )
-    return out
+    spec = f"sim:world={world},agent={agent},frames={frames},noise=0"
+    src = open_source(spec, resolution=0.1)
+    grid = VoxelGrid(0.1, block_shape="planar" if agent == "lidar-1" else "cube")
+    for obs in src:
+        integrate_observation(grid, obs, sensor=src.adapter.sensor_model, reliability=1.0)
+    d = grid.delta_since(0)
+    known = ~np.isnan(d.logodds)
+    cloud = MapCloud.from_keys(0.1, d.keys[known], d.logodds[known] >= 0, agent)
+    objs = extract_objects(grid, exclude=frozenset({1, 2}), min_voxels=20, link=3.0)
+    s = AGENTS[world][agent]
+    x, y, yaw = Path(s.waypoints, s.speed, s.turn_rate)(0.0)  # evaluation only
+    return (
+        cloud,
+        Landmarks.of([(o.class_id, o.position) for o in objs]),
+        pose_matrix(x, y, 0.0, yaw),
+    )
 
 
 def _error(found: np.ndarray, a_start: np.ndarray, b_start: np.ndarray) -> tuple[float, float]:
@@ -97,8 +104,8 @@ def _error(found: np.ndarray, a_start: np.ndarray, b_start: np.ndarray) -> tuple
 
 
 def test_objects_settle_the_symmetric_office_and_geometry_alone_refuses(office) -> None:
-    a, oa, sa = office["office:depth-1@200"]
-    b, ob, sb = office["office:lidar3d-1@30"]
+    a, oa, sa = office("office", "depth-1", 200)
+    b, ob, sb = office("office", "lidar3d-1", 30)
     alone = align_clouds(a, b, AlignParams(dof=4))
     assert not alone.aligned and "ambiguous" in (alone.reason or "")
     both = align_clouds(a, b, AlignParams(dof=4), objects_a=oa, objects_b=ob)
@@ -111,8 +118,8 @@ def test_objects_settle_the_symmetric_office_and_geometry_alone_refuses(office) 
 
 
 def test_a_2d_scan_aligns_to_the_slice_of_a_3d_map(office) -> None:
-    a, _, sa = office["office:lidar3d-1"]
-    b, _, sb = office["office:lidar-1"]
+    a, _, sa = office("office", "lidar3d-1")
+    b, _, sb = office("office", "lidar-1")
     assert b.planar and not a.planar
     result = align_clouds(a, b, AlignParams(dof=4))
     assert result.aligned, result.reason
@@ -122,8 +129,8 @@ def test_a_2d_scan_aligns_to_the_slice_of_a_3d_map(office) -> None:
 
 
 def test_objects_in_the_other_maps_open_space_refuse_a_foreign_map(office) -> None:
-    a, oa, _ = office["office:lidar3d-1"]
-    b, ob, _ = office["room:depth-1"]  # the room fits one office room by geometry
+    a, oa, _ = office("office", "lidar3d-1")
+    b, ob, _ = office("room", "depth-1")  # the room fits one office room by geometry
     result = align_clouds(a, b, AlignParams(dof=4), objects_a=oa, objects_b=ob)
     assert not result.aligned
     assert result.objects is not None and result.objects["contradicted"] >= 1
