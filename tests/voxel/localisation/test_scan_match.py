@@ -260,7 +260,7 @@ def test_a_depth_scans_copy_one_map_cell_away_widens_the_covariance() -> None:
             local.add(scan(x, rng) @ m[:3, :3].T + m[:3, 3], m, m[:3, :3] @ eye + m[:3, 3])
         true = np.array([-3.36, 0.0, math.pi])
         pts = scan(true[0], rng)
-        result = match(pts, local, se2.to_matrix(true + [0.0, -0.06, 0.0]), sensor=eye)
+        result = match(pts, local, se2.to_matrix(true + np.array([0.0, -0.06, 0.0])), sensor=eye)
         error = se2.from_matrix(result.pose)[1] - true[1]
         assert abs(error) > 0.05  # the copy (the pose is always the first run's)
         assert error**2 / result.covariance[1, 1] < 9.0, (seed, error, result.covariance[1, 1])
