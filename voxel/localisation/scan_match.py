@@ -20,9 +20,6 @@ DEGENERATE = 0.01
 PROBE_POINTS = 500
 #: A restart's score (mean Cauchy loss) at most this times the best one's: as good a fit.
 PROBE_TOLERANCE = 1.05
-#: Or its points' losses at most this many standard errors worse than at the best pose (paired,
-#: point by point): a difference the sensor's noise explains, not a worse fit.
-PROBE_STANDARD_ERRORS = 2.0
 
 if TYPE_CHECKING:
     from scipy.spatial import cKDTree
@@ -367,11 +364,11 @@ def patch_covariance(
     return 0.5 * (cov + cov.T), {"within": within, "shared": shared, "patches": float(count)}
 
 
-def _losses(
+def _score(
     src: np.ndarray, local: MatchTarget, pose: np.ndarray, limit: float, scale: float
-) -> np.ndarray:
-    """Cauchy loss (N,) of each scan point at `pose` (point-to-plane, a point without a map
-    point within `limit` costs as much as one at `limit`)."""
+) -> float:
+    """Mean Cauchy loss of the scan at `pose` (point-to-plane, a point without a map point
+    within `limit` costs as much as one at `limit`): how well a pose explains the scan."""
     tree = local.tree
     assert tree is not None, "a target with points"
     moved = src @ pose[:3, :3].T + pose[:3, 3]
@@ -380,20 +377,7 @@ def _losses(
     r = np.full(len(src), limit)
     i = idx[ok]
     r[ok] = np.einsum("ij,ij->i", moved[ok] - local.points[i], local.normals[i])
-    out: np.ndarray = np.log1p((r / scale) ** 2)
-    return out
-
-
-def _as_good(other: np.ndarray, base: np.ndarray) -> bool:
-    """Whether per-point losses `other` fit as well as `base` (the same points): a mean at most
-    `PROBE_TOLERANCE` times base's, or a mean paired difference within `PROBE_STANDARD_ERRORS`
-    of its standard error (on a 10 cm map of a noisy depth camera, the aliased copy of a pose
-    one cell away often scores 5-10 % better than the true one: within the noise)."""
-    if float(other.mean()) <= float(base.mean()) * PROBE_TOLERANCE:
-        return True
-    d = other - base
-    se = float(d.std()) / math.sqrt(max(len(d), 1))
-    return float(d.mean()) <= PROBE_STANDARD_ERRORS * se
+    return float(np.mean(np.log1p((r / scale) ** 2)))
 
 
 def match(
@@ -433,7 +417,7 @@ def match(
     ICP errors: `probe` (default: dof 3) restarts
     Gauss-Newton half a final distance, a map cell or two standard deviations either side
     along the least constrained horizontal direction; a restart that ends elsewhere with as good
-    a fit (`_as_good`) widens the covariance to cover it (a wall's length, a repeating
+    a score (`_score`) widens the covariance to cover it (a wall's length, a repeating
     structure). The returned pose is always the first run's.
     """
     if dof not in (3, 6):
@@ -495,19 +479,18 @@ def _ambiguity(
 ) -> np.ndarray:
     """Covariance (3x3) to add for other minima along the least constrained horizontal direction
     (dof 3): restarts `best` half of `final_distance`, a map cell or two standard deviations
-    (the most of them) either side along it, a pure translation, on at most `PROBE_POINTS` of
-    the scan, each run with a third of the iterations; one that ends more than a standard
-    deviation away and fits as well (`_as_good`) adds its offset's outer product (half each
-    side). The restart does not turn with the covariance's yaw coupling: extrapolated to a map
-    cell (10-15 standard deviations), that coupling turned depth-1's restarts by 1-2 degrees,
-    and they fell back into the match's own minimum, missing the copy one cell away."""
+    (the most of them) either side along it (yaw following, as the covariance couples it), on
+    at most `PROBE_POINTS` of the scan, each run with a third of the iterations; one that ends
+    more than a standard deviation away, scoring at most `PROBE_TOLERANCE` times `best`'s, adds
+    its offset's outer product (half each side)."""
     values, vectors = np.linalg.eigh(cov[:2, :2])
     u = vectors[:, -1]
     sd = math.sqrt(max(float(values[-1]), 0.0))
     step = max(cell, 2.0 * sd, 0.5 * final_distance)
     along = np.array([u[0], u[1], 0.0])
+    along[2] = float(cov[2, :2] @ np.linalg.solve(cov[:2, :2] + 1e-12 * np.eye(2), u))
     src = src[:: max(1, -(-len(src) // PROBE_POINTS))]  # a subsample: a restart only looks
-    base = _losses(src, local, best.pose, final_distance, solve["robust_scale"])
+    base = _score(src, local, best.pose, final_distance, solve["robust_scale"])
     here = se2.from_matrix(best.pose)
     extra = np.zeros((3, 3))
     for sign in (-1.0, 1.0):
@@ -525,8 +508,10 @@ def _ambiguity(
         delta = se2.from_matrix(other.pose) - here
         delta[2] = math.remainder(float(delta[2]), 2.0 * math.pi)
         far = float(delta[:2] @ np.linalg.solve(cov[:2, :2] + 1e-12 * np.eye(2), delta[:2]))
-        if far > 1.0 and _as_good(
-            _losses(src, local, other.pose, final_distance, solve["robust_scale"]), base
+        if (
+            far > 1.0
+            and _score(src, local, other.pose, final_distance, solve["robust_scale"])
+            <= base * PROBE_TOLERANCE
         ):
             extra += 0.5 * np.outer(delta, delta)
     return extra
