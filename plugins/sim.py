@@ -217,7 +217,9 @@ AGENTS["hall"] = {
 
 
 class Path:
-    """Body pose (x, y, yaw) along a looped waypoint path: turn in place, then drive straight."""
+    """Body pose (x, y, yaw) along a looped waypoint path: turn in place, then drive straight.
+    Back at the first waypoint it turns to its first heading, so every loop drives forwards as
+    the first does."""
 
     def __init__(
         self, waypoints: tuple[tuple[float, float], ...], speed: float, turn_rate: float
@@ -240,6 +242,11 @@ class Path:
                 poses.append((*a, yaw))
             times.append(times[-1] + float(np.linalg.norm(b - a)) / speed)
             poses.append((*b, yaw))
+        close = (poses[0][2] - yaw + math.pi) % (2 * math.pi) - math.pi  # to the first heading
+        if abs(close) > 1e-9:
+            yaw += close
+            times.append(times[-1] + abs(close) / turn_rate)
+            poses.append((*pts[0], yaw))
         self.times = np.array(times)
         self.poses = np.array(poses)
         self.period = float(self.times[-1])

@@ -173,3 +173,27 @@ def test_robots_paths_keep_their_bodies_clear_of_every_solid() -> None:
                     f"{xy[worst].round(2).tolist()}: {clear[worst]:.3f} m from a solid"
                 )
     assert failures == [], f"bodies of radius {ROBOT_RADIUS} m overlap solids: {failures}"
+
+
+def test_robots_drive_forwards_on_every_loop_of_their_paths() -> None:
+    # Over three loops of each moving agent's path, each step's motion is along the body's
+    # heading (a ground robot drives forwards, never sideways): a loop ends with a turn back to
+    # the first heading. Without it the second loop drove crabwise, 90 degrees off (lidar-1).
+    for world_name in WORLDS:
+        for name, agent in AGENTS[world_name].items():
+            if not agent.waypoints:
+                continue
+            path = Path(agent.waypoints, agent.speed, agent.turn_rate)
+            times = np.arange(0.0, 3 * path.period, 0.1)
+            poses = np.array([path(t) for t in times])
+            step = np.diff(poses[:, :2], axis=0)
+            moving = np.linalg.norm(step, axis=1) > 1e-6
+            yaw = poses[:-1, 2][moving]
+            sideways = np.abs(-np.sin(yaw) * step[moving, 0] + np.cos(yaw) * step[moving, 1])
+            forwards = np.cos(yaw) * step[moving, 0] + np.sin(yaw) * step[moving, 1]
+            # a step straddling a waypoint turns as it drives (the sampling): a few mm sideways
+            assert sideways.max() < 0.01, f"{world_name} {name} drives sideways"
+            assert forwards.min() > 0.0, f"{world_name} {name} drives backwards"
+            later = path(2 * path.period + 1.0)
+            assert later[:2] == pytest.approx(path(1.0)[:2])
+            assert np.cos(later[2] - path(1.0)[2]) == pytest.approx(1.0)
