@@ -63,7 +63,7 @@ def test_builtin_worlds_and_objects() -> None:
     assert {10, 11, 12, 13} <= set(objects) and len(office.markers) == 16
     assert all(objects[m.object_id][0] == CLASSES["landmark"] for m in office.markers)
     with pytest.raises(
-        SourceSpecError, match=r"world: expected one of \['office', 'room'\], found 'mars'"
+        SourceSpecError, match=r"world: expected one of \['hall', 'office', 'room'\], found 'mars'"
     ):
         get_world("mars")
 
