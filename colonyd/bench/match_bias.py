@@ -22,22 +22,17 @@ estimator reads it.
 
 from __future__ import annotations
 
-import argparse
 import math
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from colonyd.bench.files import print_and_append
-from colonyd.estimator import ScanEstimator, get_estimator
-from colonyd.simrun import sim_spec
-from plugins.source import open_source
+from colonyd.bench.truthscan import add_true, agent_main, truth_map, truth_scans
 from plugins.world import World, get_world
 from voxel.localisation import se2
-from voxel.localisation.scan_match import LocalMap, thin
+from voxel.localisation.scan_match import LocalMap
 
 #: Spacing (m) of the exact surfaces' points.
 SPACING = 0.02
@@ -112,49 +107,21 @@ def summary(errors: np.ndarray, covariances: np.ndarray) -> dict[str, Any]:
 
 def measure(agent: str, seed: int, lidar_range: float, duration: float) -> dict[str, Any]:
     """Both targets for one robot."""
-    options = f"lidar_range={lidar_range:g}" if agent == "lidar-1" else ""
-    spec = sim_spec(
-        agent, duration, seed, odometry_noise="realistic", realtime=False, options=options
-    )
-    source = open_source(spec, resolution=0.1)
     rng = np.random.default_rng(seed)
-    estimator: ScanEstimator | None = None
     exact: Surfaces | None = None
-    truth_map: LocalMap | None = None
+    target_map: LocalMap | None = None
     rows: dict[str, list[Any]] = {"we": [], "wc": [], "te": [], "tc": []}
-    for obs in source:
-        if obs.truth is None:
-            msg = f"{spec}: expected the simulator's truth to evaluate, found none"
-            raise ValueError(msg)
-        if estimator is None:
-            made = get_estimator(source.adapter, obs)
-            if not isinstance(made, ScanEstimator):
-                msg = f"{agent}: expected a scan estimator, found {made.name}"
-                raise ValueError(msg)
-            estimator = made
-        loc = estimator.localiser
-        p = loc.params
-        if exact is None:
-            exact = surfaces(get_world("office"), p.map_cell)
-            truth_map = LocalMap(
-                planar=estimator.planar,
-                keyframes=p.keyframes,
-                cell=p.map_cell,
-                key_distance=p.key_distance,
-                key_angle=p.key_angle,
-            )
-        assert truth_map is not None  # made with `exact`
-        points = obs.points if obs.no_return is None else obs.points[~obs.no_return]
-        body = points @ estimator.mount[:3, :3].T + estimator.mount[:3, 3]
-        pts = thin(body[np.linalg.norm(body[:, :2], axis=1) <= p.max_range], p.scan_cell)
-        if len(pts) > p.max_points:
-            pts = pts[rng.choice(len(pts), p.max_points, replace=False)]
-        true = se2.from_matrix(obs.truth @ np.linalg.inv(estimator.mount))
+    for scan in truth_scans(agent, seed, lidar_range, duration, rng):
+        loc = scan.estimator.localiser
+        if exact is None or target_map is None:
+            exact = surfaces(get_world("office"), loc.params.map_cell)
+            target_map = truth_map(scan.estimator)
+        true = scan.true
         c, s = math.cos(true[2]), math.sin(true[2])
-        for key, target in (("w", exact), ("t", truth_map)):
+        for key, target in (("w", exact), ("t", target_map)):
             if target.tree is None:
                 continue
-            m = loc.match_from(pts, target, true)
+            m = loc.match_from(scan.points, target, true)
             if not m.ok:
                 continue
             e = se2.from_matrix(m.pose) - true
@@ -162,11 +129,7 @@ def measure(agent: str, seed: int, lidar_range: float, duration: float) -> dict[
                 [c * e[0] + s * e[1], -s * e[0] + c * e[1], se2.wrap(float(e[2]))]
             )
             rows[key + "c"].append(m.covariance)
-        flat = se2.to_matrix(true)
-        if truth_map.wants(flat):
-            truth_map.add(
-                pts @ flat[:3, :3].T + flat[:3, 3], flat, flat[:3, :3] @ loc.sensor + flat[:3, 3]
-            )
+        add_true(target_map, scan)
     return {
         "world": summary(
             np.array(rows["we"]).reshape(-1, 3), np.array(rows["wc"]).reshape(-1, 3, 3)
@@ -178,20 +141,7 @@ def measure(agent: str, seed: int, lidar_range: float, duration: float) -> dict[
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    parser = argparse.ArgumentParser(prog="python -m colonyd.bench.match_bias")
-    parser.add_argument("--seed", type=int, default=2)
-    parser.add_argument("--agent", choices=("lidar-1", "depth-1", "both"), default="both")
-    parser.add_argument("--lidar-range", type=float, default=3.0)
-    parser.add_argument("--duration", type=float, default=60.0, help="seconds of path")
-    parser.add_argument("--json", type=Path, help="append the result as one JSON line")
-    args = parser.parse_args(argv)
-    out: dict[str, Any] = {"seed": args.seed, "lidar_range": args.lidar_range}
-    agents = ("lidar-1", "depth-1") if args.agent == "both" else (args.agent,)
-    for agent in agents:
-        seed = 100 * args.seed + (1 if agent == "lidar-1" else 2)
-        out[agent] = measure(agent, seed, args.lidar_range, args.duration)
-    print_and_append(out, args.json)
-    return out
+    return agent_main("python -m colonyd.bench.match_bias", measure, argv)
 
 
 if __name__ == "__main__":

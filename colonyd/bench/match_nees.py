@@ -23,18 +23,13 @@ worst 20-frame window.
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from colonyd.bench.files import print_and_append
-from colonyd.estimator import ScanEstimator, get_estimator
-from colonyd.simrun import sim_spec
-from plugins.source import open_source
+from colonyd.bench.truthscan import add_true, agent_main, truth_map, truth_scans
 from voxel.localisation import se2
-from voxel.localisation.scan_match import LocalMap, thin
+from voxel.localisation.scan_match import LocalMap
 
 #: Standard deviations of the prediction error the truth case starts each match from (x, y, yaw).
 START_ERROR = (0.03, 0.03, float(np.radians(1.0)))
@@ -84,49 +79,18 @@ def report(
 
 def measure(agent: str, seed: int, lidar_range: float, duration: float) -> dict[str, Any]:
     """Both cases for one robot."""
-    options = f"lidar_range={lidar_range:g}" if agent == "lidar-1" else ""
-    spec = sim_spec(
-        agent, duration, seed, odometry_noise="realistic", realtime=False, options=options
-    )
-    source = open_source(spec, resolution=0.1)
     rng = np.random.default_rng(seed)
-    estimator: ScanEstimator | None = None
-    truth_map: LocalMap | None = None
+    target_map: LocalMap | None = None
     rows: dict[str, list[Any]] = {k: [] for k in ("tf", "te", "tc", "ty", "of", "oe", "oc")}
     frame = np.eye(4)
-    for i, obs in enumerate(source):
-        if obs.truth is None:
-            msg = f"{spec}: expected the simulator's truth to evaluate, found none"
-            raise ValueError(msg)
-        if estimator is None:
-            made = get_estimator(source.adapter, obs)
-            if not isinstance(made, ScanEstimator):
-                msg = f"{agent}: expected a scan estimator, found {made.name}"
-                raise ValueError(msg)
-            estimator = made
-        loc = estimator.localiser
-        p = loc.params
-        unmount = np.linalg.inv(estimator.mount)
-        body_truth = obs.truth @ unmount
+    for scan in truth_scans(agent, seed, lidar_range, duration, rng):
+        i, obs, loc, true = scan.index, scan.observation, scan.estimator.localiser, scan.true
         # the truth case: this scan, preprocessed as the localiser does, against the truth map
-        points = obs.points if obs.no_return is None else obs.points[~obs.no_return]
-        body = points @ estimator.mount[:3, :3].T + estimator.mount[:3, 3]
-        pts = body[np.linalg.norm(body[:, :2], axis=1) <= p.max_range]
-        pts = thin(pts, p.scan_cell)
-        if len(pts) > p.max_points:
-            pts = pts[rng.choice(len(pts), p.max_points, replace=False)]
-        true = se2.from_matrix(body_truth)
-        if truth_map is None:
-            truth_map = LocalMap(
-                planar=estimator.planar,
-                keyframes=p.keyframes,
-                cell=p.map_cell,
-                key_distance=p.key_distance,
-                key_angle=p.key_angle,
-            )
+        if target_map is None:
+            target_map = truth_map(scan.estimator)
         else:
             start = true + rng.normal(0.0, START_ERROR)
-            m = loc.match_from(pts, truth_map, start)
+            m = loc.match_from(scan.points, target_map, start)
             if m.ok:
                 e = se2.from_matrix(m.pose) - true
                 e[2] = se2.wrap(float(e[2]))
@@ -134,18 +98,14 @@ def measure(agent: str, seed: int, lidar_range: float, duration: float) -> dict[
                 rows["te"].append(e)
                 rows["tc"].append(m.covariance)
                 rows["ty"].append(true[1])
-        flat = se2.to_matrix(true)
-        if truth_map.wants(flat):
-            truth_map.add(
-                pts @ flat[:3, :3].T + flat[:3, 3], flat, flat[:3, :3] @ loc.sensor + flat[:3, 3]
-            )
+        add_true(target_map, scan)
         # the own case: the estimator's step, its own-map match against the truth in its frame
         odometry = None if obs.odometry is None else se2.from_matrix(obs.odometry)
-        step = loc.step(body, odometry, colony=None, time=obs.time)
+        step = loc.step(scan.body, odometry, colony=None, time=obs.time)
         if i == 0:
-            frame = body_truth @ np.linalg.inv(se2.to_matrix(step.pose))  # robot frame in world
+            frame = scan.truth @ np.linalg.inv(se2.to_matrix(step.pose))  # robot frame in world
         if step.match is not None and step.match.ok:
-            own_true = se2.from_matrix(np.linalg.inv(frame) @ body_truth)
+            own_true = se2.from_matrix(np.linalg.inv(frame) @ scan.truth)
             e = se2.from_matrix(step.match.pose) - own_true
             e[2] = se2.wrap(float(e[2]))
             rows["of"].append(i)
@@ -167,20 +127,7 @@ def measure(agent: str, seed: int, lidar_range: float, duration: float) -> dict[
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    parser = argparse.ArgumentParser(prog="python -m colonyd.bench.match_nees")
-    parser.add_argument("--seed", type=int, default=2)
-    parser.add_argument("--agent", choices=("lidar-1", "depth-1", "both"), default="both")
-    parser.add_argument("--lidar-range", type=float, default=3.0)
-    parser.add_argument("--duration", type=float, default=60.0, help="seconds of path")
-    parser.add_argument("--json", type=Path, help="append the result as one JSON line")
-    args = parser.parse_args(argv)
-    out: dict[str, Any] = {"seed": args.seed, "lidar_range": args.lidar_range}
-    agents = ("lidar-1", "depth-1") if args.agent == "both" else (args.agent,)
-    for agent in agents:
-        seed = 100 * args.seed + (1 if agent == "lidar-1" else 2)
-        out[agent] = measure(agent, seed, args.lidar_range, args.duration)
-    print_and_append(out, args.json)
-    return out
+    return agent_main("python -m colonyd.bench.match_nees", measure, argv)
 
 
 if __name__ == "__main__":
