@@ -2,7 +2,7 @@
 map, for A/B of estimator changes without the live runs' timing chaos.
 
 `python -m colonyd.bench.paper_offline --seed S [--world W] [--lidar-range R] [--rng N]
-[--duration S] [--no-peer-covariance] [--json FILE]`
+[--duration S] [--no-peer-covariance] [--offset-walk] [--json FILE]`
 
 Each robot's sim source (the experiment's spec and seed, not paced) runs through its estimator
 and maps from the estimate, as `colonyd localize` does. The peer's map (its estimated-pose voxel
@@ -16,6 +16,8 @@ peer's own pose uncertainty: its filter's covariance at the frame nearest in tim
 robot's contact (when the cut is made), as an error of its map about the cut's centre, moved
 into the robot's frame. The simulator's truth builds that fixture and evaluates; no estimator
 reads it (as the "perfect peer map" diagnosis in docs/LOCALISATION.md).
+`--offset-walk` lets both robots' colony offsets walk with distance (`OffsetWalk`'s defaults;
+`ScanParams.colony_walk`, off in the daemon).
 `--rng` draws the scans' subsample with another seed: how far a run moves when nothing but
 that changes (the noise to compare against).
 
@@ -54,6 +56,7 @@ from voxel import keys as vk
 from voxel.grid import VoxelGrid
 from voxel.localisation import se2
 from voxel.localisation.colony_map import ColonyMap, colony_map
+from voxel.localisation.localiser import OffsetWalk
 from voxel.localisation.metrics import absolute_trajectory_error
 from voxel.occupancy import FREE_STATE, OCCUPIED
 
@@ -107,7 +110,9 @@ class Run:
         keyframes: int | None = None,
         lidar_noise: float | None = None,
         world: str = "office",
+        walk: OffsetWalk | None = None,
     ) -> None:
+        self.walk = walk
         options = f"lidar_range={lidar_range:g}" if agent == "lidar-1" else ""
         if agent == "lidar-1" and lidar_noise is not None:
             options += f",range_noise={lidar_noise:g}"
@@ -152,6 +157,9 @@ class Run:
             if estimator is None:
                 estimator = get_estimator(adapter, obs)
                 estimator.localiser.rng = np.random.default_rng(rng)
+                if self.walk is not None and isinstance(estimator, ScanEstimator):
+                    loc = estimator.localiser
+                    loc.params = replace(loc.params, colony_walk=self.walk)
                 if self.keyframes is not None:
                     estimator.localiser.local.frames = deque(maxlen=self.keyframes)
             elif relaxed != "none" and i == 1:
@@ -338,6 +346,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         help="add the peer's pose covariance to its map's (the daemon's colony_peer_pose; "
         "default on, as the daemon's)",
     )
+    parser.add_argument(
+        "--offset-walk",
+        action="store_true",
+        help="the colony offset as a random walk with distance (OffsetWalk; off in the daemon)",
+    )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     diag = parser.add_argument_group("diagnostics (bounds; truth builds fixtures only)")
     diag.add_argument(
@@ -367,7 +380,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         seed = 100 * args.seed + (1 if agent == "lidar-1" else 2)
         keyframes = args.keyframes if agent == "lidar-1" else None
         noise = args.lidar_noise if agent == "lidar-1" else None
-        return Run(agent, seed, args.lidar_range, args.duration, keyframes, noise, args.world)
+        walk = OffsetWalk() if args.offset_walk else None
+        return Run(agent, seed, args.lidar_range, args.duration, keyframes, noise, args.world, walk)
 
     lidar, depth = robot("lidar-1"), robot("depth-1")
     out: dict[str, Any] = {"seed": args.seed, "lidar_range": args.lidar_range, "rng": args.rng}
@@ -381,6 +395,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "exact_alignment",
         "lidar_noise",
         "world",
+        "offset_walk",
     ):
         if getattr(args, name) != parser.get_default(name):
             out[name] = getattr(args, name)

@@ -46,8 +46,9 @@ def test_paper_offline_bounds_diagnostics_run_lidar_against_a_perfect_peer_map()
 
 
 def test_paper_offline_runs_in_the_sparse_hall():
-    got = main(["--seed", "1", "--duration", "2", "--world", "hall", "--lidar-only"])
-    assert got["world"] == "hall"
+    args = ["--seed", "1", "--duration", "2", "--world", "hall", "--lidar-only", "--offset-walk"]
+    got = main(args)
+    assert got["world"] == "hall" and got["offset_walk"] is True  # the colony offset walks
     for key in ("lidar_alone", "depth_alone", "lidar_with_depth"):
         assert 0.0 <= got[key] < 0.5, key
     assert sum(got["lidar_counts"].values()) > 0  # from mid-path, tried against depth-1's map

@@ -400,6 +400,33 @@ class PlanarEkf:
         self._offset_prior = self._offset_prior + q
         return q
 
+    def walk_offset(self, noise: np.ndarray, about: np.ndarray) -> np.ndarray:
+        """Let the shared map's error wander: add `noise` (3x3: x, y and yaw of a small motion
+        about the point `about` (x, y) of the agent's frame, where the agent now is) to the
+        offset as process noise, and return it as the offset's (x, y, yaw about the origin).
+
+        A random walk as in `widen_offset` (b' = b + w; the mean and the correlations stay, the
+        covariance only widens), with the noise taken about `about` rather than the origin: a
+        map's error that varies from place to place is a local shift and turn there, and a
+        turn about the origin would also move the map here by the turn times the distance to
+        the origin."""
+        if not self._has_offset:
+            msg = "offset walk: expected reset_offset() first"
+            raise LocalisationError(msg)
+        q_local = _checked_covariance(noise, "offset walk")
+        c = np.asarray(about, np.float64).reshape(-1)
+        if c.shape != (2,) or not np.all(np.isfinite(c)):
+            msg = f"offset walk: expected a finite point (x, y), found {c}"
+            raise LocalisationError(msg)
+        t = self._mean[:2]
+        # b' = (t + dθ J (t - c) + dt, yaw + dθ) for a turn dθ about c and a shift dt.
+        g = np.eye(3)
+        g[0, 2], g[1, 2] = -(t[1] - c[1]), t[0] - c[0]
+        q: np.ndarray = g @ q_local @ g.T
+        q = 0.5 * (q + q.T)
+        self._cov[:3, :3] += q
+        return q
+
     def update_offset(
         self, pose: np.ndarray, covariance: np.ndarray, gate: float | None = GATE_3DOF
     ) -> bool:

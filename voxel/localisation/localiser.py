@@ -17,6 +17,31 @@ from voxel.localisation.scan_match import LocalMap, Match, MatchTarget, match, t
 
 
 @dataclass(frozen=True)
+class OffsetWalk:
+    """How fast a peer map's error may change along the agent's path: the colony offset as a
+    random walk with the distance travelled since the last colony match (`PlanarEkf.walk_offset`),
+    so a correction learnt at one place is trusted less at the next.
+
+    From a peer's drift, decided before the A/B (docs/LOCALISATION.md, "Known limit: a peer
+    map's error is not rigid"): a drifted peer's map is off by 5-12 cm, differently place by
+    place (depth-1's in the sim office: its error where it mapped each place); two places a
+    few metres apart differ by ~5-10 cm, i.e. a standard deviation of ~6 cm after 4 m:
+    `trans` = 0.03 m per sqrt(m) in x and y. Its heading error varies less than its
+    position's (the matcher holds heading to a fraction of a degree per match): ~1 degree
+    after 4 m, `yaw` = 0.01 rad per sqrt(m), a third of the odometry model's `rot_per_m`. A
+    turn brings another part of the peer's map into view without travel: counted as
+    `lever` m of travel per radian (1 m: a quarter turn counts as 1.6 m)."""
+
+    trans: float = 0.03  # m per sqrt(m of travel)
+    yaw: float = 0.01  # rad per sqrt(m of travel)
+    lever: float = 1.0  # m of travel per rad of turn
+
+    def noise(self, travel: float) -> np.ndarray:
+        """The walk's covariance (x, y, yaw about the agent) over `travel` m."""
+        return np.diag([self.trans**2, self.trans**2, self.yaw**2]) * travel
+
+
+@dataclass(frozen=True)
 class ScanParams:
     """Parameters of `ScanLocaliser` (plain values; see `LocalMap` and `match`)."""
 
@@ -39,6 +64,9 @@ class ScanParams:
     #: map drifted): it is not used again until the alignments change.
     colony_window: int = 20
     colony_refusals: float = 0.3
+    #: The colony offset's random walk along the path (None: a rigid offset, the default
+    #: until an A/B supports it; docs/BENCHMARKS.md "A peer map's error as a random walk").
+    colony_walk: OffsetWalk | None = None
     history: int = 100  # (time, pose) of the last steps, to carry a late fix to the present
     fix_tolerance: float = 0.15  # seconds between a fix's stamp and the nearest step
 
@@ -99,6 +127,7 @@ class ScanLocaliser:
         self._colony_outcomes: deque[bool] = deque(maxlen=self.params.colony_window)
         self._distrusted: bytes | None = None  # the alignment of a colony map that disagreed
         self._offset_of: bytes | None = None  # the alignment whose error the filter estimates
+        self._travel = 0.0  # m (turns by `OffsetWalk.lever`) since the last colony match
         self.fix_accepted = self.fix_rejected = self.fix_stale = 0
         self.landmark_accepted = self.landmark_rejected = 0
         self.history: deque[tuple[float, np.ndarray]] = deque(maxlen=self.params.history)
@@ -128,7 +157,13 @@ class ScanLocaliser:
             increment = None
             if odometry is not None and self.last_odometry is not None:
                 increment = se2.relative(self.last_odometry, np.asarray(odometry, np.float64))
+            before = self.ekf.pose
             self.ekf.predict(increment)
+            if p.colony_walk is not None:
+                moved = se2.relative(before, self.ekf.pose)
+                self._travel += math.hypot(moved[0], moved[1]) + p.colony_walk.lever * abs(
+                    float(moved[2])
+                )
             result = self._match(pts, self.local)
             if result.ok and result.labels is not None and result.information is not None:
                 fused = self.ekf.update_relative(
@@ -261,6 +296,9 @@ class ScanLocaliser:
             self._offset_of = colony.alignment
         else:  # the same alignments; a peer that drifted or got lost since widens their error
             self.ekf.widen_offset(colony.covariance)
+            if p.colony_walk is not None and self._travel > 0.0:  # and so does the way here
+                self.ekf.walk_offset(p.colony_walk.noise(self._travel), self.ekf.pose[:2])
+        self._travel = 0.0
         fused = self.ekf.update_offset(se2.from_matrix(result.pose), result.covariance)
         if fused:
             self.colony_accepted += 1

@@ -10,9 +10,10 @@ import pytest
 
 from tests.voxel.localisation.test_scan_match import ROOM, _segments_scan
 from voxel.errors import LocalisationError
+from voxel.localisation import se2
 from voxel.localisation.colony_map import colony_map
-from voxel.localisation.ekf import PlanarEkf
-from voxel.localisation.localiser import ScanLocaliser
+from voxel.localisation.ekf import MotionNoise, PlanarEkf
+from voxel.localisation.localiser import OffsetWalk, ScanLocaliser, ScanParams
 from voxel.localisation.odometry import OdometryNoise, synthesise
 
 
@@ -250,3 +251,46 @@ def test_a_peer_that_gets_lost_widens_its_maps_error_without_a_new_alignment() -
     assert (loc.colony_accepted, loc.colony_rejected, loc.colony_suspended) == (30, 0, 0)
     np.testing.assert_allclose(loc.ekf.pose[:2], truth[:2], atol=0.01)
     assert loc.ekf.offset.value[0] == pytest.approx(0.15, abs=0.03)  # it learnt the map's error
+
+
+def test_a_walking_offset_follows_a_peer_maps_error_that_changes_along_the_way() -> None:
+    # The peer's map is right where the robot learns its error, and 5 cm off in x 1.5 m
+    # further on (its error differs place by place), the alignment and its stated covariance
+    # unchanged. The robot's odometry and own map hold it to ~1 cm. Rigid (no walk): the learnt
+    # offset pins pose + offset to millimetres, and the 5 cm are refused by the gate (without
+    # it they would go into the pose: test_ekf.py's known answer). With the walk
+    # (`OffsetWalk`: the distance driven since the last colony match widens the offset) the
+    # new place's error goes into the offset and the pose stays.
+    start = np.array([-1.5, 0.5, 0.0])
+    there = se2.compose(start, np.array([1.5, 0.0, 0.0]))
+    sure = np.diag([0.01**2, 0.01**2, math.radians(0.1) ** 2])
+    cut = {"planar": True, "height": 0.0, "centre": np.zeros(2), "radius": 10.0}
+    right = colony_map(_wall_points(ROOM), covariance=sure, alignment=b"a", **cut)
+    off = colony_map(
+        _wall_points(ROOM) + np.array([0.05, 0.0, 0.0]), covariance=sure, alignment=b"a", **cut
+    )
+    results = {}
+    for walk in (None, OffsetWalk()):
+        loc = ScanLocaliser(
+            planar=True,
+            params=ScanParams(colony_walk=walk),
+            motion=MotionNoise(trans=0.003, rot=0.003, rot_per_m=0.003, still=1e-8),
+        )
+        loc.ekf = PlanarEkf(start, covariance=np.diag([0.01**2, 0.01**2, 1e-6]), motion=loc.motion)
+        loc.last_odometry = np.zeros(3)
+        loc.local.wants = lambda pose: False  # type: ignore[method-assign]
+        for _ in range(10):
+            loc.step(_segments_scan(start, ROOM), np.zeros(3), colony=right)
+        assert loc.colony_accepted == 10
+        for i in range(1, 16):  # 1.5 m on, no colony map in reach
+            loc.step(_segments_scan(start, ROOM), np.array([0.1 * i, 0.0, 0.0]))
+        for _ in range(5):
+            loc.step(_segments_scan(there, ROOM), np.array([1.5, 0.0, 0.0]), colony=off)
+        assert loc.ekf is not None and loc.ekf.offset is not None
+        results[walk is None] = (loc.ekf.pose, loc.ekf.offset.value, loc.colony_accepted)
+    pose, offset, accepted = results[False]
+    assert accepted == 15
+    np.testing.assert_allclose(pose[:2], there[:2], atol=0.01)
+    assert offset[0] == pytest.approx(0.05, abs=0.015)
+    pose, _, accepted = results[True]
+    assert accepted == 10  # rigid: every match at the new place refused by the gate

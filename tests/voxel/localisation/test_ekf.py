@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from voxel.errors import LocalisationError
-from voxel.localisation.ekf import MotionNoise, PlanarEkf
+from voxel.localisation.ekf import GATE_3DOF, MotionNoise, PlanarEkf
 
 
 def test_predict_composes_the_increment_and_grows_the_covariance() -> None:
@@ -140,6 +140,78 @@ def test_a_widened_offset_lets_a_disagreeing_map_move_the_pose_less() -> None:
         f.widen_offset(np.diag([b**2 + widen, b**2 + widen, 1e-6]))
         assert f.update_offset(np.array([0.1, 0.0, 0.0]), np.eye(3) * r**2)
         assert f.pose[0] == pytest.approx(0.1 * expected, rel=1e-9)
+
+
+def test_an_offset_walk_is_a_turn_and_shift_about_the_agent_that_only_widens() -> None:
+    # Offset mean zero, the agent at (4, 0): a turn d about the agent moves the map at the
+    # origin by (0, -4 d), so the offset (about the origin) gains y variance 16 q_yaw and a
+    # y-yaw covariance -4 q_yaw; mean, correlations, pose untouched.
+    f = PlanarEkf(np.zeros(3), covariance=np.diag([1e-4, 1e-4, 1e-6]))
+    with pytest.raises(LocalisationError, match="reset_offset"):
+        f.walk_offset(np.eye(3), np.zeros(2))
+    f.reset_offset(np.diag([0.01, 0.01, 1e-4]))
+    assert f.update_offset(np.array([0.02, 0.0, 0.0]), np.eye(3) * 1e-4)
+    before, pose, cov = f.offset, f.pose, f.covariance
+    assert before is not None
+    f.reset_offset(np.diag([0.01, 0.01, 1e-4]))  # mean zero again, for the known answer
+    zero = f.offset
+    assert zero is not None
+    qx, qy, qa = 0.001, 0.002, 0.0001
+    q = f.walk_offset(np.diag([qx, qy, qa]), np.array([4.0, 0.0]))
+    expected = np.array([[qx, 0.0, 0.0], [0.0, qy + 16 * qa, -4 * qa], [0.0, -4 * qa, qa]])
+    np.testing.assert_allclose(q, expected, atol=1e-15)
+    after = f.offset
+    assert after is not None
+    np.testing.assert_allclose(after.covariance, zero.covariance + expected, atol=1e-15)
+    np.testing.assert_array_equal(after.value, zero.value)
+    np.testing.assert_array_equal(after.cross, zero.cross)
+    np.testing.assert_array_equal(after.accounted, zero.accounted)  # widen_offset's, apart
+    np.testing.assert_array_equal(f.pose, pose)
+    np.testing.assert_array_equal(f.covariance, cov)
+    for bad, about, says in (
+        (np.diag([-1.0, 0.0, 0.0]), np.zeros(2), "semi-definite"),
+        (np.eye(3), np.array([np.nan, 0.0]), "finite point"),
+    ):
+        with pytest.raises(LocalisationError, match=says):
+            f.walk_offset(bad, about)
+
+
+def test_a_walking_offset_learns_a_second_places_map_error_instead_of_dragging_the_pose() -> None:
+    # A peer's map off by +6 cm in x at place A (x = 0) and by -4 cm at place B (x = 4 m). The
+    # agent knows itself to 1 cm and its odometry is nearly exact (its own map holds it), so
+    # the truth stays at the estimate. At A the offset learns +6 cm. At B, a rigid offset
+    # (no walk) has pinned pose + offset to millimetres: the 10 cm disagreement is refused by
+    # the gate, and without the gate goes into the pose. With the walk over the 4 m (6 cm of
+    # standard deviation) the offset learns -4 cm and the pose stays within a centimetre.
+    motion = MotionNoise(trans=0.002, rot=0.001, rot_per_m=0.001, still=1e-10)
+    r = np.eye(3) * 0.01**2
+    walk = np.diag([0.03**2, 0.03**2, 0.01**2]) * 4.0
+
+    def at_b(walked: bool, gate: float | None) -> tuple[PlanarEkf, int, np.ndarray]:
+        f = PlanarEkf(np.zeros(3), covariance=np.diag([1e-4, 1e-4, 1e-6]), motion=motion)
+        f.reset_offset(np.diag([0.1**2, 0.1**2, 1e-4]))
+        for _ in range(30):
+            assert f.update_offset(np.array([0.06, 0.0, 0.0]), r)
+        for _ in range(40):
+            f.predict(np.array([0.1, 0.0, 0.0]))
+        if walked:
+            f.walk_offset(walk, f.pose[:2])
+        arrived = f.pose
+        fused = sum(
+            f.update_offset(np.array([4.0 - 0.04, 0.0, 0.0]), r, gate=gate) for _ in range(20)
+        )
+        return f, fused, arrived
+
+    rigid, fused, arrived = at_b(walked=False, gate=GATE_3DOF)
+    assert fused == 0 and abs(arrived[0] - 4.0) < 0.001
+    np.testing.assert_array_equal(rigid.pose, arrived)
+    dragged, _, _ = at_b(walked=False, gate=None)
+    assert dragged.pose[0] < 4.0 - 0.05  # most of the 10 cm went into the pose
+    walked, fused, _ = at_b(walked=True, gate=GATE_3DOF)
+    offset = walked.offset
+    assert fused == 20 and offset is not None
+    assert abs(walked.pose[0] - 4.0) < 0.01
+    assert offset.value[0] == pytest.approx(-0.04, abs=0.01)
 
 
 def test_an_offset_covariance_that_is_not_one_is_refused_and_changes_nothing() -> None:
