@@ -34,6 +34,7 @@ from protocol import (
     VoxelDelta,
 )
 from protocol.keyexpr import topic_subscription
+from voxel.localisation import frame_error
 
 log = logging.getLogger(__name__)
 
@@ -69,14 +70,9 @@ def check_pose_covariance(
             f"{', '.join(f'{v:.3g}' for v in d)}"
         )
         raise WireError(reason, text)
-    tol = POSE_COVARIANCE_TOLERANCE * max(float(d.max()), 1e-12)
-    asym = float(np.abs(c - c.T).max())
-    if asym > tol:
-        raise WireError(reason, f"expected a symmetric covariance, found {asym:.3g} apart")
-    low = float(np.linalg.eigvalsh(0.5 * (c + c.T)).min())
-    if low < -tol:
-        text = f"expected a positive semi-definite covariance, found an eigenvalue {low:.3g}"
-        raise WireError(reason, text)
+    found = frame_error.problem(c, POSE_COVARIANCE_TOLERANCE)
+    if found is not None:
+        raise WireError(reason, found)
     return c
 
 

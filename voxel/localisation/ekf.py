@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from voxel.errors import LocalisationError
-from voxel.localisation import se2
+from voxel.localisation import frame_error, se2
 
 #: Chi-square 99.9 % quantile with 3 degrees of freedom: a pose measurement farther than this
 #: (Mahalanobis distance squared) from the prediction is rejected as an outlier.
@@ -393,9 +393,7 @@ class PlanarEkf:
         c = _checked_covariance(covariance, "offset widening")
         if np.array_equal(c, self._offset_prior):
             return np.zeros((3, 3))
-        values, vectors = np.linalg.eigh(c - self._offset_prior)
-        q: np.ndarray = (vectors * np.maximum(values, 0.0)) @ vectors.T
-        q = 0.5 * (q + q.T)
+        q = frame_error.positive(c - self._offset_prior)
         self._cov[:3, :3] += q
         self._offset_prior = self._offset_prior + q
         return q
@@ -465,17 +463,11 @@ def _checked_covariance(covariance: np.ndarray, what: str) -> np.ndarray:
     if c.shape != (3, 3) or not np.all(np.isfinite(c)):
         msg = f"{what}: expected a finite 3x3 covariance, found shape {c.shape}"
         raise LocalisationError(msg)
-    tol = COVARIANCE_TOLERANCE * max(float(np.abs(np.diag(c)).max()), 1e-12)
-    asym = float(np.abs(c - c.T).max())
-    if asym > tol:
-        msg = f"{what}: expected a symmetric covariance, found entries {asym:.3g} apart"
+    found = frame_error.problem(c, COVARIANCE_TOLERANCE)
+    if found is not None:
+        msg = f"{what}: {found}"
         raise LocalisationError(msg)
-    c = 0.5 * (c + c.T)
-    low = float(np.linalg.eigvalsh(c).min())
-    if low < -tol:
-        msg = f"{what}: expected a positive semi-definite covariance, found an eigenvalue {low:.3g}"
-        raise LocalisationError(msg)
-    return c
+    return 0.5 * (c + c.T)
 
 
 def _checked_pose(pose: np.ndarray, covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -74,6 +74,19 @@ def floored(cov: np.ndarray) -> np.ndarray:
     return out
 
 
+def problem(c: np.ndarray, tolerance: float) -> str | None:
+    """What keeps the square matrix `c` from being a covariance, or None: symmetric and positive
+    semi-definite within `tolerance` times its largest variance (rounding, not a wrong matrix)."""
+    tol = tolerance * max(float(np.abs(np.diag(c)).max()), 1e-12)
+    asym = float(np.abs(c - c.T).max())
+    if asym > tol:
+        return f"expected a symmetric covariance, found entries {asym:.3g} apart"
+    low = float(np.linalg.eigvalsh(0.5 * (c + c.T)).min())
+    if low < -tol:
+        return f"expected a positive semi-definite covariance, found an eigenvalue {low:.3g}"
+    return None
+
+
 def positive(cov: np.ndarray) -> np.ndarray:
     """`cov` made a covariance: symmetrised, its negative eigenvalues raised to zero (the nearest
     positive semi-definite matrix). A peer's covariance is checked positive semi-definite only
