@@ -416,11 +416,9 @@ class PlanarEkf:
         if c.shape != (2,) or not np.all(np.isfinite(c)):
             msg = f"offset walk: expected a finite point (x, y), found {c}"
             raise LocalisationError(msg)
-        t = self._mean[:2]
-        # b' = (t + dθ J (t - c) + dt, yaw + dθ) for a turn dθ about c and a shift dt.
-        g = np.eye(3)
-        g[0, 2], g[1, 2] = -(t[1] - c[1]), t[0] - c[0]
-        q: np.ndarray = g @ q_local @ g.T
+        # b' = (t + dθ J (t - c) + dt, yaw + dθ) for a turn dθ about c and a shift dt: a turn
+        # about c seen from the offset's own translation t
+        q: np.ndarray = frame_error.about(q_local, c - self._mean[:2])
         q = 0.5 * (q + q.T)
         self._cov[:3, :3] += q
         return q
