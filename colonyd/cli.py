@@ -139,12 +139,36 @@ def _version() -> str:
         return "unknown"
 
 
+def _positive_int(text: str) -> int:
+    """An argparse type: a whole number >= 1 (a count of frames, runs, daemons...)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        msg = f"expected a whole number >= 1, found {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
+def _positive_float(text: str) -> float:
+    """An argparse type: a number > 0 (seconds, metres)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0 or value == float("inf"):
+        msg = f"expected a number > 0, found {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
 def _lidar_range(p: argparse.ArgumentParser) -> None:
     from colonyd.experiment import LIDAR_RANGE
 
     p.add_argument(
         "--lidar-range",
-        type=float,
+        type=_positive_float,
         default=LIDAR_RANGE,
         help=f"lidar-1's range in m (default {LIDAR_RANGE:g}: a short-range 2D LiDAR)",
     )
@@ -208,7 +232,9 @@ def build_parser() -> argparse.ArgumentParser:
     _config_flags(p, _CLIENT_FLAGS)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--digest", action="store_true", help="include layer digests")
-    p.add_argument("--wait", type=float, default=3.0, help="seconds to wait for all members")
+    p.add_argument(
+        "--wait", type=_positive_float, default=3.0, help="seconds to wait for all members"
+    )
 
     p = sub.add_parser("dump-config", help="print the effective configuration as TOML")
     _config_flags(p)
@@ -272,7 +298,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="source spec (sim:..., replay:PATH, ...; see `colonyd sources`)",
     )
     p.add_argument(
-        "--resolution", type=float, default=0.1, help="voxel size in metres (default 0.1)"
+        "--resolution",
+        type=_positive_float,
+        default=0.1,
+        help="voxel size in metres (default 0.1)",
     )
     p.add_argument("--out", type=Path, required=True, help="output directory")
 
@@ -290,7 +319,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument(
-        "--resolution", type=float, default=0.1, help="voxel size in metres (default 0.1)"
+        "--resolution",
+        type=_positive_float,
+        default=0.1,
+        help="voxel size in metres (default 0.1)",
     )
     p.add_argument(
         "--odometry-noise",
@@ -304,7 +336,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--max-frames",
         dest="max_frames",
-        type=int,
+        type=_positive_int,
         default=None,
         help="stop after this many frames (default: all)",
     )
@@ -408,8 +440,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _bench_io(b)
     b.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="default 1-5")
-    b.add_argument("--duration", type=float, default=60.0, help="seconds per run (default 60)")
-    b.add_argument("--parallel", type=int, default=2, help="runs at the same time (default 2)")
+    b.add_argument(
+        "--duration", type=_positive_float, default=60.0, help="seconds per run (default 60)"
+    )
+    b.add_argument(
+        "--parallel", type=_positive_int, default=2, help="runs at the same time (default 2)"
+    )
     _lidar_range(b)
     _world(b)
     b.add_argument(
@@ -417,7 +453,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.add_argument(
         "--timeout",
-        type=float,
+        type=_positive_float,
         default=None,
         help="per run, as for colonyd experiment paper (default 6 x duration + 120)",
     )
@@ -480,13 +516,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--duration",
-        type=float,
+        type=_positive_float,
         default=40.0,
         help="seconds of mapping, in simulated real time (default 40)",
     )
     p.add_argument(
         "--timeout",
-        type=float,
+        type=_positive_float,
         default=150.0,
         help="give up waiting for the colony after this many seconds (default 150)",
     )
@@ -497,20 +533,27 @@ def build_parser() -> argparse.ArgumentParser:
         help="sim robots localising alone and sharing (depth-alone, lidar-alone, "
         "lidar+depth, lidar+depth+cctv): pose error against the sim's truth",
     )
-    e.add_argument("--out", type=Path, required=True, help="where trajectories, pictures go")
+    e.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="where results.json, pose-error.png and each run's trajectories and picture go",
+    )
     e.add_argument("--seed", type=int, default=1, help="seed of the agents' noise (default 1)")
     e.add_argument(
         "--duration",
-        type=float,
+        type=_positive_float,
         default=60.0,
         help="seconds of sim time each run maps, in real time (default 60)",
     )
-    e.add_argument("--parallel", type=int, default=2, help="runs at the same time (default 2)")
+    e.add_argument(
+        "--parallel", type=_positive_int, default=2, help="runs at the same time (default 2)"
+    )
     _lidar_range(e)
     _world(e)
     e.add_argument(
         "--timeout",
-        type=float,
+        type=_positive_float,
         default=None,
         help="end a run whose sources are not done after this many seconds and mark it "
         "incomplete (default 6 x duration + 120)",
