@@ -234,7 +234,8 @@ def write_floor_plan(
         raise OSError(msg)
     files["floorplan_yaml"].write_text(
         f"image: floorplan.png\nresolution: {resolution}\n"
-        f"origin: [{lo[0] * resolution}, {lo[1] * resolution}, 0.0]\n"
+        # rounded: -41 * 0.1 is -4.1000000000000005 in binary floating point
+        f"origin: [{round(lo[0] * resolution, 9)}, {round(lo[1] * resolution, 9)}, 0.0]\n"
         f"layer: {layer}\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n",
         encoding="ascii",
     )

@@ -229,3 +229,13 @@ def test_colonyd_map_reports_frames_per_second_and_where_time_went(
     assert all(sec > 0 for sec in summary.breakdown.values())
     assert summary.frames_per_second > 0
     assert sum(summary.breakdown.values()) <= summary.seconds
+
+
+def test_floor_plan_yaml_origin_is_written_as_the_metres_it_means(tmp_path: Path) -> None:
+    """map_server reads the origin as metres: -41 cells of 0.1 m is -4.1, not -4.1000000000000005."""
+    from colonyd.mapping import write_floor_plan
+
+    occupied = np.array([[-11, -41, 0], [5, 3, 0]])
+    write_floor_plan(tmp_path, occupied, np.empty((0, 3), np.int64), 0, 0.1)
+    text = (tmp_path / "floorplan.yaml").read_text()
+    assert "origin: [-1.1, -4.1, 0.0]\n" in text, text
