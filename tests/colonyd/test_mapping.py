@@ -232,7 +232,7 @@ def test_colonyd_map_reports_frames_per_second_and_where_time_went(
 
 
 def test_floor_plan_yaml_origin_is_written_as_the_metres_it_means(tmp_path: Path) -> None:
-    """map_server reads the origin as metres: -41 cells of 0.1 m is -4.1, not -4.1000000000000005."""
+    """map_server reads the origin in metres: -41 cells of 0.1 m: -4.1, not -4.1000000000000005."""
     from colonyd.mapping import write_floor_plan
 
     occupied = np.array([[-11, -41, 0], [5, 3, 0]])
