@@ -7,6 +7,7 @@ import argparse
 import json
 import logging
 import os
+import signal
 import sys
 from pathlib import Path
 from typing import Any, NoReturn
@@ -561,10 +562,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _stop_on_term() -> None:
+    """SIGTERM and SIGHUP (a CI job's timeout, `kill`, a closed terminal) end the command as
+    Ctrl-C does, through its `finally` clauses: the commands that start daemons (demo,
+    experiment, bench) stop them there. Without this the command died at once and left its
+    daemons (each in a session of its own) and replays running. A second signal during that
+    clean-up is ignored (SIGKILL still ends it)."""
+
+    def stop(signum: int, frame: object) -> None:
+        for sig in (signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, signal.SIG_IGN)
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, stop)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Parse and dispatch; raises the package errors that `launch` maps to exit codes."""
     args = build_parser().parse_args(argv)
     cmd = args.command
+    if cmd in ("demo", "experiment", "bench") and argv is None:  # the command line, not a test
+        _stop_on_term()
     if cmd in ("run", "status", "dump-config", "identity", "export", "changes", "forget-agent"):
         flags = _flags(args)
         config = load_config(args.config, **flags)
