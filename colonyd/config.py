@@ -335,6 +335,15 @@ class Config(BaseSettings):
             if not _ENDPOINT.match(ep):
                 msg = f"expected a Zenoh endpoint like 'tcp/127.0.0.1:7447', found {ep!r}"
                 raise ValueError(msg)
+            if not ep.startswith("unixsock-stream/"):
+                address = ep.split("/", 1)[1].split("#")[0].split("?")[0]
+                host, _, port = address.rpartition(":")
+                if not host or not port.isdigit() or int(port) > 65535:
+                    msg = (
+                        "expected a Zenoh endpoint with host and port 0-65535 like "
+                        f"'tcp/127.0.0.1:7447', found {ep!r}"
+                    )
+                    raise ValueError(msg)
         return value
 
     @model_validator(mode="after")
@@ -425,6 +434,8 @@ def _explain(exc: ValidationError) -> str:
             lines.append(f"  {where}: {_unknown_field(where)}, found unknown field {where!r}")
         elif not where:  # a check across fields: its message says what it found
             lines.append(f"  {msg}")
+        elif "found" in msg:  # the validator's own message says what it found
+            lines.append(f"  {where}: {msg}")
         else:
             lines.append(f"  {where}: {msg} (found {text!r})")
     return "\n".join(lines)
