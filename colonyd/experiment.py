@@ -170,6 +170,12 @@ def update_counts(report: dict[str, Any]) -> dict[str, int]:
     return out
 
 
+def _say(what: str, began: float) -> None:
+    """A progress line for a log (stdout is not a terminal: the live table shows nothing)."""
+    sys.stdout.write(f"experiment 'paper' at {time.monotonic() - began:5.0f} s: {what}\n")
+    sys.stdout.flush()
+
+
 def _progress(active: dict[str, SimRun], done: dict[str, RunResult], began: float) -> Any:
     """The live table: one row per run."""
     from rich.table import Table
@@ -234,6 +240,8 @@ def run_paper(
                     name = pending.pop(0)
                     active[name] = _start(work, name, seed, duration, lidar_range, world)
                     active[name].watch()
+                    if progress and not console.is_terminal:  # a log: no live table there
+                        _say(f"{name}: started", began)
                 for name, run in list(active.items()):
                     over = run.now() > timeout
                     if run.mapping_done() or over:
@@ -242,6 +250,8 @@ def run_paper(
                         done[name] = _finish(run, out, complete=not over)
                         run.close()
                         del active[name]
+                        if progress and not console.is_terminal:
+                            _say(f"{name}: {'done' if not over else 'timed out'}", began)
                 if progress:
                     live.update(_progress(active, done, began))
                 time.sleep(0.25)

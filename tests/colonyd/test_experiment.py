@@ -4,6 +4,7 @@ of the runs' errors is a benchmark's business (docs/BENCHMARKS.md), not asserted
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -68,6 +69,9 @@ def test_experiment_paper_writes_every_output(tmp_path):
         image = cv2.imread(str(out / picture))
         assert image is not None and image.std() > 10, picture  # not blank
     assert "lidar+depth+cctv" in run.stdout and "ATE" in run.stdout  # the printed table
+    for name in RUNS:  # not a terminal: a line per run started and ended (no live table there)
+        assert f"{name}: started\n" in run.stdout, run.stdout
+        assert re.search(rf"{re.escape(name)}: (done|timed out)\n", run.stdout), run.stdout
 
 
 def test_metrics_of_a_constructed_track():
