@@ -92,9 +92,9 @@ def test_export_with_nobody_there_says_where_it_looked(tmp_path):
     from colonyd.bench.launcher import free_port
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
+    args = ["export", "--no-multicast", "--connect", endpoint, "--colony", "nobody"]
     run = subprocess.run(
-        [sys.executable, "-m", "colonyd", "export", "--no-multicast", "--connect", endpoint]
-        + ["--colony", "nobody", "--out", str(tmp_path / "o")],
+        [sys.executable, "-m", "colonyd", *args, "--out", str(tmp_path / "o")],
         check=False,
         capture_output=True,
         text=True,
