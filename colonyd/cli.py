@@ -28,17 +28,34 @@ EXIT_INTERRUPTED = 130
 #: Configuration flags: (dest, flag, argparse keywords). `_config_flags` adds all or some.
 _CONFIG_FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
     ("config", "--config", {"type": Path, "help": "TOML config file (also COLONYD_CONFIG)"}),
-    ("colony", "--colony", {"help": "colony name"}),
+    (
+        "colony",
+        "--colony",
+        {"help": "colony name (default: default); every member must use the same"},
+    ),
     ("namespace", "--namespace", {"help": "key-expression namespace (default: the colony name)"}),
     ("agent_id", "--agent-id", {"help": "this agent's unique id"}),
     ("kind", "--kind", {"help": "agent kind shown in status"}),
     ("state_dir", "--state-dir", {"type": Path, "help": "state directory"}),
     ("mode", "--mode", {"choices": ["peer", "client"], "help": "Zenoh mode"}),
-    ("listen", "--listen", {"action": "append", "metavar": "ENDPOINT", "help": "listen endpoint"}),
+    (
+        "listen",
+        "--listen",
+        {
+            "action": "append",
+            "metavar": "ENDPOINT",
+            "help": "listen endpoint, e.g. tcp/0.0.0.0:7447 (repeatable)",
+        },
+    ),
     (
         "connect",
         "--connect",
-        {"action": "append", "metavar": "ENDPOINT", "help": "connect endpoint"},
+        {
+            "action": "append",
+            "metavar": "ENDPOINT",
+            "help": "a peer or router to connect to, e.g. tcp/10.0.0.2:7447 (repeatable; without "
+            "one, peers are found by multicast scouting unless --no-multicast)",
+        },
     ),
     (
         "multicast",
@@ -90,7 +107,11 @@ _CONFIG_FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
             "help": "testing: drop this share of received deltas (exercises gap repair)",
         },
     ),
-    ("log_level", "--log-level", {"choices": ["debug", "info", "warning", "error"]}),
+    (
+        "log_level",
+        "--log-level",
+        {"choices": ["debug", "info", "warning", "error"], "help": "log level (default info)"},
+    ),
 )
 #: The flags of commands that only talk to a running colony.
 _CLIENT_FLAGS = ("config", "colony", "namespace", "mode", "listen", "connect", "multicast")
@@ -226,7 +247,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"colonyd {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("run", help="run the daemon until SIGTERM")
+    p = sub.add_parser(
+        "run",
+        help="run the daemon until SIGTERM",
+        description="Run this agent's daemon until SIGTERM (docs/DAEMON.md). Multicast scouting "
+        "is on unless --no-multicast (or multicast = false in the config).",
+    )
     _config_flags(p)
 
     p = sub.add_parser("status", help="print the members of a running colony")
