@@ -585,7 +585,30 @@ def build_parser() -> argparse.ArgumentParser:
         help="end a run whose sources are not done after this many seconds and mark it "
         "incomplete (default 6 x duration + 120)",
     )
+    _name_parsers(parser)
     return parser
+
+
+def _unrecognized(parser: argparse.ArgumentParser, unknown: list[str]) -> str:
+    """argparse's message, with the closest flags of that command for a mistyped one."""
+    import difflib
+
+    flags = [o for a in parser._actions for o in a.option_strings if o.startswith("--")]
+    close = [
+        m for u in unknown if u.startswith("--") for m in difflib.get_close_matches(u, flags, n=1)
+    ]
+    hint = f" (expected one of its flags, such as {', '.join(close)})" if close else ""
+    return f"unrecognized arguments: {' '.join(unknown)}{hint}"
+
+
+def _name_parsers(parser: argparse.ArgumentParser) -> None:
+    """Every parser stores itself as `parser_` (the innermost one given wins), so that an
+    unknown flag is reported with the usage of the command it was given to."""
+    parser.set_defaults(parser_=parser)
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _name_parsers(sub)
 
 
 def _stop_on_term() -> None:
@@ -606,7 +629,9 @@ def _stop_on_term() -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Parse and dispatch; raises the package errors that `launch` maps to exit codes."""
-    args = build_parser().parse_args(argv)
+    args, unknown = build_parser().parse_known_args(argv)
+    if unknown:  # in the words of the (sub)command given, not of `colonyd` with every command
+        args.parser_.error(_unrecognized(args.parser_, unknown))
     cmd = args.command
     if cmd in ("demo", "experiment", "bench") and argv is None:  # the command line, not a test
         _stop_on_term()

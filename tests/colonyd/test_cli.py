@@ -197,3 +197,23 @@ def test_bad_numbers_are_usage_errors_before_anything_starts(
         main(argv)
     assert exc.value.code == 2
     assert message in capsys.readouterr().err
+
+
+def test_an_unknown_flag_is_reported_by_its_command_with_the_closest_flag(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """`colonyd run --statedir X` said `colonyd: error` under the usage of every command."""
+    with pytest.raises(SystemExit) as exc:
+        main(["run", "--statedir", "/x"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("usage: colonyd run ")
+    assert err.endswith(
+        "colonyd run: error: unrecognized arguments: --statedir /x "
+        "(expected one of its flags, such as --state-dir)\n"
+    )
+    with pytest.raises(SystemExit):
+        main(["experiment", "paper", "--out", "o", "--bogus"])
+    assert "colonyd experiment paper: error: unrecognized arguments: --bogus\n" in (
+        capsys.readouterr().err
+    )
