@@ -595,7 +595,10 @@ def _unrecognized(parser: argparse.ArgumentParser, unknown: list[str]) -> str:
 
     flags = [o for a in parser._actions for o in a.option_strings if o.startswith("--")]
     close = [
-        m for u in unknown if u.startswith("--") for m in difflib.get_close_matches(u, flags, n=1)
+        m
+        for u in unknown
+        if u.startswith("--")
+        for m in difflib.get_close_matches(u, flags, n=1, cutoff=0.75)
     ]
     hint = f" (expected one of its flags, such as {', '.join(close)})" if close else ""
     return f"unrecognized arguments: {' '.join(unknown)}{hint}"
