@@ -157,7 +157,7 @@ def _children(pid: int) -> set[int]:
 
 def test_sigterm_to_the_demo_stops_its_daemons_and_replays(tmp_path):
     """A CI timeout or `kill` ends the demo through its clean-up: no daemon (each in a session of
-    its own) and no alone-replay is left running."""
+    its own) is left running."""
     demo = subprocess.Popen(
         [sys.executable, "-m", "colonyd", "demo", "--out", str(tmp_path / "o"), "--duration", "60"],
         stdout=subprocess.PIPE,
@@ -172,7 +172,7 @@ def test_sigterm_to_the_demo_stops_its_daemons_and_replays(tmp_path):
             if line.startswith("demo at "):
                 break
         kids = _children(demo.pid)
-        assert len(kids) >= 6, kids  # 3 daemons, 3 alone-replays
+        assert len(kids) >= 3, kids  # the daemons (the replays alone come after the colony)
         demo.send_signal(signal.SIGTERM)
         assert demo.wait(60) == 130
         deadline = time.monotonic() + 10
