@@ -133,6 +133,7 @@ def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> in
         fused, layers = run.maps(MEMBERS[0][0], wait_s=30.0)  # a loaded daemon answers late
         layers.update(_unfused_layers(run, fused, reports))
         seconds = run.now()
+        load = os.getloadavg()  # of the colony's run (the summary says why it did not align)
         run.close()
         # What each robot achieves alone, replayed only now: beside the colony these replays
         # (~45 s of CPU) took the idle CPU its map registration runs on (SCHED_IDLE).
@@ -142,7 +143,7 @@ def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> in
             )
             replays[agent].hurry()  # nothing to give way to any more (where permitted)
         alone = {a: r.result(REPLAY_WAIT_S) for a, r in replays.items()}
-        summary = _write_outputs(out, fused, layers, reports, run.tracks, seconds, alone)
+        summary = _write_outputs(out, fused, layers, reports, run.tracks, seconds, alone, load)
         sys.stdout.write("\n" + _summary_text(summary, out) + "\n")  # plain: no wrapping
         return 0
     finally:
@@ -184,6 +185,7 @@ def _write_outputs(
     tracks: dict[str, Track],
     seconds: float,
     alone: dict[str, dict[str, float | None]],
+    load: tuple[float, float, float],
 ) -> dict[str, Any]:
     files = write_maps(fused, out, "map")
     for name, reply in layers.items():
@@ -225,7 +227,7 @@ def _write_outputs(
         },
         "files": sorted(str(p.relative_to(out)) for p in files.values()),
         # Registration runs only on idle CPU (docs/DAEMON.md): the load says why it may not have.
-        "load_average": [round(x, 2) for x in os.getloadavg()],
+        "load_average": [round(x, 2) for x in load],
         "cpus": os.cpu_count(),
     }
     draw_colony(
@@ -279,8 +281,8 @@ def _summary_text(summary: dict[str, Any], out: Path) -> str:
         lines.append(
             f"  not aligned within the run: {', '.join(apart)}. Map registration runs only on "
             f"idle CPU (SCHED_IDLE, docs/DAEMON.md), and the load average was {load[0]} on "
-            f"{summary.get('cpus', '?')} cores: other processes held them. Their maps are in "
-            "layers/ in their own frames, not in the fused map"
+            f"{summary.get('cpus', '?')} cores (the demo's daemons included) at the colony's "
+            "end. Their maps are in layers/ in their own frames, not in the fused map"
         )
     catch = summary["late_joiner_catch_up_s"]
     lines.append(
