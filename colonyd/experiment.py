@@ -98,13 +98,17 @@ def _start(
     env = {"COLONYD_ANCHOR": ANCHOR} if ANCHOR in agents else {}
     run = SimRun(base / name, name, env=env, odometry_noise=ODOMETRY_NOISE, world=world)
     epoch = time.time() + EPOCH_DELAY_S
-    for agent in agents:
-        run.add(
-            agent,
-            duration,
-            seed * 100 + AGENT_SEED[agent],
-            agent_options(agents, agent, epoch, lidar_range),
-        )
+    try:
+        for agent in agents:
+            run.add(
+                agent,
+                duration,
+                seed * 100 + AGENT_SEED[agent],
+                agent_options(agents, agent, epoch, lidar_range),
+            )
+    except BaseException:  # interrupted (Ctrl-C, SIGTERM) or failed half-way: stop the started
+        run.close()
+        raise
     return run
 
 

@@ -10,6 +10,7 @@ import sys
 
 import cv2
 import numpy as np
+import pytest
 
 from colonyd.experiment import RUNS, agent_metrics, update_counts
 from colonyd.tracks import Track
@@ -113,3 +114,29 @@ def test_update_counts_gathers_the_estimators_and_the_fixes_counts():
         "fix_refused": 1,
     }
     assert update_counts({}) == {}
+
+
+def test_a_run_interrupted_while_starting_stops_the_daemons_it_started(tmp_path, monkeypatch):
+    """Ctrl-C or SIGTERM between two daemons' starts: the first one is stopped, not left."""
+    from colonyd import experiment
+
+    started: list = []
+    real_options = experiment.agent_options
+
+    def options(agents, agent, epoch, lidar_range):
+        if started:  # the second agent of the run: interrupted before it starts
+            raise KeyboardInterrupt
+        return real_options(agents, agent, epoch, lidar_range)
+
+    real_add = experiment.SimRun.add
+
+    def add(self, agent, *args):
+        real_add(self, agent, *args)
+        started.append(self.colony.daemons[agent])
+
+    monkeypatch.setattr(experiment, "agent_options", options)
+    monkeypatch.setattr(experiment.SimRun, "add", add)
+    with pytest.raises(KeyboardInterrupt):
+        experiment._start(tmp_path, "lidar+depth", 1, 5.0, 4.0, "office")
+    assert len(started) == 1
+    assert not started[0].alive()
