@@ -7,6 +7,7 @@ import argparse
 import json
 import logging
 import os
+import signal
 import sys
 from pathlib import Path
 from typing import Any, NoReturn
@@ -27,17 +28,34 @@ EXIT_INTERRUPTED = 130
 #: Configuration flags: (dest, flag, argparse keywords). `_config_flags` adds all or some.
 _CONFIG_FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
     ("config", "--config", {"type": Path, "help": "TOML config file (also COLONYD_CONFIG)"}),
-    ("colony", "--colony", {"help": "colony name"}),
+    (
+        "colony",
+        "--colony",
+        {"help": "colony name (default: default); every member must use the same"},
+    ),
     ("namespace", "--namespace", {"help": "key-expression namespace (default: the colony name)"}),
     ("agent_id", "--agent-id", {"help": "this agent's unique id"}),
     ("kind", "--kind", {"help": "agent kind shown in status"}),
     ("state_dir", "--state-dir", {"type": Path, "help": "state directory"}),
     ("mode", "--mode", {"choices": ["peer", "client"], "help": "Zenoh mode"}),
-    ("listen", "--listen", {"action": "append", "metavar": "ENDPOINT", "help": "listen endpoint"}),
+    (
+        "listen",
+        "--listen",
+        {
+            "action": "append",
+            "metavar": "ENDPOINT",
+            "help": "listen endpoint, e.g. tcp/0.0.0.0:7447 (repeatable)",
+        },
+    ),
     (
         "connect",
         "--connect",
-        {"action": "append", "metavar": "ENDPOINT", "help": "connect endpoint"},
+        {
+            "action": "append",
+            "metavar": "ENDPOINT",
+            "help": "a peer or router to connect to, e.g. tcp/10.0.0.2:7447 (repeatable; without "
+            "one, peers are found by multicast scouting unless --no-multicast)",
+        },
     ),
     (
         "multicast",
@@ -89,7 +107,11 @@ _CONFIG_FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
             "help": "testing: drop this share of received deltas (exercises gap repair)",
         },
     ),
-    ("log_level", "--log-level", {"choices": ["debug", "info", "warning", "error"]}),
+    (
+        "log_level",
+        "--log-level",
+        {"choices": ["debug", "info", "warning", "error"], "help": "log level (default info)"},
+    ),
 )
 #: The flags of commands that only talk to a running colony.
 _CLIENT_FLAGS = ("config", "colony", "namespace", "mode", "listen", "connect", "multicast")
@@ -139,12 +161,36 @@ def _version() -> str:
         return "unknown"
 
 
+def _positive_int(text: str) -> int:
+    """An argparse type: a whole number >= 1 (a count of frames, runs, daemons...)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        msg = f"expected a whole number >= 1, found {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
+def _positive_float(text: str) -> float:
+    """An argparse type: a number > 0 (seconds, metres)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0 or value == float("inf"):
+        msg = f"expected a number > 0, found {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
 def _lidar_range(p: argparse.ArgumentParser) -> None:
     from colonyd.experiment import LIDAR_RANGE
 
     p.add_argument(
         "--lidar-range",
-        type=float,
+        type=_positive_float,
         default=LIDAR_RANGE,
         help=f"lidar-1's range in m (default {LIDAR_RANGE:g}: a short-range 2D LiDAR)",
     )
@@ -201,14 +247,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"colonyd {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("run", help="run the daemon until SIGTERM")
+    p = sub.add_parser(
+        "run",
+        help="run the daemon until SIGTERM",
+        description="Run this agent's daemon until SIGTERM (docs/DAEMON.md). Multicast scouting "
+        "is on unless --no-multicast (or multicast = false in the config).",
+    )
     _config_flags(p)
 
     p = sub.add_parser("status", help="print the members of a running colony")
     _config_flags(p, _CLIENT_FLAGS)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--digest", action="store_true", help="include layer digests")
-    p.add_argument("--wait", type=float, default=3.0, help="seconds to wait for all members")
+    p.add_argument(
+        "--wait", type=_positive_float, default=3.0, help="seconds to wait for all members"
+    )
 
     p = sub.add_parser("dump-config", help="print the effective configuration as TOML")
     _config_flags(p)
@@ -272,7 +325,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="source spec (sim:..., replay:PATH, ...; see `colonyd sources`)",
     )
     p.add_argument(
-        "--resolution", type=float, default=0.1, help="voxel size in metres (default 0.1)"
+        "--resolution",
+        type=_positive_float,
+        default=0.1,
+        help="voxel size in metres (default 0.1)",
     )
     p.add_argument("--out", type=Path, required=True, help="output directory")
 
@@ -290,7 +346,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument(
-        "--resolution", type=float, default=0.1, help="voxel size in metres (default 0.1)"
+        "--resolution",
+        type=_positive_float,
+        default=0.1,
+        help="voxel size in metres (default 0.1)",
     )
     p.add_argument(
         "--odometry-noise",
@@ -304,7 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--max-frames",
         dest="max_frames",
-        type=int,
+        type=_positive_int,
         default=None,
         help="stop after this many frames (default: all)",
     )
@@ -408,8 +467,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _bench_io(b)
     b.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="default 1-5")
-    b.add_argument("--duration", type=float, default=60.0, help="seconds per run (default 60)")
-    b.add_argument("--parallel", type=int, default=2, help="runs at the same time (default 2)")
+    b.add_argument(
+        "--duration", type=_positive_float, default=60.0, help="seconds per run (default 60)"
+    )
+    b.add_argument(
+        "--parallel", type=_positive_int, default=2, help="runs at the same time (default 2)"
+    )
     _lidar_range(b)
     _world(b)
     b.add_argument(
@@ -417,7 +480,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.add_argument(
         "--timeout",
-        type=float,
+        type=_positive_float,
         default=None,
         help="per run, as for colonyd experiment paper (default 6 x duration + 120)",
     )
@@ -480,13 +543,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--duration",
-        type=float,
+        type=_positive_float,
         default=40.0,
         help="seconds of mapping, in simulated real time (default 40)",
     )
     p.add_argument(
         "--timeout",
-        type=float,
+        type=_positive_float,
         default=150.0,
         help="give up waiting for the colony after this many seconds (default 150)",
     )
@@ -497,31 +560,84 @@ def build_parser() -> argparse.ArgumentParser:
         help="sim robots localising alone and sharing (depth-alone, lidar-alone, "
         "lidar+depth, lidar+depth+cctv): pose error against the sim's truth",
     )
-    e.add_argument("--out", type=Path, required=True, help="where trajectories, pictures go")
+    e.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="where results.json, pose-error.png and each run's trajectories and picture go",
+    )
     e.add_argument("--seed", type=int, default=1, help="seed of the agents' noise (default 1)")
     e.add_argument(
         "--duration",
-        type=float,
+        type=_positive_float,
         default=60.0,
         help="seconds of sim time each run maps, in real time (default 60)",
     )
-    e.add_argument("--parallel", type=int, default=2, help="runs at the same time (default 2)")
+    e.add_argument(
+        "--parallel", type=_positive_int, default=2, help="runs at the same time (default 2)"
+    )
     _lidar_range(e)
     _world(e)
     e.add_argument(
         "--timeout",
-        type=float,
+        type=_positive_float,
         default=None,
         help="end a run whose sources are not done after this many seconds and mark it "
         "incomplete (default 6 x duration + 120)",
     )
+    _name_parsers(parser)
     return parser
+
+
+def _unrecognized(parser: argparse.ArgumentParser, unknown: list[str]) -> str:
+    """argparse's message, with the closest flags of that command for a mistyped one."""
+    import difflib
+
+    flags = [o for a in parser._actions for o in a.option_strings if o.startswith("--")]
+    close = [
+        m
+        for u in unknown
+        if u.startswith("--")
+        for m in difflib.get_close_matches(u, flags, n=1, cutoff=0.75)
+    ]
+    hint = f" (expected one of its flags, such as {', '.join(close)})" if close else ""
+    return f"unrecognized arguments: {' '.join(unknown)}{hint}"
+
+
+def _name_parsers(parser: argparse.ArgumentParser) -> None:
+    """Every parser stores itself as `parser_` (the innermost one given wins), so that an
+    unknown flag is reported with the usage of the command it was given to."""
+    parser.set_defaults(parser_=parser)
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _name_parsers(sub)
+
+
+def _stop_on_term() -> None:
+    """SIGTERM and SIGHUP (a CI job's timeout, `kill`, a closed terminal) end the command as
+    Ctrl-C does, through its `finally` clauses: the commands that start daemons (demo,
+    experiment, bench) stop them there. Without this the command died at once and left its
+    daemons (each in a session of its own) and replays running. A second signal during that
+    clean-up is ignored (SIGKILL still ends it)."""
+
+    def stop(signum: int, frame: object) -> None:
+        for sig in (signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, signal.SIG_IGN)
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, stop)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Parse and dispatch; raises the package errors that `launch` maps to exit codes."""
-    args = build_parser().parse_args(argv)
+    args, unknown = build_parser().parse_known_args(argv)
+    if unknown:  # in the words of the (sub)command given, not of `colonyd` with every command
+        args.parser_.error(_unrecognized(args.parser_, unknown))
     cmd = args.command
+    if cmd in ("demo", "experiment", "bench") and argv is None:  # the command line, not a test
+        _stop_on_term()
     if cmd in ("run", "status", "dump-config", "identity", "export", "changes", "forget-agent"):
         flags = _flags(args)
         config = load_config(args.config, **flags)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 import json
 import os
 import re
@@ -334,6 +335,15 @@ class Config(BaseSettings):
             if not _ENDPOINT.match(ep):
                 msg = f"expected a Zenoh endpoint like 'tcp/127.0.0.1:7447', found {ep!r}"
                 raise ValueError(msg)
+            if not ep.startswith("unixsock-stream/"):
+                address = ep.split("/", 1)[1].split("#")[0].split("?")[0]
+                host, _, port = address.rpartition(":")
+                if not host or not port.isdigit() or int(port) > 65535:
+                    msg = (
+                        "expected a Zenoh endpoint with host and port 0-65535 like "
+                        f"'tcp/127.0.0.1:7447', found {ep!r}"
+                    )
+                    raise ValueError(msg)
         return value
 
     @model_validator(mode="after")
@@ -382,6 +392,7 @@ def load_config(path: Path | str | None = None, **flags: Any) -> Config:
     """Config from defaults < TOML file < `COLONYD_*` environment < flags (None flags ignored)."""
     if path is None and os.environ.get("COLONYD_CONFIG"):
         path = os.environ["COLONYD_CONFIG"]
+    _check_environment()
     token = _TOML_PATH.set(Path(path) if path is not None else None)
     try:
         return Config(**{k: v for k, v in flags.items() if v is not None})
@@ -399,16 +410,43 @@ def load_config(path: Path | str | None = None, **flags: Any) -> Config:
         _TOML_PATH.reset(token)
 
 
+def _check_environment() -> None:
+    """A `COLONYD_*` variable that names no field is a typo, not a setting to ignore silently."""
+    for name in sorted(os.environ):
+        upper = name.upper()
+        if not upper.startswith("COLONYD_") or upper == "COLONYD_CONFIG":
+            continue
+        field = upper.removeprefix("COLONYD_").lower()
+        if field not in Config.model_fields:
+            msg = f"environment variable {name}: {_unknown_field(field)}, found unknown field"
+            raise ConfigError(msg)
+
+
 def _explain(exc: ValidationError) -> str:
     lines = ["invalid configuration:"]
     for err in exc.errors():
-        where = ".".join(str(p) for p in err["loc"]) or "config"
-        found = err.get("input")
-        text = str(found)
+        where = ".".join(str(p) for p in err["loc"])
+        text = str(err.get("input"))
         if len(text) > 80:
             text = text[:77] + "..."
-        lines.append(f"  {where}: {err['msg']} (found {text!r})")
+        msg = err["msg"].removeprefix("Value error, ")
+        if err["type"] == "extra_forbidden":
+            lines.append(f"  {where}: {_unknown_field(where)}, found unknown field {where!r}")
+        elif not where:  # a check across fields: its message says what it found
+            lines.append(f"  {msg}")
+        elif "found" in msg:  # the validator's own message says what it found
+            lines.append(f"  {where}: {msg}")
+        else:
+            lines.append(f"  {where}: {msg} (found {text!r})")
     return "\n".join(lines)
+
+
+def _unknown_field(name: str) -> str:
+    """What an unknown field should have been: the closest known ones, or where they are listed."""
+    close = difflib.get_close_matches(name, list(Config.model_fields), n=3, cutoff=0.6)
+    if close:
+        return "expected a known field such as " + " or ".join(repr(c) for c in close)
+    return "expected one of the fields `colonyd dump-config` prints (docs/DAEMON.md)"
 
 
 def dump_config(config: Config) -> str:

@@ -35,5 +35,9 @@ class StatusError(ColonydError):
     """A running colony could not be queried."""
 
 
+class NoAnswerError(StatusError):
+    """No daemon of the colony answered a query (none reachable, or the wrong colony name)."""
+
+
 class StoppedError(ColonydError):
     """The daemon is stopping: work under way was abandoned."""

@@ -114,7 +114,11 @@ class VisualEstimator:
         if view is None:
             from voxel.errors import LocalisationError
 
-            msg = f"{obs.frame}: expected a depth image for visual odometry, found none"
+            msg = (
+                f"{obs.frame}: expected a source an estimator can follow (a 2D or 3D LiDAR, a "
+                "sensor with odometry, or a depth camera for visual odometry), found points "
+                "with neither odometry nor a depth image"
+            )
             raise LocalisationError(msg)
         if self.odometry is None:
             self.odometry = VisualOdometry(view.K)

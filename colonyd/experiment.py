@@ -98,13 +98,17 @@ def _start(
     env = {"COLONYD_ANCHOR": ANCHOR} if ANCHOR in agents else {}
     run = SimRun(base / name, name, env=env, odometry_noise=ODOMETRY_NOISE, world=world)
     epoch = time.time() + EPOCH_DELAY_S
-    for agent in agents:
-        run.add(
-            agent,
-            duration,
-            seed * 100 + AGENT_SEED[agent],
-            agent_options(agents, agent, epoch, lidar_range),
-        )
+    try:
+        for agent in agents:
+            run.add(
+                agent,
+                duration,
+                seed * 100 + AGENT_SEED[agent],
+                agent_options(agents, agent, epoch, lidar_range),
+            )
+    except BaseException:  # interrupted (Ctrl-C, SIGTERM) or failed half-way: stop the started
+        run.close()
+        raise
     return run
 
 
@@ -168,6 +172,12 @@ def update_counts(report: dict[str, Any]) -> dict[str, int]:
     counts = report.get("metrics", {}).get("counts", {})
     out.update({k: int(v) for k, v in counts.items() if k.startswith("fix")})
     return out
+
+
+def _say(what: str, began: float) -> None:
+    """A progress line for a log (stdout is not a terminal: the live table shows nothing)."""
+    sys.stdout.write(f"experiment 'paper' at {time.monotonic() - began:5.0f} s: {what}\n")
+    sys.stdout.flush()
 
 
 def _progress(active: dict[str, SimRun], done: dict[str, RunResult], began: float) -> Any:
@@ -234,6 +244,8 @@ def run_paper(
                     name = pending.pop(0)
                     active[name] = _start(work, name, seed, duration, lidar_range, world)
                     active[name].watch()
+                    if progress and not console.is_terminal:  # a log: no live table there
+                        _say(f"{name}: started", began)
                 for name, run in list(active.items()):
                     over = run.now() > timeout
                     if run.mapping_done() or over:
@@ -242,6 +254,8 @@ def run_paper(
                         done[name] = _finish(run, out, complete=not over)
                         run.close()
                         del active[name]
+                        if progress and not console.is_terminal:
+                            _say(f"{name}: {'done' if not over else 'timed out'}", began)
                 if progress:
                     live.update(_progress(active, done, began))
                 time.sleep(0.25)

@@ -13,7 +13,7 @@ import numpy as np
 import zenoh
 
 from colonyd.config import Config
-from colonyd.errors import StatusError
+from colonyd.errors import NoAnswerError, StatusError
 from colonyd.mapping import write_floor_plan
 from colonyd.outdir import output_dir
 from colonyd.runtime import get_client_session
@@ -238,7 +238,7 @@ def fetch_maps(
             else f"no daemon of colony namespace {namespace!r} answered an export query within "
             f"{wait_s:g} s"
         )
-        raise StatusError(msg)
+        raise NoAnswerError(msg)
     source = min(fused, key=lambda r: r.agent)
     layers: dict[str, MapReply] = {}
     names = [layer] if layer is not None else source.layers if layers_too else []
@@ -310,6 +310,8 @@ def map_changes(
             )
             maps.append(fused if layer is None else layers[layer])
             agent = fused.agent  # both from the same daemon
+    except NoAnswerError as exc:
+        raise NoAnswerError(_why(exc, session, config, agent, wait_s)) from None
     finally:
         session.close()
     changes = diff_maps(maps[0], maps[1], since)
@@ -321,6 +323,16 @@ def map_changes(
     ):
         write_ply(files[name], vk.keys_to_centers(keys, changes.resolution))
     return changes, files
+
+
+def _why(
+    exc: NoAnswerError, session: zenoh.Session, config: Config, agent: str | None, wait_s: float
+) -> str:
+    """A named daemon that did not answer keeps its message; nobody at all gets the reason
+    `colonyd status` gives (the colonies this session does see, or none)."""
+    from colonyd.status import nobody_answered
+
+    return str(exc) if agent else nobody_answered(session, config, wait_s)
 
 
 def export_maps(
@@ -342,6 +354,8 @@ def export_maps(
         fused, layers = fetch_maps(
             session, config.key_namespace, layer=layer, agent=agent, wait_s=wait_s, at=at
         )
+    except NoAnswerError as exc:
+        raise NoAnswerError(_why(exc, session, config, agent, wait_s)) from None
     finally:
         session.close()
     files: dict[str, Path] = {}

@@ -34,6 +34,10 @@ class JournalFormatter(logging.Formatter):
         return f"<{_PRIORITY[level]}>{super().format(record)}"
 
 
+#: Loggers of libraries whose info lines say nothing about the daemon.
+QUIET_LIBRARIES = ("numexpr",)
+
+
 def setup_logging(level: str = "info", *, agent: str | None = None) -> None:
     """Configure the root logger once; the daemon, CLI and tests all use this."""
     handler = logging.StreamHandler(sys.stderr)
@@ -49,3 +53,8 @@ def setup_logging(level: str = "info", *, agent: str | None = None) -> None:
         root.removeHandler(old)
     root.addHandler(handler)
     root.setLevel(getattr(logging, level.upper(), logging.INFO))
+    # Libraries' start-up chatter is not the daemon's news ("NumExpr defaulting to 2 threads",
+    # logged at info by the first pandas/numexpr import): their warnings still show.
+    for name in QUIET_LIBRARIES:  # (all of it with --log-level debug)
+        quiet = root.level > logging.DEBUG
+        logging.getLogger(name).setLevel(max(logging.WARNING, root.level) if quiet else 0)

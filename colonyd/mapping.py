@@ -78,15 +78,22 @@ class NullProgress:
 class BarProgress:
     """A one-line progress bar on a text stream (stderr), redrawn at most every 0.1 s. While it is
     shown, log records that go to the same stream clear the bar's line, print, and redraw it, so
-    warnings never run into the bar."""
+    warnings never run into the bar. On a stream that is not a terminal (a log file, CI) it writes
+    a line of its own every `LOG_EVERY_S` and at the end instead (no carriage returns)."""
 
-    def __init__(self, stream: TextIO | None = None, width: int = 30) -> None:
+    #: Seconds between progress lines when the stream is not a terminal.
+    LOG_EVERY_S = 10.0
+
+    def __init__(
+        self, stream: TextIO | None = None, width: int = 30, terminal: bool | None = None
+    ) -> None:
         self.stream, self.width = sys.stderr if stream is None else stream, width
+        self.terminal = self.stream.isatty() if terminal is None else terminal
         self.began = clock.monotonic()
         self.drawn = 0.0
         self.line = ""  # the bar as last drawn ("" before the first draw and after close)
         self._handlers: list[logging.StreamHandler[Any]] = []
-        for handler in logging.getLogger().handlers:
+        for handler in logging.getLogger().handlers if self.terminal else ():
             if isinstance(handler, logging.StreamHandler) and handler.stream is self.stream:
                 handler.setStream(_AroundBar(self))
                 self._handlers.append(handler)
@@ -94,7 +101,7 @@ class BarProgress:
     def update(self, done: int, total: int | None) -> None:
         """Redraw the bar after `done` of `total` frames."""
         now = clock.monotonic()
-        if now - self.drawn < 0.1 and done != total:
+        if now - self.drawn < (0.1 if self.terminal else self.LOG_EVERY_S) and done != total:
             return
         self.drawn = now
         rate = done / max(now - self.began, 1e-9)
@@ -104,6 +111,10 @@ class BarProgress:
             line = f"\r[{bar}] {done}/{total} frames {rate:.1f} fps"
         else:
             line = f"\r{done} frames {rate:.1f} fps"
+        if not self.terminal:  # a line of its own in a log
+            self.stream.write(line[1:] + "\n")
+            self.stream.flush()
+            return
         self.line = line
         self.stream.write(line)
         self.stream.flush()
@@ -119,8 +130,9 @@ class BarProgress:
             handler.setStream(self.stream)
         self._handlers = []
         self.line = ""
-        self.stream.write("\n")
-        self.stream.flush()
+        if self.terminal:
+            self.stream.write("\n")
+            self.stream.flush()
 
 
 class _AroundBar:
@@ -234,7 +246,8 @@ def write_floor_plan(
         raise OSError(msg)
     files["floorplan_yaml"].write_text(
         f"image: floorplan.png\nresolution: {resolution}\n"
-        f"origin: [{lo[0] * resolution}, {lo[1] * resolution}, 0.0]\n"
+        # rounded: -41 * 0.1 is -4.1000000000000005 in binary floating point
+        f"origin: [{round(lo[0] * resolution, 9)}, {round(lo[1] * resolution, 9)}, 0.0]\n"
         f"layer: {layer}\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n",
         encoding="ascii",
     )

@@ -113,7 +113,11 @@ class StateStore:
             self.dir.mkdir(parents=True, exist_ok=True)
             self._lock_fd = os.open(self.dir / "lock", os.O_RDWR | os.O_CREAT, 0o600)
         except OSError as exc:
-            msg = f"state directory {self.dir} is not writable: {exc.strerror}"
+            msg = (
+                f"state directory {self.dir} is not writable: {exc.strerror}; expected a "
+                "directory this user may create and write (--state-dir DIR, or state_dir in the "
+                "config; the default /var/lib/colonyd is the systemd unit's)"
+            )
             raise PersistenceError(msg) from None
         try:
             fcntl.flock(self._lock_fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -17,7 +17,14 @@ from colonyd.errors import StatusError
 from colonyd.runtime import get_client_session, undeclare
 from colonyd.worker import Bounded, Worker
 from protocol import KeyExprError
-from protocol.keyexpr import alive_subscription, parse_key, status_key, status_selector
+from protocol.keyexpr import (
+    ALIVE,
+    ROOT,
+    alive_subscription,
+    parse_key,
+    status_key,
+    status_selector,
+)
 
 
 @dataclass
@@ -133,6 +140,36 @@ def alive_members(session: zenoh.Session, namespace: str, timeout: float = 2.0) 
     return sorted(agents)
 
 
+def nobody_answered(session: zenoh.Session, config: Config, wait_s: float) -> str:
+    """Why no daemon answered: the colonies whose daemons this session does see (a wrong
+    `--colony`), or none at all (nothing listens where it looked)."""
+    where = (
+        ", ".join(config.connect)
+        if config.connect
+        else "multicast scouting"
+        if config.multicast
+        else "nowhere (no --connect, multicast off)"
+    )
+    seen: set[str] = set()
+    for r in session.liveliness().get(f"{ROOT}/*/{ALIVE}/*", timeout=1.0):
+        if r.ok is not None:
+            try:
+                seen.add(parse_key(str(r.ok.key_expr)).colony)
+            except KeyExprError:
+                continue
+    head = (
+        f"no daemon of colony namespace {config.key_namespace!r} answered within {wait_s:g} s "
+        f"(looked through {where})"
+    )
+    if seen:
+        names = ", ".join(repr(n) for n in sorted(seen))
+        return (
+            f"{head}: expected a member of that colony, found daemons of {names} only: "
+            "give --colony (or --namespace)"
+        )
+    return f"{head}: expected a running colonyd there, found none"
+
+
 def collect_status(
     config: Config, *, digest: bool = False, samples: bool = False, wait_s: float = 3.0
 ) -> list[dict[str, Any]]:
@@ -158,8 +195,7 @@ def collect_status(
                 break
             time.sleep(0.2)
         if not reports:
-            msg = f"no daemon of colony namespace {config.key_namespace!r} answered"
-            raise StatusError(msg)
+            raise StatusError(nobody_answered(session, config, wait_s))
         return reports
     finally:
         session.close()

@@ -16,6 +16,9 @@ from plugins.sevenscenes import RgbdOptions, RgbdSource
 from plugins.spec import Options, SourceSpec, parse_options
 from plugins.stream import Source, SourceContext
 
+#: Names of recordings that are one file (CARMEN logs, ROS 1 and ROS 2 bag files).
+RECORDING_FILES = (".log", ".log.gz", ".clf", ".bag", ".db3", ".mcap")
+
 
 def detect_format(path: Path) -> str:
     """The recording format of `path`: carmen, 7scenes, tum or rosbag."""
@@ -34,6 +37,12 @@ def detect_format(path: Path) -> str:
             f"{path}: expected a 7-Scenes folder (frame-*.depth.png), a TUM folder (depth.txt) or "
             "a ROS 2 bag (metadata.yaml), found none of them"
         )
+        inside = sorted(
+            q.name for q in path.iterdir() if q.is_file() and q.name.endswith(RECORDING_FILES)
+        )
+        if inside:  # a log or bag file in the folder: replay takes the file itself
+            first = path / inside[0]
+            msg += f"; it holds {', '.join(inside[:3])}: give the file's path (replay:{first})"
         raise SourceError(msg)
     if not path.is_file():
         msg = f"replay: expected a recording file or folder, found nothing at {path}"

@@ -168,3 +168,52 @@ def test_listen_port_in_use_is_named_without_rust_source_paths(tmp_path: Path) -
     assert run.returncode == EXIT_FAILURE, run.stderr
     assert f"cannot listen on tcp/127.0.0.1:{port}: the address is already in use" in run.stderr
     assert ".rs:" not in run.stderr and "cargo" not in run.stderr
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (
+            ["localize", "--source", "sim:world=office", "--out", "o", "--max-frames", "0"],
+            "argument --max-frames: expected a whole number >= 1, found '0'",
+        ),
+        (["map", "--source", "s", "--out", "o", "--resolution", "-1"], "found '-1'"),
+        (["demo", "--duration", "-5"], "argument --duration: expected a number > 0, found '-5'"),
+        (["demo", "--timeout", "inf"], "argument --timeout: expected a number > 0"),
+        (
+            ["experiment", "paper", "--out", "o", "--parallel", "0"],
+            "argument --parallel: expected a whole number >= 1, found '0'",
+        ),
+        (["experiment", "paper", "--out", "o", "--lidar-range", "x"], "found 'x'"),
+        (["status", "--wait", "0"], "argument --wait: expected a number > 0, found '0'"),
+    ],
+)
+def test_bad_numbers_are_usage_errors_before_anything_starts(
+    argv: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A count or a duration that cannot work (0 frames: an empty map written as a success; 0
+    parallel runs) is refused by the parser, saying what it expected (exit code 2)."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_an_unknown_flag_is_reported_by_its_command_with_the_closest_flag(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """`colonyd run --statedir X` said `colonyd: error` under the usage of every command."""
+    with pytest.raises(SystemExit) as exc:
+        main(["run", "--statedir", "/x"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("usage: colonyd run ")
+    assert err.endswith(
+        "colonyd run: error: unrecognized arguments: --statedir /x "
+        "(expected one of its flags, such as --state-dir)\n"
+    )
+    with pytest.raises(SystemExit):
+        main(["experiment", "paper", "--out", "o", "--bogus"])
+    assert "colonyd experiment paper: error: unrecognized arguments: --bogus\n" in (
+        capsys.readouterr().err
+    )

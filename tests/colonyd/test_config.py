@@ -39,8 +39,30 @@ def test_toml_colonyd_table_and_env_config_path(tmp_path, monkeypatch):
     [
         ({"publish_hz": -1}, r"publish_hz: Input should be greater than 0"),
         ({"colony": "bad name!"}, r"colony: .*expected 1-64 characters.*found 'bad name!'"),
-        ({"connect": ["localhost:7447"]}, r"expected a Zenoh endpoint like 'tcp/127.0.0.1:7447'"),
-        ({"no_such_option": 1}, r"no_such_option: Extra inputs are not permitted"),
+        (
+            {"connect": ["localhost:7447"]},
+            r"connect: expected a Zenoh endpoint like 'tcp/127.0.0.1:7447', "
+            r"found 'localhost:7447'$",  # once: not again as the list the field was given
+        ),
+        (  # Zenoh's own words were "invalid port value", naming neither endpoint nor range
+            {"listen": ["tcp/127.0.0.1:99999"]},
+            r"listen: expected a Zenoh endpoint with host and port 0-65535 .*found "
+            r"'tcp/127.0.0.1:99999'",
+        ),
+        ({"connect": ["tcp/10.0.0.2"]}, r"host and port 0-65535 .*found 'tcp/10.0.0.2'"),
+        (
+            {"no_such_option": 1},
+            r"no_such_option: expected one of the fields `colonyd dump-config` prints "
+            r"\(docs/DAEMON.md\), found unknown field 'no_such_option'",
+        ),
+        (
+            {"resolutoin": 0.05},
+            r"resolutoin: expected a known field such as 'resolution', found unknown field",
+        ),
+        (  # a check across fields: its own message, not the whole configuration as "found"
+            {"anchor": "cctv-1", "site_pose": [1.0, 2.0]},
+            r"invalid configuration:\n  site_pose: expected 4 numbers .*, found 2$",
+        ),
         ({"mode": "client", "multicast": False}, r"client mode needs --connect"),
         (
             {"ros2_map_topic": "/colony map"},
@@ -55,6 +77,12 @@ def test_invalid_config_says_what_was_expected(flags, match):
         load_config(None, **flags)
 
 
+def test_endpoints_zenoh_takes_are_valid():
+    eps = ["tcp/[::1]:7447", "tls/router.site-a.lan:7447", "tcp/0.0.0.0:0", "udp/10.0.0.1:7447"]
+    eps.append("tcp/192.168.1.2:7447#iface=eth0")
+    assert load_config(None, listen=eps).listen == eps
+
+
 def test_bad_toml_and_missing_file(tmp_path):
     with pytest.raises(ConfigError, match="does not exist"):
         load_config(tmp_path / "nope.toml")
@@ -67,6 +95,15 @@ def test_bad_toml_and_missing_file(tmp_path):
 def test_env_type_error(monkeypatch):
     monkeypatch.setenv("COLONYD_RESOLUTION", "fine")
     with pytest.raises(ConfigError, match=r"resolution: .*found 'fine'"):
+        load_config()
+
+
+def test_unknown_environment_variable_is_an_error(monkeypatch):
+    monkeypatch.setenv("COLONYD_PUBLISH_HS", "3")  # ignored silently, it would publish at 2 Hz
+    with pytest.raises(
+        ConfigError,
+        match=r"COLONYD_PUBLISH_HS: expected a known field such as 'publish_hz'.*, found unknown",
+    ):
         load_config()
 
 

@@ -4,11 +4,13 @@ of the runs' errors is a benchmark's business (docs/BENCHMARKS.md), not asserted
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
 import cv2
 import numpy as np
+import pytest
 
 from colonyd.experiment import RUNS, agent_metrics, update_counts
 from colonyd.tracks import Track
@@ -68,6 +70,9 @@ def test_experiment_paper_writes_every_output(tmp_path):
         image = cv2.imread(str(out / picture))
         assert image is not None and image.std() > 10, picture  # not blank
     assert "lidar+depth+cctv" in run.stdout and "ATE" in run.stdout  # the printed table
+    for name in RUNS:  # not a terminal: a line per run started and ended (no live table there)
+        assert f"{name}: started\n" in run.stdout, run.stdout
+        assert re.search(rf"{re.escape(name)}: (done|timed out)\n", run.stdout), run.stdout
 
 
 def test_metrics_of_a_constructed_track():
@@ -109,3 +114,29 @@ def test_update_counts_gathers_the_estimators_and_the_fixes_counts():
         "fix_refused": 1,
     }
     assert update_counts({}) == {}
+
+
+def test_a_run_interrupted_while_starting_stops_the_daemons_it_started(tmp_path, monkeypatch):
+    """Ctrl-C or SIGTERM between two daemons' starts: the first one is stopped, not left."""
+    from colonyd import experiment
+
+    started: list = []
+    real_options = experiment.agent_options
+
+    def options(agents, agent, epoch, lidar_range):
+        if started:  # the second agent of the run: interrupted before it starts
+            raise KeyboardInterrupt
+        return real_options(agents, agent, epoch, lidar_range)
+
+    real_add = experiment.SimRun.add
+
+    def add(self, agent, *args):
+        real_add(self, agent, *args)
+        started.append(self.colony.daemons[agent])
+
+    monkeypatch.setattr(experiment, "agent_options", options)
+    monkeypatch.setattr(experiment.SimRun, "add", add)
+    with pytest.raises(KeyboardInterrupt):
+        experiment._start(tmp_path, "lidar+depth", 1, 5.0, 4.0, "office")
+    assert len(started) == 1
+    assert not started[0].alive()

@@ -85,3 +85,23 @@ def test_map_reply_carries_classes_and_the_ply_is_coloured_by_class_then_height(
     bad = encode_map("a", None, "a.odom", 0.1, keys, logodds, [], classes[:3])
     with pytest.raises(StatusError, match="expected 5 classes of 2 bytes, found 6 bytes"):
         decode_map(bad)
+
+
+def test_export_with_nobody_there_says_where_it_looked(tmp_path):
+    """No daemon at the endpoint: the error names it and says none was found (exit code 1)."""
+    from colonyd.bench.launcher import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    args = ["export", "--no-multicast", "--connect", endpoint, "--colony", "nobody"]
+    run = subprocess.run(
+        [sys.executable, "-m", "colonyd", *args, "--out", str(tmp_path / "o")],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert run.returncode == 1, run.stderr
+    assert (
+        f"no daemon of colony namespace 'nobody' answered within 5 s (looked through {endpoint}): "
+        "expected a running colonyd there, found none"
+    ) in run.stderr

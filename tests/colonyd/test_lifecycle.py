@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
 import signal
 import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 
 def test_notify_watchdog_reload_and_clean_sigterm(make_colony, tmp_path):
@@ -134,6 +137,58 @@ def test_demo_runs_and_writes_maps(tmp_path):
         assert image is not None and image.std() > 10, picture  # not blank
     assert (out / "trajectories" / "depth-1.estimate.tum").stat().st_size > 0
     assert "joined halfway and caught up" in run.stdout
+    # Every member's map, aligned or not (an unaligned one in its own frame, not fused).
+    assert {p.stem for p in (out / "layers").glob("*.bt")} == set(summary["robots"])
+    assert "demo at " in run.stdout  # not a terminal: progress lines instead of the live table
+
+
+def _children(pid: int) -> set[int]:
+    """Processes whose parent is `pid` (from /proc)."""
+    kids = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            kids.add(int(stat.parent.name))
+    return kids
+
+
+def test_sigterm_to_the_demo_stops_its_daemons_and_replays(tmp_path):
+    """A CI timeout or `kill` ends the demo through its clean-up: no daemon (each in a session of
+    its own) is left running."""
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "colonyd", "demo", "--out", str(tmp_path / "o"), "--duration", "60"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    kids: set[int] = set()
+    alive: set[int] = set()
+    try:
+        assert demo.stdout is not None
+        for line in demo.stdout:  # not a terminal: the first progress line once members joined
+            if line.startswith("demo at "):
+                break
+        kids = _children(demo.pid)
+        assert len(kids) >= 3, kids  # the daemons (the replays alone come after the colony)
+        demo.send_signal(signal.SIGTERM)
+        assert demo.wait(60) == 130
+        deadline = time.monotonic() + 10
+        alive = kids
+        while alive and time.monotonic() < deadline:
+            alive = {k for k in alive if Path(f"/proc/{k}").exists()}
+            time.sleep(0.2)
+    finally:
+        leftover = kids | _children(demo.pid)
+        if demo.poll() is None:
+            demo.kill()
+        for k in leftover:  # do not leave them to the next test
+            if Path(f"/proc/{k}").exists():
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(k, signal.SIGKILL)
+    assert not alive, f"left running after SIGTERM: {alive}"
 
 
 def _netns_available() -> bool:

@@ -143,3 +143,18 @@ def test_bad_odometry_noise_is_a_config_error(
         "odometry_noise: odometry noise: expected one of ['high', 'low', 'none', 'realistic']"
         in capfd.readouterr().err
     )
+
+
+def test_a_source_no_estimator_can_follow_says_what_would_do(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """`synthetic:` delivers points without odometry or a depth image: the error says which
+    sources `colonyd localize` can follow (was: 'expected a depth image for visual odometry')."""
+    with pytest.raises(SystemExit) as exit_info:
+        launch(["localize", "--source", "synthetic:scans=2", "--out", str(tmp_path)])
+    assert exit_info.value.code == 4  # input data
+    assert (
+        "expected a source an estimator can follow (a 2D or 3D LiDAR, a sensor with odometry, "
+        "or a depth camera for visual odometry), found points with neither odometry nor a "
+        "depth image" in capfd.readouterr().err
+    )

@@ -194,7 +194,7 @@ def test_log_lines_do_not_run_into_the_progress_bar() -> None:
     root = logging.getLogger()
     root.addHandler(handler)
     try:
-        bar = BarProgress(stream)
+        bar = BarProgress(stream, terminal=True)
         bar.update(3, 10)
         logging.getLogger("plugins.stream").warning("skipped bad frame 4: truncated")
         bar.drawn = 0.0
@@ -208,6 +208,23 @@ def test_log_lines_do_not_run_into_the_progress_bar() -> None:
     assert lines[-2] == "WARNING after the bar" and lines[-1] == ""
     assert any(line.startswith("[###") and "10/10 frames" in line for line in lines), lines
     assert handler.stream is stream
+
+
+def test_progress_in_a_log_is_whole_lines_every_ten_seconds() -> None:
+    """Not a terminal (a log file, CI): no carriage returns, a line every 10 s and at the end."""
+    import io
+
+    from colonyd.mapping import BarProgress
+
+    stream = io.StringIO()
+    bar = BarProgress(stream)  # StringIO is no terminal
+    for done in range(1, 11):
+        bar.update(done, 10)  # within 10 s: the first and the last frame only
+    bar.close()
+    text = stream.getvalue()
+    assert "\r" not in text
+    lines = text.splitlines()
+    assert len(lines) == 2 and lines[0].startswith("[###...") and "10/10 frames" in lines[1], lines
 
 
 def test_colonyd_map_reports_frames_per_second_and_where_time_went(
@@ -229,3 +246,13 @@ def test_colonyd_map_reports_frames_per_second_and_where_time_went(
     assert all(sec > 0 for sec in summary.breakdown.values())
     assert summary.frames_per_second > 0
     assert sum(summary.breakdown.values()) <= summary.seconds
+
+
+def test_floor_plan_yaml_origin_is_written_as_the_metres_it_means(tmp_path: Path) -> None:
+    """map_server reads the origin in metres: -41 cells of 0.1 m: -4.1, not -4.1000000000000005."""
+    from colonyd.mapping import write_floor_plan
+
+    occupied = np.array([[-11, -41, 0], [5, 3, 0]])
+    write_floor_plan(tmp_path, occupied, np.empty((0, 3), np.int64), 0, 0.1)
+    text = (tmp_path / "floorplan.yaml").read_text()
+    assert "origin: [-1.1, -4.1, 0.0]\n" in text, text

@@ -332,3 +332,16 @@ def _record_offsets(data: bytes) -> list[int]:
         out.append(pos)
         pos += 8 + length
     return out
+
+
+def test_a_state_directory_that_cannot_be_made_says_what_to_give(tmp_path):
+    """A new user's first `colonyd run` without --state-dir meets /var/lib/colonyd: the error
+    names the flag (here: a path under a file, unwritable even for root)."""
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(
+        PersistenceError,
+        match=r"state directory .*/file/state is not writable: Not a directory; expected a "
+        r"directory this user may create and write \(--state-dir DIR",
+    ):
+        StateStore(blocker / "state", "a", 0.1)

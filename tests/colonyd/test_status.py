@@ -53,3 +53,32 @@ def test_a_timeout_ms_parameter_from_the_network_is_parsed_or_ignored() -> None:
     assert asked_timeout_ms("9999999999") == 0xFFFF_FFFF
     for hostile in ("", "²", "-5", "1e3", "5.0", "1" * 400, " 5"):
         assert asked_timeout_ms(hostile) == 0, hostile  # no ValueError, no OverflowError
+
+
+def test_nobody_answered_names_the_colonies_it_does_see() -> None:
+    """`colonyd status` without the daemon's --colony: the error names the colony it found."""
+    from colonyd.config import load_config
+    from colonyd.status import nobody_answered
+    from protocol.keyexpr import alive_key
+
+    a, b = _pair()
+    try:
+        config = load_config(None, colony="default", multicast=False, connect=["tcp/x:1"])
+        assert nobody_answered(b, config, 3.0) == (
+            "no daemon of colony namespace 'default' answered within 3 s (looked through "
+            "tcp/x:1): expected a running colonyd there, found none"
+        )
+        token = a.liveliness().declare_token(alive_key("site-a", "robot-1"))
+        try:
+            deadline = time.monotonic() + 5.0
+            while "site-a" not in (text := nobody_answered(b, config, 3.0)):
+                assert time.monotonic() < deadline, text
+            assert text.endswith(
+                "expected a member of that colony, found daemons of 'site-a' only: give "
+                "--colony (or --namespace)"
+            )
+        finally:
+            token.undeclare()
+    finally:
+        a.close()
+        b.close()

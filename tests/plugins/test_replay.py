@@ -44,3 +44,13 @@ def test_unknown_recordings_say_what_was_expected(tmp_path: Path) -> None:
         SourceError, match=r"notes\.txt: expected a CARMEN log \(FLASER lines\) or a ROS bag"
     ):
         detect_format(text)
+
+
+def test_a_folder_holding_a_log_names_the_file_to_give(tmp_path: Path) -> None:
+    """`replay:carmen/` (the folder, not the log in it): the error says which path to give."""
+    (tmp_path / "run.log.gz").write_bytes(b"")
+    (tmp_path / "notes.txt").write_text("not a recording")
+    with pytest.raises(SourceError, match=r"found none of them; it holds run.log.gz: give the "):
+        detect_format(tmp_path)
+    with pytest.raises(SourceError, match=rf"\(replay:{tmp_path / 'run.log.gz'}\)$"):
+        detect_format(tmp_path)
