@@ -137,6 +137,13 @@ class Config(BaseSettings):
     align_s: float = Field(
         5.0, ge=0, description="seconds between alignment attempts with peers (0: none)"
     )
+    align_session_nice: int = Field(
+        19,
+        ge=-1,
+        le=19,
+        description="autogroup niceness of the registration worker's own session (Linux; "
+        "19: ~1.5 % of a busy session's CPU; -1: no session of its own; docs/DAEMON.md)",
+    )
     align_dof: Literal[3, 4, 6] = Field(
         4, description="alignment degrees of freedom: 3 planar, 4 + z, 6 full"
     )
