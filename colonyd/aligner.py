@@ -33,9 +33,9 @@ def background(session_nice: int | None = AUTOGROUP_NICE) -> None:
     its own at autogroup niceness `session_nice` (None: no session of its own). Niceness alone
     did not keep registration off the daemons' cores: where the kernel shares the CPU between
     sessions (autogroup) first, the worker weighed as much as its daemon's whole session, and
-    with SCHED_IDLE alone it still took cores that woken Zenoh and inbox threads waited for. Registration runs for seconds
-    every `align_s`; it was the largest part of the propagation tail left once the collector's
-    pauses were gone (docs/RELIABILITY.md, "Busy CPU")."""
+    with SCHED_IDLE alone it still took cores that woken Zenoh and inbox threads waited for.
+    Registration runs for seconds every `align_s`; it was the largest part of the propagation
+    tail left once the collector's pauses were gone (docs/RELIABILITY.md, "Busy CPU")."""
     os.nice(NICE)
     with contextlib.suppress(AttributeError, OSError):  # not Linux: niceness only
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
