@@ -64,7 +64,8 @@ def true_transform(world: str, own: str, peer: str) -> np.ndarray:
         c, s = math.cos(yaw), math.sin(yaw)
         return np.array([[c, -s, x], [s, c, y], [0, 0, 1.0]])
 
-    return np.linalg.inv(start(own)) @ start(peer)
+    out: np.ndarray = np.linalg.inv(start(own)) @ start(peer)
+    return out
 
 
 def error_of(record: dict[str, Any], truth: np.ndarray) -> tuple[float, float]:
@@ -106,7 +107,7 @@ def run(
         while time.monotonic() - began < timeout:
             loads.append(os.getloadavg()[0])
             for report in list(sim.reports):
-                agent = report.get("agent")
+                agent = str(report.get("agent"))
                 if agent not in attempts:
                     continue
                 proc = sim.colony.daemons[agent].proc
