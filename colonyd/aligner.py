@@ -22,7 +22,7 @@ NICE = 10
 
 #: Niceness of the registration process's own session where the kernel shares the CPU by
 #: session (autogroup): its session weighs ~10 % of an ordinary one (weight 110 of 1024). At 19
-#: (~1.5 %) an attempt of ~0.1 s of CPU took 15-45 s under load and the paper experiment's two
+#: (~1.5 %) an attempt of ~0.1 s of CPU took 9-45 s under load and the paper experiment's two
 #: robots aligned after its run; the daemons' propagation tail was the same within the noise at
 #: 10 and at 19, and worse with no session of its own (docs/RELIABILITY.md, "Busy CPU").
 AUTOGROUP_NICE = 10
