@@ -19,6 +19,7 @@ from pydantic.fields import FieldInfo
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 from pydantic_settings.exceptions import SettingsError
 
+from colonyd.aligner import AUTOGROUP_NICE
 from colonyd.errors import ConfigError
 from voxel.rotation import pose_from_degrees
 
@@ -137,6 +138,13 @@ class Config(BaseSettings):
     )
     align_s: float = Field(
         5.0, ge=0, description="seconds between alignment attempts with peers (0: none)"
+    )
+    align_session_nice: int = Field(
+        AUTOGROUP_NICE,
+        ge=-1,
+        le=19,
+        description="autogroup niceness of the registration worker's own session (Linux; 10: "
+        "~10 % of a busy session's CPU, 19: ~1.5 %; -1: no session of its own; docs/DAEMON.md)",
     )
     align_dof: Literal[3, 4, 6] = Field(
         4, description="alignment degrees of freedom: 3 planar, 4 + z, 6 full"

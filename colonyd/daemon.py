@@ -153,7 +153,8 @@ class Daemon:
         self.warm = threading.Event()
         self.freezer = heap.Freezer()  # start-up's objects out of the collector's passes
         self.objects = OwnObjects(frozenset(config.structure_classes))
-        self.aligner = Aligner()  # registration in a worker process, started on first use
+        # registration in a worker process, started on first use
+        self.aligner = Aligner(None if config.align_session_nice < 0 else config.align_session_nice)
         self._estimators: dict[str, Estimator] = {}  # per source spec
         self._own_edges: dict[str, Edge] = {}  # peer -> the alignment we last offered
         self.fused_map = FusedMap()  # the live fused view, kept layer by layer

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 
@@ -54,3 +55,21 @@ def test_work_runs_in_another_process_and_close_interrupts_it():
             aligner.run(divmod, 1, 1)
     finally:
         aligner.close()
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="Linux scheduling policies only")
+def test_session_niceness_is_the_configured_one_or_no_session_of_its_own():
+    # `align_session_nice`: the worker's share where CPU is shared by session (docs/DAEMON.md)
+    lowest = Aligner(session_nice=19)
+    same = Aligner(session_nice=None)
+    try:
+        if os.path.exists(AUTOGROUP):
+            assert lowest.run(_autogroup).split()[-1] == "19"
+        assert lowest.run(os.getsid, 0) != os.getsid(0)
+        # no session of its own: the idle policy and niceness only, in the daemon's session
+        assert same.run(os.getsid, 0) == os.getsid(0)
+        assert same.run(os.sched_getscheduler, 0) == os.SCHED_IDLE
+        assert same.run(os.nice, 0) == os.nice(0) + NICE
+    finally:
+        lowest.close()
+        same.close()

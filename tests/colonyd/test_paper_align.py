@@ -1,0 +1,45 @@
+"""The paper_align bench's measures: the registration worker's CPU from /proc, an estimate's
+error against the true transform between two sim agents' start frames."""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+import pytest
+
+from colonyd.aligner import Aligner
+from colonyd.bench.paper_align import error_of, true_transform, worker_cpu
+
+
+def _spin(seconds: float) -> int:
+    import time
+
+    end, n = time.process_time() + seconds, 0
+    while time.process_time() < end:
+        n += 1
+    return n
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="reads /proc")
+def test_worker_cpu_counts_the_spawned_registration_worker():
+    assert worker_cpu(os.getpid()) == 0.0  # no worker yet
+    aligner = Aligner()
+    try:
+        aligner.run(_spin, 0.1)
+        assert worker_cpu(os.getpid()) >= 0.1
+    finally:
+        aligner.close()
+
+
+def test_error_of_an_estimate_against_the_true_start_frames():
+    truth = true_transform("office", "lidar-1", "depth-1")
+    # lidar-1 starts at (-5, 0) heading east, depth-1 at (-5, -2.6) heading north-east
+    assert np.allclose(truth[:2, 2], [0.0, -2.6], atol=1e-9)
+    off = np.eye(4)
+    c, s = math.cos(math.radians(1.0)), math.sin(math.radians(1.0))
+    planar = truth @ np.array([[c, -s, 0.03], [s, c, 0.04], [0, 0, 1.0]])
+    off[:2, :2], off[:2, 3] = planar[:2, :2], planar[:2, 2]
+    pos, yaw = error_of({"transform": off.tolist()}, truth)
+    assert pos == pytest.approx(0.05) and yaw == pytest.approx(1.0)
