@@ -2,7 +2,7 @@
 map, for A/B of estimator changes without the live runs' timing chaos.
 
 `python -m colonyd.bench.paper_offline --seed S [--world W] [--lidar-range R] [--rng N]
-[--duration S] [--no-peer-covariance] [--offset-walk] [--json FILE]`
+[--duration S] [--no-peer-covariance] [--offset-walk] [--smooth] [--json FILE]`
 
 Each robot's sim source (the experiment's spec and seed, not paced) runs through its estimator
 and maps from the estimate, as `colonyd localize` does. The peer's map (its estimated-pose voxel
@@ -18,6 +18,9 @@ into the robot's frame. The simulator's truth builds that fixture and evaluates;
 reads it (as the "perfect peer map" diagnosis in docs/LOCALISATION.md).
 `--offset-walk` lets both robots' colony offsets walk with distance (`OffsetWalk`'s defaults;
 `ScanParams.colony_walk`, off in the daemon).
+`--smooth` also scores each run's smoothed trajectory (`PoseGraph` over what its filter fused,
+docs/LOCALISATION.md): `<run>_smoothed` holds its ATE, the solve's CPU seconds, cost before and
+after, iterations and edges.
 `--rng` draws the scans' subsample with another seed: how far a run moves when nothing but
 that changes (the noise to compare against).
 
