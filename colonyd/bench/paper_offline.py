@@ -122,6 +122,7 @@ class Run:
         self.smooth = smooth
         #: With `smooth`: the smoothed trajectory's ATE and what its solve took.
         self.smoothed: dict[str, Any] = {}
+        self.smoothed_poses: list[np.ndarray] = []
         options = f"lidar_range={lidar_range:g}" if agent == "lidar-1" else ""
         if agent == "lidar-1" and lidar_noise is not None:
             options += f",range_noise={lidar_noise:g}"
@@ -211,6 +212,7 @@ class Run:
         result = graph.solve()
         seconds = time.process_time() - began
         poses = np.array([se2.to_matrix(p) @ self.mount for p in result.poses])
+        self.smoothed_poses = list(poses)
         ate = absolute_trajectory_error(np.array(self.truths), poses).rmse
         return {
             "ate": round(ate, 4),
@@ -241,14 +243,17 @@ class Run:
             self.truths.append(obs.truth)
         self.grid = grid
 
-    def profile(self, every: float, rate: float = 10.0) -> list[list[float]]:
+    def profile(
+        self, every: float, rate: float = 10.0, smoothed: bool = False
+    ) -> list[list[float]]:
         """Every `every` seconds of path: [t, true x, true y, fitted error, along, across,
         heading error in degrees] (evaluation only). The fitted error is the ATE's (after the
         Umeyama fit); along / across / heading are the body's error in its own frame from the
-        first pose, along and across its true heading."""
-        truths, estimates = np.array(self.truths), np.array(self.estimates)
+        first pose, along and across its true heading. `smoothed`: of the smoothed trajectory."""
+        truths = np.array(self.truths)
+        estimates = np.array(self.smoothed_poses if smoothed else self.estimates)
         fitted = absolute_trajectory_error(truths, estimates).errors
-        frame = self.truths[0] @ np.linalg.inv(self.estimates[0])
+        frame = self.truths[0] @ np.linalg.inv(estimates[0])
         back, unmount = np.linalg.inv(frame), np.linalg.inv(self.mount)
         rows = []
         for i in range(0, len(truths), max(1, round(every * rate))):
@@ -451,6 +456,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         out["lidar_alone_smoothed"] = lidar.smoothed
     if args.profile:
         out["lidar_alone_profile"] = lidar.profile(args.profile)
+        if lidar.smoothed_poses:
+            out["lidar_alone_smoothed_profile"] = lidar.profile(args.profile, smoothed=True)
     if args.perfect_peer:
         depth.perfect()
     else:
@@ -483,6 +490,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 out[f"lidar_with_depth_smoothed{tail}"] = with_depth.smoothed
             if args.profile:
                 out[f"lidar_with_depth_profile{tail}"] = with_depth.profile(args.profile)
+                if with_depth.smoothed_poses:
+                    out[f"lidar_with_depth_smoothed_profile{tail}"] = with_depth.profile(
+                        args.profile, smoothed=True
+                    )
     print_and_append(out, args.json)
     return out
 
