@@ -219,6 +219,11 @@ class Run:
             "cpu_s": round(seconds, 2),
             "cost": [round(result.cost_before, 1), round(result.cost_after, 1)],
             "iterations": result.iterations,
+            # the last colony offset (x, y in m, yaw in degrees), when there is one
+            "offset": [round(float(v), 4) for v in result.offsets[-1][:2]]
+            + [round(float(np.degrees(result.offsets[-1][2])), 3)]
+            if len(result.offsets)
+            else None,
             "edges": graph.edges(),
         }
 
