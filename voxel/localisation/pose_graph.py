@@ -43,11 +43,9 @@ def _information(covariance: np.ndarray) -> np.ndarray:
     return out
 
 
-def _sqrt_inv(m: np.ndarray) -> np.ndarray:
-    """Symmetric inverse square root of a positive definite matrix (3, 3)."""
-    values, vectors = np.linalg.eigh(0.5 * (m + m.T))
-    out: np.ndarray = (vectors / np.sqrt(np.maximum(values, 1e-30))) @ vectors.T
-    return out
+#: One own-map match: node, keyframe nodes (G,), placed poses (G, 3), weights (G, 3, 3), the
+#: matched pose (3,) and its information (3, 3).
+_Match = tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 @dataclass
@@ -93,11 +91,12 @@ class PoseGraph:
 
     - `step`: odometry between consecutive nodes (the increment, in the earlier node's body
       frame, with the motion model's covariance; a step without odometry has its widening);
-    - `match`: an own-map match at the newest node against keyframes placed at earlier nodes:
-      one edge per keyframe, measuring where the newest node appears in the map that keyframe
-      was placed in (`relative(keyframe node, node)` composed with the pose it was placed at),
-      weighted by that keyframe's share of the match's information, the shares adding up to the
-      inverse of the match's covariance;
+    - `match`: an own-map match at the newest node against keyframes placed at earlier nodes,
+      one edge on the node and those keyframes' nodes, as the filter models it: the matched
+      pose is the node moved by the keyframes' errors, each keyframe g weighted by its share
+      W_g of the match's information, z = x + sum_g W_g (seen_g - x), where seen_g is where
+      the node appears in the map keyframe g was placed in (`relative(keyframe node, node)`
+      composed with the pose it was placed at);
     - `colony`: a pose matched against a shared map, through that map's error (its offset, a
       variable with the prior the filter started it with; `walk_offset` starts a new one tied
       to the last by the process noise the filter added);
@@ -112,7 +111,9 @@ class PoseGraph:
         self.online: list[np.ndarray] = [np.asarray(start, np.float64).reshape(3).copy()]
         self._odometry = _Edges()
         self._absolute = _Edges()
-        self._match = _Edges()  # nodes (keyframe node, node); values (placed 3, z 3)
+        # own-map matches by their number of keyframes G: (node, keyframe nodes (G,), placed
+        # (G, 3), weights (G, 3, 3), z (3,), information (3, 3))
+        self._match: dict[int, list[_Match]] = {}
         self._colony = _Edges()  # nodes (node, offset); values z
         self._offset_prior = _Edges()  # nodes (offset,); values zeros
         self._offset_walk = _Edges()  # nodes (offset before, offset after)
@@ -146,25 +147,28 @@ class PoseGraph:
     def add_match(
         self, pose: np.ndarray, covariance: np.ndarray, keys: np.ndarray, information: np.ndarray
     ) -> None:
-        """An own-map match fused at the newest node: the pose (x, y, yaw) in the map with its
-        covariance, from keyframes `keys` (G,) giving `information` (G, 3, 3) each. Keyframe g's
-        edge has information A I_g A^T, A = R^-1/2 H^-1/2 (R the covariance, H the sum of the
-        I_g): the edges add up to the match's information R^-1, each in its keyframe's share.
-        Keyframes the graph does not know are left out."""
+        """An own-map match fused at the newest node, as the filter fused it
+        (`PlanarEkf.update_relative`): the pose (x, y, yaw) in the map with its covariance, from
+        keyframes `keys` (G,) giving `information` (G, 3, 3) each; it measures the node moved by
+        the keyframes' errors, each weighted by its share of the information: z = x + sum_g W_g
+        (seen_g - x). One edge on the node and its keyframes' nodes. Keyframes the graph does
+        not know count as placed without error (seen_g = x), as in the filter."""
         keys = np.asarray(keys).reshape(-1)
         info = np.asarray(information, np.float64).reshape(len(keys), 3, 3)
         total = info.sum(axis=0) + 1e-9 * np.eye(3)
-        a = _sqrt_inv(np.asarray(covariance, np.float64)) @ _sqrt_inv(total)
         known = [i for i, k in enumerate(keys.tolist()) if int(k) in self._keyframes]
         if not known:
             return
-        node = self.nodes - 1
         kf = [self._keyframes[int(keys[i])] for i in known]
-        pairs = np.array([[n, node] for n, _ in kf], np.int64)
-        z = np.asarray(pose, np.float64).reshape(3)
-        values = np.array([np.concatenate([placed, z]) for _, placed in kf])
-        shares = np.einsum("ij,gjk,lk->gil", a, info[known], a)
-        self._match.add(pairs, values, shares)
+        record = (
+            self.nodes - 1,
+            np.array([n for n, _ in kf], np.int64),
+            np.array([placed for _, placed in kf]),
+            np.linalg.solve(total[None], info)[known],
+            np.asarray(pose, np.float64).reshape(3),
+            _information(covariance),
+        )
+        self._match.setdefault(len(kf), []).append(record)
 
     def add_absolute(self, pose: np.ndarray, covariance: np.ndarray, node: int = -1) -> None:
         """An absolute measurement of node `node` (default the newest): its pose (x, y, yaw)."""
@@ -223,11 +227,12 @@ class PoseGraph:
         kinds = {
             "odometry": self._odometry,
             "absolute": self._absolute,
-            "match": self._match,
             "colony": self._colony,
             "landmark": self._landmark,
         }
-        return {k: int(sum(len(n) for n in e.nodes)) for k, e in kinds.items()}
+        out = {k: int(sum(len(n) for n in e.nodes)) for k, e in kinds.items()}
+        out["match"] = sum(len(g) for g in self._match.values())
+        return out
 
     def solve(self, iterations: int = 20, tolerance: float = 1e-7) -> Smoothed:
         """Every node's body pose (N, 3) minimising the graph's cost, from the filter's
@@ -285,26 +290,8 @@ class PoseGraph:
             r = poses[ids[:, 0]] - z
             r[:, 2] = _wrap(r[:, 2])
             terms.append(([(ids[:, 0], np.tile(np.eye(3), (len(ids), 1, 1)))], r, info))
-        matches = self._match.stacked()
-        if matches is not None:
-            ids, values, info = matches
-            placed, z = values[:, :3], values[:, 3:]
-            s, k = poses[ids[:, 0]], poses[ids[:, 1]]
-            e = k[:, :2] - s[:, :2]
-            rt = np.swapaxes(_rot(s[:, 2]), 1, 2)
-            rp = _rot(placed[:, 2])
-            turn = np.einsum("eij,ejk->eik", rp, rt)  # R(placed) R(s)^T
-            xy = placed[:, :2] + np.einsum("eij,ej->ei", turn, e)
-            r = np.column_stack([xy, placed[:, 2] + k[:, 2] - s[:, 2]]) - z
-            r[:, 2] = _wrap(r[:, 2])
-            jk = np.zeros((len(ids), 3, 3))
-            jk[:, :2, :2] = turn
-            jk[:, 2, 2] = 1.0
-            js = np.zeros((len(ids), 3, 3))
-            js[:, :2, :2] = -turn
-            js[:, :2, 2] = np.einsum("eij,ej->ei", rp, _d_rot_t(s[:, 2], e))
-            js[:, 2, 2] = -1.0
-            terms.append(([(ids[:, 0], js), (ids[:, 1], jk)], r, info))
+        for group in self._match.values():
+            terms.append(_match_term(poses, group))
         colony = self._colony.stacked()
         if colony is not None:
             ids, z, info = colony
@@ -343,6 +330,49 @@ class PoseGraph:
         return _normal_equations(terms, size)
 
 
+def _match_term(
+    poses: np.ndarray,
+    group: list[_Match],
+) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray]:
+    """Own-map matches with the same number G of keyframes: residual x + sum_g W_g
+    (seen_g - x) - z (seen_g: where the node appears in keyframe g's map), blocks on the node
+    and its G keyframe nodes."""
+    node = np.array([g[0] for g in group])
+    kfn = np.stack([g[1] for g in group])  # (E, G)
+    placed = np.stack([g[2] for g in group])  # (E, G, 3)
+    w = np.stack([g[3] for g in group])  # (E, G, 3, 3)
+    z = np.stack([g[4] for g in group])
+    info = np.stack([g[5] for g in group])
+    e_count, g_count = kfn.shape
+    k = poses[node]  # (E, 3)
+    s = poses[kfn].reshape(-1, 3)  # (E G, 3)
+    kk = np.repeat(k, g_count, axis=0)
+    pl = placed.reshape(-1, 3)
+    e = kk[:, :2] - s[:, :2]
+    rt = np.swapaxes(_rot(s[:, 2]), 1, 2)
+    rp = _rot(pl[:, 2])
+    turn = np.einsum("eij,ejk->eik", rp, rt)
+    seen_xy = pl[:, :2] + np.einsum("eij,ej->ei", turn, e)
+    diff = np.column_stack([seen_xy - kk[:, :2], _wrap(pl[:, 2] - s[:, 2])])
+    ww = w.reshape(-1, 3, 3)
+    moved = np.einsum("eij,ej->ei", ww, diff).reshape(e_count, g_count, 3).sum(axis=1)
+    r = k + moved - z
+    r[:, 2] = _wrap(r[:, 2])
+    jk = np.zeros((e_count * g_count, 3, 3))
+    jk[:, :2, :2] = turn
+    jk[:, 2, 2] = 1.0
+    js = np.zeros((e_count * g_count, 3, 3))
+    js[:, :2, :2] = -turn
+    js[:, :2, 2] = np.einsum("eij,ej->ei", rp, _d_rot_t(s[:, 2], e))
+    js[:, 2, 2] = -1.0
+    j_node = np.eye(3) + np.einsum("eij,ejk->eik", ww, jk - np.eye(3)).reshape(
+        e_count, g_count, 3, 3
+    ).sum(axis=1)
+    j_keys = np.einsum("eij,ejk->eik", ww, js).reshape(e_count, g_count, 3, 3)
+    blocks = [(node, j_node)] + [(kfn[:, g], j_keys[:, g]) for g in range(g_count)]
+    return blocks, r, info
+
+
 def _normal_equations(
     terms: list[tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray]], size: int
 ) -> tuple[float, sp.csr_matrix, np.ndarray]:
@@ -356,16 +386,19 @@ def _normal_equations(
     data: list[np.ndarray] = []
     local = np.arange(3)
     for blocks, r, info in terms:
+        ids = np.stack([b[0] for b in blocks], 1)  # (E, B)
+        jac = np.stack([b[1] for b in blocks], 1)  # (E, B, d, 3)
         lr = np.einsum("eij,ej->ei", info, r)
         cost += float(np.einsum("ei,ei->", r, lr))
-        for ids, jac in blocks:
-            np.add.at(grad, 3 * ids[:, None] + local, np.einsum("eji,ej->ei", jac, lr))
-            lj = np.einsum("eij,ejk->eik", info, jac)
-            for ids2, jac2 in blocks:
-                block = np.einsum("eji,ejk->eik", jac2, lj)  # J2^T L J: rows of ids2
-                rows.append((3 * ids2[:, None, None] + local[None, :, None]).repeat(3, 2).ravel())
-                cols.append((3 * ids[:, None, None] + local[None, None, :]).repeat(3, 1).ravel())
-                data.append(block.ravel())
+        np.add.at(grad, 3 * ids[..., None] + local, np.einsum("ebji,ej->ebi", jac, lr))
+        lj = np.einsum("eij,ebjk->ebik", info, jac)
+        block = np.einsum("eaji,ebjk->eabik", jac, lj)  # (E, B, B, 3, 3): J_a^T L J_b
+        shape = block.shape
+        rows.append(
+            np.broadcast_to(3 * ids[:, :, None, None, None] + local[:, None], shape).ravel()
+        )
+        cols.append(np.broadcast_to(3 * ids[:, None, :, None, None] + local, shape).ravel())
+        data.append(block.ravel())
     if not data:
         return cost, sp.csr_matrix((size, size)), grad
     h = sp.coo_matrix(
