@@ -748,6 +748,8 @@ def main(argv: list[str] | None = None) -> int:
             progress=args.progress,
         )
         odo = "no odometry" if s.ate_odometry is None else f"odometry {s.ate_odometry:.3f} m"
+        if s.ate_smoothed is not None:
+            odo += f", smoothed {s.ate_smoothed:.3f} m"
         ate = (
             f"ATE {s.ate_estimate:.3f} m ({odo})"
             if s.ate_estimate is not None

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from colonyd.estimator import Estimator, get_estimator
+from colonyd.estimator import Estimator, ScanEstimator, get_estimator
 from colonyd.mapping import get_progress, integrate_observation, tum_line, write_map
 from colonyd.outdir import output_dir
 from plugins.carmen import CarmenSource
@@ -18,6 +18,7 @@ from plugins.observation import Observation
 from plugins.sevenscenes import RgbdSource
 from plugins.source import open_source
 from voxel.grid import VoxelGrid
+from voxel.localisation import se2
 from voxel.localisation.metrics import absolute_trajectory_error
 
 
@@ -31,6 +32,7 @@ class LocalizeSummary:
     seconds: float
     ate_estimate: float | None
     ate_odometry: float | None
+    ate_smoothed: float | None
     recording_seconds: float
     files: dict[str, Path]
 
@@ -57,9 +59,10 @@ def localize_source(
     max_frames: int | None = None,
     progress: bool = True,
 ) -> LocalizeSummary:
-    """Estimate the poses of the agent of `spec` and write estimate.tum, odometry.tum,
-    groundtruth.tum, the map from the estimated poses (grid.npz, map.bt, map.ply) and results.json
-    into `out_dir`."""
+    """Estimate the poses of the agent of `spec` and write estimate.tum (the filter's online
+    estimate, each pose as it was known then), smoothed.tum (a scan estimator's: every pose
+    re-solved with everything the filter fused, `PoseGraph`), odometry.tum, groundtruth.tum, the
+    map from the estimated poses (grid.npz, map.bt, map.ply) and results.json into `out_dir`."""
     began = clock.monotonic()
     if odometry_noise is not None:
         spec += f",odometry_noise={odometry_noise}"
@@ -83,6 +86,8 @@ def localize_source(
                 break
             if estimator is None:
                 estimator = get_estimator(adapter, obs)
+                if isinstance(estimator, ScanEstimator):
+                    estimator.localiser.record = True
             pose = estimator(obs)
             integrate_observation(
                 grid,
@@ -102,12 +107,23 @@ def localize_source(
         bar.close()
     files = write_map(grid, out_dir, [tum_line(t, p) for t, p in zip(times, est, strict=True)])
     files["estimate"] = _write_tum(out_dir / "estimate.tum", times, est)
-    ate_est = ate_odo = None
+    smoothed: list[np.ndarray] = []
+    smoothing = 0.0
+    graph = estimator.localiser.graph if isinstance(estimator, ScanEstimator) else None
+    if graph is not None and isinstance(estimator, ScanEstimator) and graph.nodes == len(times):
+        began_smoothing = clock.process_time()
+        mount = estimator.mount
+        smoothed = [se2.to_matrix(p) @ mount for p in graph.solve().poses]
+        smoothing = clock.process_time() - began_smoothing
+        files["smoothed"] = _write_tum(out_dir / "smoothed.tum", times, smoothed)
+    ate_est = ate_odo = ate_smooth = None
     if len(odo) == len(times) and odo:
         files["odometry"] = _write_tum(out_dir / "odometry.tum", times, odo)
     if len(ref) == len(times) and len(ref) >= 3:
         files["groundtruth"] = _write_tum(out_dir / "groundtruth.tum", times, ref)
         ate_est = absolute_trajectory_error(np.array(ref), np.array(est)).rmse
+        if smoothed:
+            ate_smooth = absolute_trajectory_error(np.array(ref), np.array(smoothed)).rmse
         if "odometry" in files:
             ate_odo = absolute_trajectory_error(np.array(ref), np.array(odo)).rmse
     seconds = clock.monotonic() - began
@@ -119,6 +135,7 @@ def localize_source(
         seconds=seconds,
         ate_estimate=ate_est,
         ate_odometry=ate_odo,
+        ate_smoothed=ate_smooth,
         recording_seconds=recording,
         files=files,
     )
@@ -128,7 +145,8 @@ def localize_source(
             {
                 "spec": spec,
                 "estimator": summary.estimator,
-                "ate_rmse_m": {"estimate": ate_est, "odometry": ate_odo},
+                "ate_rmse_m": {"estimate": ate_est, "odometry": ate_odo, "smoothed": ate_smooth},
+                "smoothing_cpu_seconds": round(smoothing, 3) if smoothed else None,
                 "frames": len(times),
                 "seconds": round(seconds, 3),
                 "frames_per_second": round(len(times) / max(seconds, 1e-9), 2),

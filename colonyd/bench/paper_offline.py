@@ -2,7 +2,7 @@
 map, for A/B of estimator changes without the live runs' timing chaos.
 
 `python -m colonyd.bench.paper_offline --seed S [--world W] [--lidar-range R] [--rng N]
-[--duration S] [--no-peer-covariance] [--offset-walk] [--json FILE]`
+[--duration S] [--no-peer-covariance] [--offset-walk] [--smooth] [--json FILE]`
 
 Each robot's sim source (the experiment's spec and seed, not paced) runs through its estimator
 and maps from the estimate, as `colonyd localize` does. The peer's map (its estimated-pose voxel
@@ -18,6 +18,9 @@ into the robot's frame. The simulator's truth builds that fixture and evaluates;
 reads it (as the "perfect peer map" diagnosis in docs/LOCALISATION.md).
 `--offset-walk` lets both robots' colony offsets walk with distance (`OffsetWalk`'s defaults;
 `ScanParams.colony_walk`, off in the daemon).
+`--smooth` also scores each run's smoothed trajectory (`PoseGraph` over what its filter fused,
+docs/LOCALISATION.md): `<run>_smoothed` holds its ATE, the solve's CPU seconds, cost before and
+after, iterations and edges.
 `--rng` draws the scans' subsample with another seed: how far a run moves when nothing but
 that changes (the noise to compare against).
 
@@ -39,6 +42,7 @@ across its heading and in heading).
 from __future__ import annotations
 
 import argparse
+import time
 from collections import deque
 from dataclasses import replace
 from pathlib import Path
@@ -58,6 +62,7 @@ from voxel.localisation import se2
 from voxel.localisation.colony_map import ColonyMap, colony_map
 from voxel.localisation.localiser import OffsetWalk
 from voxel.localisation.metrics import absolute_trajectory_error
+from voxel.localisation.pose_graph import PoseGraph
 from voxel.occupancy import FREE_STATE, OCCUPIED
 
 #: The fixture alignment's error (x, y, yaw about the robot's origin) and its covariance.
@@ -111,8 +116,13 @@ class Run:
         lidar_noise: float | None = None,
         world: str = "office",
         walk: OffsetWalk | None = None,
+        smooth: bool = False,
     ) -> None:
         self.walk = walk
+        self.smooth = smooth
+        #: With `smooth`: the smoothed trajectory's ATE and what its solve took.
+        self.smoothed: dict[str, Any] = {}
+        self.smoothed_poses: list[np.ndarray] = []
         options = f"lidar_range={lidar_range:g}" if agent == "lidar-1" else ""
         if agent == "lidar-1" and lidar_noise is not None:
             options += f",range_noise={lidar_noise:g}"
@@ -157,6 +167,8 @@ class Run:
             if estimator is None:
                 estimator = get_estimator(adapter, obs)
                 estimator.localiser.rng = np.random.default_rng(rng)
+                if self.smooth and isinstance(estimator, ScanEstimator):
+                    estimator.localiser.record = True
                 if self.walk is not None and isinstance(estimator, ScanEstimator):
                     loc = estimator.localiser
                     loc.params = replace(loc.params, colony_walk=self.walk)
@@ -189,7 +201,31 @@ class Run:
         if isinstance(estimator, ScanEstimator):
             self.mount = estimator.mount
             self.counts = {k: v for k, v in estimator.counts().items() if k.startswith("colony")}
+            if estimator.localiser.graph is not None:
+                self.smoothed = self._smoothed(estimator.localiser.graph)
         return absolute_trajectory_error(np.array(self.truths), np.array(self.estimates)).rmse
+
+    def _smoothed(self, graph: PoseGraph) -> dict[str, Any]:
+        """The graph's smoothed trajectory scored as the online one (sensor poses, ATE after the
+        Umeyama fit against the truth: evaluation only), with the solve's cost and time."""
+        began = time.process_time()
+        result = graph.solve()
+        seconds = time.process_time() - began
+        poses = np.array([se2.to_matrix(p) @ self.mount for p in result.poses])
+        self.smoothed_poses = list(poses)
+        ate = absolute_trajectory_error(np.array(self.truths), poses).rmse
+        return {
+            "ate": round(ate, 4),
+            "cpu_s": round(seconds, 2),
+            "cost": [round(result.cost_before, 1), round(result.cost_after, 1)],
+            "iterations": result.iterations,
+            # the last colony offset (x, y in m, yaw in degrees), when there is one
+            "offset": [round(float(v), 4) for v in result.offsets[-1][:2]]
+            + [round(float(np.degrees(result.offsets[-1][2])), 3)]
+            if len(result.offsets)
+            else None,
+            "edges": graph.edges(),
+        }
 
     def perfect(self) -> None:
         """Diagnostic fixture: this robot's map built from its true poses (its estimates are
@@ -212,14 +248,17 @@ class Run:
             self.truths.append(obs.truth)
         self.grid = grid
 
-    def profile(self, every: float, rate: float = 10.0) -> list[list[float]]:
+    def profile(
+        self, every: float, rate: float = 10.0, smoothed: bool = False
+    ) -> list[list[float]]:
         """Every `every` seconds of path: [t, true x, true y, fitted error, along, across,
         heading error in degrees] (evaluation only). The fitted error is the ATE's (after the
         Umeyama fit); along / across / heading are the body's error in its own frame from the
-        first pose, along and across its true heading."""
-        truths, estimates = np.array(self.truths), np.array(self.estimates)
+        first pose, along and across its true heading. `smoothed`: of the smoothed trajectory."""
+        truths = np.array(self.truths)
+        estimates = np.array(self.smoothed_poses if smoothed else self.estimates)
         fitted = absolute_trajectory_error(truths, estimates).errors
-        frame = self.truths[0] @ np.linalg.inv(self.estimates[0])
+        frame = self.truths[0] @ np.linalg.inv(estimates[0])
         back, unmount = np.linalg.inv(frame), np.linalg.inv(self.mount)
         rows = []
         for i in range(0, len(truths), max(1, round(every * rate))):
@@ -351,6 +390,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         action="store_true",
         help="the colony offset as a random walk with distance (OffsetWalk; off in the daemon)",
     )
+    parser.add_argument(
+        "--smooth",
+        action="store_true",
+        help="also each run's smoothed trajectory (PoseGraph over what the filter fused): "
+        "its ATE, solve CPU time, cost and edges as <run>_smoothed",
+    )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     diag = parser.add_argument_group("diagnostics (bounds; truth builds fixtures only)")
     diag.add_argument(
@@ -381,7 +426,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         keyframes = args.keyframes if agent == "lidar-1" else None
         noise = args.lidar_noise if agent == "lidar-1" else None
         walk = OffsetWalk() if args.offset_walk else None
-        return Run(agent, seed, args.lidar_range, args.duration, keyframes, noise, args.world, walk)
+        return Run(
+            agent,
+            seed,
+            args.lidar_range,
+            args.duration,
+            keyframes,
+            noise,
+            args.world,
+            walk,
+            args.smooth,
+        )
 
     lidar, depth = robot("lidar-1"), robot("depth-1")
     out: dict[str, Any] = {"seed": args.seed, "lidar_range": args.lidar_range, "rng": args.rng}
@@ -396,18 +451,25 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "lidar_noise",
         "world",
         "offset_walk",
+        "smooth",
     ):
         if getattr(args, name) != parser.get_default(name):
             out[name] = getattr(args, name)
     out["lidar_alone"] = round(lidar.go(rng=args.rng), 4)
     out["lidar_alone_consistency"] = lidar.consistency()
+    if lidar.smoothed:
+        out["lidar_alone_smoothed"] = lidar.smoothed
     if args.profile:
         out["lidar_alone_profile"] = lidar.profile(args.profile)
+        if lidar.smoothed_poses:
+            out["lidar_alone_smoothed_profile"] = lidar.profile(args.profile, smoothed=True)
     if args.perfect_peer:
         depth.perfect()
     else:
         out["depth_alone"] = round(depth.go(rng=args.rng), 4)
         out["depth_alone_consistency"] = depth.consistency()
+        if depth.smoothed:
+            out["depth_alone_smoothed"] = depth.smoothed
     if not args.lidar_only:
         with_lidar = robot("depth-1")
         out["depth_with_lidar"] = round(
@@ -415,6 +477,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         )
         out["depth_counts"] = with_lidar.counts
         out["depth_with_lidar_consistency"] = with_lidar.consistency()
+        if with_lidar.smoothed:
+            out["depth_with_lidar_smoothed"] = with_lidar.smoothed
     sign = 0.0 if args.exact_alignment else -1.0
     for contact in args.contact:  # every variant with the same peer map (the first: plain keys)
         for how in args.relax:
@@ -427,8 +491,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             )
             out[f"lidar_counts{tail}"] = with_depth.counts
             out[f"lidar_with_depth_consistency{tail}"] = with_depth.consistency()
+            if with_depth.smoothed:
+                out[f"lidar_with_depth_smoothed{tail}"] = with_depth.smoothed
             if args.profile:
                 out[f"lidar_with_depth_profile{tail}"] = with_depth.profile(args.profile)
+                if with_depth.smoothed_poses:
+                    out[f"lidar_with_depth_smoothed_profile{tail}"] = with_depth.profile(
+                        args.profile, smoothed=True
+                    )
     print_and_append(out, args.json)
     return out
 

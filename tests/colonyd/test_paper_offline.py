@@ -52,3 +52,18 @@ def test_paper_offline_runs_in_the_sparse_hall():
     for key in ("lidar_alone", "depth_alone", "lidar_with_depth"):
         assert 0.0 <= got[key] < 0.5, key
     assert sum(got["lidar_counts"].values()) > 0  # from mid-path, tried against depth-1's map
+
+
+def test_paper_offline_scores_the_smoothed_trajectory_too():
+    args = ["--seed", "1", "--duration", "3", "--lidar-only", "--perfect-peer", "--smooth"]
+    got = main([*args, "--exact-alignment", "--profile", "1"])
+    assert got["smooth"] is True
+    for run in ("lidar_alone", "lidar_with_depth"):
+        smoothed = got[f"{run}_smoothed"]
+        assert 0.0 <= smoothed["ate"] < 0.5 and smoothed["cpu_s"] >= 0.0, run
+        assert smoothed["edges"]["odometry"] == 29  # 30 frames: one node each
+        assert smoothed["cost"][1] <= smoothed["cost"][0] + 1e-6, run  # the solve lowers it
+        assert [r[0] for r in got[f"{run}_smoothed_profile"]] == [0.0, 1.0, 2.0]
+    assert got["lidar_alone_smoothed"]["offset"] is None  # alone: no colony offset
+    colony = got["lidar_with_depth_smoothed"]["edges"]["colony"]
+    assert colony == got["lidar_counts"]["colony_accepted"]  # one edge per fused colony match

@@ -197,21 +197,25 @@ class PlanarEkf:
         self._keys = [k for i, k in enumerate(self._keys) if i not in drop]
         self._key_poses = [p for i, p in enumerate(self._key_poses) if i not in drop]
 
+    def motion_step(self, increment: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The motion `predict` applies for an odometry increment (None: none) and its
+        covariance in the body frame (the motion model's)."""
+        m = self.motion
+        if increment is None:
+            return np.zeros(3), np.diag([m.no_odometry**2] * 3)
+        u = np.asarray(increment, np.float64)
+        if u.shape != (3,) or not np.all(np.isfinite(u)):
+            msg = f"odometry increment: expected 3 finite numbers (dx, dy, dyaw), found {u}"
+            raise LocalisationError(msg)
+        d = math.hypot(u[0], u[1])
+        var_t = m.trans**2 * d + m.still
+        q_u = np.diag([var_t, var_t, m.rot**2 * abs(u[2]) + m.rot_per_m**2 * d + m.still])
+        return u, q_u
+
     def predict(self, increment: np.ndarray | None) -> None:
         """Move by an odometry increment (dx, dy, dyaw) in the body frame; None: no odometry (stand
         still, widen)."""
-        m = self.motion
-        if increment is None:
-            u = np.zeros(3)
-            q_u = np.diag([m.no_odometry**2] * 3)
-        else:
-            u = np.asarray(increment, np.float64)
-            if u.shape != (3,) or not np.all(np.isfinite(u)):
-                msg = f"odometry increment: expected 3 finite numbers (dx, dy, dyaw), found {u}"
-                raise LocalisationError(msg)
-            d = math.hypot(u[0], u[1])
-            var_t = m.trans**2 * d + m.still
-            q_u = np.diag([var_t, var_t, m.rot**2 * abs(u[2]) + m.rot_per_m**2 * d + m.still])
+        u, q_u = self.motion_step(increment)
         yaw = float(self.kf.x[2, 0])
         c, s = math.cos(yaw), math.sin(yaw)
         self.kf.F = np.array(

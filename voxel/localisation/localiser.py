@@ -13,6 +13,7 @@ import numpy as np
 from voxel.localisation import se2
 from voxel.localisation.colony_map import ColonyMap
 from voxel.localisation.ekf import MotionNoise, PlanarEkf
+from voxel.localisation.pose_graph import PoseGraph
 from voxel.localisation.scan_match import LocalMap, Match, MatchTarget, match, thin
 
 
@@ -97,6 +98,10 @@ class ScanLocaliser:
     the same way: a bad alignment is refused, not followed); then add the scan to the local
     map when it is a keyframe, its error to the filter's state (`PlanarEkf.add_keyframe`).
     Reads only odometry, the scan and the peers' maps: never a reference pose.
+
+    With `record` set before the first step, every step and every update the filter fuses is
+    also kept in `graph` (a `PoseGraph`, with the covariance the filter used), whose `solve`
+    gives the smoothed trajectory. Off by default: the graph grows with every step.
     """
 
     def __init__(
@@ -131,6 +136,8 @@ class ScanLocaliser:
         self.fix_accepted = self.fix_rejected = self.fix_stale = 0
         self.landmark_accepted = self.landmark_rejected = 0
         self.history: deque[tuple[float, np.ndarray]] = deque(maxlen=self.params.history)
+        self.record = False
+        self.graph: PoseGraph | None = None
 
     def step(
         self,
@@ -153,12 +160,16 @@ class ScanLocaliser:
         if self.ekf is None:
             start = np.zeros(3) if odometry is None else np.asarray(odometry, np.float64)
             self.ekf = PlanarEkf(start, motion=self.motion)
+            if self.record:
+                self.graph = PoseGraph(self.ekf.pose, self.ekf.covariance)
         else:
             increment = None
             if odometry is not None and self.last_odometry is not None:
                 increment = se2.relative(self.last_odometry, np.asarray(odometry, np.float64))
             before = self.ekf.pose
             self.ekf.predict(increment)
+            if self.graph is not None:
+                self.graph.step(*self.ekf.motion_step(increment))
             if p.colony_walk is not None:
                 moved = se2.relative(before, self.ekf.pose)
                 self._travel += math.hypot(moved[0], moved[1]) + p.colony_walk.lever * abs(
@@ -172,6 +183,13 @@ class ScanLocaliser:
                     result.labels,
                     result.information,
                 )
+                if fused and self.graph is not None:
+                    self.graph.add_match(
+                        se2.from_matrix(result.pose),
+                        result.covariance,
+                        result.labels,
+                        result.information,
+                    )
         colony_match: Match | None = None
         colony_fused = False
         if colony is not None and colony.tree is not None:
@@ -182,6 +200,8 @@ class ScanLocaliser:
                 colony_match, colony_fused = self._colony_update(pts, colony)
         self.last_odometry = None if odometry is None else np.asarray(odometry, np.float64).copy()
         pose = self.ekf.pose
+        if self.graph is not None:
+            self.graph.place(pose)
         if time is not None:
             self.history.append((float(time), pose))
         m = se2.to_matrix(pose)
@@ -191,6 +211,8 @@ class ScanLocaliser:
             )
             if key is not None:
                 self.ekf.add_keyframe(key)
+                if self.graph is not None:
+                    self.graph.add_keyframe(key, pose)
                 self.ekf.keep_keyframes(self.local.ids)
         return Step(pose, result, fused, colony_match, colony_fused)
 
@@ -228,9 +250,13 @@ class ScanLocaliser:
         widen = np.diag(
             [m.trans**2 * d, m.trans**2 * d, m.rot**2 * abs(motion[2]) + m.rot_per_m**2 * d]
         )
-        fused = self.ekf.update(z, np.asarray(covariance, np.float64) + widen)
+        r = np.asarray(covariance, np.float64) + widen
+        fused = self.ekf.update(z, r)
         if fused:
             self.fix_accepted += 1
+            if self.graph is not None:
+                self.graph.add_absolute(z, r)
+                self.graph.place(self.ekf.pose)
         else:
             self.fix_rejected += 1
         return fused
@@ -247,9 +273,13 @@ class ScanLocaliser:
         (`PlanarEkf.update_landmark`, gated). None before the first step."""
         if self.ekf is None:
             return None
+        yaw = float(self.ekf.pose[2])
         fused = self.ekf.update_landmark(seen, seen_covariance, landmark, landmark_covariance)
         if fused:
             self.landmark_accepted += 1
+            if self.graph is not None:
+                self.graph.add_landmark(seen, seen_covariance, landmark, landmark_covariance, yaw)
+                self.graph.place(self.ekf.pose)
         else:
             self.landmark_rejected += 1
         return fused
@@ -294,14 +324,23 @@ class ScanLocaliser:
         if self.ekf.offset is None or self._offset_of != colony.alignment:
             self.ekf.reset_offset(colony.covariance)  # new alignments: a new error to estimate
             self._offset_of = colony.alignment
+            if self.graph is not None:
+                self.graph.reset_offset(colony.covariance)
         else:  # the same alignments; a peer that drifted or got lost since widens their error
-            self.ekf.widen_offset(colony.covariance)
+            grown = [self.ekf.widen_offset(colony.covariance)]
             if p.colony_walk is not None and self._travel > 0.0:  # and so does the way here
-                self.ekf.walk_offset(p.colony_walk.noise(self._travel), self.ekf.pose[:2])
+                grown.append(
+                    self.ekf.walk_offset(p.colony_walk.noise(self._travel), self.ekf.pose[:2])
+                )
+            noise = sum(grown[1:], grown[0])
+            if self.graph is not None and np.any(noise):
+                self.graph.walk_offset(noise)
         self._travel = 0.0
         fused = self.ekf.update_offset(se2.from_matrix(result.pose), result.covariance)
         if fused:
             self.colony_accepted += 1
+            if self.graph is not None:
+                self.graph.add_colony(se2.from_matrix(result.pose), result.covariance)
         else:
             self.colony_rejected += 1
         outcomes = self._colony_outcomes
