@@ -2,7 +2,7 @@
 map, for A/B of estimator changes without the live runs' timing chaos.
 
 `python -m colonyd.bench.paper_offline --seed S [--world W] [--lidar-range R] [--rng N]
-[--duration S] [--no-peer-covariance] [--offset-walk] [--json FILE]`
+[--duration S] [--no-peer-covariance] [--offset-walk] [--peer-walk] [--json FILE]`
 
 Each robot's sim source (the experiment's spec and seed, not paced) runs through its estimator
 and maps from the estimate, as `colonyd localize` does. The peer's map (its estimated-pose voxel
@@ -17,7 +17,10 @@ robot's contact (when the cut is made), as an error of its map about the cut's c
 into the robot's frame. The simulator's truth builds that fixture and evaluates; no estimator
 reads it (as the "perfect peer map" diagnosis in docs/LOCALISATION.md).
 `--offset-walk` lets both robots' colony offsets walk with distance (`OffsetWalk`'s defaults;
-`ScanParams.colony_walk`, off in the daemon).
+`ScanParams.colony_walk`, off in the daemon). `--peer-walk` lets them walk by the peer's own
+drift instead (`PeerDrift` over its filter's covariance and its estimated path, one report
+a second up to the contact's time, as its Pose messages would have said;
+`ScanParams.colony_peer_walk`), the constant walk only while the peer's reports are too few.
 `--rng` draws the scans' subsample with another seed: how far a run moves when nothing but
 that changes (the noise to compare against).
 
@@ -56,7 +59,7 @@ from voxel import keys as vk
 from voxel.grid import VoxelGrid
 from voxel.localisation import se2
 from voxel.localisation.colony_map import ColonyMap, colony_map
-from voxel.localisation.localiser import OffsetWalk
+from voxel.localisation.drift import OffsetWalk, PeerDrift
 from voxel.localisation.metrics import absolute_trajectory_error
 from voxel.occupancy import FREE_STATE, OCCUPIED
 
@@ -111,8 +114,9 @@ class Run:
         lidar_noise: float | None = None,
         world: str = "office",
         walk: OffsetWalk | None = None,
+        peer_walk: bool = False,
     ) -> None:
-        self.walk = walk
+        self.walk, self.peer_walk = walk, peer_walk
         options = f"lidar_range={lidar_range:g}" if agent == "lidar-1" else ""
         if agent == "lidar-1" and lidar_noise is not None:
             options += f",range_noise={lidar_noise:g}"
@@ -157,9 +161,11 @@ class Run:
             if estimator is None:
                 estimator = get_estimator(adapter, obs)
                 estimator.localiser.rng = np.random.default_rng(rng)
-                if self.walk is not None and isinstance(estimator, ScanEstimator):
+                if isinstance(estimator, ScanEstimator):
                     loc = estimator.localiser
-                    loc.params = replace(loc.params, colony_walk=self.walk)
+                    loc.params = replace(
+                        loc.params, colony_walk=self.walk, colony_peer_walk=self.peer_walk
+                    )
                 if self.keyframes is not None:
                     estimator.localiser.local.frames = deque(maxlen=self.keyframes)
             elif relaxed != "none" and i == 1:
@@ -168,7 +174,8 @@ class Run:
                 pose = self.estimates[-1]
                 if cut is None or not cut.covers(pose[:2, 3], cut.radius - 2.0):
                     at = obs.time if peer_covariance else None
-                    cut = peer.cut_for(self, pose, estimator, sign, at)
+                    walk = peer.drift(obs.time) if self.peer_walk else None
+                    cut = peer.cut_for(self, pose, estimator, sign, at, walk)
                 estimator.colony = cut
             pose = estimator(obs)
             integrate_observation(
@@ -265,6 +272,18 @@ class Run:
             "sigma_m": round(float(np.median(sigmas)), 4),
         }
 
+    def drift(self, until: float, every: float = 1.0) -> OffsetWalk | None:
+        """This run's drift (`PeerDrift`) from its estimated poses and its filter's covariances
+        up to time `until`, one report each `every` seconds (its Pose messages)."""
+        drift, last = PeerDrift(), -np.inf
+        for t, estimate, cov in zip(self.times, self.estimates, self.covariances, strict=False):
+            if t > until:
+                break
+            if t - last >= every:
+                drift.add(se2.from_matrix(estimate), cov)
+                last = t
+        return drift.walk()
+
     def cut_for(
         self,
         robot: Run,
@@ -272,10 +291,12 @@ class Run:
         estimator: ScanEstimator,
         sign: float,
         at: float | None = None,
+        walk: OffsetWalk | None = None,
     ) -> ColonyMap:
         """This run's map near `robot`'s pose, in its frame through the fixture alignment; its
         covariance the alignment's, plus (at time `at`) this run's pose covariance then, as the
-        error of its map about the cut's centre (`colonymap.peer_map_error`)."""
+        error of its map about the cut's centre (`colonymap.peer_map_error`); `walk`: this
+        run's drift (`drift`)."""
         assert self.grid is not None, "run the peer first"
         grid = self.grid
         ours = self.truths[0] @ np.linalg.inv(self.estimates[0])  # our frame in the world
@@ -307,6 +328,7 @@ class Run:
             alignment=b"fixture",
             free=free,
             step=grid.resolution,
+            walk=walk,
         )
 
 
@@ -351,6 +373,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         action="store_true",
         help="the colony offset as a random walk with distance (OffsetWalk; off in the daemon)",
     )
+    parser.add_argument(
+        "--peer-walk",
+        action="store_true",
+        help="the colony offset's walk from the peer's own drift (PeerDrift; with "
+        "--offset-walk, the constant until the peer's reports suffice)",
+    )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     diag = parser.add_argument_group("diagnostics (bounds; truth builds fixtures only)")
     diag.add_argument(
@@ -381,7 +409,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         keyframes = args.keyframes if agent == "lidar-1" else None
         noise = args.lidar_noise if agent == "lidar-1" else None
         walk = OffsetWalk() if args.offset_walk else None
-        return Run(agent, seed, args.lidar_range, args.duration, keyframes, noise, args.world, walk)
+        return Run(
+            agent,
+            seed,
+            args.lidar_range,
+            args.duration,
+            keyframes,
+            noise,
+            args.world,
+            walk,
+            args.peer_walk,
+        )
 
     lidar, depth = robot("lidar-1"), robot("depth-1")
     out: dict[str, Any] = {"seed": args.seed, "lidar_range": args.lidar_range, "rng": args.rng}
@@ -396,6 +434,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "lidar_noise",
         "world",
         "offset_walk",
+        "peer_walk",
     ):
         if getattr(args, name) != parser.get_default(name):
             out[name] = getattr(args, name)
