@@ -137,6 +137,8 @@ class Run:
         self.times: list[float] = []  # the time of each frame with a covariance
         self.mount = np.eye(4)
         self.grid: VoxelGrid | None = None
+        #: (trans, yaw) of each peer walk given with a cut (`--peer-walk`; None: not yet known)
+        self.peer_walks: list[list[float] | None] = []
 
     def go(
         self,
@@ -157,6 +159,7 @@ class Run:
         cut: ColonyMap | None = None
         frames = len(source)
         self.estimates, self.truths, self.covariances, self.times = [], [], [], []
+        self.peer_walks = []
         for i, obs in enumerate(source):
             if estimator is None:
                 estimator = get_estimator(adapter, obs)
@@ -175,6 +178,10 @@ class Run:
                 if cut is None or not cut.covers(pose[:2, 3], cut.radius - 2.0):
                     at = obs.time if peer_covariance else None
                     walk = peer.drift(obs.time) if self.peer_walk else None
+                    if self.peer_walk:
+                        self.peer_walks.append(
+                            None if walk is None else [round(walk.trans, 4), round(walk.yaw, 4)]
+                        )
                     cut = peer.cut_for(self, pose, estimator, sign, at, walk)
                 estimator.colony = cut
             pose = estimator(obs)
@@ -454,6 +461,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         )
         out["depth_counts"] = with_lidar.counts
         out["depth_with_lidar_consistency"] = with_lidar.consistency()
+        if args.peer_walk:  # lidar-1's drift as depth-1 got it: first and last cut's
+            out["depth_peer_walk"] = with_lidar.peer_walks[:1] + with_lidar.peer_walks[-1:]
     sign = 0.0 if args.exact_alignment else -1.0
     for contact in args.contact:  # every variant with the same peer map (the first: plain keys)
         for how in args.relax:
@@ -466,6 +475,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             )
             out[f"lidar_counts{tail}"] = with_depth.counts
             out[f"lidar_with_depth_consistency{tail}"] = with_depth.consistency()
+            if args.peer_walk:
+                out[f"lidar_peer_walk{tail}"] = (
+                    with_depth.peer_walks[:1] + with_depth.peer_walks[-1:]
+                )
             if args.profile:
                 out[f"lidar_with_depth_profile{tail}"] = with_depth.profile(args.profile)
     print_and_append(out, args.json)
