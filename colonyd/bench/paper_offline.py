@@ -21,6 +21,10 @@ reads it (as the "perfect peer map" diagnosis in docs/LOCALISATION.md).
 drift instead (`PeerDrift` over its filter's covariance and its estimated path, one report
 a second up to the contact's time, as its Pose messages would have said;
 `ScanParams.colony_peer_walk`), the constant walk only while the peer's reports are too few.
+`--own-aliasing P` adds P times its map cell squared to each of depth-1's own-map matches'
+x and y variances (`ScanParams.own_aliasing`: a false match one cell away with chance P;
+0.042 measured, 25 of 600 frames, docs/BENCHMARKS.md "Is depth-1's sensor biased?"), in every
+run of depth-1 (alone too).
 `--rng` draws the scans' subsample with another seed: how far a run moves when nothing but
 that changes (the noise to compare against).
 
@@ -115,8 +119,9 @@ class Run:
         world: str = "office",
         walk: OffsetWalk | None = None,
         peer_walk: bool = False,
+        aliasing: float = 0.0,
     ) -> None:
-        self.walk, self.peer_walk = walk, peer_walk
+        self.walk, self.peer_walk, self.aliasing = walk, peer_walk, aliasing
         options = f"lidar_range={lidar_range:g}" if agent == "lidar-1" else ""
         if agent == "lidar-1" and lidar_noise is not None:
             options += f",range_noise={lidar_noise:g}"
@@ -167,7 +172,12 @@ class Run:
                 if isinstance(estimator, ScanEstimator):
                     loc = estimator.localiser
                     loc.params = replace(
-                        loc.params, colony_walk=self.walk, colony_peer_walk=self.peer_walk
+                        loc.params,
+                        colony_walk=self.walk,
+                        colony_peer_walk=self.peer_walk,
+                        own_aliasing=0.0
+                        if estimator.planar
+                        else self.aliasing * loc.params.map_cell**2,
                     )
                 if self.keyframes is not None:
                     estimator.localiser.local.frames = deque(maxlen=self.keyframes)
@@ -386,6 +396,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         help="the colony offset's walk from the peer's own drift (PeerDrift; with "
         "--offset-walk, the constant until the peer's reports suffice)",
     )
+    parser.add_argument(
+        "--own-aliasing",
+        type=float,
+        default=0.0,
+        help="chance of depth-1's own-map match one map cell off, as variance (0: none)",
+    )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     diag = parser.add_argument_group("diagnostics (bounds; truth builds fixtures only)")
     diag.add_argument(
@@ -426,6 +442,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             args.world,
             walk,
             args.peer_walk,
+            args.own_aliasing,
         )
 
     lidar, depth = robot("lidar-1"), robot("depth-1")
@@ -442,6 +459,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "world",
         "offset_walk",
         "peer_walk",
+        "own_aliasing",
     ):
         if getattr(args, name) != parser.get_default(name):
             out[name] = getattr(args, name)

@@ -47,6 +47,11 @@ class ScanParams:
     #: pose covariances, `PeerDrift`) when it has one, else by `colony_walk` (off until an A/B
     #: supports it; docs/BENCHMARKS.md "A peer map's walk from its own drift").
     colony_peer_walk: bool = False
+    #: Variance (m^2) added to each own-map match's x and y: a match that lands one map cell
+    #: off (the scan's and map's lattices aliasing) with some chance, as a mixture's variance
+    #: (chance times the cell squared). 0: the matcher's covariance alone (the default;
+    #: docs/BENCHMARKS.md "A peer map's walk from its own drift").
+    own_aliasing: float = 0.0
     history: int = 100  # (time, pose) of the last steps, to carry a late fix to the present
     fix_tolerance: float = 0.15  # seconds between a fix's stamp and the nearest step
 
@@ -146,7 +151,7 @@ class ScanLocaliser:
             if result.ok and result.labels is not None and result.information is not None:
                 fused = self.ekf.update_relative(
                     se2.from_matrix(result.pose),
-                    result.covariance,
+                    result.covariance + np.diag([p.own_aliasing, p.own_aliasing, 0.0]),
                     result.labels,
                     result.information,
                 )
