@@ -52,3 +52,19 @@ def test_paper_offline_runs_in_the_sparse_hall():
     for key in ("lidar_alone", "depth_alone", "lidar_with_depth"):
         assert 0.0 <= got[key] < 0.5, key
     assert sum(got["lidar_counts"].values()) > 0  # from mid-path, tried against depth-1's map
+
+
+def test_paper_offline_walks_by_the_peers_drift_and_widens_depth_1s_own_matches():
+    from voxel.localisation.drift import CAP, FLOOR
+
+    args = ["--seed", "1", "--duration", "4", "--peer-walk", "--own-aliasing", "0.042"]
+    got = main(args)
+    assert got["peer_walk"] is True and got["own_aliasing"] == 0.042
+    for key in ("lidar_peer_walk", "depth_peer_walk"):
+        walks = got[key]
+        assert len(walks) == 2  # the first cut's and the last's
+        for walk in walks:  # None while the peer's path is under 2 m, else within the bounds
+            assert walk is None or (
+                FLOOR.trans <= walk[0] <= CAP.trans and FLOOR.yaw <= walk[1] <= CAP.yaw
+            )
+    assert 0.0 <= got["lidar_with_depth"] < 0.5 and 0.0 <= got["depth_with_lidar"] < 0.5
