@@ -14,6 +14,7 @@ from colonyd.layers import Layer, Layers
 from voxel import keys as vk
 from voxel.localisation import frame_error
 from voxel.localisation.colony_map import ColonyMap, colony_map
+from voxel.localisation.drift import OffsetWalk, widest
 from voxel.occupancy import FREE_STATE, OCCUPIED
 
 #: Metres beyond the sensor's range that a cut of the colony map reaches: the robot may move this
@@ -182,17 +183,21 @@ class ColonyMaps:
         frame: ColonyFrame,
         pose: np.ndarray,
         poses: Mapping[str, np.ndarray] | None = None,
+        walks: Mapping[str, OffsetWalk] | None = None,
     ) -> ColonyMap | None:
         """The cut for a robot at sensor pose `pose` (4x4, own frame); None without aligned
         peers. Its covariance (`cut_error`) holds the alignments' errors and the peers' own pose
         covariances (`poses`, origin -> x, y, yaw in its frame, as their Pose messages last said),
-        updated on every call even when the surfaces are kept."""
+        updated on every call even when the surfaces are kept, as is its walk (the fastest of
+        its peers' drifts, `walks`: origin -> `PeerDrift.walk`; the localiser walks by it when
+        `ScanParams.colony_peer_walk`)."""
         started = time.perf_counter()
         peers = aligned_peers(layers, frame, self.own)
         key = key_of(peers)
         if not key:
             self.last = None
             return None
+        walk = widest([w for o, w in (walks or {}).items() if o in {k[0] for k in key}])
         xy = pose[:2, 3]
         last = self.last
         if last is not None and last.map.covers(xy, self.radius - MARGIN_M):
@@ -200,8 +205,8 @@ class ColonyMaps:
             if last.key == key or (same and time.time() - last.time < self.grown_s):
                 errors = peer_errors(frame, self.own, peers, poses or {}, last.map.centre)
                 covariance = cut_error(errors)
-                if not np.array_equal(covariance, last.map.covariance):
-                    kept = replace(last.map, covariance=covariance)  # same surfaces, shared
+                if not np.array_equal(covariance, last.map.covariance) or walk != last.map.walk:
+                    kept = replace(last.map, covariance=covariance, walk=walk)  # same surfaces
                     last = self.last = replace(last, map=kept, errors=errors)
                 return last.map
         errors = peer_errors(frame, self.own, peers, poses or {}, xy)
@@ -218,6 +223,7 @@ class ColonyMaps:
             alignment=b"".join(k[0].encode() + k[3] for k in key),
             free=partial(free_in_peers, peers),
             step=max(layer.resolution for layer, _ in peers),
+            walk=walk,
         )
         self.last = Build(cut, key, time.perf_counter() - started, time.time(), errors)
         return cut
@@ -233,6 +239,9 @@ class ColonyMaps:
             "built": last.time,
             "centre": np.round(last.map.centre, 4).tolist(),
             "covariance": _listed(last.map.covariance),
+            "walk": None
+            if last.map.walk is None
+            else {"trans": last.map.walk.trans, "yaw": last.map.walk.yaw},
             "peers": {
                 origin: {
                     "alignment_covariance": _listed(e.alignment),

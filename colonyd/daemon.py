@@ -739,7 +739,8 @@ class Daemon:
                     sensor_range=estimator.sensor_range,
                 )
             poses = self.membership.pose_covariances() if self.config.colony_peer_pose else {}
-            estimator.colony = maps.refresh(self.layers, frame, pose, poses)
+            walks = self.membership.pose_drifts()
+            estimator.colony = maps.refresh(self.layers, frame, pose, poses, walks)
 
     def _localisation_report(self) -> dict[str, Any]:
         out: dict[str, Any] = {"estimate_ms": round(self._estimate_s * 1000, 2)}

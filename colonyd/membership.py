@@ -13,7 +13,8 @@ import zenoh
 from colonyd.runtime import undeclare
 from protocol import Heartbeat, KeyExprError, Pose
 from protocol.keyexpr import alive_key, alive_subscription, parse_key
-from voxel.localisation import frame_error
+from voxel.localisation import frame_error, se2
+from voxel.localisation.drift import OffsetWalk, PeerDrift
 
 #: How long a starting daemon looks for a live member with its own agent id (peers reached
 #: through gossip answer within ~0.1 s here).
@@ -51,6 +52,8 @@ class Member:
     pose_std_m: float | None = None  # position standard deviation of its last Pose message
     #: x, y, yaw covariance (its frame) of its last Pose message (validated by the inbox)
     pose_covariance: np.ndarray | None = None
+    #: its drift along its path, from its Pose messages (`PeerDrift`: a walk of its map's error)
+    drift: PeerDrift = field(default_factory=PeerDrift)
     layers: dict[str, tuple[int, int]] = field(default_factory=dict)
 
 
@@ -121,6 +124,7 @@ class Membership:
             m.pose_std_m = float(max(0.0, cov[0] + cov[7] + cov[14]) ** 0.5)
             planar = frame_error.planar(np.array(cov))
             m.pose_covariance = 0.5 * (planar + planar.T)
+            m.drift.add(se2.from_matrix(msg.matrix()), m.pose_covariance)
             return True
 
     def pose_covariances(self) -> dict[str, np.ndarray]:
@@ -131,6 +135,12 @@ class Membership:
                 for a, m in self.members.items()
                 if m.pose_covariance is not None
             }
+
+    def pose_drifts(self) -> dict[str, OffsetWalk]:
+        """Each member's drift (a walk of its map's error) from its Pose messages, once known."""
+        with self._lock:
+            walks = {a: m.drift.walk() for a, m in self.members.items()}
+        return {a: w for a, w in walks.items() if w is not None}
 
     def alive(self) -> list[str]:
         with self._lock:

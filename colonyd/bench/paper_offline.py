@@ -2,7 +2,7 @@
 map, for A/B of estimator changes without the live runs' timing chaos.
 
 `python -m colonyd.bench.paper_offline --seed S [--world W] [--lidar-range R] [--rng N]
-[--duration S] [--no-peer-covariance] [--offset-walk] [--smooth] [--json FILE]`
+[--duration S] [--no-peer-covariance] [--offset-walk] [--peer-walk] [--smooth] [--json FILE]`
 
 Each robot's sim source (the experiment's spec and seed, not paced) runs through its estimator
 and maps from the estimate, as `colonyd localize` does. The peer's map (its estimated-pose voxel
@@ -17,7 +17,14 @@ robot's contact (when the cut is made), as an error of its map about the cut's c
 into the robot's frame. The simulator's truth builds that fixture and evaluates; no estimator
 reads it (as the "perfect peer map" diagnosis in docs/LOCALISATION.md).
 `--offset-walk` lets both robots' colony offsets walk with distance (`OffsetWalk`'s defaults;
-`ScanParams.colony_walk`, off in the daemon).
+`ScanParams.colony_walk`, off in the daemon). `--peer-walk` lets them walk by the peer's own
+drift instead (`PeerDrift` over its filter's covariance and its estimated path, one report
+a second up to the contact's time, as its Pose messages would have said;
+`ScanParams.colony_peer_walk`), the constant walk only while the peer's reports are too few.
+`--own-aliasing P` adds P times its map cell squared to each of depth-1's own-map matches'
+x and y variances (`ScanParams.own_aliasing`: a false match one cell away with chance P;
+0.042 measured, 25 of 600 frames, docs/BENCHMARKS.md "Is depth-1's sensor biased?"), in every
+run of depth-1 (alone too).
 `--smooth` also scores each run's smoothed trajectory (`PoseGraph` over what its filter fused,
 docs/LOCALISATION.md): `<run>_smoothed` holds its ATE, the solve's CPU seconds, cost before and
 after, iterations and edges.
@@ -60,7 +67,7 @@ from voxel import keys as vk
 from voxel.grid import VoxelGrid
 from voxel.localisation import se2
 from voxel.localisation.colony_map import ColonyMap, colony_map
-from voxel.localisation.localiser import OffsetWalk
+from voxel.localisation.drift import OffsetWalk, PeerDrift
 from voxel.localisation.metrics import absolute_trajectory_error
 from voxel.localisation.pose_graph import PoseGraph
 from voxel.occupancy import FREE_STATE, OCCUPIED
@@ -116,9 +123,11 @@ class Run:
         lidar_noise: float | None = None,
         world: str = "office",
         walk: OffsetWalk | None = None,
+        peer_walk: bool = False,
+        aliasing: float = 0.0,
         smooth: bool = False,
     ) -> None:
-        self.walk = walk
+        self.walk, self.peer_walk, self.aliasing = walk, peer_walk, aliasing
         self.smooth = smooth
         #: With `smooth`: the smoothed trajectory's ATE and what its solve took.
         self.smoothed: dict[str, Any] = {}
@@ -143,6 +152,8 @@ class Run:
         self.times: list[float] = []  # the time of each frame with a covariance
         self.mount = np.eye(4)
         self.grid: VoxelGrid | None = None
+        #: (trans, yaw) of each peer walk given with a cut (`--peer-walk`; None: not yet known)
+        self.peer_walks: list[list[float] | None] = []
 
     def go(
         self,
@@ -163,15 +174,23 @@ class Run:
         cut: ColonyMap | None = None
         frames = len(source)
         self.estimates, self.truths, self.covariances, self.times = [], [], [], []
+        self.peer_walks = []
         for i, obs in enumerate(source):
             if estimator is None:
                 estimator = get_estimator(adapter, obs)
                 estimator.localiser.rng = np.random.default_rng(rng)
                 if self.smooth and isinstance(estimator, ScanEstimator):
                     estimator.localiser.record = True
-                if self.walk is not None and isinstance(estimator, ScanEstimator):
+                if isinstance(estimator, ScanEstimator):
                     loc = estimator.localiser
-                    loc.params = replace(loc.params, colony_walk=self.walk)
+                    loc.params = replace(
+                        loc.params,
+                        colony_walk=self.walk,
+                        colony_peer_walk=self.peer_walk,
+                        own_aliasing=0.0
+                        if estimator.planar
+                        else self.aliasing * loc.params.map_cell**2,
+                    )
                 if self.keyframes is not None:
                     estimator.localiser.local.frames = deque(maxlen=self.keyframes)
             elif relaxed != "none" and i == 1:
@@ -180,7 +199,12 @@ class Run:
                 pose = self.estimates[-1]
                 if cut is None or not cut.covers(pose[:2, 3], cut.radius - 2.0):
                     at = obs.time if peer_covariance else None
-                    cut = peer.cut_for(self, pose, estimator, sign, at)
+                    walk = peer.drift(obs.time) if self.peer_walk else None
+                    if self.peer_walk:
+                        self.peer_walks.append(
+                            None if walk is None else [round(walk.trans, 4), round(walk.yaw, 4)]
+                        )
+                    cut = peer.cut_for(self, pose, estimator, sign, at, walk)
                 estimator.colony = cut
             pose = estimator(obs)
             integrate_observation(
@@ -304,6 +328,18 @@ class Run:
             "sigma_m": round(float(np.median(sigmas)), 4),
         }
 
+    def drift(self, until: float, every: float = 1.0) -> OffsetWalk | None:
+        """This run's drift (`PeerDrift`) from its estimated poses and its filter's covariances
+        up to time `until`, one report each `every` seconds (its Pose messages)."""
+        drift, last = PeerDrift(), -np.inf
+        for t, estimate, cov in zip(self.times, self.estimates, self.covariances, strict=False):
+            if t > until:
+                break
+            if t - last >= every:
+                drift.add(se2.from_matrix(estimate), cov)
+                last = t
+        return drift.walk()
+
     def cut_for(
         self,
         robot: Run,
@@ -311,10 +347,12 @@ class Run:
         estimator: ScanEstimator,
         sign: float,
         at: float | None = None,
+        walk: OffsetWalk | None = None,
     ) -> ColonyMap:
         """This run's map near `robot`'s pose, in its frame through the fixture alignment; its
         covariance the alignment's, plus (at time `at`) this run's pose covariance then, as the
-        error of its map about the cut's centre (`colonymap.peer_map_error`)."""
+        error of its map about the cut's centre (`colonymap.peer_map_error`); `walk`: this
+        run's drift (`drift`)."""
         assert self.grid is not None, "run the peer first"
         grid = self.grid
         ours = self.truths[0] @ np.linalg.inv(self.estimates[0])  # our frame in the world
@@ -346,6 +384,7 @@ class Run:
             alignment=b"fixture",
             free=free,
             step=grid.resolution,
+            walk=walk,
         )
 
 
@@ -389,6 +428,18 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--offset-walk",
         action="store_true",
         help="the colony offset as a random walk with distance (OffsetWalk; off in the daemon)",
+    )
+    parser.add_argument(
+        "--peer-walk",
+        action="store_true",
+        help="the colony offset's walk from the peer's own drift (PeerDrift; with "
+        "--offset-walk, the constant until the peer's reports suffice)",
+    )
+    parser.add_argument(
+        "--own-aliasing",
+        type=float,
+        default=0.0,
+        help="chance of depth-1's own-map match one map cell off, as variance (0: none)",
     )
     parser.add_argument(
         "--smooth",
@@ -435,6 +486,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             noise,
             args.world,
             walk,
+            args.peer_walk,
+            args.own_aliasing,
             args.smooth,
         )
 
@@ -451,6 +504,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "lidar_noise",
         "world",
         "offset_walk",
+        "peer_walk",
+        "own_aliasing",
         "smooth",
     ):
         if getattr(args, name) != parser.get_default(name):
@@ -479,6 +534,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         out["depth_with_lidar_consistency"] = with_lidar.consistency()
         if with_lidar.smoothed:
             out["depth_with_lidar_smoothed"] = with_lidar.smoothed
+        if args.peer_walk:  # lidar-1's drift as depth-1 got it: first and last cut's
+            out["depth_peer_walk"] = with_lidar.peer_walks[:1] + with_lidar.peer_walks[-1:]
     sign = 0.0 if args.exact_alignment else -1.0
     for contact in args.contact:  # every variant with the same peer map (the first: plain keys)
         for how in args.relax:
@@ -493,6 +550,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             out[f"lidar_with_depth_consistency{tail}"] = with_depth.consistency()
             if with_depth.smoothed:
                 out[f"lidar_with_depth_smoothed{tail}"] = with_depth.smoothed
+            if args.peer_walk:
+                out[f"lidar_peer_walk{tail}"] = (
+                    with_depth.peer_walks[:1] + with_depth.peer_walks[-1:]
+                )
             if args.profile:
                 out[f"lidar_with_depth_profile{tail}"] = with_depth.profile(args.profile)
                 if with_depth.smoothed_poses:

@@ -133,3 +133,21 @@ def test_the_cut_carries_the_peers_reported_pose_covariance_and_follows_it() -> 
     lost = maps.refresh(layers, frame, np.eye(4), {"peer": POSE * 100, "stranger": POSE})
     assert lost is not None and lost.points is alone.points
     np.testing.assert_allclose(lost.covariance, POSE / 4 + POSE * 100, atol=1e-12)
+
+
+def test_the_cut_walks_by_its_peers_drift_and_follows_it() -> None:
+    from voxel.localisation.drift import OffsetWalk
+
+    layers = _layers()
+    maps = ColonyMaps("me", planar=True, height=0.3, sensor_range=2.0)
+    frame = _frame(1.03)
+    cut = maps.refresh(layers, frame, np.eye(4))
+    assert cut is not None and cut.walk is None  # no drift known: none
+    slow, fast = OffsetWalk(0.01, 0.002), OffsetWalk(0.04, 0.01)
+    walking = maps.refresh(layers, frame, np.eye(4), walks={"peer": slow, "stranger": fast})
+    assert walking is not None and walking.walk == slow  # a stranger's drift is not this cut's
+    assert walking.points is cut.points  # the same surfaces
+    later = maps.refresh(layers, frame, np.eye(4), walks={"peer": fast})
+    assert later is not None and later.walk == fast
+    report = maps.report()
+    assert report is not None and report["walk"] == {"trans": 0.04, "yaw": 0.01}

@@ -67,3 +67,19 @@ def test_paper_offline_scores_the_smoothed_trajectory_too():
     assert got["lidar_alone_smoothed"]["offset"] is None  # alone: no colony offset
     colony = got["lidar_with_depth_smoothed"]["edges"]["colony"]
     assert colony == got["lidar_counts"]["colony_accepted"]  # one edge per fused colony match
+
+
+def test_paper_offline_walks_by_the_peers_drift_and_widens_depth_1s_own_matches():
+    from voxel.localisation.drift import CAP, FLOOR
+
+    args = ["--seed", "1", "--duration", "4", "--peer-walk", "--own-aliasing", "0.042"]
+    got = main(args)
+    assert got["peer_walk"] is True and got["own_aliasing"] == 0.042
+    for key in ("lidar_peer_walk", "depth_peer_walk"):
+        walks = got[key]
+        assert len(walks) == 2  # the first cut's and the last's
+        for walk in walks:  # None while the peer's path is under 2 m, else within the bounds
+            assert walk is None or (
+                FLOOR.trans <= walk[0] <= CAP.trans and FLOOR.yaw <= walk[1] <= CAP.yaw
+            )
+    assert 0.0 <= got["lidar_with_depth"] < 0.5 and 0.0 <= got["depth_with_lidar"] < 0.5

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from voxel.errors import LocalisationError
+from voxel.localisation.drift import OffsetWalk
 from voxel.localisation.scan_match import surface_normals, thin
 
 if TYPE_CHECKING:
@@ -45,6 +46,9 @@ class ColonyMap:
     #: True when every normal faces the free side of its surface (`orient_by_free_space`);
     #: voxel centres alone carry no side they were seen from, and then normals are unsigned.
     oriented: bool = False
+    #: How fast the map's error may change along a path, from its peers' own drift
+    #: (`PeerDrift`; the widest of its peers'); None: not known.
+    walk: OffsetWalk | None = None
 
     def __len__(self) -> int:
         return len(self.points)
@@ -70,6 +74,7 @@ def colony_map(
     alignment: bytes = b"",
     free: Callable[[np.ndarray], np.ndarray] | None = None,
     step: float = 0.1,
+    walk: OffsetWalk | None = None,
 ) -> ColonyMap:
     """The scan-matching target of occupied voxel centres (N, 3) already in the agent's frame.
 
@@ -78,7 +83,8 @@ def colony_map(
     (evenly subsampled), normals from `k` neighbours; corners and clutter (flatness <= 0.7) are
     dropped, as in the agent's own local map. With `free` (points (M, 3) in the agent's frame ->
     bool mask, "a peer knows this is free space"), normals are oriented to the free side of their
-    surface, probed `step` metres along each normal (`orient_by_free_space`).
+    surface, probed `step` metres along each normal (`orient_by_free_space`). `walk`: the
+    peers' drift (`ColonyMap.walk`).
     """
     pts = np.asarray(centres, np.float64).reshape(-1, 3)
     c = np.asarray(centre, np.float64).reshape(-1)[:2]
@@ -101,7 +107,7 @@ def colony_map(
     cov = ALIGNMENT_VARIANCE.copy() if covariance is None else np.asarray(covariance, np.float64)
     if len(pts) < k:
         return ColonyMap(
-            np.zeros((0, 3)), np.zeros((0, 3)), None, c, radius, sources, cov, alignment
+            np.zeros((0, 3)), np.zeros((0, 3)), None, c, radius, sources, cov, alignment, walk=walk
         )
     from scipy.spatial import cKDTree  # loads on first use, not at start-up
 
@@ -118,7 +124,7 @@ def colony_map(
             pts, normals = sided
             oriented = True
     tree_kept = cKDTree(pts) if len(pts) >= k else None
-    return ColonyMap(pts, normals, tree_kept, c, radius, sources, cov, alignment, oriented)
+    return ColonyMap(pts, normals, tree_kept, c, radius, sources, cov, alignment, oriented, walk)
 
 
 def vertical_traces(

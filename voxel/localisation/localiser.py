@@ -12,34 +12,10 @@ import numpy as np
 
 from voxel.localisation import se2
 from voxel.localisation.colony_map import ColonyMap
+from voxel.localisation.drift import OffsetWalk
 from voxel.localisation.ekf import MotionNoise, PlanarEkf
 from voxel.localisation.pose_graph import PoseGraph
 from voxel.localisation.scan_match import LocalMap, Match, MatchTarget, match, thin
-
-
-@dataclass(frozen=True)
-class OffsetWalk:
-    """How fast a peer map's error may change along the agent's path: the colony offset as a
-    random walk with the distance travelled since the last colony match (`PlanarEkf.walk_offset`),
-    so a correction learnt at one place is trusted less at the next.
-
-    From a peer's drift, decided before the A/B (docs/LOCALISATION.md, "Known limit: a peer
-    map's error is not rigid"): a drifted peer's map is off by 5-12 cm, differently place by
-    place (depth-1's in the sim office: its error where it mapped each place); two places a
-    few metres apart differ by ~5-10 cm, i.e. a standard deviation of ~6 cm after 4 m:
-    `trans` = 0.03 m per sqrt(m) in x and y. Its heading error varies less than its
-    position's (the matcher holds heading to a fraction of a degree per match): ~1 degree
-    after 4 m, `yaw` = 0.01 rad per sqrt(m), a third of the odometry model's `rot_per_m`. A
-    turn brings another part of the peer's map into view without travel: counted as
-    `lever` m of travel per radian (1 m: a quarter turn counts as 1.6 m)."""
-
-    trans: float = 0.03  # m per sqrt(m of travel)
-    yaw: float = 0.01  # rad per sqrt(m of travel)
-    lever: float = 1.0  # m of travel per rad of turn
-
-    def noise(self, travel: float) -> np.ndarray:
-        """The walk's covariance (x, y, yaw about the agent) over `travel` m."""
-        return np.diag([self.trans**2, self.trans**2, self.yaw**2]) * travel
 
 
 @dataclass(frozen=True)
@@ -68,6 +44,15 @@ class ScanParams:
     #: The colony offset's random walk along the path (None: a rigid offset, the default
     #: until an A/B supports it; docs/BENCHMARKS.md "A peer map's error as a random walk").
     colony_walk: OffsetWalk | None = None
+    #: Walk each colony map by its peers' own drift (`ColonyMap.walk`, from their reported
+    #: pose covariances, `PeerDrift`) when it has one, else by `colony_walk` (off until an A/B
+    #: supports it; docs/BENCHMARKS.md "A peer map's walk from its own drift").
+    colony_peer_walk: bool = False
+    #: Variance (m^2) added to each own-map match's x and y: a match that lands one map cell
+    #: off (the scan's and map's lattices aliasing) with some chance, as a mixture's variance
+    #: (chance times the cell squared). 0: the matcher's covariance alone (the default;
+    #: docs/BENCHMARKS.md "A peer map's walk from its own drift").
+    own_aliasing: float = 0.0
     history: int = 100  # (time, pose) of the last steps, to carry a late fix to the present
     fix_tolerance: float = 0.15  # seconds between a fix's stamp and the nearest step
 
@@ -132,7 +117,7 @@ class ScanLocaliser:
         self._colony_outcomes: deque[bool] = deque(maxlen=self.params.colony_window)
         self._distrusted: bytes | None = None  # the alignment of a colony map that disagreed
         self._offset_of: bytes | None = None  # the alignment whose error the filter estimates
-        self._travel = 0.0  # m (turns by `OffsetWalk.lever`) since the last colony match
+        self._travel = np.zeros(2)  # m driven and rad turned since the last colony match
         self.fix_accepted = self.fix_rejected = self.fix_stale = 0
         self.landmark_accepted = self.landmark_rejected = 0
         self.history: deque[tuple[float, np.ndarray]] = deque(maxlen=self.params.history)
@@ -170,16 +155,14 @@ class ScanLocaliser:
             self.ekf.predict(increment)
             if self.graph is not None:
                 self.graph.step(*self.ekf.motion_step(increment))
-            if p.colony_walk is not None:
+            if p.colony_walk is not None or p.colony_peer_walk:
                 moved = se2.relative(before, self.ekf.pose)
-                self._travel += math.hypot(moved[0], moved[1]) + p.colony_walk.lever * abs(
-                    float(moved[2])
-                )
+                self._travel += (math.hypot(moved[0], moved[1]), abs(float(moved[2])))
             result = self._match(pts, self.local)
             if result.ok and result.labels is not None and result.information is not None:
                 fused = self.ekf.update_relative(
                     se2.from_matrix(result.pose),
-                    result.covariance,
+                    result.covariance + np.diag([p.own_aliasing, p.own_aliasing, 0.0]),
                     result.labels,
                     result.information,
                 )
@@ -313,6 +296,14 @@ class ScanLocaliser:
             **extra,
         )
 
+    def walk_of(self, colony: ColonyMap) -> OffsetWalk | None:
+        """How fast `colony`'s error may wander along the path: its peers' own drift when
+        `colony_peer_walk` and the cut has one, else the constant `colony_walk` (None: rigid)."""
+        p = self.params
+        if p.colony_peer_walk and colony.walk is not None:
+            return colony.walk
+        return p.colony_walk
+
     def _colony_update(self, pts: np.ndarray, colony: ColonyMap) -> tuple[Match, bool]:
         """Match the scan against the colony's map from the current estimate; fuse it, gated."""
         p = self.params
@@ -328,14 +319,16 @@ class ScanLocaliser:
                 self.graph.reset_offset(colony.covariance)
         else:  # the same alignments; a peer that drifted or got lost since widens their error
             grown = [self.ekf.widen_offset(colony.covariance)]
-            if p.colony_walk is not None and self._travel > 0.0:  # and so does the way here
-                grown.append(
-                    self.ekf.walk_offset(p.colony_walk.noise(self._travel), self.ekf.pose[:2])
-                )
+            walk = self.walk_of(colony)
+            travel = float(self._travel[0]) + (
+                0.0 if walk is None else walk.lever * self._travel[1]
+            )
+            if walk is not None and travel > 0.0:  # and so does the way here
+                grown.append(self.ekf.walk_offset(walk.noise(travel), self.ekf.pose[:2]))
             noise = sum(grown[1:], grown[0])
             if self.graph is not None and np.any(noise):
                 self.graph.walk_offset(noise)
-        self._travel = 0.0
+        self._travel = np.zeros(2)
         fused = self.ekf.update_offset(se2.from_matrix(result.pose), result.covariance)
         if fused:
             self.colony_accepted += 1

@@ -12,8 +12,9 @@ from tests.voxel.localisation.test_scan_match import ROOM, _segments_scan
 from voxel.errors import LocalisationError
 from voxel.localisation import se2
 from voxel.localisation.colony_map import colony_map
+from voxel.localisation.drift import OffsetWalk
 from voxel.localisation.ekf import MotionNoise, PlanarEkf
-from voxel.localisation.localiser import OffsetWalk, ScanLocaliser, ScanParams
+from voxel.localisation.localiser import ScanLocaliser, ScanParams
 from voxel.localisation.odometry import OdometryNoise, synthesise
 
 
