@@ -7,15 +7,35 @@ import math
 import numpy as np
 
 from colonyd.alignment import ColonyFrame
+from plugins.observation import ObjectDetection
 from voxel.localisation import frame_error, se2
+
+#: Standard deviation of a fix's yaw per metre of range: a board's solved normal is worse the
+#: smaller it looks (sim office, cctv-1, 0.24 m boards: RMS 2 degrees at 4.7-5.6 m, 5-7 at
+#: 6.5-8 m, up to 11; docs/BENCHMARKS.md "The CCTV's fixes").
+YAW_PER_M = math.radians(1.0)
 
 
 def fix_covariance(in_camera: np.ndarray) -> np.ndarray:
     """The covariance (6x6, x y z roll pitch yaw) a CCTV sends with a robot's body pose seen at
     `in_camera` (4x4, camera frame): 1 cm per metre of range in x and y (the board's known height
-    fixes the range) plus 1 cm, 4 degrees in yaw."""
-    sd = 0.01 * float(np.linalg.norm(np.asarray(in_camera, np.float64)[:3, 3])) + 0.01
-    return np.diag([sd**2, sd**2, 0.05**2, 0.05**2, 0.05**2, math.radians(4.0) ** 2])
+    fixes the range) plus 1 cm, `YAW_PER_M` per metre of range in yaw."""
+    rng = float(np.linalg.norm(np.asarray(in_camera, np.float64)[:3, 3]))
+    sd = 0.01 * rng + 0.01
+    return np.diag([sd**2, sd**2, 0.05**2, 0.05**2, 0.05**2, (YAW_PER_M * rng) ** 2])
+
+
+def one_per_robot(seen: list[ObjectDetection]) -> list[ObjectDetection]:
+    """The most confident of each robot's boards seen in one image: two boards of one robot in
+    one image are solved from the same pixels of the same moment, their errors alike (the range
+    from the board's height, the camera's one view); sent as two fixes, the filter would count
+    one sighting twice."""
+    best: dict[str, ObjectDetection] = {}
+    for det in seen:
+        kept = best.get(det.label)
+        if kept is None or det.probability > kept.probability:
+            best[det.label] = det
+    return list(best.values())
 
 
 def sightings_covariance(rmse: float, spread: float, positions: np.ndarray) -> np.ndarray:
@@ -31,12 +51,21 @@ def sightings_covariance(rmse: float, spread: float, positions: np.ndarray) -> n
 
 
 def fix_in_own_frame(
-    frame: ColonyFrame, own: str, origin: str, body: np.ndarray, covariance: np.ndarray
+    frame: ColonyFrame,
+    own: str,
+    origin: str,
+    body: np.ndarray,
+    covariance: np.ndarray,
+    count: int = 1,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """A fix from `origin` (the robot's body pose `body`, 4x4 in origin's frame, with its 6x6
     `covariance`) in `own`'s frame through the colony frame: the body pose (x, y, yaw) and its
-    covariance (3x3: the fix's, rotated, plus the alignments' error at the robot's position,
-    `frame_error.at`). None when either frame is not aligned."""
+    covariance (3x3: the fix's, rotated, plus `count` times the alignments' error at the robot's
+    position, `frame_error.at`). None when either frame is not aligned.
+
+    Every fix through one alignment shares its error: the `count`-th fix through it carries
+    `count` times that error, so that n fixes tell the filter about the alignment H_n = 1 +
+    1/2 + ... + 1/n times what one does (3.4 for 17), not n times (`FixCounter`)."""
     mine, theirs = frame.transforms.get(own), frame.transforms.get(origin)
     if mine is None or theirs is None:
         return None
@@ -49,5 +78,29 @@ def fix_in_own_frame(
     alignment = frame_error.moved(
         frame.covariance(own) + frame.covariance(origin), np.linalg.inv(mine)
     )
-    out = rot @ cov @ rot.T + frame_error.at(alignment, seen[:2, 3])
+    out = rot @ cov @ rot.T + max(1, count) * frame_error.at(alignment, seen[:2, 3])
     return se2.from_matrix(seen), out
+
+
+class FixCounter:
+    """Fixes fused so far through each sender's current alignment (its transform into ours,
+    rounded): the next one's `count` for `fix_in_own_frame`. A changed alignment starts again."""
+
+    def __init__(self) -> None:
+        self._counts: dict[str, tuple[bytes, int]] = {}
+
+    def key(self, frame: ColonyFrame, own: str, origin: str) -> bytes | None:
+        """What the fixes from `origin` go through: the transform of its frame into ours."""
+        mine, theirs = frame.transforms.get(own), frame.transforms.get(origin)
+        if mine is None or theirs is None:
+            return None
+        return bytes(np.round(np.linalg.inv(mine) @ theirs, 4).tobytes())
+
+    def next(self, origin: str, key: bytes) -> int:
+        """The count of the next fix from `origin` through the alignment `key`."""
+        kept = self._counts.get(origin)
+        return 1 if kept is None or kept[0] != key else kept[1] + 1
+
+    def fused(self, origin: str, key: bytes) -> None:
+        """A fix from `origin` through `key` was fused."""
+        self._counts[origin] = (key, self.next(origin, key))

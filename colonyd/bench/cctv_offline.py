@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import argparse
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +36,7 @@ from colonyd.bench.files import print_and_append
 from colonyd.bench.paper_offline import Run
 from colonyd.colonymap import PeerError, alignment_error, cut_error, peer_map_error
 from colonyd.estimator import ScanEstimator
-from colonyd.fixes import fix_covariance, fix_in_own_frame, sightings_covariance
+from colonyd.fixes import FixCounter, fix_covariance, fix_in_own_frame, sightings_covariance
 from colonyd.mapping import integrate_observation
 from plugins.cctv import AGENT_LABEL
 from plugins.observation import Observation
@@ -113,6 +113,29 @@ def cctv_view(seed: int, duration: float, world: str = "office") -> tuple[list[F
     return fixes, grid
 
 
+def model_fixes(fixes: list[Fix], robot: str, model: str) -> list[Fix]:
+    """The fixes `robot` gets, in time order: `model` new, its most confident board per image
+    (`one_per_robot`, as the daemon sends); old, every board, with `old_fix_covariance`."""
+    mine = [f for f in fixes if f.target == robot]
+    if model == "old":
+        mine = [replace(f, covariance=old_fix_covariance(f.range_m)) for f in mine]
+    else:
+        best: dict[float, Fix] = {}
+        for f in mine:
+            if f.stamp not in best or f.confidence > best[f.stamp].confidence:
+                best[f.stamp] = f
+        mine = list(best.values())
+    return sorted(mine, key=lambda f: f.stamp)
+
+
+def old_fix_covariance(range_m: float) -> np.ndarray:
+    """`--fix-model old`: the daemon's fix covariance before this pass (4 degrees in yaw at any
+    range); the old model also sent every board seen and counted the alignment's error in
+    every fix."""
+    sd = 0.01 * range_m + 0.01
+    return np.diag([sd**2, sd**2, 0.05**2, 0.05**2, 0.05**2, math.radians(4.0) ** 2])
+
+
 def fix_errors(fixes: list[Fix]) -> dict[str, float]:
     """Evaluation: the fixes' error against the truth (x, y in the world, yaw) and against the
     covariance they claim: mean error (bias) in x and y, RMS position and yaw errors, the mean
@@ -159,9 +182,12 @@ class Cctv:
         fuse: bool = True,
         cctv_grid: VoxelGrid | None = None,
         peer: tuple[str, Run, Edge, float] | None = None,
+        model: str = "new",
     ) -> None:
         self.robot = robot
-        self.queue = sorted((f for f in fixes if f.target == robot), key=lambda f: f.stamp)
+        self.model = model
+        self.counter = FixCounter()
+        self.queue = model_fixes(fixes, robot, model)
         self.lag, self.fuse = lag, fuse
         self.cctv_grid, self.peer = cctv_grid, peer
         self.kept: list[tuple[np.ndarray, np.ndarray]] = []
@@ -183,17 +209,21 @@ class Cctv:
         while self.queue and self.queue[0].stamp + self.lag <= obs.time - 1e-6:
             fix = self.queue.pop(0)
             frame = self.frame()
-            own = fix_in_own_frame(frame, self.robot, CCTV, fix.body, fix.covariance)
-            if own is None:
+            key = self.counter.key(frame, self.robot, CCTV)
+            if key is None:
                 self._sighted(fix, loc.pose_at(fix.stamp), obs.time)
                 continue
             if not self.fuse:
                 continue
+            count = 1 if self.model == "old" else self.counter.next(CCTV, key)
+            own = fix_in_own_frame(frame, self.robot, CCTV, fix.body, fix.covariance, count)
+            assert own is not None
             result = estimator.fix(own[0], own[1], fix.stamp)
             if result is None:
                 self.stale += 1
             elif result:
                 self.fused += 1
+                self.counter.fused(CCTV, key)
             else:
                 self.refused += 1
         if (self.peer is not None or self.cctv_grid is not None) and self.edge is not None:
@@ -314,6 +344,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         default=",".join(VARIANTS),
         help=f"comma-separated runs of lidar-1, of {VARIANTS}",
     )
+    parser.add_argument(
+        "--fix-model",
+        choices=("new", "old"),
+        default="new",
+        help="the fixes as the daemon makes them (new) or as before this pass (old: 4 degrees "
+        "in yaw, every board, the alignment's error in every fix)",
+    )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
     variants = args.variants.split(",")
@@ -321,15 +358,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         parser.error(f"--variants: expected names of {VARIANTS}, found {args.variants!r}")
     fixes, cctv_grid = cctv_view(args.seed, args.duration)
     out: dict[str, Any] = {"seed": args.seed, "duration": args.duration, "lag": args.lag}
+    out["fix_model"] = args.fix_model
     for robot in ROBOTS:
-        out[f"fix_errors_{robot}"] = fix_errors([f for f in fixes if f.target == robot])
+        out[f"fix_errors_{robot}"] = fix_errors(model_fixes(fixes, robot, args.fix_model))
 
     def run(agent: str) -> Run:
         seed = 100 * args.seed + (1 if agent == "lidar-1" else 2)
         return Run(agent, seed, args.lidar_range, args.duration)
 
     depth = run("depth-1")
-    depth_cctv = Cctv("depth-1", fixes, args.lag)
+    depth_cctv = Cctv("depth-1", fixes, args.lag, model=args.fix_model)
     out["depth_with_fixes"] = round(depth.go(before=depth_cctv), 4)
     out["depth_fixes"] = [depth_cctv.fused, depth_cctv.refused, depth_cctv.stale]
     out["depth_alignment"] = alignment_truth(depth_cctv, depth)
@@ -354,6 +392,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             fuse=variant in ("fixes", "both"),
             cctv_grid=None if variant in ("fixes", "map-depth") else cctv_grid,
             peer=peer,
+            model=args.fix_model,
         )
         out[f"lidar_{variant}"] = round(lidar.go(before=hook), 4)
         out[f"lidar_{variant}_fixes"] = [hook.fused, hook.refused, hook.stale]
