@@ -57,6 +57,7 @@ def fix_in_own_frame(
     body: np.ndarray,
     covariance: np.ndarray,
     count: int = 1,
+    bias: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """A fix from `origin` (the robot's body pose `body`, 4x4 in origin's frame, with its 6x6
     `covariance`) in `own`'s frame through the colony frame: the body pose (x, y, yaw) and its
@@ -65,7 +66,9 @@ def fix_in_own_frame(
 
     Every fix through one alignment shares its error: the `count`-th fix through it carries
     `count` times that error, so that n fixes tell the filter about the alignment H_n = 1 +
-    1/2 + ... + 1/n times what one does (3.4 for 17), not n times (`FixCounter`)."""
+    1/2 + ... + 1/n times what one does (3.4 for 17), not n times (`FixCounter`). `bias`
+    (m): a systematic error of the camera's positions, shared by its fixes like the alignment's
+    error and counted with it."""
     mine, theirs = frame.transforms.get(own), frame.transforms.get(origin)
     if mine is None or theirs is None:
         return None
@@ -78,7 +81,8 @@ def fix_in_own_frame(
     alignment = frame_error.moved(
         frame.covariance(own) + frame.covariance(origin), np.linalg.inv(mine)
     )
-    out = rot @ cov @ rot.T + max(1, count) * frame_error.at(alignment, seen[:2, 3])
+    shared = frame_error.at(alignment, seen[:2, 3]) + np.diag([bias**2, bias**2, 0.0])
+    out = rot @ cov @ rot.T + max(1, count) * shared
     return se2.from_matrix(seen), out
 
 
