@@ -29,13 +29,7 @@ from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError, DuplicateAgentError, PersistenceError, StoppedError
 from colonyd.estimator import Estimator, PoseError, ScanEstimator, get_estimator
 from colonyd.export import encode_map, export_time
-from colonyd.fixes import (
-    FixCounter,
-    fix_covariance,
-    fix_in_own_frame,
-    one_per_robot,
-    sightings_covariance,
-)
+from colonyd.fixes import fix_covariance, fix_in_own_frame, sightings_covariance
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.identity import get_trust, identity_path, load_signer
@@ -168,8 +162,6 @@ class Daemon:
         self._estimate_s = 0.0  # running mean of one estimator step, seconds
         #: PoseFix messages for us (a CCTV saw our marker), applied by the mapping thread.
         self._fixes: deque[PoseFix] = deque(maxlen=32)
-        #: Fixes fused through each sender's alignment (their shared error counted once).
-        self._fix_counts = FixCounter()
         #: Fixes of observers not aligned with us: (pose seen, our estimate then) per observer.
         self._sightings: dict[str, deque[tuple[np.ndarray, np.ndarray]]] = {}
         self.pose_matrix: np.ndarray | None = None  # the latest sensor pose estimate (own frame)
@@ -623,15 +615,15 @@ class Daemon:
 
     # -- pose fixes (a fixed camera tells a robot where it saw it) -------------------------
     def _send_fixes(self, obs: Observation, seen: list[ObjectDetection]) -> None:
-        """Each robot seen (a CCTV): its body pose in our frame, from its most confident board in
-        this image (`one_per_robot`), to that robot, with `fix_covariance`'s error; detections
-        under `MIN_FIX_CONFIDENCE` (small, blurred markers) are not sent."""
-        for det in one_per_robot(seen):
+        """Each robot marker seen (a CCTV): that robot's body pose in our frame, to that robot,
+        with `fix_covariance`'s error; detections under `MIN_FIX_CONFIDENCE` (small, blurred
+        markers) are not sent."""
+        for det in seen:
             target = det.label[len(AGENT_LABEL) :]
             if target == self.config.agent_id or det.probability < MIN_FIX_CONFIDENCE:
                 continue
             body = obs.pose @ det.pose
-            cov = fix_covariance(det.pose)
+            cov = fix_covariance(float(np.linalg.norm(det.pose[:3, 3])))
             try:
                 self.gossip.publisher.publish_fix(
                     target, body, cov, obs.time, det.object_id, det.probability
@@ -648,24 +640,14 @@ class Daemon:
             if estimator.localiser.ahead(msg.stamp):
                 later.append(msg)
                 continue
-            key = self._fix_counts.key(frame, self.config.agent_id, msg.origin)
-            if key is None:
+            own = fix_in_own_frame(
+                frame, self.config.agent_id, msg.origin, msg.matrix(), np.asarray(msg.covariance)
+            )
+            if own is None:
                 self.metrics.add("fix_unaligned")
                 self._sighted(estimator, msg)
                 continue
-            count = self._fix_counts.next(msg.origin, key)
-            own = fix_in_own_frame(
-                frame,
-                self.config.agent_id,
-                msg.origin,
-                msg.matrix(),
-                np.asarray(msg.covariance),
-                count,
-            )
-            assert own is not None  # both frames are aligned (the key says so)
             result = estimator.fix(own[0], own[1], msg.stamp)
-            if result:
-                self._fix_counts.fused(msg.origin, key)
             self.metrics.add(
                 "fix_stale" if result is None else "fix_fused" if result else "fix_refused"
             )

@@ -10,26 +10,29 @@ from colonyd.alignment import ColonyFrame
 from plugins.observation import ObjectDetection
 from voxel.localisation import frame_error, se2
 
-#: Standard deviation of a fix's yaw per metre of range: a board's solved normal is worse the
-#: smaller it looks (sim office, cctv-1, 0.24 m boards: RMS 2 degrees at 4.7-5.6 m, 5-7 at
-#: 6.5-8 m, up to 11; docs/BENCHMARKS.md "The CCTV's fixes").
+#: Standard deviation of a fix's yaw (rad) the daemon claims at any range.
+YAW_SD = math.radians(4.0)
+#: An alternative measured offline (`cctv_offline --fix-model new`, not the daemon's): a yaw
+#: standard deviation per metre of range, as a board's solved normal gets worse the smaller it
+#: looks (sim office, cctv-1, 0.24 m boards: RMS 2 degrees at 4.7-5.6 m, 5-7 at 6.5-8 m, up to
+#: 11; docs/BENCHMARKS.md "The CCTV's fixes offline").
 YAW_PER_M = math.radians(1.0)
 
 
-def fix_covariance(in_camera: np.ndarray) -> np.ndarray:
-    """The covariance (6x6, x y z roll pitch yaw) a CCTV sends with a robot's body pose seen at
-    `in_camera` (4x4, camera frame): 1 cm per metre of range in x and y (the board's known height
-    fixes the range) plus 1 cm, `YAW_PER_M` per metre of range in yaw."""
-    rng = float(np.linalg.norm(np.asarray(in_camera, np.float64)[:3, 3]))
-    sd = 0.01 * rng + 0.01
-    return np.diag([sd**2, sd**2, 0.05**2, 0.05**2, 0.05**2, (YAW_PER_M * rng) ** 2])
+def fix_covariance(range_m: float, yaw_per_m: float | None = None) -> np.ndarray:
+    """The covariance (6x6, x y z roll pitch yaw) a CCTV sends with a robot's body pose seen
+    `range_m` m away: 1 cm per metre of range in x and y (the board's known height fixes the
+    range) plus 1 cm; in yaw `YAW_SD`, or `yaw_per_m` per metre of range when given."""
+    sd = 0.01 * range_m + 0.01
+    yaw = YAW_SD if yaw_per_m is None else yaw_per_m * range_m
+    return np.diag([sd**2, sd**2, 0.05**2, 0.05**2, 0.05**2, yaw**2])
 
 
 def one_per_robot(seen: list[ObjectDetection]) -> list[ObjectDetection]:
-    """The most confident of each robot's boards seen in one image: two boards of one robot in
-    one image are solved from the same pixels of the same moment, their errors alike (the range
-    from the board's height, the camera's one view); sent as two fixes, the filter would count
-    one sighting twice."""
+    """The most confident of each robot's boards seen in one image (`cctv_offline --fix-model
+    new`; the daemon sends every board): two boards of one robot in one image are solved from
+    the same moment, their errors alike (the range from the board's height, the camera's one
+    view); sent as two fixes, the filter counts one sighting twice."""
     best: dict[str, ObjectDetection] = {}
     for det in seen:
         kept = best.get(det.label)
@@ -64,11 +67,12 @@ def fix_in_own_frame(
     covariance (3x3: the fix's, rotated, plus `count` times the alignments' error at the robot's
     position, `frame_error.at`). None when either frame is not aligned.
 
-    Every fix through one alignment shares its error: the `count`-th fix through it carries
-    `count` times that error, so that n fixes tell the filter about the alignment H_n = 1 +
-    1/2 + ... + 1/n times what one does (3.4 for 17), not n times (`FixCounter`). `bias`
-    (m): a systematic error of the camera's positions, shared by its fixes like the alignment's
-    error and counted with it."""
+    Every fix through one alignment shares its error, and the daemon counts it in each (count 1).
+    Measured alternatives (`cctv_offline --fix-model new|shared`, `FixCounter`): the k-th fix
+    through one alignment carrying `count` = k times that error (n fixes tell the filter about
+    it H_n = 1 + 1/2 + ... + 1/n times what one does, 3.4 for 17, not n times), or k(k+1)
+    times (at most once in all); `bias` (m): a systematic error of the camera's positions,
+    shared by its fixes like the alignment's error and counted with it."""
     mine, theirs = frame.transforms.get(own), frame.transforms.get(origin)
     if mine is None or theirs is None:
         return None
@@ -88,7 +92,8 @@ def fix_in_own_frame(
 
 class FixCounter:
     """Fixes fused so far through each sender's current alignment (its transform into ours,
-    rounded): the next one's `count` for `fix_in_own_frame`. A changed alignment starts again."""
+    rounded): the next one's `count` for `fix_in_own_frame` (`cctv_offline --fix-model new`).
+    A changed alignment starts again."""
 
     def __init__(self) -> None:
         self._counts: dict[str, tuple[bytes, int]] = {}

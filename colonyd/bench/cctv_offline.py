@@ -18,7 +18,13 @@ first with the fixes (as live); lidar-1 then runs four ways: `alone`; `fixes` (f
 colony map); `map` (the colony map its alignment brings, depth-1's final map and the CCTV's,
 cut and given as the daemon's `ColonyMaps` would from the moment both robots are aligned; the
 fixes only align it); `both` (as live); `map-depth` and `map-cctv`: `map` with depth-1's
-map alone or the CCTV's alone. Truth renders and evaluates; no estimator reads it.
+map alone or the CCTV's alone. `--fix-model`: old, the daemon's fixes; new and shared,
+alternatives measured against it (`model_fixes`, `fix_in_own_frame`'s `count` and `bias`).
+Truth renders and evaluates; no estimator reads it.
+
+Not as live: depth-1 gets no colony map (only fixes); lidar-1 gets depth-1's final map (live,
+the map as it grows); the CCTV's colour image has no noise and the paths are scripted, so its
+fixes are the same in every seed (only the robots' odometry and range noise change).
 """
 
 from __future__ import annotations
@@ -36,7 +42,13 @@ from colonyd.bench.files import print_and_append
 from colonyd.bench.paper_offline import Run
 from colonyd.colonymap import PeerError, alignment_error, cut_error, peer_map_error
 from colonyd.estimator import ScanEstimator
-from colonyd.fixes import FixCounter, fix_covariance, fix_in_own_frame, sightings_covariance
+from colonyd.fixes import (
+    YAW_PER_M,
+    FixCounter,
+    fix_covariance,
+    fix_in_own_frame,
+    sightings_covariance,
+)
 from colonyd.mapping import integrate_observation
 from plugins.cctv import AGENT_LABEL
 from plugins.observation import Observation
@@ -108,7 +120,7 @@ def cctv_view(seed: int, duration: float, world: str = "office") -> tuple[list[F
                     target,
                     obs.time,
                     obs.pose @ det.pose,
-                    fix_covariance(det.pose),
+                    fix_covariance(float(np.linalg.norm(det.pose[:3, 3]))),
                     det.object_id,
                     det.probability,
                     float(np.linalg.norm(det.pose[:3, 3])),
@@ -119,26 +131,17 @@ def cctv_view(seed: int, duration: float, world: str = "office") -> tuple[list[F
 
 
 def model_fixes(fixes: list[Fix], robot: str, model: str) -> list[Fix]:
-    """The fixes `robot` gets, in time order: `model` new, its most confident board per image
-    (`one_per_robot`, as the daemon sends); old, every board, with `old_fix_covariance`."""
+    """The fixes `robot` gets, in time order: `model` old, every board with the daemon's
+    covariance; new and shared, the most confident board per image (`one_per_robot`) with a yaw
+    error of `YAW_PER_M` per metre of range."""
     mine = [f for f in fixes if f.target == robot]
-    if model == "old":
-        mine = [replace(f, covariance=old_fix_covariance(f.range_m)) for f in mine]
-    else:
+    if model != "old":
         best: dict[float, Fix] = {}
         for f in mine:
             if f.stamp not in best or f.confidence > best[f.stamp].confidence:
                 best[f.stamp] = f
-        mine = list(best.values())
+        mine = [replace(f, covariance=fix_covariance(f.range_m, YAW_PER_M)) for f in best.values()]
     return sorted(mine, key=lambda f: f.stamp)
-
-
-def old_fix_covariance(range_m: float) -> np.ndarray:
-    """`--fix-model old`: the daemon's fix covariance before this pass (4 degrees in yaw at any
-    range); the old model also sent every board seen and counted the alignment's error in
-    every fix."""
-    sd = 0.01 * range_m + 0.01
-    return np.diag([sd**2, sd**2, 0.05**2, 0.05**2, 0.05**2, math.radians(4.0) ** 2])
 
 
 def fix_errors(fixes: list[Fix]) -> dict[str, float]:
@@ -187,7 +190,7 @@ class Cctv:
         fuse: bool = True,
         cctv_grid: VoxelGrid | None = None,
         peer: tuple[str, Run, Edge, float] | None = None,
-        model: str = "new",
+        model: str = "old",
     ) -> None:
         self.robot = robot
         self.model = model
@@ -354,11 +357,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     parser.add_argument(
         "--fix-model",
-        choices=("new", "old", "shared"),
-        default="new",
-        help="the fixes as the daemon makes them (new) or as before this pass (old: 4 degrees "
-        "in yaw, every board, the alignment's error in every fix; shared: new, with the "
-        "camera's bias shared and k(k+1) for the k-th fix)",
+        choices=("old", "new", "shared"),
+        default="old",
+        help="old: the daemon's fixes (every board, 4 degrees in yaw, the alignment's error in "
+        "each); new: the most confident board per image, 1 degree per metre of range in yaw, "
+        "the k-th fix through one alignment with k times its error; shared: new, with the "
+        "camera's bias shared and k(k+1) times",
     )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)

@@ -11,6 +11,7 @@ import pytest
 from colonyd.alignment import ColonyFrame
 from colonyd.fixes import (
     YAW_PER_M,
+    YAW_SD,
     FixCounter,
     fix_covariance,
     fix_in_own_frame,
@@ -22,18 +23,21 @@ from voxel.localisation.ekf import PlanarEkf
 
 
 def _at(x: float, y: float, z: float, yaw: float = 0.0) -> np.ndarray:
+    """A pose at (x, y, z) turned by `yaw` about z."""
     m = se2.to_matrix(np.array([x, y, yaw]))
     m[2, 3] = z
     return m
 
 
-def test_fix_covariance_grows_with_range_in_position_and_yaw() -> None:
-    cov = fix_covariance(_at(3.0, 0.0, 4.0))  # 5 m from the camera
+def test_fix_covariance_grows_with_range_in_position_and_in_yaw_when_asked() -> None:
+    cov = fix_covariance(5.0)
     assert cov.shape == (6, 6)
     assert cov[0, 0] == pytest.approx(0.06**2) and cov[1, 1] == pytest.approx(0.06**2)
-    assert math.sqrt(cov[5, 5]) == pytest.approx(math.radians(5.0))
-    near = fix_covariance(_at(0.0, 0.0, 2.0))
-    assert math.sqrt(near[5, 5]) == pytest.approx(2 * YAW_PER_M)
+    assert math.sqrt(cov[5, 5]) == pytest.approx(YAW_SD)  # the daemon's: 4 degrees at any range
+    assert math.sqrt(fix_covariance(8.0)[5, 5]) == pytest.approx(YAW_SD)
+    ranged = fix_covariance(5.0, YAW_PER_M)
+    assert math.sqrt(ranged[5, 5]) == pytest.approx(math.radians(5.0))
+    assert ranged[0, 0] == pytest.approx(cov[0, 0])
 
 
 def test_one_fix_per_robot_per_image_the_most_confident() -> None:
@@ -70,6 +74,9 @@ def test_fix_in_own_frame_is_the_pose_through_the_alignment_and_its_error_counte
     third = fix_in_own_frame(frame, "r", "cctv", body, cov6, count=3)
     assert third is not None
     assert third[1] == pytest.approx(fix_part + 3 * shared)
+    biased = fix_in_own_frame(frame, "r", "cctv", body, cov6, count=2, bias=0.02)
+    assert biased is not None
+    assert biased[1] == pytest.approx(fix_part + 2 * (shared + np.diag([4e-4, 4e-4, 0.0])))
     assert fix_in_own_frame(frame, "r", "other", body, cov6) is None
 
 
