@@ -7,7 +7,6 @@ import math
 import numpy as np
 
 from colonyd.alignment import ColonyFrame
-from plugins.observation import ObjectDetection
 from voxel.localisation import frame_error, se2
 
 #: Standard deviation of a fix's yaw (rad) the daemon claims at any range.
@@ -26,19 +25,6 @@ def fix_covariance(range_m: float, yaw_per_m: float | None = None) -> np.ndarray
     sd = 0.01 * range_m + 0.01
     yaw = YAW_SD if yaw_per_m is None else yaw_per_m * range_m
     return np.diag([sd**2, sd**2, 0.05**2, 0.05**2, 0.05**2, yaw**2])
-
-
-def one_per_robot(seen: list[ObjectDetection]) -> list[ObjectDetection]:
-    """The most confident of each robot's boards seen in one image (`cctv_offline --fix-model
-    new`; the daemon sends every board): two boards of one robot in one image are solved from
-    the same moment, their errors alike (the range from the board's height, the camera's one
-    view); sent as two fixes, the filter counts one sighting twice."""
-    best: dict[str, ObjectDetection] = {}
-    for det in seen:
-        kept = best.get(det.label)
-        if kept is None or det.probability > kept.probability:
-            best[det.label] = det
-    return list(best.values())
 
 
 def sightings_covariance(rmse: float, spread: float, positions: np.ndarray) -> np.ndarray:

@@ -132,8 +132,9 @@ def cctv_view(seed: int, duration: float, world: str = "office") -> tuple[list[F
 
 def model_fixes(fixes: list[Fix], robot: str, model: str) -> list[Fix]:
     """The fixes `robot` gets, in time order: `model` old, every board with the daemon's
-    covariance; new and shared, the most confident board per image (`one_per_robot`) with a yaw
-    error of `YAW_PER_M` per metre of range."""
+    covariance; new and shared, the most confident board per image (two boards of one robot in
+    one image are solved from the same moment, their errors alike: as two fixes, the filter
+    counts one sighting twice) with a yaw error of `YAW_PER_M` per metre of range."""
     mine = [f for f in fixes if f.target == robot]
     if model != "old":
         best: dict[float, Fix] = {}

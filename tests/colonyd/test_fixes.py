@@ -1,5 +1,5 @@
-"""Pose fixes: the covariance a CCTV claims, one fix per robot per image, the fix in the robot's
-frame, and an alignment's error counted once over many fixes (constructed cases)."""
+"""Pose fixes: the covariance a CCTV claims, the fix in the robot's frame, and an alignment's error
+counted harmonically over many fixes (constructed cases)."""
 
 from __future__ import annotations
 
@@ -15,9 +15,7 @@ from colonyd.fixes import (
     FixCounter,
     fix_covariance,
     fix_in_own_frame,
-    one_per_robot,
 )
-from plugins.observation import ObjectDetection
 from voxel.localisation import frame_error, se2
 from voxel.localisation.ekf import PlanarEkf
 
@@ -38,16 +36,6 @@ def test_fix_covariance_grows_with_range_in_position_and_in_yaw_when_asked() -> 
     ranged = fix_covariance(5.0, YAW_PER_M)
     assert math.sqrt(ranged[5, 5]) == pytest.approx(math.radians(5.0))
     assert ranged[0, 0] == pytest.approx(cov[0, 0])
-
-
-def test_one_fix_per_robot_per_image_the_most_confident() -> None:
-    def det(marker: int, label: str, p: float) -> ObjectDetection:
-        return ObjectDetection(marker, 0, np.eye(4), p, label)
-
-    seen = [det(24, "agent:lidar-1", 0.3), det(25, "agent:lidar-1", 0.5), det(20, "agent:d", 0.2)]
-    kept = sorted(one_per_robot(seen), key=lambda d: d.object_id)
-    assert [(d.object_id, d.probability) for d in kept] == [(20, 0.2), (25, 0.5)]
-    assert one_per_robot([]) == []
 
 
 def _frame(alignment: np.ndarray) -> tuple[ColonyFrame, np.ndarray]:
