@@ -18,7 +18,8 @@ first with the fixes (as live); lidar-1 then runs four ways: `alone`; `fixes` (f
 colony map); `map` (the colony map its alignment brings, depth-1's final map and the CCTV's,
 cut and given as the daemon's `ColonyMaps` would from the moment both robots are aligned; the
 fixes only align it); `both` (as live); `map-depth` and `map-cctv`: `map` with depth-1's
-map alone or the CCTV's alone. `--fix-model`: old, the daemon's fixes; new and shared,
+map alone or the CCTV's alone (`--cctv-map raw`: the CCTV's raw depth points instead of its
+voxel centres, a diagnostic). `--fix-model`: old, the daemon's fixes; new and shared,
 alternatives measured against it (`model_fixes`, `fix_in_own_frame`'s `count` and `bias`).
 Truth renders and evaluates; no estimator reads it.
 
@@ -58,6 +59,7 @@ from voxel import keys as vk
 from voxel.grid import VoxelGrid
 from voxel.localisation import frame_error, se2
 from voxel.localisation.colony_map import ColonyMap, colony_map
+from voxel.localisation.scan_match import thin
 from voxel.localisation.sightings import frame_from_sightings
 from voxel.occupancy import FREE_STATE, OCCUPIED
 
@@ -92,8 +94,11 @@ class Fix:
     truth: np.ndarray
 
 
-def cctv_view(seed: int, duration: float, world: str = "office") -> tuple[list[Fix], VoxelGrid]:
-    """cctv-1's fixes over `duration` s of the experiment's seed `seed`, and its map."""
+def cctv_view(
+    seed: int, duration: float, world: str = "office"
+) -> tuple[list[Fix], VoxelGrid, np.ndarray]:
+    """cctv-1's fixes over `duration` s of the experiment's seed `seed`, its map, and its raw
+    depth points near a 2D scanner's height (0-0.6 m), thinned to 2 cm (`--cctv-map raw`)."""
     agents = AGENTS[world]
     frames = max(2, int(agents[CCTV].rate * duration))
     source = SimSource(
@@ -109,8 +114,12 @@ def cctv_view(seed: int, duration: float, world: str = "office") -> tuple[list[F
     grid = VoxelGrid(0.1)
     adapter = source.adapter
     fixes = []
+    raw = []
     for obs in source:
         integrate_observation(grid, obs, sensor=adapter.sensor_model, reliability=1.0)
+        pts = obs.points if obs.no_return is None else obs.points[~obs.no_return]
+        pts = pts @ obs.pose[:3, :3].T + obs.pose[:3, 3]
+        raw.append(thin(pts[np.abs(pts[:, 2] - 0.3) < 0.3], 0.02))
         for det in obs.objects:
             if not det.label.startswith(AGENT_LABEL) or det.probability < MIN_FIX_CONFIDENCE:
                 continue
@@ -127,7 +136,7 @@ def cctv_view(seed: int, duration: float, world: str = "office") -> tuple[list[F
                     np.array(paths[target](obs.time)),
                 )
             )
-    return fixes, grid
+    return fixes, grid, thin(np.concatenate(raw), 0.02) if raw else np.zeros((0, 3))
 
 
 def model_fixes(fixes: list[Fix], robot: str, model: str) -> list[Fix]:
@@ -192,6 +201,7 @@ class Cctv:
         cctv_grid: VoxelGrid | None = None,
         peer: tuple[str, Run, Edge, float] | None = None,
         model: str = "old",
+        cctv_points: np.ndarray | None = None,
     ) -> None:
         self.robot = robot
         self.model = model
@@ -199,6 +209,7 @@ class Cctv:
         self.queue = model_fixes(fixes, robot, model)
         self.lag, self.fuse = lag, fuse
         self.cctv_grid, self.peer = cctv_grid, peer
+        self.cctv_points = cctv_points  # the CCTV's surfaces as raw points, not voxel centres
         self.kept: list[tuple[np.ndarray, np.ndarray]] = []
         self.edge: Edge | None = None
         self.aligned_at: float | None = None
@@ -287,8 +298,14 @@ class Cctv:
             errors[origin] = PeerError(alignment_error(frame, self.robot, origin), posed, reported)
         centres = np.concatenate(
             [
-                vk.keys_to_centers(g.occupied_keys(), g.resolution) @ m[:3, :3].T + m[:3, 3]
-                for _, g, m in peers
+                (
+                    self.cctv_points
+                    if origin == CCTV and self.cctv_points is not None
+                    else vk.keys_to_centers(g.occupied_keys(), g.resolution)
+                )
+                @ m[:3, :3].T
+                + m[:3, 3]
+                for origin, g, m in peers
             ]
         )
 
@@ -365,14 +382,23 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "the k-th fix through one alignment with k times its error; shared: new, with the "
         "camera's bias shared and k(k+1) times",
     )
+    parser.add_argument(
+        "--cctv-map",
+        choices=("voxels", "raw"),
+        default="voxels",
+        help="diagnostic: the CCTV's map in lidar-1's colony map as its voxel centres (the "
+        "daemon's) or as its raw depth points (surfaces not quantised to the voxels)",
+    )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
     variants = args.variants.split(",")
     if not set(variants) <= set(VARIANTS):
         parser.error(f"--variants: expected names of {VARIANTS}, found {args.variants!r}")
-    fixes, cctv_grid = cctv_view(args.seed, args.duration)
+    fixes, cctv_grid, cctv_raw = cctv_view(args.seed, args.duration)
     out: dict[str, Any] = {"seed": args.seed, "duration": args.duration, "lag": args.lag}
     out["fix_model"] = args.fix_model
+    if args.cctv_map != "voxels":
+        out["cctv_map"] = args.cctv_map
     for robot in ROBOTS:
         out[f"fix_errors_{robot}"] = fix_errors(model_fixes(fixes, robot, args.fix_model))
 
@@ -407,6 +433,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             cctv_grid=None if variant in ("fixes", "map-depth") else cctv_grid,
             peer=peer,
             model=args.fix_model,
+            cctv_points=cctv_raw if args.cctv_map == "raw" else None,
         )
         out[f"lidar_{variant}"] = round(lidar.go(before=hook), 4)
         out[f"lidar_{variant}_fixes"] = [hook.fused, hook.refused, hook.stale]

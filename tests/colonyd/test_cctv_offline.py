@@ -22,8 +22,11 @@ def test_cctv_offline_aligns_by_sightings_then_fuses_fixes_and_matches_the_colon
         assert 0.0 <= got[key] < 0.5, key
 
 
-def test_cctv_offline_new_model_sends_one_fix_per_image():
-    got = main(["--seed", "1", "--duration", "4", "--fix-model", "new", "--variants", "fixes"])
+def test_cctv_offline_new_model_sends_one_fix_per_image_and_raw_cctv_map_is_matched():
+    args = ["--seed", "1", "--duration", "7", "--fix-model", "new", "--cctv-map", "raw"]
+    got = main([*args, "--variants", "map-cctv"])
     errors = got["fix_errors_lidar-1"]
     assert errors["n"] == errors["images"] > 0
-    assert got["fix_model"] == "new"
+    assert got["fix_model"] == "new" and got["cctv_map"] == "raw"
+    assert got["lidar_map-cctv_counts"]["colony_accepted"] > 0  # the raw points matched
+    assert 0.0 <= got["lidar_map-cctv"] < 0.5
