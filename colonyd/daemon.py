@@ -29,6 +29,7 @@ from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError, DuplicateAgentError, PersistenceError, StoppedError
 from colonyd.estimator import Estimator, PoseError, ScanEstimator, get_estimator
 from colonyd.export import encode_map, export_time
+from colonyd.fixes import fix_covariance, fix_in_own_frame, sightings_covariance
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.identity import get_trust, identity_path, load_signer
@@ -615,18 +616,15 @@ class Daemon:
 
     # -- pose fixes (a fixed camera tells a robot where it saw it) -------------------------
     def _send_fixes(self, obs: Observation, seen: list[ObjectDetection]) -> None:
-        """Each robot marker seen (a CCTV): that robot's body pose in our frame, to that robot.
-
-        Standard deviations: 1 cm per metre of range in x and y (the board's known height fixes
-        the range), 4 degrees in yaw; detections under `MIN_FIX_CONFIDENCE` (small, blurred
+        """Each robot marker seen (a CCTV): that robot's body pose in our frame, to that robot,
+        with `fix_covariance`'s error; detections under `MIN_FIX_CONFIDENCE` (small, blurred
         markers) are not sent."""
         for det in seen:
             target = det.label[len(AGENT_LABEL) :]
             if target == self.config.agent_id or det.probability < MIN_FIX_CONFIDENCE:
                 continue
             body = obs.pose @ det.pose
-            sd = 0.01 * float(np.linalg.norm(det.pose[:3, 3])) + 0.01
-            cov = np.diag([sd**2, sd**2, 0.05**2, 0.05**2, 0.05**2, math.radians(4.0) ** 2])
+            cov = fix_covariance(float(np.linalg.norm(det.pose[:3, 3])))
             try:
                 self.gossip.publisher.publish_fix(
                     target, body, cov, obs.time, det.object_id, det.probability
@@ -637,30 +635,20 @@ class Daemon:
     def _apply_fixes(self, estimator: ScanEstimator) -> None:
         """Fuse the fixes received: each sender's frame into ours through the colony frame."""
         frame = self.colony_frame()
-        mine = frame.transforms.get(self.config.agent_id)
         later = []  # seen at a time this robot has not mapped yet (it is late): kept for then
         while self._fixes:
             msg = self._fixes.popleft()
             if estimator.localiser.ahead(msg.stamp):
                 later.append(msg)
                 continue
-            theirs = frame.transforms.get(msg.origin)
-            if mine is None or theirs is None:
+            own = fix_in_own_frame(
+                frame, self.config.agent_id, msg.origin, msg.matrix(), np.asarray(msg.covariance)
+            )
+            if own is None:
                 self.metrics.add("fix_unaligned")
                 self._sighted(estimator, msg)
                 continue
-            to_own = np.linalg.inv(mine) @ theirs
-            body = to_own @ msg.matrix()
-            # checked to a tolerance of its largest variance (inbox): its x, y, yaw made positive
-            cov = frame_error.positive(frame_error.planar(np.asarray(msg.covariance, float)))
-            rot = np.eye(3)
-            rot[:2, :2] = to_own[:2, :2]
-            alignment = frame_error.moved(
-                frame.covariance(self.config.agent_id) + frame.covariance(msg.origin),
-                np.linalg.inv(mine),
-            )
-            cov = rot @ cov @ rot.T + frame_error.at(alignment, body[:2, 3])
-            result = estimator.fix(se2.from_matrix(body), cov, msg.stamp)
+            result = estimator.fix(own[0], own[1], msg.stamp)
             self.metrics.add(
                 "fix_stale" if result is None else "fix_fused" if result else "fix_refused"
             )
@@ -706,7 +694,7 @@ class Daemon:
             SIGHTING_CONFIDENCE,
             len(kept),
             fit.rmse,
-            _sightings_covariance(fit.rmse, fit.spread, np.array([b for _, b in kept])),
+            sightings_covariance(fit.rmse, fit.spread, np.array([b for _, b in kept])),
             time.time(),
         )
         self._offer(edge, f"from {len(kept)} sightings of us")
@@ -1232,18 +1220,6 @@ class _Laps:
 
     def __call__(self, step: str) -> None:
         self.laps.append((step, time.monotonic()))
-
-
-def _sightings_covariance(rmse: float, spread: float, positions: np.ndarray) -> np.ndarray:
-    """Error of a frame fitted to sightings (6x6, x y z roll pitch yaw, about our origin): the
-    fit's residual in x and y, about the sightings' centroid, and a yaw of that residual over
-    their spread (a lever of `spread` metres)."""
-    planar = np.diag([rmse**2, rmse**2, (rmse / max(spread, 0.1)) ** 2])
-    cov = np.zeros((6, 6))
-    cov[np.ix_(frame_error.PLANAR, frame_error.PLANAR)] = frame_error.floored(
-        frame_error.about(planar, positions[:, :2].mean(axis=0))
-    )
-    return cov
 
 
 def _agree(t1: np.ndarray, t2: np.ndarray, metres: float = 0.25, degrees: float = 2.0) -> bool:

@@ -51,6 +51,7 @@ from __future__ import annotations
 import argparse
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -62,6 +63,7 @@ from colonyd.colonymap import peer_map_error
 from colonyd.estimator import ScanEstimator, get_estimator
 from colonyd.mapping import integrate_observation
 from colonyd.simrun import sim_spec
+from plugins.observation import Observation
 from plugins.source import open_source
 from voxel import keys as vk
 from voxel.grid import VoxelGrid
@@ -163,10 +165,12 @@ class Run:
         contact: float = 0.5,
         relaxed: str = "none",
         peer_covariance: bool = True,
+        before: Callable[[Observation, ScanEstimator], None] | None = None,
     ) -> float:
         """Run the path (with `peer`'s map from `contact` of the path on, its alignment off by
         `sign` times `ALIGNMENT_ERROR`, its pose covariance in the cut's if `peer_covariance`;
-        `relaxed`: see `relax`); the ATE."""
+        `relaxed`: see `relax`; `before`: called with each observation and the estimator before
+        the estimator's step, from the second on); the ATE."""
         source = open_source(self.spec, resolution=0.1)
         adapter = source.adapter
         grid = VoxelGrid(0.1, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
@@ -206,6 +210,8 @@ class Run:
                         )
                     cut = peer.cut_for(self, pose, estimator, sign, at, walk)
                 estimator.colony = cut
+            if before is not None and i > 0:
+                before(obs, estimator)
             pose = estimator(obs)
             integrate_observation(
                 grid,

@@ -1,0 +1,101 @@
+"""Pose fixes: the covariance a CCTV claims, the fix in the robot's frame, and an alignment's error
+counted harmonically over many fixes (constructed cases)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from colonyd.alignment import ColonyFrame
+from colonyd.fixes import (
+    YAW_PER_M,
+    YAW_SD,
+    FixCounter,
+    fix_covariance,
+    fix_in_own_frame,
+)
+from voxel.localisation import frame_error, se2
+from voxel.localisation.ekf import PlanarEkf
+
+
+def _at(x: float, y: float, z: float, yaw: float = 0.0) -> np.ndarray:
+    """A pose at (x, y, z) turned by `yaw` about z."""
+    m = se2.to_matrix(np.array([x, y, yaw]))
+    m[2, 3] = z
+    return m
+
+
+def test_fix_covariance_grows_with_range_in_position_and_in_yaw_when_asked() -> None:
+    cov = fix_covariance(5.0)
+    assert cov.shape == (6, 6)
+    assert cov[0, 0] == pytest.approx(0.06**2) and cov[1, 1] == pytest.approx(0.06**2)
+    assert math.sqrt(cov[5, 5]) == pytest.approx(YAW_SD)  # the daemon's: 4 degrees at any range
+    assert math.sqrt(fix_covariance(8.0)[5, 5]) == pytest.approx(YAW_SD)
+    ranged = fix_covariance(5.0, YAW_PER_M)
+    assert math.sqrt(ranged[5, 5]) == pytest.approx(math.radians(5.0))
+    assert ranged[0, 0] == pytest.approx(cov[0, 0])
+
+
+def _frame(alignment: np.ndarray) -> tuple[ColonyFrame, np.ndarray]:
+    """A CCTV (the root, its frame the colony's) and robot r, whose frame is turned by 90
+    degrees and shifted by (2, 1) in the CCTV's, with `alignment` as its error."""
+    mine = se2.to_matrix(np.array([2.0, 1.0, math.pi / 2]))
+    return ColonyFrame("cctv", {"cctv": np.eye(4), "r": mine}, {"r": alignment}), mine
+
+
+def test_fix_in_own_frame_is_the_pose_through_the_alignment_and_its_error_counted() -> None:
+    alignment = np.diag([0.02**2, 0.03**2, math.radians(1.0) ** 2])
+    frame, mine = _frame(alignment)
+    body = _at(4.0, 3.0, 0.0, 0.3)  # the robot seen at (4, 3), heading 0.3, CCTV frame
+    cov6 = np.diag([0.05**2, 0.01**2, 1.0, 1.0, 1.0, 0.1**2])
+    once = fix_in_own_frame(frame, "r", "cctv", body, cov6)
+    assert once is not None
+    pose, cov = once
+    # in r's frame: (4, 3) - (2, 1) = (2, 2) turned by -90 degrees is (2, -2); heading 0.3 - pi/2
+    assert pose == pytest.approx([2.0, -2.0, 0.3 - math.pi / 2])
+    # the fix's x-y covariance turned by -90 degrees: x and y swap
+    fix_part = np.diag([0.01**2, 0.05**2, 0.1**2])
+    shared = frame_error.at(frame_error.moved(alignment, np.linalg.inv(mine)), pose[:2])
+    assert cov == pytest.approx(fix_part + shared)
+    third = fix_in_own_frame(frame, "r", "cctv", body, cov6, count=3)
+    assert third is not None
+    assert third[1] == pytest.approx(fix_part + 3 * shared)
+    biased = fix_in_own_frame(frame, "r", "cctv", body, cov6, count=2, bias=0.02)
+    assert biased is not None
+    assert biased[1] == pytest.approx(fix_part + 2 * (shared + np.diag([4e-4, 4e-4, 0.0])))
+    assert fix_in_own_frame(frame, "r", "other", body, cov6) is None
+
+
+def test_fix_counter_counts_per_sender_and_alignment() -> None:
+    frame, _ = _frame(np.eye(3) * 1e-4)
+    counter = FixCounter()
+    key = counter.key(frame, "r", "cctv")
+    assert key is not None and counter.key(frame, "r", "other") is None
+    assert counter.next("cctv", key) == 1
+    counter.fused("cctv", key)
+    counter.fused("cctv", key)
+    assert counter.next("cctv", key) == 3
+    moved, _ = _frame(np.eye(3) * 1e-4)
+    moved.transforms["r"] = se2.to_matrix(np.array([2.1, 1.0, math.pi / 2]))
+    other = counter.key(moved, "r", "cctv")
+    assert other is not None and other != key and counter.next("cctv", other) == 1
+
+
+def test_n_fixes_through_one_alignment_count_its_error_harmonically_not_n_times() -> None:
+    """Fixes whose own error is nil and whose alignment's error is A: the filter, from a vague
+    prior, ends with the variance A / H_n (H_n = 1 + 1/2 + ... + 1/n), where fusing each with A
+    alone would claim A / n."""
+    a = np.diag([0.04**2, 0.04**2, math.radians(1.0) ** 2])
+    n = 17
+    counted, plain = (
+        PlanarEkf(np.zeros(3), np.eye(3) * 1e4),
+        PlanarEkf(np.zeros(3), np.eye(3) * 1e4),
+    )
+    for k in range(1, n + 1):
+        assert counted.update(np.zeros(3), k * a, gate=None)
+        assert plain.update(np.zeros(3), a, gate=None)
+    harmonic = sum(1.0 / k for k in range(1, n + 1))
+    assert np.diag(counted.covariance) == pytest.approx(np.diag(a) / harmonic, rel=1e-3)
+    assert np.diag(plain.covariance) == pytest.approx(np.diag(a) / n, rel=1e-3)
