@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from voxel.errors import LocalisationError
 from voxel.localisation import se2
+from voxel.localisation.ekf import checked_pose
 
 
 @dataclass(frozen=True)
@@ -83,18 +83,7 @@ class PeerDrift:
 
     def add(self, pose: np.ndarray, covariance: np.ndarray) -> None:
         """One report: the peer's pose (x, y, yaw, its frame) and its covariance (3x3)."""
-        p = np.asarray(pose, np.float64).reshape(-1)
-        c = np.asarray(covariance, np.float64)
-        if (
-            p.shape != (3,)
-            or c.shape != (3, 3)
-            or not (np.all(np.isfinite(p)) and np.all(np.isfinite(c)))
-        ):
-            msg = (
-                "peer drift: expected a finite pose (3,) and covariance (3, 3), found "
-                f"{p.shape}, {c.shape}"
-            )
-            raise LocalisationError(msg)
+        p, c = checked_pose(pose, covariance, "peer drift")
         if self._last is not None:
             step = se2.relative(self._last, p)
             self._path += math.hypot(step[0], step[1]) + self.lever * abs(float(step[2]))

@@ -237,7 +237,7 @@ class PlanarEkf:
     ) -> bool:
         """Fuse an absolute measured pose (x, y, yaw) with its covariance; False (and no change)
         when gated out."""
-        z, r = _checked_pose(pose, covariance)
+        z, r = checked_pose(pose, covariance)
         y = _residual(z.reshape(3, 1), self.kf.x.copy()).ravel()
         return self._fuse(np.eye(3), None, y, r, gate)
 
@@ -255,7 +255,7 @@ class PlanarEkf:
         by that keyframe's pose, so the match measures the pose moved by the keyframes' errors,
         each weighted by its share of the information. A keyframe the filter does not know
         counts as placed without error. False (and no change) when gated out."""
-        z, r = _checked_pose(pose, covariance)
+        z, r = checked_pose(pose, covariance)
         keys = np.asarray(keys).reshape(-1)
         info = np.asarray(information, np.float64).reshape(len(keys), 3, 3)
         total = info.sum(axis=0) + 1e-9 * np.eye(3)
@@ -436,7 +436,7 @@ class PlanarEkf:
         if not self._has_offset:
             msg = "offset update: expected reset_offset() before the first update"
             raise LocalisationError(msg)
-        z, r = _checked_pose(pose, covariance)
+        z, r = checked_pose(pose, covariance)
         x = self.kf.x.ravel()
         b = self._mean[:3]
         c, s = math.cos(b[2]), math.sin(b[2])
@@ -472,8 +472,11 @@ def _checked_covariance(covariance: np.ndarray, what: str) -> np.ndarray:
     return 0.5 * (c + c.T)
 
 
-def _checked_pose(pose: np.ndarray, covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A pose measurement (3,) and its covariance (3, 3), or an error saying what was wrong."""
+def checked_pose(
+    pose: np.ndarray, covariance: np.ndarray, what: str = "pose measurement"
+) -> tuple[np.ndarray, np.ndarray]:
+    """A pose (3,) and its covariance (3, 3), both finite, or an error naming `what` and saying
+    what was wrong."""
     z = np.asarray(pose, np.float64).reshape(-1)
     r = np.asarray(covariance, np.float64)
     if (
@@ -482,7 +485,7 @@ def _checked_pose(pose: np.ndarray, covariance: np.ndarray) -> tuple[np.ndarray,
         or not (np.all(np.isfinite(z)) and np.all(np.isfinite(r)))
     ):
         msg = (
-            "pose measurement: expected (x, y, yaw) and a finite 3x3 covariance, found "
+            f"{what}: expected a finite pose (x, y, yaw) and a finite 3x3 covariance, found "
             f"{z} and shape {r.shape}"
         )
         raise LocalisationError(msg)
