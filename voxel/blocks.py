@@ -35,6 +35,12 @@ RICH_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
     "normal": (np.dtype(np.float32), (3,), 0.0),
     "class_ids": (np.dtype(np.int16), (-1,), -1),
     "class_probs": (np.dtype(np.float32), (-1,), 0.0),
+    # sub-voxel surface: mean hit offset from the centre, in 1/65532 voxel (voxel.surface)
+    "surface": (np.dtype(np.int16), (3,), 0),
+}
+#: Channels only the grid that integrates uses: never carried by deltas (voxel.delta).
+LOCAL_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
+    "surface_weight": (np.dtype(np.uint16), (), 0),  # scans fused into `surface`
 }
 SCALAR_SPEC = (np.dtype(np.float32), (), np.nan)
 
@@ -163,6 +169,8 @@ class BlockStore:
             return CORE_CHANNELS[name]
         if name in RICH_CHANNELS:
             return RICH_CHANNELS[name]
+        if name in LOCAL_CHANNELS:
+            return LOCAL_CHANNELS[name]
         return SCALAR_SPEC
 
     def channel(self, name: str) -> np.ndarray:

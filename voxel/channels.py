@@ -8,6 +8,7 @@ import numpy as np
 
 from voxel.blocks import BlockStore
 from voxel.delta import SCALAR_PREFIX
+from voxel.surface import fuse_surface
 
 #: Weight of a new class observation in the per-voxel class distribution.
 CLASS_RATE = 0.3
@@ -64,19 +65,36 @@ def fuse_channels(
     statistics: bool,
     version: int,
     stamp: np.ndarray,
+    surface: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> bool:
     """Fold the channels of one scan's hit points into the running means and top-k of their voxels.
 
     `hit_keys` (U, 3) are the hit voxels, `inverse` (H,) each hit point's row in them and
-    `channels` one row per hit point. Voxels that took values get `version` and the time
-    `stamp`. Returns whether anything was written.
+    `channels` one row per hit point; `surface`, when given, per row of `inverse` the sums
+    (H, 3) of its points' offsets from their voxel's centre in voxels and its count of points
+    (H,) (`voxel.scan.Beams`; a row per point when channels are given). Voxels that took values
+    get `version` and the time `stamp` (for the surface alone: those whose wire codes changed).
+    Returns whether anything was written.
     """
-    if hit_keys.shape[0] == 0 or inverse is None or not channels.fused:
+    if hit_keys.shape[0] == 0 or inverse is None or (not channels.fused and surface is None):
         return False
     blocks, offsets = store.split(hit_keys)
     slots = store.lookup(blocks)
     m = hit_keys.shape[0]
     counts = np.bincount(inverse, minlength=m).astype(np.float64)
+    moved = None
+    if surface is not None:
+        moved = fuse_surface(store, slots, offsets, inverse, *surface)
+    if not channels.fused:
+        assert moved is not None
+        if not moved.any():
+            return False
+        s, o = slots[moved], offsets[moved]
+        v = np.uint32(version)
+        store.channels["version"][s, o] = v
+        store.channels["last_time"][s, o] = stamp
+        store.slot_version[s] = v
+        return True
     weight_arr = store.channel("hits")
     w_old = weight_arr[slots, offsets].astype(np.float64)
     if not statistics:  # hits counted here only when statistics did not count them

@@ -7,13 +7,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from voxel import keys as vk
-from voxel.blocks import CORE_CHANNELS, BlockStore
+from voxel import surface
+from voxel.blocks import CORE_CHANNELS, LOCAL_CHANNELS, BlockStore
 from voxel.errors import DeltaError
 from voxel.timebase import TimeBase
 
 #: Optional per-voxel channels a delta may carry, with dtype and trailing shape.
 #: `class_ids`/`class_probs` have a trailing dimension k (top-k object classes); a scalar channel
-#: named NAME travels as "scalar:NAME" with shape (N,) float32.
+#: named NAME travels as "scalar:NAME" with shape (N,) float32. `surface` carries wire codes
+#: (voxel.surface: offsets of the mean hit point from the voxel's centre, 1/254 voxel each).
 CHANNEL_SPECS: dict[str, tuple[np.dtype, tuple[int, ...]]] = {
     "first_time": (np.dtype(np.float64), ()),
     "hits": (np.dtype(np.uint16), ()),
@@ -22,6 +24,7 @@ CHANNEL_SPECS: dict[str, tuple[np.dtype, tuple[int, ...]]] = {
     "normal": (np.dtype(np.float32), (3,)),
     "class_ids": (np.dtype(np.int16), (-1,)),
     "class_probs": (np.dtype(np.float32), (-1,)),
+    "surface": (np.dtype(np.int8), (3,)),
 }
 SCALAR_PREFIX = "scalar:"
 
@@ -80,6 +83,8 @@ class Delta:
             raise DeltaError(msg)
         for name, values in list(self.channels.items()):
             dtype, tail = channel_spec(name)
+            if name == surface.CHANNEL:
+                surface.check_codes(values)
             arr = np.asarray(values, dtype=dtype)
             if (
                 arr.shape[:1] != (n,)
@@ -135,7 +140,9 @@ def delta_of(
     keys = corners[b]
     keys += store.offset_keys()[o]
     channels = {
-        name: arr[s, o] for name, arr in store.channels.items() if name not in CORE_CHANNELS
+        name: surface.to_wire(arr[s, o]) if name == surface.CHANNEL else arr[s, o]
+        for name, arr in store.channels.items()
+        if name not in CORE_CHANNELS and name not in LOCAL_CHANNELS
     }
     return Delta(
         resolution=resolution,
@@ -181,7 +188,7 @@ def merge_delta(store: BlockStore, times: TimeBase, delta: Delta) -> np.ndarray:
                 f"{arr.shape[2:]}"
             )
             raise DeltaError(msg)
-        arr[s, o] = values[take]
+        arr[s, o] = surface.from_wire(values[take]) if name == surface.CHANNEL else values[take]
     np.maximum.at(store.slot_version, s, incoming)
     taken: np.ndarray = delta.last_time[take]
     return taken

@@ -37,6 +37,9 @@ from voxel.raycast import ray_keys, trace
 from voxel.scan import CLEAR_SUBDIVISION, Scan, as_points, sort_beams
 from voxel.sensor import SensorModel
 from voxel.snapshot import load_grid, save_grid
+from voxel.surface import CHANNEL as SURFACE
+from voxel.surface import WEIGHT as SURFACE_WEIGHT
+from voxel.surface import stored_offsets
 from voxel.timebase import TIME_SPAN_MS, TimeBase, quantise_time
 
 __all__ = [
@@ -84,6 +87,12 @@ class VoxelGrid:
     `apply` is idempotent and order-independent. `block_shape` is "cube" (4x4x4, for 3D sensors),
     "planar" (8x8x1, for a layer mapped by a 2D scanner), "slab" (4x4x1, for a 3D LiDAR) or three
     side lengths.
+
+    With `surface`, every integration also keeps each hit voxel's running mean of its hit
+    points (the `surface` channel): `surface_points` gives the surface inside a voxel to a
+    fraction of its size, as TSDF maps do, where its centre is up to half a voxel off. Off by
+    default: it costs 20-35 % more integration time on depth frames and 8 bytes per voxel slot
+    (docs/VOXEL.md); daemons turn it on (`Config.surface`).
     """
 
     def __init__(
@@ -97,6 +106,7 @@ class VoxelGrid:
         history_per_voxel: int = 16,
         block_shape: str | tuple[int, int, int] = "cube",
         seen_log: bool = True,
+        surface: bool = False,
     ) -> None:
         if not (
             isinstance(resolution, (int, float)) and math.isfinite(resolution) and resolution > 0
@@ -112,6 +122,8 @@ class VoxelGrid:
         #: Log voxels seen free for the first time (exact `state_at` for free space; costs
         #: ~50 % more integration time on dense 3D LiDAR, which may turn it off).
         self.seen_log = seen_log
+        #: Keep the sub-voxel surface (the mean hit position) of hit voxels.
+        self.surface = surface
         self.store = BlockStore(class_k=class_k, shifts=block_shifts(block_shape))
         self.history = History(capacity=history_capacity, per_voxel=history_per_voxel)
         self.times = TimeBase(self.store)  # stored times are ms since its base
@@ -192,14 +204,16 @@ class VoxelGrid:
         bump version. Its records carry the provenance (VOXEL.md, "Provenance"): `error` (e, the
         pose error estimate, m), r = the scan's (sensor) reliability x `agent_reliability`, and
         `bias` (b)."""
-        beams = sort_beams(scan, sensor, self.resolution, distinct=not scan.channels.any)
+        beams = sort_beams(
+            scan, sensor, self.resolution, distinct=not scan.channels.any, surface=self.surface
+        )
         traversal = trace(
             scan.origin,
             beams.hit_keys,
             beams.clear_ends,
             self.resolution,
             self.store.shifts,
-            scan.channels.any,
+            scan.channels.any or self.surface,  # each hit key's voxel is needed
             beams.bounds,
         )
         hit_channels = (
@@ -231,6 +245,9 @@ class VoxelGrid:
             statistics=self.statistics,
             version=version,
             stamp=stamp,
+            surface=None
+            if beams.surface_sums is None or beams.surface_counts is None
+            else (beams.surface_sums, beams.surface_counts),
         )
         objects = ObjectTags.of(traversal.hit_keys, traversal.inverse, hit_channels.object_ids)
         self.history.record(update.chunks, observer, rule.evidence, objects)
@@ -343,6 +360,23 @@ class VoxelGrid:
             np.count_nonzero(~np.isnan(self.store.channels["logodds"][self.store.used_slots()]))
         )
 
+    def surface_points(self, keys: np.ndarray) -> np.ndarray:
+        """Surface points (N, 3) of voxel keys: each voxel's centre plus the mean offset of the
+        points that hit it (`surface` channel; the origin's precision, a replica's to 1/254
+        voxel); the centre where a voxel holds no surface data."""
+        keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
+        out = vk.keys_to_centers(keys, self.resolution)
+        arr = self.store.channels.get(SURFACE)
+        if arr is None or keys.shape[0] == 0:
+            return out
+        slots, offsets, found = self._lookup(keys)
+        out[found] += stored_offsets(arr[slots[found], offsets[found]], self.resolution)
+        return out
+
+    def occupied_surface(self) -> np.ndarray:
+        """Surface points (M, 3) of the occupied voxels (`surface_points` of `occupied_keys`)."""
+        return self.surface_points(self.occupied_keys())
+
     def occupied_in_box(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Centres (M, 3) of occupied voxels whose centre lies in the box [lo, hi]."""
         lo = np.asarray(lo, dtype=np.float64).reshape(3)
@@ -454,6 +488,9 @@ class VoxelGrid:
         keys = vk.pack(st.join(st.slot_keys[slots[b]], o))
         lo[gone] = np.nan
         st.channels["logodds"][slots] = lo
+        for name in (SURFACE, SURFACE_WEIGHT):  # observed again: a surface anew
+            if name in st.channels:
+                st.channels[name][slots[b], o] = 0
         st.channels["version"][slots[b], o] = np.uint32(version)
         st.channels["last_time"][slots[b], o] = self.times.stamp(quantise_time(now))
         st.slot_version[slots[np.unique(b)]] = np.uint32(version)

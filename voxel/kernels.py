@@ -178,6 +178,7 @@ def _try_out(
         float(vk.KEY_MAX),
         float(vk.KEY_MAX * 3),
         True,
+        True,
     )
     trace(
         np.array([0.5, 0.5, 0.5]),
@@ -872,7 +873,10 @@ def _sort_beams(
     key_max: float,
     fine_limit: float,
     distinct: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, bool, np.ndarray, int]:
+    surface: bool,
+) -> tuple[
+    np.ndarray, np.ndarray, np.ndarray, int, int, bool, np.ndarray, int, np.ndarray, np.ndarray
+]:
     """A scan's beams sorted as `scan.sort_beams` sorts them (the same floating-point operations
     in the same order): points (N, 3) seen from `org`, `nr` the no-return flags; `inv` is
     1 / resolution, `fine_scale` CLEAR_SUBDIVISION / resolution, keys must lie in
@@ -885,7 +889,10 @@ def _sort_beams(
     ends' keys (floor(end * inv)), for the traversal's box (a bound is empty: low > high), and
     the count of hit points. With `distinct`, a hit key equal to one of the recent ones (a small
     cache: neighbouring pixels of a depth image share voxels) is left out: the hit keys are then
-    the same set with fewer repeats (H <= the count of hit points), in the same order."""
+    the same set with fewer repeats (H <= the count of hit points), in the same order. With
+    `surface`, also each hit key's sums (H, 3) of its points' offsets from their voxel's centre
+    in voxels (`surface.fractions`: x * inv - floor(x * inv) - 0.5), and its count of points
+    (H,): a repeated key's point adds to the column it repeats (else both are empty)."""
     n = points.shape[0]
     max2 = max_range * max_range
     hit_mask = np.zeros(n, dtype=np.bool_)
@@ -899,6 +906,9 @@ def _sort_beams(
     hi0 = hi1 = hi2 = np.int64(np.iinfo(np.int64).min)
     # Recent hit keys (packed, -1 none), by hash: a direct-mapped cache, a miss only repeats a key.
     recent = np.full(_RECENT if distinct else 1, -1, dtype=np.int64)
+    recent_col = np.full(_RECENT if distinct else 1, -1, dtype=np.int64)  # their columns
+    sums = np.empty((n if surface else 0, 3), dtype=np.float64)
+    counts = np.empty(n if surface else 0, dtype=np.int64)
     # A hit lies within max range of the origin: when that ball lies inside the key space (a
     # voxel to spare for rounding), every hit's key does, and its test is left out.
     inside = True
@@ -945,8 +955,15 @@ def _sort_beams(
                     )
                     h = ((packed * np.int64(_HASH[0])) >> (64 - _RECENT_BITS)) & (_RECENT - 1)
                     if recent[h] == packed:
+                        if surface:
+                            c = recent_col[h]
+                            sums[c, 0] += x0 - k0 - 0.5
+                            sums[c, 1] += x1 - k1 - 0.5
+                            sums[c, 2] += x2 - k2 - 0.5
+                            counts[c] += 1
                         continue  # a repeated key: in the bounds already
                     recent[h] = packed
+                    recent_col[h] = n_out
                 lo0 = i0 if i0 < lo0 else lo0
                 hi0 = i0 if i0 > hi0 else hi0
                 lo1 = i1 if i1 < lo1 else lo1
@@ -956,6 +973,11 @@ def _sort_beams(
                 hit_keys[0, n_out] = k0
                 hit_keys[1, n_out] = k1
                 hit_keys[2, n_out] = k2
+                if surface:
+                    sums[n_out, 0] = x0 - k0 - 0.5
+                    sums[n_out, 1] = x1 - k1 - 0.5
+                    sums[n_out, 2] = x2 - k2 - 0.5
+                    counts[n_out] = 1
                 n_out += 1
         else:
             r = np.sqrt(d2)
@@ -1013,7 +1035,18 @@ def _sort_beams(
             lo[a] = np.int64(mn)
             span[a] = np.int64(mx) - lo[a] + 1
         if np.float64(span[0]) * np.float64(span[1]) * np.float64(span[2]) > 2.0**62:
-            return hit_keys, hit_mask, ends[:0], cleared, dropped, False, bounds, n_hit
+            return (
+                hit_keys,
+                hit_mask,
+                ends[:0],
+                cleared,
+                dropped,
+                False,
+                bounds,
+                n_hit,
+                sums[:0].copy(),
+                counts[:0].copy(),
+            )
         lin = np.empty(m, dtype=np.int64)
         for i in range(m):
             lin[i] = (
@@ -1054,7 +1087,10 @@ def _sort_beams(
             k = np.int64(np.floor(e * inv))
             bounds[0, a] = min(bounds[0, a], k)
             bounds[1, a] = max(bounds[1, a], k)
-    return hit_keys, hit_mask, picked, cleared, dropped, True, bounds, n_hit
+    if surface:
+        sums = sums[:n_out].copy()
+        counts = counts[:n_out].copy()
+    return hit_keys, hit_mask, picked, cleared, dropped, True, bounds, n_hit, sums, counts
 
 
 def _index_blocks(

@@ -122,6 +122,11 @@ class Beams:
     bounds: np.ndarray | None = None
     #: Points that hit, when `hit_keys` holds fewer columns (repeated keys left out); else -1
     hit_points: int = -1
+    #: With `surface`: per column of `hit_keys`, the sums (H, 3) of its points' offsets from
+    #: their voxel's centre in voxels (`voxel.surface.fractions`; (H, 3)) and its count of
+    #: points (H,)
+    surface_sums: np.ndarray | None = None
+    surface_counts: np.ndarray | None = None
 
     @property
     def hits(self) -> int:
@@ -129,13 +134,21 @@ class Beams:
         return self.hit_points if self.hit_points >= 0 else int(self.hit_keys.shape[1])
 
 
-def sort_beams(scan: Scan, sensor: SensorModel, resolution: float, distinct: bool = False) -> Beams:
+def sort_beams(
+    scan: Scan,
+    sensor: SensorModel,
+    resolution: float,
+    distinct: bool = False,
+    surface: bool = False,
+) -> Beams:
     """Hits end within max range; beams beyond it clear up to max range, beams without a return
     up to the sensor's `no_return_range`. With `distinct` (a scan whose points' rows are not
-    needed, i.e. without channels), the compiled path may leave repeated hit keys out."""
+    needed, i.e. without channels), the compiled path may leave repeated hit keys out. With
+    `surface`, the beams carry the sums of the hit points' offsets in their voxels, per hit key
+    column (a left-out repeat's point in the column it repeats)."""
     compiled = kernels.beams()
     if compiled is not None:
-        hit_keys, hit_mask, ends, cleared, dropped, ok, bounds, n_hit = compiled(
+        hit_keys, hit_mask, ends, cleared, dropped, ok, bounds, n_hit, sums, counts = compiled(
             np.ascontiguousarray(scan.points),
             scan.origin,
             scan.no_return,
@@ -147,10 +160,15 @@ def sort_beams(scan: Scan, sensor: SensorModel, resolution: float, distinct: boo
             float(vk.KEY_MAX),
             float(vk.KEY_MAX * CLEAR_SUBDIVISION),
             distinct,
+            surface,
         )
         if ok:
             invalid = scan.points.shape[0] - n_hit - cleared - dropped
-            return Beams(hit_keys, hit_mask, ends, cleared, invalid, dropped, bounds, n_hit)
+            if not surface:
+                sums = counts = None
+            return Beams(
+                hit_keys, hit_mask, ends, cleared, invalid, dropped, bounds, n_hit, sums, counts
+            )
     n = scan.points.shape[0]
     org, nr = scan.origin, scan.no_return
     rows = np.ascontiguousarray(
@@ -180,11 +198,17 @@ def sort_beams(scan: Scan, sensor: SensorModel, resolution: float, distinct: boo
         clear_mask[:] = False
     inv = 1.0 / resolution
     hit_keys = rows * inv if all_hit else np.compress(hit_mask, rows, axis=1) * inv
+    sums = hit_keys.copy() if surface else None
     np.floor(hit_keys, out=hit_keys)
+    if sums is not None:  # x - floor(x) - 0.5, as `voxel.surface.fractions`
+        sums -= hit_keys
+        sums -= 0.5
     if hit_keys.size and (hit_keys.min() < vk.KEY_MIN or hit_keys.max() > vk.KEY_MAX):
         ok = np.all((hit_keys >= vk.KEY_MIN) & (hit_keys <= vk.KEY_MAX), axis=0)
         hit_mask[np.flatnonzero(hit_mask)[~ok]] = False
         hit_keys = hit_keys[:, ok]
+        sums = None if sums is None else sums[:, ok]
+    sums = None if sums is None else sums.T
     if clear_mask.any():
         limit: float | np.ndarray = sensor.max_range
         if sensor.no_return_range < sensor.max_range and nr.any():
@@ -194,7 +218,17 @@ def sort_beams(scan: Scan, sensor: SensorModel, resolution: float, distinct: boo
         clear_ends = np.empty((0, 3))
     cleared = int(np.count_nonzero(clear_mask))
     invalid = n - int(hit_keys.shape[1]) - cleared - dropped
-    return Beams(hit_keys, hit_mask, clear_ends, cleared, invalid, dropped)
+    counts = None if sums is None else np.ones(sums.shape[0], dtype=np.int64)
+    return Beams(
+        hit_keys,
+        hit_mask,
+        clear_ends,
+        cleared,
+        invalid,
+        dropped,
+        surface_sums=sums,
+        surface_counts=counts,
+    )
 
 
 def _clear_ends(

@@ -33,6 +33,7 @@ class SnapshotGrid(Protocol):
     resolution: float
     half_life: float | None
     statistics: bool
+    surface: bool
     store: BlockStore
     history: History
     version: int
@@ -58,6 +59,7 @@ def save_grid(grid: SnapshotGrid, path: Path) -> None:
         "resolution": grid.resolution,
         "half_life": grid.half_life,
         "statistics": grid.statistics,
+        "surface": grid.surface,
         "class_k": st.class_k,
         "block_shape": [1 << x for x in st.shifts],
         "grid_version": grid.version,
@@ -118,10 +120,12 @@ def load_grid(path: Path, make_grid: Callable[..., G]) -> G:
                     f"found {meta.get('format')!r} v{meta.get('version')!r}"
                 )
                 raise FileFormatError(msg)
+            settings = {"surface": bool(meta["surface"])} if "surface" in meta else {}
             grid = make_grid(
                 meta["resolution"],
                 half_life=meta["half_life"],
                 statistics=meta["statistics"],
+                **settings,
                 class_k=meta["class_k"],
                 history_capacity=meta["history_capacity"],
                 history_per_voxel=meta["history_per_voxel"],

@@ -1,0 +1,166 @@
+"""Tests of the sub-voxel surface channel: running means of hit positions, replicas, snapshots."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from voxel import keys as vk
+from voxel import surface
+from voxel.delta import Delta
+from voxel.errors import DeltaError
+from voxel.grid import VoxelGrid
+
+RES = 0.1
+WALL_X = 2.0337  # 3.37 cm into its voxel [2.0, 2.1): the centre (2.05) is 16.3 mm off
+
+
+def noisy_wall(rng: np.random.Generator, sigma: float = 0.004) -> tuple[np.ndarray, np.ndarray]:
+    """A scan of the plane x = WALL_X (1 m x 1 m) with range noise along x, from the origin."""
+    side = np.arange(-0.495, 0.5, 0.01)  # 10 points across each voxel, centred
+    yy, zz = np.meshgrid(side, side)
+    x = WALL_X + rng.normal(0.0, sigma, yy.size)
+    return np.stack([x, yy.ravel(), zz.ravel()], axis=1), np.zeros(3)
+
+
+def wall_voxels(grid: VoxelGrid) -> np.ndarray:
+    """Occupied keys of the wall's voxel layer (x key 20), away from its edges."""
+    keys = grid.occupied_keys()
+    inner = (keys[:, 0] == 20) & (np.abs(keys[:, 1:] + 0.5).max(axis=1) < 4)
+    return keys[inner]
+
+
+def test_surface_points_lie_on_the_wall_where_centres_do_not(kernel_path):
+    grid = VoxelGrid(RES, surface=True)
+    rng = np.random.default_rng(1)
+    for t in range(10):
+        pts, origin = noisy_wall(rng)
+        grid.integrate(pts, origin, time=float(t))
+    keys = wall_voxels(grid)
+    assert len(keys) >= 40
+    surf = grid.surface_points(keys)
+    centres = vk.keys_to_centers(keys, RES)
+    # the centres are 16.3 mm behind the wall, the surface points on it to ~0.5 mm
+    assert np.allclose(centres[:, 0] - WALL_X, 0.0163, atol=1e-6)
+    assert np.abs(surf[:, 0] - WALL_X).max() < 0.0008
+    # along the wall the points fill each voxel evenly: the mean is near its centre
+    assert np.abs(surf[:, 1:] - centres[:, 1:]).max() < 1e-4
+    # the occupied voxels' surface is what occupied_surface gives
+    assert np.array_equal(grid.occupied_surface(), grid.surface_points(grid.occupied_keys()))
+    # free and unknown voxels: their centres
+    free = grid.free_keys()[:5]
+    assert np.array_equal(grid.surface_points(free), vk.keys_to_centers(free, RES))
+    far = np.array([[500, 500, 500]])
+    assert np.array_equal(grid.surface_points(far), vk.keys_to_centers(far, RES))
+
+
+def test_without_the_channel_surface_points_are_centres():
+    grid = VoxelGrid(RES, surface=False)
+    pts, origin = noisy_wall(np.random.default_rng(2))
+    grid.integrate(pts, origin, time=0.0)
+    assert "surface" not in grid.store.channels
+    keys = grid.occupied_keys()
+    assert np.array_equal(grid.surface_points(keys), vk.keys_to_centers(keys, RES))
+
+
+def test_two_scans_weigh_equally_whatever_their_point_counts():
+    grid = VoxelGrid(RES, surface=True)
+    origin = np.zeros(3)
+    # scan 1: three points at x offset +0.02 m in voxel key (20, 0, 0); scan 2: one at -0.01 m
+    a = np.array([[2.07, 0.03, 0.05], [2.07, 0.05, 0.05], [2.07, 0.07, 0.05]])
+    b = np.array([[2.04, 0.05, 0.05]])
+    grid.integrate(a, origin, time=0.0)
+    key = np.array([[20, 0, 0]])
+    assert np.allclose(grid.surface_points(key)[0], [2.07, 0.05, 0.05], atol=2e-6)
+    grid.integrate(b, origin, time=1.0)
+    # the running mean of two scans, one sample each: (2.07 + 2.04) / 2
+    assert np.allclose(grid.surface_points(key)[0], [2.055, 0.05, 0.05], atol=2e-6)
+    assert int(grid.channel_at_keys("surface_weight", key)[0]) == 2
+
+
+def test_a_change_below_the_wire_quantum_takes_no_new_version():
+    grid = VoxelGrid(RES, surface=True)
+    origin = np.zeros(3)
+    pts = np.array([[2.07, 0.05, 0.05]])
+    for t in range(10):
+        grid.integrate(pts, origin, time=float(t))  # occupied, then clamped: nothing new
+    v = grid.version
+    grid.integrate(pts + np.array([1e-5, 0, 0]), origin, time=10.0)  # moves the mean by 1 um
+    assert grid.version == v and len(grid.delta_since(v)) == 0
+    grid.integrate(
+        pts + np.array([0.02, 0, 0]), origin, time=11.0
+    )  # 2 cm / 12 scans: a new wire code
+    delta = grid.delta_since(v)
+    assert grid.version == v + 1 and delta.keys.tolist() == [[20, 0, 0]]
+    offset = (2.07 - 2.05) + 0.02 / 12  # the mean of the 12 scans, from the voxel's centre
+    assert delta.channels["surface"][0, 0] == round(offset / RES * surface.WIRE_SCALE)
+
+
+def test_replica_reproduces_the_surface_within_the_wire_quantum():
+    origin = VoxelGrid(RES, surface=True)
+    rng = np.random.default_rng(3)
+    replica = VoxelGrid(RES, surface=False)
+    v = 0
+    for t in range(4):
+        pts, o = noisy_wall(rng)
+        origin.integrate(pts, o, time=float(t))
+        replica.apply(origin.delta_since(v))
+        v = origin.version
+    keys = origin.occupied_keys()
+    err = np.abs(replica.surface_points(keys) - origin.surface_points(keys))
+    assert err.max() <= RES / surface.WIRE_SCALE / 2 + 1e-9
+    assert replica.content_equal(origin)
+    assert "surface_weight" not in origin.delta_since(0).channels
+
+
+def test_snapshot_keeps_the_surface_and_its_weights(tmp_path):
+    grid = VoxelGrid(RES, surface=True)
+    pts, o = noisy_wall(np.random.default_rng(4))
+    grid.integrate(pts, o, time=0.0)
+    grid.save(tmp_path / "g.npz")
+    back = VoxelGrid.load(tmp_path / "g.npz")
+    keys = grid.occupied_keys()
+    assert back.surface and np.array_equal(back.surface_points(keys), grid.surface_points(keys))
+    assert np.array_equal(
+        back.channel_at_keys("surface_weight", keys), grid.channel_at_keys("surface_weight", keys)
+    )
+
+
+def test_forget_clears_the_surface():
+    grid = VoxelGrid(RES, surface=True)
+    pts, o = noisy_wall(np.random.default_rng(5))
+    grid.integrate(pts, o, time=0.0)
+    keys = grid.occupied_keys()
+    grid.forget(now=100.0, after=10.0)
+    assert np.array_equal(grid.surface_points(keys), vk.keys_to_centers(keys, RES))
+
+
+@pytest.mark.parametrize("bad", [-128, 128, 300])
+def test_delta_refuses_codes_outside_the_half_cell(bad):
+    with pytest.raises(DeltaError, match="surface codes must lie in"):
+        Delta(RES, 0, 1, np.zeros((1, 3)), [1.0], [0.0], {"surface": np.array([[0, bad, 0]])})
+    with pytest.raises(DeltaError, match="finite"):
+        Delta(RES, 0, 1, np.zeros((1, 3)), [1.0], [0.0], {"surface": np.array([[0, np.nan, 0]])})
+
+
+def test_both_paths_give_the_same_surface_to_a_stored_quantum(monkeypatch):
+    from voxel import kernels
+
+    pytest.importorskip("numba")
+    grids = []
+    for on in (False, True):
+        monkeypatch.setattr(kernels._switch, "on", on)
+        assert on == kernels.warm()
+        grid = VoxelGrid(RES, surface=True)
+        rng = np.random.default_rng(7)
+        for t in range(3):
+            pts, o = noisy_wall(rng)
+            grid.integrate(pts, o, time=float(t))
+        grids.append(grid)
+    numpy_grid, compiled = grids
+    keys = numpy_grid.occupied_keys()
+    assert np.array_equal(keys, compiled.occupied_keys())
+    a = numpy_grid.channel_at_keys("surface", keys).astype(np.int64)
+    b = compiled.channel_at_keys("surface", keys).astype(np.int64)
+    assert np.abs(a - b).max() <= 1  # the compiled path sums repeated keys' points apart
+    assert numpy_grid.content_equal(compiled)
