@@ -35,12 +35,13 @@ RICH_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
     "normal": (np.dtype(np.float32), (3,), 0.0),
     "class_ids": (np.dtype(np.int16), (-1,), -1),
     "class_probs": (np.dtype(np.float32), (-1,), 0.0),
-    # sub-voxel surface: mean hit offset from the centre, in 1/65532 voxel (voxel.surface)
-    "surface": (np.dtype(np.int16), (3,), 0),
+    # sub-voxel surface: the published mean hit offset from the centre, 1/254 voxel (voxel.surface)
+    "surface": (np.dtype(np.int8), (3,), 0),
 }
 #: Channels only the grid that integrates uses: never carried by deltas (voxel.delta).
 LOCAL_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
-    "surface_weight": (np.dtype(np.uint16), (), 0),  # scans fused into `surface`
+    "surface_mean": (np.dtype(np.int16), (3,), 0),  # its running mean, 1/65532 voxel
+    "surface_weight": (np.dtype(np.uint16), (), 0),  # scans fused into `surface_mean`
 }
 SCALAR_SPEC = (np.dtype(np.float32), (), np.nan)
 

@@ -140,7 +140,7 @@ def delta_of(
     keys = corners[b]
     keys += store.offset_keys()[o]
     channels = {
-        name: surface.to_wire(arr[s, o]) if name == surface.CHANNEL else arr[s, o]
+        name: arr[s, o]
         for name, arr in store.channels.items()
         if name not in CORE_CHANNELS and name not in LOCAL_CHANNELS
     }
@@ -188,7 +188,7 @@ def merge_delta(store: BlockStore, times: TimeBase, delta: Delta) -> np.ndarray:
                 f"{arr.shape[2:]}"
             )
             raise DeltaError(msg)
-        arr[s, o] = surface.from_wire(values[take]) if name == surface.CHANNEL else values[take]
+        arr[s, o] = values[take]
     np.maximum.at(store.slot_version, s, incoming)
     taken: np.ndarray = delta.last_time[take]
     return taken

@@ -38,8 +38,9 @@ from voxel.scan import CLEAR_SUBDIVISION, Scan, as_points, sort_beams
 from voxel.sensor import SensorModel
 from voxel.snapshot import load_grid, save_grid
 from voxel.surface import CHANNEL as SURFACE
+from voxel.surface import MEAN as SURFACE_MEAN
 from voxel.surface import WEIGHT as SURFACE_WEIGHT
-from voxel.surface import stored_offsets
+from voxel.surface import wire_offsets
 from voxel.timebase import TIME_SPAN_MS, TimeBase, quantise_time
 
 __all__ = [
@@ -362,15 +363,16 @@ class VoxelGrid:
 
     def surface_points(self, keys: np.ndarray) -> np.ndarray:
         """Surface points (N, 3) of voxel keys: each voxel's centre plus the mean offset of the
-        points that hit it (`surface` channel; the origin's precision, a replica's to 1/254
-        voxel); the centre where a voxel holds no surface data."""
+        points that hit it as published (`surface` channel: to 1/254 voxel, within
+        `surface.PUBLISH_CODES` of those of the running mean; a replica's are the origin's bit
+        for bit); the centre where a voxel holds no surface data."""
         keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
         out = vk.keys_to_centers(keys, self.resolution)
         arr = self.store.channels.get(SURFACE)
         if arr is None or keys.shape[0] == 0:
             return out
         slots, offsets, found = self._lookup(keys)
-        out[found] += stored_offsets(arr[slots[found], offsets[found]], self.resolution)
+        out[found] += wire_offsets(arr[slots[found], offsets[found]], self.resolution)
         return out
 
     def occupied_surface(self) -> np.ndarray:
@@ -488,7 +490,7 @@ class VoxelGrid:
         keys = vk.pack(st.join(st.slot_keys[slots[b]], o))
         lo[gone] = np.nan
         st.channels["logodds"][slots] = lo
-        for name in (SURFACE, SURFACE_WEIGHT):  # observed again: a surface anew
+        for name in (SURFACE, SURFACE_MEAN, SURFACE_WEIGHT):  # observed again: a surface anew
             if name in st.channels:
                 st.channels[name][slots[b], o] = 0
         st.channels["version"][slots[b], o] = np.uint32(version)

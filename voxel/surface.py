@@ -14,20 +14,27 @@ from voxel.errors import DeltaError
 if TYPE_CHECKING:
     from voxel.delta import Delta
 
-#: Wire codes: an offset of `code / WIRE_SCALE` voxels per axis, code in [-WIRE_MAX, WIRE_MAX]
-#: (int8, -128 never valid): 1/254 of a voxel, 0.39 mm at 10 cm, within half a voxel.
+#: Codes: an offset of `code / WIRE_SCALE` voxels per axis, code in [-WIRE_MAX, WIRE_MAX] (int8,
+#: -128 never valid): 1/254 of a voxel, 0.39 mm at 10 cm, within half a voxel. The `surface`
+#: channel holds these codes as published (deltas carry them exactly, so a replica holds the
+#: origin's values bit for bit).
 WIRE_SCALE = 254
 WIRE_MAX = 127
-#: Stored codes are int16 multiples of 1/(WIRE_SCALE * STORE_STEP) voxel (1.5 um at 10 cm): the
-#: running mean's rounding then neither stalls nor walks (in int8 each update would round by up
-#: to 0.2 mm and stop moving once (frame - mean) / weight < 0.2 mm). A wire code is a stored code
-#: divided by STORE_STEP and rounded; a replica stores wire codes times STORE_STEP exactly.
+#: The running mean behind them is int16 multiples of 1/(WIRE_SCALE * STORE_STEP) voxel (1.5 um
+#: at 10 cm): its rounding then neither stalls nor walks (in int8 each update would round by up
+#: to 0.2 mm and stop moving once (frame - mean) / weight < 0.2 mm).
 STORE_STEP = 258
 STORE_SCALE = WIRE_SCALE * STORE_STEP
 STORE_MAX = WIRE_MAX * STORE_STEP
-#: Channel names: the stored offsets (int16 (3,), a delta channel as wire codes) and the count of
-#: scans that fused into them (uint16, the running mean's weight; the origin's only, never sent).
+#: A voxel's published code follows its running mean once they differ by this many codes on an
+#: axis (and at its first hit): a mean that moves by a fraction of a millimetre a scan (a
+#: camera revisiting a surface) is not sent again with every scan (docs/BENCHMARKS.md, wire).
+PUBLISH_CODES = 3
+#: Channel names: the published codes (int8 (3,), a delta channel), the running mean (int16
+#: (3,)) and the count of scans fused into it (uint16, its weight); the last two are the
+#: integrating grid's own, never sent.
 CHANNEL = "surface"
+MEAN = "surface_mean"
 WEIGHT = "surface_weight"
 
 
@@ -41,21 +48,14 @@ def fractions(points: np.ndarray, resolution: float) -> np.ndarray:
 
 
 def to_wire(stored: np.ndarray) -> np.ndarray:
-    """Wire codes (int8) of stored codes (int16)."""
+    """Codes (int8) of running means (int16)."""
     codes = np.rint(np.asarray(stored, dtype=np.float64) / STORE_STEP)
     out: np.ndarray = np.clip(codes, -WIRE_MAX, WIRE_MAX).astype(np.int8)
     return out
 
 
-def from_wire(codes: np.ndarray) -> np.ndarray:
-    """Stored codes (int16) of wire codes; DeltaError when a code lies outside the half-cell."""
-    check_codes(codes)
-    out: np.ndarray = np.asarray(codes, dtype=np.int16) * np.int16(STORE_STEP)
-    return out
-
-
 def check_codes(codes: np.ndarray) -> None:
-    """DeltaError unless every wire code lies in [-WIRE_MAX, WIRE_MAX] (within half a voxel)."""
+    """DeltaError unless every code lies in [-WIRE_MAX, WIRE_MAX] (within half a voxel)."""
     arr = np.asarray(codes)
     if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
         msg = "surface codes must be finite integers, found NaN or infinity"
@@ -84,12 +84,6 @@ def delta_surface(delta: Delta) -> np.ndarray:
     return out
 
 
-def stored_offsets(stored: np.ndarray, resolution: float) -> np.ndarray:
-    """Offsets (N, 3) in metres of stored codes."""
-    out: np.ndarray = np.asarray(stored, dtype=np.float64) * (resolution / STORE_SCALE)
-    return out
-
-
 def fuse_surface(
     store: BlockStore,
     slots: np.ndarray,
@@ -104,8 +98,9 @@ def fuse_surface(
     in them of each group of hit points, `sums` (H, 3) the sums of the groups' offsets from
     their voxel's centre in voxels (`fractions`) and `counts` (H,) their sizes. A scan is one
     sample of weight 1, its points' mean, as colours and normals are fused (the weight is the
-    count of scans, saturating at 65535). Returns a mask (U,) of the voxels whose wire codes
-    changed (the others' changes are below what the wire carries, and need no new version).
+    count of scans, saturating at 65535). A voxel's published code takes its mean's at its
+    first hit and when they differ by PUBLISH_CODES on an axis. Returns a mask (U,) of the
+    voxels whose published codes changed (the others need no new version).
     """
     m = slots.shape[0]
     points = np.bincount(inverse, weights=counts, minlength=m)
@@ -116,11 +111,16 @@ def fuse_surface(
     weights = store.channel(WEIGHT)
     w_old = weights[slots, offsets]
     weights[slots, offsets] = np.minimum(w_old.astype(np.int64) + 1, 65535).astype(np.uint16)
-    arr = store.channel(CHANNEL)
-    old = arr[slots, offsets]
-    cur = old.astype(np.float64) / STORE_SCALE
+    means = store.channel(MEAN)
+    cur = means[slots, offsets].astype(np.float64) / STORE_SCALE
     cur += (frame - cur) / (w_old.astype(np.float64) + 1.0)[:, None]
     new = np.clip(np.rint(cur * STORE_SCALE), -STORE_MAX, STORE_MAX).astype(np.int16)
-    arr[slots, offsets] = new
-    moved: np.ndarray = np.any(to_wire(new) != to_wire(old), axis=1)
+    means[slots, offsets] = new
+    codes = to_wire(new)
+    published = store.channel(CHANNEL)
+    old = published[slots, offsets].astype(np.int64)
+    moved: np.ndarray = (w_old == 0) | (
+        np.abs(codes.astype(np.int64) - old).max(axis=1) >= PUBLISH_CODES
+    )
+    published[slots[moved], offsets[moved]] = codes[moved]
     return moved

@@ -25,7 +25,8 @@ ALIGNMENT_VARIANCE = np.diag([0.03**2, 0.03**2, np.radians(0.3) ** 2])
 
 @dataclass(frozen=True)
 class ColonyMap:
-    """Peers' occupied voxel centres (thinned) around `centre`, with normals and a k-d tree.
+    """Peers' occupied voxels' surface points (thinned) around `centre`, with normals and a k-d
+    tree.
 
     `points` are in the agent's own (odometry) frame; for a 2D scanner they are the peers'
     surfaces in a band around the scan height, put onto that height. `covariance` (x, y, yaw) is
@@ -44,7 +45,8 @@ class ColonyMap:
     #: colony map trusts it again only once this changes.
     alignment: bytes = b""
     #: True when every normal faces the free side of its surface (`orient_by_free_space`);
-    #: voxel centres alone carry no side they were seen from, and then normals are unsigned.
+    #: voxels' surface points alone carry no side they were seen from, and then normals are
+    #: unsigned.
     oriented: bool = False
     #: How fast the map's error may change along a path, from its peers' own drift
     #: (`PeerDrift`; the widest of its peers'); None: not known.
@@ -59,7 +61,7 @@ class ColonyMap:
 
 
 def colony_map(
-    centres: np.ndarray,
+    surfaces: np.ndarray,
     *,
     planar: bool,
     height: float,
@@ -76,9 +78,11 @@ def colony_map(
     step: float = 0.1,
     walk: OffsetWalk | None = None,
 ) -> ColonyMap:
-    """The scan-matching target of occupied voxel centres (N, 3) already in the agent's frame.
+    """The scan-matching target of the peers' occupied voxels' surface points (N, 3: each
+    voxel's mean hit position, `VoxelGrid.occupied_surface`; its centre where a grid keeps no
+    surface, up to half a voxel off the real surface) already in the agent's frame.
 
-    Keeps the centres within `radius` (x-y) of `centre`; planar (a 2D scanner at `height`): those
+    Keeps the points within `radius` (x-y) of `centre`; planar (a 2D scanner at `height`): those
     within `band` of the scan height, moved onto it. Thinned to `cell`, at most `max_points`
     (evenly subsampled), normals from `k` neighbours; corners and clutter (flatness <= 0.7) are
     dropped, as in the agent's own local map. With `free` (points (M, 3) in the agent's frame ->
@@ -86,7 +90,7 @@ def colony_map(
     surface, probed `step` metres along each normal (`orient_by_free_space`). `walk`: the
     peers' drift (`ColonyMap.walk`).
     """
-    pts = np.asarray(centres, np.float64).reshape(-1, 3)
+    pts = np.asarray(surfaces, np.float64).reshape(-1, 3)
     c = np.asarray(centre, np.float64).reshape(-1)[:2]
     if radius <= 0 or cell <= 0 or band <= 0 or k < 3 or c.shape != (2,):
         msg = (

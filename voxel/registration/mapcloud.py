@@ -1,4 +1,5 @@
-"""A map as registration sees it: occupied voxel centres plus, when the file has it, known space."""
+"""A map as registration sees it: occupied voxels' surface points plus, when the file has it, known
+space."""
 
 from __future__ import annotations
 
@@ -19,7 +20,9 @@ UNKNOWN, FREE, OCCUPIED = -1, 0, 1
 
 @dataclass(frozen=True, eq=False)
 class MapCloud:
-    """Occupied voxel centres (N, 3) of one map in its own frame, and its known voxels if any.
+    """Occupied voxels' surface points (N, 3) of one map in its own frame (their mean hit
+    positions where the map keeps them, `VoxelGrid.occupied_surface`; else their centres), and
+    its known voxels if any.
 
     known: sorted packed keys of every known voxel (occupied and free) at `resolution`, with
     `known_occupied` telling which are occupied; None for point clouds (PLY) without free space.
@@ -33,15 +36,25 @@ class MapCloud:
 
     @classmethod
     def from_keys(
-        cls, resolution: float, keys: np.ndarray, occupied: np.ndarray, name: str = "map"
+        cls,
+        resolution: float,
+        keys: np.ndarray,
+        occupied: np.ndarray,
+        name: str = "map",
+        surface: np.ndarray | None = None,
     ) -> MapCloud:
-        """A map from voxel keys (N, 3) and their occupied mask (N,); the others are free."""
+        """A map from voxel keys (N, 3) and their occupied mask (N,); the others are free.
+        `surface` (N, 3): the voxels' surface points (`VoxelGrid.surface_points`); default
+        their centres."""
         keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
         occupied = np.asarray(occupied, dtype=bool).reshape(-1)
         packed = vk.pack(keys)
         order = np.argsort(packed, kind="stable")
-        centres = vk.keys_to_centers(keys[occupied], resolution)
-        return cls(float(resolution), centres, packed[order], occupied[order], name)
+        if surface is None:
+            points = vk.keys_to_centers(keys[occupied], resolution)
+        else:
+            points = np.asarray(surface, dtype=np.float64).reshape(-1, 3)[occupied]
+        return cls(float(resolution), points, packed[order], occupied[order], name)
 
     @property
     def planar(self) -> bool:
@@ -87,8 +100,9 @@ def load_map(path: str | PathLike[str]) -> MapCloud:
         occ, free = grid.occupied_keys(), grid.free_keys()
         mask = np.zeros(len(occ) + len(free), bool)
         mask[: len(occ)] = True
+        keys = np.concatenate([occ, free])
         cloud = MapCloud.from_keys(
-            grid.resolution, np.concatenate([occ, free]), mask, name=str(path)
+            grid.resolution, keys, mask, name=str(path), surface=grid.surface_points(keys)
         )
     elif suffix == ".ply":
         from voxel.ply import read_ply
