@@ -414,6 +414,11 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SCENARIO",
         help="run this scenario (repeatable; also opt-in ones such as lidar3d_64x1024_0.05)",
     )
+    b.add_argument(
+        "--surface",
+        action="store_true",
+        help="our grid keeps the sub-voxel surface, as daemons do (VoxelGrid surface=True)",
+    )
     b = bsub.add_parser("wire", help="wire-format benchmark")
     _bench_io(b, shared_data=True)
     b.add_argument(
@@ -421,6 +426,11 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         help="run only this scenario (repeatable; default all): camera_path_50_0.05, "
         "lidar3d_32k_seq_0.10, redkitchen50_0.05",
+    )
+    b.add_argument(
+        "--no-surface",
+        action="store_true",
+        help="grids without the sub-voxel surface channel (daemons keep it; for comparison)",
     )
     b = bsub.add_parser(
         "history",
@@ -810,7 +820,7 @@ def _bench(args: argparse.Namespace) -> int:
         from colonyd.bench.integrate import run_integrate_bench
 
         result = run_integrate_bench(
-            args.json, args.shared_data, args.repeats, args.only, args.runs
+            args.json, args.shared_data, args.repeats, args.only, args.runs, args.surface
         )
     elif args.bench == "align":
         from colonyd.bench.align import run_align_bench
@@ -854,7 +864,9 @@ def _bench(args: argparse.Namespace) -> int:
     elif args.bench == "wire":
         from colonyd.bench.wire import run_wire_bench
 
-        result = run_wire_bench(args.json, args.shared_data, only=args.scenario)
+        result = run_wire_bench(
+            args.json, args.shared_data, only=args.scenario, surface=not args.no_surface
+        )
     elif args.bench == "history":
         from colonyd.bench.history import run_history_bench
 

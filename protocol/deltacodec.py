@@ -24,7 +24,7 @@ from protocol.errors import (
 )
 from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.summary import MAX_LEVEL, FreeSummary
-from voxel import kernels
+from voxel import kernels, surface
 from voxel.delta import CHANNEL_SPECS, SCALAR_PREFIX, Delta
 from voxel.errors import DeltaError
 from voxel.keys import KEY_MAX, KEY_MIN, pack
@@ -50,6 +50,7 @@ _WIRE_DTYPE = {
     "normal": "<f4",
     "class_ids": "<i2",
     "class_probs": "<f4",
+    "surface": "i1",
 }
 _MAX_SECTIONS = 6
 #: A block whose section holds at least B^3 / _BITMAP_DIVISOR voxels is sent as a bitmap.
@@ -866,6 +867,12 @@ def _decode_channel(entry: Any, n: int, ref: float, limits: Limits) -> tuple[str
     count = n * max(k, 1)
     raw = _bin(entry, 2, f"delta channel {name!r}", count * np.dtype(wire).itemsize)
     values = np.frombuffer(raw, dtype=wire).astype(dtype)
+    if name == "surface" and values.size and int(values.min()) < -surface.WIRE_MAX:
+        msg = (
+            f"delta channel 'surface': expected codes in [-{surface.WIRE_MAX}, "
+            f"{surface.WIRE_MAX}] (within half a voxel), found {int(values.min())}"
+        )
+        raise RangeError(msg)
     return name, values.reshape((n, k) if k else (n,))
 
 

@@ -134,9 +134,13 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _time_ours(
-    frames: list[Frame], resolution: float, sensor: SensorModel, block_shape: str = "cube"
+    frames: list[Frame],
+    resolution: float,
+    sensor: SensorModel,
+    block_shape: str = "cube",
+    surface: bool = False,
 ) -> tuple[VoxelGrid, list[float]]:
-    grid = VoxelGrid(resolution, block_shape=block_shape)
+    grid = VoxelGrid(resolution, block_shape=block_shape, surface=surface)
     times = []
     for i, f in enumerate(frames):
         t0 = time.process_time()
@@ -171,7 +175,12 @@ SLOW_RUN_MS = 1000.0
 
 
 def _measure(
-    sc: Scenario, frames: list[Frame], sensor: SensorModel, repeats: int, keep_maps: bool
+    sc: Scenario,
+    frames: list[Frame],
+    sensor: SensorModel,
+    repeats: int,
+    keep_maps: bool,
+    surface: bool = False,
 ) -> tuple[
     dict[object, list[float]], VoxelGrid, dict[object, tuple[np.ndarray, np.ndarray, float]]
 ]:
@@ -180,7 +189,7 @@ def _measure(
     per_frame = len(frames) > 1
     # what a side builds: our VoxelGrid, or a pyoctomap tree (untyped)
     sides: dict[object, Callable[[], tuple[Any, list[float]]]] = {
-        "ours": lambda: _time_ours(frames, sc.resolution, sensor, sc.block_shape),
+        "ours": lambda: _time_ours(frames, sc.resolution, sensor, sc.block_shape, surface),
         False: lambda: _time_octomap(frames, sc.resolution, sc.max_range, False),
         True: lambda: _time_octomap(frames, sc.resolution, sc.max_range, True),
     }
@@ -218,15 +227,18 @@ def _measure(
     return samples, grid, maps
 
 
-def run_scenario(sc: Scenario, repeats: int, runs: int = 1) -> dict[str, Any]:
-    """Time a scenario `runs` times (each `repeats` rounds); ratios per run, agreement once."""
+def run_scenario(
+    sc: Scenario, repeats: int, runs: int = 1, surface: bool = False
+) -> dict[str, Any]:
+    """Time a scenario `runs` times (each `repeats` rounds); ratios per run, agreement once.
+    `surface`: our grid keeps the sub-voxel surface (as daemons do)."""
     frames = list(sc.frames())
     sensor = SensorModel(max_range=sc.max_range)
     per_frame = len(frames) > 1
     speedups: list[float] = []
     medians: list[tuple[float, float, float]] = []  # ours, OctoMap default, discretize
     for run in range(runs):
-        samples, grid, got = _measure(sc, frames, sensor, repeats, keep_maps=run == 0)
+        samples, grid, got = _measure(sc, frames, sensor, repeats, run == 0, surface)
         if run == 0:
             maps = got
         ours_run = statistics.median(samples["ours"])
@@ -247,6 +259,7 @@ def run_scenario(sc: Scenario, repeats: int, runs: int = 1) -> dict[str, Any]:
         "scenario": sc.name,
         "resolution": sc.resolution,
         "block_shape": sc.block_shape,
+        "surface": surface,
         "points": int(sum(len(f.points) for f in frames)),
         "frames": len(frames),
         "ours_ms": round(ours_ms, 2),
@@ -285,9 +298,10 @@ def run_integrate_bench(
     repeats: int = 5,
     only: list[str] | None = None,
     runs: int = 1,
+    surface: bool = False,
 ) -> list[dict[str, Any]]:
     """Run the default scenarios (or those named in `only`) `runs` times each, write the JSON
-    list to out_json and return it."""
+    list to out_json and return it; with `surface`, our grids keep the sub-voxel surface."""
     kernels.warm()  # compiled kernels load before timing, as a daemon loads them at start
     known = scenarios(shared_data_dir(shared_data))
     unknown = sorted(set(only or ()) - {sc.name for sc in known})
@@ -295,7 +309,9 @@ def run_integrate_bench(
         msg = f"unknown scenario(s) {unknown}; expected some of {[sc.name for sc in known]}"
         raise ConfigError(msg)
     results = [
-        run_scenario(sc, repeats, runs) for sc in known if (sc.name in only if only else sc.default)
+        run_scenario(sc, repeats, runs, surface)
+        for sc in known
+        if (sc.name in only if only else sc.default)
     ]
     write_results(out_json, results)
     return results

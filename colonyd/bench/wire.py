@@ -156,8 +156,10 @@ def _best_of(fn: Callable[[], T], repeats: int) -> tuple[float, T]:
     return best, out
 
 
-def run_scenario(sc: Scenario, repeats: int = 3, t0: float = 1_700_000_000.0) -> dict[str, Any]:
-    grid = VoxelGrid(sc.resolution)
+def run_scenario(
+    sc: Scenario, repeats: int = 3, t0: float = 1_700_000_000.0, surface: bool = True
+) -> dict[str, Any]:
+    grid = VoxelGrid(sc.resolution, surface=surface)  # a daemon's own layer keeps the surface
     mirror = VoxelGrid(sc.resolution)  # a peer's replica: gives each voxel's previous value
     totals = {
         "changed": 0,
@@ -217,6 +219,7 @@ def run_scenario(sc: Scenario, repeats: int = 3, t0: float = 1_700_000_000.0) ->
     n = max(totals["changed"], 1)
     return {
         "scenario": sc.name,
+        "surface": surface,
         "changed_voxels": totals["changed"],
         "occupied_changed": totals["occupied"],
         "bytes_full": totals["full"],
@@ -242,16 +245,21 @@ def run_scenario(sc: Scenario, repeats: int = 3, t0: float = 1_700_000_000.0) ->
 
 
 def run_wire_bench(
-    out_json: Path, shared_data: Path | None, repeats: int = 3, only: list[str] | None = None
+    out_json: Path,
+    shared_data: Path | None,
+    repeats: int = 3,
+    only: list[str] | None = None,
+    surface: bool = True,
 ) -> list[dict[str, Any]]:
-    """Run every wire scenario, write the JSON list to out_json and return it.
+    """Run every wire scenario, write the JSON list to out_json and return it. `surface`: the
+    grids keep (and their deltas carry) the sub-voxel surface, as daemons' do.
 
     Without `shared_data`, the checkout's sibling `../shared/data` is used when it exists.
     """
     kernels.warm()  # compiled kernels load before timing, as a daemon loads them at start
     kernels.warm_codec()
     results = [
-        run_scenario(sc, repeats)
+        run_scenario(sc, repeats, surface=surface)
         for sc in scenarios(shared_data_dir(shared_data))
         if not only or sc.name in only
     ]

@@ -57,6 +57,7 @@ def make_delta(
             "class_ids": rng.integers(-1, 50, size=(m, 3)),
             "class_probs": rng.random(size=(m, 3)),
             "scalar:temperature": rng.normal(20, 5, size=m),
+            "surface": rng.integers(-127, 128, size=(m, 3)),
         }
     return Delta(resolution, 10, 12, keys, lo, last, channels=ch, time=time)
 

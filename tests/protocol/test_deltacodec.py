@@ -168,6 +168,7 @@ def _grid_like_delta(rng: np.random.Generator, n: int = 3000, time: float = 0.0)
         "class_ids": rng.integers(-1, 50, (m, 4)).astype(np.int16),
         "class_probs": rng.random((m, 4)).astype(np.float32),
         "scalar:temperature": rng.normal(20, 5, m).astype(np.float32),
+        "surface": rng.integers(-127, 128, (m, 3)).astype(np.int8),
     }
     return Delta(0.05, 7, 9, keys, lo, ms / 1000.0, channels=channels, time=time)
 
@@ -398,6 +399,13 @@ def test_valid_reference_body_decodes() -> None:
         (lambda b: b.update(ch=[["class_ids", 99, b""]]), RangeError, "width"),
         (lambda b: b.update(ch=[["colour", 2, b"\x00" * 6]]), RangeError, "expected width 3"),
         (lambda b: b.update(ch=[["hits", 0, b"\x00" * 6]] * 2), MalformedError, "twice"),
+        (
+            lambda b: b.update(ch=[["surface", 3, b"\x00" * 8 + b"\x80"]]),
+            RangeError,
+            "surface.*within half a voxel\\), found -128",
+        ),
+        (lambda b: b.update(ch=[["surface", 1, b"\x00" * 3]]), RangeError, "expected width 3"),
+        (lambda b: b.update(ch=[["surface", 3, b"\x00" * 3]]), MalformedError, "expected 9 bytes"),
         (lambda b: b.update(ch=[["hits", 0, b"\x00" * 6]] * 40), OversizedError, "channels"),
         (lambda b: b.update(sum=[9, 0, 0, b"", b"", b"", b"", b"", 0]), RangeError, "level"),
         (lambda b: b.update(sum="x"), MalformedError, "summary"),
