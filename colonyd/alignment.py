@@ -20,6 +20,7 @@ from voxel.localisation import frame_error
 from voxel.localisation.frame_error import PLANAR
 from voxel.objects import ObjectCentroid
 from voxel.registration import Alignment, AlignParams, Landmarks, MapCloud, align_clouds
+from voxel.surface import delta_surface
 
 
 @dataclass(frozen=True)
@@ -70,11 +71,16 @@ class ColonyFrame:
 
 
 def layer_cloud(layer: Layer) -> MapCloud:
-    """A layer's known voxels as registration sees them (read under the layer's lock)."""
+    """A layer's known voxels as registration sees them (read under the layer's lock): its
+    occupied voxels as their surface points (`voxel.surface.delta_surface`)."""
     full = layer.full()
     known = ~np.isnan(full.logodds)
     return MapCloud.from_keys(
-        layer.resolution, full.keys[known], full.logodds[known] >= 0, layer.origin
+        layer.resolution,
+        full.keys[known],
+        full.logodds[known] >= 0,
+        layer.origin,
+        surface=delta_surface(full)[known],
     )
 
 

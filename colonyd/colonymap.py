@@ -11,7 +11,6 @@ import numpy as np
 
 from colonyd.alignment import ColonyFrame
 from colonyd.layers import Layer, Layers
-from voxel import keys as vk
 from voxel.localisation import frame_error
 from voxel.localisation.colony_map import ColonyMap, colony_map
 from voxel.localisation.drift import OffsetWalk, widest
@@ -131,14 +130,14 @@ def key_of(peers: list[tuple[Layer, np.ndarray]]) -> Key:
     )
 
 
-def peer_centres(peers: list[tuple[Layer, np.ndarray]]) -> np.ndarray:
-    """Occupied voxel centres of the peers' layers, in our frame."""
+def peer_surfaces(peers: list[tuple[Layer, np.ndarray]]) -> np.ndarray:
+    """Surface points of the peers' occupied voxels (each voxel's mean hit position, as its
+    origin sent it: `VoxelGrid.occupied_surface`), in our frame."""
     parts = []
     for layer, m in peers:
         with layer.lock:
-            occupied = layer.grid.occupied_keys()
-        centres = vk.keys_to_centers(occupied, layer.resolution)
-        parts.append(centres @ m[:3, :3].T + m[:3, 3])
+            points = layer.grid.occupied_surface()
+        parts.append(points @ m[:3, :3].T + m[:3, 3])
     return np.concatenate(parts) if parts else np.zeros((0, 3))
 
 
@@ -211,8 +210,8 @@ class ColonyMaps:
                 return last.map
         errors = peer_errors(frame, self.own, peers, poses or {}, xy)
         cut = colony_map(
-            peer_centres(peers),
-            cell=0.05 if self.planar else 0.1,  # a 3D cut: voxel centres, at most 20,000
+            peer_surfaces(peers),
+            cell=0.05 if self.planar else 0.1,  # a 3D cut: one point per voxel, at most 20,000
             max_points=50_000 if self.planar else 20_000,
             planar=self.planar,
             height=self.height,

@@ -107,6 +107,11 @@ class Config(BaseSettings):
         description="own layer's voxel blocks: planar (8x8x1) when mapping with 2D scanners only, "
         "slab (4x4x1) with a 3D LiDAR",
     )
+    surface: bool = Field(
+        True,
+        description="own layer keeps each hit voxel's mean hit position (sub-voxel surface, "
+        "sent to peers; their colony maps match scans against it, not voxel centres)",
+    )
     publish_hz: float = Field(2.0, gt=0, le=100, description="own-delta publish rate")
     heartbeat_s: float = Field(1.0, gt=0, le=60, description="status heartbeat period")
     snapshot_s: float = Field(30.0, gt=0, description="own-layer snapshot period")

@@ -266,6 +266,7 @@ class Daemon:
         )
         own = self.layers.own
         own.grid, own.epoch, own.seq = rec.grid, rec.epoch, rec.seq
+        own.grid.surface = cfg.surface  # whatever the snapshot was written with
         own.set_half_life(cfg.half_life_s)
         self.layers.forgotten = load_tombstones(cfg.state_dir)
         self.layers.on_forget = lambda _origin: save_tombstones(

@@ -269,7 +269,8 @@ def map_source(
     warming.start()  # compiled kernels load while the source opens and decodes
     source = open_source(spec, resolution=resolution)
     adapter = source.adapter
-    grid = VoxelGrid(resolution, block_shape=shape_for(adapter.kind))
+    # the surface (mean hit positions) for what reads grid.npz: `colonyd align`'s registration
+    grid = VoxelGrid(resolution, block_shape=shape_for(adapter.kind), surface=True)
     out_dir = Path(out_dir)
     output_dir(out_dir, "--out")
     total = len(source) if max_frames is None else min(len(source), max_frames)

@@ -151,3 +151,23 @@ def test_the_cut_walks_by_its_peers_drift_and_follows_it() -> None:
     assert later is not None and later.walk == fast
     report = maps.report()
     assert report is not None and report["walk"] == {"trans": 0.04, "yaw": 0.01}
+
+
+def test_the_cut_holds_a_replicas_surface_points_not_its_voxel_centres() -> None:
+    from voxel.grid import VoxelGrid
+
+    # the peer's own grid: a wall at y = 2.013, its voxels' centres at 2.05
+    origin = VoxelGrid(0.1, surface=True)
+    x = np.linspace(-1.5, 1.5, 601)
+    rng = np.random.default_rng(0)
+    for t in range(5):
+        wall = np.column_stack([x, 2.013 + rng.normal(0, 0.003, x.size), np.full(x.size, 0.3)])
+        origin.integrate(wall, np.array([0.0, 0.0, 0.3]), time=float(t))
+    layers = Layers("me", 0.1)
+    applied = layers.get("peer").offer(1, 0, 1, origin.delta_since(0))  # as gossip delivers it
+    assert applied.outcome == "applied"
+    cut = ColonyMaps("me", planar=True, height=0.3, sensor_range=2.0).refresh(
+        layers, _frame(0.0), np.eye(4)
+    )
+    assert cut is not None and len(cut) > 20
+    assert np.abs(cut.points[:, 1] - 2.013).max() < 0.002  # centres would be 37 mm off

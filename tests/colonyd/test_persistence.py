@@ -48,6 +48,28 @@ def test_wal_and_snapshot_recover_everything_logged(tmp_path, shape):
     store.close()
 
 
+def test_the_surface_survives_the_log_and_the_snapshot(tmp_path):
+    store = StateStore(tmp_path, "a", 0.1)
+    grid, published = store.recover().grid, 0
+    grid.surface = True  # as the daemon sets it (Config.surface)
+    for seq in range(1, 4):
+        scan(grid, seq)
+        store.append(seq, grid.delta_since(published))
+        published = grid.version
+        if seq == 2:
+            store.snapshot(grid, seq)
+    store.close()
+    again = StateStore(tmp_path, "a", 0.1).recover()
+    keys = grid.occupied_keys()
+    off = grid.surface_points(keys) - again.grid.surface_points(keys)
+    assert again.grid.content_equal(grid) and "surface" in grid.delta_since(0).channels
+    assert np.abs(off).max() <= 0.1 / 254 / 2 + 1e-12  # the log holds the wire's codes
+    assert np.abs(grid.surface_points(keys) - new_grid(0.1).surface_points(keys)).max() > 0.01
+    again.grid.surface = True
+    scan(again.grid, 4)  # integrating on after recovery keeps the channel going
+    assert "surface" in again.grid.delta_since(again.grid.version - 1).channels
+
+
 def test_torn_wal_tail_is_dropped(tmp_path):
     store = StateStore(tmp_path, "a", 0.1)
     grid = store.recover().grid
