@@ -81,7 +81,6 @@ def fuse_channels(
     blocks, offsets = store.split(hit_keys)
     slots = store.lookup(blocks)
     m = hit_keys.shape[0]
-    counts = np.bincount(inverse, minlength=m).astype(np.float64)
     moved = None
     if surface is not None:
         moved = fuse_surface(store, slots, offsets, inverse, *surface)
@@ -95,6 +94,7 @@ def fuse_channels(
         store.channels["last_time"][s, o] = stamp
         store.slot_version[s] = v
         return True
+    counts = np.bincount(inverse, minlength=m).astype(np.float64)
     weight_arr = store.channel("hits")
     w_old = weight_arr[slots, offsets].astype(np.float64)
     if not statistics:  # hits counted here only when statistics did not count them

@@ -119,6 +119,12 @@ def update() -> Callable[..., Any] | None:
     return _get("update")
 
 
+def surface() -> Callable[..., Any] | None:
+    """The compiled fusion of a scan's hit points into the surface means (see
+    `_fuse_surface`), or None."""
+    return _get("surface")
+
+
 def records() -> Callable[..., Any] | None:
     """The compiled writing of a chunk's history records (see `_fill_records`), or None."""
     return _get("records")
@@ -239,7 +245,7 @@ def _load() -> None:
         if "trace" in _compiled:
             return
         # "trace" last: callers test for it first
-        names = ("beams", "update", "index", "records", "trace")
+        names = ("beams", "update", "index", "records", "surface", "trace")
         found: dict[str, Callable[..., Any] | None] = dict.fromkeys(names)
         try:
             import numba
@@ -247,16 +253,98 @@ def _load() -> None:
             _compiled.update(found)
             return
         try:
-            sources = (_trace_box, _update_records, _sort_beams, _index_blocks, _fill_records)
+            sources = (
+                _trace_box,
+                _update_records,
+                _sort_beams,
+                _index_blocks,
+                _fill_records,
+                _fuse_surface,
+            )
             kernels = _compiled_or_in_memory(numba, sources)
-            _try_out(*kernels)
+            _try_out(*kernels[:5])
+            _try_surface(kernels[5])
             found = {"trace": kernels[0], "update": kernels[1], "beams": kernels[2]}
             found["index"] = kernels[3]
             found["records"] = kernels[4]
+            found["surface"] = kernels[5]
         except Exception as exc:  # noqa: BLE001 - any numba failure leaves the numpy path
             log.warning("compiled kernels unavailable, using numpy: %s", exc)
         for name in names:
             _compiled[name] = found[name]
+
+
+def _try_surface(fuse: Callable[..., Any]) -> None:
+    """One tiny call of the surface fusion (compiles or loads it)."""
+    fuse(
+        np.zeros((1, 1, 3), dtype=np.int16),
+        np.zeros((1, 1), dtype=np.uint16),
+        np.zeros((1, 1, 3), dtype=np.int8),
+        np.zeros(1, dtype=np.int64),
+        np.zeros(1, dtype=np.int64),
+        np.zeros(1, dtype=np.int64),
+        np.zeros((1, 3)),
+        np.ones(1, dtype=np.int64),
+        65532.0,
+        32766.0,
+        258.0,
+        127.0,
+        3,
+    )
+
+
+def _fuse_surface(
+    means: np.ndarray,
+    weights: np.ndarray,
+    published: np.ndarray,
+    slots: np.ndarray,
+    offsets: np.ndarray,
+    inverse: np.ndarray,
+    sums: np.ndarray,
+    counts: np.ndarray,
+    store_scale: float,
+    store_max: float,
+    store_step: float,
+    wire_max: float,
+    publish: int,
+) -> np.ndarray:
+    """`surface.fuse_surface` in one pass (the same floating-point operations in the same
+    order): the running means (`means`, int16 (slots, voxels, 3)) and weights of the hit voxels
+    at (`slots`, `offsets`) take the mean of the groups of points `inverse` maps to them
+    (`sums` (H, 3), `counts` (H,)); published codes follow where they moved `publish` codes or
+    the voxel is new. Returns the mask of voxels whose published codes changed."""
+    m = slots.shape[0]
+    acc = np.zeros((m, 3), dtype=np.float64)
+    pts = np.zeros(m, dtype=np.float64)
+    for i in range(inverse.shape[0]):
+        r = inverse[i]
+        acc[r, 0] += sums[i, 0]
+        acc[r, 1] += sums[i, 1]
+        acc[r, 2] += sums[i, 2]
+        pts[r] += np.float64(counts[i])
+    moved = np.zeros(m, dtype=np.bool_)
+    codes = np.empty(3, dtype=np.int64)
+    for r in range(m):
+        sl = slots[r]
+        o = offsets[r]
+        w = np.int64(weights[sl, o])
+        weights[sl, o] = np.uint16(w + 1 if w < 65535 else 65535)
+        step = False
+        for a in range(3):
+            frame = acc[r, a] / pts[r]
+            cur = np.float64(means[sl, o, a]) / store_scale
+            cur += (frame - cur) / (np.float64(w) + 1.0)
+            new = min(max(np.rint(cur * store_scale), -store_max), store_max)
+            means[sl, o, a] = np.int16(new)
+            code = min(max(np.rint(np.float64(np.int16(new)) / store_step), -wire_max), wire_max)
+            codes[a] = np.int64(code)
+            if abs(codes[a] - np.int64(published[sl, o, a])) >= publish:
+                step = True
+        if w == 0 or step:
+            for a in range(3):
+                published[sl, o, a] = np.int8(codes[a])
+            moved[r] = True
+    return moved
 
 
 def _trace_box(

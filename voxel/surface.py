@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from voxel import kernels
 from voxel import keys as vk
 from voxel.blocks import BlockStore
 from voxel.errors import DeltaError
@@ -102,6 +103,24 @@ def fuse_surface(
     first hit and when they differ by PUBLISH_CODES on an axis. Returns a mask (U,) of the
     voxels whose published codes changed (the others need no new version).
     """
+    compiled = kernels.surface()
+    if compiled is not None:
+        fused: np.ndarray = compiled(
+            store.channel(MEAN),
+            store.channel(WEIGHT),
+            store.channel(CHANNEL),
+            np.ascontiguousarray(slots, dtype=np.int64),
+            np.ascontiguousarray(offsets, dtype=np.int64),
+            np.ascontiguousarray(inverse, dtype=np.int64),
+            np.ascontiguousarray(sums, dtype=np.float64),
+            np.ascontiguousarray(counts, dtype=np.int64),
+            float(STORE_SCALE),
+            float(STORE_MAX),
+            float(STORE_STEP),
+            float(WIRE_MAX),
+            PUBLISH_CODES,
+        )
+        return fused
     m = slots.shape[0]
     points = np.bincount(inverse, weights=counts, minlength=m)
     frame = np.stack(

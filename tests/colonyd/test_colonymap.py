@@ -154,6 +154,7 @@ def test_the_cut_walks_by_its_peers_drift_and_follows_it() -> None:
 
 
 def test_the_cut_holds_a_replicas_surface_points_not_its_voxel_centres() -> None:
+    from protocol.deltacodec import decode_delta, encode_delta
     from voxel.grid import VoxelGrid
 
     # the peer's own grid: a wall at y = 2.013, its voxels' centres at 2.05
@@ -164,8 +165,13 @@ def test_the_cut_holds_a_replicas_surface_points_not_its_voxel_centres() -> None
         wall = np.column_stack([x, 2.013 + rng.normal(0, 0.003, x.size), np.full(x.size, 0.3)])
         origin.integrate(wall, np.array([0.0, 0.0, 0.3]), time=float(t))
     layers = Layers("me", 0.1)
-    applied = layers.get("peer").offer(1, 0, 1, origin.delta_since(0))  # as gossip delivers it
+    sent = decode_delta(encode_delta(origin.delta_since(0)))  # the wire, as gossip carries it
+    applied = layers.get("peer").offer(1, 0, 1, sent)
     assert applied.outcome == "applied"
+    keys = origin.occupied_keys()
+    replica = layers.get("peer").grid
+    assert np.array_equal(replica.surface_points(keys), origin.surface_points(keys))
+    assert replica.content_equal(origin)  # bit for bit, the surface codes included
     cut = ColonyMaps("me", planar=True, height=0.3, sensor_range=2.0).refresh(
         layers, _frame(0.0), np.eye(4)
     )

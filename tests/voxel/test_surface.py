@@ -176,3 +176,32 @@ def test_both_paths_give_the_same_surface_to_a_stored_quantum(monkeypatch):
     b = compiled.channel_at_keys("surface_mean", keys).astype(np.int64)
     assert np.abs(a - b).max() <= 1  # the compiled path sums repeated keys' points apart
     assert numpy_grid.content_equal(compiled)
+
+
+def test_the_compiled_fusion_is_the_numpy_fusion_bit_for_bit(monkeypatch):
+    from voxel import kernels
+    from voxel.blocks import BlockStore
+
+    pytest.importorskip("numba")
+    rng = np.random.default_rng(8)
+    keys = np.unique(rng.integers(-20, 20, (300, 3)), axis=0)
+    inverse = rng.integers(0, len(keys), 2000)
+    sums = rng.uniform(-0.5, 0.5, (2000, 3)) * 3
+    counts = rng.integers(1, 4, 2000)
+    out = []
+    for on in (False, True):
+        monkeypatch.setattr(kernels._switch, "on", on)
+        assert on == kernels.warm()
+        store = BlockStore()
+        blocks, offsets = store.split(keys)
+        slots = store.ensure(np.unique(blocks))[np.searchsorted(np.unique(blocks), blocks)]
+        moved = [
+            surface.fuse_surface(store, slots, offsets, inverse, sums / k, counts)
+            for k in (1.0, 1.01, 2.0, 2.0, 0.5)
+        ]
+        out.append((moved, {n: store.channels[n].copy() for n in ("surface", "surface_mean")}))
+    (m_np, ch_np), (m_c, ch_c) = out
+    assert all(np.array_equal(a, b) for a, b in zip(m_np, m_c, strict=True))
+    assert m_np[0].all() and not m_np[3].all()  # new voxels publish; a repeated scan mostly not
+    for name in ch_np:
+        assert np.array_equal(ch_np[name], ch_c[name]), name
