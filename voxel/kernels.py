@@ -979,7 +979,7 @@ def _sort_beams(
     cache: neighbouring pixels of a depth image share voxels) is left out: the hit keys are then
     the same set with fewer repeats (H <= the count of hit points), in the same order. With
     `surface`, also each hit key's sums (H, 3) of its points' offsets from their voxel's centre
-    in voxels (`surface.fractions`: x * inv - floor(x * inv) - 0.5), and its count of points
+    in voxels (x * inv - floor(x * inv) - 0.5), and its count of points
     (H,): a repeated key's point adds to the column it repeats (else both are empty)."""
     n = points.shape[0]
     max2 = max_range * max_range

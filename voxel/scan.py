@@ -123,8 +123,8 @@ class Beams:
     #: Points that hit, when `hit_keys` holds fewer columns (repeated keys left out); else -1
     hit_points: int = -1
     #: With `surface`: per column of `hit_keys`, the sums (H, 3) of its points' offsets from
-    #: their voxel's centre in voxels (`voxel.surface.fractions`; (H, 3)) and its count of
-    #: points (H,)
+    #: their voxel's centre in voxels (x / resolution - floor(x / resolution) - 0.5 per axis)
+    #: and its count of points (H,)
     surface_sums: np.ndarray | None = None
     surface_counts: np.ndarray | None = None
 
@@ -200,7 +200,7 @@ def sort_beams(
     hit_keys = rows * inv if all_hit else np.compress(hit_mask, rows, axis=1) * inv
     sums = hit_keys.copy() if surface else None
     np.floor(hit_keys, out=hit_keys)
-    if sums is not None:  # x - floor(x) - 0.5, as `voxel.surface.fractions`
+    if sums is not None:  # x - floor(x) - 0.5: the offset from the voxel's centre
         sums -= hit_keys
         sums -= 0.5
     if hit_keys.size and (hit_keys.min() < vk.KEY_MIN or hit_keys.max() > vk.KEY_MAX):

@@ -39,15 +39,6 @@ MEAN = "surface_mean"
 WEIGHT = "surface_weight"
 
 
-def fractions(points: np.ndarray, resolution: float) -> np.ndarray:
-    """Offsets (N, 3) of points from their voxels' centres, in voxels, in [-0.5, 0.5): the voxel
-    of a point is floor(point / resolution), as the grid keys it."""
-    x = np.asarray(points, dtype=np.float64) * (1.0 / resolution)
-    out: np.ndarray = x - np.floor(x)
-    out -= 0.5
-    return out
-
-
 def to_wire(stored: np.ndarray) -> np.ndarray:
     """Codes (int8) of running means (int16)."""
     codes = np.rint(np.asarray(stored, dtype=np.float64) / STORE_STEP)
@@ -97,7 +88,8 @@ def fuse_surface(
 
     The voxels at (`slots`, `offsets`) (U,) are the scan's hit voxels, `inverse` (H,) the row
     in them of each group of hit points, `sums` (H, 3) the sums of the groups' offsets from
-    their voxel's centre in voxels (`fractions`) and `counts` (H,) their sizes. A scan is one
+    their voxel's centre in voxels (x / resolution - floor(x / resolution) - 0.5 per axis) and
+    `counts` (H,) their sizes. A scan is one
     sample of weight 1, its points' mean, as colours and normals are fused (the weight is the
     count of scans, saturating at 65535). A voxel's published code takes its mean's at its
     first hit and when they differ by PUBLISH_CODES on an axis. Returns a mask (U,) of the
