@@ -357,6 +357,6 @@ def write_map(grid: VoxelGrid, out_dir: Path, trajectory: list[str]) -> dict[str
         colours = grid.channel_at_keys("colour", occupied) if len(occupied) else None
     except InputError:  # no colour was ever integrated
         colours = None
-    write_ply(files["ply"], (occupied.astype(np.float64) + 0.5) * grid.resolution, colours)
+    write_ply(files["ply"], grid.surface_points(occupied), colours)  # mean hit positions
     files["trajectory"].write_text("".join(line + "\n" for line in trajectory), encoding="ascii")
     return files

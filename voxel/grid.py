@@ -609,10 +609,11 @@ class VoxelGrid:
         write_bt(path, self.resolution, self.store.join(bkeys[b], o), lo[b, o] >= 0)
 
     def write_ply(self, path: str | Path) -> None:
-        """Export occupied voxel centres as a binary PLY point cloud, with colour when known."""
+        """Export the occupied voxels' surface points (`surface_points`: their centres without the
+        surface channel) as a binary PLY point cloud, with colour when known."""
         keys = self.occupied_keys()
         colours = self.channel_at_keys("colour", keys) if "colour" in self.store.channels else None
-        write_ply(path, vk.keys_to_centers(keys, self.resolution), colours)
+        write_ply(path, self.surface_points(keys), colours)
 
     @classmethod
     def from_bt(cls, path: str | Path, *, time: float = 0.0) -> VoxelGrid:
