@@ -144,12 +144,17 @@ def delta_of(
         for name, arr in store.channels.items()
         if name not in CORE_CHANNELS and name not in LOCAL_CHANNELS
     }
+    logodds = store.channels["logodds"][s, o]
+    codes = channels.get(surface.CHANNEL)
+    if codes is not None:  # a surface is what an occupied voxel has: free ones travel as 0
+        with np.errstate(invalid="ignore"):
+            codes[~(logodds >= 0)] = 0
     return Delta(
         resolution=resolution,
         from_version=int(version),
         to_version=to_version,
         keys=keys,
-        logodds=store.channels["logodds"][s, o],
+        logodds=logodds,
         last_time=times.seconds(store.channels["last_time"][s, o]),
         channels=channels,
         time=time,

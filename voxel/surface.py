@@ -17,8 +17,8 @@ if TYPE_CHECKING:
 
 #: Codes: an offset of `code / WIRE_SCALE` voxels per axis, code in [-WIRE_MAX, WIRE_MAX] (int8,
 #: -128 never valid): 1/254 of a voxel, 0.39 mm at 10 cm, within half a voxel. The `surface`
-#: channel holds these codes as published (deltas carry them exactly, so a replica holds the
-#: origin's values bit for bit).
+#: channel holds these codes as published (deltas carry them exactly for occupied voxels, 0 for the
+#: others, so a replica holds an occupied voxel's values bit for bit).
 WIRE_SCALE = 254
 WIRE_MAX = 127
 #: The running mean behind them is int16 multiples of 1/(WIRE_SCALE * STORE_STEP) voxel (1.5 um

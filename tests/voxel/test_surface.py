@@ -117,8 +117,11 @@ def test_replica_reproduces_the_surface_within_the_wire_quantum():
     keys = origin.occupied_keys()
     assert np.array_equal(replica.surface_points(keys), origin.surface_points(keys))
     assert replica.content_equal(origin)
-    sent = origin.delta_since(0).channels
+    full = origin.delta_since(0)
+    sent = full.channels
     assert "surface" in sent and "surface_weight" not in sent and "surface_mean" not in sent
+    assert not sent["surface"][~full.occupied].any()  # free voxels travel as 0 0 0
+    assert sent["surface"][full.occupied].any()
     # the published codes follow the running means within PUBLISH_CODES
     means = origin.channel_at_keys("surface_mean", keys) / surface.STORE_STEP
     codes = origin.channel_at_keys("surface", keys)
