@@ -180,6 +180,7 @@ def test_listen_port_in_use_is_named_without_rust_source_paths(tmp_path: Path) -
         (["map", "--source", "s", "--out", "o", "--resolution", "-1"], "found '-1'"),
         (["demo", "--duration", "-5"], "argument --duration: expected a number > 0, found '-5'"),
         (["demo", "--timeout", "inf"], "argument --timeout: expected a number > 0"),
+        (["demo", "--align-wait", "-1"], "argument --align-wait: expected a number >= 0, found"),
         (
             ["experiment", "paper", "--out", "o", "--parallel", "0"],
             "argument --parallel: expected a whole number >= 1, found '0'",
