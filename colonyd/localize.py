@@ -14,6 +14,7 @@ from colonyd.estimator import Estimator, ScanEstimator, get_estimator
 from colonyd.mapping import get_progress, integrate_observation, tum_line, write_map
 from colonyd.outdir import output_dir
 from plugins.carmen import CarmenSource
+from plugins.errors import SourceError
 from plugins.observation import Observation
 from plugins.sevenscenes import RgbdSource
 from plugins.source import open_source
@@ -105,6 +106,13 @@ def localize_source(
             bar.update(len(times), total)
     finally:
         bar.close()
+    if not times:  # (as `colonyd map`: an empty map and trajectory are no result)
+        reasons = "; ".join(f"{n} x {r}" for r, n in source.stats.reasons.items()) or "none given"
+        msg = (
+            f"{spec}: expected at least one readable frame, found none "
+            f"({source.stats.skipped} skipped: {reasons}); nothing written"
+        )
+        raise SourceError(msg)
     files = write_map(grid, out_dir, [tum_line(t, p) for t, p in zip(times, est, strict=True)])
     files["estimate"] = _write_tum(out_dir / "estimate.tum", times, est)
     smoothed: list[np.ndarray] = []

@@ -61,6 +61,11 @@ def test_docs_hold_the_generated_reference() -> None:
                 "found 'many'"
             ),
         ),
+        (  # no frames: an empty map written as a success
+            "sim:frames=0",
+            EXIT_CONFIG,
+            "option 'frames': expected a number greater than or equal to 1, found '0'",
+        ),
         (
             "synthetic:bogus=1",
             EXIT_CONFIG,
