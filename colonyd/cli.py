@@ -777,11 +777,12 @@ def main(argv: list[str] | None = None) -> int:
         odo = "no odometry" if s.ate_odometry is None else f"odometry {s.ate_odometry:.3f} m"
         if s.ate_smoothed is not None:
             odo += f", smoothed {s.ate_smoothed:.3f} m"
-        ate = (
-            f"ATE {s.ate_estimate:.3f} m ({odo})"
-            if s.ate_estimate is not None
-            else "no reference: ATE not measured"
-        )
+        if s.ate_estimate is not None:
+            ate = f"ATE {s.ate_estimate:.3f} m ({odo})"
+        elif s.reference_poses:
+            ate = f"ATE not measured: expected at least 3 poses, found {s.reference_poses}"
+        else:
+            ate = "no reference: ATE not measured"
         sys.stdout.write(
             f"{s.spec}: {s.frames} frames by {s.estimator} in {s.seconds:.1f} s; {ate}\n"
             f"wrote {', '.join(str(p) for p in s.files.values())}\n"

@@ -22,6 +22,9 @@ from voxel.grid import VoxelGrid
 from voxel.localisation import se2
 from voxel.localisation.metrics import absolute_trajectory_error
 
+#: Poses an ATE needs (the rigid fit of the path onto the reference takes three).
+MIN_ATE_POSES = 3
+
 
 @dataclass(frozen=True)
 class LocalizeSummary:
@@ -36,6 +39,8 @@ class LocalizeSummary:
     ate_smoothed: float | None
     recording_seconds: float
     files: dict[str, Path]
+    #: Poses with a reference (simulator truth, a recording's reference): 0 without one.
+    reference_poses: int = 0
 
 
 def _reference(source: object, obs: Observation) -> np.ndarray | None:
@@ -127,8 +132,9 @@ def localize_source(
     ate_est = ate_odo = ate_smooth = None
     if len(odo) == len(times) and odo:
         files["odometry"] = _write_tum(out_dir / "odometry.tum", times, odo)
-    if len(ref) == len(times) and len(ref) >= 3:
+    if len(ref) == len(times):
         files["groundtruth"] = _write_tum(out_dir / "groundtruth.tum", times, ref)
+    if len(ref) == len(times) and len(ref) >= MIN_ATE_POSES:
         ate_est = absolute_trajectory_error(np.array(ref), np.array(est)).rmse
         if smoothed:
             ate_smooth = absolute_trajectory_error(np.array(ref), np.array(smoothed)).rmse
@@ -146,6 +152,7 @@ def localize_source(
         ate_smoothed=ate_smooth,
         recording_seconds=recording,
         files=files,
+        reference_poses=len(ref) if len(ref) == len(times) else 0,
     )
     files["results"] = out_dir / "results.json"
     files["results"].write_text(

@@ -204,3 +204,16 @@ def test_a_source_of_no_frames_is_an_error_and_nothing_is_written(
     assert exit_info.value.code == code
     assert message in capfd.readouterr().err
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_too_few_poses_for_an_ate_say_so_and_keep_the_reference(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two sim frames: the reference is there (groundtruth.tum, as the docs promise), the ATE
+    needs three poses; it said 'no reference' and wrote no groundtruth.tum."""
+    out = tmp_path / "out"
+    assert main(["localize", "--source", "sim:frames=2", "--out", str(out), "--no-progress"]) == 0
+    said = capsys.readouterr().out
+    assert "ATE not measured: expected at least 3 poses, found 2" in said, said
+    assert len((out / "groundtruth.tum").read_text().splitlines()) == 2
+    assert _results(out)["ate_rmse_m"]["estimate"] is None
