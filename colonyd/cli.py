@@ -185,6 +185,18 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _non_negative_float(text: str) -> float:
+    """An argparse type: a number >= 0 (seconds to wait)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value >= 0 or value == float("inf"):
+        msg = f"expected a number >= 0, found {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
 def _lidar_range(p: argparse.ArgumentParser) -> None:
     from colonyd.experiment import LIDAR_RANGE
 
@@ -563,6 +575,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=150.0,
         help="give up waiting for the colony after this many seconds (default 150)",
     )
+    p.add_argument(
+        "--align-wait",
+        type=_non_negative_float,
+        default=15.0,
+        help="once mapping is over, wait up to this many seconds for every member to align "
+        "(default 15; a loaded machine registers maps slowly)",
+    )
     p = sub.add_parser("experiment", help="experiments of the paper, as real daemons on loopback")
     esub = p.add_subparsers(dest="experiment", required=True)
     e = esub.add_parser(
@@ -594,6 +613,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="end a run whose sources are not done after this many seconds and mark it "
         "incomplete (default 6 x duration + 120)",
+    )
+    e.add_argument(
+        "--start-delay",
+        type=_non_negative_float,
+        default=15.0,
+        help="seconds from starting a run's daemons to the start of its agents' paths (default "
+        "15: every daemon is up by then on a loaded machine; frames a daemon is late for are "
+        "mapped late, not skipped)",
     )
     _name_parsers(parser)
     return parser
@@ -760,11 +787,12 @@ def main(argv: list[str] | None = None) -> int:
         odo = "no odometry" if s.ate_odometry is None else f"odometry {s.ate_odometry:.3f} m"
         if s.ate_smoothed is not None:
             odo += f", smoothed {s.ate_smoothed:.3f} m"
-        ate = (
-            f"ATE {s.ate_estimate:.3f} m ({odo})"
-            if s.ate_estimate is not None
-            else "no reference: ATE not measured"
-        )
+        if s.ate_estimate is not None:
+            ate = f"ATE {s.ate_estimate:.3f} m ({odo})"
+        elif s.reference_poses:
+            ate = f"ATE not measured: expected at least 3 poses, found {s.reference_poses}"
+        else:
+            ate = "no reference: ATE not measured"
         sys.stdout.write(
             f"{s.spec}: {s.frames} frames by {s.estimator} in {s.seconds:.1f} s; {ate}\n"
             f"wrote {', '.join(str(p) for p in s.files.values())}\n"
@@ -785,13 +813,16 @@ def main(argv: list[str] | None = None) -> int:
             timeout=args.timeout,
             lidar_range=args.lidar_range,
             world=args.world,
+            start_delay=args.start_delay,
         )
         sys.stdout.write(f"wrote {args.out}: results.json, pose-error.png, <run>/\n")
         return EXIT_OK
     if cmd == "demo":
         from colonyd.demo import run_demo
 
-        return run_demo(args.out, duration=args.duration, timeout=args.timeout)
+        return run_demo(
+            args.out, duration=args.duration, timeout=args.timeout, align_wait=args.align_wait
+        )
     return EXIT_USAGE
 
 

@@ -102,7 +102,7 @@ KERNELS_WAIT_S = 10.0
 #: reports (`warm` in its status) and what they allocate is frozen out of the collector's passes
 #: at once (`heap.Freezer`) rather than a few at a time as the jobs first run.
 WARM_IMPORTS = (
-    "sklearn.cluster",  # only where objects are clustered: with sources and `objects_s`
+    "sklearn.cluster",  # only where objects are clustered: `objects_s`, sources that label
     "scipy.spatial",
     "scipy.spatial.transform",
     "scipy.ndimage",
@@ -126,6 +126,12 @@ def get_sources(
         open_source(spec, resolution=config.resolution, seed=seed + i, stop=stop, session=session)
         for i, spec in enumerate(config.sources)
     ]
+
+
+def may_label(source: Source) -> bool:
+    """Whether `source`'s observations may carry class ids (objects to cluster): its adapter says
+    so with `labels` (LiDARs and synthetic points do not); one that says nothing may."""
+    return bool(getattr(source.adapter, "labels", True))
 
 
 #: Seconds between estimates of the own bias against aligned peers (colonyd/provenance.py).
@@ -389,7 +395,7 @@ class Daemon:
         if self._sources:
             kernels.warm()
             kernels.warm_codec()
-        clusters = bool(self._sources) and self.config.objects_s > 0
+        clusters = self.config.objects_s > 0 and any(map(may_label, self._sources))
         for name in WARM_IMPORTS:
             if name.startswith("sklearn") and not clusters:
                 continue  # ~90 MB of modules (RSS) a daemon that clusters nothing never needs

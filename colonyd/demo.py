@@ -29,6 +29,8 @@ LATE = ("lidar3d-1", 9)
 ODOMETRY_NOISE = "realistic"
 #: Seconds between progress lines when stdout is not a terminal (no live table there).
 PROGRESS_S = 10.0
+#: Seconds to wait, once mapping is over and the colony converged, for every member to align.
+ALIGN_WAIT_S = 15.0
 #: Seconds to wait for each robot's replay alone after the colony stopped (about 30 s on the
 #: idle 2-core machine; 70 s for depth-1 at load 11-15).
 REPLAY_WAIT_S = 180.0
@@ -85,8 +87,11 @@ def _progress_line(reports: list[dict[str, Any]], now: float) -> str:
     )
 
 
-def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> int:
-    """Run the demo for `duration` seconds of mapping; write maps, pictures and a summary."""
+def run_demo(
+    out: Path, *, duration: float = 40.0, timeout: float = 120.0, align_wait: float = ALIGN_WAIT_S
+) -> int:
+    """Run the demo for `duration` seconds of mapping, then wait up to `align_wait` seconds for
+    every member to align; write maps, pictures and a summary."""
     from rich.console import Console
     from rich.live import Live
 
@@ -126,7 +131,7 @@ def run_demo(out: Path, *, duration: float = 40.0, timeout: float = 120.0) -> in
                     late.caught_up_at = now  # converged: it holds every layer as its origin
                 if converged and all(t.aligned_at is not None for t in run.tracks.values()):
                     break
-                if converged and now > duration + 15:
+                if converged and now > duration + align_wait:
                     break  # mapping is over; alignment did not complete: say so below
                 time.sleep(0.5)
             reports = run.poll_all()  # every member's last report (the summary reads them)

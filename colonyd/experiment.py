@@ -92,12 +92,18 @@ def _round(x: float | None, digits: int = 4) -> float | None:
 
 
 def _start(
-    base: Path, name: str, seed: int, duration: float, lidar_range: float, world: str
+    base: Path,
+    name: str,
+    seed: int,
+    duration: float,
+    lidar_range: float,
+    world: str,
+    start_delay: float = EPOCH_DELAY_S,
 ) -> SimRun:
     agents = RUNS[name]
     env = {"COLONYD_ANCHOR": ANCHOR} if ANCHOR in agents else {}
     run = SimRun(base / name, name, env=env, odometry_noise=ODOMETRY_NOISE, world=world)
-    epoch = time.time() + EPOCH_DELAY_S
+    epoch = time.time() + start_delay
     try:
         for agent in agents:
             run.add(
@@ -213,11 +219,13 @@ def run_paper(
     progress: bool = True,
     lidar_range: float | None = None,
     world: str = "office",
+    start_delay: float = EPOCH_DELAY_S,
 ) -> dict[str, Any]:
     """Run every run of `RUNS` in the sim `world` (at most `parallel` at a time), each for
-    `duration` seconds of sim time (a run whose sources are not done after `timeout` seconds,
-    default 6 x duration + 120, is evaluated as far as it got and marked incomplete); write
-    trajectories, pictures and results.json into `out`; return the results."""
+    `duration` seconds of sim time from `start_delay` seconds after its daemons' start (a run
+    whose sources are not done after `timeout` seconds, default 6 x duration + 120, is evaluated
+    as far as it got and marked incomplete); write trajectories, pictures and results.json into
+    `out`; return the results."""
     from rich.console import Console
     from rich.live import Live
 
@@ -242,7 +250,9 @@ def run_paper(
             while pending or active:
                 while pending and len(active) < max(1, parallel):
                     name = pending.pop(0)
-                    active[name] = _start(work, name, seed, duration, lidar_range, world)
+                    active[name] = _start(
+                        work, name, seed, duration, lidar_range, world, start_delay
+                    )
                     active[name].watch()
                     if progress and not console.is_terminal:  # a log: no live table there
                         _say(f"{name}: started", began)
@@ -269,6 +279,7 @@ def run_paper(
         "duration_s": duration,
         "lidar_range_m": lidar_range,
         "odometry_noise": ODOMETRY_NOISE,
+        "start_delay_s": start_delay,
         "seconds": round(time.monotonic() - began, 1),
         "runs": {name: done[name].metrics for name in RUNS},
         "complete": {name: done[name].complete for name in RUNS},

@@ -14,12 +14,16 @@ from colonyd.estimator import Estimator, ScanEstimator, get_estimator
 from colonyd.mapping import get_progress, integrate_observation, tum_line, write_map
 from colonyd.outdir import output_dir
 from plugins.carmen import CarmenSource
+from plugins.errors import SourceError
 from plugins.observation import Observation
 from plugins.sevenscenes import RgbdSource
 from plugins.source import open_source
 from voxel.grid import VoxelGrid
 from voxel.localisation import se2
 from voxel.localisation.metrics import absolute_trajectory_error
+
+#: Poses an ATE needs (the rigid fit of the path onto the reference takes three).
+MIN_ATE_POSES = 3
 
 
 @dataclass(frozen=True)
@@ -35,6 +39,8 @@ class LocalizeSummary:
     ate_smoothed: float | None
     recording_seconds: float
     files: dict[str, Path]
+    #: Poses with a reference (simulator truth, a recording's reference): 0 without one.
+    reference_poses: int = 0
 
 
 def _reference(source: object, obs: Observation) -> np.ndarray | None:
@@ -105,6 +111,13 @@ def localize_source(
             bar.update(len(times), total)
     finally:
         bar.close()
+    if not times:  # (as `colonyd map`: an empty map and trajectory are no result)
+        reasons = "; ".join(f"{n} x {r}" for r, n in source.stats.reasons.items()) or "none given"
+        msg = (
+            f"{spec}: expected at least one readable frame, found none "
+            f"({source.stats.skipped} skipped: {reasons}); nothing written"
+        )
+        raise SourceError(msg)
     files = write_map(grid, out_dir, [tum_line(t, p) for t, p in zip(times, est, strict=True)])
     files["estimate"] = _write_tum(out_dir / "estimate.tum", times, est)
     smoothed: list[np.ndarray] = []
@@ -119,8 +132,9 @@ def localize_source(
     ate_est = ate_odo = ate_smooth = None
     if len(odo) == len(times) and odo:
         files["odometry"] = _write_tum(out_dir / "odometry.tum", times, odo)
-    if len(ref) == len(times) and len(ref) >= 3:
+    if len(ref) == len(times):
         files["groundtruth"] = _write_tum(out_dir / "groundtruth.tum", times, ref)
+    if len(ref) == len(times) and len(ref) >= MIN_ATE_POSES:
         ate_est = absolute_trajectory_error(np.array(ref), np.array(est)).rmse
         if smoothed:
             ate_smooth = absolute_trajectory_error(np.array(ref), np.array(smoothed)).rmse
@@ -138,6 +152,7 @@ def localize_source(
         ate_smoothed=ate_smooth,
         recording_seconds=recording,
         files=files,
+        reference_poses=len(ref) if len(ref) == len(times) else 0,
     )
     files["results"] = out_dir / "results.json"
     files["results"].write_text(

@@ -197,6 +197,9 @@ class CarmenSource:
         if step < 1 or start < 0:
             msg = f"start/step: expected start >= 0 and step >= 1, found {start}, {step}"
             raise SourceSpecError(msg)
+        if stop is not None and stop <= start:  # no scan at all: an empty map
+            msg = f"start/stop: expected stop > start, found start {start}, stop {stop}"
+            raise SourceSpecError(msg)
         self.poses, self.start, self.stop, self.step, self.strict = poses, start, stop, step, strict
         for name, value in (("move_x", move_x), ("move_y", move_y), ("move_yaw", move_yaw)):
             if not math.isfinite(value):

@@ -49,6 +49,7 @@ class Lidar2D:
 
     name = "lidar2d"
     kind = "lidar2d"
+    labels = False  # its observations carry no class ids (colonyd.daemon: nothing to cluster)
 
     def __init__(
         self,
@@ -147,6 +148,7 @@ class Lidar3D:
 
     name = "lidar3d"
     kind = "lidar3d"
+    labels = False  # its observations carry no class ids (colonyd.daemon: nothing to cluster)
 
     def __init__(
         self,

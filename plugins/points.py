@@ -14,6 +14,7 @@ class PointsAdapter:
     """Takes (N, 3) sensor-frame points as they are; OctoMap's default sensor model, kind `sim`."""
 
     kind = "sim"
+    labels = False  # its observations carry no class ids (colonyd.daemon: nothing to cluster)
 
     def __init__(self, name: str, *, reliability: float = 1.0, noise: float = 0.0) -> None:
         self.name = name

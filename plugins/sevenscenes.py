@@ -242,6 +242,12 @@ class RgbdSource:
             raise SourceSpecError(msg)
         self.layout = layout
         self.frames = frames[start:stop:step]
+        if not self.frames:  # an empty map, written as if it were one
+            msg = (
+                f"start/stop/step: expected a selection of at least one of the {len(frames)} "
+                f"frames, found none (start {start}, stop {stop}, step {step})"
+            )
+            raise SourceSpecError(msg)
         self.strict = strict
         self.spec = spec or f"replay:{self.root}"
         self.adapter: SensorAdapter = load_adapter(

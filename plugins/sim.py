@@ -394,7 +394,7 @@ class SimOptions(Options):
     )
     seed: int = Field(0, description="seed of the odometry and range noise")
     frames: int = Field(
-        100, description="frames to deliver (>= 0), at the agent's rate in simulated time"
+        100, ge=1, description="frames to deliver (>= 1), at the agent's rate in simulated time"
     )
     noise: float = Field(0.02, description="odometry noise, relative to the distance travelled")
     drift: float = Field(0.0, description="odometry heading drift, radians per metre")
@@ -477,8 +477,8 @@ class SimSource:
         if start not in ("origin", "world"):
             msg = f"start: expected 'origin' or 'world', found {start!r}"
             raise SourceSpecError(msg)
-        if frames < 0:
-            msg = f"frames: expected a non-negative integer, found {frames}"
+        if frames < 1:  # none: an empty map, written as if it were one
+            msg = f"frames: expected a whole number >= 1, found {frames}"
             raise SourceSpecError(msg)
         self.agent = agents[agent]
         names = [r for r in robots.split("+") if r]

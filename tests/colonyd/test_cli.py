@@ -61,6 +61,11 @@ def test_docs_hold_the_generated_reference() -> None:
                 "found 'many'"
             ),
         ),
+        (  # no frames: an empty map written as a success
+            "sim:frames=0",
+            EXIT_CONFIG,
+            "option 'frames': expected a number greater than or equal to 1, found '0'",
+        ),
         (
             "synthetic:bogus=1",
             EXIT_CONFIG,
@@ -180,6 +185,7 @@ def test_listen_port_in_use_is_named_without_rust_source_paths(tmp_path: Path) -
         (["map", "--source", "s", "--out", "o", "--resolution", "-1"], "found '-1'"),
         (["demo", "--duration", "-5"], "argument --duration: expected a number > 0, found '-5'"),
         (["demo", "--timeout", "inf"], "argument --timeout: expected a number > 0"),
+        (["demo", "--align-wait", "-1"], "argument --align-wait: expected a number >= 0, found"),
         (
             ["experiment", "paper", "--out", "o", "--parallel", "0"],
             "argument --parallel: expected a whole number >= 1, found '0'",

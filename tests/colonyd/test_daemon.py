@@ -55,3 +55,27 @@ def test_a_bad_spec_fails_before_anything_runs():
     config = load_config(None, sources=["synthetic:scans=1", "sim:frames=many"])
     with pytest.raises(SourceSpecError, match=r"option 'frames': expected int, found 'many'"):
         get_sources(config, threading.Event())
+
+
+def test_only_sources_that_may_label_have_the_daemon_import_the_clustering():
+    """A daemon imports scikit-learn (~1 s of CPU) at start-up only for sources whose adapter may
+    label points: LiDARs and synthetic points say they do not, and do not; a depth camera and a
+    CCTV do; an adapter that says nothing may."""
+    from colonyd.daemon import may_label
+
+    said = {}
+    for spec in (
+        "synthetic:scans=1,rate=100,points=50",
+        "sim:world=office,agent=lidar-1,frames=2",
+        "sim:world=office,agent=lidar3d-1,frames=2",
+        "sim:world=office,agent=depth-1,frames=2",
+    ):
+        source = open_source(spec)
+        said[spec] = may_label(source)
+        if not said[spec]:  # what it says is true of what it delivers
+            assert all(obs.class_ids is None for obs in source), spec
+    assert list(said.values()) == [False, False, False, True], said
+    assert may_label(open_source("sim:world=office,agent=cctv-1,frames=1"))
+    source = open_source("synthetic:scans=1")
+    source.adapter = type("ThirdParty", (), {"kind": "sim"})()  # says nothing: it may
+    assert may_label(source)

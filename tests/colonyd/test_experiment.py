@@ -33,6 +33,8 @@ def test_experiment_paper_writes_every_output(tmp_path):
             "5",
             "--parallel",
             "4",
+            "--start-delay",  # (15 s by default: late frames are mapped late, none is skipped)
+            "4",
             "--world",  # the sparse hall: the option reaches every daemon's source (the default,
             "hall",  # the office, is the same code with another world's name)
         ],
@@ -43,7 +45,7 @@ def test_experiment_paper_writes_every_output(tmp_path):
     )
     assert run.returncode == 0, run.stdout + run.stderr
     results = json.loads((out / "results.json").read_text())
-    assert results["world"] == "hall"
+    assert results["world"] == "hall" and results["start_delay_s"] == 4
     assert set(results["runs"]) == set(RUNS)
     for name, agents in RUNS.items():
         assert set(results["runs"][name]) == set(agents), name
@@ -140,3 +142,22 @@ def test_a_run_interrupted_while_starting_stops_the_daemons_it_started(tmp_path,
         experiment._start(tmp_path, "lidar+depth", 1, 5.0, 4.0, "office")
     assert len(started) == 1
     assert not started[0].alive()
+
+
+def test_a_runs_shared_clock_starts_its_start_delay_after_its_daemons(tmp_path, monkeypatch):
+    """`--start-delay`: every agent of a run gets the same epoch, that many seconds from now."""
+    import time
+
+    from colonyd import experiment
+
+    options: list[str] = []
+    monkeypatch.setattr(
+        experiment.SimRun,
+        "add",
+        lambda self, agent, duration, seed, extra="": options.append(extra),
+    )
+    now = time.time()
+    experiment._start(tmp_path, "lidar+depth+cctv", 1, 5.0, 4.0, "office", 4.0).close()
+    epochs = {float(re.search(r"epoch=([0-9.]+)", o).group(1)) for o in options}
+    assert len(options) == 3 and len(epochs) == 1, options
+    assert abs(epochs.pop() - (now + 4.0)) < 1.0

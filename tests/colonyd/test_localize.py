@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from colonyd.cli import EXIT_CONFIG, launch, main
+from colonyd.cli import EXIT_CONFIG, EXIT_DATA, launch, main
 from tests.shared import SHARED_DATA
 
 DATA = SHARED_DATA
@@ -169,3 +169,51 @@ def test_a_source_no_estimator_can_follow_says_what_would_do(
         "or a depth camera for visual odometry), found points with neither odometry nor a "
         "depth image" in capfd.readouterr().err
     )
+
+
+@pytest.mark.parametrize(
+    ("spec", "code", "message"),
+    [
+        (
+            "sim:frames=0",
+            EXIT_CONFIG,
+            "option 'frames': expected a number greater than or equal to 1, found '0'",
+        ),
+        (f"replay:{LOG},start=5,stop=5", EXIT_CONFIG, "expected stop > start, found start 5"),
+        (
+            f"replay:{LOG},start=999999",
+            EXIT_DATA,
+            "start=999999: expected at least one readable frame, found none",
+        ),
+        (
+            f"replay:{DATA / 'redkitchen-50'},start=50",
+            EXIT_CONFIG,
+            "expected a selection of at least one of the 50 frames, found none (start 50,",
+        ),
+    ],
+)
+def test_a_source_of_no_frames_is_an_error_and_nothing_is_written(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str], spec: str, code: int, message: str
+) -> None:
+    """No frames gave an empty map, trajectory and results.json, and exit code 0."""
+    if spec.startswith("replay:") and not DATA.is_dir():
+        pytest.skip(f"real data not found: {DATA} is missing")
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as exit_info:
+        launch(["localize", "--source", spec, "--out", str(out), "--no-progress"])
+    assert exit_info.value.code == code
+    assert message in capfd.readouterr().err
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_too_few_poses_for_an_ate_say_so_and_keep_the_reference(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two sim frames: the reference is there (groundtruth.tum, as the docs promise), the ATE
+    needs three poses; it said 'no reference' and wrote no groundtruth.tum."""
+    out = tmp_path / "out"
+    assert main(["localize", "--source", "sim:frames=2", "--out", str(out), "--no-progress"]) == 0
+    said = capsys.readouterr().out
+    assert "ATE not measured: expected at least 3 poses, found 2" in said, said
+    assert len((out / "groundtruth.tum").read_text().splitlines()) == 2
+    assert _results(out)["ate_rmse_m"]["estimate"] is None

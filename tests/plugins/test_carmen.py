@@ -111,6 +111,11 @@ def test_bad_options(tmp_path: Path) -> None:
         SourceSpecError, match="poses: expected 'reference' or 'odometry', found 'gps'"
     ):
         CarmenSource(log, poses="gps")
+    for stop in (0, 3, -1):  # no scan selected: an empty map written as a success before
+        with pytest.raises(
+            SourceSpecError, match=f"start/stop: expected stop > start, found start 3, stop {stop}"
+        ):
+            CarmenSource(log, start=3, stop=stop)
     assert math.isfinite(CarmenSource(log).adapter.sensor_model.max_range)
 
 

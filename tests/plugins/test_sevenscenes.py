@@ -121,3 +121,17 @@ def test_missing_and_empty_folders(tmp_path: Path) -> None:
     bad.write_text("585 0 320\n0 585 240\n")
     with pytest.raises(ParseError, match=r"K\.txt: expected 3 rows of 3 numbers, found 2 rows"):
         read_matrix(bad, (3, 3))
+
+
+@needs_kitchen
+def test_a_selection_of_no_frames_is_a_spec_error() -> None:
+    """start/stop/step that select none of the frames: an empty map written as a success
+    before."""
+    for options in ({"start": 50}, {"start": 10, "stop": 10}, {"stop": -60}):
+        with pytest.raises(
+            SourceSpecError,
+            match=r"start/stop/step: expected a selection of at least one of the 50 frames, "
+            r"found none \(start",
+        ):
+            RgbdSource(KITCHEN, **options)
+    assert len(RgbdSource(KITCHEN, start=49)) == 1

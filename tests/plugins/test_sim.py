@@ -133,6 +133,8 @@ def test_bad_sim_options() -> None:
         SimSource(world="room", agent="x")
     with pytest.raises(SourceSpecError, match="start: expected 'origin' or 'world', found 'moon'"):
         SimSource(start="moon")
+    with pytest.raises(SourceSpecError, match="frames: expected a whole number >= 1, found 0"):
+        SimSource(frames=0)  # no frames: an empty map written as a success before
 
 
 def test_a_late_reader_skips_frames_unless_told_to_keep_them() -> None:
