@@ -5,7 +5,8 @@ Not the daemon's code (issue 12): the offline harnesses (`paper_offline`, `cctv_
 integrated in each voxel, so that a peer's map can be given as those means instead of the
 voxels' centres, before the grid carries that channel on the wire. Hits are as the grid's
 (`voxel.scan.sort_beams`): finite points with a return, within the sensor's max range, keyed as
-`voxel.keys.points_to_keys`.
+`voxel.keys.points_to_keys`. As the channel fuses it (and colours, normals), each scan is one
+sample of weight 1, its points' mean in the voxel: the mean over scans of the scans' means.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ from voxel.sensor import SensorModel
 
 
 class SurfaceMeans:
-    """Per voxel of `resolution`: the sum and count of the hit points added (world frame)."""
+    """Per voxel of `resolution`: the sum of the scans' mean hit points in it (world frame)
+    and the count of those scans."""
 
     def __init__(self, resolution: float) -> None:
         if not resolution > 0:
@@ -47,7 +49,8 @@ class SurfaceMeans:
         sums = np.stack(
             [np.bincount(inverse, pts[:, a], minlength=len(keys)) for a in range(3)], axis=1
         )
-        self._parts.append((keys, sums, np.bincount(inverse, minlength=len(keys))))
+        means = sums / np.bincount(inverse, minlength=len(keys))[:, None]
+        self._parts.append((keys, means, np.ones(len(keys), np.int64)))
         return len(pts)
 
     def add_observation(self, obs: Observation, pose: np.ndarray, sensor: SensorModel) -> int:
@@ -74,7 +77,8 @@ class SurfaceMeans:
         self._counts = np.bincount(inverse, counts, minlength=n).astype(np.int64)
 
     def points(self, keys: np.ndarray) -> np.ndarray:
-        """Per voxel key (N, 3): the mean of its hit points, or its centre where it has none."""
+        """Per voxel key (N, 3): the mean of its scans' mean hit points, or its centre where it
+        has none."""
         self._merge()
         keys = np.asarray(keys, np.int64).reshape(-1, 3)
         out = vk.keys_to_centers(keys, self.resolution)

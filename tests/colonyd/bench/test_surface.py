@@ -23,7 +23,8 @@ def test_means_of_known_points_over_two_scans_and_centres_where_no_hit():
     assert surface.add(np.array([[0.53, 0.21, 0.03], [-0.31, 0.44, 0.15]]), origin) == 2
     keys = np.array([[5, 2, 0], [-4, 4, 1], [7, 7, 7]])
     got = surface.points(keys)
-    np.testing.assert_allclose(got[0], [1.61 / 3, 0.71 / 3, 0.05])  # three hits, two scans
+    # three hits in two scans: each scan one sample, its points' mean (as the grid's channel)
+    np.testing.assert_allclose(got[0], [(0.54 + 0.53) / 2, (0.25 + 0.21) / 2, (0.06 + 0.03) / 2])
     np.testing.assert_allclose(got[1], [-0.31, 0.44, 0.15])
     np.testing.assert_allclose(got[2], [0.75, 0.75, 0.75])  # no hit: its centre
     assert len(surface) == 2
