@@ -31,9 +31,9 @@ docs/LOCALISATION.md): `<run>_smoothed` holds its ATE, the solve's CPU seconds, 
 after, iterations and edges.
 `--peer-points` (comma-separated: each, the first's keys plain, the others' `@means`): the
 peer's map as its occupied voxels' centres (`centres`, the daemon's today) or as the mean of the
-hit points it integrated in each (`means`: a harness prototype of the grid's surface channel,
-`colonyd.bench.surface`, from the points as its grid saw them, at its estimated poses; a voxel
-without hits keeps its centre).
+hit points it integrated in each (`means`, each scan one sample: a harness prototype of the
+grid's surface channel, `colonyd.bench.surface`, from the points as its grid saw them, at its
+estimated poses; a voxel without hits keeps its centre).
 `--rng` draws the scans' subsample with another seed: how far a run moves when nothing but
 that changes (the noise to compare against).
 
