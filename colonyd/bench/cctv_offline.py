@@ -2,7 +2,7 @@
 and lidar-1 with its fixes, with the colony maps its alignment brings, or both, separated.
 
 `python -m colonyd.bench.cctv_offline --seed S [--duration S] [--lag S] [--fix-model M]
-[--json FILE]`
+[--peer-points centres,means] [--json FILE]`
 
 cctv-1 renders its view (the experiment's seed; the robots' boards where they are at each
 frame's time) and detects the boards as its daemon does; each detection it would send
@@ -19,7 +19,10 @@ colony map); `map` (the colony map its alignment brings, depth-1's final map and
 cut and given as the daemon's `ColonyMaps` would from the moment both robots are aligned; the
 fixes only align it); `both` (as live); `map-depth` and `map-cctv`: `map` with depth-1's
 map alone or the CCTV's alone (`--cctv-map raw`: the CCTV's raw depth points instead of its
-voxel centres, a diagnostic). `--fix-model`: old, the daemon's fixes; new and shared,
+voxel centres, a diagnostic; `--peer-points means`: depth-1's and the CCTV's maps as the mean
+hit point of each occupied voxel, the harness prototype of the grid's surface channel,
+`colonyd.bench.surface`; comma-separated: each, keys of the others with `@means`; raw wins
+over means for the CCTV's map). `--fix-model`: old, the daemon's fixes; new and shared,
 alternatives measured against it (`model_fixes`, `fix_in_own_frame`'s `count` and `bias`).
 Truth renders and evaluates; no estimator reads it.
 
@@ -40,7 +43,8 @@ import numpy as np
 
 from colonyd.alignment import Alignments, ColonyFrame, Edge
 from colonyd.bench.files import print_and_append
-from colonyd.bench.paper_offline import Run
+from colonyd.bench.paper_offline import PEER_POINTS, Run
+from colonyd.bench.surface import SurfaceMeans
 from colonyd.colonymap import PeerError, alignment_error, cut_error, peer_map_error
 from colonyd.estimator import ScanEstimator
 from colonyd.fixes import (
@@ -95,10 +99,11 @@ class Fix:
 
 
 def cctv_view(
-    seed: int, duration: float, world: str = "office"
+    seed: int, duration: float, world: str = "office", surface: SurfaceMeans | None = None
 ) -> tuple[list[Fix], VoxelGrid, np.ndarray]:
     """cctv-1's fixes over `duration` s of the experiment's seed `seed`, its map, and its raw
-    depth points near a 2D scanner's height (0-0.6 m), thinned to 2 cm (`--cctv-map raw`)."""
+    depth points near a 2D scanner's height (0-0.6 m), thinned to 2 cm (`--cctv-map raw`);
+    its hit points' means per voxel added to `surface` if given (`--peer-points means`)."""
     agents = AGENTS[world]
     frames = max(2, int(agents[CCTV].rate * duration))
     source = SimSource(
@@ -117,6 +122,8 @@ def cctv_view(
     raw = []
     for obs in source:
         integrate_observation(grid, obs, sensor=adapter.sensor_model, reliability=1.0)
+        if surface is not None:
+            surface.add_observation(obs, obs.pose, adapter.sensor_model)
         pts = obs.points if obs.no_return is None else obs.points[~obs.no_return]
         pts = pts @ obs.pose[:3, :3].T + obs.pose[:3, 3]
         raw.append(thin(pts[np.abs(pts[:, 2] - 0.3) < 0.3], 0.02))
@@ -189,7 +196,9 @@ class Cctv:
     """The daemon's fix path for one robot's run (`Run.go`'s `before`): the fixes delivered
     `lag` s after their stamp, sightings until the robot's frame is aligned with the CCTV's,
     then (if `fuse`) fused; from the moment `peer` (the other robot's run and edge) and this
-    robot are both aligned, (if `peer_map`) the colony map of `peer`'s and the CCTV's maps."""
+    robot are both aligned, (if `peer_map`) the colony map of `peer`'s and the CCTV's maps, as
+    their voxels' centres or (`points` means) their hit points' means (`cctv_surface`, the
+    peer run's `surface`)."""
 
     def __init__(
         self,
@@ -202,6 +211,8 @@ class Cctv:
         peer: tuple[str, Run, Edge, float] | None = None,
         model: str = "old",
         cctv_points: np.ndarray | None = None,
+        points: str = "centres",
+        cctv_surface: SurfaceMeans | None = None,
     ) -> None:
         self.robot = robot
         self.model = model
@@ -210,6 +221,10 @@ class Cctv:
         self.lag, self.fuse = lag, fuse
         self.cctv_grid, self.peer = cctv_grid, peer
         self.cctv_points = cctv_points  # the CCTV's surfaces as raw points, not voxel centres
+        if points not in PEER_POINTS:
+            msg = f"peer points: expected one of {PEER_POINTS}, found {points!r}"
+            raise ValueError(msg)
+        self.points, self.cctv_surface = points, cctv_surface
         self.kept: list[tuple[np.ndarray, np.ndarray]] = []
         self.edge: Edge | None = None
         self.aligned_at: float | None = None
@@ -301,7 +316,7 @@ class Cctv:
                 (
                     self.cctv_points
                     if origin == CCTV and self.cctv_points is not None
-                    else vk.keys_to_centers(g.occupied_keys(), g.resolution)
+                    else self._voxels(origin, g)
                 )
                 @ m[:3, :3].T
                 + m[:3, 3]
@@ -335,6 +350,17 @@ class Cctv:
             step=0.1,
         )
         estimator.colony = self.cut
+
+    def _voxels(self, origin: str, grid: VoxelGrid) -> np.ndarray:
+        """`origin`'s occupied voxels as their centres, or their hit points' means."""
+        keys = grid.occupied_keys()
+        if self.points == "centres":
+            return vk.keys_to_centers(keys, grid.resolution)
+        surface = self.cctv_surface if origin == CCTV else (self.peer and self.peer[1].surface)
+        if surface is None:
+            msg = f"peer points 'means': expected {origin}'s hit points' means, found none"
+            raise ValueError(msg)
+        return surface.points(keys)
 
 
 def _grid(run: Run) -> VoxelGrid:
@@ -389,16 +415,29 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         help="diagnostic: the CCTV's map in lidar-1's colony map as its voxel centres (the "
         "daemon's) or as its raw depth points (surfaces not quantised to the voxels)",
     )
+    parser.add_argument(
+        "--peer-points",
+        default="centres",
+        help=f"comma-separated, of {PEER_POINTS}: depth-1's and the CCTV's maps as their voxels' "
+        "centres (default, the daemon's) or their hit points' means (a prototype of the "
+        "surface channel); each, keys of the others with @<name>",
+    )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
     variants = args.variants.split(",")
     if not set(variants) <= set(VARIANTS):
         parser.error(f"--variants: expected names of {VARIANTS}, found {args.variants!r}")
-    fixes, cctv_grid, cctv_raw = cctv_view(args.seed, args.duration)
+    modes = args.peer_points.split(",")
+    if not set(modes) <= set(PEER_POINTS):
+        parser.error(f"--peer-points: expected names of {PEER_POINTS}, found {args.peer_points!r}")
+    cctv_surface = SurfaceMeans(0.1) if "means" in modes else None
+    fixes, cctv_grid, cctv_raw = cctv_view(args.seed, args.duration, surface=cctv_surface)
     out: dict[str, Any] = {"seed": args.seed, "duration": args.duration, "lag": args.lag}
     out["fix_model"] = args.fix_model
     if args.cctv_map != "voxels":
         out["cctv_map"] = args.cctv_map
+    if modes != ["centres"]:
+        out["peer_points"] = modes
     for robot in ROBOTS:
         out[f"fix_errors_{robot}"] = fix_errors(model_fixes(fixes, robot, args.fix_model))
 
@@ -407,18 +446,21 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         return Run(agent, seed, args.lidar_range, args.duration)
 
     depth = run("depth-1")
+    depth.means = "means" in modes
     depth_cctv = Cctv("depth-1", fixes, args.lag, model=args.fix_model)
     out["depth_with_fixes"] = round(depth.go(before=depth_cctv), 4)
     out["depth_fixes"] = [depth_cctv.fused, depth_cctv.refused, depth_cctv.stale]
     out["depth_alignment"] = alignment_truth(depth_cctv, depth)
     if depth_cctv.edge is None:
         variants = [v for v in variants if v in ("alone", "fixes")]
-    for variant in variants:
+    runs = [(v, p) for v in variants for p in (["centres"] if v in ("alone", "fixes") else modes)]
+    for variant, points in runs:
         lidar = run("lidar-1")
         if variant == "alone":
             out["lidar_alone"] = round(lidar.go(), 4)
             out["lidar_alone_consistency"] = lidar.consistency()
             continue
+        key = f"lidar_{variant}" + ("" if points == modes[0] else f"@{points}")
         assert depth_cctv.edge is not None or variant == "fixes"
         peer = (
             None
@@ -434,12 +476,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             peer=peer,
             model=args.fix_model,
             cctv_points=cctv_raw if args.cctv_map == "raw" else None,
+            points=points,
+            cctv_surface=cctv_surface,
         )
-        out[f"lidar_{variant}"] = round(lidar.go(before=hook), 4)
-        out[f"lidar_{variant}_fixes"] = [hook.fused, hook.refused, hook.stale]
-        out[f"lidar_{variant}_counts"] = lidar.counts
-        out[f"lidar_{variant}_consistency"] = lidar.consistency()
-        out[f"lidar_{variant}_map_from"] = hook.map_from
+        out[key] = round(lidar.go(before=hook), 4)
+        out[f"{key}_fixes"] = [hook.fused, hook.refused, hook.stale]
+        out[f"{key}_counts"] = lidar.counts
+        out[f"{key}_consistency"] = lidar.consistency()
+        out[f"{key}_map_from"] = hook.map_from
         out["lidar_alignment"] = alignment_truth(hook, lidar)
     print_and_append(out, args.json)
     return out

@@ -2,7 +2,8 @@
 map, for A/B of estimator changes without the live runs' timing chaos.
 
 `python -m colonyd.bench.paper_offline --seed S [--world W] [--lidar-range R] [--rng N]
-[--duration S] [--no-peer-covariance] [--offset-walk] [--peer-walk] [--smooth] [--json FILE]`
+[--duration S] [--no-peer-covariance] [--offset-walk] [--peer-walk] [--smooth]
+[--peer-points centres,means] [--json FILE]`
 
 Each robot's sim source (the experiment's spec and seed, not paced) runs through its estimator
 and maps from the estimate, as `colonyd localize` does. The peer's map (its estimated-pose voxel
@@ -28,6 +29,11 @@ run of depth-1 (alone too).
 `--smooth` also scores each run's smoothed trajectory (`PoseGraph` over what its filter fused,
 docs/LOCALISATION.md): `<run>_smoothed` holds its ATE, the solve's CPU seconds, cost before and
 after, iterations and edges.
+`--peer-points` (comma-separated: each, the first's keys plain, the others' `@means`): the
+peer's map as its occupied voxels' centres (`centres`, the daemon's today) or as the mean of the
+hit points it integrated in each (`means`, each scan one sample: a harness prototype of the
+grid's surface channel, `colonyd.bench.surface`, from the points as its grid saw them, at its
+estimated poses; a voxel without hits keeps its centre).
 `--rng` draws the scans' subsample with another seed: how far a run moves when nothing but
 that changes (the noise to compare against).
 
@@ -59,6 +65,7 @@ from typing import Any
 import numpy as np
 
 from colonyd.bench.files import print_and_append
+from colonyd.bench.surface import SurfaceMeans
 from colonyd.colonymap import peer_map_error
 from colonyd.estimator import ScanEstimator, get_estimator
 from colonyd.mapping import integrate_observation
@@ -83,6 +90,8 @@ INFLATION = np.diag([0.05**2, 0.05**2, float(np.radians(1.0)) ** 2])
 
 
 RELAXED = ("none", "nosuspend", "nogate", "inflate", "inflate-nosuspend")
+#: `--peer-points`: a peer's map as its voxels' centres, or as their hit points' means.
+PEER_POINTS = ("centres", "means")
 
 
 def relax(estimator: ScanEstimator, how: str) -> None:
@@ -156,6 +165,9 @@ class Run:
         self.grid: VoxelGrid | None = None
         #: (trans, yaw) of each peer walk given with a cut (`--peer-walk`; None: not yet known)
         self.peer_walks: list[list[float] | None] = []
+        #: Keep the mean hit point per voxel of the map (`--peer-points means`) in `surface`.
+        self.means = False
+        self.surface: SurfaceMeans | None = None
 
     def go(
         self,
@@ -166,14 +178,17 @@ class Run:
         relaxed: str = "none",
         peer_covariance: bool = True,
         before: Callable[[Observation, ScanEstimator], None] | None = None,
+        points: str = "centres",
     ) -> float:
         """Run the path (with `peer`'s map from `contact` of the path on, its alignment off by
-        `sign` times `ALIGNMENT_ERROR`, its pose covariance in the cut's if `peer_covariance`;
-        `relaxed`: see `relax`; `before`: called with each observation and the estimator before
-        the estimator's step, from the second on); the ATE."""
+        `sign` times `ALIGNMENT_ERROR`, its pose covariance in the cut's if `peer_covariance`,
+        as `points` (`PEER_POINTS`); `relaxed`: see `relax`; `before`: called with each
+        observation and the estimator before the estimator's step, from the second on); the
+        ATE."""
         source = open_source(self.spec, resolution=0.1)
         adapter = source.adapter
         grid = VoxelGrid(0.1, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
+        self.surface = SurfaceMeans(grid.resolution) if self.means else None
         estimator: Any = None
         cut: ColonyMap | None = None
         frames = len(source)
@@ -208,7 +223,7 @@ class Run:
                         self.peer_walks.append(
                             None if walk is None else [round(walk.trans, 4), round(walk.yaw, 4)]
                         )
-                    cut = peer.cut_for(self, pose, estimator, sign, at, walk)
+                    cut = peer.cut_for(self, pose, estimator, sign, at, walk, points)
                 estimator.colony = cut
             if before is not None and i > 0:
                 before(obs, estimator)
@@ -219,6 +234,8 @@ class Run:
                 sensor=adapter.sensor_model,
                 reliability=adapter.reliability,
             )
+            if self.surface is not None:
+                self.surface.add_observation(obs, pose, adapter.sensor_model)
             if obs.truth is None:
                 msg = f"{self.spec}: expected the simulator's truth to evaluate, found none"
                 raise ValueError(msg)
@@ -263,6 +280,7 @@ class Run:
         source = open_source(self.spec, resolution=0.1)
         adapter = source.adapter
         grid = VoxelGrid(0.1, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
+        self.surface = SurfaceMeans(grid.resolution) if self.means else None
         self.estimates, self.truths, self.covariances = [], [], []
         for obs in source:
             if obs.truth is None:
@@ -274,6 +292,8 @@ class Run:
                 sensor=adapter.sensor_model,
                 reliability=adapter.reliability,
             )
+            if self.surface is not None:
+                self.surface.add_observation(obs, obs.truth, adapter.sensor_model)
             self.estimates.append(obs.truth)
             self.truths.append(obs.truth)
         self.grid = grid
@@ -354,18 +374,29 @@ class Run:
         sign: float,
         at: float | None = None,
         walk: OffsetWalk | None = None,
+        points: str = "centres",
     ) -> ColonyMap:
         """This run's map near `robot`'s pose, in its frame through the fixture alignment; its
         covariance the alignment's, plus (at time `at`) this run's pose covariance then, as the
         error of its map about the cut's centre (`colonymap.peer_map_error`); `walk`: this
-        run's drift (`drift`)."""
+        run's drift (`drift`); `points`: its occupied voxels as their centres or (`means`) as
+        the mean of their hit points (`surface`)."""
         assert self.grid is not None, "run the peer first"
         grid = self.grid
         ours = self.truths[0] @ np.linalg.inv(self.estimates[0])  # our frame in the world
         theirs = robot.truths[0] @ np.linalg.inv(robot.estimates[0])
         m = se2.to_matrix(sign * np.array(ALIGNMENT_ERROR)) @ np.linalg.inv(theirs) @ ours
         back = np.linalg.inv(m)
-        centres = vk.keys_to_centers(grid.occupied_keys(), grid.resolution)
+        if points == "means":
+            if self.surface is None:
+                msg = "peer points 'means': expected the peer run with `means` set, found none"
+                raise ValueError(msg)
+            centres = self.surface.points(grid.occupied_keys())
+        elif points == "centres":
+            centres = vk.keys_to_centers(grid.occupied_keys(), grid.resolution)
+        else:
+            msg = f"peer points: expected one of {PEER_POINTS}, found {points!r}"
+            raise ValueError(msg)
 
         def free(points: np.ndarray) -> np.ndarray:
             state = grid.state(points @ back[:3, :3].T + back[:3, 3])
@@ -399,6 +430,15 @@ def _relaxed(text: str) -> list[str]:
     for how in out:
         if how not in RELAXED:
             msg = f"expected comma-separated names of {RELAXED}, found {how!r}"
+            raise argparse.ArgumentTypeError(msg)
+    return out
+
+
+def _points(text: str) -> list[str]:
+    out = text.split(",")
+    for how in out:
+        if how not in PEER_POINTS:
+            msg = f"expected comma-separated names of {PEER_POINTS}, found {how!r}"
             raise argparse.ArgumentTypeError(msg)
     return out
 
@@ -453,6 +493,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         help="also each run's smoothed trajectory (PoseGraph over what the filter fused): "
         "its ATE, solve CPU time, cost and edges as <run>_smoothed",
     )
+    parser.add_argument(
+        "--peer-points",
+        type=_points,
+        default=["centres"],
+        help=f"comma-separated, of {PEER_POINTS}: the peer's map as its voxels' centres "
+        "(default, the daemon's) or their hit points' means (a prototype of the surface "
+        "channel); each, the first's keys plain, the others' with @<name>",
+    )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     diag = parser.add_argument_group("diagnostics (bounds; truth builds fixtures only)")
     diag.add_argument(
@@ -498,6 +546,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         )
 
     lidar, depth = robot("lidar-1"), robot("depth-1")
+    lidar.means = depth.means = "means" in args.peer_points
     out: dict[str, Any] = {"seed": args.seed, "lidar_range": args.lidar_range, "rng": args.rng}
     out["peer_covariance"] = args.peer_covariance
     for name in (
@@ -513,6 +562,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "peer_walk",
         "own_aliasing",
         "smooth",
+        "peer_points",
     ):
         if getattr(args, name) != parser.get_default(name):
             out[name] = getattr(args, name)
@@ -531,41 +581,41 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         out["depth_alone_consistency"] = depth.consistency()
         if depth.smoothed:
             out["depth_alone_smoothed"] = depth.smoothed
-    if not args.lidar_only:
+    for points in [] if args.lidar_only else args.peer_points:
+        end = "" if points == args.peer_points[0] else f"@{points}"
         with_lidar = robot("depth-1")
-        out["depth_with_lidar"] = round(
-            with_lidar.go(lidar, rng=args.rng, peer_covariance=args.peer_covariance), 4
+        out[f"depth_with_lidar{end}"] = round(
+            with_lidar.go(lidar, rng=args.rng, peer_covariance=args.peer_covariance, points=points),
+            4,
         )
-        out["depth_counts"] = with_lidar.counts
-        out["depth_with_lidar_consistency"] = with_lidar.consistency()
+        out[f"depth_counts{end}"] = with_lidar.counts
+        out[f"depth_with_lidar_consistency{end}"] = with_lidar.consistency()
         if with_lidar.smoothed:
-            out["depth_with_lidar_smoothed"] = with_lidar.smoothed
+            out[f"depth_with_lidar_smoothed{end}"] = with_lidar.smoothed
         if args.peer_walk:  # lidar-1's drift as depth-1 got it: first and last cut's
-            out["depth_peer_walk"] = with_lidar.peer_walks[:1] + with_lidar.peer_walks[-1:]
+            out[f"depth_peer_walk{end}"] = with_lidar.peer_walks[:1] + with_lidar.peer_walks[-1:]
     sign = 0.0 if args.exact_alignment else -1.0
-    for contact in args.contact:  # every variant with the same peer map (the first: plain keys)
-        for how in args.relax:
-            tail = (
-                "" if (contact, how) == (args.contact[0], args.relax[0]) else f"@{how}@{contact:g}"
-            )
-            with_depth = robot("lidar-1")
-            out[f"lidar_with_depth{tail}"] = round(
-                with_depth.go(depth, args.rng, sign, contact, how, args.peer_covariance), 4
-            )
-            out[f"lidar_counts{tail}"] = with_depth.counts
-            out[f"lidar_with_depth_consistency{tail}"] = with_depth.consistency()
-            if with_depth.smoothed:
-                out[f"lidar_with_depth_smoothed{tail}"] = with_depth.smoothed
-            if args.peer_walk:
-                out[f"lidar_peer_walk{tail}"] = (
-                    with_depth.peer_walks[:1] + with_depth.peer_walks[-1:]
+    variants = [(p, c, h) for p in args.peer_points for c in args.contact for h in args.relax]
+    for points, contact, how in variants:  # with the same peer run (the first: plain keys)
+        tail = "" if (contact, how) == (args.contact[0], args.relax[0]) else f"@{how}@{contact:g}"
+        tail += "" if points == args.peer_points[0] else f"@{points}"
+        with_depth = robot("lidar-1")
+        out[f"lidar_with_depth{tail}"] = round(
+            with_depth.go(depth, args.rng, sign, contact, how, args.peer_covariance, points=points),
+            4,
+        )
+        out[f"lidar_counts{tail}"] = with_depth.counts
+        out[f"lidar_with_depth_consistency{tail}"] = with_depth.consistency()
+        if with_depth.smoothed:
+            out[f"lidar_with_depth_smoothed{tail}"] = with_depth.smoothed
+        if args.peer_walk:
+            out[f"lidar_peer_walk{tail}"] = with_depth.peer_walks[:1] + with_depth.peer_walks[-1:]
+        if args.profile:
+            out[f"lidar_with_depth_profile{tail}"] = with_depth.profile(args.profile)
+            if with_depth.smoothed_poses:
+                out[f"lidar_with_depth_smoothed_profile{tail}"] = with_depth.profile(
+                    args.profile, smoothed=True
                 )
-            if args.profile:
-                out[f"lidar_with_depth_profile{tail}"] = with_depth.profile(args.profile)
-                if with_depth.smoothed_poses:
-                    out[f"lidar_with_depth_smoothed_profile{tail}"] = with_depth.profile(
-                        args.profile, smoothed=True
-                    )
     print_and_append(out, args.json)
     return out
 

@@ -7,7 +7,8 @@ from colonyd.bench.cctv_offline import main
 
 
 def test_cctv_offline_aligns_by_sightings_then_fuses_fixes_and_matches_the_colony_map():
-    got = main(["--seed", "1", "--duration", "7", "--variants", "fixes,map"])
+    args = ["--seed", "1", "--duration", "7", "--variants", "fixes,map"]
+    got = main([*args, "--peer-points", "centres,means"])
     errors = got["fix_errors_lidar-1"]
     assert errors["n"] >= errors["images"] > 0  # the old model: every board seen is a fix
     assert 0.0 < errors["rms_xy_m"] < 0.1 and errors["nees_xy_mean"] > 0.0
@@ -18,7 +19,9 @@ def test_cctv_offline_aligns_by_sightings_then_fuses_fixes_and_matches_the_colon
     assert fused > 0 and stale == 0
     assert got["lidar_map_fixes"] == [0, 0, 0]  # the map run takes no fix: they only align it
     assert sum(got["lidar_map_counts"].values()) > 0 and got["lidar_map_map_from"] is not None
-    for key in ("lidar_fixes", "lidar_map", "depth_with_fixes"):
+    # the maps as their voxels' hit points' means (the surface channel's prototype)
+    assert sum(got["lidar_map@means_counts"].values()) > 0 and "lidar_fixes@means" not in got
+    for key in ("lidar_fixes", "lidar_map", "depth_with_fixes", "lidar_map@means"):
         assert 0.0 <= got[key] < 0.5, key
 
 

@@ -45,13 +45,15 @@ def test_paper_offline_bounds_diagnostics_run_lidar_against_a_perfect_peer_map()
     assert got["keyframes"] == 60 and got["perfect_peer"] is True
 
 
-def test_paper_offline_runs_in_the_sparse_hall():
+def test_paper_offline_runs_in_the_sparse_hall_with_the_peers_map_as_centres_and_means():
     args = ["--seed", "1", "--duration", "2", "--world", "hall", "--lidar-only", "--offset-walk"]
-    got = main(args)
+    got = main([*args, "--peer-points", "centres,means"])
     assert got["world"] == "hall" and got["offset_walk"] is True  # the colony offset walks
-    for key in ("lidar_alone", "depth_alone", "lidar_with_depth"):
+    for key in ("lidar_alone", "depth_alone", "lidar_with_depth", "lidar_with_depth@means"):
         assert 0.0 <= got[key] < 0.5, key
-    assert sum(got["lidar_counts"].values()) > 0  # from mid-path, tried against depth-1's map
+    for key in ("lidar_counts", "lidar_counts@means"):  # from mid-path, against depth-1's map
+        assert sum(got[key].values()) > 0, key
+    assert got["peer_points"] == ["centres", "means"]
 
 
 def test_paper_offline_scores_the_smoothed_trajectory_too():
