@@ -425,22 +425,22 @@ class Run:
         )
 
 
-def _relaxed(text: str) -> list[str]:
-    out = text.split(",")
-    for how in out:
-        if how not in RELAXED:
-            msg = f"expected comma-separated names of {RELAXED}, found {how!r}"
-            raise argparse.ArgumentTypeError(msg)
-    return out
+def _names(allowed: tuple[str, ...]) -> Callable[[str], list[str]]:
+    """An argparse type: a comma-separated list of names from `allowed`."""
+
+    def parse(text: str) -> list[str]:
+        out = text.split(",")
+        for how in out:
+            if how not in allowed:
+                msg = f"expected comma-separated names of {allowed}, found {how!r}"
+                raise argparse.ArgumentTypeError(msg)
+        return out
+
+    return parse
 
 
-def _points(text: str) -> list[str]:
-    out = text.split(",")
-    for how in out:
-        if how not in PEER_POINTS:
-            msg = f"expected comma-separated names of {PEER_POINTS}, found {how!r}"
-            raise argparse.ArgumentTypeError(msg)
-    return out
+_relaxed = _names(RELAXED)
+_points = _names(PEER_POINTS)
 
 
 def _fractions(text: str) -> list[float]:

@@ -21,18 +21,24 @@ def scan(grid, seed: int) -> None:
     grid.integrate(pts, np.zeros(3), time=float(seed))
 
 
-@pytest.mark.parametrize("shape", ["cube", "planar"])
-def test_wal_and_snapshot_recover_everything_logged(tmp_path, shape):
-    store = StateStore(tmp_path, "a", 0.1, shape)
-    rec = store.recover()
-    assert rec.fresh and rec.seq == 0
-    grid, published = rec.grid, 0
+def log_three(store: StateStore, grid) -> None:
+    """Integrate and log scans 1-3, snapshotting after the second."""
+    published = 0
     for seq in range(1, 4):
         scan(grid, seq)
         store.append(seq, grid.delta_since(published))
         published = grid.version
         if seq == 2:
             store.snapshot(grid, seq)
+
+
+@pytest.mark.parametrize("shape", ["cube", "planar"])
+def test_wal_and_snapshot_recover_everything_logged(tmp_path, shape):
+    store = StateStore(tmp_path, "a", 0.1, shape)
+    rec = store.recover()
+    assert rec.fresh and rec.seq == 0
+    grid = rec.grid
+    log_three(store, grid)
     scan(grid, 99)  # integrated but never logged: allowed to be lost
     store.close()
 
@@ -50,14 +56,9 @@ def test_wal_and_snapshot_recover_everything_logged(tmp_path, shape):
 
 def test_the_surface_survives_the_log_and_the_snapshot(tmp_path):
     store = StateStore(tmp_path, "a", 0.1)
-    grid, published = store.recover().grid, 0
+    grid = store.recover().grid
     grid.surface = True  # as the daemon sets it (Config.surface)
-    for seq in range(1, 4):
-        scan(grid, seq)
-        store.append(seq, grid.delta_since(published))
-        published = grid.version
-        if seq == 2:
-            store.snapshot(grid, seq)
+    log_three(store, grid)
     store.close()
     again = StateStore(tmp_path, "a", 0.1).recover()
     keys = grid.occupied_keys()
