@@ -46,7 +46,7 @@ def test_compiled_kernels_load_once_catch_up_is_idle(monkeypatch) -> None:
     fake = SimpleNamespace(
         stop=threading.Event(),
         warm=threading.Event(),
-        _sources=["synthetic:"],
+        _sources=[SimpleNamespace(adapter=SimpleNamespace())],  # may label: every import warms
         config=SimpleNamespace(objects_s=2.0),
         gossip=SimpleNamespace(catchup=catchup),
     )
