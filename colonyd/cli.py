@@ -173,28 +173,26 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _positive_float(text: str) -> float:
-    """An argparse type: a number > 0 (seconds, metres)."""
+def _finite_float(text: str, *, zero: bool) -> float:
+    """A finite number > 0 (>= 0 when `zero`), or a usage error saying what was expected."""
     try:
         value = float(text)
     except ValueError:
         value = float("nan")
-    if not value > 0 or value == float("inf"):
-        msg = f"expected a number > 0, found {text!r}"
+    if not (value >= 0 if zero else value > 0) or value == float("inf"):
+        msg = f"expected a number {'>=' if zero else '>'} 0, found {text!r}"
         raise argparse.ArgumentTypeError(msg)
     return value
+
+
+def _positive_float(text: str) -> float:
+    """An argparse type: a number > 0 (seconds, metres)."""
+    return _finite_float(text, zero=False)
 
 
 def _non_negative_float(text: str) -> float:
     """An argparse type: a number >= 0 (seconds to wait)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not value >= 0 or value == float("inf"):
-        msg = f"expected a number >= 0, found {text!r}"
-        raise argparse.ArgumentTypeError(msg)
-    return value
+    return _finite_float(text, zero=True)
 
 
 def _lidar_range(p: argparse.ArgumentParser) -> None:
