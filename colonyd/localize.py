@@ -12,7 +12,7 @@ import numpy as np
 
 from colonyd.estimator import Estimator, ScanEstimator, get_estimator
 from colonyd.mapping import get_progress, integrate_observation, tum_line, write_map
-from colonyd.outdir import output_dir
+from colonyd.outdir import run_output
 from plugins.carmen import CarmenSource
 from plugins.errors import SourceError
 from plugins.observation import Observation
@@ -78,46 +78,48 @@ def localize_source(
     adapter = source.adapter
     grid = VoxelGrid(resolution, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
     out_dir = Path(out_dir)
-    output_dir(out_dir, "--out")
     total = len(source) if max_frames is None else min(len(source), max_frames)
-    bar = get_progress(progress)
     estimator: Estimator | None = None
     times: list[float] = []
     est: list[np.ndarray] = []
     odo: list[np.ndarray] = []
     ref: list[np.ndarray] = []
-    try:
-        for obs in source:
-            if max_frames is not None and len(times) >= max_frames:
-                break
-            if estimator is None:
-                estimator = get_estimator(adapter, obs)
-                if isinstance(estimator, ScanEstimator):
-                    estimator.localiser.record = True
-            pose = estimator(obs)
-            integrate_observation(
-                grid,
-                replace(obs, pose=pose),
-                sensor=adapter.sensor_model,
-                reliability=adapter.reliability,
+    with run_output(out_dir, "--out"):  # no result, no folder left behind
+        bar = get_progress(progress)
+        try:
+            for obs in source:
+                if max_frames is not None and len(times) >= max_frames:
+                    break
+                if estimator is None:
+                    estimator = get_estimator(adapter, obs)
+                    if isinstance(estimator, ScanEstimator):
+                        estimator.localiser.record = True
+                pose = estimator(obs)
+                integrate_observation(
+                    grid,
+                    replace(obs, pose=pose),
+                    sensor=adapter.sensor_model,
+                    reliability=adapter.reliability,
+                )
+                times.append(obs.time)
+                est.append(pose)
+                if obs.odometry is not None:
+                    odo.append(obs.odometry @ getattr(adapter, "mount", np.eye(4)))
+                reference = _reference(source, obs)
+                if reference is not None:
+                    ref.append(reference)
+                bar.update(len(times), total)
+        finally:
+            bar.close()
+        if not times:  # (as `colonyd map`: an empty map and trajectory are no result)
+            reasons = (
+                "; ".join(f"{n} x {r}" for r, n in source.stats.reasons.items()) or "none given"
             )
-            times.append(obs.time)
-            est.append(pose)
-            if obs.odometry is not None:
-                odo.append(obs.odometry @ getattr(adapter, "mount", np.eye(4)))
-            reference = _reference(source, obs)
-            if reference is not None:
-                ref.append(reference)
-            bar.update(len(times), total)
-    finally:
-        bar.close()
-    if not times:  # (as `colonyd map`: an empty map and trajectory are no result)
-        reasons = "; ".join(f"{n} x {r}" for r, n in source.stats.reasons.items()) or "none given"
-        msg = (
-            f"{spec}: expected at least one readable frame, found none "
-            f"({source.stats.skipped} skipped: {reasons}); nothing written"
-        )
-        raise SourceError(msg)
+            msg = (
+                f"{spec}: expected at least one readable frame, found none "
+                f"({source.stats.skipped} skipped: {reasons}); nothing written"
+            )
+            raise SourceError(msg)
     files = write_map(grid, out_dir, [tum_line(t, p) for t, p in zip(times, est, strict=True)])
     files["estimate"] = _write_tum(out_dir / "estimate.tum", times, est)
     smoothed: list[np.ndarray] = []

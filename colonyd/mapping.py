@@ -14,7 +14,7 @@ from typing import Any, Protocol, TextIO
 import cv2
 import numpy as np
 
-from colonyd.outdir import output_dir
+from colonyd.outdir import run_output
 from plugins.errors import SourceError
 from plugins.observation import Observation
 from plugins.source import open_source
@@ -272,40 +272,42 @@ def map_source(
     # the surface (mean hit positions) for what reads grid.npz: `colonyd align`'s registration
     grid = VoxelGrid(resolution, block_shape=shape_for(adapter.kind), surface=True)
     out_dir = Path(out_dir)
-    output_dir(out_dir, "--out")
     total = len(source) if max_frames is None else min(len(source), max_frames)
-    bar = get_progress(progress)
     trajectory: list[str] = []
     heights: list[float] = []
     frames = points = 0
     spent = {"decode": 0.0, "integrate": 0.0, "write": 0.0}
     frames_in = iter(source)
-    try:
-        while max_frames is None or frames < max_frames:
-            t0 = clock.perf_counter()
-            obs = next(frames_in, None)
-            t1 = clock.perf_counter()
-            spent["decode"] += t1 - t0
-            if obs is None:
-                break
-            integrate_observation(
-                grid, obs, sensor=adapter.sensor_model, reliability=adapter.reliability
+    with run_output(out_dir, "--out"):  # no map, no folder left behind
+        bar = get_progress(progress)
+        try:
+            while max_frames is None or frames < max_frames:
+                t0 = clock.perf_counter()
+                obs = next(frames_in, None)
+                t1 = clock.perf_counter()
+                spent["decode"] += t1 - t0
+                if obs is None:
+                    break
+                integrate_observation(
+                    grid, obs, sensor=adapter.sensor_model, reliability=adapter.reliability
+                )
+                spent["integrate"] += clock.perf_counter() - t1
+                trajectory.append(tum_line(obs.time, obs.pose))
+                heights.append(float(obs.pose[2, 3]))
+                frames += 1
+                points += len(obs)
+                bar.update(frames, total)
+        finally:
+            bar.close()
+        if frames == 0:
+            reasons = (
+                "; ".join(f"{n} x {r}" for r, n in source.stats.reasons.items()) or "none given"
             )
-            spent["integrate"] += clock.perf_counter() - t1
-            trajectory.append(tum_line(obs.time, obs.pose))
-            heights.append(float(obs.pose[2, 3]))
-            frames += 1
-            points += len(obs)
-            bar.update(frames, total)
-    finally:
-        bar.close()
-    if frames == 0:
-        reasons = "; ".join(f"{n} x {r}" for r, n in source.stats.reasons.items()) or "none given"
-        msg = (
-            f"{spec}: expected at least one readable frame, found none "
-            f"({source.stats.skipped} skipped: {reasons}); no map written"
-        )
-        raise SourceError(msg)
+            msg = (
+                f"{spec}: expected at least one readable frame, found none "
+                f"({source.stats.skipped} skipped: {reasons}); no map written"
+            )
+            raise SourceError(msg)
     t0 = clock.perf_counter()
     files = write_map(grid, out_dir, trajectory)
     if adapter.kind == "lidar2d" and heights:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from colonyd.errors import ConfigError
@@ -23,3 +25,22 @@ def output_dir(path: Path, flag: str) -> Path:
         msg = f"{flag}: expected a writable directory, found {path} not writable"
         raise ConfigError(msg)
     return path
+
+
+@contextmanager
+def run_output(path: Path, flag: str) -> Iterator[Path]:
+    """`output_dir` for a run that may fail before it writes: when the block raises, the
+    folders made here (`path` and the parents it lacked) are removed again if still empty, so a
+    run that wrote nothing leaves nothing behind; a folder that existed stays."""
+    path = Path(path)
+    made = [p for p in (path, *path.parents) if not p.exists()]
+    output_dir(path, flag)
+    try:
+        yield path
+    except BaseException:
+        for folder in made:  # deepest first
+            try:
+                folder.rmdir()
+            except OSError:  # not empty (something was written), or gone: leave it
+                break
+        raise

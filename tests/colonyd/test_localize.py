@@ -203,7 +203,26 @@ def test_a_source_of_no_frames_is_an_error_and_nothing_is_written(
         launch(["localize", "--source", spec, "--out", str(out), "--no-progress"])
     assert exit_info.value.code == code
     assert message in capfd.readouterr().err
-    assert not out.exists() or not any(out.iterdir())
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("command", ["localize", "map"])
+def test_a_run_of_no_frames_leaves_no_folder_it_made(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str], command: str
+) -> None:
+    """Exit 4, nothing written, and the --out folder made for the run (with the parents it
+    lacked) gone again; a folder that existed stays (the empty folder made was left behind)."""
+    log = tmp_path / "bad.log"
+    log.write_text("FLASER 3 1.0 2.0\nFLASER x y z\n")
+    given = tmp_path / "given"
+    given.mkdir()
+    for out in (tmp_path / "new" / "out", given):
+        with pytest.raises(SystemExit) as exit_info:
+            launch([command, "--source", f"replay:{log},format=carmen", "--out", str(out)])
+        assert exit_info.value.code == EXIT_DATA
+        assert "expected at least one readable frame, found none" in capfd.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.log", "given"]
+    assert not any(given.iterdir())
 
 
 def test_too_few_poses_for_an_ate_say_so_and_keep_the_reference(
