@@ -28,7 +28,7 @@ from colonyd.colonymap import ColonyMaps
 from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError, DuplicateAgentError, PersistenceError, StoppedError
 from colonyd.estimator import Estimator, PoseError, ScanEstimator, get_estimator
-from colonyd.export import encode_map, export_time
+from colonyd.export import MapReply, encode_map, export_time, write_maps
 from colonyd.fixes import fix_covariance, fix_in_own_frame, sightings_covariance
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
@@ -40,8 +40,8 @@ from colonyd.layers import (
     best_class,
     fused,
     fused_classes,
+    fused_surface,
     layer_weights,
-    write_fused,
 )
 from colonyd.logs import setup_logging
 from colonyd.mapping import integrate_observation
@@ -504,16 +504,12 @@ class Daemon:
 
     def _export(self, directory: Path) -> None:
         try:
-            directory.mkdir(parents=True, exist_ok=True)
-            layers, res = self.layers.all(), self.config.resolution
-            transforms = self.colony_frame().transforms
-            keys, lo = fused(layers, res, transforms, self._weights())
-            classes = fused_classes(layers, res, keys, transforms)
-            write_fused(directory / self.config.agent_id, keys, lo, res, classes)
+            reply = self.fused_reply()
+            write_maps(reply, directory, self.config.agent_id)
             log.info(
                 "fused map of %d layers (%d voxels) written to %s",
-                len(self.layers.all()),
-                len(keys),
+                len(reply.layers),
+                len(reply.keys),
                 directory,
             )
         except OSError as exc:
@@ -901,8 +897,10 @@ class Daemon:
                 if seen == last:
                     continue
                 last = seen
-                keys, lo = fused(self.layers.all(), res, frame.transforms, self._weights())
-                self.metrics.add("ros2_bytes", self.ros.publish_map(keys, lo, res))
+                layers = self.layers.all()
+                keys, lo = fused(layers, res, frame.transforms, self._weights())
+                points = fused_surface(layers, res, keys[lo >= 0], frame.transforms)
+                self.metrics.add("ros2_bytes", self.ros.publish_map(keys, lo, res, points))
                 positions, ids = self._colony_objects(frame.transforms)
                 self.metrics.add("ros2_bytes", self.ros.publish_objects(positions, ids, 4 * res))
                 self.metrics.add("ros2_maps")
@@ -1046,44 +1044,44 @@ class Daemon:
     # -- export (a live map for `colonyd export`) -----------------------------------------
     def export_map(self, params: dict[str, str]) -> bytes | None:
         """The fused map in the colony frame, or with `layer=ID` that layer in its own frame;
-        with `at=T` (seconds) as it was at time T, from the layers' history."""
-        agent, res = self.config.agent_id, self.config.resolution
+        with `at=T` (seconds) as it was at time T, from the layers' history (then without
+        classes, and at the voxels' centres: the history keeps no surfaces)."""
+        agent = self.config.agent_id
         layer_id = params.get("layer")
         try:
             at = export_time(params.get("at"))
         except ValueError:
             return None
-        if layer_id:
-            layer = self.layers.find(layer_id)
-            if layer is None:
-                return None
-            if at is not None:  # as it was at `at` (its history): no classes then
-                keys, lo = layer.known_at(at)
-                return encode_map(
-                    agent, layer_id, frame_of(layer_id), layer.resolution, keys, lo, []
-                )
-            full = layer.full()
-            known = ~np.isnan(full.logodds)
-            return encode_map(
-                agent,
-                layer_id,
-                frame_of(layer_id),
-                layer.resolution,
-                full.keys[known],
-                full.logodds[known],
-                [],
-                best_class(full)[0][known],
-            )
-        frame = self.colony_frame()
-        layers = self.layers.all()
-        classes: np.ndarray | None = None
-        if at is None:
-            keys, lo = self.fused_map.view(layers, res, frame.transforms, self._weights())
-            classes = fused_classes(layers, res, keys, frame.transforms)
-        else:
+        if not layer_id:
+            return encode_map(self.fused_reply(at))
+        layer = self.layers.find(layer_id)
+        if layer is None:
+            return None
+        res, frame = layer.resolution, frame_of(layer_id)
+        if at is not None:
+            keys, lo = layer.known_at(at)
+            return encode_map(MapReply(agent, layer_id, frame, res, keys, lo))
+        full = layer.full()
+        known = ~np.isnan(full.logodds)
+        keys, lo = full.keys[known], full.logodds[known]
+        classes = best_class(full)[0][known]
+        points = fused_surface([layer], res, keys[lo >= 0])
+        return encode_map(MapReply(agent, layer_id, frame, res, keys, lo, [], classes, points))
+
+    def fused_reply(self, at: float | None = None) -> MapReply:
+        """The fused map in the colony frame with its layers' names, each voxel's class and
+        the occupied voxels' surface points (`fused_surface`); with `at` (seconds), as it was
+        then, from the layers' history (no classes, centres)."""
+        frame, layers, res = self.colony_frame(), self.layers.all(), self.config.resolution
+        names = sorted(frame.transforms)
+        if at is not None:
             keys, lo = fused(layers, res, frame.transforms, self._weights(), at=at)
-        return encode_map(
-            agent, None, frame_of(frame.root), res, keys, lo, sorted(frame.transforms), classes
+            return MapReply(self.config.agent_id, None, frame_of(frame.root), res, keys, lo, names)
+        keys, lo = self.fused_map.view(layers, res, frame.transforms, self._weights())
+        classes = fused_classes(layers, res, keys, frame.transforms)
+        points = fused_surface(layers, res, keys[lo >= 0], frame.transforms)
+        return MapReply(
+            self.config.agent_id, None, frame_of(frame.root), res, keys, lo, names, classes, points
         )
 
     # -- forgetting an agent (`colonyd forget-agent`) -----------------------------------------

@@ -38,6 +38,15 @@ class MapReply:
     logodds: np.ndarray  # (N,) float32
     layers: list[str] = field(default_factory=list)
     classes: np.ndarray | None = None  # (N,) int16 most probable class, -1 none (if sent)
+    #: (M, 3) points of the occupied voxels (log-odds >= 0, in order): their surface points
+    #: (`layers.fused_surface`); None: their centres.
+    points: np.ndarray | None = None
+
+    def occupied_points(self) -> np.ndarray:
+        """Points (M, 3) of the occupied voxels: `points`, else their centres."""
+        if self.points is not None:
+            return self.points
+        return vk.keys_to_centers(self.keys[self.logodds >= 0], self.resolution)
 
 
 def export_time(text: str | None) -> float | None:
@@ -73,29 +82,24 @@ def parse_time(text: str, flag: str) -> float:
     return stamp.timestamp()
 
 
-def encode_map(
-    agent: str,
-    layer: str | None,
-    frame: str,
-    resolution: float,
-    keys: np.ndarray,
-    logodds: np.ndarray,
-    layers: list[str],
-    classes: np.ndarray | None = None,
-) -> bytes:
-    """The bytes a daemon answers an export query with (`classes`: per voxel, optional)."""
+def encode_map(reply: MapReply) -> bytes:
+    """The bytes a daemon answers an export query with (classes and points when it has them:
+    the points as float32 offsets from the occupied voxels' centres)."""
     body = {
-        "agent": agent,
-        "layer": layer,
-        "frame": frame,
-        "resolution": float(resolution),
-        "n": len(keys),
-        "keys": np.ascontiguousarray(keys, "<i4").tobytes(),
-        "logodds": np.ascontiguousarray(logodds, "<f4").tobytes(),
-        "layers": layers,
+        "agent": reply.agent,
+        "layer": reply.layer,
+        "frame": reply.frame,
+        "resolution": float(reply.resolution),
+        "n": len(reply.keys),
+        "keys": np.ascontiguousarray(reply.keys, "<i4").tobytes(),
+        "logodds": np.ascontiguousarray(reply.logodds, "<f4").tobytes(),
+        "layers": reply.layers,
     }
-    if classes is not None:
-        body["classes"] = np.ascontiguousarray(classes, "<i2").tobytes()
+    if reply.classes is not None:
+        body["classes"] = np.ascontiguousarray(reply.classes, "<i2").tobytes()
+    if reply.points is not None:
+        centres = vk.keys_to_centers(reply.keys[reply.logodds >= 0], reply.resolution)
+        body["surface"] = np.ascontiguousarray(reply.points - centres, "<f4").tobytes()
     answer: bytes = msgpack.packb(body, use_bin_type=True)
     return answer
 
@@ -122,15 +126,29 @@ def decode_map(data: bytes) -> MapReply:
                 msg = f"expected {n} classes of 2 bytes, found {len(d['classes'])} bytes"
                 raise ValueError(msg)
             classes = np.frombuffer(d["classes"], "<i2").astype(np.int16)
+        keys = np.frombuffer(d["keys"], "<i4").reshape(n, 3).astype(np.int64)
+        logodds = np.frombuffer(d["logodds"], "<f4").astype(np.float32)
+        points = None
+        if d.get("surface") is not None:
+            occupied = logodds >= 0
+            m = int(np.count_nonzero(occupied))
+            if len(d["surface"]) != 12 * m:
+                msg = f"expected {m} surface offsets of 12 bytes, found {len(d['surface'])} bytes"
+                raise ValueError(msg)
+            offsets = np.frombuffer(d["surface"], "<f4").reshape(m, 3)
+            if not np.isfinite(offsets).all():
+                raise ValueError("expected finite surface offsets, found NaN or infinity")
+            points = vk.keys_to_centers(keys[occupied], resolution) + offsets
         return MapReply(
             str(d["agent"]),
             None if d["layer"] is None else str(d["layer"]),
             str(d["frame"]),
             resolution,
-            np.frombuffer(d["keys"], "<i4").reshape(n, 3).astype(np.int64),
-            np.frombuffer(d["logodds"], "<f4").astype(np.float32),
+            keys,
+            logodds,
             layers,
             classes,
+            points,
         )
     except (ValueError, KeyError, TypeError, msgpack.exceptions.ExtraData) as exc:
         msg = (
@@ -156,13 +174,14 @@ CLASS_COLOURS = np.array(
 )
 
 
-def map_colours(centres: np.ndarray, classes: np.ndarray | None) -> np.ndarray:
-    """RGB (N, 3) uint8 of voxel `centres`: its class's colour where it has one, else its height
-    on a blue (low) to yellow (high) ramp between the 2nd and 98th percentile of the heights."""
-    n = len(centres)
+def map_colours(points: np.ndarray, classes: np.ndarray | None) -> np.ndarray:
+    """RGB (N, 3) uint8 of voxels at `points`: its class's colour where it has one, else its
+    height on a blue (low) to yellow (high) ramp between the 2nd and 98th percentile of the
+    heights."""
+    n = len(points)
     if n == 0:
         return np.zeros((0, 3), np.uint8)
-    z = centres[:, 2]
+    z = points[:, 2]
     lo, hi = np.percentile(z, [2, 98])
     level = np.clip((z - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
     ramp = cv2.applyColorMap(level.reshape(-1, 1), cv2.COLORMAP_VIRIDIS).reshape(n, 3)
@@ -174,16 +193,16 @@ def map_colours(centres: np.ndarray, classes: np.ndarray | None) -> np.ndarray:
 
 
 def write_maps(reply: MapReply, out: Path, stem: str) -> dict[str, Path]:
-    """`<stem>.bt` (occupied and free), `<stem>.ply` (occupied centres, coloured by class and by
-    height where unlabelled), and a floor plan when every occupied voxel lies in one z layer (a 2D
-    map)."""
+    """`<stem>.bt` (occupied and free), `<stem>.ply` (the occupied voxels' points: surface
+    points where the map has them, else centres; coloured by class and by height where
+    unlabelled), and a floor plan when every occupied voxel lies in one z layer (a 2D map)."""
     out.mkdir(parents=True, exist_ok=True)
     occupied = reply.logodds >= 0
     files = {f"{stem}.bt": out / f"{stem}.bt", f"{stem}.ply": out / f"{stem}.ply"}
     write_bt(files[f"{stem}.bt"], reply.resolution, reply.keys, occupied)
-    centres = vk.keys_to_centers(reply.keys[occupied], reply.resolution)
+    points = reply.occupied_points()
     classes = None if reply.classes is None else reply.classes[occupied]
-    write_ply(files[f"{stem}.ply"], centres, map_colours(centres, classes))
+    write_ply(files[f"{stem}.ply"], points, map_colours(points, classes))
     z = reply.keys[occupied, 2]
     if stem == "fused" and z.size and z.min() == z.max():
         files.update(

@@ -8,7 +8,6 @@ import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -473,9 +472,19 @@ def contribution(
         return None
     if t is None:
         return vk.pack(keys), lo
-    centres = vk.keys_to_centers(keys, layer.resolution) @ t[:3, :3].T + t[:3, 3]
-    packed, inv = np.unique(vk.pack(vk.points_to_keys(centres, resolution)), return_inverse=True)
+    packed, inv = np.unique(
+        vk.pack(moved_keys(keys, layer.resolution, t, resolution)), return_inverse=True
+    )
     return packed, np.bincount(inv, weights=lo) / np.bincount(inv)
+
+
+def moved_keys(
+    keys: np.ndarray, layer_resolution: float, t: np.ndarray, resolution: float
+) -> np.ndarray:
+    """Keys at `resolution` of the centres of voxels `keys` (N, 3, at `layer_resolution`) moved
+    by `t` (4x4): where a layer's voxels land in a fused view."""
+    centres = vk.keys_to_centers(keys, layer_resolution) @ t[:3, :3].T + t[:3, 3]
+    return vk.points_to_keys(centres, resolution)
 
 
 class FusedMap:
@@ -550,6 +559,42 @@ def best_class(full: Delta) -> tuple[np.ndarray, np.ndarray]:
     return classes, np.where(classes >= 0, probs[rows, column], 0.0).astype(np.float32)
 
 
+class KeyIndex:
+    """Rows of a fused view's voxel keys (N, 3), found by key."""
+
+    def __init__(self, keys: np.ndarray) -> None:
+        self.packed = vk.pack(np.asarray(keys, np.int64).reshape(-1, 3))
+        self.order = np.argsort(self.packed)
+        self.ordered = self.packed[self.order]
+
+    def __len__(self) -> int:
+        return len(self.packed)
+
+    def rows(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For keys (M, 3): the rows of those among them that are held, and a mask (M,) of
+        which are."""
+        packed = vk.pack(keys)
+        at = np.minimum(np.searchsorted(self.ordered, packed), len(self.ordered) - 1)
+        hit = self.ordered[at] == packed
+        return self.order[at[hit]], hit
+
+
+def placed_layers(
+    layers: list[Layer], resolution: float, transforms: dict[str, np.ndarray] | None
+) -> list[tuple[Layer, np.ndarray | None]]:
+    """The layers a fused view (`fused`) holds, with the transform into its frame (None: the
+    layer is in it already, at `resolution`)."""
+    out: list[tuple[Layer, np.ndarray | None]] = []
+    for layer in layers:
+        t = None if transforms is None else transforms.get(layer.origin)
+        if transforms is not None and t is None:
+            continue
+        if t is None and abs(layer.resolution - resolution) > 1e-9:
+            continue
+        out.append((layer, t))
+    return out
+
+
 def fused_classes(
     layers: list[Layer],
     resolution: float,
@@ -559,19 +604,12 @@ def fused_classes(
     """Per voxel of a fused view's `keys` (`fused` with the same layers, resolution and
     transforms): the most probable class over the labelled voxels of every layer that land in it,
     -1 where none does."""
-    packed_keys = vk.pack(np.asarray(keys, np.int64).reshape(-1, 3))
-    order = np.argsort(packed_keys)
-    ordered = packed_keys[order]
-    out = np.full(len(packed_keys), -1, np.int16)
-    if not len(ordered):
+    index = KeyIndex(keys)
+    out = np.full(len(index), -1, np.int16)
+    if not len(index):
         return out
     targets, classes, probs = [], [], []
-    for layer in layers:
-        t = None if transforms is None else transforms.get(layer.origin)
-        if transforms is not None and t is None:
-            continue
-        if t is None and abs(layer.resolution - resolution) > 1e-9:
-            continue
+    for layer, t in placed_layers(layers, resolution, transforms):
         full = layer.full()
         cls, prob = best_class(full)
         labelled = (cls >= 0) & ~np.isnan(full.logodds)
@@ -579,12 +617,9 @@ def fused_classes(
             continue
         k = full.keys[labelled]
         if t is not None:
-            centres = vk.keys_to_centers(k, layer.resolution) @ t[:3, :3].T + t[:3, 3]
-            k = vk.points_to_keys(centres, resolution)
-        packed = vk.pack(k)
-        at = np.minimum(np.searchsorted(ordered, packed), len(ordered) - 1)
-        hit = ordered[at] == packed
-        targets.append(order[at[hit]])
+            k = moved_keys(k, layer.resolution, t, resolution)
+        rows, hit = index.rows(k)
+        targets.append(rows)
         classes.append(cls[labelled][hit])
         probs.append(prob[labelled][hit])
     if not targets:
@@ -596,21 +631,33 @@ def fused_classes(
     return out
 
 
-def write_fused(
-    path_stem: Path,
-    keys: np.ndarray,
-    logodds: np.ndarray,
+def fused_surface(
+    layers: list[Layer],
     resolution: float,
-    classes: np.ndarray | None = None,
-) -> None:
-    """Occupied voxels of a fused view as `<stem>.ply` (coloured by class, by height where
-    unlabelled), occupied and free as `<stem>.bt`."""
-    from colonyd.export import map_colours
-    from voxel.octomap_io import write_bt
-    from voxel.ply import write_ply
-
-    occ = logodds >= 0
-    centres = vk.keys_to_centers(keys[occ], resolution)
-    colours = map_colours(centres, None if classes is None else classes[occ])
-    write_ply(path_stem.with_suffix(".ply"), centres, colours)
-    write_bt(path_stem.with_suffix(".bt"), resolution, keys, occ)
+    keys: np.ndarray,
+    transforms: dict[str, np.ndarray] | None = None,
+) -> np.ndarray:
+    """Points (N, 3) of a fused view's voxel `keys` (`fused` with the same layers, resolution
+    and transforms), what its point outputs show: per voxel, the mean of the surface points
+    (`VoxelGrid.surface_points`) of the occupied voxels that land in it of the layers holding
+    the surface channel, moved into the fused frame; the voxel's centre where none does (all
+    centres when no layer holds it). One layer in its own frame gives its `surface_points`."""
+    index = KeyIndex(keys)
+    out = vk.keys_to_centers(np.asarray(keys, np.int64).reshape(-1, 3), resolution)
+    sums, counts = np.zeros_like(out), np.zeros(len(index))
+    for layer, t in placed_layers(layers, resolution, transforms):
+        with layer.lock:
+            if not layer.grid.has_surface:
+                continue
+            k = layer.grid.occupied_keys()
+            points = layer.grid.surface_points(k)
+        if t is not None:
+            k = moved_keys(k, layer.resolution, t, resolution)
+            points = points @ t[:3, :3].T + t[:3, 3]
+        rows, hit = index.rows(k)
+        for axis in range(3):
+            sums[:, axis] += np.bincount(rows, weights=points[hit, axis], minlength=len(index))
+        counts += np.bincount(rows, minlength=len(index))
+    some = counts > 0
+    out[some] = sums[some] / counts[some, None]
+    return out

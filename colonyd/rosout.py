@@ -12,7 +12,6 @@ import numpy as np
 
 from colonyd import rosmsg
 from colonyd.rosgraph import RosNode
-from voxel import keys as vk
 
 log = logging.getLogger(__name__)
 
@@ -87,25 +86,31 @@ class RosPublishers:
         self.tf = self.node.publisher("/tf", TF, depth=100)
         self.capped = 0
 
-    def publish_map(self, keys: np.ndarray, logodds: np.ndarray, resolution: float) -> int:
-        """OccupancyGrid and PointCloud2 of a fused map (colony frame); the bytes sent."""
+    def publish_map(
+        self,
+        keys: np.ndarray,
+        logodds: np.ndarray,
+        resolution: float,
+        points: np.ndarray,
+    ) -> int:
+        """OccupancyGrid and PointCloud2 of a fused map (colony frame); the bytes sent. The cloud
+        holds `points` (M, 3), those of the occupied voxels (log-odds >= 0, in order:
+        `layers.fused_surface`, their centres where no layer keeps surfaces)."""
         out, now = self.out, time.time()
         cells, corner = occupancy_cells(keys, logodds, resolution, out.grid_z_min, out.grid_z_max)
         origin = np.array([corner[0], corner[1], 0.0])
         sent = self.grid.publish(rosmsg.occupancy_grid(now, out.frame, cells, resolution, origin))
-        occupied = keys[logodds >= 0]
-        if len(occupied) > out.max_points:
+        if len(points) > out.max_points:
             self.capped += 1
             if self.capped == 1 or self.capped % 100 == 0:
                 log.warning(
                     "ROS 2 cloud: %d occupied voxels, publishing every %d-th (ros2_max_points %d)",
-                    len(occupied),
-                    -(-len(occupied) // out.max_points),
+                    len(points),
+                    -(-len(points) // out.max_points),
                     out.max_points,
                 )
-            occupied = occupied[:: -(-len(occupied) // out.max_points)]
-        centres = vk.keys_to_centers(occupied, resolution)
-        cloud = rosmsg.point_cloud(now, out.frame, centres, height_colours(centres[:, 2]))
+            points = points[:: -(-len(points) // out.max_points)]
+        cloud = rosmsg.point_cloud(now, out.frame, points, height_colours(points[:, 2]))
         return sent + self.cloud.publish(cloud)
 
     def publish_objects(self, positions: np.ndarray, ids: list[int], size: float) -> int:

@@ -361,6 +361,12 @@ class VoxelGrid:
             np.count_nonzero(~np.isnan(self.store.channels["logodds"][self.store.used_slots()]))
         )
 
+    @property
+    def has_surface(self) -> bool:
+        """Whether the grid holds the `surface` channel (it integrates with `surface`, or is a
+        replica of a grid that sent it)."""
+        return SURFACE in self.store.channels
+
     def surface_points(self, keys: np.ndarray) -> np.ndarray:
         """Surface points (N, 3) of voxel keys: each voxel's centre plus the mean offset of the
         points that hit it as published (`surface` channel: to 1/254 voxel, within

@@ -5,10 +5,14 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import msgpack
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
+from voxel import keys as vk
 from voxel.octomap_io import read_bt
+from voxel.ply import read_ply
 
 
 def test_export_fetches_the_fused_map_and_layers(make_colony, tmp_path):
@@ -44,7 +48,17 @@ def test_export_fetches_the_fused_map_and_layers(make_colony, tmp_path):
     order_f, order_l = np.lexsort(fused.keys.T), np.lexsort(layer.keys.T)
     assert np.array_equal(fused.keys[order_f], layer.keys[order_l])
     assert np.array_equal(fused.occupied[order_f], layer.occupied[order_l])
-    assert (out / "fused.ply").stat().st_size > 0 and (out / "a.ply").exists()
+    # a's surface points (daemons keep them by default): b's replica of a's layer as it is and
+    # in the fused map, not the voxels' centres
+    points, _ = read_ply(out / "fused.ply")
+    layer_points, _ = read_ply(out / "a.ply")
+    np.testing.assert_allclose(
+        points[np.lexsort(points.T)], layer_points[np.lexsort(layer_points.T)], atol=1e-6
+    )
+    centres = vk.keys_to_centers(fused.keys[fused.occupied], 0.1)
+    off, row = cKDTree(centres).query(points, p=np.inf)
+    assert len(points) == len(centres) and len(np.unique(row)) == len(centres)
+    assert off.max() < 0.05 + 1e-6 and off.mean() > 0.01  # each in its voxel (float32)
     missing = subprocess.run(
         [*base, "--out", str(out), "--layer", "nobody"],
         capture_output=True,
@@ -64,27 +78,44 @@ def test_export_fetches_the_fused_map_and_layers(make_colony, tmp_path):
     assert bad.returncode == 3 and "expected a directory, found a file" in bad.stderr
 
 
-def test_map_reply_carries_classes_and_the_ply_is_coloured_by_class_then_height(tmp_path):
+def test_map_reply_carries_classes_and_points_and_the_ply_is_coloured_by_class_then_height(
+    tmp_path,
+):
     from colonyd.errors import StatusError
-    from colonyd.export import CLASS_COLOURS, decode_map, encode_map, write_maps
-    from voxel.ply import read_ply
+    from colonyd.export import CLASS_COLOURS, MapReply, decode_map, encode_map, write_maps
 
     keys = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 5], [0, 0, 20], [3, 3, 3]])
     logodds = np.array([1.0, 1.0, 1.0, 1.0, -1.0], np.float32)
     classes = np.array([3, 11, -1, -1, 2], np.int16)
-    data = encode_map("a", None, "a.odom", 0.1, keys, logodds, ["a"], classes)
-    reply = decode_map(data)
+    centres = vk.keys_to_centers(keys[:4], 0.1)
+    points = centres + np.array([[0.01, -0.02, 0.03], [0, 0, -0.049], [0, 0, 0], [0.02, 0, 0]])
+    reply = decode_map(
+        encode_map(MapReply("a", None, "a.odom", 0.1, keys, logodds, ["a"], classes, points))
+    )
     assert reply.classes is not None and reply.classes.tolist() == classes.tolist()
-    assert decode_map(encode_map("a", None, "a.odom", 0.1, keys, logodds, [])).classes is None
+    assert reply.points is not None and np.abs(reply.points - points).max() < 1e-7
+    plain = decode_map(encode_map(MapReply("a", None, "a.odom", 0.1, keys, logodds)))
+    assert plain.classes is None and plain.points is None
+    np.testing.assert_array_equal(plain.occupied_points(), centres)
     files = write_maps(reply, tmp_path, "map")
-    centres, colours = read_ply(files["map.ply"])
-    assert len(centres) == 4 and colours is not None  # the occupied voxels only
+    at, colours = read_ply(files["map.ply"])
+    assert colours is not None  # the occupied voxels only, at their points
+    np.testing.assert_allclose(at, points, atol=1e-6)
     assert colours[0].tolist() == CLASS_COLOURS[3].tolist()
     assert colours[1].tolist() == CLASS_COLOURS[11 % len(CLASS_COLOURS)].tolist()
     assert colours[2].tolist() != colours[3].tolist()  # unlabelled: by height, low != high
-    bad = encode_map("a", None, "a.odom", 0.1, keys, logodds, [], classes[:3])
+    files = write_maps(plain, tmp_path, "plain")
+    np.testing.assert_allclose(read_ply(files["plain.ply"])[0], centres, atol=1e-6)
+    bad = encode_map(MapReply("a", None, "a.odom", 0.1, keys, logodds, [], classes[:3]))
     with pytest.raises(StatusError, match="expected 5 classes of 2 bytes, found 6 bytes"):
         decode_map(bad)
+    body = msgpack.unpackb(encode_map(reply))
+    for cut, message in (
+        (body["surface"][:36], "expected 4 surface offsets of 12 bytes, found 36"),
+        (np.full(12, np.nan, "<f4").tobytes(), "expected finite surface offsets, found NaN"),
+    ):
+        with pytest.raises(StatusError, match=message):
+            decode_map(msgpack.packb({**body, "surface": cut}))
 
 
 def test_export_with_nobody_there_says_where_it_looked(tmp_path):

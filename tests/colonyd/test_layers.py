@@ -10,6 +10,7 @@ import pytest
 from colonyd.errors import WireError
 from colonyd.grid import new_grid
 from colonyd.layers import FusedMap, Layer, Layers, fused, layer_weights
+from voxel import keys as vk
 from voxel.delta import Delta
 
 
@@ -194,6 +195,55 @@ def test_fused_classes_take_the_most_probable_label_over_layers_and_frames():
     assert free and all(hit[k] == -1 for k in free)
     cls, prob = best_class(a.full())
     assert set(cls.tolist()) == {-1, 3} and prob[cls == 3].min() > 0 and (prob[cls < 0] == 0).all()
+
+
+def _wall_layer(origin: str, wall: np.ndarray, *, surface: bool) -> Layer:
+    """A layer whose origin saw `wall` (N, 3) from (0, 0, 0.3) in 3 scans, keeping the surface
+    channel or not, as gossip delivers it."""
+    from protocol.deltacodec import decode_delta, encode_delta
+    from voxel.grid import VoxelGrid
+
+    grid = VoxelGrid(0.1, surface=surface)
+    for t in range(3):
+        grid.integrate(wall, np.array([0.0, 0.0, 0.3]), time=float(t))
+    layer = Layer(origin, 0.1)
+    layer.offer(1, 0, 1, decode_delta(encode_delta(grid.delta_since(0))))
+    return layer
+
+
+def test_fused_surface_is_the_layers_surface_points_and_centres_without_them():
+    """A fused view's points (ROS 2 cloud, export, PLYs): each occupied voxel at the surface
+    points of the layers that keep them, moved into the fused frame; the centres where none
+    does (they were the centres everywhere, 37 mm off this wall)."""
+    from colonyd.layers import fused_surface
+
+    x = np.linspace(-1.0, 1.0, 201)
+    wall = np.column_stack([x, np.full(x.size, 2.013), np.full(x.size, 0.3)])
+    mine = _wall_layer("a", wall, surface=True)
+    plain = _wall_layer("b", wall, surface=False)
+    # c saw the same wall turned by -90 degrees in its own frame: (x, y) -> (y, -x)
+    turned = _wall_layer("c", wall[:, [1, 0, 2]] * [1, -1, 1], surface=True)
+    yaw = np.eye(4)
+    yaw[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]  # c's frame into ours: +90 degrees
+    transforms = {"a": np.eye(4), "b": np.eye(4), "c": yaw}
+    # c's voxels land one key over at the wall's ends: the fused voxel (x key 10) that b's
+    # voxel alone (no surface channel) lands in keeps its centre
+    for layers, centred in (([mine, plain], 0), ([turned, plain], 1), ([mine, turned, plain], 0)):
+        keys, lo = fused(layers, 0.1, transforms)
+        occupied = keys[lo >= 0]
+        points = fused_surface(layers, 0.1, occupied, transforms)
+        on_wall = occupied[:, 1] == 20
+        at_centre = (points == vk.keys_to_centers(occupied, 0.1)).all(axis=1)
+        assert on_wall.sum() >= 21 and (at_centre & on_wall).sum() == centred
+        assert np.abs(points[on_wall & ~at_centre, 1] - 2.013).max() < 0.001
+        free_centres = fused_surface(layers, 0.1, keys[lo < 0], transforms)  # none lands there
+        np.testing.assert_array_equal(free_centres, vk.keys_to_centers(keys[lo < 0], 0.1))
+    keys, lo = fused([plain], 0.1, transforms)
+    occupied = keys[lo >= 0]
+    centres = fused_surface([plain], 0.1, occupied, transforms)
+    np.testing.assert_array_equal(centres, vk.keys_to_centers(occupied, 0.1))
+    own = mine.grid.occupied_keys()  # one layer in its own frame: its surface points
+    np.testing.assert_array_equal(fused_surface([mine], 0.1, own), mine.grid.surface_points(own))
 
 
 def test_live_fused_view_recomputes_only_what_changed():

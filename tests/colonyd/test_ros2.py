@@ -210,6 +210,8 @@ def test_carmen_log_played_as_laserscan_odometry_tf_maps_like_colonyd_map(
     assert score >= 0.99, f"OccupancyGrid occupied cells IoU {score:.4f}"
     xyz, _ = cloud_points(received["/colony/cloud"])
     assert iou(np.floor(xyz / 0.1).astype(np.int64), live) >= 0.99
+    off = np.abs(xyz - (np.floor(xyz / 0.1) + 0.5) * 0.1).max(axis=1)
+    assert off.mean() > 0.01  # the voxels' surface points (mean hits), not their centres
     tf = received["/tf"].transforms[0]
     assert (tf.header.frame_id, tf.child_frame_id) == ("colony", "map")
     markers = received["/colony/objects"].markers  # no objects in a laser log: only DELETEALL
