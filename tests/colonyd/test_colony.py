@@ -24,10 +24,14 @@ def src(seed: int, n: int = 6) -> list[str]:
 
 def test_three_converge_late_joiner_and_garbage(make_colony):
     colony = make_colony("conv")
-    for i, agent in enumerate(["a", "b", "c"]):
-        colony.add(agent, src(i + 1))
+    colony.add("a", src(1))
+    colony.add("b", src(2))
+    plain = colony.add("c", src(3), start=False)  # `surface = false` among daemons keeping it
+    plain.env["COLONYD_SURFACE"] = "false"
+    colony.daemons["a"].wait_listening()  # its hub, as `add` waits for when it starts one
+    plain.start()
     colony.wait_members(3)
-    colony.wait_converged(30)
+    colony.wait_converged(30)  # every replica equal to its origin's layer (digests)
     # Each daemon runs in a session of its own, as systemd starts a service (autogroup shares
     # CPU time by session: docs/RELIABILITY.md).
     for d in colony.daemons.values():
@@ -78,6 +82,11 @@ def test_three_converge_late_joiner_and_garbage(make_colony):
     d = colony.reports(["d"])["d"]
     assert {"a", "b", "c"} <= set(d["layers"])
     assert d["metrics"]["counts"].get("snapshots_installed", 0) >= 3
+    # c's layer travels without the surface channel (deltas to a and b, a snapshot to d), a's
+    # with it
+    for r in colony.reports("abcd").values():
+        assert "surface" not in r["layers"]["c"]["channels"], r["agent"]
+        assert "surface" in r["layers"]["a"]["channels"], r["agent"]
     # each catch-up reports its timeline, in the order of its steps
     for _origin, _voxels, seconds, marks in d["metrics"]["catchups"]:
         steps = [marks[k] for k in ("asked", "request", "first", "received", "admitted")]
