@@ -11,10 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from colonyd.estimator import Estimator, ScanEstimator, get_estimator
-from colonyd.mapping import get_progress, integrate_observation, tum_line, write_map
+from colonyd.mapping import get_progress, integrate_observation, no_frames, tum_line, write_map
 from colonyd.outdir import run_output
 from plugins.carmen import CarmenSource
-from plugins.errors import SourceError
 from plugins.observation import Observation
 from plugins.sevenscenes import RgbdSource
 from plugins.source import open_source
@@ -111,15 +110,8 @@ def localize_source(
                 bar.update(len(times), total)
         finally:
             bar.close()
-        if not times:  # (as `colonyd map`: an empty map and trajectory are no result)
-            reasons = (
-                "; ".join(f"{n} x {r}" for r, n in source.stats.reasons.items()) or "none given"
-            )
-            msg = (
-                f"{spec}: expected at least one readable frame, found none "
-                f"({source.stats.skipped} skipped: {reasons}); nothing written"
-            )
-            raise SourceError(msg)
+        if not times:
+            raise no_frames(spec, source.stats, "nothing written")
     files = write_map(grid, out_dir, [tum_line(t, p) for t, p in zip(times, est, strict=True)])
     files["estimate"] = _write_tum(out_dir / "estimate.tum", times, est)
     smoothed: list[np.ndarray] = []

@@ -18,6 +18,7 @@ from colonyd.outdir import run_output
 from plugins.errors import SourceError
 from plugins.observation import Observation
 from plugins.source import open_source
+from plugins.stream import StreamStats
 from voxel import kernels
 from voxel import keys as vk
 from voxel.blocks import shape_for
@@ -254,6 +255,17 @@ def write_floor_plan(
     return files
 
 
+def no_frames(spec: str, stats: StreamStats, written: str) -> SourceError:
+    """The error of a run whose source `spec` yielded no frame (an empty map or trajectory is no
+    result): how many it skipped and why, and what was `written` (nothing)."""
+    reasons = "; ".join(f"{n} x {r}" for r, n in stats.reasons.items()) or "none given"
+    msg = (
+        f"{spec}: expected at least one readable frame, found none "
+        f"({stats.skipped} skipped: {reasons}); {written}"
+    )
+    return SourceError(msg)
+
+
 def map_source(
     spec: str,
     resolution: float,
@@ -300,14 +312,7 @@ def map_source(
         finally:
             bar.close()
         if frames == 0:
-            reasons = (
-                "; ".join(f"{n} x {r}" for r, n in source.stats.reasons.items()) or "none given"
-            )
-            msg = (
-                f"{spec}: expected at least one readable frame, found none "
-                f"({source.stats.skipped} skipped: {reasons}); no map written"
-            )
-            raise SourceError(msg)
+            raise no_frames(spec, source.stats, "no map written")
     t0 = clock.perf_counter()
     files = write_map(grid, out_dir, trajectory)
     if adapter.kind == "lidar2d" and heights:
