@@ -574,6 +574,8 @@ class KeyIndex:
         """For keys (M, 3): the rows of those among them that are held, and a mask (M,) of
         which are."""
         packed = vk.pack(keys)
+        if not len(self.ordered):
+            return np.empty(0, np.int64), np.zeros(len(packed), bool)
         at = np.minimum(np.searchsorted(self.ordered, packed), len(self.ordered) - 1)
         hit = self.ordered[at] == packed
         return self.order[at[hit]], hit

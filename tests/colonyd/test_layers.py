@@ -242,6 +242,7 @@ def test_fused_surface_is_the_layers_surface_points_and_centres_without_them():
     occupied = keys[lo >= 0]
     centres = fused_surface([plain], 0.1, occupied, transforms)
     np.testing.assert_array_equal(centres, vk.keys_to_centers(occupied, 0.1))
+    assert fused_surface([mine], 0.1, np.zeros((0, 3), np.int64)).shape == (0, 3)  # none occupied
     own = mine.grid.occupied_keys()  # one layer in its own frame: its surface points
     np.testing.assert_array_equal(fused_surface([mine], 0.1, own), mine.grid.surface_points(own))
 
