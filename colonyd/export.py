@@ -138,6 +138,13 @@ def decode_map(data: bytes) -> MapReply:
             offsets = np.frombuffer(d["surface"], "<f4").reshape(m, 3)
             if not np.isfinite(offsets).all():
                 raise ValueError("expected finite surface offsets, found NaN or infinity")
+            worst = float(np.abs(offsets).max(initial=0.0))
+            if worst > 0.5 * resolution * (1 + 1e-3):
+                msg = (
+                    f"expected surface offsets within half a voxel ({0.5 * resolution:g} m),"
+                    f" found {worst:g} m"
+                )
+                raise ValueError(msg)
             points = vk.keys_to_centers(keys[occupied], resolution) + offsets
         return MapReply(
             str(d["agent"]),
