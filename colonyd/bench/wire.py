@@ -217,7 +217,7 @@ def run_scenario(
         totals["fast_s"] += fast_s
         max_frame = max(max_frame, len(delta))
     n = max(totals["changed"], 1)
-    exact = mirror.content_equal(grid)  # every voxel's wire values, the surface codes included
+    replica_exact = mirror.content_equal(grid)  # every voxel's wire values, surface codes too
     return {
         "scenario": sc.name,
         "surface": surface,
@@ -234,7 +234,7 @@ def run_scenario(
             totals["changed"] / max(totals["fast_s"], 1e-9)
         ),
         "frames": totals["frames"],
-        "replica_exact": exact,
+        "replica_exact": replica_exact,
         "resolution": sc.resolution,
         "max_changed_voxels_per_frame": max_frame,
         "bytes_budgeted": totals["budgeted"],
