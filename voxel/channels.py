@@ -83,7 +83,10 @@ def fuse_channels(
     m = hit_keys.shape[0]
     moved = None
     if surface is not None:
-        moved = fuse_surface(store, slots, offsets, inverse, *surface)
+        # this scan's delta carries these voxels anyway: their occupancy changed, or (fused
+        # channels) every hit voxel takes the version below
+        sent = channels.fused | (store.channels["version"][slots, offsets] == np.uint32(version))
+        moved = fuse_surface(store, slots, offsets, inverse, *surface, sent)
     if not channels.fused:
         assert moved is not None
         if not moved.any():

@@ -369,9 +369,10 @@ class VoxelGrid:
 
     def surface_points(self, keys: np.ndarray) -> np.ndarray:
         """Surface points (N, 3) of voxel keys: each voxel's centre plus the mean offset of the
-        points that hit it as published (`surface` channel: to 1/254 voxel, within
-        `surface.PUBLISH_CODES` of those of the running mean; an occupied voxel's on a replica
-        are the origin's bit for bit); the centre where a voxel holds no surface data."""
+        points that hit it as published (`surface` channel: codes of 1/254 voxel, published in
+        steps of `surface.PUBLISH_STEP`, within `surface.PUBLISH_CODES` of the running mean's;
+        an occupied voxel's on a replica are the origin's bit for bit); the centre where a voxel
+        holds no surface data."""
         keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
         out = vk.keys_to_centers(keys, self.resolution)
         arr = self.store.channels.get(SURFACE)

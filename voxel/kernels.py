@@ -285,11 +285,13 @@ def _try_surface(fuse: Callable[..., Any]) -> None:
         np.zeros(1, dtype=np.int64),
         np.zeros((1, 3)),
         np.ones(1, dtype=np.int64),
+        np.zeros(1, dtype=np.bool_),
         65532.0,
         32766.0,
         258.0,
         127.0,
-        3,
+        16,
+        16.0,
     )
 
 
@@ -302,17 +304,20 @@ def _fuse_surface(
     inverse: np.ndarray,
     sums: np.ndarray,
     counts: np.ndarray,
+    sent: np.ndarray,
     store_scale: float,
     store_max: float,
     store_step: float,
     wire_max: float,
     publish: int,
+    publish_step: float,
 ) -> np.ndarray:
     """`surface.fuse_surface` in one pass (the same floating-point operations in the same
     order): the running means (`means`, int16 (slots, voxels, 3)) and weights of the hit voxels
     at (`slots`, `offsets`) take the mean of the groups of points `inverse` maps to them
-    (`sums` (H, 3), `counts` (H,)); published codes follow where they moved `publish` codes or
-    the voxel is new. Returns the mask of voxels whose published codes changed."""
+    (`sums` (H, 3), `counts` (H,)); published codes (multiples of `publish_step`) follow where
+    they differ and the voxel is new, `sent` anyway, or its mean moved `publish` codes from
+    them. Returns the mask of voxels whose published codes changed."""
     m = slots.shape[0]
     acc = np.zeros((m, 3), dtype=np.float64)
     pts = np.zeros(m, dtype=np.float64)
@@ -323,13 +328,14 @@ def _fuse_surface(
         acc[r, 2] += sums[i, 2]
         pts[r] += np.float64(counts[i])
     moved = np.zeros(m, dtype=np.bool_)
-    codes = np.empty(3, dtype=np.int64)
+    rounded = np.empty(3, dtype=np.int64)
     for r in range(m):
         sl = slots[r]
         o = offsets[r]
         w = np.int64(weights[sl, o])
         weights[sl, o] = np.uint16(w + 1 if w < 65535 else 65535)
-        step = False
+        far = False
+        differ = False
         for a in range(3):
             frame = acc[r, a] / pts[r]
             cur = np.float64(means[sl, o, a]) / store_scale
@@ -337,12 +343,16 @@ def _fuse_surface(
             new = min(max(np.rint(cur * store_scale), -store_max), store_max)
             means[sl, o, a] = np.int16(new)
             code = min(max(np.rint(np.float64(np.int16(new)) / store_step), -wire_max), wire_max)
-            codes[a] = np.int64(code)
-            if abs(codes[a] - np.int64(published[sl, o, a])) >= publish:
-                step = True
-        if w == 0 or step:
+            steps = np.rint(code / publish_step) * publish_step
+            rounded[a] = np.int64(min(max(steps, -wire_max), wire_max))
+            old = np.int64(published[sl, o, a])
+            if abs(np.int64(code) - old) >= publish:
+                far = True
+            if rounded[a] != old:
+                differ = True
+        if w == 0 or (differ and (far or sent[r])):
             for a in range(3):
-                published[sl, o, a] = np.int8(codes[a])
+                published[sl, o, a] = np.int8(rounded[a])
             moved[r] = True
     return moved
 

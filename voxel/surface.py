@@ -16,9 +16,10 @@ if TYPE_CHECKING:
     from voxel.delta import Delta
 
 #: Codes: an offset of `code / WIRE_SCALE` voxels per axis, code in [-WIRE_MAX, WIRE_MAX] (int8,
-#: -128 never valid): 1/254 of a voxel, 0.39 mm at 10 cm, within half a voxel. The `surface`
-#: channel holds these codes as published (deltas carry them exactly for occupied voxels, 0 for the
-#: others, so a replica holds an occupied voxel's values bit for bit).
+#: -128 never valid): 1/254 of a voxel, 0.39 mm at 10 cm, within half a voxel (this grid
+#: publishes multiples of PUBLISH_STEP of them). The `surface` channel holds the codes as
+#: published (deltas carry them exactly for occupied voxels, 0 for the others, so a replica
+#: holds an occupied voxel's values bit for bit).
 WIRE_SCALE = 254
 WIRE_MAX = 127
 #: The running mean behind them is int16 multiples of 1/(WIRE_SCALE * STORE_STEP) voxel (1.5 um
@@ -27,10 +28,15 @@ WIRE_MAX = 127
 STORE_STEP = 258
 STORE_SCALE = WIRE_SCALE * STORE_STEP
 STORE_MAX = WIRE_MAX * STORE_STEP
-#: A voxel's published code follows its running mean once they differ by this many codes on an
-#: axis (and at its first hit): a mean that moves by a fraction of a millimetre a scan (a
-#: camera revisiting a surface) is not sent again with every scan (docs/BENCHMARKS.md, wire).
-PUBLISH_CODES = 3
+#: Published codes are multiples of PUBLISH_STEP (1/16 voxel: 3.1 mm at 5 cm, 6.3 mm at 10 cm;
+#: +-127 where rounding reaches +-128): a code sent is then one of 17 values, not 255, and zstd
+#: codes each in ~4 bits instead of ~8 (docs/BENCHMARKS.md, wire). Receivers decode any code.
+PUBLISH_STEP = 16
+#: A voxel's published code takes its mean's (rounded to PUBLISH_STEP) at its first hit, in
+#: every scan whose delta carries the voxel anyway (its occupancy or other channels changed: the
+#: same bytes), and alone once the mean is PUBLISH_CODES codes from it on an axis: a mean that
+#: moves by a fraction of a step a scan does not make the voxel travel again by itself.
+PUBLISH_CODES = 16
 #: Channel names: the published codes (int8 (3,), a delta channel), the running mean (int16
 #: (3,)) and the count of scans fused into it (uint16, its weight); the last two are the
 #: integrating grid's own, never sent.
@@ -43,6 +49,14 @@ def to_wire(stored: np.ndarray) -> np.ndarray:
     """Codes (int8) of running means (int16)."""
     codes = np.rint(np.asarray(stored, dtype=np.float64) / STORE_STEP)
     out: np.ndarray = np.clip(codes, -WIRE_MAX, WIRE_MAX).astype(np.int8)
+    return out
+
+
+def publish(codes: np.ndarray) -> np.ndarray:
+    """Codes (int8) as published: `codes` rounded to multiples of PUBLISH_STEP, within
+    [-WIRE_MAX, WIRE_MAX]."""
+    steps = np.rint(np.asarray(codes, dtype=np.float64) / PUBLISH_STEP) * PUBLISH_STEP
+    out: np.ndarray = np.clip(steps, -WIRE_MAX, WIRE_MAX).astype(np.int8)
     return out
 
 
@@ -83,17 +97,19 @@ def fuse_surface(
     inverse: np.ndarray,
     sums: np.ndarray,
     counts: np.ndarray,
+    sent: np.ndarray,
 ) -> np.ndarray:
     """Fold one scan's hit points into the running means of their voxels' surfaces.
 
     The voxels at (`slots`, `offsets`) (U,) are the scan's hit voxels, `inverse` (H,) the row
     in them of each group of hit points, `sums` (H, 3) the sums of the groups' offsets from
     their voxel's centre in voxels (x / resolution - floor(x / resolution) - 0.5 per axis) and
-    `counts` (H,) their sizes. A scan is one
-    sample of weight 1, its points' mean, as colours and normals are fused (the weight is the
-    count of scans, saturating at 65535). A voxel's published code takes its mean's at its
-    first hit and when they differ by PUBLISH_CODES on an axis. Returns a mask (U,) of the
-    voxels whose published codes changed (the others need no new version).
+    `counts` (H,) their sizes; `sent` (U,) marks the voxels this scan's delta carries anyway. A
+    scan is one sample of weight 1, its points' mean, as colours and normals are fused (the
+    weight is the count of scans, saturating at 65535). A voxel's published code (`publish` of
+    its mean's) is set at its first hit, when it differs and the voxel is `sent`, and when the
+    mean is PUBLISH_CODES from it on an axis. Returns a mask (U,) of the voxels whose
+    published codes changed (the others need no new version).
     """
     compiled = kernels.surface()
     if compiled is not None:
@@ -106,11 +122,13 @@ def fuse_surface(
             np.ascontiguousarray(inverse, dtype=np.int64),
             np.ascontiguousarray(sums, dtype=np.float64),
             np.ascontiguousarray(counts, dtype=np.int64),
+            np.ascontiguousarray(sent, dtype=np.bool_),
             float(STORE_SCALE),
             float(STORE_MAX),
             float(STORE_STEP),
             float(WIRE_MAX),
             PUBLISH_CODES,
+            float(PUBLISH_STEP),
         )
         return fused
     m = slots.shape[0]
@@ -127,11 +145,12 @@ def fuse_surface(
     cur += (frame - cur) / (w_old.astype(np.float64) + 1.0)[:, None]
     new = np.clip(np.rint(cur * STORE_SCALE), -STORE_MAX, STORE_MAX).astype(np.int16)
     means[slots, offsets] = new
-    codes = to_wire(new)
+    codes = to_wire(new).astype(np.int64)
+    rounded = publish(codes)
     published = store.channel(CHANNEL)
     old = published[slots, offsets].astype(np.int64)
-    moved: np.ndarray = (w_old == 0) | (
-        np.abs(codes.astype(np.int64) - old).max(axis=1) >= PUBLISH_CODES
-    )
-    published[slots[moved], offsets[moved]] = codes[moved]
+    differ = (rounded.astype(np.int64) != old).any(axis=1)
+    far = np.abs(codes - old).max(axis=1) >= PUBLISH_CODES
+    moved: np.ndarray = (w_old == 0) | (differ & (far | np.asarray(sent, dtype=bool)))
+    published[slots[moved], offsets[moved]] = rounded[moved]
     return moved

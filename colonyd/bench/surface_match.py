@@ -1,11 +1,13 @@
 """Scan matching against a peer's 10 cm map as voxel centres and as surface points (sim office).
 
-`python -m colonyd.bench.surface_match [--seed S] [--poses N] [--range R] [--json FILE]`: a
-peer's planar grid is built from 2D scans of the sim office at known poses (range noise 1 cm);
-then 2D scans at other poses are matched (`scan_match.match`, dof 3) against its colony-map cut
-made from the occupied voxels' centres and from their surface points (`occupied_surface`),
-from the true pose moved by `--offset` in x and -y (default 5 cm) and 20 x that in radians
-(1.15 degrees). Truth is for this evaluation only.
+`python -m colonyd.bench.surface_match [--seed S] [--poses N] [--range R] [--yaw DEG]
+[--shift M] [--json FILE]`: a peer's planar grid is built from 2D scans of the sim office at known
+poses (range noise 1 cm); then 2D scans at other poses are matched (`scan_match.match`, dof 3)
+against its colony-map cut made from the occupied voxels' centres and from their surface points
+(`occupied_surface`), from the true pose moved by `--offset` in x and -y (default 5 cm) and 20 x
+that in radians (1.15 degrees). The office's walls lie on voxel faces; `--yaw` and `--shift`
+turn the peer's map frame by DEG about z and move it by (M, 0.7 M), so that they do not. Truth
+is for this evaluation only.
 """
 
 from __future__ import annotations
@@ -61,23 +63,33 @@ def _free_poses(world: World, rng: np.random.Generator, n: int) -> list[np.ndarr
 
 
 def run(
-    seed: int = 1, poses: int = 40, reach: float = 4.0, offset: float = 0.05
+    seed: int = 1,
+    poses: int = 40,
+    reach: float = 4.0,
+    offset: float = 0.05,
+    yaw: float = 0.0,
+    shift: float = 0.0,
 ) -> dict[str, object]:
+    """Match errors of `poses` scans; the peer's map frame is the world turned by `yaw` degrees
+    about z and moved by (`shift`, 0.7 `shift`, 0) m."""
     rng = np.random.default_rng(seed)
     world = office_world()
+    frame = _pose(shift, 0.7 * shift, math.radians(yaw))  # world -> the peer's map frame
+    frame[2, 3] = 0.0
+    rot, move = frame[:3, :3], frame[:3, 3]
     grid = VoxelGrid(0.1, block_shape="planar", surface=True)
     for i, pose in enumerate(_free_poses(world, rng, 150)):  # the peer's mapping run
         pts = _scan(world, pose, rng, 8.0)
         grid.integrate(
-            pts @ pose[:3, :3].T + pose[:3, 3],
-            pose[:3, 3],
+            (pts @ pose[:3, :3].T + pose[:3, 3]) @ rot.T + move,
+            rot @ pose[:3, 3] + move,
             time=float(i),
             sensor=SensorModel(max_range=8.0),
         )
     keys = grid.occupied_keys()
-    targets = {
-        "centres": vk.keys_to_centers(keys, grid.resolution),
-        "surface": grid.surface_points(keys),
+    targets = {  # back in the world frame, where the scans are matched
+        "centres": (vk.keys_to_centers(keys, grid.resolution) - move) @ rot,
+        "surface": (grid.surface_points(keys) - move) @ rot,
     }
     errors: dict[str, list[float]] = {name: [] for name in targets}
     for pose in _free_poses(world, rng, poses):
@@ -91,7 +103,14 @@ def run(
             got = match(pts, cut, init, dof=3)
             err = float(np.linalg.norm(got.pose[:2, 3] - pose[:2, 3])) if got.ok else math.nan
             errors[name].append(err)
-    out: dict[str, object] = {"seed": seed, "poses": poses, "range_m": reach, "offset_m": offset}
+    out: dict[str, object] = {
+        "seed": seed,
+        "poses": poses,
+        "range_m": reach,
+        "offset_m": offset,
+        "yaw_deg": yaw,
+        "shift_m": shift,
+    }
     for name, e in errors.items():
         arr = np.asarray(e)
         ok = arr[np.isfinite(arr)]
@@ -107,9 +126,11 @@ def main() -> None:
     p.add_argument("--poses", type=int, default=40)
     p.add_argument("--range", type=float, default=4.0, dest="reach")
     p.add_argument("--offset", type=float, default=0.05, help="start x, -y off (m); yaw 20x rad")
+    p.add_argument("--yaw", type=float, default=0.0, help="peer's map frame turned (degrees)")
+    p.add_argument("--shift", type=float, default=0.0, help="and moved by (M, 0.7 M) metres")
     p.add_argument("--json", type=Path)
     args = p.parse_args()
-    result = run(args.seed, args.poses, args.reach, args.offset)
+    result = run(args.seed, args.poses, args.reach, args.offset, args.yaw, args.shift)
     print(json.dumps(result))
     if args.json:
         args.json.write_text(json.dumps(result, indent=1) + "\n")

@@ -160,7 +160,7 @@ def run_scenario(
     sc: Scenario, repeats: int = 3, t0: float = 1_700_000_000.0, surface: bool = True
 ) -> dict[str, Any]:
     grid = VoxelGrid(sc.resolution, surface=surface)  # a daemon's own layer keeps the surface
-    mirror = VoxelGrid(sc.resolution)  # a peer's replica: gives each voxel's previous value
+    mirror = VoxelGrid(sc.resolution)  # a peer's replica: each voxel's previous value, and exact?
     totals = {
         "changed": 0,
         "occupied": 0,
@@ -182,12 +182,12 @@ def run_scenario(
         frame.integrate(grid, t)
         delta = grid.delta_since(version)
         prev = mirror.logodds_at_keys(delta.keys)
-        mirror.apply(delta)
         msg = VoxelDelta(origin="bench", epoch=1, seq=i, time=t, frame_id="map", delta=delta)
         enc_s, data = _best_of(partial(encode, msg), repeats)
         dec_s, back = _best_of(partial(decode, data, limits=BENCH_LIMITS), repeats)
         fast_s, fast = _best_of(partial(encode, msg, level=FAST_LEVEL), repeats)
         assert isinstance(back, VoxelDelta) and len(back.delta) == len(delta)
+        mirror.apply(back.delta)  # what a peer holds: the decoded frames
         raw = raw_scan_bytes(frame.local)
         exact, summary = fit_delta(delta, raw, prev_logodds=prev)
         budgeted = len(
@@ -217,6 +217,7 @@ def run_scenario(
         totals["fast_s"] += fast_s
         max_frame = max(max_frame, len(delta))
     n = max(totals["changed"], 1)
+    replica_exact = mirror.content_equal(grid)  # every voxel's wire values, surface codes too
     return {
         "scenario": sc.name,
         "surface": surface,
@@ -233,6 +234,7 @@ def run_scenario(
             totals["changed"] / max(totals["fast_s"], 1e-9)
         ),
         "frames": totals["frames"],
+        "replica_exact": replica_exact,
         "resolution": sc.resolution,
         "max_changed_voxels_per_frame": max_frame,
         "bytes_budgeted": totals["budgeted"],

@@ -40,10 +40,11 @@ def test_surface_points_lie_on_the_wall_where_centres_do_not(kernel_path):
     assert len(keys) >= 40
     surf = grid.surface_points(keys)
     centres = vk.keys_to_centers(keys, RES)
-    # the centres are 16.3 mm behind the wall, the surface points on it to ~1 mm (the running
-    # means to ~0.5 mm; what is published follows them within 3 codes of 0.39 mm)
+    # the centres are 16.3 mm behind the wall, the running means on it to ~0.5 mm; what is
+    # published is their code (-41.4 of 1/254 voxel) rounded to a multiple of PUBLISH_STEP 16:
+    # -48, 2.6 mm off the wall (within half a step, 3.15 mm at 10 cm)
     assert np.allclose(centres[:, 0] - WALL_X, 0.0163, atol=1e-6)
-    assert np.abs(surf[:, 0] - WALL_X).max() < 0.0015
+    assert np.allclose(surf[:, 0], 2.05 - 48 / surface.WIRE_SCALE * RES, rtol=0, atol=1e-12)
     means = grid.channel_at_keys("surface_mean", keys)[:, 0] * (RES / surface.STORE_SCALE)
     assert np.abs(centres[:, 0] + means - WALL_X).max() < 0.0008
     # along the wall the points fill each voxel evenly: the mean is its centre (to half a code)
@@ -79,16 +80,51 @@ def test_two_scans_weigh_equally_whatever_their_point_counts():
         offset = grid.channel_at_keys("surface_mean", key)[0] * (RES / surface.STORE_SCALE)
         return vk.keys_to_centers(key, RES)[0] + offset
 
+    def published_x() -> int:
+        return int(grid.channel_at_keys("surface", key)[0, 0])
+
     assert np.allclose(mean(), [2.07, 0.05, 0.05], atol=2e-6)
-    assert np.allclose(grid.surface_points(key)[0], [2.07, 0.05, 0.05], atol=RES / 508)
+    # published: 0.2 voxel is code 50.8, 51, to the step of 16: 48 (y and z: the centre, 0)
+    assert published_x() == 48
+    assert np.allclose(grid.surface_points(key)[0], [2.05 + 48 / 2540, 0.05, 0.05], atol=1e-12)
     grid.integrate(b, origin, time=1.0)
     # the running mean of two scans, one sample each: (2.07 + 2.04) / 2
     assert np.allclose(mean(), [2.055, 0.05, 0.05], atol=2e-6)
-    assert np.allclose(grid.surface_points(key)[0], [2.055, 0.05, 0.05], atol=RES / 508)
+    # 0.05 voxel: code 12.7, 13, to the step: 16 (the voxel's log-odds changed: it is sent anyway)
+    assert published_x() == 16
     assert int(grid.channel_at_keys("surface_weight", key)[0]) == 2
 
 
-def test_a_change_below_the_wire_quantum_takes_no_new_version():
+def test_published_codes_are_rounded_to_the_step():
+    codes = np.array([0, 7, 8, 9, 24, 119, 120, 127, -127, -121, -8, -9])
+    want = [0, 0, 0, 16, 32, 112, 127, 127, -127, -127, 0, -16]  # halves to even; +-128: +-127
+    got = surface.publish(codes)
+    assert got.dtype == np.int8 and got.tolist() == want
+
+
+def test_a_mean_that_moves_follows_alone_a_step_away_and_at_once_when_sent_anyway(kernel_path):
+    from voxel.blocks import BlockStore
+
+    store = BlockStore()
+    blocks, offsets = store.split(np.array([[3, 4, 5]]))
+    slots = store.ensure(blocks)
+    one = np.zeros(1, dtype=np.int64)
+
+    def scan(x: float, sent: bool) -> tuple[bool, int]:
+        """One scan's points with mean offset x voxel on the x axis; (moved, published code)."""
+        sums = np.array([[x, 0.0, 0.0]])
+        moved = surface.fuse_surface(store, slots, offsets, one, sums, np.ones(1), np.array([sent]))
+        return bool(moved[0]), int(store.channel("surface")[slots[0], offsets[0], 0])
+
+    assert scan(0.1, False) == (True, 32)  # first hit: code 25 (0.1 voxel) -> 32
+    assert scan(0.2, False) == (False, 32)  # mean 0.15: code 38, rounds to 32: nothing new
+    assert scan(0.3, False) == (True, 48)  # mean 0.2: code 51, 19 from 32: follows alone
+    assert scan(0.3, False) == (False, 48)  # mean 0.225: code 57, 9 from 48: stays
+    assert scan(0.3, True) == (True, 64)  # mean 0.24: code 61, sent anyway: follows, 64
+    assert scan(0.24, True) == (False, 64)  # mean 0.24: code 61, still 64: nothing new
+
+
+def test_a_change_below_publish_codes_takes_no_new_version():
     grid = VoxelGrid(RES, surface=True)
     origin = np.zeros(3)
     pts = np.array([[2.07, 0.05, 0.05]])
@@ -97,11 +133,14 @@ def test_a_change_below_the_wire_quantum_takes_no_new_version():
     v = grid.version
     grid.integrate(pts + np.array([1e-5, 0, 0]), origin, time=10.0)  # moves the mean by 1 um
     assert grid.version == v and len(grid.delta_since(v)) == 0
-    grid.integrate(pts + np.array([0.02, 0, 0]), origin, time=11.0)  # 1.7 mm: 4 codes on
+    far = pts + np.array([0.028, 0, 0])  # 0.48 voxel from the centre; the mean was 0.2 (code 51)
+    for t in (11.0, 12.0):  # the means of 12 and 13 scans: 0.223 and 0.243 (codes 57 and 62)
+        grid.integrate(far, origin, time=t)
+        assert grid.version == v and len(grid.delta_since(v)) == 0  # < 16 codes from 48
+    grid.integrate(far, origin, time=13.0)  # 14 scans: 0.26 voxel, code 66: 18 from 48
     delta = grid.delta_since(v)
     assert grid.version == v + 1 and delta.keys.tolist() == [[20, 0, 0]]
-    offset = (2.07 - 2.05) + 0.02 / 12  # the mean of the 12 scans, from the voxel's centre
-    assert delta.channels["surface"][0, 0] == round(offset / RES * surface.WIRE_SCALE)
+    assert delta.channels["surface"][0].tolist() == [64, 0, 0]  # to the step of 16
 
 
 def test_replica_reproduces_the_surface_within_the_wire_quantum():
@@ -122,9 +161,11 @@ def test_replica_reproduces_the_surface_within_the_wire_quantum():
     assert "surface" in sent and "surface_weight" not in sent and "surface_mean" not in sent
     assert not sent["surface"][~full.occupied].any()  # free voxels travel as 0 0 0
     assert sent["surface"][full.occupied].any()
-    # the published codes follow the running means within PUBLISH_CODES
+    # the published codes are multiples of PUBLISH_STEP (or +-127) and follow the running means
+    # within PUBLISH_CODES
     means = origin.channel_at_keys("surface_mean", keys) / surface.STORE_STEP
-    codes = origin.channel_at_keys("surface", keys)
+    codes = origin.channel_at_keys("surface", keys).astype(np.int64)
+    assert np.all((codes % surface.PUBLISH_STEP == 0) | (np.abs(codes) == surface.WIRE_MAX))
     assert np.abs(means - codes).max() < surface.PUBLISH_CODES + 0.5
 
 
@@ -191,6 +232,7 @@ def test_the_compiled_fusion_is_the_numpy_fusion_bit_for_bit(monkeypatch):
     inverse = rng.integers(0, len(keys), 2000)
     sums = rng.uniform(-0.5, 0.5, (2000, 3)) * 3
     counts = rng.integers(1, 4, 2000)
+    sent = [rng.random(len(keys)) < 0.3 for _ in range(5)]  # carried anyway by each scan's delta
     out = []
     for on in (False, True):
         monkeypatch.setattr(kernels._switch, "on", on)
@@ -199,8 +241,8 @@ def test_the_compiled_fusion_is_the_numpy_fusion_bit_for_bit(monkeypatch):
         blocks, offsets = store.split(keys)
         slots = store.ensure(np.unique(blocks))[np.searchsorted(np.unique(blocks), blocks)]
         moved = [
-            surface.fuse_surface(store, slots, offsets, inverse, sums / k, counts)
-            for k in (1.0, 1.01, 2.0, 2.0, 0.5)
+            surface.fuse_surface(store, slots, offsets, inverse, sums / k, counts, sent[i])
+            for i, k in enumerate((1.0, 1.01, 2.0, 2.0, 0.5))
         ]
         out.append((moved, {n: store.channels[n].copy() for n in ("surface", "surface_mean")}))
     (m_np, ch_np), (m_c, ch_c) = out

@@ -30,6 +30,7 @@ def test_wire_bench_reports_every_field(tmp_path: Path, monkeypatch: pytest.Monk
     (row,) = results
     assert set(row) >= KEYS
     assert row["changed_voxels"] > 10_000 and row["occupied_changed"] > 0
+    assert row["replica_exact"] is True  # the replica that applied the decoded frames
     assert row["bytes_per_changed_voxel"] < 1.0
     assert row["bytes_full"] < row["raw_scan_zstd_bytes"]
     # the faster zstd level, timed beside: a little larger (the level is the sender's choice)
