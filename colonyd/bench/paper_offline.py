@@ -460,11 +460,14 @@ class Run:
         )
 
 
-def joint(robot: Run, peer: Run, count: int = JOINT_NODES) -> dict[str, Any]:
+def joint(
+    robot: Run, peer: Run, count: int = JOINT_NODES, peer_inflation: float = 1.0
+) -> dict[str, Any]:
     """`--joint`: both runs' recorded graphs solved as one (`JointGraph`), `robot`'s fused
     colony matches as inter-robot edges on the `count` steps of `peer` standing for those that
     hit the map cells its matched scan fell on (`Provenance`, `quantile_steps`), the transform's
-    prior the cut's alignment with `ALIGNMENT_COVARIANCE`. Both smoothed trajectories' ATE
+    prior the cut's alignment with `ALIGNMENT_COVARIANCE`; `peer_inflation`: `JointGraph`'s
+    (diagnostic). Both smoothed trajectories' ATE
     (Umeyama fit against the truth: evaluation only), the solve's CPU time, cost and edges."""
     graph, record = robot.graph, peer.graph
     colony = None if graph is None else graph.colony_edges()
@@ -473,7 +476,9 @@ def joint(robot: Run, peer: Run, count: int = JOINT_NODES) -> dict[str, Any]:
         raise ValueError(msg)
     m = robot.peer_alignment
     began = time.process_time()
-    solver = JointGraph(graph, record, se2.from_matrix(m), ALIGNMENT_COVARIANCE)
+    solver = JointGraph(
+        graph, record, se2.from_matrix(m), ALIGNMENT_COVARIANCE, peer_inflation=peer_inflation
+    )
     back = np.linalg.inv(m)
     unmatched = 0
     if colony is not None:
@@ -533,6 +538,14 @@ def _fractions(text: str) -> list[float]:
     out = [float(x) for x in text.split(",")]
     if not all(0.0 <= x < 1.0 for x in out):
         msg = f"expected comma-separated fractions in [0, 1), found {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return out
+
+
+def _positives(text: str) -> list[float]:
+    out = [float(x) for x in text.split(",")]
+    if not all(np.isfinite(x) and x > 0 for x in out):
+        msg = f"expected comma-separated positive numbers, found {text!r}"
         raise argparse.ArgumentTypeError(msg)
     return out
 
@@ -615,6 +628,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--exact-alignment", action="store_true", help="the peer's map without alignment error"
     )
     diag.add_argument("--lidar-only", action="store_true", help="skip depth-1 with lidar-1's map")
+    diag.add_argument(
+        "--joint-peer-inflate",
+        type=_positives,
+        default=[1.0],
+        help="comma-separated: depth-1's own edges' covariance times each in a --joint solve "
+        "(the first's key plain, the others' @peerF)",
+    )
     diag.add_argument("--profile", type=float, help="lidar-1's error every this many seconds")
     args = parser.parse_args(argv)
     if args.joint and (not args.smooth or args.perfect_peer):
@@ -659,6 +679,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "smooth",
         "peer_points",
         "joint",
+        "joint_peer_inflate",
     ):
         if getattr(args, name) != parser.get_default(name):
             out[name] = getattr(args, name)
@@ -705,8 +726,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         out[f"lidar_with_depth_consistency{tail}"] = with_depth.consistency()
         if with_depth.smoothed:
             out[f"lidar_with_depth_smoothed{tail}"] = with_depth.smoothed
-        if args.joint:
-            out[f"joint_smoothed{tail}"] = joint(with_depth, depth)
+        for inflate in args.joint_peer_inflate if args.joint else []:
+            at = "" if inflate == args.joint_peer_inflate[0] else f"@peer{inflate:g}"
+            out[f"joint_smoothed{tail}{at}"] = joint(with_depth, depth, peer_inflation=inflate)
         if args.peer_walk:
             out[f"lidar_peer_walk{tail}"] = with_depth.peer_walks[:1] + with_depth.peer_walks[-1:]
         if args.profile:

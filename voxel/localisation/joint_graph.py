@@ -82,12 +82,22 @@ class JointGraph:
     the peer node's smoothed pose): the matched pose is z = x + sum_j w_j (b_j x - x), as
     `PoseGraph`'s own-map match moves a node by its keyframes' errors. At the start (T = A,
     y = y°) every b_j is the identity. The solve moves the robot's nodes, the peer's nodes (so
-    its map) and T together. Reads no reference."""
+    its map) and T together. `peer_inflation`: the peer's own edges' covariances times this (a
+    diagnostic of how stiff its graph is; 1: as its filter fused them). Reads no reference."""
 
     def __init__(
-        self, robot: PoseGraph, peer: PoseGraph, alignment: np.ndarray, covariance: np.ndarray
+        self,
+        robot: PoseGraph,
+        peer: PoseGraph,
+        alignment: np.ndarray,
+        covariance: np.ndarray,
+        peer_inflation: float = 1.0,
     ) -> None:
+        if not peer_inflation > 0:
+            msg = f"joint graph: expected a positive peer inflation, found {peer_inflation!r}"
+            raise LocalisationError(msg)
         self.robot, self.peer = robot, peer
+        self.peer_inflation = float(peer_inflation)
         self.alignment = np.asarray(alignment, np.float64).reshape(3)
         self._prior = _information(covariance)
         # inter edges by their number of peer nodes G: (node, peer nodes (G,), weights (G,),
@@ -145,7 +155,7 @@ class JointGraph:
         none = np.zeros((0, 3))
         terms = self.robot.terms(x[:a], none, shared=False)
         for blocks, r, info in self.peer.terms(x[a : a + b], none):
-            terms.append(([(ids + a, j) for ids, j in blocks], r, info))
+            terms.append(([(ids + a, j) for ids, j in blocks], r, info / self.peer_inflation))
         t = a + b
         prior, jac = _numeric(self._prior_residual, x[t][None])
         terms.append(([(np.array([t]), jac)], prior, self._prior[None]))

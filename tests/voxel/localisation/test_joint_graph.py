@@ -86,3 +86,18 @@ def test_inter_edge_rejects_bad_weights_and_nodes() -> None:
         joint.add_inter(0, np.zeros(3), TIGHT, np.array([1]), np.array([1.0]))
     with pytest.raises(LocalisationError):
         joint.add_inter(1, np.zeros(3), TIGHT, np.array([0]), np.array([1.0]))
+
+
+@pytest.mark.parametrize("inflation", [1.0, 3.0])
+def test_a_disagreement_splits_by_the_two_robots_uncertainty(inflation: float) -> None:
+    # each robot one node known to 10 cm (x, y), the map 0.1 m off in y: the robot moves by
+    # 0.1 / (1 + F) and the peer's node by the rest, F the peer's inflation
+    loose = np.diag([0.01, 0.01, 1e-10])
+    robot, peer = PoseGraph(np.zeros(3), loose), PoseGraph(np.zeros(3), loose)
+    joint = JointGraph(robot, peer, np.zeros(3), TIGHT, peer_inflation=inflation)
+    joint.add_inter(0, np.array([0.0, 0.1, 0.0]), TIGHT, np.array([0]), np.array([1.0]))
+    out = joint.solve()
+    assert out.robot[0] == pytest.approx([0.0, 0.1 / (1 + inflation), 0.0], abs=1e-5)
+    assert out.peer[0] == pytest.approx([0.0, -0.1 * inflation / (1 + inflation), 0.0], abs=1e-5)
+    with pytest.raises(LocalisationError):
+        JointGraph(robot, peer, np.zeros(3), TIGHT, peer_inflation=0.0)
