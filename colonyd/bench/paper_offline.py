@@ -2,7 +2,7 @@
 map, for A/B of estimator changes without the live runs' timing chaos.
 
 `python -m colonyd.bench.paper_offline --seed S [--world W] [--lidar-range R] [--rng N]
-[--duration S] [--no-peer-covariance] [--offset-walk] [--peer-walk] [--smooth]
+[--duration S] [--no-peer-covariance] [--offset-walk] [--peer-walk] [--smooth [--joint]]
 [--peer-points centres,means] [--json FILE]`
 
 Each robot's sim source (the experiment's spec and seed, not paced) runs through its estimator
@@ -29,6 +29,12 @@ run of depth-1 (alone too).
 `--smooth` also scores each run's smoothed trajectory (`PoseGraph` over what its filter fused,
 docs/LOCALISATION.md): `<run>_smoothed` holds its ATE, the solve's CPU seconds, cost before and
 after, iterations and edges.
+`--joint` (with `--smooth`) also solves both robots' recorded graphs as one (`JointGraph`,
+`joint`): each colony match lidar-1 fused becomes an inter-robot edge on its node, the frames'
+transform and the depth-1 steps that hit the map cells its scan matched (`Provenance`), so the
+solve may move depth-1's past poses (its map) too: `joint_smoothed` holds both robots' ATE;
+`--joint-peer-inflate F,...` (diagnostic) solves it again with depth-1's own edges' covariance
+times each F (keys `@peerF`).
 `--peer-points` (comma-separated: each, the first's keys plain, the others' `@means`): the
 peer's map as its occupied voxels' centres (`centres`, the daemon's today) or as the mean of the
 hit points it integrated in each (`means`, each scan one sample: a harness prototype of the
