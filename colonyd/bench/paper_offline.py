@@ -34,7 +34,7 @@ after, iterations and edges.
 transform and the depth-1 steps that hit the map cells its scan matched (`Provenance`), so the
 solve may move depth-1's past poses (its map) too: `joint_smoothed` holds both robots' ATE;
 `--joint-peer-inflate F,...` (diagnostic) solves it again with depth-1's own edges' covariance
-times each F (keys `@peerF`).
+times each F (keys `@peerF`), `--joint-inter-inflate F,...` with the inter edges' (`@interF`).
 `--peer-points` (comma-separated: each, the first's keys plain, the others' `@means`): the
 peer's map as its occupied voxels' centres (`centres`, the daemon's today) or as the mean of the
 hit points it integrated in each (`means`, each scan one sample: a harness prototype of the
@@ -467,13 +467,17 @@ class Run:
 
 
 def joint(
-    robot: Run, peer: Run, count: int = JOINT_NODES, peer_inflation: float = 1.0
+    robot: Run,
+    peer: Run,
+    count: int = JOINT_NODES,
+    peer_inflation: float = 1.0,
+    inter_inflation: float = 1.0,
 ) -> dict[str, Any]:
     """`--joint`: both runs' recorded graphs solved as one (`JointGraph`), `robot`'s fused
     colony matches as inter-robot edges on the `count` steps of `peer` standing for those that
     hit the map cells its matched scan fell on (`Provenance`, `quantile_steps`), the transform's
-    prior the cut's alignment with `ALIGNMENT_COVARIANCE`; `peer_inflation`: `JointGraph`'s
-    (diagnostic). Both smoothed trajectories' ATE
+    prior the cut's alignment with `ALIGNMENT_COVARIANCE`; `peer_inflation`, `inter_inflation`:
+    `JointGraph`'s (diagnostics). Both smoothed trajectories' ATE
     (Umeyama fit against the truth: evaluation only), the solve's CPU time, cost and edges."""
     graph, record = robot.graph, peer.graph
     colony = None if graph is None else graph.colony_edges()
@@ -483,7 +487,12 @@ def joint(
     m = robot.peer_alignment
     began = time.process_time()
     solver = JointGraph(
-        graph, record, se2.from_matrix(m), ALIGNMENT_COVARIANCE, peer_inflation=peer_inflation
+        graph,
+        record,
+        se2.from_matrix(m),
+        ALIGNMENT_COVARIANCE,
+        peer_inflation=peer_inflation,
+        inter_inflation=inter_inflation,
     )
     back = np.linalg.inv(m)
     unmatched = 0
@@ -641,6 +650,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         help="comma-separated: depth-1's own edges' covariance times each in a --joint solve "
         "(the first's key plain, the others' @peerF)",
     )
+    diag.add_argument(
+        "--joint-inter-inflate",
+        type=_positives,
+        default=[1.0],
+        help="comma-separated: the inter-robot edges' covariance times each in a --joint solve "
+        "(the first's key plain, the others' @interF)",
+    )
     diag.add_argument("--profile", type=float, help="lidar-1's error every this many seconds")
     args = parser.parse_args(argv)
     if args.joint and (not args.smooth or args.perfect_peer):
@@ -686,6 +702,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "peer_points",
         "joint",
         "joint_peer_inflate",
+        "joint_inter_inflate",
     ):
         if getattr(args, name) != parser.get_default(name):
             out[name] = getattr(args, name)
@@ -735,6 +752,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         for inflate in args.joint_peer_inflate if args.joint else []:
             at = "" if inflate == args.joint_peer_inflate[0] else f"@peer{inflate:g}"
             out[f"joint_smoothed{tail}{at}"] = joint(with_depth, depth, peer_inflation=inflate)
+        for inflate in args.joint_inter_inflate[1:] if args.joint else []:
+            out[f"joint_smoothed{tail}@inter{inflate:g}"] = joint(
+                with_depth, depth, inter_inflation=inflate
+            )
         if args.peer_walk:
             out[f"lidar_peer_walk{tail}"] = with_depth.peer_walks[:1] + with_depth.peer_walks[-1:]
         if args.profile:

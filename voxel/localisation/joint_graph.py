@@ -83,7 +83,8 @@ class JointGraph:
     `PoseGraph`'s own-map match moves a node by its keyframes' errors. At the start (T = A,
     y = y°) every b_j is the identity. The solve moves the robot's nodes, the peer's nodes (so
     its map) and T together. `peer_inflation`: the peer's own edges' covariances times this (a
-    diagnostic of how stiff its graph is; 1: as its filter fused them). Reads no reference."""
+    diagnostic of how stiff its graph is; 1: as its filter fused them); `inter_inflation`: the
+    inter edges' covariances times this (diagnostic; 1: the matcher's). Reads no reference."""
 
     def __init__(
         self,
@@ -92,10 +93,15 @@ class JointGraph:
         alignment: np.ndarray,
         covariance: np.ndarray,
         peer_inflation: float = 1.0,
+        inter_inflation: float = 1.0,
     ) -> None:
-        if not peer_inflation > 0:
-            msg = f"joint graph: expected a positive peer inflation, found {peer_inflation!r}"
+        if not (peer_inflation > 0 and inter_inflation > 0):
+            msg = (
+                "joint graph: expected positive inflations, found "
+                f"{peer_inflation!r}, {inter_inflation!r}"
+            )
             raise LocalisationError(msg)
+        self.inter_inflation = float(inter_inflation)
         self.robot, self.peer = robot, peer
         self.peer_inflation = float(peer_inflation)
         self.alignment = np.asarray(alignment, np.float64).reshape(3)
@@ -132,7 +138,8 @@ class JointGraph:
             )
             raise LocalisationError(msg)
         z = np.asarray(pose, np.float64).reshape(3)
-        self._inter.setdefault(len(ids), []).append((node, ids, w, z, _information(covariance)))
+        info = _information(np.asarray(covariance, np.float64) * self.inter_inflation)
+        self._inter.setdefault(len(ids), []).append((node, ids, w, z, info))
 
     def edges(self) -> int:
         """How many inter-robot edges."""

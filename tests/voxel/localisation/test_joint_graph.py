@@ -101,3 +101,15 @@ def test_a_disagreement_splits_by_the_two_robots_uncertainty(inflation: float) -
     assert out.peer[0] == pytest.approx([0.0, -0.1 * inflation / (1 + inflation), 0.0], abs=1e-5)
     with pytest.raises(LocalisationError):
         JointGraph(robot, peer, np.zeros(3), TIGHT, peer_inflation=0.0)
+
+
+@pytest.mark.parametrize("inflation", [1.0, 10.0])
+def test_inflated_inter_edges_pull_less(inflation: float) -> None:
+    # both robots and the edge known to 10 cm: each node moves by 0.1 / (2 + F) toward the other
+    loose = np.diag([0.01, 0.01, 1e-10])
+    robot, peer = PoseGraph(np.zeros(3), loose), PoseGraph(np.zeros(3), loose)
+    joint = JointGraph(robot, peer, np.zeros(3), TIGHT, inter_inflation=inflation)
+    joint.add_inter(0, np.array([0.0, 0.1, 0.0]), loose, np.array([0]), np.array([1.0]))
+    out = joint.solve()
+    assert out.robot[0] == pytest.approx([0.0, 0.1 / (2 + inflation), 0.0], abs=1e-5)
+    assert out.peer[0] == pytest.approx([0.0, -0.1 / (2 + inflation), 0.0], abs=1e-5)
