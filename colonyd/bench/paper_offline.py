@@ -34,7 +34,8 @@ after, iterations and edges.
 transform and the depth-1 steps that hit the map cells its scan matched (`Provenance`), so the
 solve may move depth-1's past poses (its map) too: `joint_smoothed` holds both robots' ATE;
 `--joint-peer-inflate F,...` (diagnostic) solves it again with depth-1's own edges' covariance
-times each F (keys `@peerF`), `--joint-inter-inflate F,...` with the inter edges' (`@interF`).
+times each F (keys `@peerF`), `--joint-inter-inflate F,...` with the inter edges' (`@interF`);
+`--joint-alone` with lidar-1's own edges from its alone run (`@alone`).
 `--peer-points` (comma-separated: each, the first's keys plain, the others' `@means`): the
 peer's map as its occupied voxels' centres (`centres`, the daemon's today) or as the mean of the
 hit points it integrated in each (`means`, each scan one sample: a harness prototype of the
@@ -472,17 +473,23 @@ def joint(
     count: int = JOINT_NODES,
     peer_inflation: float = 1.0,
     inter_inflation: float = 1.0,
+    own: Run | None = None,
 ) -> dict[str, Any]:
     """`--joint`: both runs' recorded graphs solved as one (`JointGraph`), `robot`'s fused
     colony matches as inter-robot edges on the `count` steps of `peer` standing for those that
     hit the map cells its matched scan fell on (`Provenance`, `quantile_steps`), the transform's
     prior the cut's alignment with `ALIGNMENT_COVARIANCE`; `peer_inflation`, `inter_inflation`:
-    `JointGraph`'s (diagnostics). Both smoothed trajectories' ATE
-    (Umeyama fit against the truth: evaluation only), the solve's CPU time, cost and edges."""
-    graph, record = robot.graph, peer.graph
-    colony = None if graph is None else graph.colony_edges()
+    `JointGraph`'s (diagnostics); `own`: the robot's own edges from this run of the same
+    steps instead (its alone run: `--joint-alone`), the colony matches still `robot`'s. Both
+    smoothed trajectories' ATE (Umeyama fit against the truth: evaluation only), the solve's CPU
+    time, cost and edges."""
+    graph, record = (robot if own is None else own).graph, peer.graph
+    colony = None if robot.graph is None else robot.graph.colony_edges()
     if graph is None or record is None or peer.provenance is None or robot.peer_alignment is None:
         msg = "joint: expected both runs recorded (--smooth) and the peer's map given, found not"
+        raise ValueError(msg)
+    if robot.graph is None or robot.graph.nodes != graph.nodes:
+        msg = "joint: expected the own edges' run to have the colony run's steps, found not"
         raise ValueError(msg)
     m = robot.peer_alignment
     began = time.process_time()
@@ -651,6 +658,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "(the first's key plain, the others' @peerF)",
     )
     diag.add_argument(
+        "--joint-alone",
+        action="store_true",
+        help="also a --joint solve with lidar-1's own edges from its alone run (same steps; the "
+        "colony matches from its run with the map): @alone",
+    )
+    diag.add_argument(
         "--joint-inter-inflate",
         type=_positives,
         default=[1.0],
@@ -703,6 +716,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "joint",
         "joint_peer_inflate",
         "joint_inter_inflate",
+        "joint_alone",
     ):
         if getattr(args, name) != parser.get_default(name):
             out[name] = getattr(args, name)
@@ -752,6 +766,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         for inflate in args.joint_peer_inflate if args.joint else []:
             at = "" if inflate == args.joint_peer_inflate[0] else f"@peer{inflate:g}"
             out[f"joint_smoothed{tail}{at}"] = joint(with_depth, depth, peer_inflation=inflate)
+        if args.joint and args.joint_alone:
+            out[f"joint_smoothed{tail}@alone"] = joint(with_depth, depth, own=lidar)
         for inflate in args.joint_inter_inflate[1:] if args.joint else []:
             out[f"joint_smoothed{tail}@inter{inflate:g}"] = joint(
                 with_depth, depth, inter_inflation=inflate
