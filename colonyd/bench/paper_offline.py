@@ -2,7 +2,7 @@
 map, for A/B of estimator changes without the live runs' timing chaos.
 
 `python -m colonyd.bench.paper_offline --seed S [--world W] [--lidar-range R] [--rng N]
-[--duration S] [--no-peer-covariance] [--offset-walk] [--peer-walk] [--smooth]
+[--duration S] [--no-peer-covariance] [--offset-walk] [--peer-walk] [--smooth [--joint]]
 [--peer-points centres,means] [--json FILE]`
 
 Each robot's sim source (the experiment's spec and seed, not paced) runs through its estimator
@@ -29,6 +29,13 @@ run of depth-1 (alone too).
 `--smooth` also scores each run's smoothed trajectory (`PoseGraph` over what its filter fused,
 docs/LOCALISATION.md): `<run>_smoothed` holds its ATE, the solve's CPU seconds, cost before and
 after, iterations and edges.
+`--joint` (with `--smooth`) also solves both robots' recorded graphs as one (`JointGraph`,
+`joint`): each colony match lidar-1 fused becomes an inter-robot edge on its node, the frames'
+transform and the depth-1 steps that hit the map cells its scan matched (`Provenance`), so the
+solve may move depth-1's past poses (its map) too: `joint_smoothed` holds both robots' ATE;
+`--joint-peer-inflate F,...` (diagnostic) solves it again with depth-1's own edges' covariance
+times each F (keys `@peerF`), `--joint-inter-inflate F,...` with the inter edges' (`@interF`);
+`--joint-alone` with lidar-1's own edges from its alone run (`@alone`).
 `--peer-points` (comma-separated: each, the first's keys plain, the others' `@means`): the
 peer's map as its occupied voxels' centres (`centres`, the daemon's today) or as the mean of the
 hit points it integrated in each (`means`, each scan one sample: a harness prototype of the
@@ -65,6 +72,7 @@ from typing import Any
 import numpy as np
 
 from colonyd.bench.files import print_and_append
+from colonyd.bench.provenance import Provenance, quantile_steps
 from colonyd.bench.surface import SurfaceMeans
 from colonyd.colonymap import peer_map_error
 from colonyd.estimator import ScanEstimator, get_estimator
@@ -77,6 +85,7 @@ from voxel.grid import VoxelGrid
 from voxel.localisation import se2
 from voxel.localisation.colony_map import ColonyMap, colony_map
 from voxel.localisation.drift import OffsetWalk, PeerDrift
+from voxel.localisation.joint_graph import JointGraph
 from voxel.localisation.metrics import absolute_trajectory_error
 from voxel.localisation.pose_graph import PoseGraph
 from voxel.occupancy import FREE_STATE, OCCUPIED
@@ -87,6 +96,8 @@ ALIGNMENT_COVARIANCE = np.diag([0.06**2, 0.12**2, float(np.radians(1.2)) ** 2])
 DURATION_S = 60.0
 #: `--relax inflate`: added to the filter's (x, y, yaw) covariance before each colony match.
 INFLATION = np.diag([0.05**2, 0.05**2, float(np.radians(1.0)) ** 2])
+#: `--joint`: how many of the peer's steps stand for those that built a matched part of its map.
+JOINT_NODES = 8
 
 
 RELAXED = ("none", "nosuspend", "nogate", "inflate", "inflate-nosuspend")
@@ -168,6 +179,14 @@ class Run:
         #: Keep the mean hit point per voxel of the map (`--peer-points means`) in `surface`.
         self.means = False
         self.surface: SurfaceMeans | None = None
+        #: `--joint`: keep which step hit each voxel (`provenance`), and each fused colony
+        #: match's scan (body frame) and pose (`colony_scans`); `graph`: the filter's record.
+        self.joint = False
+        self.provenance: Provenance | None = None
+        self.colony_scans: list[tuple[np.ndarray, np.ndarray]] = []
+        self.graph: PoseGraph | None = None
+        self.height = 0.0  # a 2D scan's height in the body frame
+        self.peer_alignment: np.ndarray | None = None  # the last cut's (4x4, peer -> ours)
 
     def go(
         self,
@@ -189,6 +208,8 @@ class Run:
         adapter = source.adapter
         grid = VoxelGrid(0.1, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
         self.surface = SurfaceMeans(grid.resolution) if self.means else None
+        self.provenance = Provenance(grid.resolution) if self.joint else None
+        self.colony_scans = []
         estimator: Any = None
         cut: ColonyMap | None = None
         frames = len(source)
@@ -212,6 +233,8 @@ class Run:
                     )
                 if self.keyframes is not None:
                     estimator.localiser.local.frames = deque(maxlen=self.keyframes)
+                if self.joint and peer is not None and isinstance(estimator, ScanEstimator):
+                    self._keep_colony_scans(estimator)
             elif relaxed != "none" and i == 1:
                 relax(estimator, relaxed)
             if peer is not None and i >= max(1, int(frames * contact)) and self.estimates:
@@ -236,6 +259,8 @@ class Run:
             )
             if self.surface is not None:
                 self.surface.add_observation(obs, pose, adapter.sensor_model)
+            if self.provenance is not None:
+                self.provenance.add_observation(obs, pose, adapter.sensor_model, i)
             if obs.truth is None:
                 msg = f"{self.spec}: expected the simulator's truth to evaluate, found none"
                 raise ValueError(msg)
@@ -247,10 +272,26 @@ class Run:
         self.grid = grid
         if isinstance(estimator, ScanEstimator):
             self.mount = estimator.mount
+            self.height = estimator.height
+            self.graph = estimator.localiser.graph
             self.counts = {k: v for k, v in estimator.counts().items() if k.startswith("colony")}
             if estimator.localiser.graph is not None:
                 self.smoothed = self._smoothed(estimator.localiser.graph)
         return absolute_trajectory_error(np.array(self.truths), np.array(self.estimates)).rmse
+
+    def _keep_colony_scans(self, estimator: ScanEstimator) -> None:
+        """Keep each colony match the filter fuses (and so its graph records, in order): the
+        scan (body frame) and the matched pose (x, y, yaw)."""
+        loc = estimator.localiser
+        update = loc._colony_update
+
+        def kept(pts: np.ndarray, colony: ColonyMap) -> Any:
+            result, fused = update(pts, colony)
+            if fused and loc.graph is not None:
+                self.colony_scans.append((pts.copy(), se2.from_matrix(result.pose)))
+            return result, fused
+
+        setattr(loc, "_colony_update", kept)  # noqa: B010 - an instance's method, harness record
 
     def _smoothed(self, graph: PoseGraph) -> dict[str, Any]:
         """The graph's smoothed trajectory scored as the online one (sensor poses, ATE after the
@@ -387,6 +428,7 @@ class Run:
         theirs = robot.truths[0] @ np.linalg.inv(robot.estimates[0])
         m = se2.to_matrix(sign * np.array(ALIGNMENT_ERROR)) @ np.linalg.inv(theirs) @ ours
         back = np.linalg.inv(m)
+        robot.peer_alignment = m
         if points == "means":
             if self.surface is None:
                 msg = "peer points 'means': expected the peer run with `means` set, found none"
@@ -425,6 +467,77 @@ class Run:
         )
 
 
+def joint(
+    robot: Run,
+    peer: Run,
+    count: int = JOINT_NODES,
+    peer_inflation: float = 1.0,
+    inter_inflation: float = 1.0,
+    own: Run | None = None,
+) -> dict[str, Any]:
+    """`--joint`: both runs' recorded graphs solved as one (`JointGraph`), `robot`'s fused
+    colony matches as inter-robot edges on the `count` steps of `peer` standing for those that
+    hit the map cells its matched scan fell on (`Provenance`, `quantile_steps`), the transform's
+    prior the cut's alignment with `ALIGNMENT_COVARIANCE`; `peer_inflation`, `inter_inflation`:
+    `JointGraph`'s (diagnostics); `own`: the robot's own edges from this run of the same
+    steps instead (its alone run: `--joint-alone`), the colony matches still `robot`'s. Both
+    smoothed trajectories' ATE (Umeyama fit against the truth: evaluation only), the solve's CPU
+    time, cost and edges."""
+    graph, record = (robot if own is None else own).graph, peer.graph
+    colony = None if robot.graph is None else robot.graph.colony_edges()
+    if graph is None or record is None or peer.provenance is None or robot.peer_alignment is None:
+        msg = "joint: expected both runs recorded (--smooth) and the peer's map given, found not"
+        raise ValueError(msg)
+    if robot.graph is None or robot.graph.nodes != graph.nodes:
+        msg = "joint: expected the own edges' run to have the colony run's steps, found not"
+        raise ValueError(msg)
+    m = robot.peer_alignment
+    began = time.process_time()
+    solver = JointGraph(
+        graph,
+        record,
+        se2.from_matrix(m),
+        ALIGNMENT_COVARIANCE,
+        peer_inflation=peer_inflation,
+        inter_inflation=inter_inflation,
+    )
+    back = np.linalg.inv(m)
+    unmatched = 0
+    if colony is not None:
+        nodes, poses, information = colony
+        if len(nodes) != len(robot.colony_scans):
+            msg = f"joint: {len(nodes)} colony edges, {len(robot.colony_scans)} scans kept"
+            raise ValueError(msg)
+        for node, z, info, (pts, pose) in zip(
+            nodes, poses, information, robot.colony_scans, strict=True
+        ):
+            world = se2.to_matrix(pose)
+            seen = pts @ (back @ world)[:3, :3].T + (back @ world)[:3, 3]
+            weights = peer.provenance.steps_near(seen, robot.height - float(m[2, 3]))
+            steps, w = quantile_steps(weights, count)
+            if len(steps) == 0:
+                unmatched += 1
+                continue
+            solver.add_inter(int(node), z, np.linalg.pinv(info, hermitian=True), steps, w)
+    result = solver.solve()
+    seconds = time.process_time() - began
+    ours = np.array([se2.to_matrix(p) @ robot.mount for p in result.robot])
+    theirs = np.array([se2.to_matrix(p) @ peer.mount for p in result.peer])
+    error = se2.from_matrix(m) - result.transform
+    return {
+        "lidar": round(absolute_trajectory_error(np.array(robot.truths), ours).rmse, 4),
+        "depth": round(absolute_trajectory_error(np.array(peer.truths), theirs).rmse, 4),
+        "cpu_s": round(seconds, 2),
+        "cost": [round(result.cost_before, 1), round(result.cost_after, 1)],
+        "iterations": result.iterations,
+        "inter": solver.edges(),
+        "unmatched": unmatched,
+        # how far the solve moved the transform from the alignment (x, y in m, yaw in degrees)
+        "transform_moved": [round(float(v), 4) for v in error[:2]]
+        + [round(float(np.degrees(se2.wrap(float(error[2])))), 3)],
+    }
+
+
 def _names(allowed: tuple[str, ...]) -> Callable[[str], list[str]]:
     """An argparse type: a comma-separated list of names from `allowed`."""
 
@@ -447,6 +560,14 @@ def _fractions(text: str) -> list[float]:
     out = [float(x) for x in text.split(",")]
     if not all(0.0 <= x < 1.0 for x in out):
         msg = f"expected comma-separated fractions in [0, 1), found {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return out
+
+
+def _positives(text: str) -> list[float]:
+    out = [float(x) for x in text.split(",")]
+    if not all(np.isfinite(x) and x > 0 for x in out):
+        msg = f"expected comma-separated positive numbers, found {text!r}"
         raise argparse.ArgumentTypeError(msg)
     return out
 
@@ -501,6 +622,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "(default, the daemon's) or their hit points' means (a prototype of the surface "
         "channel); each, the first's keys plain, the others' with @<name>",
     )
+    parser.add_argument(
+        "--joint",
+        action="store_true",
+        help="with --smooth: also both robots' graphs solved as one (JointGraph), lidar-1's "
+        "colony matches tied to depth-1's steps that built the matched map: joint_smoothed",
+    )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     diag = parser.add_argument_group("diagnostics (bounds; truth builds fixtures only)")
     diag.add_argument(
@@ -523,8 +650,30 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--exact-alignment", action="store_true", help="the peer's map without alignment error"
     )
     diag.add_argument("--lidar-only", action="store_true", help="skip depth-1 with lidar-1's map")
+    diag.add_argument(
+        "--joint-peer-inflate",
+        type=_positives,
+        default=[1.0],
+        help="comma-separated: depth-1's own edges' covariance times each in a --joint solve "
+        "(the first's key plain, the others' @peerF)",
+    )
+    diag.add_argument(
+        "--joint-alone",
+        action="store_true",
+        help="also a --joint solve with lidar-1's own edges from its alone run (same steps; the "
+        "colony matches from its run with the map): @alone",
+    )
+    diag.add_argument(
+        "--joint-inter-inflate",
+        type=_positives,
+        default=[1.0],
+        help="comma-separated: the inter-robot edges' covariance times each in a --joint solve "
+        "(the first's key plain, the others' @interF)",
+    )
     diag.add_argument("--profile", type=float, help="lidar-1's error every this many seconds")
     args = parser.parse_args(argv)
+    if args.joint and (not args.smooth or args.perfect_peer):
+        parser.error("--joint needs --smooth and depth-1's estimated map (not --perfect-peer)")
 
     def robot(agent: str) -> Run:
         seed = 100 * args.seed + (1 if agent == "lidar-1" else 2)
@@ -547,6 +696,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     lidar, depth = robot("lidar-1"), robot("depth-1")
     lidar.means = depth.means = "means" in args.peer_points
+    depth.joint = args.joint
     out: dict[str, Any] = {"seed": args.seed, "lidar_range": args.lidar_range, "rng": args.rng}
     out["peer_covariance"] = args.peer_covariance
     for name in (
@@ -563,6 +713,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "own_aliasing",
         "smooth",
         "peer_points",
+        "joint",
+        "joint_peer_inflate",
+        "joint_inter_inflate",
+        "joint_alone",
     ):
         if getattr(args, name) != parser.get_default(name):
             out[name] = getattr(args, name)
@@ -600,6 +754,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         tail = "" if (contact, how) == (args.contact[0], args.relax[0]) else f"@{how}@{contact:g}"
         tail += "" if points == args.peer_points[0] else f"@{points}"
         with_depth = robot("lidar-1")
+        with_depth.joint = args.joint
         out[f"lidar_with_depth{tail}"] = round(
             with_depth.go(depth, args.rng, sign, contact, how, args.peer_covariance, points=points),
             4,
@@ -608,6 +763,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         out[f"lidar_with_depth_consistency{tail}"] = with_depth.consistency()
         if with_depth.smoothed:
             out[f"lidar_with_depth_smoothed{tail}"] = with_depth.smoothed
+        for inflate in args.joint_peer_inflate if args.joint else []:
+            at = "" if inflate == args.joint_peer_inflate[0] else f"@peer{inflate:g}"
+            out[f"joint_smoothed{tail}{at}"] = joint(with_depth, depth, peer_inflation=inflate)
+        if args.joint and args.joint_alone:
+            out[f"joint_smoothed{tail}@alone"] = joint(with_depth, depth, own=lidar)
+        for inflate in args.joint_inter_inflate[1:] if args.joint else []:
+            out[f"joint_smoothed{tail}@inter{inflate:g}"] = joint(
+                with_depth, depth, inter_inflation=inflate
+            )
         if args.peer_walk:
             out[f"lidar_peer_walk{tail}"] = with_depth.peer_walks[:1] + with_depth.peer_walks[-1:]
         if args.profile:

@@ -9,7 +9,8 @@ from colonyd.bench.paper_offline import main
 
 def test_paper_offline_runs_both_robots_alone_and_with_the_others_map(tmp_path):
     out = tmp_path / "ab.jsonl"
-    got = main(["--seed", "1", "--duration", "3", "--json", str(out)])
+    joint = ["--smooth", "--joint", "--joint-alone"]
+    got = main(["--seed", "1", "--duration", "3", *joint, "--json", str(out)])
     for key in ("lidar_alone", "depth_alone", "depth_with_lidar", "lidar_with_depth"):
         assert 0.0 <= got[key] < 0.5, key
     # from mid-path on, every scan of each robot was tried against the other's map
@@ -21,6 +22,14 @@ def test_paper_offline_runs_both_robots_alone_and_with_the_others_map(tmp_path):
         assert honest["nees_mean"] > 0.0 and 0.0 <= honest["nees_over"] <= 1.0, run
         assert 0.0 < honest["sigma_m"] < 0.5 and 0.0 <= honest["error_m"] < 0.5, run
     assert got["peer_covariance"] is True  # the daemon's default: the peer's own pose error too
+    # --joint: one inter edge per colony edge lidar-1's graph recorded (or none found in the map)
+    colony = got["lidar_with_depth_smoothed"]["edges"]["colony"]
+    for key in ("joint_smoothed", "joint_smoothed@alone"):
+        solved = got[key]
+        assert solved["inter"] + solved["unmatched"] == colony, key
+        assert 0.0 <= solved["lidar"] < 0.5 and 0.0 <= solved["depth"] < 0.5, key
+        assert solved["cost"][1] <= solved["cost"][0] + 1e-6, key
+    assert got["joint_smoothed"]["inter"] > 0  # seed 1: lidar-1 fuses depth-1's map in 3 s
     assert json.loads(out.read_text().splitlines()[-1]) == got
 
 

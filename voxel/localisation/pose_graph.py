@@ -4,6 +4,7 @@ also moves the past poses (the smoothed trajectory SLAM systems output)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,6 +43,10 @@ def _information(covariance: np.ndarray) -> np.ndarray:
     out: np.ndarray = np.linalg.pinv(c, hermitian=True)
     return out
 
+
+#: A group of linearised edges: its blocks [(variable ids (E,), Jacobians (E, d, 3))], residuals
+#: (E, d) and information (E, d, d).
+Term = tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray]
 
 #: One own-map match: node, keyframe nodes (G,), placed poses (G, 3), weights (G, 3, 3), the
 #: matched pose (3,) and its information (3, 3).
@@ -238,36 +243,27 @@ class PoseGraph:
         """Every node's body pose (N, 3) minimising the graph's cost, from the filter's
         estimates, the offsets from zero (Gauss-Newton, damped when a step raises the cost)."""
         poses = np.array(self.online)
-        offsets = np.zeros((self.offsets, 3))
-        cost, h, g = self._linearised(poses, offsets)
-        first = cost
-        damping = 1e-9
-        done = 0
-        for done in range(1, iterations + 1):  # noqa: B007 - the count is returned
-            scale = h.diagonal()
-            step = spsolve((h + sp.diags(damping * scale + 1e-12)).tocsc(), -g)
-            dx = np.asarray(step).reshape(-1, 3)
-            new_poses = poses + dx[: len(poses)]
-            new_poses[:, 2] = _wrap(new_poses[:, 2])
-            new_offsets = offsets + dx[len(poses) :]
-            new_cost, new_h, new_g = self._linearised(new_poses, new_offsets)
-            if new_cost > cost * (1 + 1e-12) and damping < 1e6:
-                damping *= 10.0
-                continue
-            small = float(np.abs(dx).max()) < tolerance
-            poses, offsets, cost, h, g = new_poses, new_offsets, new_cost, new_h, new_g
-            damping = max(damping / 10.0, 1e-9)
-            if small:
-                break
-        return Smoothed(poses, offsets, first, cost, done)
+        n = len(poses)
+        start = np.concatenate([poses, np.zeros((self.offsets, 3))])
+
+        def linearised(x: np.ndarray) -> tuple[float, sp.csr_matrix, np.ndarray]:
+            return self._linearised(x[:n], x[n:])
+
+        x, first, cost, done = gauss_newton(linearised, start, n, iterations, tolerance)
+        return Smoothed(x[:n], x[n:], first, cost, done)
 
     def _linearised(
         self, poses: np.ndarray, offsets: np.ndarray
     ) -> tuple[float, sp.csr_matrix, np.ndarray]:
         """The cost, normal matrix and gradient (of half the cost) at `poses` and `offsets`."""
+        return normal_equations(self.terms(poses, offsets), 3 * (len(poses) + len(offsets)))
+
+    def terms(self, poses: np.ndarray, offsets: np.ndarray, shared: bool = True) -> list[Term]:
+        """The graph's edges linearised at `poses` (N, 3) and `offsets` (M, 3), grouped by kind
+        (`Term`: variable ids, nodes first, then offsets from N); without `shared`, no colony
+        edge nor offset (a joint graph models the shared map otherwise, `JointGraph`)."""
         n = len(poses)
-        size = 3 * (n + len(offsets))
-        terms: list[tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray]] = []
+        terms: list[Term] = []
         odo = self._odometry.stacked()
         if odo is not None:
             ids, u, info = odo
@@ -292,7 +288,7 @@ class PoseGraph:
             terms.append(([(ids[:, 0], np.tile(np.eye(3), (len(ids), 1, 1)))], r, info))
         for group in self._match.values():
             terms.append(_match_term(poses, group))
-        colony = self._colony.stacked()
+        colony = self._colony.stacked() if shared else None
         if colony is not None:
             ids, z, info = colony
             x, b = poses[ids[:, 0]], offsets[ids[:, 1]]
@@ -305,12 +301,12 @@ class PoseGraph:
             jb = np.tile(np.eye(3), (len(ids), 1, 1))
             jb[:, 0, 2], jb[:, 1, 2] = -moved[:, 1], moved[:, 0]
             terms.append(([(ids[:, 0], jx), (n + ids[:, 1], jb)], r, info))
-        prior = self._offset_prior.stacked()
+        prior = self._offset_prior.stacked() if shared else None
         if prior is not None:
             ids, z, info = prior
             eye = np.tile(np.eye(3), (len(ids), 1, 1))
             terms.append(([(n + ids[:, 0], eye)], offsets[ids[:, 0]] - z, info))
-        walk = self._offset_walk.stacked()
+        walk = self._offset_walk.stacked() if shared else None
         if walk is not None:
             ids, _, info = walk
             eye = np.tile(np.eye(3), (len(ids), 1, 1))
@@ -327,13 +323,53 @@ class PoseGraph:
             j[:, :, :2] = -rt
             j[:, :, 2] = _d_rot_t(x[:, 2], d)
             terms.append(([(ids[:, 0], j)], r, info))
-        return _normal_equations(terms, size)
+        return terms
+
+    def colony_edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The colony edges in the order they were added: nodes (E,), matched poses (E, 3) and
+        their information (E, 3, 3); None without any."""
+        colony = self._colony.stacked()
+        if colony is None:
+            return None
+        ids, z, info = colony
+        return ids[:, 0].copy(), z, info
 
 
-def _match_term(
-    poses: np.ndarray,
-    group: list[_Match],
-) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray]:
+def gauss_newton(
+    linearised: Callable[[np.ndarray], tuple[float, sp.csr_matrix, np.ndarray]],
+    start: np.ndarray,
+    wrapped: int,
+    iterations: int = 20,
+    tolerance: float = 1e-7,
+) -> tuple[np.ndarray, float, float, int]:
+    """Minimise a cost over variables (V, 3) from `start` by Gauss-Newton on the sparse normal
+    equations `linearised` gives (cost, normal matrix, gradient), damped when a step raises the
+    cost; the first `wrapped` variables' third component is an angle (wrapped). The variables,
+    the cost before and after, and the iterations taken."""
+    x = np.asarray(start, np.float64).copy()
+    cost, h, g = linearised(x)
+    first = cost
+    damping = 1e-9
+    done = 0
+    for done in range(1, iterations + 1):  # noqa: B007 - the count is returned
+        scale = h.diagonal()
+        step = spsolve((h + sp.diags(damping * scale + 1e-12)).tocsc(), -g)
+        dx = np.asarray(step).reshape(-1, 3)
+        new = x + dx
+        new[:wrapped, 2] = _wrap(new[:wrapped, 2])
+        new_cost, new_h, new_g = linearised(new)
+        if new_cost > cost * (1 + 1e-12) and damping < 1e6:
+            damping *= 10.0
+            continue
+        small = float(np.abs(dx).max()) < tolerance
+        x, cost, h, g = new, new_cost, new_h, new_g
+        damping = max(damping / 10.0, 1e-9)
+        if small:
+            break
+    return x, first, cost, done
+
+
+def _match_term(poses: np.ndarray, group: list[_Match]) -> Term:
     """Own-map matches with the same number G of keyframes: residual x + sum_g W_g
     (seen_g - x) - z (seen_g: where the node appears in keyframe g's map), blocks on the node
     and its G keyframe nodes."""
@@ -373,9 +409,7 @@ def _match_term(
     return blocks, r, info
 
 
-def _normal_equations(
-    terms: list[tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray]], size: int
-) -> tuple[float, sp.csr_matrix, np.ndarray]:
+def normal_equations(terms: list[Term], size: int) -> tuple[float, sp.csr_matrix, np.ndarray]:
     """Cost sum r^T L r, normal matrix sum J^T L J and gradient sum J^T L r of edge groups, each
     given as its blocks [(variable ids (E,), Jacobians (E, d, 3))], residuals (E, d) and
     information (E, d, d)."""
