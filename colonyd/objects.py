@@ -45,7 +45,8 @@ class _Sighting:
         sighting's own error is (a fixed camera sees a marker from one place every time: the
         same error, which averaging does not remove), plus 1 cm."""
         scatter = self.m2 / self.count / self.count if self.count > 1 else np.eye(3) * 0.01
-        return scatter + self.shared + np.eye(3) * 1e-4
+        out: np.ndarray = scatter + self.shared + np.eye(3) * 1e-4
+        return out
 
 
 class OwnObjects:

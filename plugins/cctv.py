@@ -168,7 +168,7 @@ class CctvCamera:
             pose[:3, :3] = cv2.Rodrigues(rvec)[0]
             pose[:3, 3] = tvec.reshape(3)
             label = f"aruco:{int(marker)}"
-            covariance = marker_covariance(pose[:3, 3], float(sides.mean()))
+            covariance: np.ndarray | None = marker_covariance(pose[:3, 3], float(sides.mean()))
             if on_agent is not None:  # the agent's body pose in the camera frame
                 if abs((self.pose[:3, :3] @ pose[:3, 2])[2]) > VERTICAL_SIN:
                     continue  # boards on robots are vertical: a tilted solution is a flip
