@@ -7,6 +7,7 @@ from typing import Protocol
 import numpy as np
 
 from plugins.adapter import SensorAdapter
+from plugins.depth import marker_sd
 from plugins.observation import Observation
 from voxel.localisation import se2
 from voxel.localisation.colony_map import ColonyMap
@@ -68,7 +69,7 @@ class ScanEstimator:
             if entry is None:
                 continue
             body = self.mount[:3, :3] @ det.position + self.mount[:3, 3]
-            sd = 0.02 + 0.02 * float(np.linalg.norm(det.position))
+            sd = marker_sd(float(np.linalg.norm(det.position)))
             self.localiser.landmark(body[:2], np.eye(2) * sd**2, entry[0], entry[1])
 
     def counts(self) -> dict[str, int]:

@@ -37,6 +37,16 @@ class _Sighting:
     mean: np.ndarray
     m2: np.ndarray  # sum of squared deviations (3, 3)
     time: float
+    #: mean of the sightings' own covariances (world frame; zero where the sensor gave none)
+    shared: np.ndarray
+
+    def covariance(self) -> np.ndarray:
+        """The mean's error: its scatter over the sightings (10 cm from one) plus what every
+        sighting's own error is (a fixed camera sees a marker from one place every time: the
+        same error, which averaging does not remove), plus 1 cm."""
+        scatter = self.m2 / self.count / self.count if self.count > 1 else np.eye(3) * 0.01
+        out: np.ndarray = scatter + self.shared + np.eye(3) * 1e-4
+        return out
 
 
 class OwnObjects:
@@ -77,17 +87,24 @@ class OwnObjects:
                     continue
                 if det.label.startswith(AGENT_LABEL):
                     continue  # another agent's marker: that agent, not an object of the map
-                p = obs.pose[:3, :3] @ det.position + obs.pose[:3, 3]
+                rot = obs.pose[:3, :3]
+                p = rot @ det.position + obs.pose[:3, 3]
+                own = (
+                    np.zeros((3, 3))
+                    if det.covariance is None
+                    else rot @ np.asarray(det.covariance, np.float64) @ rot.T
+                )
                 s = self._sightings.get(det.object_id)
                 if s is None:
                     self._sightings[det.object_id] = _Sighting(
-                        det.class_id, 1, p, np.zeros((3, 3)), obs.time
+                        det.class_id, 1, p, np.zeros((3, 3)), obs.time, own
                     )
                     continue
                 s.count += 1
                 step = p - s.mean
                 s.mean = s.mean + step / s.count
                 s.m2 = s.m2 + np.outer(step, p - s.mean)
+                s.shared = s.shared + (own - s.shared) / s.count
                 s.time = max(s.time, obs.time)
 
     def refresh(self, layer: Layer) -> list[ObjectCentroid] | None:
@@ -117,8 +134,7 @@ class OwnObjects:
                     object_id=oid,
                     class_id=s.class_id,
                     position=s.mean,
-                    covariance=(s.m2 / s.count / s.count if s.count > 1 else np.eye(3) * 0.01)
-                    + np.eye(3) * 1e-4,
+                    covariance=s.covariance(),
                     voxel_count=0,
                     probability=1.0,
                     time=s.time,

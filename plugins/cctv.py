@@ -19,6 +19,14 @@ AGENT_LABEL = "agent:"
 #: A robot's board whose solved normal leaves the horizontal by more than 10 degrees is an
 #: ambiguous (flipped) pose solution of a small marker, and dropped.
 VERTICAL_SIN = 0.17
+#: How well a marker's apparent side is known (pixels): a marker's solved range is its side's
+#: length in the image, so its range is off by range x CORNER_PX / side. Measured on the sim's
+#: 0.3 m landmark markers seen by cctv-1 (office and hall, 8-32 px sides at 3.5-15 m): every
+#: solved range 2-5 % long, the side short by 0.3-0.9 px (0.5 in most); across the ray within
+#: 6 mm (docs/BENCHMARKS.md "depth-1 with the CCTV in the hall").
+CORNER_PX = 0.5
+#: The smallest standard deviation (m) of a solved marker's position, along and across the ray.
+MARKER_FLOOR_M = 0.01
 
 
 @dataclass(frozen=True)
@@ -43,6 +51,20 @@ def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
         msg = f"dictionary: expected an ArUco dictionary name like 'DICT_4X4_50', found {name!r}"
         raise SensorInputError(msg)
     return cv2.aruco.getPredefinedDictionary(code)
+
+
+def marker_covariance(position: np.ndarray, side_px: float) -> np.ndarray:
+    """The covariance (3x3, camera frame) of a marker's solved centre `position` from its side
+    `side_px` pixels long in the image: along the ray, range x CORNER_PX / side (its range
+    follows from its apparent size); across it, MARKER_FLOOR_M (its direction is its pixel)."""
+    p = np.asarray(position, np.float64)
+    r = float(np.linalg.norm(p))
+    across = MARKER_FLOOR_M**2
+    if r < 1e-9:
+        return np.eye(3) * across
+    ray = p / r
+    along = max(r * CORNER_PX / max(side_px, 1.0), MARKER_FLOOR_M) ** 2
+    return across * np.eye(3) + (along - across) * np.outer(ray, ray)
 
 
 def confidence(side_px: float, error_px: float) -> float:
@@ -140,17 +162,20 @@ class CctvCamera:
                 continue
             projected, _ = cv2.projectPoints(model, rvec, tvec, self.K, self.distortion)
             error = float(np.linalg.norm(projected.reshape(4, 2) - quad, axis=1).mean())
-            side = float(np.linalg.norm(np.roll(quad, 1, axis=0) - quad, axis=1).min())
+            sides = np.linalg.norm(np.roll(quad, 1, axis=0) - quad, axis=1)
+            side = float(sides.min())
             pose = np.eye(4)
             pose[:3, :3] = cv2.Rodrigues(rvec)[0]
             pose[:3, 3] = tvec.reshape(3)
             label = f"aruco:{int(marker)}"
+            covariance: np.ndarray | None = marker_covariance(pose[:3, 3], float(sides.mean()))
             if on_agent is not None:  # the agent's body pose in the camera frame
                 if abs((self.pose[:3, :3] @ pose[:3, 2])[2]) > VERTICAL_SIN:
                     continue  # boards on robots are vertical: a tilted solution is a flip
                 pose = self._at_board_height(pose, float(on_agent[1][2, 3]))
                 pose = pose @ np.linalg.inv(on_agent[1])
                 label = f"{AGENT_LABEL}{on_agent[0]}"
+                covariance = None  # a robot's body pose: its fix carries `fix_covariance`
             found.append(
                 ObjectDetection(
                     object_id=int(marker),
@@ -159,6 +184,7 @@ class CctvCamera:
                     probability=confidence(side, error),
                     label=label,
                     corners=quad,
+                    covariance=covariance,
                 )
             )
         return found

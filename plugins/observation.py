@@ -22,6 +22,8 @@ class ObjectDetection:
     probability: float = 1.0
     label: str = ""
     corners: np.ndarray | None = None  # (4, 2) image corners of a fiducial, if any
+    #: (3, 3) covariance of `position` in the sensor frame, if the sensor knows its error
+    covariance: np.ndarray | None = None
 
     @property
     def position(self) -> np.ndarray:

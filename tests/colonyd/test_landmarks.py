@@ -10,7 +10,8 @@ import numpy as np
 from colonyd.alignment import ColonyFrame
 from colonyd.estimator import ScanEstimator
 from colonyd.landmarks import colony_landmarks
-from colonyd.objects import CLUSTER_IDS
+from colonyd.layers import Layer
+from colonyd.objects import CLUSTER_IDS, OwnObjects
 from plugins.observation import ObjectDetection, Observation
 from protocol import ObjectCentroid as WireObject
 from voxel.localisation.ekf import PlanarEkf
@@ -70,3 +71,50 @@ def test_an_estimator_that_sees_a_known_landmark_is_pulled_onto_it():
     sd = 0.02 + 0.02 * float(np.linalg.norm(seen[:3, 3]))
     r = sd**2 + 1e-6
     assert abs(est.localiser.ekf.pose[0] - 0.3 * r / (0.04 + r)) < 1e-3
+
+
+def test_a_fixed_cameras_marker_is_published_no_surer_than_one_sighting():
+    """A fixed camera sees a marker from one place every frame: 30 identical sightings share one
+    error, so the published mean keeps a single sighting's covariance (turned into the world),
+    not a thirtieth of it (the scatter is zero: 1 cm claimed for a marker 0.45 m off)."""
+    objects = OwnObjects(frozenset())
+    camera = np.eye(4)  # optical frame: its z axis (the ray) along world x
+    camera[:3, :3] = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    seen = np.eye(4)
+    seen[:3, 3] = (0.0, 0.0, 10.0)  # 10 m ahead: world (10, 0, 0)
+    sighting = np.diag([1e-4, 1e-4, 0.25])  # 0.5 m along the ray, 1 cm across
+    for t in range(30):
+        obs = Observation(
+            sensor="cctv",
+            time=float(t),
+            points=np.zeros((0, 3)),
+            pose=camera,
+            objects=(ObjectDetection(7, 5, seen, covariance=sighting),),
+        )
+        objects.observe(obs)
+    (found,) = objects.refresh(Layer("cctv", 0.1))
+    np.testing.assert_allclose(found.position, [10.0, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(found.covariance, np.diag([0.25, 1e-4, 1e-4]) + 1e-4 * np.eye(3))
+
+
+def test_a_robot_confident_to_3cm_is_not_dragged_by_a_far_markers_range_error():
+    """The CCTV's marker 0.1 m off along its ray (its range from 22 px, 5 m: 0.11 m claimed):
+    a robot known to 3 cm that sees it from 2 m moves by the known gain, under 1 cm; with the
+    mean's scatter alone (1 cm) it was pulled 2 cm by one sighting."""
+
+    def landmark_after(landmark_cov: np.ndarray) -> float:
+        est = ScanEstimator(planar=False, mount=np.eye(4))
+        est.localiser.ekf = PlanarEkf(np.zeros(3), np.diag([9e-4, 9e-4, 1e-8]))
+        seen = np.eye(4)
+        seen[:3, 3] = (2.0, 0.0, 0.0)  # truly 2 m ahead: the true landmark is at (2, 0)
+        obs = Observation(sensor="depth", time=0.0, points=np.zeros((0, 3)), pose=np.eye(4),
+                          objects=(ObjectDetection(4, 5, seen),))  # fmt: skip
+        est.landmarks(obs, {4: (np.array([2.1, 0.0]), landmark_cov)})  # ray along x
+        assert est.counts()["landmark_accepted"] == 1
+        return float(est.localiser.ekf.pose[0])
+
+    r = (0.02 + 0.02 * 2.0) ** 2
+    along = (5.0 * 0.5 / 22.0) ** 2 + 1e-4
+    moved = landmark_after(np.diag([along, 2e-4]))
+    assert abs(moved - 0.1 * 9e-4 / (9e-4 + r + along)) < 1e-4 and moved < 0.01
+    assert landmark_after(np.eye(2) * 1e-4) > 0.015  # the old claim

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from plugins.cctv import CctvCamera, CctvFrame, aruco_dictionary
+from plugins.cctv import CctvCamera, CctvFrame, aruco_dictionary, marker_covariance
 from plugins.checks import pose_matrix
 from plugins.errors import SensorInputError
 from plugins.sim import OPTICAL, Rig, render
@@ -92,3 +92,37 @@ def test_image_without_markers_and_bad_images() -> None:
         aruco_dictionary("DICT_9X9")
     with pytest.raises(SensorInputError, match="marker_length: expected a positive length"):
         CctvCamera(fov=1.0, marker_length=0.0)
+
+
+def test_a_markers_covariance_is_long_along_the_ray_by_its_side_in_pixels() -> None:
+    # 10 m straight ahead, 10 px across: range x 0.5 px / 10 px = 0.5 m along the ray, 1 cm
+    # across it; turned with the ray
+    cov = marker_covariance(np.array([0.0, 0.0, 10.0]), 10.0)
+    np.testing.assert_allclose(cov, np.diag([1e-4, 1e-4, 0.25]), atol=1e-12)
+    ray = np.array([3.0, 0.0, 4.0]) / 5.0
+    cov = marker_covariance(5.0 * ray, 25.0)  # 5 m, 25 px: 0.1 m along
+    np.testing.assert_allclose(ray @ cov @ ray, 0.01, atol=1e-12)
+    across = np.array([0.0, 1.0, 0.0])
+    np.testing.assert_allclose(across @ cov @ across, 1e-4, atol=1e-12)
+    # near and large: never below the floor
+    np.testing.assert_allclose(
+        marker_covariance(np.array([0.0, 0.0, 0.5]), 200.0), np.eye(3) * 1e-4
+    )
+
+
+def test_a_far_markers_range_error_is_within_its_claimed_covariance() -> None:
+    """At 7 m a 0.2 m marker is ~15 px across: its solved range is centimetres off (a fixed
+    camera makes the same error in every frame), and its covariance says so along the ray."""
+    world = tagged_pillar()
+    pose = pose_matrix(-5.0, 0.1, 1.05, 0.0) @ OPTICAL
+    camera = CctvCamera(pose=pose, fov=math.radians(60), marker_classes={7: CLASSES["landmark"]})
+    frame = render(world, "cctv", camera_rig(camera), pose, np.random.default_rng(0), 0.0)
+    (found,) = camera.observe(frame).objects
+    truth = (np.linalg.inv(pose) @ world.markers[0].frame())[:3, 3]
+    error = found.position - truth
+    ray = truth / np.linalg.norm(truth)
+    assert found.covariance is not None
+    along = math.sqrt(ray @ found.covariance @ ray)
+    assert 0.1 < along < 0.3  # 7 m x 0.5 px / ~15 px
+    assert abs(error @ ray) < 3 * along
+    assert np.linalg.norm(error - (error @ ray) * ray) < 0.03
