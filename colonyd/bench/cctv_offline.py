@@ -19,11 +19,12 @@ colony map); `map` (the colony map its alignment brings, depth-1's final map and
 cut and given as the daemon's `ColonyMaps` would from the moment both robots are aligned; the
 fixes only align it); `both` (as live); `map-depth` and `map-cctv`: `map` with depth-1's
 map alone or the CCTV's alone (`--cctv-map raw`: the CCTV's raw depth points instead of its
-voxel centres, a diagnostic; `--peer-points means`: depth-1's and the CCTV's maps as the mean
-hit point of each occupied voxel, the harness prototype of the grid's surface channel,
-`colonyd.bench.surface`; comma-separated: each, keys of the others with `@means`; raw wins
-over means for the CCTV's map). `--fix-model`: old, the daemon's fixes; new and shared,
-alternatives measured against it (`model_fixes`, `fix_in_own_frame`'s `count` and `bias`).
+voxel centres, a diagnostic; `--peer-points means`: depth-1's and the CCTV's maps as their
+occupied voxels' surface points, their grids keeping the grid's `surface` channel, taken as the
+daemon's colony map takes a replica's (`paper_offline.surfaces`); comma-separated: each, keys of
+the others with `@means`; raw wins over means for the CCTV's map). `--fix-model`: old, the
+daemon's fixes; new and shared, alternatives measured against it (`model_fixes`,
+`fix_in_own_frame`'s `count` and `bias`).
 Truth renders and evaluates; no estimator reads it.
 
 Not as live: depth-1 gets no colony map (only fixes); lidar-1 gets depth-1's final map (live,
@@ -43,8 +44,7 @@ import numpy as np
 
 from colonyd.alignment import Alignments, ColonyFrame, Edge
 from colonyd.bench.files import print_and_append
-from colonyd.bench.paper_offline import PEER_POINTS, Run
-from colonyd.bench.surface import SurfaceMeans
+from colonyd.bench.paper_offline import PEER_POINTS, Run, surfaces
 from colonyd.colonymap import PeerError, alignment_error, cut_error, peer_map_error
 from colonyd.estimator import ScanEstimator
 from colonyd.fixes import (
@@ -99,11 +99,11 @@ class Fix:
 
 
 def cctv_view(
-    seed: int, duration: float, world: str = "office", surface: SurfaceMeans | None = None
+    seed: int, duration: float, world: str = "office", surface: bool = False
 ) -> tuple[list[Fix], VoxelGrid, np.ndarray]:
-    """cctv-1's fixes over `duration` s of the experiment's seed `seed`, its map, and its raw
-    depth points near a 2D scanner's height (0-0.6 m), thinned to 2 cm (`--cctv-map raw`);
-    its hit points' means per voxel added to `surface` if given (`--peer-points means`)."""
+    """cctv-1's fixes over `duration` s of the experiment's seed `seed`, its map (keeping the
+    grid's surface channel with `surface`, for `--peer-points means`), and its raw depth points
+    near a 2D scanner's height (0-0.6 m), thinned to 2 cm (`--cctv-map raw`)."""
     agents = AGENTS[world]
     frames = max(2, int(agents[CCTV].rate * duration))
     source = SimSource(
@@ -116,14 +116,12 @@ def cctv_view(
         robots="+".join(ROBOTS),
     )
     paths = {r: SimPath(agents[r].waypoints, agents[r].speed, agents[r].turn_rate) for r in ROBOTS}
-    grid = VoxelGrid(0.1)
+    grid = VoxelGrid(0.1, surface=surface)
     adapter = source.adapter
     fixes = []
     raw = []
     for obs in source:
         integrate_observation(grid, obs, sensor=adapter.sensor_model, reliability=1.0)
-        if surface is not None:
-            surface.add_observation(obs, obs.pose, adapter.sensor_model)
         pts = obs.points if obs.no_return is None else obs.points[~obs.no_return]
         pts = pts @ obs.pose[:3, :3].T + obs.pose[:3, 3]
         raw.append(thin(pts[np.abs(pts[:, 2] - 0.3) < 0.3], 0.02))
@@ -197,8 +195,8 @@ class Cctv:
     `lag` s after their stamp, sightings until the robot's frame is aligned with the CCTV's,
     then (if `fuse`) fused; from the moment `peer` (the other robot's run and edge) and this
     robot are both aligned, (if `peer_map`) the colony map of `peer`'s and the CCTV's maps, as
-    their voxels' centres or (`points` means) their hit points' means (`cctv_surface`, the
-    peer run's `surface`)."""
+    their voxels' centres or (`points` means) their surface points (`paper_offline.surfaces`:
+    both grids must keep the surface channel)."""
 
     def __init__(
         self,
@@ -212,7 +210,6 @@ class Cctv:
         model: str = "old",
         cctv_points: np.ndarray | None = None,
         points: str = "centres",
-        cctv_surface: SurfaceMeans | None = None,
     ) -> None:
         self.robot = robot
         self.model = model
@@ -224,7 +221,7 @@ class Cctv:
         if points not in PEER_POINTS:
             msg = f"peer points: expected one of {PEER_POINTS}, found {points!r}"
             raise ValueError(msg)
-        self.points, self.cctv_surface = points, cctv_surface
+        self.points = points
         self.kept: list[tuple[np.ndarray, np.ndarray]] = []
         self.edge: Edge | None = None
         self.aligned_at: float | None = None
@@ -311,18 +308,7 @@ class Cctv:
                 reported = run.covariances[i]
             posed = np.zeros((3, 3)) if reported is None else peer_map_error(reported, m, pose)
             errors[origin] = PeerError(alignment_error(frame, self.robot, origin), posed, reported)
-        centres = np.concatenate(
-            [
-                (
-                    self.cctv_points
-                    if origin == CCTV and self.cctv_points is not None
-                    else self._voxels(origin, g)
-                )
-                @ m[:3, :3].T
-                + m[:3, 3]
-                for origin, g, m in peers
-            ]
-        )
+        centres = np.concatenate([self._points(origin, g, m) for origin, g, m in peers])
 
         def free(points: np.ndarray) -> np.ndarray:
             known_free = np.zeros(len(points), bool)
@@ -351,16 +337,17 @@ class Cctv:
         )
         estimator.colony = self.cut
 
-    def _voxels(self, origin: str, grid: VoxelGrid) -> np.ndarray:
-        """`origin`'s occupied voxels as their centres, or their hit points' means."""
-        keys = grid.occupied_keys()
-        if self.points == "centres":
-            return vk.keys_to_centers(keys, grid.resolution)
-        surface = self.cctv_surface if origin == CCTV else (self.peer and self.peer[1].surface)
-        if surface is None:
-            msg = f"peer points 'means': expected {origin}'s hit points' means, found none"
-            raise ValueError(msg)
-        return surface.points(keys)
+    def _points(self, origin: str, grid: VoxelGrid, to_own: np.ndarray) -> np.ndarray:
+        """`origin`'s map in the robot's frame (`to_own`): the CCTV's raw points if given, else
+        the occupied voxels' centres or (`points` means) their surface points."""
+        if origin == CCTV and self.cctv_points is not None:
+            pts = self.cctv_points
+        elif self.points == "centres":
+            pts = vk.keys_to_centers(grid.occupied_keys(), grid.resolution)
+        else:
+            return surfaces(grid, to_own)
+        out: np.ndarray = pts @ to_own[:3, :3].T + to_own[:3, 3]
+        return out
 
 
 def _grid(run: Run) -> VoxelGrid:
@@ -412,15 +399,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--cctv-map",
         choices=("voxels", "raw"),
         default="voxels",
-        help="diagnostic: the CCTV's map in lidar-1's colony map as its voxel centres (the "
-        "daemon's) or as its raw depth points (surfaces not quantised to the voxels)",
+        help="diagnostic: the CCTV's map in lidar-1's colony map as its voxels (as "
+        "--peer-points says) or as its raw depth points (surfaces not quantised to the voxels)",
     )
     parser.add_argument(
         "--peer-points",
         default="centres",
         help=f"comma-separated, of {PEER_POINTS}: depth-1's and the CCTV's maps as their voxels' "
-        "centres (default, the daemon's) or their hit points' means (a prototype of the "
-        "surface channel); each, keys of the others with @<name>",
+        "centres (default) or their surface points (the grid's surface channel, as the "
+        "daemon's colony map); each, keys of the others with @<name>",
     )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
@@ -430,8 +417,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     modes = args.peer_points.split(",")
     if not set(modes) <= set(PEER_POINTS):
         parser.error(f"--peer-points: expected names of {PEER_POINTS}, found {args.peer_points!r}")
-    cctv_surface = SurfaceMeans(0.1) if "means" in modes else None
-    fixes, cctv_grid, cctv_raw = cctv_view(args.seed, args.duration, surface=cctv_surface)
+    fixes, cctv_grid, cctv_raw = cctv_view(args.seed, args.duration, surface="means" in modes)
     out: dict[str, Any] = {"seed": args.seed, "duration": args.duration, "lag": args.lag}
     out["fix_model"] = args.fix_model
     if args.cctv_map != "voxels":
@@ -477,7 +463,6 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             model=args.fix_model,
             cctv_points=cctv_raw if args.cctv_map == "raw" else None,
             points=points,
-            cctv_surface=cctv_surface,
         )
         out[key] = round(lidar.go(before=hook), 4)
         out[f"{key}_fixes"] = [hook.fused, hook.refused, hook.stale]

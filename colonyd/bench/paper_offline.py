@@ -37,10 +37,10 @@ solve may move depth-1's past poses (its map) too: `joint_smoothed` holds both r
 times each F (keys `@peerF`), `--joint-inter-inflate F,...` with the inter edges' (`@interF`);
 `--joint-alone` with lidar-1's own edges from its alone run (`@alone`).
 `--peer-points` (comma-separated: each, the first's keys plain, the others' `@means`): the
-peer's map as its occupied voxels' centres (`centres`, the daemon's today) or as the mean of the
-hit points it integrated in each (`means`, each scan one sample: a harness prototype of the
-grid's surface channel, `colonyd.bench.surface`, from the points as its grid saw them, at its
-estimated poses; a voxel without hits keeps its centre).
+peer's map as its occupied voxels' centres (`centres`) or as their surface points (`means`: the
+peer run's grid keeps the grid's `surface` channel, each voxel's mean hit position at its
+estimated poses, and the cut takes its occupied voxels' published surface points through the
+daemon's `colonymap.peer_surfaces`, as a daemon's colony map does a replica's).
 `--rng` draws the scans' subsample with another seed: how far a run moves when nothing but
 that changes (the noise to compare against).
 
@@ -73,9 +73,9 @@ import numpy as np
 
 from colonyd.bench.files import print_and_append
 from colonyd.bench.provenance import Provenance, quantile_steps
-from colonyd.bench.surface import SurfaceMeans
-from colonyd.colonymap import peer_map_error
+from colonyd.colonymap import peer_map_error, peer_surfaces
 from colonyd.estimator import ScanEstimator, get_estimator
+from colonyd.layers import Layer
 from colonyd.mapping import integrate_observation
 from colonyd.simrun import sim_spec
 from plugins.observation import Observation
@@ -101,8 +101,21 @@ JOINT_NODES = 8
 
 
 RELAXED = ("none", "nosuspend", "nogate", "inflate", "inflate-nosuspend")
-#: `--peer-points`: a peer's map as its voxels' centres, or as their hit points' means.
+#: `--peer-points`: a peer's map as its voxels' centres, or as their surface points (each
+#: voxel's mean hit position, the grid's `surface` channel).
 PEER_POINTS = ("centres", "means")
+
+
+def surfaces(grid: VoxelGrid, to_own: np.ndarray) -> np.ndarray:
+    """The surface points of `grid`'s occupied voxels (a peer run's map, kept with
+    `surface=True`), put into a robot's frame by `to_own`: the daemon's `peer_surfaces` on a
+    layer holding it (an origin's occupied voxels publish the surface its replicas hold)."""
+    if not grid.surface:
+        msg = "peer points 'means': expected the peer's grid with its surface channel, found none"
+        raise ValueError(msg)
+    layer = Layer("peer", grid.resolution)
+    layer.grid = grid
+    return peer_surfaces([(layer, to_own)])
 
 
 def relax(estimator: ScanEstimator, how: str) -> None:
@@ -176,9 +189,8 @@ class Run:
         self.grid: VoxelGrid | None = None
         #: (trans, yaw) of each peer walk given with a cut (`--peer-walk`; None: not yet known)
         self.peer_walks: list[list[float] | None] = []
-        #: Keep the mean hit point per voxel of the map (`--peer-points means`) in `surface`.
+        #: The map keeps the grid's surface channel (`--peer-points means`).
         self.means = False
-        self.surface: SurfaceMeans | None = None
         #: `--joint`: keep which step hit each voxel (`provenance`), and each fused colony
         #: match's scan (body frame) and pose (`colony_scans`); `graph`: the filter's record.
         self.joint = False
@@ -206,8 +218,8 @@ class Run:
         ATE."""
         source = open_source(self.spec, resolution=0.1)
         adapter = source.adapter
-        grid = VoxelGrid(0.1, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
-        self.surface = SurfaceMeans(grid.resolution) if self.means else None
+        shape = "planar" if adapter.kind == "lidar2d" else "cube"
+        grid = VoxelGrid(0.1, block_shape=shape, surface=self.means)
         self.provenance = Provenance(grid.resolution) if self.joint else None
         self.colony_scans = []
         estimator: Any = None
@@ -257,8 +269,6 @@ class Run:
                 sensor=adapter.sensor_model,
                 reliability=adapter.reliability,
             )
-            if self.surface is not None:
-                self.surface.add_observation(obs, pose, adapter.sensor_model)
             if self.provenance is not None:
                 self.provenance.add_observation(obs, pose, adapter.sensor_model, i)
             if obs.truth is None:
@@ -320,8 +330,8 @@ class Run:
         the truth), the best map it could give a peer. No estimator runs."""
         source = open_source(self.spec, resolution=0.1)
         adapter = source.adapter
-        grid = VoxelGrid(0.1, block_shape="planar" if adapter.kind == "lidar2d" else "cube")
-        self.surface = SurfaceMeans(grid.resolution) if self.means else None
+        shape = "planar" if adapter.kind == "lidar2d" else "cube"
+        grid = VoxelGrid(0.1, block_shape=shape, surface=self.means)
         self.estimates, self.truths, self.covariances = [], [], []
         for obs in source:
             if obs.truth is None:
@@ -333,8 +343,6 @@ class Run:
                 sensor=adapter.sensor_model,
                 reliability=adapter.reliability,
             )
-            if self.surface is not None:
-                self.surface.add_observation(obs, obs.truth, adapter.sensor_model)
             self.estimates.append(obs.truth)
             self.truths.append(obs.truth)
         self.grid = grid
@@ -421,7 +429,7 @@ class Run:
         covariance the alignment's, plus (at time `at`) this run's pose covariance then, as the
         error of its map about the cut's centre (`colonymap.peer_map_error`); `walk`: this
         run's drift (`drift`); `points`: its occupied voxels as their centres or (`means`) as
-        the mean of their hit points (`surface`)."""
+        their surface points (`surfaces`)."""
         assert self.grid is not None, "run the peer first"
         grid = self.grid
         ours = self.truths[0] @ np.linalg.inv(self.estimates[0])  # our frame in the world
@@ -430,12 +438,10 @@ class Run:
         back = np.linalg.inv(m)
         robot.peer_alignment = m
         if points == "means":
-            if self.surface is None:
-                msg = "peer points 'means': expected the peer run with `means` set, found none"
-                raise ValueError(msg)
-            centres = self.surface.points(grid.occupied_keys())
+            peer_points = surfaces(grid, m)
         elif points == "centres":
             centres = vk.keys_to_centers(grid.occupied_keys(), grid.resolution)
+            peer_points = centres @ m[:3, :3].T + m[:3, 3]
         else:
             msg = f"peer points: expected one of {PEER_POINTS}, found {points!r}"
             raise ValueError(msg)
@@ -451,7 +457,7 @@ class Run:
             covariance = covariance + peer_map_error(self.covariances[i], m, pose[:2, 3])
         planar = estimator.planar
         return colony_map(
-            centres @ m[:3, :3].T + m[:3, 3],
+            peer_points,
             cell=0.05 if planar else 0.1,
             max_points=50_000 if planar else 20_000,
             planar=planar,
@@ -619,8 +625,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         type=_points,
         default=["centres"],
         help=f"comma-separated, of {PEER_POINTS}: the peer's map as its voxels' centres "
-        "(default, the daemon's) or their hit points' means (a prototype of the surface "
-        "channel); each, the first's keys plain, the others' with @<name>",
+        "(default) or their surface points (the grid's surface channel, as the daemon's "
+        "colony map); each, the first's keys plain, the others' with @<name>",
     )
     parser.add_argument(
         "--joint",

@@ -14,7 +14,7 @@ from voxel.sensor import SensorModel
 class Provenance:
     """Per plan cell (x-y cell of the grid's `resolution`, within a height band): the steps whose
     hits fell in it, each step counted once per cell. Hits as the grid's (finite, with a
-    return, within the sensor's max range: `SurfaceMeans`)."""
+    return, within the sensor's max range, as `integrate_observation` gives them)."""
 
     def __init__(self, resolution: float) -> None:
         if not resolution > 0:

@@ -19,7 +19,7 @@ def test_cctv_offline_aligns_by_sightings_then_fuses_fixes_and_matches_the_colon
     assert fused > 0 and stale == 0
     assert got["lidar_map_fixes"] == [0, 0, 0]  # the map run takes no fix: they only align it
     assert sum(got["lidar_map_counts"].values()) > 0 and got["lidar_map_map_from"] is not None
-    # the maps as their voxels' hit points' means (the surface channel's prototype)
+    # the maps as their voxels' surface points (the grids' surface channel)
     assert sum(got["lidar_map@means_counts"].values()) > 0 and "lidar_fixes@means" not in got
     for key in ("lidar_fixes", "lidar_map", "depth_with_fixes", "lidar_map@means"):
         assert 0.0 <= got[key] < 0.5, key

@@ -4,7 +4,52 @@ from __future__ import annotations
 
 import json
 
-from colonyd.bench.paper_offline import main
+import numpy as np
+import pytest
+
+from colonyd.bench import cctv_offline
+from colonyd.bench.paper_offline import main, surfaces
+from colonyd.mapping import integrate_observation
+from plugins.observation import Observation
+from voxel import keys as vk
+from voxel.grid import VoxelGrid
+from voxel.localisation import se2
+from voxel.sensor import SensorModel
+
+
+def test_means_are_the_peer_grids_surface_points_in_the_robots_frame():
+    rng = np.random.default_rng(3)
+    pose = np.eye(4)
+    pose[:3, 3] = [1.0, -0.5, 0.2]
+    obs = Observation("lidar", 1.0, rng.uniform(-1.5, 1.5, (400, 3)), pose)
+    grid = VoxelGrid(0.1, surface=True)
+    integrate_observation(grid, obs, sensor=SensorModel(max_range=3.0), reliability=1.0)
+    to_own = se2.to_matrix(np.array([0.3, -0.2, 0.4]))
+    got = surfaces(grid, to_own)
+    # one scan: each occupied voxel's surface is the mean of its hit points, to the wire's
+    # 1/254 voxel (0.2 mm a code's half per axis), then put into the robot's frame
+    world = obs.points_world()
+    keys = vk.pack(vk.points_to_keys(world, 0.1))
+    occupied = grid.occupied_keys()
+    assert len(occupied) > 50
+    means = np.array([world[keys == k].mean(axis=0) for k in vk.pack(occupied)])
+    np.testing.assert_allclose(got, means @ to_own[:3, :3].T + to_own[:3, 3], atol=4e-4)
+    centres = vk.keys_to_centers(occupied, 0.1) @ to_own[:3, :3].T + to_own[:3, 3]
+    assert np.median(np.linalg.norm(got - centres, axis=1)) > 0.01  # not the voxels' centres
+
+
+def test_means_need_the_peer_grid_to_keep_its_surface():
+    with pytest.raises(ValueError, match="surface channel"):
+        surfaces(VoxelGrid(0.1), np.eye(4))
+
+
+@pytest.mark.parametrize("run", [main, cctv_offline.main])
+def test_peer_points_is_validated(run, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        run(["--peer-points", "centres,surface"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "--peer-points" in err and "'centres', 'means'" in err and "surface" in err
 
 
 def test_paper_offline_runs_both_robots_alone_and_with_the_others_map(tmp_path):
