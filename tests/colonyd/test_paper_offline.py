@@ -12,6 +12,7 @@ from colonyd.bench.paper_offline import main, surfaces
 from colonyd.mapping import integrate_observation
 from plugins.observation import Observation
 from voxel import keys as vk
+from voxel import surface
 from voxel.grid import VoxelGrid
 from voxel.localisation import se2
 from voxel.sensor import SensorModel
@@ -26,14 +27,17 @@ def test_means_are_the_peer_grids_surface_points_in_the_robots_frame():
     integrate_observation(grid, obs, sensor=SensorModel(max_range=3.0), reliability=1.0)
     to_own = se2.to_matrix(np.array([0.3, -0.2, 0.4]))
     got = surfaces(grid, to_own)
-    # one scan: each occupied voxel's surface is the mean of its hit points, to the wire's
-    # 1/254 voxel (0.2 mm a code's half per axis), then put into the robot's frame
+    # one scan: each occupied voxel's surface is the mean of its hit points, to the published
+    # codes' step (PUBLISH_STEP / 254 of a voxel: 3.1 mm its half per axis at 0.1 m), then put
+    # into the robot's frame
     world = obs.points_world()
     keys = vk.pack(vk.points_to_keys(world, 0.1))
     occupied = grid.occupied_keys()
     assert len(occupied) > 50
     means = np.array([world[keys == k].mean(axis=0) for k in vk.pack(occupied)])
-    np.testing.assert_allclose(got, means @ to_own[:3, :3].T + to_own[:3, 3], atol=4e-4)
+    half_step = 0.5 * 0.1 * surface.PUBLISH_STEP / surface.WIRE_SCALE
+    want = means @ to_own[:3, :3].T + to_own[:3, 3]
+    np.testing.assert_allclose(got, want, atol=half_step * np.sqrt(3) + 1e-5)
     centres = vk.keys_to_centers(occupied, 0.1) @ to_own[:3, :3].T + to_own[:3, 3]
     assert np.median(np.linalg.norm(got - centres, axis=1)) > 0.01  # not the voxels' centres
 
