@@ -49,6 +49,12 @@ class MapReply:
         return vk.keys_to_centers(self.keys[self.logodds >= 0], self.resolution)
 
 
+#: How far (voxels, per axis) a fused voxel's surface point may lie from its centre: a layer's
+#: voxel moved into the fused frame lands where its centre falls (half a voxel), and its own
+#: surface point, up to half a voxel per axis from that centre, turns with it (sqrt(3)/2).
+SURFACE_REACH = 0.5 + 0.5 * np.sqrt(3.0)
+
+
 def export_time(text: str | None) -> float | None:
     """The time of an export query's `at` parameter (seconds), None when absent; ValueError
     unless a finite number (a query from the network: the daemon answers a bad one with
@@ -138,12 +144,9 @@ def decode_map(data: bytes) -> MapReply:
             offsets = np.frombuffer(d["surface"], "<f4").reshape(m, 3)
             if not np.isfinite(offsets).all():
                 raise ValueError("expected finite surface offsets, found NaN or infinity")
-            worst = float(np.abs(offsets).max(initial=0.0))
-            if worst > 0.5 * resolution * (1 + 1e-3):
-                msg = (
-                    f"expected surface offsets within half a voxel ({0.5 * resolution:g} m),"
-                    f" found {worst:g} m"
-                )
+            worst, bound = float(np.abs(offsets).max(initial=0.0)), SURFACE_REACH * resolution
+            if worst > bound * (1 + 1e-3):
+                msg = f"expected surface offsets within {bound:g} m per axis, found {worst:g} m"
                 raise ValueError(msg)
             points = vk.keys_to_centers(keys[occupied], resolution) + offsets
         return MapReply(

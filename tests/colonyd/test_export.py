@@ -115,7 +115,7 @@ def test_map_reply_carries_classes_and_points_and_the_ply_is_coloured_by_class_t
     for cut, message in (
         (body["surface"][:36], "expected 4 surface offsets of 12 bytes, found 36"),
         (np.full(12, np.nan, "<f4").tobytes(), "expected finite surface offsets, found NaN"),
-        (np.full(12, 0.2, "<f4").tobytes(), r"within half a voxel \(0.05 m\), found 0.2 m"),
+        (np.full(12, 0.2, "<f4").tobytes(), r"within 0.136603 m per axis, found 0.2 m"),
     ):
         with pytest.raises(StatusError, match=message):
             decode_map(msgpack.packb({**body, "surface": cut}))
