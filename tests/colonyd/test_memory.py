@@ -16,8 +16,10 @@ from colonyd.memory import limit_arenas
 if sys.argv[1] == "limit":
     assert limit_arenas()
 held = []
+together = threading.Barrier(8)  # none exits (freeing its arena for the next) before all allocated
 def work():
     held.append([np.ones(8192) for _ in range(16)])  # 64 KB each: from the thread's arena
+    together.wait()
 threads = [threading.Thread(target=work) for _ in range(8)]
 for t in threads:
     t.start()
