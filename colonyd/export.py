@@ -14,6 +14,7 @@ import zenoh
 
 from colonyd.config import Config
 from colonyd.errors import NoAnswerError, StatusError
+from colonyd.layers import SURFACE_REACH
 from colonyd.mapping import write_floor_plan
 from colonyd.outdir import output_dir
 from colonyd.runtime import get_client_session
@@ -47,12 +48,6 @@ class MapReply:
         if self.points is not None:
             return self.points
         return vk.keys_to_centers(self.keys[self.logodds >= 0], self.resolution)
-
-
-#: How far (voxels, per axis) a fused voxel's surface point may lie from its centre: a layer's
-#: voxel moved into the fused frame lands where its centre falls (half a voxel), and its own
-#: surface point, up to half a voxel per axis from that centre, turns with it (sqrt(3)/2).
-SURFACE_REACH = 0.5 + 0.5 * np.sqrt(3.0)
 
 
 def export_time(text: str | None) -> float | None:

@@ -633,6 +633,13 @@ def fused_classes(
     return out
 
 
+#: How far (voxels of the fused view, per axis) a fused voxel's surface point may lie from its
+#: centre: a layer's voxel moved into the fused frame lands where its centre falls (half a
+#: voxel), and its own surface point, up to half a voxel per axis from that centre, turns with
+#: it (sqrt(3)/2). A layer coarser than the view could reach further: such points are not shown.
+SURFACE_REACH = 0.5 + 0.5 * np.sqrt(3.0)
+
+
 def fused_surface(
     layers: list[Layer],
     resolution: float,
@@ -643,7 +650,8 @@ def fused_surface(
     and transforms), what its point outputs show: per voxel, the mean of the surface points
     (`VoxelGrid.surface_points`) of the occupied voxels that land in it of the layers holding
     the surface channel, moved into the fused frame; the voxel's centre where none does (all
-    centres when no layer holds it). One layer in its own frame gives its `surface_points`."""
+    centres when no layer holds it) or where that mean lies beyond `SURFACE_REACH` (a coarser
+    layer's). One layer in its own frame gives its `surface_points`."""
     index = KeyIndex(keys)
     out = vk.keys_to_centers(np.asarray(keys, np.int64).reshape(-1, 3), resolution)
     sums, counts = np.zeros_like(out), np.zeros(len(index))
@@ -661,5 +669,7 @@ def fused_surface(
             sums[:, axis] += np.bincount(rows, weights=points[hit, axis], minlength=len(index))
         counts += np.bincount(rows, minlength=len(index))
     some = counts > 0
-    out[some] = sums[some] / counts[some, None]
+    means = sums[some] / counts[some, None]
+    near = np.abs(means - out[some]).max(axis=1, initial=0.0) <= SURFACE_REACH * resolution
+    out[np.flatnonzero(some)[near]] = means[near]
     return out

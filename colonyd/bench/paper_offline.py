@@ -769,14 +769,18 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         out[f"lidar_with_depth_consistency{tail}"] = with_depth.consistency()
         if with_depth.smoothed:
             out[f"lidar_with_depth_smoothed{tail}"] = with_depth.smoothed
+        inter = args.joint_inter_inflate[0]  # the plain key's and every @peerF's
         for inflate in args.joint_peer_inflate if args.joint else []:
             at = "" if inflate == args.joint_peer_inflate[0] else f"@peer{inflate:g}"
-            out[f"joint_smoothed{tail}{at}"] = joint(with_depth, depth, peer_inflation=inflate)
+            out[f"joint_smoothed{tail}{at}"] = joint(
+                with_depth, depth, peer_inflation=inflate, inter_inflation=inter
+            )
         if args.joint and args.joint_alone:
             out[f"joint_smoothed{tail}@alone"] = joint(with_depth, depth, own=lidar)
+        peer = args.joint_peer_inflate[0]  # every @interF's
         for inflate in args.joint_inter_inflate[1:] if args.joint else []:
             out[f"joint_smoothed{tail}@inter{inflate:g}"] = joint(
-                with_depth, depth, inter_inflation=inflate
+                with_depth, depth, peer_inflation=peer, inter_inflation=inflate
             )
         if args.peer_walk:
             out[f"lidar_peer_walk{tail}"] = with_depth.peer_walks[:1] + with_depth.peer_walks[-1:]

@@ -197,16 +197,16 @@ def test_fused_classes_take_the_most_probable_label_over_layers_and_frames():
     assert set(cls.tolist()) == {-1, 3} and prob[cls == 3].min() > 0 and (prob[cls < 0] == 0).all()
 
 
-def _wall_layer(origin: str, wall: np.ndarray, *, surface: bool) -> Layer:
+def _wall_layer(origin: str, wall: np.ndarray, *, surface: bool, res: float = 0.1) -> Layer:
     """A layer whose origin saw `wall` (N, 3) from (0, 0, 0.3) in 3 scans, keeping the surface
     channel or not, as gossip delivers it."""
     from protocol.deltacodec import decode_delta, encode_delta
     from voxel.grid import VoxelGrid
 
-    grid = VoxelGrid(0.1, surface=surface)
+    grid = VoxelGrid(res, surface=surface)
     for t in range(3):
         grid.integrate(wall, np.array([0.0, 0.0, 0.3]), time=float(t))
-    layer = Layer(origin, 0.1)
+    layer = Layer(origin, res)
     layer.offer(1, 0, 1, decode_delta(encode_delta(grid.delta_since(0))))
     return layer
 
@@ -215,7 +215,7 @@ def test_fused_surface_is_the_layers_surface_points_and_centres_without_them():
     """A fused view's points (ROS 2 cloud, export, PLYs): each occupied voxel at the surface
     points of the layers that keep them, moved into the fused frame; the centres where none
     does (they were the centres everywhere, 37 mm off this wall)."""
-    from colonyd.layers import fused_surface
+    from colonyd.layers import SURFACE_REACH, fused_surface
 
     x = np.linspace(-1.0, 1.0, 201)
     wall = np.column_stack([x, np.full(x.size, 2.013), np.full(x.size, 0.3)])
@@ -245,6 +245,14 @@ def test_fused_surface_is_the_layers_surface_points_and_centres_without_them():
     assert fused_surface([mine], 0.1, np.zeros((0, 3), np.int64)).shape == (0, 3)  # none occupied
     own = mine.grid.occupied_keys()  # one layer in its own frame: its surface points
     np.testing.assert_array_equal(fused_surface([mine], 0.1, own), mine.grid.surface_points(own))
+    # a 0.4 m layer's wall voxel (y 2.0-2.4) lands where its centre falls (y key 22): its
+    # surface point 2.013 m is 0.24 m from that voxel's centre, beyond SURFACE_REACH: not shown
+    coarse = _wall_layer("d", wall, surface=True, res=0.4)
+    keys, lo = fused([coarse], 0.1, {"d": np.eye(4)})
+    occupied = keys[lo >= 0]
+    points = fused_surface([coarse], 0.1, occupied, {"d": np.eye(4)})
+    off = np.abs(points - vk.keys_to_centers(occupied, 0.1)).max(axis=1)
+    assert len(occupied) and off.max() <= SURFACE_REACH * 0.1
 
 
 def test_live_fused_view_recomputes_only_what_changed():

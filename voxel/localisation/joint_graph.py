@@ -161,7 +161,7 @@ class JointGraph:
         a, b = self.robot.nodes, self.peer.nodes
         none = np.zeros((0, 3))
         terms = self.robot.terms(x[:a], none, shared=False)
-        for blocks, r, info in self.peer.terms(x[a : a + b], none):
+        for blocks, r, info in self.peer.terms(x[a : a + b], none, shared=False):
             terms.append(([(ids + a, j) for ids, j in blocks], r, info / self.peer_inflation))
         t = a + b
         prior, jac = _numeric(self._prior_residual, x[t][None])
