@@ -168,14 +168,15 @@ class CctvCamera:
             pose[:3, :3] = cv2.Rodrigues(rvec)[0]
             pose[:3, 3] = tvec.reshape(3)
             label = f"aruco:{int(marker)}"
-            covariance: np.ndarray | None = marker_covariance(pose[:3, 3], float(sides.mean()))
+            covariance: np.ndarray | None = None  # a robot's body pose: its fix carries its own
             if on_agent is not None:  # the agent's body pose in the camera frame
                 if abs((self.pose[:3, :3] @ pose[:3, 2])[2]) > VERTICAL_SIN:
                     continue  # boards on robots are vertical: a tilted solution is a flip
                 pose = self._at_board_height(pose, float(on_agent[1][2, 3]))
                 pose = pose @ np.linalg.inv(on_agent[1])
                 label = f"{AGENT_LABEL}{on_agent[0]}"
-                covariance = None  # a robot's body pose: its fix carries `fix_covariance`
+            else:
+                covariance = marker_covariance(pose[:3, 3], float(sides.mean()))
             found.append(
                 ObjectDetection(
                     object_id=int(marker),
