@@ -161,18 +161,23 @@ def run_demo(
 def _unfused_layers(
     run: SimRun, fused: MapReply, reports: list[dict[str, Any]]
 ) -> dict[str, MapReply]:
-    """The maps of the layers `fused`'s daemon holds but has not aligned (so not in the fused
-    map), each in its own frame: a robot that did not align still leaves its map."""
-    held: dict[str, Any] = next(
-        (r.get("layers", {}) for r in reports if r["agent"] == fused.agent), {}
-    )
+    """The maps of the members' layers that `fused` does not hold aligned (so not in the fused
+    map), each in its own frame: a robot that did not align still leaves its map. Each is asked
+    of `fused`'s daemon, else of its origin (a late joiner's layer may not have reached it)."""
+    mapped = {
+        r["agent"]
+        for r in reports
+        if r.get("layers", {}).get(r["agent"], {}).get("seq")  # its origin has published it
+    }
     maps: dict[str, MapReply] = {}
-    for name in sorted(set(held) - set(fused.layers)):
-        with contextlib.suppress(StatusError):  # a layer it dropped meanwhile: none to write
-            _, one = fetch_maps(
-                run.colony.session(), run.colony.namespace, layer=name, agent=fused.agent
-            )
-            maps.update(one)
+    for name in sorted(mapped - set(fused.layers)):
+        for holder in (fused.agent, name):
+            with contextlib.suppress(StatusError):  # not held there (or dropped): try its origin
+                _, one = fetch_maps(
+                    run.colony.session(), run.colony.namespace, layer=name, agent=holder
+                )
+                maps.update(one)
+                break
     return maps
 
 

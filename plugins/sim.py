@@ -23,7 +23,7 @@ from plugins.observation import Observation
 from plugins.odometry import odometry_noise_of
 from plugins.spec import Options, SourceSpec, parse_options
 from plugins.stream import SourceContext, StreamStats
-from plugins.world import CLASSES, HALL_SCALE, WORLDS, Marker, World, get_world
+from plugins.world import CLASSES, HALL_SCALE, WORLDS, Hits, Marker, World, get_world
 from voxel.depth import pixel_rays
 from voxel.localisation.odometry import WheelOdometer
 
@@ -354,11 +354,15 @@ def render(
     rng: np.random.Generator,
     range_noise: float,
     boards: list[Marker] | None = None,
+    hits: Hits | None = None,
 ) -> Scan | Cloud | DepthFrame | CctvFrame:
     """A raw reading of `sensor` at sensor pose `pose` (world frame), rendered by ray casting;
-    `boards`: markers on robots, drawn into camera images only (robots are not in the scene)."""
+    `boards`: markers on robots, drawn into camera images only (robots are not in the scene);
+    `hits`: the scene's hits of the rig's rays from `pose` when the caller has them (a fixed
+    camera's are the same every frame: casting its 640 x 480 rays is most of a frame's work)."""
     directions = rig.directions @ pose[:3, :3].T
-    hits = world.cast(pose[:3, 3], directions)
+    if hits is None:
+        hits = world.cast(pose[:3, 3], directions)
     t = hits.t
     if range_noise > 0:
         t = t + rng.normal(scale=range_noise, size=t.shape)
@@ -560,6 +564,7 @@ class SimSource:
         self.ground_truth = []
         robots = [(r, Path(r.waypoints, r.speed, r.turn_rate)) for r in self.robots]
         began = clock.monotonic()
+        scene: Hits | None = None
         i = -1
         while i + 1 < self.frames:
             i += 1
@@ -580,6 +585,9 @@ class SimSource:
                 truth_sensor = cast(CctvCamera, self.adapter).pose
                 body_guess = None
                 odometry = None
+                if scene is None:  # the static scene seen from a fixed pose: cast it once
+                    rays = self.rig.directions @ truth_sensor[:3, :3].T
+                    scene = self.world.cast(truth_sensor[:3, 3], rays)
             else:
                 x, y, yaw = path(t)
                 estimate = odometer.step((x, y, yaw))
@@ -588,7 +596,14 @@ class SimSource:
                 body_guess = to_agent @ pose_matrix(estimate[0], estimate[1], 0.0, estimate[2])
                 odometry = body_guess
             reading = render(
-                self.world, agent.sensor, self.rig, truth_sensor, rng, self.range_noise, boards
+                self.world,
+                agent.sensor,
+                self.rig,
+                truth_sensor,
+                rng,
+                self.range_noise,
+                boards,
+                scene,
             )
             stamp = t if self.epoch is None else self.epoch + t
             obs = self.adapter.observe(

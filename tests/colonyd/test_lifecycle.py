@@ -141,7 +141,8 @@ def test_demo_runs_and_writes_maps(tmp_path):
     assert (out / "trajectories" / "depth-1.estimate.tum").stat().st_size > 0
     assert "joined halfway and caught up" in run.stdout
     # Every member's map, aligned or not (an unaligned one in its own frame, not fused).
-    assert {p.stem for p in (out / "layers").glob("*.bt")} == set(summary["robots"])
+    written = {p.stem for p in (out / "layers").glob("*.bt")}
+    assert written == set(summary["robots"]), (written, run.stdout)
     assert "demo at " in run.stdout  # not a terminal: progress lines instead of the live table
 
 

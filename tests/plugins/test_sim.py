@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from plugins.errors import SourceSpecError
-from plugins.sim import AGENTS, ROBOT_RADIUS, Path, SimSource
+from plugins.sim import AGENTS, ROBOT_RADIUS, Path, SimSource, render
 from plugins.world import WORLDS, get_world
 
 
@@ -60,6 +60,21 @@ def test_cctv_reports_landmarks_at_their_true_place() -> None:
         # small far markers: pose error mostly along the view, a few percent of the distance
         assert np.linalg.norm(site[:3, 3] - centres[found.object_id]) < 0.04 * distance
     assert (obs.class_ids >= 0).any()
+
+
+def test_a_fixed_cameras_later_frames_are_what_a_fresh_cast_renders() -> None:
+    """A fixed camera casts its static scene once; its later frames must be those of a fresh cast
+    (same pose, same noise draws)."""
+    source = SimSource(world="office", agent="cctv-1", frames=2, seed=4)
+    second = list(source)[1]
+    rng = np.random.default_rng(4)
+    camera = source.adapter.pose  # type: ignore[attr-defined]
+    rng.normal(scale=source.range_noise, size=len(source.rig.directions))  # frame 0's noise
+    reading = render(source.world, "cctv", source.rig, camera, rng, source.range_noise)
+    fresh = source.adapter.observe(reading, pose=None, time=second.time, odometry=None)
+    assert np.array_equal(second.points, fresh.points)
+    assert np.array_equal(second.colours, fresh.colours)
+    assert [o.object_id for o in second.objects] == [o.object_id for o in fresh.objects]
 
 
 def test_a_depth_agent_with_markers_places_them_by_its_depth() -> None:
