@@ -12,10 +12,17 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet -e '.[test,bench,ros,fast]'
 	touch $(STAMP)
 
+# Byte-compile the packages before starting daemons: where PYTHONDONTWRITEBYTECODE is set (CI
+# images often set it) every process would compile every module again, ~0.2 CPU-s each, and the
+# tests start hundreds of daemons and command-line runs.
+PACKAGES := colonyd voxel protocol plugins
+
 demo: $(STAMP)
+	$(BIN)/python -m compileall -q $(PACKAGES)
 	$(BIN)/colonyd demo --out demo-out
 
 test: $(STAMP)
+	$(BIN)/python -m compileall -q $(PACKAGES)
 	$(BIN)/python -m pytest -q -n 2 --durations=15 tests
 
 # Style: ruff's lint rules and formatting on the whole tree; mypy (strict on voxel and protocol,
