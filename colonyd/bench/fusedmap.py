@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from colonyd.layers import FusedMap, Layer, fused_classes, fused_surface
+from colonyd.layers import FusedMap, Layer
 from voxel.grid import VoxelGrid
 
 ROUNDS = ("cold", "again", "own grew")
@@ -42,9 +42,9 @@ def reply(
     t0 = time.perf_counter()
     keys, lo = live.view(layers, res, transforms)
     t1 = time.perf_counter()
-    fused_classes(layers, res, keys, transforms)
+    live.classes(layers, res, keys, transforms)
     t2 = time.perf_counter()
-    fused_surface(layers, res, keys[lo >= 0], transforms)
+    live.surface(layers, res, keys[lo >= 0], transforms)
     t3 = time.perf_counter()
     return {"view": t1 - t0, "classes": t2 - t1, "surface": t3 - t2}
 
