@@ -730,18 +730,6 @@ def placed_layers(
     return out
 
 
-def fused_classes(
-    layers: list[Layer],
-    resolution: float,
-    keys: np.ndarray,
-    transforms: dict[str, np.ndarray] | None = None,
-) -> np.ndarray:
-    """Per voxel of a fused view's `keys` (`fused` with the same layers, resolution and
-    transforms): the most probable class over the labelled voxels of every layer that land in it,
-    -1 where none does."""
-    return FusedMap().classes(layers, resolution, keys, transforms)
-
-
 #: How far (voxels of the fused view, per axis) a fused voxel's surface point may lie from its
 #: centre: a layer's voxel moved into the fused frame lands where its centre falls (half a
 #: voxel), and its own surface point, up to half a voxel per axis from that centre, turns with

@@ -175,7 +175,7 @@ def _labelled_layer(origin: str, points: np.ndarray, cls: int, prob: float) -> L
 
 
 def test_fused_classes_take_the_most_probable_label_over_layers_and_frames():
-    from colonyd.layers import best_class, fused_classes
+    from colonyd.layers import best_class
 
     box = np.array([[0.05, 0.05, 1.05], [0.15, 0.05, 1.05]])
     a = _labelled_layer("a", box, 3, 0.6)
@@ -185,10 +185,10 @@ def test_fused_classes_take_the_most_probable_label_over_layers_and_frames():
     shift[0, 3] = 1.0  # c's frame into ours
     transforms = {"a": np.eye(4), "b": np.eye(4), "c": shift}
     keys, _ = fused([a, b, c], 0.1, transforms)
-    classes = fused_classes([a, b, c], 0.1, keys, transforms)
+    classes = FusedMap().classes([a, b, c], 0.1, keys, transforms)
     hit = {tuple(k): int(x) for k, x in zip(keys.tolist(), classes.tolist(), strict=True)}
     assert hit[(0, 0, 10)] == 5 and hit[(1, 0, 10)] == 5  # c's 0.99, moved into our frame
-    classes_ab = fused_classes([a, b], 0.1, keys)
+    classes_ab = FusedMap().classes([a, b], 0.1, keys)
     hit = {tuple(k): int(x) for k, x in zip(keys.tolist(), classes_ab.tolist(), strict=True)}
     assert hit[(0, 0, 10)] == 4 and hit[(1, 0, 10)] == 4
     free = [k for k in hit if k[2] > 10]  # the rays' free voxels above the box: unlabelled
@@ -286,8 +286,7 @@ def test_live_fused_outputs_are_computed_once_and_follow_a_layer_and_its_alignme
     """The live map's classes and surface points are each layer's, computed once per layer
     version and alignment: asked again with nothing changed, it computes nothing; after a
     peer's alignment changed, and after that peer's layer grew, they equal those computed
-    afresh (`fused_classes`, `fused_surface`), not the ones it held."""
-    from colonyd.layers import fused_classes, fused_surface
+    afresh (a new `FusedMap`), not the ones it held."""
     from voxel.grid import VoxelGrid
 
     x = np.linspace(-1.0, 1.0, 201)
@@ -310,10 +309,10 @@ def test_live_fused_outputs_are_computed_once_and_follow_a_layer_and_its_alignme
     moved = yaw.copy()
     moved[0, 3] = 0.25  # b's alignment, corrected: 2.5 voxels further along the wall
 
-    def outputs(live: FusedMap | None, transforms: dict[str, np.ndarray]) -> list[np.ndarray]:
-        keys, lo = (live.view if live else fused)(layers, 0.1, transforms)
-        classes = (live.classes if live else fused_classes)(layers, 0.1, keys, transforms)
-        points = (live.surface if live else fused_surface)(layers, 0.1, keys[lo >= 0], transforms)
+    def outputs(live: FusedMap, transforms: dict[str, np.ndarray]) -> list[np.ndarray]:
+        keys, lo = live.view(layers, 0.1, transforms)
+        classes = live.classes(layers, 0.1, keys, transforms)
+        points = live.surface(layers, 0.1, keys[lo >= 0], transforms)
         return [keys, lo, classes, points]
 
     def same(x: list[np.ndarray], y: list[np.ndarray]) -> bool:
@@ -321,16 +320,16 @@ def test_live_fused_outputs_are_computed_once_and_follow_a_layer_and_its_alignme
 
     live = FusedMap()
     first = outputs(live, {"a": np.eye(4), "b": yaw})
-    assert same(first, outputs(None, {"a": np.eye(4), "b": yaw}))
+    assert same(first, outputs(FusedMap(), {"a": np.eye(4), "b": yaw}))
     assert live.computed == 4  # each layer's part and surfaces
     assert same(first, outputs(live, {"a": np.eye(4), "b": yaw})) and live.computed == 4
     second = outputs(live, {"a": np.eye(4), "b": moved})
     assert live.computed == 6  # b's again, a's held
-    assert same(second, outputs(None, {"a": np.eye(4), "b": moved}))
+    assert same(second, outputs(FusedMap(), {"a": np.eye(4), "b": moved}))
     see("b", turned + np.array([0.0, 0.0, 0.1]), 5, 0.95, 2)  # b grew: the next row, another class
     third = outputs(live, {"a": np.eye(4), "b": moved})
     assert live.computed == 8
-    assert same(third, outputs(None, {"a": np.eye(4), "b": moved})) and 5 in third[2]
+    assert same(third, outputs(FusedMap(), {"a": np.eye(4), "b": moved})) and 5 in third[2]
 
 
 def test_the_publisher_sends_an_own_delta_while_a_scan_holds_the_grid_lock():
