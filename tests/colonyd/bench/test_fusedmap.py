@@ -16,6 +16,6 @@ def test_every_round_times_every_output_of_a_turned_pair_of_layers() -> None:
     assert out["layer_voxels"] == grid.known_count()
     # the turned copy lands elsewhere: the fused map holds more voxels than one layer
     assert out["fused_voxels"] > out["layer_voxels"]  # type: ignore[operator]
-    seconds = out["seconds"]
+    seconds = out["cpu_seconds"]
     assert isinstance(seconds, dict) and list(seconds) == list(ROUNDS)
     assert all(list(v) == list(OUTPUTS) and min(v.values()) >= 0 for v in seconds.values())
