@@ -39,7 +39,6 @@ from colonyd.layers import (
     Layers,
     best_class,
     fused,
-    fused_classes,
     fused_surface,
     layer_weights,
 )
@@ -898,8 +897,8 @@ class Daemon:
                     continue
                 last = seen
                 layers = self.layers.all()
-                keys, lo = fused(layers, res, frame.transforms, self._weights())
-                points = fused_surface(layers, res, keys[lo >= 0], frame.transforms)
+                keys, lo = self.fused_map.view(layers, res, frame.transforms, self._weights())
+                points = self.fused_map.surface(layers, res, keys[lo >= 0], frame.transforms)
                 self.metrics.add("ros2_bytes", self.ros.publish_map(keys, lo, res, points))
                 positions, ids = self._colony_objects(frame.transforms)
                 self.metrics.add("ros2_bytes", self.ros.publish_objects(positions, ids, 4 * res))
@@ -1078,8 +1077,8 @@ class Daemon:
             keys, lo = fused(layers, res, frame.transforms, self._weights(), at=at)
             return MapReply(self.config.agent_id, None, frame_of(frame.root), res, keys, lo, names)
         keys, lo = self.fused_map.view(layers, res, frame.transforms, self._weights())
-        classes = fused_classes(layers, res, keys, frame.transforms)
-        points = fused_surface(layers, res, keys[lo >= 0], frame.transforms)
+        classes = self.fused_map.classes(layers, res, keys, frame.transforms)
+        points = self.fused_map.surface(layers, res, keys[lo >= 0], frame.transforms)
         return MapReply(
             self.config.agent_id, None, frame_of(frame.root), res, keys, lo, names, classes, points
         )

@@ -7,7 +7,9 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import partial
+from typing import TypeVar
 
 import numpy as np
 
@@ -16,6 +18,8 @@ from colonyd.grid import VoxelGrid, new_grid
 from voxel import keys as vk
 from voxel.blocks import BLOCK_SHAPES, block_shifts, count_blocks
 from voxel.delta import Delta
+
+_T = TypeVar("_T")
 
 
 def relabel(delta: Delta, from_version: int, to_version: int, time: float | None = None) -> Delta:
@@ -449,33 +453,79 @@ def fused(
     return FusedMap(at).view(layers, resolution, transforms, weights)
 
 
-#: One layer's part of the fused view: packed keys in the fused frame and their log-odds.
-Contribution = tuple[np.ndarray, np.ndarray]
+@dataclass(frozen=True)
+class Labels:
+    """A layer's labelled voxels in a fused view: where each lands (an index into its part's
+    keys), and its most probable class with that probability (`best_class`)."""
+
+    index: np.ndarray  # (L,) int64
+    classes: np.ndarray  # (L,) int16
+    probs: np.ndarray  # (L,) float32
+
+
+@dataclass(frozen=True)
+class Part:
+    """One layer's part of a fused view: packed keys in the fused frame, the mean log-odds of
+    the layer's voxels that land in each, and its labelled voxels (None in a view of the past:
+    the history keeps no classes)."""
+
+    packed: np.ndarray  # (K,) int64
+    logodds: np.ndarray  # (K,) float64
+    labels: Labels | None
+
+
+@dataclass(frozen=True)
+class Surfaces:
+    """A layer's occupied voxels (`VoxelGrid.occupied_keys`) in a fused view: their packed keys
+    in the fused frame and their surface points (`VoxelGrid.surface_points`) moved into it."""
+
+    packed: np.ndarray  # (M,) int64
+    points: np.ndarray  # (M, 3) float64
 
 
 def contribution(
     layer: Layer, resolution: float, t: np.ndarray | None, at: float | None = None
-) -> Contribution | None:
+) -> Part | None:
     """A layer's known voxels (at time `at` when given) keyed at `resolution` in the frame `t`
     takes it into (its own when None), averaged where several land in one key; None when it
     has none or cannot be keyed (another resolution without a transform)."""
     if t is None and abs(layer.resolution - resolution) > 1e-9:
         return None
+    labels = None
     if at is None:
         full = layer.full()
         known = ~np.isnan(full.logodds)
         keys, lo = full.keys[known], full.logodds[known].astype(np.float64)
+        classes, probs = (c[known] for c in best_class(full))
+        labelled = np.flatnonzero(classes >= 0)  # for now, rows of `keys`
+        labels = Labels(labelled, classes[labelled], probs[labelled])
     else:
         keys, lo32 = layer.known_at(at)
         lo = lo32.astype(np.float64)
     if not len(keys):
         return None
     if t is None:
-        return vk.pack(keys), lo
+        return Part(vk.pack(keys), lo, labels)
     packed, inv = np.unique(
         vk.pack(moved_keys(keys, layer.resolution, t, resolution)), return_inverse=True
     )
-    return packed, np.bincount(inv, weights=lo) / np.bincount(inv)
+    if labels is not None:
+        labels = replace(labels, index=inv[labels.index])
+    return Part(packed, np.bincount(inv, weights=lo) / np.bincount(inv), labels)
+
+
+def surfaces(layer: Layer, resolution: float, t: np.ndarray | None) -> Surfaces | None:
+    """A layer's occupied voxels and their surface points in the frame `t` takes it into (its
+    own when None), keyed at `resolution`; None when the layer keeps no surface channel."""
+    with layer.lock:
+        if not layer.grid.has_surface:
+            return None
+        keys = layer.grid.occupied_keys()
+        points = layer.grid.surface_points(keys)
+    if t is not None:
+        keys = moved_keys(keys, layer.resolution, t, resolution)
+        points = points @ t[:3, :3].T + t[:3, 3]
+    return Surfaces(vk.pack(keys), points)
 
 
 def moved_keys(
@@ -488,16 +538,18 @@ def moved_keys(
 
 
 class FusedMap:
-    """The fused view kept up to date layer by layer: a layer's contribution is computed again
-    only when its version (epoch, seq, the grid's version) or its transform into the fused frame
-    changed, so a view
-    of a colony where one layer grew costs one layer's work plus the final sum."""
+    """The fused view and its outputs kept up to date layer by layer: a layer's part (its
+    voxels keyed in the fused frame, `contribution`; its occupied voxels' surface points,
+    `surfaces`) is computed again only when its version (epoch, seq, the grid's version and
+    half-life) or its transform into the fused frame changed, so a view of a colony where one
+    layer grew costs one layer's work plus the final sum."""
 
     def __init__(self, at: float | None = None) -> None:
         self.at = at  # the layers as they were at this time (their history); None: now
-        self._parts: dict[str, tuple[tuple[object, ...], Contribution | None]] = {}
+        self._parts: dict[str, tuple[tuple[object, ...], Part | None]] = {}
+        self._surfaces: dict[str, tuple[tuple[object, ...], Surfaces | None]] = {}
         self._lock = threading.Lock()
-        self.computed = 0  # layer contributions computed (not taken from the cache)
+        self.computed = 0  # layer parts and surfaces computed (not taken from the cache)
 
     def view(
         self,
@@ -509,34 +561,13 @@ class FusedMap:
         """The fused view (as `fused` describes it) of `layers`."""
         packed_parts, lo_parts = [], []
         with self._lock:
-            held = {layer.origin for layer in layers}
-            for origin in set(self._parts) - held:
-                del self._parts[origin]
-            for layer in layers:
-                t = None if transforms is None else transforms.get(layer.origin)
-                if transforms is not None and t is None:
-                    continue
-                with layer.lock:
-                    moved = None if t is None else np.asarray(t, float).tobytes()
-                    grid = layer.grid
-                    tag = (
-                        layer.epoch,
-                        layer.seq,
-                        grid.version,
-                        layer.resolution,
-                        resolution,
-                        moved,
-                    )
-                    cached = self._parts.get(layer.origin)
-                    if cached is None or cached[0] != tag:
-                        cached = (tag, contribution(layer, resolution, t, self.at))
-                        self._parts[layer.origin] = cached
-                        self.computed += 1
-                part = cached[1]
+            self._keep(layers)
+            for layer, t in placed_layers(layers, resolution, transforms):
+                part = self._part(layer, resolution, t)
                 if part is None:
                     continue
-                packed_parts.append(part[0])
-                lo_parts.append(part[1] * (weights or {}).get(layer.origin, 1.0))
+                packed_parts.append(part.packed)
+                lo_parts.append(part.logodds * (weights or {}).get(layer.origin, 1.0))
         if not packed_parts:
             return np.empty((0, 3), np.int64), np.empty(0, np.float32)
         packed = np.concatenate(packed_parts)
@@ -544,6 +575,109 @@ class FusedMap:
         uniq, inv = np.unique(packed, return_inverse=True)
         total = np.bincount(inv, weights=lo, minlength=uniq.shape[0])
         return vk.unpack(uniq), total.astype(np.float32)
+
+    def classes(
+        self,
+        layers: list[Layer],
+        resolution: float,
+        keys: np.ndarray,
+        transforms: dict[str, np.ndarray] | None = None,
+    ) -> np.ndarray:
+        """Per voxel of a fused view's `keys` (`view` of the same layers, resolution and
+        transforms): the most probable class over the labelled voxels of every layer that land
+        in it, -1 where none does (everywhere in a view of the past)."""
+        index = KeyIndex(keys)
+        out = np.full(len(index), -1, np.int16)
+        if not len(index):
+            return out
+        targets, classes, probs = [], [], []
+        with self._lock:
+            self._keep(layers)
+            for layer, t in placed_layers(layers, resolution, transforms):
+                part = self._part(layer, resolution, t)
+                if part is None or part.labels is None or not len(part.labels.index):
+                    continue
+                rows, hit = index.rows(part.packed[part.labels.index])
+                targets.append(rows)
+                classes.append(part.labels.classes[hit])
+                probs.append(part.labels.probs[hit])
+        if not targets:
+            return out
+        target, cls, prob = np.concatenate(targets), np.concatenate(classes), np.concatenate(probs)
+        best = np.lexsort((-prob, target))  # per target voxel, the most probable class first
+        first = np.unique(target[best], return_index=True)[1]
+        out[target[best][first]] = cls[best][first]
+        return out
+
+    def surface(
+        self,
+        layers: list[Layer],
+        resolution: float,
+        keys: np.ndarray,
+        transforms: dict[str, np.ndarray] | None = None,
+    ) -> np.ndarray:
+        """Points (N, 3) of a fused view's voxel `keys` (as `fused_surface` describes them)."""
+        index = KeyIndex(keys)
+        out = vk.keys_to_centers(np.asarray(keys, np.int64).reshape(-1, 3), resolution)
+        sums, counts = np.zeros_like(out), np.zeros(len(index))
+        with self._lock:
+            self._keep(layers)
+            for layer, t in placed_layers(layers, resolution, transforms):
+                part = self._held(
+                    self._surfaces, layer, resolution, t, partial(surfaces, layer, resolution, t)
+                )
+                if part is None:
+                    continue
+                rows, hit = index.rows(part.packed)
+                for axis in range(3):
+                    sums[:, axis] += np.bincount(
+                        rows, weights=part.points[hit, axis], minlength=len(index)
+                    )
+                counts += np.bincount(rows, minlength=len(index))
+        some = counts > 0
+        means = sums[some] / counts[some, None]
+        near = np.abs(means - out[some]).max(axis=1, initial=0.0) <= SURFACE_REACH * resolution
+        out[np.flatnonzero(some)[near]] = means[near]
+        return out
+
+    def _keep(self, layers: list[Layer]) -> None:
+        """Forget the parts of layers no longer held."""
+        held = {layer.origin for layer in layers}
+        for cache in (self._parts, self._surfaces):
+            for origin in set(cache) - held:
+                del cache[origin]
+
+    def _part(self, layer: Layer, resolution: float, t: np.ndarray | None) -> Part | None:
+        compute = partial(contribution, layer, resolution, t, self.at)
+        return self._held(self._parts, layer, resolution, t, compute)
+
+    def _held(
+        self,
+        cache: dict[str, tuple[tuple[object, ...], _T]],
+        layer: Layer,
+        resolution: float,
+        t: np.ndarray | None,
+        compute: Callable[[], _T],
+    ) -> _T:
+        """`cache`'s value for `layer` in the frame `t` at `resolution`, computed again when
+        the layer's version or that frame changed."""
+        with layer.lock:
+            grid = layer.grid
+            tag = (
+                layer.epoch,
+                layer.seq,
+                grid.version,
+                grid.half_life,
+                layer.resolution,
+                resolution,
+                None if t is None else np.asarray(t, float).tobytes(),
+            )
+            held = cache.get(layer.origin)
+            if held is None or held[0] != tag:
+                held = (tag, compute())
+                cache[layer.origin] = held
+                self.computed += 1
+        return held[1]
 
 
 def best_class(full: Delta) -> tuple[np.ndarray, np.ndarray]:
@@ -570,10 +704,9 @@ class KeyIndex:
     def __len__(self) -> int:
         return len(self.packed)
 
-    def rows(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """For keys (M, 3): the rows of those among them that are held, and a mask (M,) of
-        which are."""
-        packed = vk.pack(keys)
+    def rows(self, packed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For packed keys (M,): the rows of those among them that are held, and a mask (M,)
+        of which are."""
         if not len(self.ordered):
             return np.empty(0, np.int64), np.zeros(len(packed), bool)
         at = np.minimum(np.searchsorted(self.ordered, packed), len(self.ordered) - 1)
@@ -597,42 +730,6 @@ def placed_layers(
     return out
 
 
-def fused_classes(
-    layers: list[Layer],
-    resolution: float,
-    keys: np.ndarray,
-    transforms: dict[str, np.ndarray] | None = None,
-) -> np.ndarray:
-    """Per voxel of a fused view's `keys` (`fused` with the same layers, resolution and
-    transforms): the most probable class over the labelled voxels of every layer that land in it,
-    -1 where none does."""
-    index = KeyIndex(keys)
-    out = np.full(len(index), -1, np.int16)
-    if not len(index):
-        return out
-    targets, classes, probs = [], [], []
-    for layer, t in placed_layers(layers, resolution, transforms):
-        full = layer.full()
-        cls, prob = best_class(full)
-        labelled = (cls >= 0) & ~np.isnan(full.logodds)
-        if not labelled.any():
-            continue
-        k = full.keys[labelled]
-        if t is not None:
-            k = moved_keys(k, layer.resolution, t, resolution)
-        rows, hit = index.rows(k)
-        targets.append(rows)
-        classes.append(cls[labelled][hit])
-        probs.append(prob[labelled][hit])
-    if not targets:
-        return out
-    target, cls, prob = np.concatenate(targets), np.concatenate(classes), np.concatenate(probs)
-    best = np.lexsort((-prob, target))  # per target voxel, the most probable class first
-    first = np.unique(target[best], return_index=True)[1]
-    out[target[best][first]] = cls[best][first]
-    return out
-
-
 #: How far (voxels of the fused view, per axis) a fused voxel's surface point may lie from its
 #: centre: a layer's voxel moved into the fused frame lands where its centre falls (half a
 #: voxel), and its own surface point, up to half a voxel per axis from that centre, turns with
@@ -652,24 +749,4 @@ def fused_surface(
     the surface channel, moved into the fused frame; the voxel's centre where none does (all
     centres when no layer holds it) or where that mean lies beyond `SURFACE_REACH` (a coarser
     layer's). One layer in its own frame gives its `surface_points`."""
-    index = KeyIndex(keys)
-    out = vk.keys_to_centers(np.asarray(keys, np.int64).reshape(-1, 3), resolution)
-    sums, counts = np.zeros_like(out), np.zeros(len(index))
-    for layer, t in placed_layers(layers, resolution, transforms):
-        with layer.lock:
-            if not layer.grid.has_surface:
-                continue
-            k = layer.grid.occupied_keys()
-            points = layer.grid.surface_points(k)
-        if t is not None:
-            k = moved_keys(k, layer.resolution, t, resolution)
-            points = points @ t[:3, :3].T + t[:3, 3]
-        rows, hit = index.rows(k)
-        for axis in range(3):
-            sums[:, axis] += np.bincount(rows, weights=points[hit, axis], minlength=len(index))
-        counts += np.bincount(rows, minlength=len(index))
-    some = counts > 0
-    means = sums[some] / counts[some, None]
-    near = np.abs(means - out[some]).max(axis=1, initial=0.0) <= SURFACE_REACH * resolution
-    out[np.flatnonzero(some)[near]] = means[near]
-    return out
+    return FusedMap().surface(layers, resolution, keys, transforms)

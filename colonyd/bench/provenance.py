@@ -7,14 +7,14 @@ import numpy as np
 import scipy.sparse as sp
 
 from plugins.observation import Observation
-from voxel import keys as vk
+from voxel.scan import Scan, sort_beams
 from voxel.sensor import SensorModel
 
 
 class Provenance:
     """Per plan cell (x-y cell of the grid's `resolution`, within a height band): the steps whose
-    hits fell in it, each step counted once per cell. Hits as the grid's (finite, with a
-    return, within the sensor's max range, as `integrate_observation` gives them)."""
+    hits fell in it, each step counted once per cell. Hits are the grid's: its own sorting of
+    a scan's beams (`voxel.scan.sort_beams`, as `integrate_observation` integrates them)."""
 
     def __init__(self, resolution: float) -> None:
         if not resolution > 0:
@@ -33,13 +33,16 @@ class Provenance:
         self._plans.clear()
         if obs.delta is not None or len(obs) == 0:
             return 0
-        pts = obs.points_world(pose)
-        if obs.no_return is not None:
-            pts = pts[~obs.no_return]
-        with np.errstate(invalid="ignore"):
-            r2 = np.sum((pts - pose[:3, 3]) ** 2, axis=1)
-            hit = np.isfinite(pts).all(axis=1) & (r2 > 0) & (r2 <= float(sensor.max_range) ** 2)
-        keys = np.unique(vk.points_to_keys(pts[hit], self.resolution), axis=0)
+        # the grid's own sorting of the beams (a reliability is what a Scan needs, not the sort)
+        scan = Scan.of(
+            obs.points_world(pose),
+            pose[:3, 3],
+            time=obs.time,
+            reliability=1.0,
+            no_return=obs.no_return,
+        )
+        beams = sort_beams(scan, sensor, self.resolution, distinct=True)
+        keys = np.unique(beams.hit_keys.T.astype(np.int64), axis=0)
         self._parts.append((keys, np.full(len(keys), step, np.int64)))
         return len(keys)
 

@@ -175,7 +175,7 @@ def _labelled_layer(origin: str, points: np.ndarray, cls: int, prob: float) -> L
 
 
 def test_fused_classes_take_the_most_probable_label_over_layers_and_frames():
-    from colonyd.layers import best_class, fused_classes
+    from colonyd.layers import best_class
 
     box = np.array([[0.05, 0.05, 1.05], [0.15, 0.05, 1.05]])
     a = _labelled_layer("a", box, 3, 0.6)
@@ -185,10 +185,10 @@ def test_fused_classes_take_the_most_probable_label_over_layers_and_frames():
     shift[0, 3] = 1.0  # c's frame into ours
     transforms = {"a": np.eye(4), "b": np.eye(4), "c": shift}
     keys, _ = fused([a, b, c], 0.1, transforms)
-    classes = fused_classes([a, b, c], 0.1, keys, transforms)
+    classes = FusedMap().classes([a, b, c], 0.1, keys, transforms)
     hit = {tuple(k): int(x) for k, x in zip(keys.tolist(), classes.tolist(), strict=True)}
     assert hit[(0, 0, 10)] == 5 and hit[(1, 0, 10)] == 5  # c's 0.99, moved into our frame
-    classes_ab = fused_classes([a, b], 0.1, keys)
+    classes_ab = FusedMap().classes([a, b], 0.1, keys)
     hit = {tuple(k): int(x) for k, x in zip(keys.tolist(), classes_ab.tolist(), strict=True)}
     assert hit[(0, 0, 10)] == 4 and hit[(1, 0, 10)] == 4
     free = [k for k in hit if k[2] > 10]  # the rays' free voxels above the box: unlabelled
@@ -280,6 +280,56 @@ def test_live_fused_view_recomputes_only_what_changed():
     _, lo = live.view([a], 0.1, moved, weights={"a": 0.5})  # b left, a weighted: no work
     assert live.computed == 4
     np.testing.assert_allclose(lo, 0.5 * fused([a], 0.1, moved)[1], rtol=1e-6)
+
+
+def test_live_fused_outputs_are_computed_once_and_follow_a_layer_and_its_alignment():
+    """The live map's classes and surface points are each layer's, computed once per layer
+    version and alignment: asked again with nothing changed, it computes nothing; after a
+    peer's alignment changed, and after that peer's layer grew, they equal those computed
+    afresh (a new `FusedMap`), not the ones it held."""
+    from voxel.grid import VoxelGrid
+
+    x = np.linspace(-1.0, 1.0, 201)
+    wall = np.column_stack([x, np.full(x.size, 2.013), np.full(x.size, 0.3)])
+    turned = wall[:, [1, 0, 2]] * [1, -1, 1]  # b saw it turned by -90 degrees in its own frame
+    grids = {o: VoxelGrid(0.1, surface=True) for o in "ab"}
+    layers = [Layer("a", 0.1), Layer("b", 0.1)]
+
+    def see(origin: str, points: np.ndarray, cls: int, prob: float, seq: int) -> None:
+        grid, n = grids[origin], len(points)
+        before = grid.version
+        labels = {"class_ids": np.full(n, cls), "class_probs": np.full(n, prob, np.float32)}
+        grid.integrate(points, np.array([0.0, 0.0, 0.3]), time=float(seq), **labels)
+        layers["ab".index(origin)].offer(1, seq - 1, seq, grid.delta_since(before))
+
+    see("a", wall, 3, 0.6, 1)
+    see("b", turned, 4, 0.9, 1)  # more sure: its class wins where both land
+    yaw = np.eye(4)
+    yaw[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]  # b's frame into ours: +90 degrees
+    moved = yaw.copy()
+    moved[0, 3] = 0.25  # b's alignment, corrected: 2.5 voxels further along the wall
+
+    def outputs(live: FusedMap, transforms: dict[str, np.ndarray]) -> list[np.ndarray]:
+        keys, lo = live.view(layers, 0.1, transforms)
+        classes = live.classes(layers, 0.1, keys, transforms)
+        points = live.surface(layers, 0.1, keys[lo >= 0], transforms)
+        return [keys, lo, classes, points]
+
+    def same(x: list[np.ndarray], y: list[np.ndarray]) -> bool:
+        return all(np.array_equal(u, v) for u, v in zip(x, y, strict=True))
+
+    live = FusedMap()
+    first = outputs(live, {"a": np.eye(4), "b": yaw})
+    assert same(first, outputs(FusedMap(), {"a": np.eye(4), "b": yaw}))
+    assert live.computed == 4  # each layer's part and surfaces
+    assert same(first, outputs(live, {"a": np.eye(4), "b": yaw})) and live.computed == 4
+    second = outputs(live, {"a": np.eye(4), "b": moved})
+    assert live.computed == 6  # b's again, a's held
+    assert same(second, outputs(FusedMap(), {"a": np.eye(4), "b": moved}))
+    see("b", turned + np.array([0.0, 0.0, 0.1]), 5, 0.95, 2)  # b grew: the next row, another class
+    third = outputs(live, {"a": np.eye(4), "b": moved})
+    assert live.computed == 8
+    assert same(third, outputs(FusedMap(), {"a": np.eye(4), "b": moved})) and 5 in third[2]
 
 
 def test_the_publisher_sends_an_own_delta_while_a_scan_holds_the_grid_lock():

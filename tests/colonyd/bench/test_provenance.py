@@ -37,6 +37,24 @@ def test_steps_near_weights_the_steps_that_hit_the_matched_cells():
     assert prov.steps_near(seen[3:], height=0.3).sum() == 0
 
 
+def test_a_steps_voxels_are_the_voxels_its_scan_hits_in_the_grid():
+    """Provenance sorts a scan's beams as the grid does: a point at the sensor, a no-return and
+    two beyond range hit nothing; the rest hit what the grid marks occupied."""
+    from voxel.grid import VoxelGrid
+
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(1.0, 4.0, 200), rng.uniform(-2, 2, 200), np.zeros(200)])
+    pts[:4] = [[0.0, 7.0, 0.0], [0.0, 0.0, 0.0], [2.0, 0.5, 0.0], [9.0, 0.0, 0.0]]
+    no_return = np.zeros(200, bool)
+    no_return[2] = True
+    obs = Observation("lidar", 1.0, pts, np.eye(4), no_return=no_return)
+    sensor = SensorModel(max_range=5.0)
+    grid = VoxelGrid(0.1)
+    grid.integrate(obs.points_world(), obs.origin, time=1.0, sensor=sensor, no_return=no_return)
+    hit = Provenance(0.1).add_observation(obs, np.eye(4), sensor, 0)
+    assert hit == len(grid.occupied_keys()) == len(np.unique((pts[4:] // 0.1), axis=0))
+
+
 def test_quantile_steps_stand_for_the_weight_along_the_steps():
     steps, w = quantile_steps(np.array([0.0, 3.0, 0.0, 0.0, 1.0]), 4)
     np.testing.assert_array_equal(steps, [1, 1, 1, 4])
