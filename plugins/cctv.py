@@ -21,10 +21,17 @@ AGENT_LABEL = "agent:"
 VERTICAL_SIN = 0.17
 #: How well a marker's apparent side is known (pixels): a marker's solved range is its side's
 #: length in the image, so its range is off by range x CORNER_PX / side. Measured on the sim's
-#: 0.3 m landmark markers seen by cctv-1 (office and hall, 8-32 px sides at 3.5-15 m): every
-#: solved range 2-5 % long, the side short by 0.3-0.9 px (0.5 in most); across the ray within
-#: 6 mm (docs/BENCHMARKS.md "depth-1 with the CCTV in the hall").
+#: 0.3 m landmark markers seen by cctv-1 (office and hall, 9-31 px mean sides at 3.5-15 m),
+#: corners refined by `refine_corners`: the side off by -0.26 to +0.51 px (RMS 0.23, mean
+#: +0.06), range -3.5 to +1.1 %; across the ray within 3 mm (docs/BENCHMARKS.md "The CCTV's
+#: marker corners"). The largest is claimed, not the RMS: a fixed camera makes its marker's
+#: error in every frame, so its sightings share it (before the refinement: every range 2-5 %
+#: long, the side short by 0.3-0.9 px).
 CORNER_PX = 0.5
+#: Where along a side its edge is sampled (fractions of the side, clear of the corners) and the
+#: step (pixels) of the samples across it (`refine_corners`).
+EDGE_ALONG = np.linspace(0.2, 0.8, 9)
+EDGE_STEP = 0.1
 #: The smallest standard deviation (m) of a solved marker's position, along and across the ray.
 MARKER_FLOOR_M = 0.01
 
@@ -42,6 +49,59 @@ def marker_corners(length: float) -> np.ndarray:
     """A square marker's corners (4, 3) in its own frame (x right, y up, z out), OpenCV's order."""
     h = length / 2.0
     return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+
+
+def refine_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray:
+    """A detected marker's corners (4, 2) moved onto its black square's edges: each side's edge
+    is located across the side at EDGE_ALONG by the centroid of the intensity's fall (bright
+    outside to dark inside, bilinear samples EDGE_STEP apart, from 0.75 of a cell outside to
+    half a cell inside: clear of the next edge in), a line is fitted through them and the corners
+    are the lines' crossings. `cells` is the marker's side in cells (bits and border).
+
+    OpenCV's corner refinement (cornerSubPix in a window of 0.3 cell, 3 x 3 px below 40 px
+    sides) puts every corner 0.15-0.3 px (each axis) inside the square at 9-45 px sides, on an
+    exactly area-sampled image too (at a blurred convex corner the gradient turns along the
+    diagonal inside the true corner), so the side is short and the range solved by PnP 0.5-5 %
+    long; these edges' centroids are exact to 0.01 px at 20-45 px sides on such an image, to
+    0.1 px at 12 px; below ~12 px the border cell is under 2 px wide, its two edges blur
+    together and the side comes out up to 0.4 px long (docs/BENCHMARKS.md "The CCTV's marker
+    corners"). The sides are taken as straight (no lens distortion). Where a line cannot be
+    fitted the corners are returned unchanged."""
+    q = np.asarray(quad, np.float64).reshape(4, 2)
+    side = np.roll(q, -1, axis=0) - q  # side i runs from corner i to corner i + 1
+    length = np.linalg.norm(side, axis=1)
+    if length.min() < 1.0:
+        return q
+    tangent = side / length[:, None]
+    normal = tangent[:, ::-1] * [1.0, -1.0]
+    mid = q + 0.5 * side
+    normal *= np.sign(np.einsum("ij,ij->i", q.mean(axis=0) - mid, normal))[:, None]  # inward
+    cell = float(length.mean()) / cells
+    across = np.arange(-max(0.75 * cell, 1.0), max(0.5 * cell, 0.75) + 1e-9, EDGE_STEP)
+    base = q[:, None, :] + EDGE_ALONG[None, :, None] * side[:, None, :]  # (4, A, 2)
+    points = base[:, :, None, :] + across[None, None, :, None] * normal[:, None, None, :]
+    xy = points.reshape(1, -1, 2).astype(np.float32)
+    profile = cv2.remap(
+        grey.astype(np.float32), xy[..., 0], xy[..., 1], cv2.INTER_LINEAR, borderValue=0
+    ).reshape(points.shape[:3])
+    fall = np.clip(profile[:, :, :-1] - profile[:, :, 1:], 0.0, None)  # bright to dark inward
+    weight = fall.sum(axis=2)
+    if np.any(weight <= 1e-6):
+        return q
+    offset = (fall @ (0.5 * (across[:-1] + across[1:]))) / weight  # (4, A)
+    edge = base + offset[..., None] * normal[:, None, :]
+    centre = edge.mean(axis=1)
+    _, _, vt = np.linalg.svd(edge - centre[:, None, :])
+    direction = vt[:, 0, :]  # (4, 2): each side's fitted line through its centre
+    before = np.roll(np.arange(4), 1)  # corner i is where side i - 1 meets side i
+    system = np.stack([direction[before], -direction], axis=2)  # (4, 2, 2)
+    if np.any(np.abs(np.linalg.det(system)) < 1e-6):
+        return q
+    steps = np.linalg.solve(system, (centre - centre[before])[..., None])[..., 0]
+    refined: np.ndarray = centre[before] + steps[:, :1] * direction[before]
+    if np.any(np.linalg.norm(refined - q, axis=1) > 1.0 + 0.25 * cell):
+        return q  # a line pulled off the square (another edge, clutter): keep the detector's
+    return refined
 
 
 def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
@@ -119,7 +179,10 @@ class CctvCamera:
         self.default_class = int(default_class)
         parameters = cv2.aruco.DetectorParameters()
         parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-        self.detector = cv2.aruco.ArucoDetector(aruco_dictionary(dictionary), parameters)
+        aruco = aruco_dictionary(dictionary)
+        self.detector = cv2.aruco.ArucoDetector(aruco, parameters)
+        #: A marker's side in cells: its bits and its black border (`refine_corners`).
+        self.cells = int(aruco.markerSize) + 2 * int(parameters.markerBorderBits)
         self.reliability = float(reliability)
         self.noise = float(noise)
         self.sensor_model = SensorModel(
@@ -154,11 +217,17 @@ class CctvCamera:
         for detected, marker in zip(corners, ids.reshape(-1), strict=True):
             on_agent = self.agent_markers.get(int(marker))
             model = marker_corners(self.marker_length if on_agent is None else on_agent[2])
-            quad = detected.reshape(4, 2).astype(np.float64)
+            quad = refine_corners(grey, detected.reshape(4, 2), self.cells)
             ok, rvec, tvec = cv2.solvePnP(
                 model, quad, self.K, self.distortion, flags=cv2.SOLVEPNP_IPPE_SQUARE
             )
-            if not ok:
+            if ok and not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
+                # IPPE_SQUARE returns NaN for an exactly square, fronto-parallel quad (refined
+                # corners of a rendered marker): the general planar IPPE solves it
+                ok, rvec, tvec = cv2.solvePnP(
+                    model, quad, self.K, self.distortion, flags=cv2.SOLVEPNP_IPPE
+                )
+            if not ok or not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
                 continue
             projected, _ = cv2.projectPoints(model, rvec, tvec, self.K, self.distortion)
             error = float(np.linalg.norm(projected.reshape(4, 2) - quad, axis=1).mean())
