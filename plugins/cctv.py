@@ -58,7 +58,7 @@ def refine_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray
     half a cell inside: clear of the next edge in), a line is fitted through them and the corners
     are the lines' crossings. `cells` is the marker's side in cells (bits and border).
 
-    OpenCV's corner refinement (cornerSubPix in a window of 0.3 cell, 3 x 3 px below 40 px
+    OpenCV's corner refinement (cornerSubPix, half-window 0.3 cell: 3 x 3 px below 30 px
     sides) puts every corner 0.15-0.3 px (each axis) inside the square at 9-45 px sides, on an
     exactly area-sampled image too (at a blurred convex corner the gradient turns along the
     diagonal inside the true corner), so the side is short and the range solved by PnP 0.5-5 %

@@ -160,7 +160,7 @@ def test_a_rendered_markers_range_is_within_1_5_percent_at_5_to_10m(
 ) -> None:
     """The sim CCTV (640 x 480, 75 degrees) sees a 0.3 m landmark marker 5-10 m away (10-25 px
     sides): its corners are not pulled inside the square (mean < 0.2 px) and its range is within
-    1.5 % (the render's edges are nearly point-sampled: -1.1 to +0.1 % here, within 0.6 % on an
+    1.5 % (the render's edges are nearly point-sampled: -1.1 to -0.1 % here, within 0.6 % on an
     area-sampled image; OpenCV's subpixel corners alone: +1.8, +0.4, +2.7, +1.8 % long)."""
     pillar = Box((2.0, -0.5, 0.0), (2.4, 0.5, 2.0), CLASSES["landmark"], 42)
     world = World("pillar", boxes=[pillar], markers=[Marker(7, (2.0, 0.0, 1.0), (-1, 0, 0), 0.3)])
