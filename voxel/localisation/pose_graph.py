@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import splu, spsolve
+from scipy.sparse.linalg import spsolve
 
 from voxel.errors import LocalisationError
 from voxel.localisation import se2
@@ -441,51 +441,24 @@ def normal_equations(terms: list[Term], size: int) -> tuple[float, sp.csr_matrix
     return cost, h, grad
 
 
-def whitened(terms: list[Term], size: int) -> sp.csr_matrix:
-    """The edges' Jacobian whitened by their information, S J with S^T S the information: one
-    row per residual component (sum E d), `size` columns; B^T B is their normal matrix."""
-    rows: list[np.ndarray] = []
-    cols: list[np.ndarray] = []
-    data: list[np.ndarray] = []
-    start = 0
-    local = np.arange(3)
-    for blocks, r, info in terms:
-        e_count, d = r.shape
-        values, vectors = np.linalg.eigh(0.5 * (info + np.swapaxes(info, -1, -2)))
-        root = np.sqrt(np.clip(values, 0.0, None))[..., None] * np.swapaxes(vectors, -1, -2)
-        row = start + d * np.arange(e_count)[:, None] + np.arange(d)  # (E, d)
-        for ids, jac in blocks:
-            part = np.einsum("eij,ejk->eik", root, jac)  # (E, d, 3)
-            rows.append(np.broadcast_to(row[:, :, None], part.shape).ravel())
-            cols.append(np.broadcast_to(3 * ids[:, None, None] + local, part.shape).ravel())
-            data.append(part.ravel())
-        start += e_count * d
-    if not data:
-        return sp.csr_matrix((0, size))
-    return sp.coo_matrix(
-        (np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(start, size)
-    ).tocsr()
-
-
 def variance_components(
-    groups: dict[str, list[Term]], others: list[Term], size: int, chunk: int = 512
+    groups: dict[str, list[Term]], others: list[Term], size: int
 ) -> dict[str, tuple[float, float, int]]:
     """Per group of edges (as weighted in the solve), at a solution: its cost Omega_k (sum of
     squared Mahalanobis residuals), its redundancy r_k = n_k - tr(N^-1 N_k) (N the normal
     matrix of every group and of `others`, N_k the group's part: the residuals' degrees of
     freedom the solve could not absorb) and n_k, its residual components. Omega_k / r_k
     estimates the group's variance factor (Foerstner's a posteriori variance component
-    estimate), unbiased where Omega_k / n_k is not when the solve bends to fit the group."""
+    estimate), unbiased where Omega_k / n_k is not when the solve bends to fit the group.
+    N^-1 is dense (size^2 floats: an offline graph of a few thousand variables)."""
     everything = [t for terms in groups.values() for t in terms] + others
     _, h, _ = normal_equations(everything, size)
-    lu = splu((h + sp.diags(np.full(size, 1e-12))).tocsc())
+    inverse = np.linalg.inv(h.toarray() + 1e-12 * np.eye(size))
     out: dict[str, tuple[float, float, int]] = {}
     for name, terms in groups.items():
-        cost, _, _ = normal_equations(terms, size)
-        b = whitened(terms, size)
-        absorbed = 0.0
-        for at in range(0, b.shape[0], chunk):
-            part = b[at : at + chunk].toarray().T  # (size, m)
-            absorbed += float(np.sum(part * lu.solve(part)))
-        out[name] = (cost, b.shape[0] - absorbed, int(b.shape[0]))
+        cost, part, _ = normal_equations(terms, size)
+        part = part.tocoo()
+        absorbed = float(np.sum(inverse[part.col, part.row] * part.data))  # tr(N^-1 N_k)
+        count = int(sum(r.size for _, r, _ in terms))
+        out[name] = (cost, count - absorbed, count)
     return out
