@@ -128,7 +128,7 @@ def test_an_inter_floor_adds_to_the_matchers_covariance() -> None:
         JointGraph(robot, peer, np.zeros(3), TIGHT, inter_floor=np.eye(2))
 
 
-def _noisy_pair(rng: np.random.Generator, factor: float, count: int = 150) -> JointGraph:
+def _noisy_pair(rng: np.random.Generator, factor: float, count: int = 100) -> JointGraph:
     """Two robots of `count` nodes each, odometry and a fix per node with the noise they claim,
     every robot node matched against the peer's map its node of the same number drew, those
     matches `factor` times noisier (in variance) than they claim. The peer's online poses and
@@ -159,8 +159,9 @@ def _noisy_pair(rng: np.random.Generator, factor: float, count: int = 150) -> Jo
 
 @pytest.mark.parametrize("factor", [1.0, 30.0])
 def test_variance_components_recover_how_overconfident_the_matches_are(factor: float) -> None:
+    # ~300 residual components per group: an estimate within ~25 % of its factor
     out = _noisy_pair(np.random.default_rng(7), factor).solve(vce=True)
-    assert out.factors["inter"] == pytest.approx(factor, rel=0.2)
-    assert out.factors["robot"] == pytest.approx(1.0, rel=0.2)
-    assert out.factors["peer"] == pytest.approx(1.0, rel=0.2)
+    assert out.factors["inter"] == pytest.approx(factor, rel=0.25)
+    assert out.factors["robot"] == pytest.approx(1.0, rel=0.25)
+    assert out.factors["peer"] == pytest.approx(1.0, rel=0.25)
     assert 1 < out.rounds <= 8
