@@ -2,7 +2,8 @@
 map, for A/B of estimator changes without the live runs' timing chaos.
 
 `python -m colonyd.bench.paper_offline --seed S [--world W] [--lidar-range R] [--rng N]
-[--duration S] [--no-peer-covariance] [--offset-walk] [--peer-walk] [--smooth [--joint]]
+[--duration S] [--no-peer-covariance] [--offset-walk] [--peer-walk]
+[--smooth [--joint [--joint-weighting W,...]]]
 [--peer-points centres,means] [--json FILE]`
 
 Each robot's sim source (the experiment's spec and seed, not paced) runs through its estimator
@@ -36,6 +37,13 @@ solve may move depth-1's past poses (its map) too: `joint_smoothed` holds both r
 `--joint-peer-inflate F,...` (diagnostic) solves it again with depth-1's own edges' covariance
 times each F (keys `@peerF`), `--joint-inter-inflate F,...` with the inter edges' (`@interF`);
 `--joint-alone` with lidar-1's own edges from its alone run (`@alone`).
+`--joint-weighting W,...` (comma-separated, `WEIGHTINGS`; the first's keys plain, the others'
+`@W`): how the inter edges are weighted, all without the truth: `matcher` (default) with the
+scan matcher's covariance; `vce` with every group's (lidar-1's own edges, depth-1's own, the
+inter edges) covariance scaled by variance component estimation (`JointGraph.solve(vce=True)`;
+`factors` and `rounds` in the output); `cell` with the peer map's quantisation, its voxel size
+squared over 12 in x and y, added to each inter edge's covariance (`quantisation`); `cell-vce`
+both.
 `--peer-points` (comma-separated: each, the first's keys plain, the others' `@means`): the
 peer's map as its occupied voxels' centres (`centres`) or as their surface points (`means`: the
 peer run's grid keeps the grid's `surface` channel, each voxel's mean hit position at its
@@ -98,6 +106,9 @@ DURATION_S = 60.0
 INFLATION = np.diag([0.05**2, 0.05**2, float(np.radians(1.0)) ** 2])
 #: `--joint`: how many of the peer's steps stand for those that built a matched part of its map.
 JOINT_NODES = 8
+#: `--joint-weighting`: the inter edges with the matcher's covariance, scaled by variance
+#: component estimation, with the peer map's quantisation added, or both.
+WEIGHTINGS = ("matcher", "vce", "cell", "cell-vce")
 
 
 RELAXED = ("none", "nosuspend", "nogate", "inflate", "inflate-nosuspend")
@@ -473,6 +484,14 @@ class Run:
         )
 
 
+def quantisation(resolution: float) -> np.ndarray:
+    """The covariance (x, y, yaw) a map of voxel centres of `resolution` adds to a pose matched
+    against it: a wall's centres are off by one shared fraction of a cell, uniform, so every
+    patch of it errs alike and the matcher's many patches do not average it away (yaw: none)."""
+    variance = resolution**2 / 12.0
+    return np.diag([variance, variance, 0.0])
+
+
 def joint(
     robot: Run,
     peer: Run,
@@ -480,6 +499,7 @@ def joint(
     peer_inflation: float = 1.0,
     inter_inflation: float = 1.0,
     own: Run | None = None,
+    weighting: str = "matcher",
 ) -> dict[str, Any]:
     """`--joint`: both runs' recorded graphs solved as one (`JointGraph`), `robot`'s fused
     colony matches as inter-robot edges on the `count` steps of `peer` standing for those that
@@ -488,7 +508,11 @@ def joint(
     `JointGraph`'s (diagnostics); `own`: the robot's own edges from this run of the same
     steps instead (its alone run: `--joint-alone`), the colony matches still `robot`'s. Both
     smoothed trajectories' ATE (Umeyama fit against the truth: evaluation only), the solve's CPU
-    time, cost and edges."""
+    time, cost and edges; `weighting` (`WEIGHTINGS`): how the inter edges are weighted, with
+    the factors variance component estimation found."""
+    if weighting not in WEIGHTINGS:
+        msg = f"joint: expected a weighting of {WEIGHTINGS}, found {weighting!r}"
+        raise ValueError(msg)
     graph, record = (robot if own is None else own).graph, peer.graph
     colony = None if robot.graph is None else robot.graph.colony_edges()
     if graph is None or record is None or peer.provenance is None or robot.peer_alignment is None:
@@ -498,6 +522,10 @@ def joint(
         msg = "joint: expected the own edges' run to have the colony run's steps, found not"
         raise ValueError(msg)
     m = robot.peer_alignment
+    floor = None
+    if weighting.startswith("cell"):
+        assert peer.grid is not None, "the peer ran"
+        floor = quantisation(peer.grid.resolution)
     began = time.process_time()
     solver = JointGraph(
         graph,
@@ -506,6 +534,7 @@ def joint(
         ALIGNMENT_COVARIANCE,
         peer_inflation=peer_inflation,
         inter_inflation=inter_inflation,
+        inter_floor=floor,
     )
     back = np.linalg.inv(m)
     unmatched = 0
@@ -525,11 +554,17 @@ def joint(
                 unmatched += 1
                 continue
             solver.add_inter(int(node), z, np.linalg.pinv(info, hermitian=True), steps, w)
-    result = solver.solve()
+    result = solver.solve(vce=weighting.endswith("vce"))
     seconds = time.process_time() - began
     ours = np.array([se2.to_matrix(p) @ robot.mount for p in result.robot])
     theirs = np.array([se2.to_matrix(p) @ peer.mount for p in result.peer])
     error = se2.from_matrix(m) - result.transform
+    found: dict[str, Any] = {}
+    if result.factors:  # the covariance factors variance component estimation settled on
+        found = {
+            "factors": {k: round(v, 3) for k, v in result.factors.items()},
+            "rounds": result.rounds,
+        }
     return {
         "lidar": round(absolute_trajectory_error(np.array(robot.truths), ours).rmse, 4),
         "depth": round(absolute_trajectory_error(np.array(peer.truths), theirs).rmse, 4),
@@ -541,6 +576,7 @@ def joint(
         # how far the solve moved the transform from the alignment (x, y in m, yaw in degrees)
         "transform_moved": [round(float(v), 4) for v in error[:2]]
         + [round(float(np.degrees(se2.wrap(float(error[2])))), 3)],
+        **found,
     }
 
 
@@ -560,6 +596,7 @@ def _names(allowed: tuple[str, ...]) -> Callable[[str], list[str]]:
 
 _relaxed = _names(RELAXED)
 _points = _names(PEER_POINTS)
+_weightings = _names(WEIGHTINGS)
 
 
 def _fractions(text: str) -> list[float]:
@@ -633,6 +670,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         action="store_true",
         help="with --smooth: also both robots' graphs solved as one (JointGraph), lidar-1's "
         "colony matches tied to depth-1's steps that built the matched map: joint_smoothed",
+    )
+    parser.add_argument(
+        "--joint-weighting",
+        type=_weightings,
+        default=["matcher"],
+        help=f"comma-separated, of {WEIGHTINGS}: how a --joint solve weights the inter edges "
+        "(default the matcher's covariance; vce: variance component estimation; cell: plus the "
+        "peer map's quantisation; cell-vce: both); the first's keys plain, the others' @W",
     )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     diag = parser.add_argument_group("diagnostics (bounds; truth builds fixtures only)")
@@ -723,6 +768,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "joint_peer_inflate",
         "joint_inter_inflate",
         "joint_alone",
+        "joint_weighting",
     ):
         if getattr(args, name) != parser.get_default(name):
             out[name] = getattr(args, name)
@@ -770,17 +816,28 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         if with_depth.smoothed:
             out[f"lidar_with_depth_smoothed{tail}"] = with_depth.smoothed
         inter = args.joint_inter_inflate[0]  # the plain key's and every @peerF's
+        weighting = args.joint_weighting[0]  # the plain key's, every @peerF's and @interF's
         for inflate in args.joint_peer_inflate if args.joint else []:
             at = "" if inflate == args.joint_peer_inflate[0] else f"@peer{inflate:g}"
             out[f"joint_smoothed{tail}{at}"] = joint(
-                with_depth, depth, peer_inflation=inflate, inter_inflation=inter
+                with_depth,
+                depth,
+                peer_inflation=inflate,
+                inter_inflation=inter,
+                weighting=weighting,
             )
         if args.joint and args.joint_alone:
-            out[f"joint_smoothed{tail}@alone"] = joint(with_depth, depth, own=lidar)
-        peer = args.joint_peer_inflate[0]  # every @interF's
+            out[f"joint_smoothed{tail}@alone"] = joint(
+                with_depth, depth, own=lidar, weighting=weighting
+            )
+        peer = args.joint_peer_inflate[0]  # every @interF's and @W's
         for inflate in args.joint_inter_inflate[1:] if args.joint else []:
             out[f"joint_smoothed{tail}@inter{inflate:g}"] = joint(
-                with_depth, depth, peer_inflation=peer, inter_inflation=inflate
+                with_depth, depth, peer_inflation=peer, inter_inflation=inflate, weighting=weighting
+            )
+        for weighted in args.joint_weighting[1:] if args.joint else []:
+            out[f"joint_smoothed{tail}@{weighted}"] = joint(
+                with_depth, depth, peer_inflation=peer, inter_inflation=inter, weighting=weighted
             )
         if args.peer_walk:
             out[f"lidar_peer_walk{tail}"] = with_depth.peer_walks[:1] + with_depth.peer_walks[-1:]

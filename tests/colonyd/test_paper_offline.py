@@ -56,9 +56,16 @@ def test_peer_points_is_validated(run, capsys):
     assert "--peer-points" in err and "'centres', 'means'" in err and "surface" in err
 
 
+def test_joint_weighting_is_validated(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--joint-weighting", "matcher,robust"])
+    assert exit_.value.code == 2
+    assert "--joint-weighting" in capsys.readouterr().err
+
+
 def test_paper_offline_runs_both_robots_alone_and_with_the_others_map(tmp_path):
     out = tmp_path / "ab.jsonl"
-    joint = ["--smooth", "--joint", "--joint-alone"]
+    joint = ["--smooth", "--joint", "--joint-alone", "--joint-weighting", "matcher,cell-vce"]
     got = main(["--seed", "1", "--duration", "3", *joint, "--json", str(out)])
     for key in ("lidar_alone", "depth_alone", "depth_with_lidar", "lidar_with_depth"):
         assert 0.0 <= got[key] < 0.5, key
@@ -79,6 +86,13 @@ def test_paper_offline_runs_both_robots_alone_and_with_the_others_map(tmp_path):
         assert 0.0 <= solved["lidar"] < 0.5 and 0.0 <= solved["depth"] < 0.5, key
         assert solved["cost"][1] <= solved["cost"][0] + 1e-6, key
     assert got["joint_smoothed"]["inter"] > 0  # seed 1: lidar-1 fuses depth-1's map in 3 s
+    # --joint-weighting: the same edges, the covariances scaled by the factors found
+    weighted = got["joint_smoothed@cell-vce"]
+    assert weighted["inter"] == got["joint_smoothed"]["inter"]
+    assert 0.0 <= weighted["lidar"] < 0.5 and 0.0 <= weighted["depth"] < 0.5
+    assert set(weighted["factors"]) == {"robot", "peer", "inter"}
+    assert all(f > 0 for f in weighted["factors"].values()) and weighted["rounds"] >= 1
+    assert "factors" not in got["joint_smoothed"]  # matcher: the covariances as they were
     assert json.loads(out.read_text().splitlines()[-1]) == got
 
 

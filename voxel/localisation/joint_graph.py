@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import scipy.sparse as sp
@@ -18,10 +19,18 @@ from voxel.localisation.pose_graph import (
     _wrap,
     gauss_newton,
     normal_equations,
+    variance_components,
 )
 
 #: Step (m, rad) of the central differences that linearise the inter-robot edges.
 STEP = 1e-6
+#: The edge groups whose covariances variance component estimation scales (`JointGraph.solve`):
+#: the robot's own edges, the peer's own edges, the inter-robot edges.
+GROUPS = ("robot", "peer", "inter")
+#: `JointGraph.solve(vce=True)`: re-solve until no group's factor moves by more than this
+#: fraction, at most `VCE_ROUNDS` solves.
+VCE_CHANGE = 0.05
+VCE_ROUNDS = 8
 
 
 def matrices(poses: np.ndarray) -> np.ndarray:
@@ -68,6 +77,10 @@ class JointSmoothed:
     cost_before: float
     cost_after: float
     iterations: int
+    #: With variance component estimation: each group's (`GROUPS`) covariance factor the last
+    #: solve used, and how many solves it took.
+    factors: dict[str, float] = field(default_factory=dict)
+    rounds: int = 1
 
 
 class JointGraph:
@@ -84,7 +97,9 @@ class JointGraph:
     y = y°) every b_j is the identity. The solve moves the robot's nodes, the peer's nodes (so
     its map) and T together. `peer_inflation`: the peer's own edges' covariances times this (a
     diagnostic of how stiff its graph is; 1: as its filter fused them); `inter_inflation`: the
-    inter edges' covariances times this (diagnostic; 1: the matcher's). Reads no reference."""
+    inter edges' covariances times this (diagnostic; 1: the matcher's); `inter_floor`: a
+    covariance (3x3) added to every inter edge's before that (an error the matcher's leaves
+    out: the peer map's quantisation). Reads no reference."""
 
     def __init__(
         self,
@@ -94,6 +109,7 @@ class JointGraph:
         covariance: np.ndarray,
         peer_inflation: float = 1.0,
         inter_inflation: float = 1.0,
+        inter_floor: np.ndarray | None = None,
     ) -> None:
         if not (peer_inflation > 0 and inter_inflation > 0):
             msg = (
@@ -102,6 +118,12 @@ class JointGraph:
             )
             raise LocalisationError(msg)
         self.inter_inflation = float(inter_inflation)
+        self.inter_floor = (
+            np.zeros((3, 3)) if inter_floor is None else np.asarray(inter_floor, np.float64)
+        )
+        if self.inter_floor.shape != (3, 3):
+            msg = f"joint graph: expected a 3x3 inter floor, found {self.inter_floor.shape}"
+            raise LocalisationError(msg)
         self.robot, self.peer = robot, peer
         self.peer_inflation = float(peer_inflation)
         self.alignment = np.asarray(alignment, np.float64).reshape(3)
@@ -138,38 +160,94 @@ class JointGraph:
             )
             raise LocalisationError(msg)
         z = np.asarray(pose, np.float64).reshape(3)
-        info = _information(np.asarray(covariance, np.float64) * self.inter_inflation)
+        noise = np.asarray(covariance, np.float64) + self.inter_floor
+        info = _information(noise * self.inter_inflation)
         self._inter.setdefault(len(ids), []).append((node, ids, w, z, info))
 
     def edges(self) -> int:
         """How many inter-robot edges."""
         return sum(len(g) for g in self._inter.values())
 
-    def solve(self, iterations: int = 20, tolerance: float = 1e-7) -> JointSmoothed:
+    def solve(
+        self, iterations: int = 20, tolerance: float = 1e-7, vce: bool = False
+    ) -> JointSmoothed:
         """Both trajectories and the transform minimising the joint cost, from the robots' online
-        estimates and the alignment (Gauss-Newton, `gauss_newton`)."""
+        estimates and the alignment (Gauss-Newton, `gauss_newton`). With `vce`, each group of
+        edges (`GROUPS`) has its covariances scaled by a factor estimated from the data (a
+        posteriori variance component estimation, `variance_components`): at each solution a
+        factor becomes itself times the group's cost over its redundancy, and the graph is
+        solved again from there until no factor moves by more than `VCE_CHANGE` (at most
+        `VCE_ROUNDS` solves). The transform's prior keeps its covariance."""
         a, b = self.robot.nodes, self.peer.nodes
-        start = np.concatenate(
+        x = np.concatenate(
             [np.array(self.robot.online), np.array(self.peer.online), self.alignment[None]]
         )
-        x, first, cost, done = gauss_newton(
-            self._linearised, start, a + b + 1, iterations, tolerance
+        factors = dict.fromkeys(GROUPS, 1.0)
+        first: float | None = None
+        done = rounds = 0
+        cost = 0.0
+        for rounds in range(1, (VCE_ROUNDS if vce else 1) + 1):
+            linearised = partial(self._linearised, factors=dict(factors))
+            x, before, cost, done = gauss_newton(linearised, x, a + b + 1, iterations, tolerance)
+            first = before if first is None else first
+            if not vce:
+                break
+            groups, others = self._terms(x, factors)
+            found = variance_components(groups, others, 3 * (a + b + 1))
+            new = dict(factors)
+            for name, (omega, redundancy, _) in found.items():
+                if redundancy > 0.5:  # a group the solve absorbs whole says nothing of its noise
+                    new[name] = factors[name] * omega / redundancy
+            if max(abs(new[k] / factors[k] - 1.0) for k in GROUPS) <= VCE_CHANGE:
+                break
+            if rounds < VCE_ROUNDS:
+                factors = new
+        assert first is not None
+        return JointSmoothed(
+            x[:a],
+            x[a : a + b],
+            x[a + b],
+            first,
+            cost,
+            done,
+            factors if vce else {},
+            rounds,
         )
-        return JointSmoothed(x[:a], x[a : a + b], x[a + b], first, cost, done)
 
-    def _linearised(self, x: np.ndarray) -> tuple[float, sp.csr_matrix, np.ndarray]:
+    def _linearised(
+        self, x: np.ndarray, factors: dict[str, float]
+    ) -> tuple[float, sp.csr_matrix, np.ndarray]:
+        """The cost, normal matrix and gradient at `x`, each group weighted by its factor."""
+        groups, others = self._terms(x, factors)
+        size = 3 * (self.robot.nodes + self.peer.nodes + 1)
+        return normal_equations([t for g in groups.values() for t in g] + others, size)
+
+    def _terms(
+        self, x: np.ndarray, factors: dict[str, float]
+    ) -> tuple[dict[str, list[Term]], list[Term]]:
+        """The edges linearised at `x` by group (`GROUPS`), each group's information divided by
+        its factor, and the rest (the transform's prior)."""
         a, b = self.robot.nodes, self.peer.nodes
         none = np.zeros((0, 3))
-        terms = self.robot.terms(x[:a], none, shared=False)
-        for blocks, r, info in self.peer.terms(x[a : a + b], none, shared=False):
-            terms.append(([(ids + a, j) for ids, j in blocks], r, info / self.peer_inflation))
+        groups: dict[str, list[Term]] = {}
+        groups["robot"] = [
+            (blocks, r, info / factors["robot"])
+            for blocks, r, info in self.robot.terms(x[:a], none, shared=False)
+        ]
+        scale = self.peer_inflation * factors["peer"]
+        groups["peer"] = [
+            ([(ids + a, j) for ids, j in blocks], r, info / scale)
+            for blocks, r, info in self.peer.terms(x[a : a + b], none, shared=False)
+        ]
         t = a + b
         prior, jac = _numeric(self._prior_residual, x[t][None])
-        terms.append(([(np.array([t]), jac)], prior, self._prior[None]))
+        others: list[Term] = [([(np.array([t]), jac)], prior, self._prior[None])]
         online = np.array(self.peer.online)
+        groups["inter"] = []
         for group in self._inter.values():
-            terms.append(self._inter_term(x[:a], x[a : a + b], x[t], online, group, a, t))
-        return normal_equations(terms, 3 * (t + 1))
+            blocks, r, info = self._inter_term(x[:a], x[a : a + b], x[t], online, group, a, t)
+            groups["inter"].append((blocks, r, info / factors["inter"]))
+        return groups, others
 
     def _prior_residual(self, transform: np.ndarray) -> np.ndarray:
         """The map's offset A T^-1 (zero when T is the alignment), per row of `transform`."""

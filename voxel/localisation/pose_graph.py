@@ -439,3 +439,26 @@ def normal_equations(terms: list[Term], size: int) -> tuple[float, sp.csr_matrix
         (np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size)
     ).tocsr()
     return cost, h, grad
+
+
+def variance_components(
+    groups: dict[str, list[Term]], others: list[Term], size: int
+) -> dict[str, tuple[float, float, int]]:
+    """Per group of edges (as weighted in the solve), at a solution: its cost Omega_k (sum of
+    squared Mahalanobis residuals), its redundancy r_k = n_k - tr(N^-1 N_k) (N the normal
+    matrix of every group and of `others`, N_k the group's part: the residuals' degrees of
+    freedom the solve could not absorb) and n_k, its residual components. Omega_k / r_k
+    estimates the group's variance factor (Foerstner's a posteriori variance component
+    estimate), unbiased where Omega_k / n_k is not when the solve bends to fit the group.
+    N^-1 is dense (size^2 floats: an offline graph of a few thousand variables)."""
+    everything = [t for terms in groups.values() for t in terms] + others
+    _, h, _ = normal_equations(everything, size)
+    inverse = np.linalg.inv(h.toarray() + 1e-12 * np.eye(size))
+    out: dict[str, tuple[float, float, int]] = {}
+    for name, terms in groups.items():
+        cost, part, _ = normal_equations(terms, size)
+        part = part.tocoo()
+        absorbed = float(np.sum(inverse[part.col, part.row] * part.data))  # tr(N^-1 N_k)
+        count = int(sum(r.size for _, r, _ in terms))
+        out[name] = (cost, count - absorbed, count)
+    return out

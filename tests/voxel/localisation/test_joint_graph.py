@@ -113,3 +113,55 @@ def test_inflated_inter_edges_pull_less(inflation: float) -> None:
     out = joint.solve()
     assert out.robot[0] == pytest.approx([0.0, 0.1 / (2 + inflation), 0.0], abs=1e-5)
     assert out.peer[0] == pytest.approx([0.0, -0.1 / (2 + inflation), 0.0], abs=1e-5)
+
+
+def test_an_inter_floor_adds_to_the_matchers_covariance() -> None:
+    # as the inflation test: an edge of covariance loose + 9 loose pulls as one inflated x10
+    loose = np.diag([0.01, 0.01, 1e-10])
+    robot, peer = PoseGraph(np.zeros(3), loose), PoseGraph(np.zeros(3), loose)
+    joint = JointGraph(robot, peer, np.zeros(3), TIGHT, inter_floor=9 * loose)
+    joint.add_inter(0, np.array([0.0, 0.1, 0.0]), loose, np.array([0]), np.array([1.0]))
+    out = joint.solve()
+    assert out.robot[0] == pytest.approx([0.0, 0.1 / 12, 0.0], abs=1e-5)
+    assert out.factors == {} and out.rounds == 1  # no variance components asked for
+    with pytest.raises(LocalisationError):
+        JointGraph(robot, peer, np.zeros(3), TIGHT, inter_floor=np.eye(2))
+
+
+def _noisy_pair(rng: np.random.Generator, factor: float, count: int = 100) -> JointGraph:
+    """Two robots of `count` nodes each, odometry and a fix per node with the noise they claim,
+    every robot node matched against the peer's map its node of the same number drew, those
+    matches `factor` times noisier (in variance) than they claim. The peer's online poses and
+    the alignment are the truth, so at the truth every match measures the robot's node."""
+    step = np.diag([1e-4, 4e-4, 1e-5])
+    fix = np.diag([4e-4, 4e-4, 4e-5])
+    claimed = np.diag([1e-4, 1e-4, 1e-5])
+    graphs, truths = [], []
+    for first in (np.zeros(3), np.array([1.0, 2.0, 0.3])):
+        truth = [first]
+        for _ in range(count - 1):
+            truth.append(se2.compose(truth[-1], np.array([0.1, 0.0, 0.02])))
+        graph = PoseGraph(first, fix)
+        for i in range(1, count):
+            u = se2.relative(truth[i - 1], truth[i]) + rng.multivariate_normal(np.zeros(3), step)
+            graph.step(u, step)
+            graph.place(truth[i])
+            graph.add_absolute(truth[i] + rng.multivariate_normal(np.zeros(3), fix), fix)
+        graphs.append(graph)
+        truths.append(np.array(truth))
+    t = np.array([0.5, -0.5, 0.2])
+    joint = JointGraph(graphs[0], graphs[1], t, TIGHT)
+    for i in range(count):
+        z = truths[0][i] + rng.multivariate_normal(np.zeros(3), factor * claimed)
+        joint.add_inter(i, z, claimed, np.array([i]), np.array([1.0]))
+    return joint
+
+
+@pytest.mark.parametrize("factor", [1.0, 30.0])
+def test_variance_components_recover_how_overconfident_the_matches_are(factor: float) -> None:
+    # ~300 residual components per group: an estimate within ~25 % of its factor
+    out = _noisy_pair(np.random.default_rng(7), factor).solve(vce=True)
+    assert out.factors["inter"] == pytest.approx(factor, rel=0.25)
+    assert out.factors["robot"] == pytest.approx(1.0, rel=0.25)
+    assert out.factors["peer"] == pytest.approx(1.0, rel=0.25)
+    assert 1 < out.rounds <= 8

@@ -14,7 +14,7 @@ from voxel.localisation import se2
 from voxel.localisation.ekf import PlanarEkf
 from voxel.localisation.localiser import ScanLocaliser
 from voxel.localisation.odometry import OdometryNoise, synthesise
-from voxel.localisation.pose_graph import PoseGraph
+from voxel.localisation.pose_graph import PoseGraph, variance_components
 
 STEPS = 50
 TRUE_STEP = np.array([0.1, 0.0, 0.0])
@@ -134,6 +134,28 @@ def test_every_edges_gradient_is_the_costs() -> None:
     numeric = np.array([(cost(x0 + e) - cost(x0 - e)) / 2e-6 for e in np.eye(len(x0)) * 1e-6])
     np.testing.assert_allclose(2 * g, numeric, rtol=1e-5, atol=1e-4)
     assert np.allclose(h.toarray(), h.toarray().T)
+
+
+def test_repeated_fixes_share_the_redundancy_as_least_squares_does() -> None:
+    """Five equal absolute fixes of one node: each leaves 3 (1 - 1/5) degrees of freedom the
+    solve cannot absorb (together 15 - 3), its cost its squared Mahalanobis residual."""
+    cov = np.diag([1e-2, 4e-2, 1e-3])
+    graph = PoseGraph(np.zeros(3), cov)
+    fixes = np.array([[0.1, 0.0, 0.01], [-0.1, 0.2, 0.0], [0.0, -0.2, -0.02], [0.05, 0.0, 0.0]])
+    for z in fixes:
+        graph.add_absolute(z, cov)
+    x = graph.solve().poses
+    np.testing.assert_allclose(x[0], fixes.sum(axis=0) / 5, atol=1e-9)  # the mean of 0 and them
+    ((blocks, r, info),) = graph.terms(x, np.zeros((0, 3)))
+    first = ([(ids[:1], j[:1]) for ids, j in blocks], r[:1], info[:1])
+    rest = ([(ids[1:], j[1:]) for ids, j in blocks], r[1:], info[1:])
+    found = variance_components({"first": [first], "rest": [rest]}, [], 3)
+    assert found["first"][1] == pytest.approx(3 * 4 / 5, rel=1e-9)
+    assert found["rest"][1] == pytest.approx(4 * 3 * 4 / 5, rel=1e-9)
+    assert (found["first"][2], found["rest"][2]) == (3, 12)
+    lr = np.einsum("eij,ej->ei", info, r)
+    assert found["first"][0] == pytest.approx(float(r[0] @ lr[0]), rel=1e-9)
+    assert found["rest"][0] == pytest.approx(float(np.sum(r[1:] * lr[1:])), rel=1e-9)
 
 
 def test_the_localiser_records_what_it_fused() -> None:
