@@ -21,6 +21,12 @@ if TYPE_CHECKING:
 #: (docs/BENCHMARKS.md), so 3 cm and 0.3 degrees standard deviation. The daemon gives each cut
 #: its alignments' own error (`frame_error`).
 ALIGNMENT_VARIANCE = np.diag([0.03**2, 0.03**2, np.radians(0.3) ** 2])
+#: The widest (standard deviation across its line, as a share of the cut's cell) a neighbourhood
+#: without height may be to count as a 2D scanner's wall trace (`vertical_traces`): such a row's
+#: surface points lie on the wall (the sim hall's lidar-1 map: median 0.7 cm at 10 cm cells),
+#: a floor's strip two cells wide spreads half a cell (docs/BENCHMARKS.md "depth-1 with the
+#: CCTV in the hall, seeds 4 and 5").
+TRACE_WIDTH = 0.2
 
 
 @dataclass(frozen=True)
@@ -118,7 +124,7 @@ def colony_map(
     tree = cKDTree(pts)
     normals, flat = surface_normals(pts, pts, tree, k, planar)
     if not planar:
-        normals, flat = vertical_traces(pts, tree, k, normals, flat)
+        normals, flat = vertical_traces(pts, tree, k, normals, flat, TRACE_WIDTH * cell)
     good = flat > 0.7
     pts, normals = pts[good], normals[good]
     oriented = False
@@ -132,13 +138,24 @@ def colony_map(
 
 
 def vertical_traces(
-    points: np.ndarray, tree: cKDTree, k: int, normals: np.ndarray, flat: np.ndarray
+    points: np.ndarray,
+    tree: cKDTree,
+    k: int,
+    normals: np.ndarray,
+    flat: np.ndarray,
+    width: float = float("inf"),
 ) -> tuple[np.ndarray, np.ndarray]:
     """Normals of a 3D cut where a neighbourhood has no height: a 2D scanner's map holds one
     slice of each wall, a row of voxels whose plane fit is degenerate (its smallest spread is
     height, zero: the normal points up and the flatness test passes on rounding). Such a row is
     taken as the trace of a vertical surface, as a 2D scanner's own map is: its normal and
-    flatness are those of the line fitted in x-y (corners of the slice are dropped, as in 2D)."""
+    flatness are those of the line fitted in x-y (corners of the slice are dropped, as in 2D).
+
+    A row's points lie on its wall: their standard deviation across the fitted line is the
+    surface points' noise, under `width` (m). A neighbourhood without height that spreads wider
+    across is a patch of a horizontal surface (a 3D sensor's floor, seen at a grazing angle in
+    strips a few voxels wide), not a wall: it gets flatness 0 (dropped from the cut), not the
+    line's normal, which would put a wall where there is floor."""
     _, idx = tree.query(points, k=min(k, len(points)))
     nb = points[idx]
     centred = nb - nb.mean(axis=1, keepdims=True)
@@ -150,7 +167,8 @@ def vertical_traces(
     out_n, out_f = normals.copy(), flat.copy()
     out_n[layer] = 0.0
     out_n[layer, :2] = vectors[:, :, 0]
-    out_f[layer] = np.clip(1.0 - values[:, 0] / (values[:, 1] + 1e-12), 0.0, 1.0)
+    line = np.clip(1.0 - values[:, 0] / (values[:, 1] + 1e-12), 0.0, 1.0)
+    out_f[layer] = np.where(values[:, 0] <= width * width, line, 0.0)
     return out_n, out_f
 
 
