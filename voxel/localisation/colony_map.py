@@ -11,7 +11,7 @@ import numpy as np
 
 from voxel.errors import LocalisationError
 from voxel.localisation.drift import OffsetWalk
-from voxel.localisation.scan_match import surface_normals, thin
+from voxel.localisation.scan_match import surface_normals, thin_index
 
 if TYPE_CHECKING:
     from scipy.spatial import cKDTree
@@ -21,12 +21,6 @@ if TYPE_CHECKING:
 #: (docs/BENCHMARKS.md), so 3 cm and 0.3 degrees standard deviation. The daemon gives each cut
 #: its alignments' own error (`frame_error`).
 ALIGNMENT_VARIANCE = np.diag([0.03**2, 0.03**2, np.radians(0.3) ** 2])
-#: The widest (standard deviation across its line, as a share of the cut's cell) a neighbourhood
-#: without height may be to count as a 2D scanner's wall trace (`vertical_traces`): such a row's
-#: surface points lie on the wall (the sim hall's lidar-1 map: median 0.7 cm at 10 cm cells),
-#: a floor's strip two cells wide spreads half a cell (docs/BENCHMARKS.md "depth-1 with the
-#: CCTV in the hall, seeds 4 and 5").
-TRACE_WIDTH = 0.2
 
 
 @dataclass(frozen=True)
@@ -83,6 +77,7 @@ def colony_map(
     free: Callable[[np.ndarray], np.ndarray] | None = None,
     step: float = 0.1,
     walk: OffsetWalk | None = None,
+    slices: np.ndarray | None = None,
 ) -> ColonyMap:
     """The scan-matching target of the peers' occupied voxels' surface points (N, 3: each
     voxel's mean hit position, `VoxelGrid.occupied_surface`; its centre where a grid keeps no
@@ -107,13 +102,21 @@ def colony_map(
     keep = np.sum((pts[:, :2] - c) ** 2, axis=1) <= radius * radius
     if planar:
         keep &= np.abs(pts[:, 2] - height) <= band
-    pts = pts[keep]
+    sliced = np.ones(len(pts), bool) if slices is None else np.asarray(slices, bool).reshape(-1)
+    if len(sliced) != len(pts):
+        msg = (
+            f"colony map: expected a slice flag per surface point ({len(pts)}), found {len(sliced)}"
+        )
+        raise LocalisationError(msg)
+    pts, sliced = pts[keep], sliced[keep]
     if planar:
         pts = pts.copy()
         pts[:, 2] = height
-    pts = thin(pts, cell)
+    first = thin_index(pts, cell)
+    pts, sliced = pts[first], sliced[first]
     if len(pts) > max_points:
-        pts = pts[np.linspace(0, len(pts) - 1, max_points).astype(np.int64)]
+        every = np.linspace(0, len(pts) - 1, max_points).astype(np.int64)
+        pts, sliced = pts[every], sliced[every]
     cov = ALIGNMENT_VARIANCE.copy() if covariance is None else np.asarray(covariance, np.float64)
     if len(pts) < k:
         return ColonyMap(
@@ -124,7 +127,7 @@ def colony_map(
     tree = cKDTree(pts)
     normals, flat = surface_normals(pts, pts, tree, k, planar)
     if not planar:
-        normals, flat = vertical_traces(pts, tree, k, normals, flat, TRACE_WIDTH * cell)
+        normals, flat = vertical_traces(pts, tree, k, normals, flat, sliced)
     good = flat > 0.7
     pts, normals = pts[good], normals[good]
     oriented = False
@@ -143,7 +146,7 @@ def vertical_traces(
     k: int,
     normals: np.ndarray,
     flat: np.ndarray,
-    width: float = float("inf"),
+    sliced: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Normals of a 3D cut where a neighbourhood has no height: a 2D scanner's map holds one
     slice of each wall, a row of voxels whose plane fit is degenerate (its smallest spread is
@@ -151,11 +154,11 @@ def vertical_traces(
     taken as the trace of a vertical surface, as a 2D scanner's own map is: its normal and
     flatness are those of the line fitted in x-y (corners of the slice are dropped, as in 2D).
 
-    A row's points lie on its wall: their standard deviation across the fitted line is the
-    surface points' noise, under `width` (m). A neighbourhood without height that spreads wider
-    across is a patch of a horizontal surface (a 3D sensor's floor, seen at a grazing angle in
-    strips a few voxels wide), not a wall: it gets flatness 0 (dropped from the cut), not the
-    line's normal, which would put a wall where there is floor."""
+    Only points of a slice (`sliced`, (N,) bool; None: every point) are taken so. Elsewhere a
+    neighbourhood without height is a patch of a horizontal surface (a 3D sensor's floor, seen
+    at a grazing angle in strips a few voxels wide, passes the line's flatness test as well):
+    it gets flatness 0 (dropped from the cut), not a line's normal, which would put a wall where
+    there is floor."""
     _, idx = tree.query(points, k=min(k, len(points)))
     nb = points[idx]
     centred = nb - nb.mean(axis=1, keepdims=True)
@@ -163,12 +166,14 @@ def vertical_traces(
     layer = cov[:, 2, 2] < 0.01 * (np.trace(cov, axis1=1, axis2=2) + 1e-12)
     if not np.any(layer):
         return normals, flat
-    values, vectors = np.linalg.eigh(cov[layer][:, :2, :2])
     out_n, out_f = normals.copy(), flat.copy()
+    if sliced is not None:
+        out_f[layer & ~np.asarray(sliced, bool)] = 0.0
+        layer &= np.asarray(sliced, bool)
+    values, vectors = np.linalg.eigh(cov[layer][:, :2, :2])
     out_n[layer] = 0.0
     out_n[layer, :2] = vectors[:, :, 0]
-    line = np.clip(1.0 - values[:, 0] / (values[:, 1] + 1e-12), 0.0, 1.0)
-    out_f[layer] = np.where(values[:, 0] <= width * width, line, 0.0)
+    out_f[layer] = np.clip(1.0 - values[:, 0] / (values[:, 1] + 1e-12), 0.0, 1.0)
     return out_n, out_f
 
 
