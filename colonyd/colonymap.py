@@ -130,15 +130,25 @@ def key_of(peers: list[tuple[Layer, np.ndarray]]) -> Key:
     )
 
 
-def peer_surfaces(peers: list[tuple[Layer, np.ndarray]]) -> np.ndarray:
+#: A peer map whose surfaces' heights span at most this many of its voxels is one slice of the
+#: world (a 2D scanner's): in a 3D cut its rows are traces of walls (`vertical_traces`).
+SLICE_VOXELS = 2.0
+
+
+def peer_surfaces(peers: list[tuple[Layer, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
     """Surface points of the peers' occupied voxels (each voxel's mean hit position, as its
-    origin sent it: `VoxelGrid.occupied_surface`), in our frame."""
-    parts = []
+    origin sent it: `VoxelGrid.occupied_surface`), in our frame, and which of them come from a
+    peer map that is one slice (heights within `SLICE_VOXELS` of its voxels: a 2D scanner's)."""
+    parts, slices = [], []
     for layer, m in peers:
         with layer.lock:
             points = layer.grid.occupied_surface()
+        flat = len(points) > 0 and float(np.ptp(points[:, 2])) <= SLICE_VOXELS * layer.resolution
         parts.append(points @ m[:3, :3].T + m[:3, 3])
-    return np.concatenate(parts) if parts else np.zeros((0, 3))
+        slices.append(np.full(len(points), flat))
+    if not parts:
+        return np.zeros((0, 3)), np.zeros(0, bool)
+    return np.concatenate(parts), np.concatenate(slices)
 
 
 def free_in_peers(peers: list[tuple[Layer, np.ndarray]], points: np.ndarray) -> np.ndarray:
@@ -209,8 +219,9 @@ class ColonyMaps:
                     last = self.last = replace(last, map=kept, errors=errors)
                 return last.map
         errors = peer_errors(frame, self.own, peers, poses or {}, xy)
+        surfaces, slices = peer_surfaces(peers)
         cut = colony_map(
-            peer_surfaces(peers),
+            surfaces,
             cell=0.05 if self.planar else 0.1,  # a 3D cut: one point per voxel, at most 20,000
             max_points=50_000 if self.planar else 20_000,
             planar=self.planar,
@@ -223,6 +234,7 @@ class ColonyMaps:
             free=partial(free_in_peers, peers),
             step=max(layer.resolution for layer, _ in peers),
             walk=walk,
+            slices=slices,
         )
         self.last = Build(cut, key, time.perf_counter() - started, time.time(), errors)
         return cut

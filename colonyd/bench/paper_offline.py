@@ -126,7 +126,7 @@ def surfaces(grid: VoxelGrid, to_own: np.ndarray) -> np.ndarray:
         raise ValueError(msg)
     layer = Layer("peer", grid.resolution)
     layer.grid = grid
-    return peer_surfaces([(layer, to_own)])
+    return peer_surfaces([(layer, to_own)])[0]
 
 
 def relax(estimator: ScanEstimator, how: str) -> None:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from colonyd.alignment import ColonyFrame
-from colonyd.colonymap import ColonyMaps, PeerError, cut_error, peer_map_error
+from colonyd.colonymap import ColonyMaps, PeerError, cut_error, peer_map_error, peer_surfaces
 from colonyd.inbox import check_pose_covariance
 from colonyd.layers import Layers
 from voxel.delta import Delta
@@ -177,3 +177,17 @@ def test_the_cut_holds_a_replicas_surface_points_not_its_voxel_centres() -> None
     )
     assert cut is not None and len(cut) > 20
     assert np.abs(cut.points[:, 1] - 2.013).max() < 0.002  # centres would be 37 mm off
+
+
+def test_a_peer_map_of_one_height_is_a_slice_and_a_3d_one_is_not() -> None:
+    layers = _layers()  # a wall at one height: a 2D scanner's map
+    seen = layers.get("seen")  # a floor and a wall 1 m high: a 3D sensor's
+    x = np.arange(-30, 30)
+    floor = np.column_stack([x, np.full(len(x), 10), np.zeros(len(x), int)])
+    wall = np.column_stack([np.zeros(10, int), np.full(10, 15), np.arange(10)])
+    keys = np.concatenate([floor, wall])
+    seen.grid.apply(Delta(0.1, 0, 1, keys, np.full(len(keys), 2.0), np.ones(len(keys))))
+    peers = [(layers.get("peer"), np.eye(4)), (seen, np.eye(4))]
+    points, slices = peer_surfaces(peers)
+    assert len(points) == len(slices) == 60 + 70
+    assert slices[:60].all() and not slices[60:].any()

@@ -11,7 +11,7 @@ import numpy as np
 
 from voxel.errors import LocalisationError
 from voxel.localisation.drift import OffsetWalk
-from voxel.localisation.scan_match import surface_normals, thin
+from voxel.localisation.scan_match import surface_normals, thin_index
 
 if TYPE_CHECKING:
     from scipy.spatial import cKDTree
@@ -77,6 +77,7 @@ def colony_map(
     free: Callable[[np.ndarray], np.ndarray] | None = None,
     step: float = 0.1,
     walk: OffsetWalk | None = None,
+    slices: np.ndarray | None = None,
 ) -> ColonyMap:
     """The scan-matching target of the peers' occupied voxels' surface points (N, 3: each
     voxel's mean hit position, `VoxelGrid.occupied_surface`; its centre where a grid keeps no
@@ -101,13 +102,21 @@ def colony_map(
     keep = np.sum((pts[:, :2] - c) ** 2, axis=1) <= radius * radius
     if planar:
         keep &= np.abs(pts[:, 2] - height) <= band
-    pts = pts[keep]
+    sliced = np.ones(len(pts), bool) if slices is None else np.asarray(slices, bool).reshape(-1)
+    if len(sliced) != len(pts):
+        msg = (
+            f"colony map: expected a slice flag per surface point ({len(pts)}), found {len(sliced)}"
+        )
+        raise LocalisationError(msg)
+    pts, sliced = pts[keep], sliced[keep]
     if planar:
         pts = pts.copy()
         pts[:, 2] = height
-    pts = thin(pts, cell)
+    first = thin_index(pts, cell)
+    pts, sliced = pts[first], sliced[first]
     if len(pts) > max_points:
-        pts = pts[np.linspace(0, len(pts) - 1, max_points).astype(np.int64)]
+        every = np.linspace(0, len(pts) - 1, max_points).astype(np.int64)
+        pts, sliced = pts[every], sliced[every]
     cov = ALIGNMENT_VARIANCE.copy() if covariance is None else np.asarray(covariance, np.float64)
     if len(pts) < k:
         return ColonyMap(
@@ -118,7 +127,7 @@ def colony_map(
     tree = cKDTree(pts)
     normals, flat = surface_normals(pts, pts, tree, k, planar)
     if not planar:
-        normals, flat = vertical_traces(pts, tree, k, normals, flat)
+        normals, flat = vertical_traces(pts, tree, k, normals, flat, sliced)
     good = flat > 0.7
     pts, normals = pts[good], normals[good]
     oriented = False
@@ -132,13 +141,24 @@ def colony_map(
 
 
 def vertical_traces(
-    points: np.ndarray, tree: cKDTree, k: int, normals: np.ndarray, flat: np.ndarray
+    points: np.ndarray,
+    tree: cKDTree,
+    k: int,
+    normals: np.ndarray,
+    flat: np.ndarray,
+    sliced: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Normals of a 3D cut where a neighbourhood has no height: a 2D scanner's map holds one
     slice of each wall, a row of voxels whose plane fit is degenerate (its smallest spread is
     height, zero: the normal points up and the flatness test passes on rounding). Such a row is
     taken as the trace of a vertical surface, as a 2D scanner's own map is: its normal and
-    flatness are those of the line fitted in x-y (corners of the slice are dropped, as in 2D)."""
+    flatness are those of the line fitted in x-y (corners of the slice are dropped, as in 2D).
+
+    Only points of a slice (`sliced`, (N,) bool; None: every point) are taken so. Elsewhere a
+    neighbourhood without height is a patch of a horizontal surface (a 3D sensor's floor, seen
+    at a grazing angle in strips a few voxels wide, passes the line's flatness test as well):
+    it gets flatness 0 (dropped from the cut), not a line's normal, which would put a wall where
+    there is floor."""
     _, idx = tree.query(points, k=min(k, len(points)))
     nb = points[idx]
     centred = nb - nb.mean(axis=1, keepdims=True)
@@ -146,8 +166,11 @@ def vertical_traces(
     layer = cov[:, 2, 2] < 0.01 * (np.trace(cov, axis1=1, axis2=2) + 1e-12)
     if not np.any(layer):
         return normals, flat
-    values, vectors = np.linalg.eigh(cov[layer][:, :2, :2])
     out_n, out_f = normals.copy(), flat.copy()
+    if sliced is not None:
+        out_f[layer & ~np.asarray(sliced, bool)] = 0.0
+        layer &= np.asarray(sliced, bool)
+    values, vectors = np.linalg.eigh(cov[layer][:, :2, :2])
     out_n[layer] = 0.0
     out_n[layer, :2] = vectors[:, :, 0]
     out_f[layer] = np.clip(1.0 - values[:, 0] / (values[:, 1] + 1e-12), 0.0, 1.0)

@@ -29,6 +29,14 @@ def thin(points: np.ndarray, cell: float) -> np.ndarray:
     """One point per `cell`-sized voxel (the first one met), in input order."""
     if len(points) == 0:
         return points
+    out: np.ndarray = points[thin_index(points, cell)]
+    return out
+
+
+def thin_index(points: np.ndarray, cell: float) -> np.ndarray:
+    """Indices (ascending) of the points `thin` keeps: the first met in each `cell`-sized voxel."""
+    if len(points) == 0:
+        return np.zeros(0, np.int64)
     keys = np.floor(points / cell).astype(np.int64)
     keys -= keys.min(axis=0)
     span = keys.max(axis=0) + 1
@@ -37,7 +45,8 @@ def thin(points: np.ndarray, cell: float) -> np.ndarray:
         _, first = np.unique(packed, return_index=True)
     else:
         _, first = np.unique(keys, axis=0, return_index=True)
-    return points[np.sort(first)]
+    out: np.ndarray = np.sort(first)
+    return out
 
 
 def surface_normals(

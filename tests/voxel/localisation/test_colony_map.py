@@ -220,6 +220,45 @@ def test_a_2d_scanners_map_corrects_a_3d_robot_as_vertical_walls() -> None:
     np.testing.assert_allclose(step.pose, truth, atol=0.02)
 
 
+def test_a_3d_peers_floor_strip_is_not_taken_for_a_wall() -> None:
+    # Two peers: a 2D scanner (one row of voxels per wall, a slice) and a 3D sensor that sees
+    # the floor as well (a CCTV or a depth camera; at a grazing angle its floor is mapped in
+    # strips a few voxels wide). A strip two cells wide has no height, as the scanner's rows
+    # have, and passes the line's flatness test (0.8). Taken for a wall it put phantom walls on
+    # the floor, and the robot's own floor points beside it pulled its match 7 cm off across
+    # the strip and 1.1 degrees in yaw. Only the slice's rows are traces: the match lands on the
+    # truth, every wall row stays.
+    truth = np.array([0.4, -0.5, 0.3])
+    rows = _wall_points(ROOM, spacing=0.1, height=0.3)
+    gx, gy = np.meshgrid(np.arange(-3.5, 3.5, 0.1), [-2.2, -2.1])
+    strip = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
+    cut = {"planar": False, "height": 0.3, "centre": np.zeros(2), "radius": 10.0, "cell": 0.1}
+    slices = np.concatenate([np.ones(len(rows), bool), np.zeros(len(strip), bool)])
+    peers = colony_map(np.concatenate([rows, strip]), slices=slices, **cut)
+    walls = np.abs(peers.normals[:, 2]) < 0.5
+    assert not np.any(walls & (peers.points[:, 2] < 0.1))  # no wall on the floor
+    alone = colony_map(rows, **cut)
+    assert np.count_nonzero(walls & (peers.points[:, 2] > 0.2)) == len(alone)  # rows all kept
+    flat = _segments_scan(truth, ROOM)
+    fx, fy = np.meshgrid(np.arange(-1.5, 2.0, 0.05), np.arange(-2.05, -1.6, 0.05))
+    floor = np.column_stack([fx.ravel(), fy.ravel(), np.zeros(fx.size)])  # north of the strip
+    back = np.linalg.inv(se2.to_matrix(truth))
+    scan = np.concatenate(
+        [
+            *(flat + np.array([0.0, 0.0, z]) for z in (0.1, 0.25, 0.35, 0.6)),
+            floor @ back[:3, :3].T + back[:3, 3],
+        ]
+    )
+    loc = ScanLocaliser(planar=False)
+    loc.ekf = PlanarEkf(truth + np.array([0.12, -0.1, 0.03]), np.diag([0.04, 0.04, 0.01]))
+    loc.last_odometry = np.zeros(3)
+    step = loc.step(scan, np.zeros(3), colony=peers)
+    assert step.colony is not None and step.colony_fused
+    np.testing.assert_allclose(se2.from_matrix(step.colony.pose), truth, atol=0.005)
+    with pytest.raises(LocalisationError, match="a slice flag per surface point"):
+        colony_map(rows, slices=np.ones(3, bool), **cut)
+
+
 def test_a_peer_that_gets_lost_widens_its_maps_error_without_a_new_alignment() -> None:
     # The peer's map is right and the peer sure of itself (1 cm): the robot (right, 2 cm) learns
     # that the map's error is small. Then the peer gets lost: its map near the robot is now
