@@ -80,7 +80,9 @@ def refine_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray
     across = np.arange(-max(0.75 * cell, 1.0), max(0.5 * cell, 0.75) + 1e-9, EDGE_STEP)
     base = q[:, None, :] + EDGE_ALONG[None, :, None] * side[:, None, :]  # (4, A, 2)
     points = base[:, :, None, :] + across[None, None, :, None] * normal[:, None, None, :]
-    xy = points.reshape(1, -1, 2).astype(np.float32)
+    # one row per sample line: cv2.remap takes maps under 32767 columns (a marker hundreds of
+    # pixels wide sampled in one row would exceed it)
+    xy = points.reshape(-1, len(across), 2).astype(np.float32)
     profile = cv2.remap(
         grey.astype(np.float32), xy[..., 0], xy[..., 1], cv2.INTER_LINEAR, borderValue=0
     ).reshape(points.shape[:3])

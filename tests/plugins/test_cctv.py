@@ -154,6 +154,19 @@ def test_refined_corners_of_an_area_sampled_square_are_exact() -> None:
     assert np.abs(refined - corners).max() < 0.03
 
 
+def test_a_marker_600_px_wide_is_refined_too() -> None:
+    """A marker filling the image (a robot's board right in front of a camera): its corners are
+    sampled in rows under cv2.remap's 32767-column limit (one row of ~48000 samples raised)."""
+    n = 800
+    yx = np.mgrid[0:n, 0:n]
+    outer = (np.abs(yx - 400.0).max(axis=0)) <= 300.0
+    inner = (np.abs(yx - 400.0).max(axis=0)) <= 200.0
+    grey = np.where(outer & ~inner, 0, 255).astype(np.uint8)
+    corners = np.array([[99.5, 99.5], [700.5, 99.5], [700.5, 700.5], [99.5, 700.5]])
+    refined = refine_corners(grey, corners + np.array([[1.0, 1.0], [-1, 1], [-1, -1], [1, -1]]), 6)
+    assert np.abs(refined - corners).max() < 0.1
+
+
 @pytest.mark.parametrize(("distance", "yaw"), [(5.0, -0.25), (7.0, -0.2), (8.5, 0.0), (10.0, -0.3)])
 def test_a_rendered_markers_range_is_within_1_5_percent_at_5_to_10m(
     distance: float, yaw: float
