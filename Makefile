@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint fuzz bench clean
+.PHONY: bytecode demo test lint fuzz bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -17,12 +17,13 @@ $(STAMP): pyproject.toml
 # tests start hundreds of daemons and command-line runs.
 PACKAGES := colonyd voxel protocol plugins
 
-demo: $(STAMP)
+bytecode: $(STAMP)
 	$(BIN)/python -m compileall -q $(PACKAGES)
+
+demo: bytecode
 	$(BIN)/colonyd demo --out demo-out
 
-test: $(STAMP)
-	$(BIN)/python -m compileall -q $(PACKAGES)
+test: bytecode
 	$(BIN)/python -m pytest -q -n 2 --durations=15 tests
 
 # Style: ruff's lint rules and formatting on the whole tree; mypy (strict on voxel and protocol,
