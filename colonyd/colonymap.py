@@ -134,16 +134,39 @@ def key_of(peers: list[tuple[Layer, np.ndarray]]) -> Key:
 #: world (a 2D scanner's): in a 3D cut its rows are traces of walls (`vertical_traces`).
 SLICE_VOXELS = 2.0
 
+#: The share of a peer map's surfaces, at each end of their heights, left out of its span
+#: (at least one each when it holds two or more): a 2D scanner's map stays a slice with a few
+#: off-height hits (a tilt, a glass's reflection).
+SLICE_TRIM = 0.01
+
+#: Fewer surfaces than this and a peer map is not called a slice: a 3D sensor's map is one flat
+#: band early on (its first hits), and a 3D map taken for a slice would raise its band into
+#: walls across every height, while a 2D map taken for 3D only lacks that extrusion until it
+#: has grown (a 2D scanner's first scan holds hundreds of surfaces).
+SLICE_MIN_SURFACES = 50
+
+
+def is_slice(heights: np.ndarray, resolution: float) -> bool:
+    """Whether surfaces at `heights` (M,) of a peer map of `resolution` are one slice: at least
+    `SLICE_MIN_SURFACES` of them, spanning at most `SLICE_VOXELS` voxels once the lowest and
+    highest `SLICE_TRIM` (at least one each) are left out."""
+    n = len(heights)
+    if n < SLICE_MIN_SURFACES:
+        return False
+    trim = max(1, int(SLICE_TRIM * n))
+    z = np.partition(heights, (trim, n - 1 - trim))
+    return float(z[n - 1 - trim] - z[trim]) <= SLICE_VOXELS * resolution
+
 
 def peer_surfaces(peers: list[tuple[Layer, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
     """Surface points of the peers' occupied voxels (each voxel's mean hit position, as its
     origin sent it: `VoxelGrid.occupied_surface`), in our frame, and which of them come from a
-    peer map that is one slice (heights within `SLICE_VOXELS` of its voxels: a 2D scanner's)."""
+    peer map that is one slice (`is_slice`: a 2D scanner's)."""
     parts, slices = [], []
     for layer, m in peers:
         with layer.lock:
             points = layer.grid.occupied_surface()
-        flat = len(points) > 0 and float(np.ptp(points[:, 2])) <= SLICE_VOXELS * layer.resolution
+        flat = is_slice(points[:, 2], layer.resolution)
         parts.append(points @ m[:3, :3].T + m[:3, 3])
         slices.append(np.full(len(points), flat))
     if not parts:

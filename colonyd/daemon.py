@@ -897,9 +897,12 @@ class Daemon:
                     continue
                 last = seen
                 layers = self.layers.all()
-                keys, lo = self.fused_map.view(layers, res, frame.transforms, self._weights())
-                points = self.fused_map.surface(layers, res, keys[lo >= 0], frame.transforms)
-                self.metrics.add("ros2_bytes", self.ros.publish_map(keys, lo, res, points))
+                out = self.fused_map.outputs(
+                    layers, res, frame.transforms, self._weights(), classes=False
+                )
+                self.metrics.add(
+                    "ros2_bytes", self.ros.publish_map(out.keys, out.logodds, res, out.points)
+                )
                 positions, ids = self._colony_objects(frame.transforms)
                 self.metrics.add("ros2_bytes", self.ros.publish_objects(positions, ids, 4 * res))
                 self.metrics.add("ros2_maps")
@@ -1076,11 +1079,17 @@ class Daemon:
         if at is not None:
             keys, lo = fused(layers, res, frame.transforms, self._weights(), at=at)
             return MapReply(self.config.agent_id, None, frame_of(frame.root), res, keys, lo, names)
-        keys, lo = self.fused_map.view(layers, res, frame.transforms, self._weights())
-        classes = self.fused_map.classes(layers, res, keys, frame.transforms)
-        points = self.fused_map.surface(layers, res, keys[lo >= 0], frame.transforms)
+        out = self.fused_map.outputs(layers, res, frame.transforms, self._weights())
         return MapReply(
-            self.config.agent_id, None, frame_of(frame.root), res, keys, lo, names, classes, points
+            self.config.agent_id,
+            None,
+            frame_of(frame.root),
+            res,
+            out.keys,
+            out.logodds,
+            names,
+            out.classes,
+            out.points,
         )
 
     # -- forgetting an agent (`colonyd forget-agent`) -----------------------------------------

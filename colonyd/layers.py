@@ -7,7 +7,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import partial
 from typing import TypeVar
 
@@ -455,23 +455,21 @@ def fused(
 
 @dataclass(frozen=True)
 class Labels:
-    """A layer's labelled voxels in a fused view: where each lands (an index into its part's
-    keys), and its most probable class with that probability (`best_class`)."""
+    """A layer's labelled voxels in a fused view: where each lands (its packed key in the fused
+    frame), and its most probable class with that probability (`best_class`)."""
 
-    index: np.ndarray  # (L,) int64
+    packed: np.ndarray  # (L,) int64
     classes: np.ndarray  # (L,) int16
     probs: np.ndarray  # (L,) float32
 
 
 @dataclass(frozen=True)
 class Part:
-    """One layer's part of a fused view: packed keys in the fused frame, the mean log-odds of
-    the layer's voxels that land in each, and its labelled voxels (None in a view of the past:
-    the history keeps no classes)."""
+    """One layer's part of a fused view: packed keys in the fused frame and the mean log-odds of
+    the layer's voxels that land in each."""
 
     packed: np.ndarray  # (K,) int64
     logodds: np.ndarray  # (K,) float64
-    labels: Labels | None
 
 
 @dataclass(frozen=True)
@@ -491,27 +489,36 @@ def contribution(
     has none or cannot be keyed (another resolution without a transform)."""
     if t is None and abs(layer.resolution - resolution) > 1e-9:
         return None
-    labels = None
     if at is None:
         full = layer.full()
         known = ~np.isnan(full.logodds)
         keys, lo = full.keys[known], full.logodds[known].astype(np.float64)
-        classes, probs = (c[known] for c in best_class(full))
-        labelled = np.flatnonzero(classes >= 0)  # for now, rows of `keys`
-        labels = Labels(labelled, classes[labelled], probs[labelled])
     else:
         keys, lo32 = layer.known_at(at)
         lo = lo32.astype(np.float64)
     if not len(keys):
         return None
     if t is None:
-        return Part(vk.pack(keys), lo, labels)
+        return Part(vk.pack(keys), lo)
     packed, inv = np.unique(
         vk.pack(moved_keys(keys, layer.resolution, t, resolution)), return_inverse=True
     )
-    if labels is not None:
-        labels = replace(labels, index=inv[labels.index])
-    return Part(packed, np.bincount(inv, weights=lo) / np.bincount(inv), labels)
+    return Part(packed, np.bincount(inv, weights=lo) / np.bincount(inv))
+
+
+def labels(layer: Layer, resolution: float, t: np.ndarray | None) -> Labels | None:
+    """A layer's known voxels that hold a class (`VoxelGrid.best_classes`, as `best_class`
+    finds it), keyed at `resolution` in the frame `t` takes it into (its own when None); None
+    when it holds none or cannot be keyed (another resolution without a transform)."""
+    if t is None and abs(layer.resolution - resolution) > 1e-9:
+        return None
+    with layer.lock:
+        keys, classes, probs = layer.grid.best_classes()  # in `contribution`'s order
+    if not len(keys):
+        return None
+    if t is not None:  # row by row as `contribution` moves them: the same keys
+        keys = moved_keys(keys, layer.resolution, t, resolution)
+    return Labels(vk.pack(keys), classes, probs)
 
 
 def surfaces(layer: Layer, resolution: float, t: np.ndarray | None) -> Surfaces | None:
@@ -537,19 +544,60 @@ def moved_keys(
     return vk.points_to_keys(centres, resolution)
 
 
+@dataclass(frozen=True)
+class Outputs:
+    """A fused view and what a reply or the ROS 2 outputs send of it: its keys (N, 3) and
+    log-odds (N,), each voxel's class (N,; None when not asked) and the occupied voxels'
+    (`logodds >= 0`) surface points (M, 3)."""
+
+    keys: np.ndarray
+    logodds: np.ndarray
+    classes: np.ndarray | None
+    points: np.ndarray
+
+
 class FusedMap:
     """The fused view and its outputs kept up to date layer by layer: a layer's part (its
-    voxels keyed in the fused frame, `contribution`; its occupied voxels' surface points,
-    `surfaces`) is computed again only when its version (epoch, seq, the grid's version and
+    voxels keyed in the fused frame, `contribution`), its labelled voxels (`labels`, computed
+    on the first `classes` that needs them) and its occupied voxels' surface points
+    (`surfaces`) are computed again only when its version (epoch, seq, the grid's version and
     half-life) or its transform into the fused frame changed, so a view of a colony where one
     layer grew costs one layer's work plus the final sum."""
 
     def __init__(self, at: float | None = None) -> None:
         self.at = at  # the layers as they were at this time (their history); None: now
         self._parts: dict[str, tuple[tuple[object, ...], Part | None]] = {}
+        self._labels: dict[str, tuple[tuple[object, ...], Labels | None]] = {}
         self._surfaces: dict[str, tuple[tuple[object, ...], Surfaces | None]] = {}
         self._lock = threading.Lock()
-        self.computed = 0  # layer parts and surfaces computed (not taken from the cache)
+        #: Layer parts, labels and surfaces computed (not taken from the cache), by kind.
+        self.counts = {"parts": 0, "labels": 0, "surfaces": 0}
+
+    @property
+    def computed(self) -> int:
+        """Layer parts, labels and surfaces computed (not taken from the cache)."""
+        return sum(self.counts.values())
+
+    def outputs(
+        self,
+        layers: list[Layer],
+        resolution: float,
+        transforms: dict[str, np.ndarray] | None = None,
+        weights: dict[str, float] | None = None,
+        *,
+        classes: bool = True,
+    ) -> Outputs:
+        """The view (`view`), each voxel's class (`classes`, when asked) and the occupied
+        voxels' surface points (`surface`), finding the view's voxels by one index."""
+        packed, lo = self._view(layers, resolution, transforms, weights)
+        keys = vk.unpack(packed)
+        index = KeyIndex.of_packed(packed)
+        labelled = self._classes(layers, resolution, index, transforms) if classes else None
+        occupied = lo >= 0
+        points = self._surface(
+            layers, resolution, keys[occupied], index.subset(occupied), transforms
+        )
+        return Outputs(keys, lo, labelled, points)
 
     def view(
         self,
@@ -559,22 +607,8 @@ class FusedMap:
         weights: dict[str, float] | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The fused view (as `fused` describes it) of `layers`."""
-        packed_parts, lo_parts = [], []
-        with self._lock:
-            self._keep(layers)
-            for layer, t in placed_layers(layers, resolution, transforms):
-                part = self._part(layer, resolution, t)
-                if part is None:
-                    continue
-                packed_parts.append(part.packed)
-                lo_parts.append(part.logodds * (weights or {}).get(layer.origin, 1.0))
-        if not packed_parts:
-            return np.empty((0, 3), np.int64), np.empty(0, np.float32)
-        packed = np.concatenate(packed_parts)
-        lo = np.concatenate(lo_parts)
-        uniq, inv = np.unique(packed, return_inverse=True)
-        total = np.bincount(inv, weights=lo, minlength=uniq.shape[0])
-        return vk.unpack(uniq), total.astype(np.float32)
+        packed, lo = self._view(layers, resolution, transforms, weights)
+        return vk.unpack(packed), lo
 
     def classes(
         self,
@@ -586,28 +620,7 @@ class FusedMap:
         """Per voxel of a fused view's `keys` (`view` of the same layers, resolution and
         transforms): the most probable class over the labelled voxels of every layer that land
         in it, -1 where none does (everywhere in a view of the past)."""
-        index = KeyIndex(keys)
-        out = np.full(len(index), -1, np.int16)
-        if not len(index):
-            return out
-        targets, classes, probs = [], [], []
-        with self._lock:
-            self._keep(layers)
-            for layer, t in placed_layers(layers, resolution, transforms):
-                part = self._part(layer, resolution, t)
-                if part is None or part.labels is None or not len(part.labels.index):
-                    continue
-                rows, hit = index.rows(part.packed[part.labels.index])
-                targets.append(rows)
-                classes.append(part.labels.classes[hit])
-                probs.append(part.labels.probs[hit])
-        if not targets:
-            return out
-        target, cls, prob = np.concatenate(targets), np.concatenate(classes), np.concatenate(probs)
-        best = np.lexsort((-prob, target))  # per target voxel, the most probable class first
-        first = np.unique(target[best], return_index=True)[1]
-        out[target[best][first]] = cls[best][first]
-        return out
+        return self._classes(layers, resolution, KeyIndex(keys), transforms)
 
     def surface(
         self,
@@ -617,15 +630,78 @@ class FusedMap:
         transforms: dict[str, np.ndarray] | None = None,
     ) -> np.ndarray:
         """Points (N, 3) of a fused view's voxel `keys` (as `fused_surface` describes them)."""
-        index = KeyIndex(keys)
+        return self._surface(layers, resolution, keys, KeyIndex(keys), transforms)
+
+    def _view(
+        self,
+        layers: list[Layer],
+        resolution: float,
+        transforms: dict[str, np.ndarray] | None,
+        weights: dict[str, float] | None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The fused view's packed keys (sorted) and log-odds."""
+        packed_parts, lo_parts = [], []
+        with self._lock:
+            self._keep(layers)
+            for layer, t in placed_layers(layers, resolution, transforms):
+                part = self._part(layer, resolution, t)
+                if part is None:
+                    continue
+                packed_parts.append(part.packed)
+                lo_parts.append(part.logodds * (weights or {}).get(layer.origin, 1.0))
+        if not packed_parts:
+            return np.empty(0, np.int64), np.empty(0, np.float32)
+        packed = np.concatenate(packed_parts)
+        lo = np.concatenate(lo_parts)
+        uniq, inv = np.unique(packed, return_inverse=True)
+        total = np.bincount(inv, weights=lo, minlength=uniq.shape[0])
+        return uniq, total.astype(np.float32)
+
+    def _classes(
+        self,
+        layers: list[Layer],
+        resolution: float,
+        index: KeyIndex,
+        transforms: dict[str, np.ndarray] | None,
+    ) -> np.ndarray:
+        out = np.full(len(index), -1, np.int16)
+        if not len(index) or self.at is not None:  # the history keeps no classes
+            return out
+        targets, classes, probs = [], [], []
+        with self._lock:
+            self._keep(layers)
+            for layer, t in placed_layers(layers, resolution, transforms):
+                compute = partial(labels, layer, resolution, t)
+                held = self._held(self._labels, "labels", layer, resolution, t, compute)
+                if held is None or not len(held.packed):
+                    continue
+                rows, hit = index.rows(held.packed)
+                targets.append(rows)
+                classes.append(held.classes[hit])
+                probs.append(held.probs[hit])
+        if not targets:
+            return out
+        target, cls, prob = np.concatenate(targets), np.concatenate(classes), np.concatenate(probs)
+        best = np.lexsort((-prob, target))  # per target voxel, the most probable class first
+        first = np.unique(target[best], return_index=True)[1]
+        out[target[best][first]] = cls[best][first]
+        return out
+
+    def _surface(
+        self,
+        layers: list[Layer],
+        resolution: float,
+        keys: np.ndarray,
+        index: KeyIndex,
+        transforms: dict[str, np.ndarray] | None,
+    ) -> np.ndarray:
         out = vk.keys_to_centers(np.asarray(keys, np.int64).reshape(-1, 3), resolution)
         sums, counts = np.zeros_like(out), np.zeros(len(index))
         with self._lock:
             self._keep(layers)
             for layer, t in placed_layers(layers, resolution, transforms):
-                part = self._held(
-                    self._surfaces, layer, resolution, t, partial(surfaces, layer, resolution, t)
-                )
+                compute = partial(surfaces, layer, resolution, t)
+                part = self._held(self._surfaces, "surfaces", layer, resolution, t, compute)
                 if part is None:
                     continue
                 rows, hit = index.rows(part.packed)
@@ -643,17 +719,18 @@ class FusedMap:
     def _keep(self, layers: list[Layer]) -> None:
         """Forget the parts of layers no longer held."""
         held = {layer.origin for layer in layers}
-        for cache in (self._parts, self._surfaces):
+        for cache in (self._parts, self._labels, self._surfaces):
             for origin in set(cache) - held:
                 del cache[origin]
 
     def _part(self, layer: Layer, resolution: float, t: np.ndarray | None) -> Part | None:
         compute = partial(contribution, layer, resolution, t, self.at)
-        return self._held(self._parts, layer, resolution, t, compute)
+        return self._held(self._parts, "parts", layer, resolution, t, compute)
 
     def _held(
         self,
         cache: dict[str, tuple[tuple[object, ...], _T]],
+        kind: str,
         layer: Layer,
         resolution: float,
         t: np.ndarray | None,
@@ -676,7 +753,7 @@ class FusedMap:
             if held is None or held[0] != tag:
                 held = (tag, compute())
                 cache[layer.origin] = held
-                self.computed += 1
+                self.counts[kind] += 1
         return held[1]
 
 
@@ -697,9 +774,27 @@ class KeyIndex:
     """Rows of a fused view's voxel keys (N, 3), found by key."""
 
     def __init__(self, keys: np.ndarray) -> None:
-        self.packed = vk.pack(np.asarray(keys, np.int64).reshape(-1, 3))
-        self.order = np.argsort(self.packed)
-        self.ordered = self.packed[self.order]
+        self._hold(vk.pack(np.asarray(keys, np.int64).reshape(-1, 3)))
+
+    @classmethod
+    def of_packed(cls, packed: np.ndarray) -> KeyIndex:
+        """The index of packed keys (N,) (`voxel.keys.pack`)."""
+        index = cls.__new__(cls)
+        index._hold(packed)
+        return index
+
+    def subset(self, mask: np.ndarray) -> KeyIndex:
+        """The index of the keys where `mask` (N,) holds, in their order."""
+        return KeyIndex.of_packed(self.packed[mask])
+
+    def _hold(self, packed: np.ndarray) -> None:
+        self.packed = packed
+        if bool(np.all(packed[1:] > packed[:-1])):  # a view's keys: sorted already
+            self.order: np.ndarray | None = None
+            self.ordered = packed
+        else:
+            self.order = np.argsort(packed)
+            self.ordered = packed[self.order]
 
     def __len__(self) -> int:
         return len(self.packed)
@@ -711,7 +806,8 @@ class KeyIndex:
             return np.empty(0, np.int64), np.zeros(len(packed), bool)
         at = np.minimum(np.searchsorted(self.ordered, packed), len(self.ordered) - 1)
         hit = self.ordered[at] == packed
-        return self.order[at[hit]], hit
+        found = at[hit]
+        return (found if self.order is None else self.order[found]), hit
 
 
 def placed_layers(

@@ -28,6 +28,13 @@ VERTICAL_SIN = 0.17
 #: error in every frame, so its sightings share it (before the refinement: every range 2-5 %
 #: long, the side short by 0.3-0.9 px).
 CORNER_PX = 0.5
+#: How well the apparent side of a marker whose corners are the detector's is known (pixels):
+#: where `edge_corners` cannot fit its edges (`refine_corners` falls back), OpenCV's refined
+#: corners lie 0.15-0.3 px inside the square on each axis, its side short by 0.18-0.62 px on the
+#: sim CCTV's renders of a 0.3 m marker at 3-15 m (36 views; range error x side up to 0.56 px;
+#: docs/BENCHMARKS.md "The CCTV's marker corners") and by 0.3-0.9 px on cctv-1's landmarks before
+#: the refinement; the largest, rounded up, is claimed, as for CORNER_PX.
+FALLBACK_CORNER_PX = 1.0
 #: Where along a side its edge is sampled (fractions of the side, clear of the corners) and the
 #: step (pixels) of the samples across it (`refine_corners`).
 EDGE_ALONG = np.linspace(0.2, 0.8, 9)
@@ -52,6 +59,13 @@ def marker_corners(length: float) -> np.ndarray:
 
 
 def refine_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray:
+    """`edge_corners`, or the detector's corners `quad` (4, 2) where its lines cannot be fitted
+    (a detection that falls back: `FALLBACK_CORNER_PX`)."""
+    edges = edge_corners(grey, quad, cells)
+    return np.asarray(quad, np.float64).reshape(4, 2) if edges is None else edges
+
+
+def edge_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray | None:
     """A detected marker's corners (4, 2) moved onto its black square's edges: each side's edge
     is located across the side at EDGE_ALONG by the centroid of the intensity's fall (bright
     outside to dark inside, bilinear samples EDGE_STEP apart, from 0.75 of a cell outside to
@@ -65,13 +79,14 @@ def refine_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray
     long; these edges' centroids are exact to 0.01 px at 20-45 px sides on such an image, to
     0.1 px at 12 px; below ~12 px the border cell is under 2 px wide, its two edges blur
     together and the side comes out up to 0.4 px long (docs/BENCHMARKS.md "The CCTV's marker
-    corners"). The sides are taken as straight (no lens distortion). Where a line cannot be
-    fitted the corners are returned unchanged."""
+    corners"). The sides are taken as straight (no lens distortion). None where a line cannot
+    be fitted or a corner would move more than 1 px + a quarter cell (`refine_corners` then
+    keeps the detector's)."""
     q = np.asarray(quad, np.float64).reshape(4, 2)
     side = np.roll(q, -1, axis=0) - q  # side i runs from corner i to corner i + 1
     length = np.linalg.norm(side, axis=1)
     if length.min() < 1.0:
-        return q
+        return None
     tangent = side / length[:, None]
     normal = tangent[:, ::-1] * [1.0, -1.0]
     mid = q + 0.5 * side
@@ -89,7 +104,7 @@ def refine_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray
     fall = np.clip(profile[:, :, :-1] - profile[:, :, 1:], 0.0, None)  # bright to dark inward
     weight = fall.sum(axis=2)
     if np.any(weight <= 1e-6):
-        return q
+        return None
     offset = (fall @ (0.5 * (across[:-1] + across[1:]))) / weight  # (4, A)
     edge = base + offset[..., None] * normal[:, None, :]
     centre = edge.mean(axis=1)
@@ -98,11 +113,11 @@ def refine_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray
     before = np.roll(np.arange(4), 1)  # corner i is where side i - 1 meets side i
     system = np.stack([direction[before], -direction], axis=2)  # (4, 2, 2)
     if np.any(np.abs(np.linalg.det(system)) < 1e-6):
-        return q
+        return None
     steps = np.linalg.solve(system, (centre - centre[before])[..., None])[..., 0]
     refined: np.ndarray = centre[before] + steps[:, :1] * direction[before]
     if np.any(np.linalg.norm(refined - q, axis=1) > 1.0 + 0.25 * cell):
-        return q  # a line pulled off the square (another edge, clutter): keep the detector's
+        return None  # a line pulled off the square (another edge, clutter)
     return refined
 
 
@@ -115,17 +130,20 @@ def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
     return cv2.aruco.getPredefinedDictionary(code)
 
 
-def marker_covariance(position: np.ndarray, side_px: float) -> np.ndarray:
+def marker_covariance(
+    position: np.ndarray, side_px: float, corner_px: float = CORNER_PX
+) -> np.ndarray:
     """The covariance (3x3, camera frame) of a marker's solved centre `position` from its side
-    `side_px` pixels long in the image: along the ray, range x CORNER_PX / side (its range
-    follows from its apparent size); across it, MARKER_FLOOR_M (its direction is its pixel)."""
+    `side_px` pixels long in the image: along the ray, range x `corner_px` / side (its range
+    follows from its apparent size; FALLBACK_CORNER_PX for the detector's own corners); across
+    it, MARKER_FLOOR_M (its direction is its pixel)."""
     p = np.asarray(position, np.float64)
     r = float(np.linalg.norm(p))
     across = MARKER_FLOOR_M**2
     if r < 1e-9:
         return np.eye(3) * across
     ray = p / r
-    along = max(r * CORNER_PX / max(side_px, 1.0), MARKER_FLOOR_M) ** 2
+    along = max(r * corner_px / max(side_px, 1.0), MARKER_FLOOR_M) ** 2
     return across * np.eye(3) + (along - across) * np.outer(ray, ray)
 
 
@@ -219,7 +237,8 @@ class CctvCamera:
         for detected, marker in zip(corners, ids.reshape(-1), strict=True):
             on_agent = self.agent_markers.get(int(marker))
             model = marker_corners(self.marker_length if on_agent is None else on_agent[2])
-            quad = refine_corners(grey, detected.reshape(4, 2), self.cells)
+            edges = edge_corners(grey, detected.reshape(4, 2), self.cells)
+            quad = detected.reshape(4, 2).astype(np.float64) if edges is None else edges
             ok, rvec, tvec = cv2.solvePnP(
                 model, quad, self.K, self.distortion, flags=cv2.SOLVEPNP_IPPE_SQUARE
             )
@@ -247,7 +266,8 @@ class CctvCamera:
                 pose = pose @ np.linalg.inv(on_agent[1])
                 label = f"{AGENT_LABEL}{on_agent[0]}"
             else:
-                covariance = marker_covariance(pose[:3, 3], float(sides.mean()))
+                corner_px = CORNER_PX if edges is not None else FALLBACK_CORNER_PX
+                covariance = marker_covariance(pose[:3, 3], float(sides.mean()), corner_px)
             found.append(
                 ObjectDetection(
                     object_id=int(marker),

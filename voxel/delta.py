@@ -161,6 +161,28 @@ def delta_of(
     )
 
 
+def best_classes(store: BlockStore) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The known voxels of `store` that hold a class, in the order `delta_of(store, ..., 0)`
+    lists them: keys (L, 3), the most probable class of each (L,) int16 and its probability
+    (L,) float32 (the column of its highest `class_probs`); none without a class channel."""
+    ids, probs = store.channels.get("class_ids"), store.channels.get("class_probs")
+    if ids is None or probs is None:
+        return np.empty((0, 3), np.int64), np.empty(0, np.int16), np.empty(0, np.float32)
+    slots = store.used_slots()
+    slots = slots[store.slot_version[slots] > 0]
+    p = probs[slots]
+    column = p.argmax(axis=2)[..., None]
+    classes = np.take_along_axis(ids[slots], column, axis=2)[..., 0].astype(np.int16)
+    with np.errstate(invalid="ignore"):
+        known = ~np.isnan(store.channels["logodds"][slots])
+    b, o = np.nonzero((store.channels["version"][slots] > 0) & known & (classes >= 0))
+    corners = vk.unpack(store.slot_keys[slots]) << np.asarray(store.shifts, dtype=np.int64)
+    keys = corners[b]
+    keys += store.offset_keys()[o]
+    best = np.take_along_axis(p, column, axis=2)[..., 0]
+    return keys, classes[b, o], best[b, o].astype(np.float32)
+
+
 def merge_delta(store: BlockStore, times: TimeBase, delta: Delta) -> np.ndarray:
     """Write a delta's voxels into `store` where it is newer than the stored voxel (by version).
 

@@ -13,7 +13,7 @@ import numpy as np
 from voxel import keys as vk
 from voxel.blocks import BlockStore, block_shifts
 from voxel.channels import CLASS_RATE, fuse_channels
-from voxel.delta import Delta, delta_of, merge_delta, same_content
+from voxel.delta import Delta, best_classes, delta_of, merge_delta, same_content
 from voxel.depth import back_project
 from voxel.errors import DeltaError, InputError
 from voxel.history import History, ObjectTags, Observer
@@ -459,6 +459,11 @@ class VoxelGrid:
     def changed_between(self, t0: float, t1: float) -> np.ndarray:
         """Keys (M, 3) of voxels whose state changed in (t0, t1]."""
         return vk.unpack(self.history.flips_between(t0, t1))
+
+    def best_classes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Keys (L, 3) of the known voxels that hold a class, in `delta_since(0)`'s order, with
+        the most probable class of each (L,) and its probability (L,) (`delta.best_classes`)."""
+        return best_classes(self.store)
 
     def channel_at_keys(self, name: str, keys: np.ndarray) -> np.ndarray:
         """Values of a rich channel (e.g. 'colour', 'class_ids', 'scalar:temp') at voxel keys."""

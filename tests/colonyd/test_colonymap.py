@@ -191,3 +191,28 @@ def test_a_peer_map_of_one_height_is_a_slice_and_a_3d_one_is_not() -> None:
     points, slices = peer_surfaces(peers)
     assert len(points) == len(slices) == 60 + 70
     assert slices[:60].all() and not slices[60:].any()
+
+
+def test_a_3d_peer_map_still_one_flat_band_is_not_a_slice() -> None:
+    """Early on, a 3D sensor's map can be one band (its first hits on the floor): too few
+    surfaces to tell it from a 2D scanner's, so it is not called a slice (its band raised into
+    walls across every height would be phantom walls)."""
+    layers = Layers("me", 0.1)
+    early = layers.get("early")
+    x = np.arange(-15, 15)
+    floor = np.column_stack([x, np.full(len(x), 10), np.zeros(len(x), int)])  # 30 floor hits
+    early.grid.apply(Delta(0.1, 0, 1, floor, np.full(len(x), 2.0), np.ones(len(x))))
+    points, slices = peer_surfaces([(early, np.eye(4))])
+    assert len(points) == 30 and not slices.any()
+
+
+def test_a_2d_peer_map_with_one_off_height_hit_is_still_a_slice() -> None:
+    """One hit off the scan plane (a tilt, a reflection) does not make a 2D scanner's map 3D:
+    its span leaves the outermost heights out."""
+    layers = _layers()  # a wall of 60 voxels at one height
+    peer = layers.get("peer")
+    stray = np.array([[5, 20, 9]])  # 0.6 m above the scan plane
+    peer.grid.apply(Delta(0.1, 1, 2, stray, np.full(1, 2.0), np.ones(1)))
+    points, slices = peer_surfaces([(peer, np.eye(4))])
+    assert len(points) == 61 and slices.all()
+    assert np.ptp(points[:, 2]) > 0.5  # the whole map's span is 3D, its trimmed one is not

@@ -15,7 +15,9 @@ from voxel.octomap_io import read_bt
 from voxel.ply import read_ply
 
 
-def test_export_fetches_the_fused_map_and_layers(make_colony, tmp_path):
+def test_export_fetches_the_fused_map_and_layers(make_colony, tmp_path, capfd):
+    from colonyd.cli import launch
+
     colony = make_colony("export")
     colony.add("a", ["synthetic:scans=4,rate=8,points=200,seed=1"])
     colony.add("b")
@@ -61,23 +63,16 @@ def test_export_fetches_the_fused_map_and_layers(make_colony, tmp_path):
     back, _ = cKDTree(points).query(centres, p=np.inf)
     assert len(points) == len(centres)
     assert off.max() < 0.05 + 1e-6 and back.max() < 0.05 + 1e-6 and off.mean() > 0.01
-    missing = subprocess.run(
-        [*base, "--out", str(out), "--layer", "nobody"],
-        capture_output=True,
-        check=False,
-        text=True,
-        timeout=60,
-    )
-    assert missing.returncode == 1 and "holds no layer 'nobody'" in missing.stderr
+    # the errors' exit codes and messages, as the command line's `launch` gives them (in this
+    # process: a new interpreter for each adds only its start-up)
+    capfd.readouterr()
+    with pytest.raises(SystemExit) as missing:
+        launch([*base[3:], "--out", str(out), "--layer", "nobody"])
+    assert missing.value.code == 1 and "holds no layer 'nobody'" in capfd.readouterr().err
     (tmp_path / "file").write_text("x")
-    bad = subprocess.run(
-        [*base, "--out", str(tmp_path / "file")],
-        capture_output=True,
-        check=False,
-        text=True,
-        timeout=60,
-    )
-    assert bad.returncode == 3 and "expected a directory, found a file" in bad.stderr
+    with pytest.raises(SystemExit) as bad:
+        launch([*base[3:], "--out", str(tmp_path / "file")])
+    assert bad.value.code == 3 and "expected a directory, found a file" in capfd.readouterr().err
 
 
 def test_map_reply_carries_classes_and_points_and_the_ply_is_coloured_by_class_then_height(

@@ -313,6 +313,8 @@ def test_live_fused_outputs_are_computed_once_and_follow_a_layer_and_its_alignme
         keys, lo = live.view(layers, 0.1, transforms)
         classes = live.classes(layers, 0.1, keys, transforms)
         points = live.surface(layers, 0.1, keys[lo >= 0], transforms)
+        together = live.outputs(layers, 0.1, transforms)  # one index for both: the same
+        assert same([keys, lo, classes, points], list(vars(together).values()))
         return [keys, lo, classes, points]
 
     def same(x: list[np.ndarray], y: list[np.ndarray]) -> bool:
@@ -321,15 +323,39 @@ def test_live_fused_outputs_are_computed_once_and_follow_a_layer_and_its_alignme
     live = FusedMap()
     first = outputs(live, {"a": np.eye(4), "b": yaw})
     assert same(first, outputs(FusedMap(), {"a": np.eye(4), "b": yaw}))
-    assert live.computed == 4  # each layer's part and surfaces
-    assert same(first, outputs(live, {"a": np.eye(4), "b": yaw})) and live.computed == 4
+    assert live.counts == {"parts": 2, "labels": 2, "surfaces": 2}  # each layer's
+    assert same(first, outputs(live, {"a": np.eye(4), "b": yaw})) and live.computed == 6
     second = outputs(live, {"a": np.eye(4), "b": moved})
-    assert live.computed == 6  # b's again, a's held
+    assert live.computed == 9  # b's again, a's held
     assert same(second, outputs(FusedMap(), {"a": np.eye(4), "b": moved}))
     see("b", turned + np.array([0.0, 0.0, 0.1]), 5, 0.95, 2)  # b grew: the next row, another class
     third = outputs(live, {"a": np.eye(4), "b": moved})
-    assert live.computed == 8
+    assert live.computed == 12
     assert same(third, outputs(FusedMap(), {"a": np.eye(4), "b": moved})) and 5 in third[2]
+
+
+def test_the_ros_outputs_compute_no_classes_until_a_reply_asks():
+    """The ROS 2 outputs (view and points, no classes) leave the layers' labels uncomputed; the
+    first reply that asks for classes computes them once, and they follow a layer that grew."""
+    box = np.array([[0.05, 0.05, 1.05], [0.15, 0.05, 1.05]])
+    beside = box + np.array([0.3, 0.0, 0.0])
+    layers = [_labelled_layer("a", box, 3, 0.6), _labelled_layer("b", beside, 4, 0.9)]
+    live = FusedMap()
+    ros = live.outputs(layers, 0.1, classes=False)
+    assert ros.classes is None and live.counts == {"parts": 2, "labels": 0, "surfaces": 2}
+    live.outputs(layers, 0.1, classes=False)
+    assert live.counts["labels"] == 0
+    reply = live.outputs(layers, 0.1)
+    assert live.counts == {"parts": 2, "labels": 2, "surfaces": 2}
+    assert reply.classes is not None and set(reply.classes.tolist()) == {-1, 3, 4}
+    assert np.array_equal(reply.points, ros.points) and np.array_equal(reply.keys, ros.keys)
+    live.outputs(layers, 0.1)
+    assert live.counts["labels"] == 2  # held
+    grown = _labelled_layer("a", np.concatenate([box, box + np.array([0.0, 0.5, 0.0])]), 7, 0.7)
+    layers[0].offer(1, 1, 2, grown.full())
+    again = live.outputs(layers, 0.1)
+    assert live.counts["labels"] == 3 and 7 in again.classes
+    assert np.array_equal(again.classes, FusedMap().outputs(layers, 0.1).classes)
 
 
 def test_the_publisher_sends_an_own_delta_while_a_scan_holds_the_grid_lock():

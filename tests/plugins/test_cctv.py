@@ -8,15 +8,19 @@ import numpy as np
 import pytest
 
 from plugins.cctv import (
+    CORNER_PX,
+    FALLBACK_CORNER_PX,
     CctvCamera,
     CctvFrame,
     aruco_dictionary,
+    edge_corners,
     marker_corners,
     marker_covariance,
     refine_corners,
 )
 from plugins.checks import pose_matrix
 from plugins.errors import SensorInputError
+from plugins.observation import ObjectDetection
 from plugins.sim import OPTICAL, Rig, make_rig, render
 from plugins.world import CLASSES, Box, Marker, World
 
@@ -191,3 +195,46 @@ def test_a_rendered_markers_range_is_within_1_5_percent_at_5_to_10m(
     assert abs(inward.mean()) < 0.2
     r = float(np.linalg.norm(truth[:3, 3]))
     assert abs(np.linalg.norm(found.position) - r) < 0.015 * r
+
+
+def test_a_marker_whose_edge_fit_fails_keeps_the_detectors_corners_and_a_wider_covariance() -> None:
+    """Dark bands in the white margin along two sides of a marker (2-6.8 px out, clutter the
+    detector ignores) pull their edges' lines off the square: the corners fall back to OpenCV's
+    (biased inward), and the covariance along the ray says so (FALLBACK_CORNER_PX, not
+    CORNER_PX); the detection without the bands keeps the edges' corners and CORNER_PX."""
+    import cv2
+
+    world = tagged_pillar()
+    pose = pose_matrix(0.0, 0.0, 1.0, 0.0) @ OPTICAL
+    camera = CctvCamera(pose=pose, fov=math.radians(60), marker_classes={7: CLASSES["landmark"]})
+    image = render(world, "cctv", camera_rig(camera), pose, np.random.default_rng(0), 0.0).image
+    (clean,) = camera.detect(image)
+    q = clean.corners
+    assert q is not None
+    for i in (0, 3):  # the sides from corner 0 to 1 and from 3 to 0
+        a, b = q[i], q[(i + 1) % 4]
+        inward = q.mean(axis=0) - (a + b) / 2
+        inward /= np.linalg.norm(inward)
+        band = np.array([a - 2.0 * inward, b - 2.0 * inward, b - 6.8 * inward, a - 6.8 * inward])
+        cv2.fillPoly(image, [np.round(band).astype(np.int32)], (0, 0, 0))
+    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    detected = camera.detector.detectMarkers(grey)[0][0].reshape(4, 2)
+    assert edge_corners(grey, detected, camera.cells) is None  # forced to fail
+    (fallen,) = camera.detect(image)
+    assert fallen.corners is not None and np.array_equal(fallen.corners, detected)
+    assert fallen.covariance is not None and clean.covariance is not None
+
+    def along(found: ObjectDetection) -> float:
+        p, cov = found.position, found.covariance
+        assert cov is not None
+        return float(np.sqrt(p @ cov @ p) / np.linalg.norm(p))
+
+    sides = np.linalg.norm(np.roll(detected, 1, axis=0) - detected, axis=1).mean()
+    np.testing.assert_allclose(
+        fallen.covariance, marker_covariance(fallen.position, sides, FALLBACK_CORNER_PX)
+    )
+    assert along(fallen) > 1.8 * along(clean)  # ~ FALLBACK_CORNER_PX / CORNER_PX
+    clean_sides = np.linalg.norm(np.roll(q, 1, axis=0) - q, axis=1).mean()
+    np.testing.assert_allclose(
+        clean.covariance, marker_covariance(clean.position, clean_sides, CORNER_PX)
+    )
