@@ -1,8 +1,8 @@
 """The paper experiment's CCTV offline, deterministic: its fixes' error against the sim's truth,
 and lidar-1 with its fixes, with the colony maps its alignment brings, or both, separated.
 
-`python -m colonyd.bench.cctv_offline --seed S [--duration S] [--lag S] [--fix-model M]
-[--peer-points centres,means] [--json FILE]`
+`python -m colonyd.bench.cctv_offline --seed S [--world office|hall] [--duration S] [--lag S]
+[--fix-model M] [--peer-points centres,means] [--json FILE]`
 
 cctv-1 renders its view (the experiment's seed; the robots' boards where they are at each
 frame's time) and detects the boards as its daemon does; each detection it would send
@@ -14,7 +14,8 @@ applies them: before its frame is aligned with the CCTV's, a fix is a sighting
 (`frame_from_sightings` on the robot's own estimates at the stamps, `sightings_covariance`,
 the edge offered to the colony frame, `Alignments.colony` with the CCTV as anchor); after, it is
 put into the robot's frame (`fix_in_own_frame`) and fused (`ScanLocaliser.fix`). depth-1 runs
-first with the fixes (as live); lidar-1 then runs four ways: `alone`; `fixes` (fixes fused, no
+first with the fixes (as live; with `alone` among the variants, first without them); lidar-1
+then runs four ways: `alone`; `fixes` (fixes fused, no
 colony map); `map` (the colony map its alignment brings, depth-1's final map and the CCTV's,
 cut and given as the daemon's `ColonyMaps` would from the moment both robots are aligned; the
 fixes only align it); `both` (as live); `map-depth` and `map-cctv`: `map` with depth-1's
@@ -378,6 +379,7 @@ def alignment_truth(cctv: Cctv, run: Run) -> dict[str, float] | None:
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m colonyd.bench.cctv_offline")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--world", choices=("office", "hall"), default="office")
     parser.add_argument("--duration", type=float, default=60.0, help="seconds of path")
     parser.add_argument("--lidar-range", type=float, default=4.0)
     parser.add_argument("--lag", type=float, default=0.5, help="s from a fix's stamp to its use")
@@ -417,8 +419,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     modes = args.peer_points.split(",")
     if not set(modes) <= set(PEER_POINTS):
         parser.error(f"--peer-points: expected names of {PEER_POINTS}, found {args.peer_points!r}")
-    fixes, cctv_grid, cctv_raw = cctv_view(args.seed, args.duration, surface="means" in modes)
+    fixes, cctv_grid, cctv_raw = cctv_view(
+        args.seed, args.duration, args.world, surface="means" in modes
+    )
     out: dict[str, Any] = {"seed": args.seed, "duration": args.duration, "lag": args.lag}
+    out["world"] = args.world
     out["fix_model"] = args.fix_model
     if args.cctv_map != "voxels":
         out["cctv_map"] = args.cctv_map
@@ -429,8 +434,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     def run(agent: str) -> Run:
         seed = 100 * args.seed + (1 if agent == "lidar-1" else 2)
-        return Run(agent, seed, args.lidar_range, args.duration)
+        return Run(agent, seed, args.lidar_range, args.duration, world=args.world)
 
+    if "alone" in variants:  # depth-1 without the fixes, for comparison
+        out["depth_alone"] = round(run("depth-1").go(), 4)
     depth = run("depth-1")
     depth.means = "means" in modes
     depth_cctv = Cctv("depth-1", fixes, args.lag, model=args.fix_model)
