@@ -130,12 +130,14 @@ def cctv_view(
             if not det.label.startswith(AGENT_LABEL) or det.probability < MIN_FIX_CONFIDENCE:
                 continue
             target = det.label[len(AGENT_LABEL) :]
+            body = obs.pose @ det.pose
+            ray = body[:2, 3] - obs.pose[:2, 3]  # the daemon's (`_send_fixes`)
             fixes.append(
                 Fix(
                     target,
                     obs.time,
-                    obs.pose @ det.pose,
-                    fix_covariance(float(np.linalg.norm(det.pose[:3, 3]))),
+                    body,
+                    fix_covariance(float(np.linalg.norm(det.pose[:3, 3])), ray=ray),
                     det.object_id,
                     det.probability,
                     float(np.linalg.norm(det.pose[:3, 3])),
