@@ -24,7 +24,8 @@ voxel centres, a diagnostic; `--peer-points means`: depth-1's and the CCTV's map
 occupied voxels' surface points, their grids keeping the grid's `surface` channel, taken as the
 daemon's colony map takes a replica's (`paper_offline.surfaces`); comma-separated: each, keys of
 the others with `@means`; raw wins over means for the CCTV's map). `--fix-model`: old, the
-daemon's fixes; new and shared, alternatives measured against it (`model_fixes`,
+daemon's fixes; fitted, the daemon's with `fix_covariance`'s fitted model (docs/BENCHMARKS.md
+"The CCTV's claimed covariances"); new and shared, alternatives measured against it (`model_fixes`,
 `fix_in_own_frame`'s `count` and `bias`).
 Truth renders and evaluates; no estimator reads it.
 
@@ -49,6 +50,7 @@ from colonyd.bench.paper_offline import PEER_POINTS, Run, surfaces
 from colonyd.colonymap import PeerError, alignment_error, cut_error, peer_map_error
 from colonyd.estimator import ScanEstimator
 from colonyd.fixes import (
+    FIX_MODEL,
     YAW_PER_M,
     FixCounter,
     fix_covariance,
@@ -100,9 +102,14 @@ class Fix:
 
 
 def cctv_view(
-    seed: int, duration: float, world: str = "office", surface: bool = False
+    seed: int,
+    duration: float,
+    world: str = "office",
+    surface: bool = False,
+    model: str = FIX_MODEL,
 ) -> tuple[list[Fix], VoxelGrid, np.ndarray]:
-    """cctv-1's fixes over `duration` s of the experiment's seed `seed`, its map (keeping the
+    """cctv-1's fixes over `duration` s of the experiment's seed `seed` (their covariance by
+    `fix_covariance`'s `model`), its map (keeping the
     grid's surface channel with `surface`, for `--peer-points means`), and its raw depth points
     near a 2D scanner's height (0-0.6 m), thinned to 2 cm (`--cctv-map raw`)."""
     agents = AGENTS[world]
@@ -137,7 +144,7 @@ def cctv_view(
                     target,
                     obs.time,
                     body,
-                    fix_covariance(float(np.linalg.norm(det.pose[:3, 3])), ray=ray),
+                    fix_covariance(float(np.linalg.norm(det.pose[:3, 3])), ray=ray, model=model),
                     det.object_id,
                     det.probability,
                     float(np.linalg.norm(det.pose[:3, 3])),
@@ -153,7 +160,7 @@ def model_fixes(fixes: list[Fix], robot: str, model: str) -> list[Fix]:
     one image are solved from the same moment, their errors alike: as two fixes, the filter
     counts one sighting twice) with a yaw error of `YAW_PER_M` per metre of range."""
     mine = [f for f in fixes if f.target == robot]
-    if model != "old":
+    if model not in ("old", "fitted"):
         best: dict[float, Fix] = {}
         for f in mine:
             if f.stamp not in best or f.confidence > best[f.stamp].confidence:
@@ -250,7 +257,7 @@ class Cctv:
                 continue
             if not self.fuse:
                 continue
-            count = 1 if self.model == "old" else self.counter.next(CCTV, key)
+            count = 1 if self.model in ("old", "fitted") else self.counter.next(CCTV, key)
             bias = 0.0
             if self.model == "shared":  # k(k+1): together at most once the shared error
                 count, bias = count * (count + 1), SHARED_BIAS
@@ -392,12 +399,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     parser.add_argument(
         "--fix-model",
-        choices=("old", "new", "shared"),
+        choices=("old", "fitted", "new", "shared"),
         default="old",
-        help="old: the daemon's fixes (every board, 4 degrees in yaw, the alignment's error in "
-        "each); new: the most confident board per image, 1 degree per metre of range in yaw, "
-        "the k-th fix through one alignment with k times its error; shared: new, with the "
-        "camera's bias shared and k(k+1) times",
+        help="old: the daemon's fixes (every board, its fix model, the alignment's error in "
+        "each); fitted: old with fix_covariance's fitted model; new: the most confident board "
+        "per image, 1 degree per metre of range in yaw, the k-th fix through one alignment "
+        "with k times its error; shared: new, with the camera's bias shared and k(k+1) times",
     )
     parser.add_argument(
         "--cctv-map",
@@ -422,7 +429,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if not set(modes) <= set(PEER_POINTS):
         parser.error(f"--peer-points: expected names of {PEER_POINTS}, found {args.peer_points!r}")
     fixes, cctv_grid, cctv_raw = cctv_view(
-        args.seed, args.duration, args.world, surface="means" in modes
+        args.seed,
+        args.duration,
+        args.world,
+        surface="means" in modes,
+        model="fitted" if args.fix_model == "fitted" else FIX_MODEL,
     )
     out: dict[str, Any] = {"seed": args.seed, "duration": args.duration, "lag": args.lag}
     out["world"] = args.world

@@ -8,13 +8,14 @@ robot's boards where a robot of the world could be (a uniform point of lidar-1's
 up to 0.2 m off it, any heading: `sample_bodies`), and solves them as its daemon does
 (`CctvCamera.detect`); every board it would send (confidence >= `MIN_FIX_CONFIDENCE`) is a fix. Per
 fix, its error against the true body pose along and across the horizontal ray from the camera, in
-yaw, and the standard deviations `fix_covariance` claims; per board, its range solved by PnP
-(before the board's known height moves it: what a landmark marker's range is) against the truth, in
-pixels of its side (`marker_covariance`'s model). With `--experiment S`, also the paper
-experiment's own fixes over S seconds (`cctv_offline.cctv_view`: the robots' scripted paths, one
-image a second). The landmark markers are solved from one image (the camera and they are fixed, the
-image has no noise: every frame repeats it). Tables per range bin: mean (a bias the bin's fixes
-share) and RMS error, RMS over claimed sd, mean NEES. The truth only evaluates.
+yaw, and the standard deviations `fix_covariance` claims (`--model`, default its fitted one); per
+board, its range solved by PnP (before the board's known height moves it: what a landmark marker's
+range is) against the truth, in pixels of its side (`marker_covariance`'s model). With
+`--experiment S`, also the paper experiment's own fixes over S seconds (`cctv_offline.cctv_view`:
+the robots' scripted paths, one image a second). The landmark markers are solved from one image
+(the camera and they are fixed, the image has no noise: every frame repeats it). Tables per range
+bin: mean (a bias the bin's fixes share) and RMS error, RMS over claimed sd, mean NEES. The truth
+only evaluates.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ import numpy as np
 from scipy import optimize
 
 from colonyd.bench.files import print_and_append
-from colonyd.fixes import fix_covariance
+from colonyd.fixes import FIX_MODELS, fix_covariance
 from plugins.cctv import AGENT_LABEL, CORNER_PX, CctvCamera, marker_corners
 from plugins.checks import pose_matrix
 from plugins.sim import AGENTS, BOARD_LENGTH, SimSource, boards_at, robot_markers
@@ -128,11 +129,11 @@ def fix_row(
     }
 
 
-def board_rows(world: str, samples: int, seed: int) -> list[dict[str, Any]]:
+def board_rows(world: str, samples: int, seed: int, model: str = "fitted") -> list[dict[str, Any]]:
     """Per board cctv-1 would send as a fix, over `samples` images of one sampled robot each:
-    `fix_row`, the image index, the board's mean side (px), and its PnP range's error against
-    the truth in pixels of that side (range error / range x side: `marker_covariance`'s
-    CORNER_PX is its claimed standard deviation)."""
+    `fix_row` (the claim by `fix_covariance`'s `model`), the image index, the board's mean side
+    (px), and its PnP range's error against the truth in pixels of that side (range error /
+    range x side: `marker_covariance`'s CORNER_PX is its claimed standard deviation)."""
     source, cam, scene = camera(world)
     rays = source.rig.directions @ cam.pose[:3, :3].T
     to_cam = np.linalg.inv(cam.pose)
@@ -151,7 +152,8 @@ def board_rows(world: str, samples: int, seed: int) -> list[dict[str, Any]]:
             assert det.corners is not None
             range_m = float(np.linalg.norm(det.pose[:3, 3]))
             seen = cam.pose @ det.pose
-            cov = fix_covariance(range_m, ray=seen[:2, 3] - cam.pose[:2, 3])  # the daemon's
+            ray = seen[:2, 3] - cam.pose[:2, 3]  # as the daemon's `_send_fixes`
+            cov = fix_covariance(range_m, ray=ray, model=model)
             row = fix_row(cam, seen, cov, truth, range_m)
             board = to_cam @ body @ mounts[det.object_id]
             true_range = float(np.linalg.norm(board[:3, 3]))
@@ -170,13 +172,13 @@ def board_rows(world: str, samples: int, seed: int) -> list[dict[str, Any]]:
     return rows
 
 
-def experiment_rows(world: str, duration: float) -> list[dict[str, Any]]:
+def experiment_rows(world: str, duration: float, model: str = "fitted") -> list[dict[str, Any]]:
     """`fix_row` of each fix of the paper experiment's first `duration` s (its scripted paths,
     `cctv_offline.cctv_view`), with its stamp, robot and board."""
     from colonyd.bench.cctv_offline import cctv_view  # its renders of the experiment
 
     _, cam, _ = camera(world)
-    fixes, _, _ = cctv_view(1, duration, world)
+    fixes, _, _ = cctv_view(1, duration, world, model=model)
     rows: list[dict[str, Any]] = []
     for f in fixes:
         row = fix_row(cam, f.body, f.covariance, f.truth, f.range_m)
@@ -329,6 +331,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument(
         "--experiment", type=float, default=0.0, help="also the experiment's fixes over S s"
     )
+    parser.add_argument(
+        "--model",
+        choices=FIX_MODELS,
+        default="fitted",
+        help="the fix model whose claims are judged",
+    )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
     worlds = args.worlds.split(",")
@@ -337,14 +345,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if args.samples < 0:
         parser.error(f"--samples: expected a whole number >= 0 (0: SAMPLES), found {args.samples}")
     out: dict[str, Any] = {"worlds": worlds, "samples": args.samples, "seed": args.seed}
+    out["model"] = args.model
     pooled: list[dict[str, Any]] = []
     markers: list[dict[str, Any]] = []
     for world in worlds:
-        boards = board_rows(world, args.samples or SAMPLES[world], args.seed)
+        boards = board_rows(world, args.samples or SAMPLES[world], args.seed, args.model)
         pooled += boards
         out[f"fixes_{world}"] = by_range(boards)
         if args.experiment > 0:
-            seen = experiment_rows(world, args.experiment)
+            seen = experiment_rows(world, args.experiment, args.model)
             out[f"experiment_{world}"] = by_range(seen)
             out[f"experiment_{world}_serial"] = serial(seen)
         found = marker_rows(world)

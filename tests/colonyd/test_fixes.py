@@ -12,7 +12,9 @@ from colonyd.alignment import ColonyFrame
 from colonyd.fixes import (
     FIX_ACROSS_M,
     FIX_ALONG_M,
+    FIX_MODEL,
     YAW_PER_M,
+    YAW_SD,
     FixCounter,
     fix_covariance,
     fix_in_own_frame,
@@ -37,14 +39,14 @@ def test_fix_covariance_is_the_calibrated_model_along_and_across_the_ray() -> No
         (4.0, 0.0044, 0.0056, 0.30),
         (10.0, 0.053, 0.02, 4.1),
     ):
-        cov = fix_covariance(range_m, ray=np.array([1.0, 0.0]))
+        cov = fix_covariance(range_m, ray=np.array([1.0, 0.0]), model="fitted")
         assert cov.shape == (6, 6)
         assert math.sqrt(cov[0, 0]) == pytest.approx(along_m, rel=0.1)
         assert math.sqrt(cov[1, 1]) == pytest.approx(across_m, rel=0.1)
         assert math.degrees(math.sqrt(cov[5, 5])) == pytest.approx(yaw_deg, rel=0.1)
     assert fix_sd(FIX_ALONG_M, 7.0) == pytest.approx(0.0031 + 4.97e-6 * 7.0**4)
     # turned with the ray: along (1, 1) the along variance is on the diagonal, the across off it
-    cov = fix_covariance(8.0, ray=np.array([2.0, 2.0]))
+    cov = fix_covariance(8.0, ray=np.array([2.0, 2.0]), model="fitted")
     along, across = fix_sd(FIX_ALONG_M, 8.0), fix_sd(FIX_ACROSS_M, 8.0)
     u = np.array([1.0, 1.0]) / math.sqrt(2.0)
     v = np.array([-1.0, 1.0]) / math.sqrt(2.0)
@@ -52,12 +54,21 @@ def test_fix_covariance_is_the_calibrated_model_along_and_across_the_ray() -> No
     assert v @ cov[:2, :2] @ v == pytest.approx(across**2)
     assert u @ cov[:2, :2] @ v == pytest.approx(0.0, abs=1e-15)
     # without a ray: the along sd in every direction (the larger)
-    flat = fix_covariance(8.0)
+    flat = fix_covariance(8.0, model="fitted")
     assert flat[0, 0] == pytest.approx(along**2) and flat[1, 1] == pytest.approx(along**2)
     assert flat[0, 1] == 0.0
     # the bench's alternative yaw: per metre of range
-    ranged = fix_covariance(5.0, YAW_PER_M)
+    ranged = fix_covariance(5.0, YAW_PER_M, model="fitted")
     assert math.sqrt(ranged[5, 5]) == pytest.approx(math.radians(5.0))
+
+
+def test_the_daemons_fix_model_is_flat_until_the_fitted_one_passes_its_rule() -> None:
+    # docs/BENCHMARKS.md "The CCTV's claimed covariances": the fitted model's offline ATE part
+    # was not measured; the daemon keeps 1 cm + 1 cm per metre and 4 degrees, a ray ignored
+    assert FIX_MODEL == "flat"
+    cov = fix_covariance(5.0, ray=np.array([0.0, 3.0]))
+    np.testing.assert_allclose(np.diag(cov)[[0, 1, 5]], [0.06**2, 0.06**2, YAW_SD**2])
+    assert cov[0, 1] == 0.0
 
 
 def test_fix_covariance_says_what_it_expected() -> None:
@@ -65,6 +76,8 @@ def test_fix_covariance_says_what_it_expected() -> None:
         fix_covariance(float("nan"))
     with pytest.raises(ValueError, match="ray: expected a nonzero horizontal direction"):
         fix_covariance(5.0, ray=np.zeros(2))
+    with pytest.raises(ValueError, match="model: expected one of"):
+        fix_covariance(5.0, model="honest")
 
 
 def _frame(alignment: np.ndarray) -> tuple[ColonyFrame, np.ndarray]:
