@@ -10,10 +10,10 @@ from colonyd.alignment import ColonyFrame
 from voxel.localisation import frame_error, se2
 
 #: The fix models: "flat" (`FLAT_XY_M`, `YAW_SD`) and "fitted" (`FIX_ALONG_M`, `FIX_ACROSS_M`,
-#: `FIX_YAW_RAD`); `FIX_MODEL` is the daemon's. The fitted model passed the calibration parts of
-#: its A/B rule (docs/BENCHMARKS.md "The CCTV's claimed covariances") but its offline ATE part was
-#: not measured (the machine was shared by too many runs): the daemon keeps "flat" until it is
-#: (`cctv_offline --fix-model fitted` against `old`).
+#: `FIX_YAW_RAD`); `FIX_MODEL` is the daemon's. The fitted model is honest over range but failed
+#: its A/B rule's NEES on the experiment's fixes (one board seen edge-on: range alone cannot tell
+#: it) and its offline ATE part was not measured (docs/BENCHMARKS.md "The CCTV's claimed
+#: covariances"): the daemon keeps "flat" (5-17x the error below 7.5 m: too wide, not too tight).
 FIX_MODELS = ("flat", "fitted")
 FIX_MODEL = "flat"
 #: The flat model: (floor, per metre of range) of the x and y standard deviation (m), and the yaw

@@ -63,8 +63,8 @@ def test_fix_covariance_is_the_calibrated_model_along_and_across_the_ray() -> No
 
 
 def test_the_daemons_fix_model_is_flat_until_the_fitted_one_passes_its_rule() -> None:
-    # docs/BENCHMARKS.md "The CCTV's claimed covariances": the fitted model's offline ATE part
-    # was not measured; the daemon keeps 1 cm + 1 cm per metre and 4 degrees, a ray ignored
+    # docs/BENCHMARKS.md "The CCTV's claimed covariances": the fitted model failed its rule;
+    # the daemon keeps 1 cm + 1 cm per metre and 4 degrees, a ray ignored
     assert FIX_MODEL == "flat"
     cov = fix_covariance(5.0, ray=np.array([0.0, 3.0]))
     np.testing.assert_allclose(np.diag(cov)[[0, 1, 5]], [0.06**2, 0.06**2, YAW_SD**2])
