@@ -61,10 +61,10 @@ def fix_covariance(
     robot's body pose seen `range_m` m away, by `model` (`FIX_MODELS`): "flat", `FLAT_XY_M` in x
     and y and `YAW_SD` in yaw; "fitted", `FIX_ALONG_M` along `ray` (the horizontal direction
     from the camera to the robot, x and y, any length) and `FIX_ACROSS_M` across it, or the
-    along one in every direction without a ray (the larger: claims no less than the error), and
-    `FIX_YAW_RAD` in yaw. `yaw_per_m`: yaw `yaw_per_m` per metre of range instead
-    (`cctv_offline`'s alternative). 5 cm and 0.05 rad in z, roll and pitch (a planar robot's fix
-    carries none)."""
+    along one in every direction without a ray or with a zero one (the larger: claims no less
+    than the error), and `FIX_YAW_RAD` in yaw. `yaw_per_m`: yaw `yaw_per_m` per metre of range
+    instead (`cctv_offline`'s alternative). 5 cm and 0.05 rad in z, roll and pitch (a planar
+    robot's fix carries none)."""
     if not (math.isfinite(range_m) and range_m >= 0.0):
         msg = f"range_m: expected a finite range >= 0 in metres, found {range_m!r}"
         raise ValueError(msg)
@@ -84,11 +84,12 @@ def fix_covariance(
     if ray is not None:
         d = np.asarray(ray, np.float64).reshape(-1)[:2]
         n = float(np.linalg.norm(d))
-        if not (np.isfinite(d).all() and n > 1e-9):
-            msg = f"ray: expected a nonzero horizontal direction (x, y), found {ray!r}"
+        if not np.isfinite(d).all():
+            msg = f"ray: expected a finite horizontal direction (x, y), found {ray!r}"
             raise ValueError(msg)
-        u = d / n
-        cov[:2, :2] = across**2 * np.eye(2) + (along**2 - across**2) * np.outer(u, u)
+        if n > 1e-9:  # a robot right below the camera: no direction, the along sd everywhere
+            u = d / n
+            cov[:2, :2] = across**2 * np.eye(2) + (along**2 - across**2) * np.outer(u, u)
     return cov
 
 

@@ -74,8 +74,11 @@ def test_the_daemons_fix_model_is_flat_until_the_fitted_one_passes_its_rule() ->
 def test_fix_covariance_says_what_it_expected() -> None:
     with pytest.raises(ValueError, match="range_m: expected a finite range"):
         fix_covariance(float("nan"))
-    with pytest.raises(ValueError, match="ray: expected a nonzero horizontal direction"):
-        fix_covariance(5.0, ray=np.zeros(2))
+    with pytest.raises(ValueError, match="ray: expected a finite horizontal direction"):
+        fix_covariance(5.0, ray=np.array([np.nan, 1.0]))
+    # a robot right below the camera: no direction to split along
+    below = fix_covariance(5.0, ray=np.zeros(2), model="fitted")
+    assert below[0, 0] == pytest.approx(fix_sd(FIX_ALONG_M, 5.0) ** 2) and below[0, 1] == 0.0
     with pytest.raises(ValueError, match="model: expected one of"):
         fix_covariance(5.0, model="honest")
 
