@@ -626,7 +626,8 @@ class Daemon:
             if target == self.config.agent_id or det.probability < MIN_FIX_CONFIDENCE:
                 continue
             body = obs.pose @ det.pose
-            cov = fix_covariance(float(np.linalg.norm(det.pose[:3, 3])))
+            ray = body[:2, 3] - obs.pose[:2, 3]  # from the camera to the robot, our frame
+            cov = fix_covariance(float(np.linalg.norm(det.pose[:3, 3])), ray=ray)
             try:
                 self.gossip.publisher.publish_fix(
                     target, body, cov, obs.time, det.object_id, det.probability

@@ -19,21 +19,24 @@ AGENT_LABEL = "agent:"
 #: A robot's board whose solved normal leaves the horizontal by more than 10 degrees is an
 #: ambiguous (flipped) pose solution of a small marker, and dropped.
 VERTICAL_SIN = 0.17
-#: How well a marker's apparent side is known (pixels): a marker's solved range is its side's
-#: length in the image, so its range is off by range x CORNER_PX / side. Measured on the sim's
-#: 0.3 m landmark markers seen by cctv-1 (office and hall, 9-31 px mean sides at 3.5-15 m),
-#: corners refined by `refine_corners`: the side off by -0.26 to +0.51 px (RMS 0.23, mean
-#: +0.06), range -3.5 to +1.1 %; across the ray within 3 mm (docs/BENCHMARKS.md "The CCTV's
-#: marker corners"). The largest is claimed, not the RMS: a fixed camera makes its marker's
-#: error in every frame, so its sightings share it (before the refinement: every range 2-5 %
-#: long, the side short by 0.3-0.9 px).
-CORNER_PX = 0.5
+#: How well a marker's apparent side is known (pixels, one standard deviation): a marker's
+#: solved range is its side's length in the image, so its range is off by range x CORNER_PX /
+#: side. Measured with corners refined by `refine_corners` (`python -m
+#: colonyd.bench.fix_calibration`, docs/BENCHMARKS.md "The CCTV's claimed covariances"): the
+#: range PnP solves, in pixels of the side, is off by RMS 0.22 px over 199 of the sim's 0.24 m
+#: robot boards seen by cctv-1 at 8-40 px sides (0.13-0.17 px below 18 px, 0.25-0.30 above;
+#: mean -0.1) and by RMS 0.22 px over its 10 landmark markers (0.3 m, office and hall, 9-32 px:
+#: -0.50 to +0.26 px). A fixed camera makes its marker's error in every frame (the sim's image
+#: has no noise: every frame is the same), so this is one error its sightings share, not noise
+#: they average: `OwnObjects` keeps it in the published covariance however many sightings.
+#: Before (until 2026-12): 0.5, the largest residual, twice the RMS.
+CORNER_PX = 0.25
 #: How well the apparent side of a marker whose corners are the detector's is known (pixels):
 #: where `edge_corners` cannot fit its edges (`refine_corners` falls back), OpenCV's refined
 #: corners lie 0.15-0.3 px inside the square on each axis, its side short by 0.18-0.62 px on the
 #: sim CCTV's renders of a 0.3 m marker at 3-15 m (36 views; range error x side up to 0.56 px;
 #: docs/BENCHMARKS.md "The CCTV's marker corners") and by 0.3-0.9 px on cctv-1's landmarks before
-#: the refinement; the largest, rounded up, is claimed, as for CORNER_PX.
+#: the refinement; the largest, rounded up, is claimed (a bias, not a scatter).
 FALLBACK_CORNER_PX = 1.0
 #: Where along a side its edge is sampled (fractions of the side, clear of the corners) and the
 #: step (pixels) of the samples across it (`refine_corners`).

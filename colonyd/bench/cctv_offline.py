@@ -1,8 +1,8 @@
 """The paper experiment's CCTV offline, deterministic: its fixes' error against the sim's truth,
 and lidar-1 with its fixes, with the colony maps its alignment brings, or both, separated.
 
-`python -m colonyd.bench.cctv_offline --seed S [--duration S] [--lag S] [--fix-model M]
-[--peer-points centres,means] [--json FILE]`
+`python -m colonyd.bench.cctv_offline --seed S [--world office|hall] [--duration S] [--lag S]
+[--fix-model M] [--peer-points centres,means] [--json FILE]`
 
 cctv-1 renders its view (the experiment's seed; the robots' boards where they are at each
 frame's time) and detects the boards as its daemon does; each detection it would send
@@ -14,7 +14,8 @@ applies them: before its frame is aligned with the CCTV's, a fix is a sighting
 (`frame_from_sightings` on the robot's own estimates at the stamps, `sightings_covariance`,
 the edge offered to the colony frame, `Alignments.colony` with the CCTV as anchor); after, it is
 put into the robot's frame (`fix_in_own_frame`) and fused (`ScanLocaliser.fix`). depth-1 runs
-first with the fixes (as live); lidar-1 then runs four ways: `alone`; `fixes` (fixes fused, no
+first with the fixes (as live; with `alone` among the variants, first without them); lidar-1
+then runs four ways: `alone`; `fixes` (fixes fused, no
 colony map); `map` (the colony map its alignment brings, depth-1's final map and the CCTV's,
 cut and given as the daemon's `ColonyMaps` would from the moment both robots are aligned; the
 fixes only align it); `both` (as live); `map-depth` and `map-cctv`: `map` with depth-1's
@@ -23,7 +24,8 @@ voxel centres, a diagnostic; `--peer-points means`: depth-1's and the CCTV's map
 occupied voxels' surface points, their grids keeping the grid's `surface` channel, taken as the
 daemon's colony map takes a replica's (`paper_offline.surfaces`); comma-separated: each, keys of
 the others with `@means`; raw wins over means for the CCTV's map). `--fix-model`: old, the
-daemon's fixes; new and shared, alternatives measured against it (`model_fixes`,
+daemon's fixes; fitted, the daemon's with `fix_covariance`'s fitted model (docs/BENCHMARKS.md
+"The CCTV's claimed covariances"); new and shared, alternatives measured against it (`model_fixes`,
 `fix_in_own_frame`'s `count` and `bias`).
 Truth renders and evaluates; no estimator reads it.
 
@@ -48,6 +50,7 @@ from colonyd.bench.paper_offline import PEER_POINTS, Run, surfaces
 from colonyd.colonymap import PeerError, alignment_error, cut_error, peer_map_error
 from colonyd.estimator import ScanEstimator
 from colonyd.fixes import (
+    FIX_MODEL,
     YAW_PER_M,
     FixCounter,
     fix_covariance,
@@ -99,9 +102,14 @@ class Fix:
 
 
 def cctv_view(
-    seed: int, duration: float, world: str = "office", surface: bool = False
+    seed: int,
+    duration: float,
+    world: str = "office",
+    surface: bool = False,
+    model: str = FIX_MODEL,
 ) -> tuple[list[Fix], VoxelGrid, np.ndarray]:
-    """cctv-1's fixes over `duration` s of the experiment's seed `seed`, its map (keeping the
+    """cctv-1's fixes over `duration` s of the experiment's seed `seed` (their covariance by
+    `fix_covariance`'s `model`), its map (keeping the
     grid's surface channel with `surface`, for `--peer-points means`), and its raw depth points
     near a 2D scanner's height (0-0.6 m), thinned to 2 cm (`--cctv-map raw`)."""
     agents = AGENTS[world]
@@ -129,12 +137,14 @@ def cctv_view(
             if not det.label.startswith(AGENT_LABEL) or det.probability < MIN_FIX_CONFIDENCE:
                 continue
             target = det.label[len(AGENT_LABEL) :]
+            body = obs.pose @ det.pose
+            ray = body[:2, 3] - obs.pose[:2, 3]  # the daemon's (`_send_fixes`)
             fixes.append(
                 Fix(
                     target,
                     obs.time,
-                    obs.pose @ det.pose,
-                    fix_covariance(float(np.linalg.norm(det.pose[:3, 3]))),
+                    body,
+                    fix_covariance(float(np.linalg.norm(det.pose[:3, 3])), ray=ray, model=model),
                     det.object_id,
                     det.probability,
                     float(np.linalg.norm(det.pose[:3, 3])),
@@ -150,7 +160,7 @@ def model_fixes(fixes: list[Fix], robot: str, model: str) -> list[Fix]:
     one image are solved from the same moment, their errors alike: as two fixes, the filter
     counts one sighting twice) with a yaw error of `YAW_PER_M` per metre of range."""
     mine = [f for f in fixes if f.target == robot]
-    if model != "old":
+    if model not in ("old", "fitted"):
         best: dict[float, Fix] = {}
         for f in mine:
             if f.stamp not in best or f.confidence > best[f.stamp].confidence:
@@ -247,7 +257,7 @@ class Cctv:
                 continue
             if not self.fuse:
                 continue
-            count = 1 if self.model == "old" else self.counter.next(CCTV, key)
+            count = 1 if self.model in ("old", "fitted") else self.counter.next(CCTV, key)
             bias = 0.0
             if self.model == "shared":  # k(k+1): together at most once the shared error
                 count, bias = count * (count + 1), SHARED_BIAS
@@ -378,6 +388,7 @@ def alignment_truth(cctv: Cctv, run: Run) -> dict[str, float] | None:
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m colonyd.bench.cctv_offline")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--world", choices=("office", "hall"), default="office")
     parser.add_argument("--duration", type=float, default=60.0, help="seconds of path")
     parser.add_argument("--lidar-range", type=float, default=4.0)
     parser.add_argument("--lag", type=float, default=0.5, help="s from a fix's stamp to its use")
@@ -388,12 +399,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     parser.add_argument(
         "--fix-model",
-        choices=("old", "new", "shared"),
+        choices=("old", "fitted", "new", "shared"),
         default="old",
-        help="old: the daemon's fixes (every board, 4 degrees in yaw, the alignment's error in "
-        "each); new: the most confident board per image, 1 degree per metre of range in yaw, "
-        "the k-th fix through one alignment with k times its error; shared: new, with the "
-        "camera's bias shared and k(k+1) times",
+        help="old: the daemon's fixes (every board, its fix model, the alignment's error in "
+        "each); fitted: old with fix_covariance's fitted model; new: the most confident board "
+        "per image, 1 degree per metre of range in yaw, the k-th fix through one alignment "
+        "with k times its error; shared: new, with the camera's bias shared and k(k+1) times",
     )
     parser.add_argument(
         "--cctv-map",
@@ -417,8 +428,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     modes = args.peer_points.split(",")
     if not set(modes) <= set(PEER_POINTS):
         parser.error(f"--peer-points: expected names of {PEER_POINTS}, found {args.peer_points!r}")
-    fixes, cctv_grid, cctv_raw = cctv_view(args.seed, args.duration, surface="means" in modes)
+    fixes, cctv_grid, cctv_raw = cctv_view(
+        args.seed,
+        args.duration,
+        args.world,
+        surface="means" in modes,
+        model="fitted" if args.fix_model == "fitted" else FIX_MODEL,
+    )
     out: dict[str, Any] = {"seed": args.seed, "duration": args.duration, "lag": args.lag}
+    out["world"] = args.world
     out["fix_model"] = args.fix_model
     if args.cctv_map != "voxels":
         out["cctv_map"] = args.cctv_map
@@ -429,8 +447,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     def run(agent: str) -> Run:
         seed = 100 * args.seed + (1 if agent == "lidar-1" else 2)
-        return Run(agent, seed, args.lidar_range, args.duration)
+        return Run(agent, seed, args.lidar_range, args.duration, world=args.world)
 
+    if "alone" in variants:  # depth-1 without the fixes, for comparison
+        out["depth_alone"] = round(run("depth-1").go(), 4)
     depth = run("depth-1")
     depth.means = "means" in modes
     depth_cctv = Cctv("depth-1", fixes, args.lag, model=args.fix_model)

@@ -10,11 +10,15 @@ import pytest
 
 from colonyd.alignment import ColonyFrame
 from colonyd.fixes import (
+    FIX_ACROSS_M,
+    FIX_ALONG_M,
+    FIX_MODEL,
     YAW_PER_M,
     YAW_SD,
     FixCounter,
     fix_covariance,
     fix_in_own_frame,
+    fix_sd,
 )
 from voxel.localisation import frame_error, se2
 from voxel.localisation.ekf import PlanarEkf
@@ -27,15 +31,56 @@ def _at(x: float, y: float, z: float, yaw: float = 0.0) -> np.ndarray:
     return m
 
 
-def test_fix_covariance_grows_with_range_in_position_and_in_yaw_when_asked() -> None:
-    cov = fix_covariance(5.0)
-    assert cov.shape == (6, 6)
-    assert cov[0, 0] == pytest.approx(0.06**2) and cov[1, 1] == pytest.approx(0.06**2)
-    assert math.sqrt(cov[5, 5]) == pytest.approx(YAW_SD)  # the daemon's: 4 degrees at any range
-    assert math.sqrt(fix_covariance(8.0)[5, 5]) == pytest.approx(YAW_SD)
-    ranged = fix_covariance(5.0, YAW_PER_M)
+def test_fix_covariance_is_the_calibrated_model_along_and_across_the_ray() -> None:
+    # the calibration's figures (docs/BENCHMARKS.md "The CCTV's claimed covariances": fixes'
+    # RMS error 0.3-0.5 cm near, 4.6 cm along and 4 degrees in yaw at 8.5-12.5 m): a revert to
+    # the old 1 cm + 1 cm per metre, 4 degrees fails here
+    for range_m, along_m, across_m, yaw_deg in (
+        (4.0, 0.0044, 0.0056, 0.30),
+        (10.0, 0.053, 0.02, 4.1),
+    ):
+        cov = fix_covariance(range_m, ray=np.array([1.0, 0.0]), model="fitted")
+        assert cov.shape == (6, 6)
+        assert math.sqrt(cov[0, 0]) == pytest.approx(along_m, rel=0.1)
+        assert math.sqrt(cov[1, 1]) == pytest.approx(across_m, rel=0.1)
+        assert math.degrees(math.sqrt(cov[5, 5])) == pytest.approx(yaw_deg, rel=0.1)
+    assert fix_sd(FIX_ALONG_M, 7.0) == pytest.approx(0.0031 + 4.97e-6 * 7.0**4)
+    # turned with the ray: along (1, 1) the along variance is on the diagonal, the across off it
+    cov = fix_covariance(8.0, ray=np.array([2.0, 2.0]), model="fitted")
+    along, across = fix_sd(FIX_ALONG_M, 8.0), fix_sd(FIX_ACROSS_M, 8.0)
+    u = np.array([1.0, 1.0]) / math.sqrt(2.0)
+    v = np.array([-1.0, 1.0]) / math.sqrt(2.0)
+    assert u @ cov[:2, :2] @ u == pytest.approx(along**2)
+    assert v @ cov[:2, :2] @ v == pytest.approx(across**2)
+    assert u @ cov[:2, :2] @ v == pytest.approx(0.0, abs=1e-15)
+    # without a ray: the along sd in every direction (the larger)
+    flat = fix_covariance(8.0, model="fitted")
+    assert flat[0, 0] == pytest.approx(along**2) and flat[1, 1] == pytest.approx(along**2)
+    assert flat[0, 1] == 0.0
+    # the bench's alternative yaw: per metre of range
+    ranged = fix_covariance(5.0, YAW_PER_M, model="fitted")
     assert math.sqrt(ranged[5, 5]) == pytest.approx(math.radians(5.0))
-    assert ranged[0, 0] == pytest.approx(cov[0, 0])
+
+
+def test_the_daemons_fix_model_is_flat_until_the_fitted_one_passes_its_rule() -> None:
+    # docs/BENCHMARKS.md "The CCTV's claimed covariances": the fitted model failed its rule;
+    # the daemon keeps 1 cm + 1 cm per metre and 4 degrees, a ray ignored
+    assert FIX_MODEL == "flat"
+    cov = fix_covariance(5.0, ray=np.array([0.0, 3.0]))
+    np.testing.assert_allclose(np.diag(cov)[[0, 1, 5]], [0.06**2, 0.06**2, YAW_SD**2])
+    assert cov[0, 1] == 0.0
+
+
+def test_fix_covariance_says_what_it_expected() -> None:
+    with pytest.raises(ValueError, match="range_m: expected a finite range"):
+        fix_covariance(float("nan"))
+    with pytest.raises(ValueError, match="ray: expected a finite horizontal direction"):
+        fix_covariance(5.0, ray=np.array([np.nan, 1.0]))
+    # a robot right below the camera: no direction to split along
+    below = fix_covariance(5.0, ray=np.zeros(2), model="fitted")
+    assert below[0, 0] == pytest.approx(fix_sd(FIX_ALONG_M, 5.0) ** 2) and below[0, 1] == 0.0
+    with pytest.raises(ValueError, match="model: expected one of"):
+        fix_covariance(5.0, model="honest")
 
 
 def _frame(alignment: np.ndarray) -> tuple[ColonyFrame, np.ndarray]:
