@@ -669,13 +669,6 @@ class Daemon:
             known = colony_landmarks(self.colony_frame(), self.config.agent_id, lists)
             estimator.landmarks(obs, known)
 
-    @staticmethod
-    def _drift(estimator: ScanEstimator, then: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """Our pose when last seen and its covariance (the filter's now: it only grows between
-        fixes, so no less than then), for `sightings_covariance`; None before the first step."""
-        ekf = estimator.localiser.ekf
-        return None if ekf is None else (then, ekf.covariance)
-
     def _sighted(self, estimator: ScanEstimator, msg: PoseFix) -> None:
         """A fix from an agent not aligned with us: keep it with our estimate at its stamp; once
         the sightings fit one transform (`frame_from_sightings`), offer it as an alignment."""
@@ -704,9 +697,7 @@ class Daemon:
             SIGHTING_CONFIDENCE,
             len(kept),
             fit.rmse,
-            sightings_covariance(
-                fit.rmse, fit.spread, np.array([b for _, b in kept]), self._drift(estimator, then)
-            ),
+            sightings_covariance(fit.rmse, fit.spread, np.array([b for _, b in kept])),
             time.time(),
         )
         self._offer(edge, f"from {len(kept)} sightings of us")

@@ -110,7 +110,10 @@ def sightings_covariance(
     paired with carry our drift since our origin, nearly the same in every sighting of a short
     while, so the fit takes it into the transform without a trace in the residual: an
     alignment from sightings is wrong by our own error then (sim: 0.19-0.38 degrees off while
-    its residual claimed 0.11-0.13, docs/BENCHMARKS.md "The CCTV's claimed covariances")."""
+    its residual claimed 0.11-0.13, docs/BENCHMARKS.md "The CCTV's claimed covariances"). The
+    daemon does not pass `drift`: honest, it made the fixes weigh less and lost their help
+    (docs/BENCHMARKS.md "An alignment from sightings counting the robot's drift");
+    `cctv_offline --sightings drift` measures it."""
     planar = frame_error.about(
         np.diag([rmse**2, rmse**2, (rmse / max(spread, 0.1)) ** 2]),
         positions[:, :2].mean(axis=0),
