@@ -66,6 +66,7 @@ from voxel import keys as vk
 from voxel.grid import VoxelGrid
 from voxel.localisation import frame_error, se2
 from voxel.localisation.colony_map import ColonyMap, colony_map
+from voxel.localisation.ekf import PlanarEkf
 from voxel.localisation.scan_match import thin
 from voxel.localisation.sightings import frame_from_sightings
 from voxel.occupancy import FREE_STATE, OCCUPIED
@@ -220,9 +221,11 @@ class Cctv:
         model: str = "old",
         cctv_points: np.ndarray | None = None,
         points: str = "centres",
+        drift: bool = False,
     ) -> None:
         self.robot = robot
         self.model = model
+        self.drift = drift  # the alignment from sightings counts our pose's error then
         self.counter = FixCounter()
         self.queue = model_fixes(fixes, robot, model)
         self.lag, self.fuse = lag, fuse
@@ -253,7 +256,7 @@ class Cctv:
             frame = self.frame()
             key = self.counter.key(frame, self.robot, CCTV)
             if key is None:
-                self._sighted(fix, loc.pose_at(fix.stamp), obs.time)
+                self._sighted(fix, loc.pose_at(fix.stamp), obs.time, loc.ekf)
                 continue
             if not self.fuse:
                 continue
@@ -274,7 +277,9 @@ class Cctv:
         if (self.peer is not None or self.cctv_grid is not None) and self.edge is not None:
             self._colony(obs, estimator)
 
-    def _sighted(self, fix: Fix, then: np.ndarray | None, now: float) -> None:
+    def _sighted(
+        self, fix: Fix, then: np.ndarray | None, now: float, ekf: PlanarEkf | None
+    ) -> None:
         if then is None:
             return
         self.kept.append((se2.from_matrix(fix.body), then))
@@ -282,7 +287,8 @@ class Cctv:
         fit = frame_from_sightings(seen, believed)
         if not fit.ok:
             return
-        cov = sightings_covariance(fit.rmse, fit.spread, believed)
+        drift = None if ekf is None or not self.drift else (then, ekf.covariance)
+        cov = sightings_covariance(fit.rmse, fit.spread, believed, drift)
         self.edge = Edge(
             self.robot, CCTV, fit.transform, SIGHTING_CONFIDENCE, len(seen), fit.rmse, cov, now
         )
@@ -420,6 +426,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "centres (default) or their surface points (the grid's surface channel, as the "
         "daemon's colony map); each, keys of the others with @<name>",
     )
+    parser.add_argument(
+        "--sightings",
+        choices=("residual", "drift"),
+        default="residual",
+        help="the alignment from sightings claims its fit's residual alone (residual: the "
+        "daemon's) or also the robot's own pose error when seen (drift: failed its A/B, "
+        "docs/BENCHMARKS.md 'An alignment from sightings counting the robot's drift')",
+    )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
     variants = args.variants.split(",")
@@ -438,6 +452,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     out: dict[str, Any] = {"seed": args.seed, "duration": args.duration, "lag": args.lag}
     out["world"] = args.world
     out["fix_model"] = args.fix_model
+    out["sightings"] = args.sightings
     if args.cctv_map != "voxels":
         out["cctv_map"] = args.cctv_map
     if modes != ["centres"]:
@@ -453,7 +468,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         out["depth_alone"] = round(run("depth-1").go(), 4)
     depth = run("depth-1")
     depth.means = "means" in modes
-    depth_cctv = Cctv("depth-1", fixes, args.lag, model=args.fix_model)
+    drift = args.sightings == "drift"
+    depth_cctv = Cctv("depth-1", fixes, args.lag, model=args.fix_model, drift=drift)
     out["depth_with_fixes"] = round(depth.go(before=depth_cctv), 4)
     out["depth_fixes"] = [depth_cctv.fused, depth_cctv.refused, depth_cctv.stale]
     out["depth_alignment"] = alignment_truth(depth_cctv, depth)
@@ -483,6 +499,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             model=args.fix_model,
             cctv_points=cctv_raw if args.cctv_map == "raw" else None,
             points=points,
+            drift=drift,
         )
         out[key] = round(lidar.go(before=hook), 4)
         out[f"{key}_fixes"] = [hook.fused, hook.refused, hook.stale]

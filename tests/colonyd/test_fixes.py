@@ -144,3 +144,24 @@ def test_n_fixes_through_one_alignment_count_its_error_harmonically_not_n_times(
     harmonic = sum(1.0 / k for k in range(1, n + 1))
     assert np.diag(counted.covariance) == pytest.approx(np.diag(a) / harmonic, rel=1e-3)
     assert np.diag(plain.covariance) == pytest.approx(np.diag(a) / n, rel=1e-3)
+
+
+def test_an_alignment_from_sightings_counts_our_own_pose_error_when_seen() -> None:
+    """Sightings that fit one transform to a millimetre still carry our drift: a robot 5 m out
+    along x whose estimate was 1 degree unsure makes the alignment 1 degree unsure, and ~9 cm
+    at our origin (the turn about where it was seen)."""
+    from colonyd.fixes import sightings_covariance
+
+    positions = np.array([[5.0, -0.5, 0.0], [5.0, 0.5, 0.0], [5.5, 0.0, 0.0]])
+    residual = frame_error.planar(sightings_covariance(0.001, 1.0, positions))
+    assert math.sqrt(residual[2, 2]) == pytest.approx(math.radians(0.1))  # the floor: no drift
+    own = np.diag([0.02**2, 0.02**2, math.radians(1.0) ** 2])
+    pose = np.array([5.0, 0.0, 0.0])
+    honest = frame_error.planar(sightings_covariance(0.001, 1.0, positions, (pose, own)))
+    assert math.sqrt(honest[2, 2]) == pytest.approx(math.radians(1.0), rel=0.05)
+    # a turn of 1 degree about (5, 0) moves our origin by 5 m x 1 degree across it (y)
+    assert math.sqrt(honest[1, 1]) == pytest.approx(
+        math.hypot(0.02, 5.0 * math.radians(1.0)), rel=0.05
+    )
+    assert math.sqrt(honest[0, 0]) == pytest.approx(0.02, rel=0.3)
+    assert honest[1, 2] < 0.0  # the origin moves against the turn's lever
