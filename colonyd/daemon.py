@@ -627,7 +627,11 @@ class Daemon:
                 continue
             body = obs.pose @ det.pose
             ray = body[:2, 3] - obs.pose[:2, 3]  # from the camera to the robot, our frame
-            cov = fix_covariance(float(np.linalg.norm(det.pose[:3, 3])), ray=ray)
+            try:
+                cov = fix_covariance(float(np.linalg.norm(det.pose[:3, 3])), ray=ray)
+            except ValueError as e:  # a detection's non-finite pose: that fix only is dropped
+                log.warning("pose fix for %s not sent: %s", target, e)
+                continue
             try:
                 self.gossip.publisher.publish_fix(
                     target, body, cov, obs.time, det.object_id, det.probability

@@ -103,8 +103,9 @@ def sightings_covariance(
     """Error of a frame fitted to sightings (6x6, x y z roll pitch yaw, about our origin): the
     fit's residual in x and y, about the sightings' centroid, and a yaw of that residual over
     their spread (a lever of `spread` metres); with `drift`, plus our own pose's error when we
-    were seen (our estimate (x, y, yaw) at the newest sighting and its 3x3 covariance, a motion
-    about that position).
+    were seen (our estimate (x, y, yaw) at the newest sighting and a 3x3 covariance of it, a
+    motion about that position: `cctv_offline` gives the filter's when the sighting arrives,
+    no less than at its stamp, as it only grows between fixes).
 
     The residual shows only how well the sightings fit one transform. Our estimates they are
     paired with carry our drift since our origin, nearly the same in every sighting of a short

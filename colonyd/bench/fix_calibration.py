@@ -113,7 +113,8 @@ def fix_row(
     e = got - truth
     e[2] = se2.wrap(float(e[2]))
     ray = got[:2] - cam.pose[:2, 3]
-    ray /= np.linalg.norm(ray)
+    norm = float(np.linalg.norm(ray))
+    ray = ray / norm if norm > 1e-9 else np.array([1.0, 0.0])  # right below: any direction
     across = np.array([-ray[1], ray[0]])
     cov = frame_error.planar(covariance)
     return {

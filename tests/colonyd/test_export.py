@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import subprocess
 import sys
 
@@ -66,13 +67,20 @@ def test_export_fetches_the_fused_map_and_layers(make_colony, tmp_path, capfd):
     # the errors' exit codes and messages, as the command line's `launch` gives them (in this
     # process: a new interpreter for each adds only its start-up)
     capfd.readouterr()
-    with pytest.raises(SystemExit) as missing:
-        launch([*base[3:], "--out", str(out), "--layer", "nobody"])
-    assert missing.value.code == 1 and "holds no layer 'nobody'" in capfd.readouterr().err
-    (tmp_path / "file").write_text("x")
-    with pytest.raises(SystemExit) as bad:
-        launch([*base[3:], "--out", str(tmp_path / "file")])
-    assert bad.value.code == 3 and "expected a directory, found a file" in capfd.readouterr().err
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level  # the command sets up logging: put it back
+    try:
+        with pytest.raises(SystemExit) as missing:
+            launch([*base[3:], "--out", str(out), "--layer", "nobody"])
+        assert missing.value.code == 1 and "holds no layer 'nobody'" in capfd.readouterr().err
+        (tmp_path / "file").write_text("x")
+        with pytest.raises(SystemExit) as bad:
+            launch([*base[3:], "--out", str(tmp_path / "file")])
+        err = capfd.readouterr().err
+        assert bad.value.code == 3 and "expected a directory, found a file" in err
+    finally:
+        root.handlers[:] = handlers
+        root.setLevel(level)
 
 
 def test_map_reply_carries_classes_and_points_and_the_ply_is_coloured_by_class_then_height(
