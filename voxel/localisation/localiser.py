@@ -260,10 +260,8 @@ class ScanLocaliser:
         """Fuse a landmark (paper Alg. 3): an identified object (id `key`) seen at `seen` (x, y,
         body frame, now) whose position `landmark` (x, y, this agent's frame) the colony knows
         (`PlanarEkf.update_landmark`, gated; with `landmark_errors` its error is estimated
-        under `key`, counted once). None before the first step. The pose graph, when
-        recording, keeps each fused sighting as an independent edge with both covariances
-        (it has no landmark variable: the smoothed trajectory still counts a landmark's error
-        once per sighting)."""
+        under `key`, counted once, and the pose graph, when recording, keeps the landmark as
+        a variable too). None before the first step."""
         if self.ekf is None:
             return None
         yaw = float(self.ekf.pose[2])
@@ -277,7 +275,14 @@ class ScanLocaliser:
         if fused:
             self.landmark_accepted += 1
             if self.graph is not None:
-                self.graph.add_landmark(seen, seen_covariance, landmark, landmark_covariance, yaw)
+                self.graph.add_landmark(
+                    seen,
+                    seen_covariance,
+                    landmark,
+                    landmark_covariance,
+                    yaw,
+                    key=key if self.params.landmark_errors else None,
+                )
                 self.graph.place(self.ekf.pose)
         else:
             self.landmark_rejected += 1
