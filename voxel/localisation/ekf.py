@@ -378,8 +378,9 @@ class PlanarEkf:
         widens e by the positive part of the growth (as `widen_offset`: a smaller one is no
         evidence, only a measurement shrinks it). At most `max_landmarks` are kept: a new one
         beyond drops the least recently seen (marginalised out; it re-enters with its
-        published prior if seen again). A landmark unseen for long is kept: its error is as
-        valid as when it was last seen, and the bound caps the state."""
+        published prior if seen again, counted a second time: the bound should exceed the
+        landmarks in use). A landmark unseen for long is kept: its error is as valid as when
+        it was last seen, and the bound caps the state."""
         z, r_seen, lm, r_lm = _checked_landmark(
             seen, seen_covariance, landmark, landmark_covariance
         )
