@@ -10,7 +10,8 @@ published markers (its images folded into `OwnObjects` as its daemon does, `cctv
 list as it stood `--lag` s before each of depth-1's frames), once depth-1 is aligned with the
 CCTV put into depth-1's frame by `colony_landmarks` (the markers' published covariance plus the
 alignment's error there), and fused after each step for every marker depth-1's camera detects
-in its observation (`ScanEstimator.landmarks`). `--modes`: `independent`, every sighting a new
+in its observation (`ScanEstimator.landmarks`; its sim source with `markers=1`, as the
+experiment's `agent_options`). `--modes`: `independent`, every sighting a new
 measurement (`ScanParams.landmark_errors` off); `once`, each landmark's error in the filter
 (on); `none`, fixes only (as `cctv_offline`). Per mode: depth-1's ATE, landmarks fused /
 refused, fixes fused / refused / stale, the filter's consistency (`Run.consistency`) and its
@@ -138,6 +139,7 @@ def run_mode(
     `--lidar` lidar-1 as `cctv_offline`'s `both`; the figures of both."""
     out: dict[str, Any] = {}
     depth = Run("depth-1", 100 * args.seed + 2, args.lidar_range, args.duration, world=args.world)
+    depth.spec += ",markers=1"  # depth-1 reads the markers, as in the experiment
     path = Cctv("depth-1", fixes, args.lag)
     hook = None if mode == "none" else Landmarks(lists, path, args.lag, mode == "once")
     out["depth_ate"] = round(depth.go(before=path, after=hook), 4)
