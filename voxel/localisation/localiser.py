@@ -55,9 +55,10 @@ class ScanParams:
     own_aliasing: float = 0.0
     #: Estimate each landmark's error (published minus true position) in the filter, keyed by
     #: its id, so that its sightings count its error once (`PlanarEkf.update_landmark` with a
-    #: key); False: each sighting fused as independent, the published error counted every time
-    #: (docs/BENCHMARKS.md "A landmark's error counted once").
-    landmark_errors: bool = False
+    #: key; the default since its A/B); False: each sighting fused as independent, the
+    #: published error counted every time (docs/BENCHMARKS.md "A landmark's error counted
+    #: once").
+    landmark_errors: bool = True
     history: int = 100  # (time, pose) of the last steps, to carry a late fix to the present
     fix_tolerance: float = 0.15  # seconds between a fix's stamp and the nearest step
 
