@@ -63,14 +63,17 @@ class ScanEstimator:
     def landmarks(self, obs: Observation, known: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
         """Fuse every object of `obs` whose identity the colony knows (`known`: object id ->
         its (x, y) in our frame and 2x2 covariance): its position seen from the body now, with
-        a camera's error of 2 cm + 2 % of the range."""
+        a camera's error of 2 cm + 2 % of the range; the id keys its error in the filter
+        (`ScanParams.landmark_errors`)."""
         for det in obs.objects:
             entry = known.get(det.object_id)
             if entry is None:
                 continue
             body = self.mount[:3, :3] @ det.position + self.mount[:3, 3]
             sd = marker_sd(float(np.linalg.norm(det.position)))
-            self.localiser.landmark(body[:2], np.eye(2) * sd**2, entry[0], entry[1])
+            self.localiser.landmark(
+                body[:2], np.eye(2) * sd**2, entry[0], entry[1], key=det.object_id
+            )
 
     def counts(self) -> dict[str, int]:
         """Updates fused and refused so far, by kind."""

@@ -221,12 +221,13 @@ class Run:
         peer_covariance: bool = True,
         before: Callable[[Observation, ScanEstimator], None] | None = None,
         points: str = "centres",
+        after: Callable[[Observation, ScanEstimator], None] | None = None,
     ) -> float:
         """Run the path (with `peer`'s map from `contact` of the path on, its alignment off by
         `sign` times `ALIGNMENT_ERROR`, its pose covariance in the cut's if `peer_covariance`,
         as `points` (`PEER_POINTS`); `relaxed`: see `relax`; `before`: called with each
-        observation and the estimator before the estimator's step, from the second on); the
-        ATE."""
+        observation and the estimator before the estimator's step, from the second on;
+        `after`: the same after it, as the daemon applies landmarks); the ATE."""
         source = open_source(self.spec, resolution=0.1)
         adapter = source.adapter
         shape = "planar" if adapter.kind == "lidar2d" else "cube"
@@ -274,6 +275,8 @@ class Run:
             if before is not None and i > 0:
                 before(obs, estimator)
             pose = estimator(obs)
+            if after is not None and i > 0:
+                after(obs, estimator)
             integrate_observation(
                 grid,
                 replace(obs, pose=pose),

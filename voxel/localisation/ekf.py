@@ -19,6 +19,9 @@ from voxel.localisation import frame_error, se2
 GATE_3DOF = 16.27
 #: The same with 2 degrees of freedom: a landmark's position seen in the body frame.
 GATE_2DOF = 13.82
+#: Landmarks whose error the filter estimates at most (`update_landmark` with a key): beyond it
+#: the least recently seen is dropped (marginalised: its rows leave the state).
+MAX_LANDMARKS = 16
 
 
 @dataclass(frozen=True)
@@ -73,6 +76,18 @@ class Offset:
     accounted: np.ndarray  # (3, 3)
 
 
+@dataclass
+class _Landmark:
+    """A landmark whose error the filter estimates: its id, the position published at its last
+    sighting (2,), the prior covariance of its error accounted for so far (2, 2), and when it
+    was last seen (the filter's count of landmark updates)."""
+
+    key: int
+    published: np.ndarray
+    accounted: np.ndarray
+    seen: int
+
+
 class PlanarEkf:
     """Pose (x, y, yaw) and covariance of one ground agent, with the errors of what it is
     measured against.
@@ -113,7 +128,8 @@ class PlanarEkf:
             else np.asarray(covariance, np.float64).copy()
         )
         self.accepted = self.rejected = 0
-        # The rest of the state: the offset (3, first when there is one), then 3 per keyframe.
+        # The rest of the state: the offset (3, first when there is one), then 3 per keyframe,
+        # then 2 per landmark (its error: published minus true position, x and y).
         self._mean = np.zeros(0)  # (m,)
         self._cov = np.zeros((0, 0))  # (m, m)
         self._cross = np.zeros((3, 0))  # (3, m): cov(pose, rest)
@@ -121,6 +137,10 @@ class PlanarEkf:
         self._offset_prior = np.zeros((3, 3))  # the offset's prior covariance accounted for
         self._keys: list[int] = []
         self._key_poses: list[np.ndarray] = []  # the pose each keyframe was placed at
+        #: Per landmark whose error is estimated, in the state's order.
+        self._landmarks: list[_Landmark] = []
+        self._landmark_clock = 0  # keyed landmark updates so far (when each was last seen)
+        self.max_landmarks = MAX_LANDMARKS
 
     @property
     def pose(self) -> np.ndarray:
@@ -171,13 +191,51 @@ class PlanarEkf:
         first = (3 if self._has_offset else 0) + 3 * i
         return slice(first, first + 3)
 
+    @property
+    def _poses_end(self) -> int:
+        """Where the 3-wide blocks (offset, keyframes) end and the landmarks' 2-wide begin."""
+        return (3 if self._has_offset else 0) + 3 * len(self._keys)
+
+    def _landmark_slice(self, i: int) -> slice:
+        first = self._poses_end + 2 * i
+        return slice(first, first + 2)
+
+    def _insert(
+        self, at: int, mean: np.ndarray, cov: np.ndarray, with_pose: np.ndarray | None = None
+    ) -> None:
+        """Insert a block of the state at row `at`: its mean (k,) and covariance (k, k), and
+        with `with_pose` the pose's own error (its covariance with the pose is the pose's
+        covariance (3, k), with the rest the pose's); without, uncorrelated with everything."""
+        k = len(mean)
+        x = self._cross
+        if with_pose is None:
+            with_pose, with_rest = np.zeros((3, k)), np.zeros((len(self._mean), k))
+        else:
+            with_rest = x.T
+        c = self._cov
+        self._mean = np.concatenate([self._mean[:at], mean, self._mean[at:]])
+        self._cov = np.block(
+            [
+                [c[:at, :at], with_rest[:at], c[:at, at:]],
+                [with_rest[:at].T, cov, with_rest[at:].T],
+                [c[at:, :at], with_rest[at:], c[at:, at:]],
+            ]
+        )
+        self._cross = np.hstack([x[:, :at], with_pose, x[:, at:]])
+
+    def _remove(self, rows: np.ndarray) -> None:
+        """Drop rows of the state (marginalise them out: a Gaussian's other rows keep their
+        mean and covariance)."""
+        keep = np.setdiff1d(np.arange(len(self._mean)), rows)
+        self._mean = self._mean[keep]
+        self._cov = self._cov[np.ix_(keep, keep)]
+        self._cross = self._cross[:, keep]
+
     def add_keyframe(self, key: int) -> None:
         """Start estimating the error of a keyframe placed at the current pose: the pose's
         error, so its covariance and correlations are the pose's."""
-        p, x = self.kf.P, self._cross
-        self._mean = np.concatenate([self._mean, np.zeros(3)])
-        self._cov = np.block([[self._cov, x.T], [x, p]])
-        self._cross = np.hstack([x, p])
+        p = self.kf.P
+        self._insert(self._poses_end, np.zeros(3), p.copy(), p)
         self._keys.append(int(key))
         self._key_poses.append(self.pose)
 
@@ -190,10 +248,7 @@ class PlanarEkf:
         rows = np.concatenate(
             [np.arange(self._key_slice(i).start, self._key_slice(i).stop) for i in drop]
         )
-        keep = np.setdiff1d(np.arange(len(self._mean)), rows)
-        self._mean = self._mean[keep]
-        self._cov = self._cov[np.ix_(keep, keep)]
-        self._cross = self._cross[:, keep]
+        self._remove(rows)
         self._keys = [k for i, k in enumerate(self._keys) if i not in drop]
         self._key_poses = [p for i, p in enumerate(self._key_poses) if i not in drop]
 
@@ -271,7 +326,7 @@ class PlanarEkf:
         if np.any(known):
             w, i = weights[known], where[known]
             first = 3 if self._has_offset else 0
-            errors = self._mean[first:].reshape(-1, 3)[i]
+            errors = self._mean[first : self._poses_end].reshape(-1, 3)[i]
             moved, d_pose, d_key = _seen_from(np.array(self._key_poses)[i], errors, x)
             step = moved - x
             step[:, 2] = (step[:, 2] + math.pi) % (2 * math.pi) - math.pi
@@ -283,6 +338,18 @@ class PlanarEkf:
         y[2] = se2.wrap(float(y[2]))
         return self._fuse(h_pose, h_rest, y, r, gate)
 
+    @property
+    def landmarks(self) -> list[int]:
+        """Ids of the landmarks whose errors are estimated, in the state's order."""
+        return [lm.key for lm in self._landmarks]
+
+    def landmark(self, key: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A landmark's position as last published, its estimated error (published minus true
+        position, x and y) and the error's covariance (2x2)."""
+        i = self.landmarks.index(key)
+        k = self._landmark_slice(i)
+        return self._landmarks[i].published.copy(), self._mean[k].copy(), self._cov[k, k].copy()
+
     def update_landmark(
         self,
         seen: np.ndarray,
@@ -290,37 +357,73 @@ class PlanarEkf:
         landmark: np.ndarray,
         landmark_covariance: np.ndarray,
         gate: float | None = GATE_2DOF,
+        key: int | None = None,
     ) -> bool:
         """Fuse a landmark (paper Alg. 3): an object whose position (x, y) `landmark` in this
         agent's frame is known with `landmark_covariance` (2x2), seen at `seen` (x, y) in the
-        body frame with `seen_covariance` (2x2). The measurement is R(yaw)^T (landmark -
-        position); its covariance adds both. False (and no change) when gated out."""
-        z = np.asarray(seen, np.float64).reshape(-1)
-        r_seen = np.asarray(seen_covariance, np.float64)
-        lm = np.asarray(landmark, np.float64).reshape(-1)
-        r_lm = np.asarray(landmark_covariance, np.float64)
-        if (
-            z.shape != (2,)
-            or lm.shape != (2,)
-            or r_seen.shape != (2, 2)
-            or r_lm.shape != (2, 2)
-            or not all(np.all(np.isfinite(a)) for a in (z, lm, r_seen, r_lm))
-        ):
-            msg = (
-                "landmark: expected finite (x, y) positions and 2x2 covariances, found shapes "
-                f"{z.shape}, {r_seen.shape}, {lm.shape}, {r_lm.shape}"
-            )
-            raise LocalisationError(msg)
+        body frame with `seen_covariance` (2x2). The measurement is R(yaw)^T (true position -
+        position). False (and the pose unchanged) when gated out.
+
+        Without `key`, the published position is taken as the true one and its covariance added
+        to the sighting's: every sighting is an independent measurement, so N sightings count
+        the published position's error N times. With `key` (the landmark's id), the error e
+        (published minus true, x and y) is part of the state, counted once: at the first
+        sighting it enters with mean zero and `landmark_covariance`, uncorrelated with the rest
+        (a first sighting gated out leaves nothing); each sighting then measures R(yaw)^T
+        (landmark - e - position) with its own noise alone, correcting pose and e together, so
+        however many sightings share a wrong published position they move the pose no more
+        than its covariance against the pose's allows. A published position that moved since
+        the last sighting (the peer refined it, or the alignment changed) is the same truth: e's
+        mean shifts by the move. A published covariance grown beyond what is accounted for
+        widens e by the positive part of the growth (as `widen_offset`: a smaller one is no
+        evidence, only a measurement shrinks it). At most `max_landmarks` are kept: a new one
+        beyond drops the least recently seen (marginalised out; it re-enters with its
+        published prior if seen again, counted a second time: the bound should exceed the
+        landmarks in use). A landmark unseen for long is kept: its error is as valid as when
+        it was last seen, and the bound caps the state."""
+        z, r_seen, lm, r_lm = _checked_landmark(
+            seen, seen_covariance, landmark, landmark_covariance
+        )
         x = self.kf.x.ravel()
         c, s = math.cos(x[2]), math.sin(x[2])
         rt = np.array([[c, s], [-s, c]])  # world -> body
-        d = lm - x[:2]
-        y = z - rt @ d
-        jac = np.zeros((2, 3))
-        jac[:, :2] = -rt
-        jac[:, 2] = np.array([[-s, c], [-c, -s]]) @ d
-        noise = r_seen + rt @ r_lm @ rt.T
-        return self._fuse(jac, None, y, noise, gate)
+        if key is None:
+            d = lm - x[:2]
+            jac = _landmark_jacobian(rt, d, c, s)
+            return self._fuse(jac, None, z - rt @ d, r_seen + rt @ r_lm @ rt.T, gate)
+        new = int(key) not in self.landmarks
+        if new:
+            self._insert(len(self._mean), np.zeros(2), r_lm)
+            self._landmarks.append(_Landmark(int(key), lm, r_lm, 0))
+        i = self.landmarks.index(int(key))
+        rows = self._landmark_slice(i)
+        entry = self._landmarks[i]
+        self._mean[rows] += lm - entry.published  # the same truth, published elsewhere
+        grown = r_lm - entry.accounted
+        w, v = np.linalg.eigh(0.5 * (grown + grown.T))
+        q = (v * np.maximum(w, 0.0)) @ v.T  # the positive part of the growth
+        self._cov[rows, rows] += q
+        entry.published, entry.accounted = lm, entry.accounted + q
+        d = lm - self._mean[rows] - x[:2]  # to the true position the filter estimates
+        jac = _landmark_jacobian(rt, d, c, s)
+        h_rest = np.zeros((2, len(self._mean)))
+        h_rest[:, rows] = -rt
+        fused = self._fuse(jac, h_rest, z - rt @ d, r_seen, gate)
+        self._landmark_clock += 1
+        entry.seen = self._landmark_clock
+        if new and not fused:
+            self._drop_landmark(i)
+        elif new and len(self._landmarks) > self.max_landmarks:
+            self._drop_landmark(min(range(len(self._landmarks)), key=self._seen_at))
+        return fused
+
+    def _seen_at(self, i: int) -> int:
+        return self._landmarks[i].seen
+
+    def _drop_landmark(self, i: int) -> None:
+        rows = self._landmark_slice(i)
+        self._remove(np.arange(rows.start, rows.stop))
+        del self._landmarks[i]
 
     def _fuse(
         self,
@@ -355,8 +458,9 @@ class PlanarEkf:
             self._cross = cross - k_pose @ ph_rest.T
             new_rest = rest - k_rest @ ph_rest.T
             self._cov = 0.5 * (new_rest + new_rest.T)
-            yaws = self._mean[2::3]  # every block's yaw, wrapped as se2.wrap does
-            self._mean[2::3] = np.remainder(yaws + math.pi, 2.0 * math.pi) - math.pi
+            end = self._poses_end  # every 3-wide block's yaw, wrapped as se2.wrap does
+            yaws = self._mean[2:end:3]
+            self._mean[2:end:3] = np.remainder(yaws + math.pi, 2.0 * math.pi) - math.pi
         self.accepted += 1
         return True
 
@@ -512,3 +616,41 @@ def _seen_from(
     d_key[:, :2, :2] = -back
     d_key[:, :2, 2] = np.einsum("gij,gj->gi", back, np.column_stack([v[:, 1], -v[:, 0]]))
     return seen, d_pose, d_key
+
+
+def _checked_landmark(
+    seen: np.ndarray, seen_covariance: np.ndarray, landmark: np.ndarray, covariance: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A landmark sighting's (x, y) and 2x2 covariance and the landmark's (symmetrised), or an
+    error saying what was wrong: finite, and covariances positive semi-definite."""
+    z = np.asarray(seen, np.float64).reshape(-1)
+    r_seen = np.asarray(seen_covariance, np.float64)
+    lm = np.asarray(landmark, np.float64).reshape(-1)
+    r_lm = np.asarray(covariance, np.float64)
+    if (
+        z.shape != (2,)
+        or lm.shape != (2,)
+        or r_seen.shape != (2, 2)
+        or r_lm.shape != (2, 2)
+        or not all(np.all(np.isfinite(a)) for a in (z, lm, r_seen, r_lm))
+    ):
+        msg = (
+            "landmark: expected finite (x, y) positions and 2x2 covariances, found shapes "
+            f"{z.shape}, {r_seen.shape}, {lm.shape}, {r_lm.shape}"
+        )
+        raise LocalisationError(msg)
+    for name, c in (("sighting", r_seen), ("landmark", r_lm)):
+        found = frame_error.problem(c, COVARIANCE_TOLERANCE)
+        if found is not None:
+            msg = f"landmark: the {name}'s covariance: {found}"
+            raise LocalisationError(msg)
+    return z, 0.5 * (r_seen + r_seen.T), lm, 0.5 * (r_lm + r_lm.T)
+
+
+def _landmark_jacobian(rt: np.ndarray, d: np.ndarray, c: float, s: float) -> np.ndarray:
+    """Jacobian (2, 3) by the pose of R(yaw)^T d, d = a point minus the position, R(yaw)^T =
+    `rt` = [[c, s], [-s, c]]."""
+    jac = np.zeros((2, 3))
+    jac[:, :2] = -rt
+    jac[:, 2] = np.array([[-s, c], [-c, -s]]) @ d
+    return jac

@@ -53,6 +53,12 @@ class ScanParams:
     #: (chance times the cell squared). 0: the matcher's covariance alone (the default;
     #: docs/BENCHMARKS.md "A peer map's walk from its own drift").
     own_aliasing: float = 0.0
+    #: Estimate each landmark's error (published minus true position) in the filter, keyed by
+    #: its id, so that its sightings count its error once (`PlanarEkf.update_landmark` with a
+    #: key; the default since its A/B); False: each sighting fused as independent, the
+    #: published error counted every time (docs/BENCHMARKS.md "A landmark's error counted
+    #: once").
+    landmark_errors: bool = True
     history: int = 100  # (time, pose) of the last steps, to carry a late fix to the present
     fix_tolerance: float = 0.15  # seconds between a fix's stamp and the nearest step
 
@@ -250,18 +256,34 @@ class ScanLocaliser:
         seen_covariance: np.ndarray,
         landmark: np.ndarray,
         landmark_covariance: np.ndarray,
+        key: int | None = None,
     ) -> bool | None:
-        """Fuse a landmark (paper Alg. 3): an identified object seen at `seen` (x, y, body
-        frame, now) whose position `landmark` (x, y, this agent's frame) the colony knows
-        (`PlanarEkf.update_landmark`, gated). None before the first step."""
+        """Fuse a landmark (paper Alg. 3): an identified object (id `key`) seen at `seen` (x, y,
+        body frame, now) whose position `landmark` (x, y, this agent's frame) the colony knows
+        (`PlanarEkf.update_landmark`, gated; with `landmark_errors` its error is estimated
+        under `key`, counted once, and the pose graph, when recording, keeps the landmark as
+        a variable too). None before the first step."""
         if self.ekf is None:
             return None
         yaw = float(self.ekf.pose[2])
-        fused = self.ekf.update_landmark(seen, seen_covariance, landmark, landmark_covariance)
+        fused = self.ekf.update_landmark(
+            seen,
+            seen_covariance,
+            landmark,
+            landmark_covariance,
+            key=key if self.params.landmark_errors else None,
+        )
         if fused:
             self.landmark_accepted += 1
             if self.graph is not None:
-                self.graph.add_landmark(seen, seen_covariance, landmark, landmark_covariance, yaw)
+                self.graph.add_landmark(
+                    seen,
+                    seen_covariance,
+                    landmark,
+                    landmark_covariance,
+                    yaw,
+                    key=key if self.params.landmark_errors else None,
+                )
                 self.graph.place(self.ekf.pose)
         else:
             self.landmark_rejected += 1

@@ -17,6 +17,9 @@ from voxel.localisation import se2
 #: Variance (m^2, rad^2) added to an offset walk's noise: where the filter added none, the two
 #: offsets are tied to 1e-5 (m, rad), not left free.
 WALK_FLOOR = 1e-10
+#: A landmark variable is (x, y, unused): its third component is held at zero by this prior's
+#: information (it appears in no edge; without it the normal matrix is singular).
+UNUSED_INFORMATION = 1.0
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
@@ -87,6 +90,8 @@ class Smoothed:
     cost_before: float
     cost_after: float
     iterations: int
+    #: every keyed landmark's true position (x, y) as solved, in the order first seen (L, 2)
+    landmarks: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 class PoseGraph:
@@ -106,7 +111,11 @@ class PoseGraph:
       variable with the prior the filter started it with; `walk_offset` starts a new one tied
       to the last by the process noise the filter added);
     - `absolute` (a fix, the first pose's prior) and `landmark` (an object's position seen from
-      the newest node).
+      the newest node): without a key an absolute edge with the sighting's and the landmark's
+      covariances; with a key (the filter estimating the landmark's error, counted once) an
+      edge on the node and the landmark's true position, a variable with the published
+      position and covariance first seen as its prior (widened as the filter widened it), the
+      sighting's own covariance on the edge.
 
     `solve` minimises the sum of squared Mahalanobis residuals by Gauss-Newton on the sparse
     normal equations from the filter's own estimates. With only odometry it returns them; a
@@ -123,6 +132,13 @@ class PoseGraph:
         self._offset_prior = _Edges()  # nodes (offset,); values zeros
         self._offset_walk = _Edges()  # nodes (offset before, offset after)
         self._landmark = _Edges()  # nodes (node,); values (seen 2, landmark 2)
+        # keyed landmarks: edges on (node, landmark variable), values seen (2,), the sighting's
+        # information; the same as independent edges (for a graph without shared variables);
+        # per variable its prior (the position first published, the covariance accounted)
+        self._keyed = _Edges()
+        self._keyed_alone = _Edges()
+        self._landmark_keys: dict[int, int] = {}
+        self._landmark_prior: list[tuple[np.ndarray, np.ndarray]] = []
         self._keyframes: dict[int, tuple[int, np.ndarray]] = {}
         self.offsets = 0
         self.add_absolute(self.online[0], covariance, node=0)
@@ -188,15 +204,42 @@ class PoseGraph:
         landmark: np.ndarray,
         landmark_covariance: np.ndarray,
         yaw: float,
+        key: int | None = None,
     ) -> None:
         """A landmark fused at the newest node: seen at `seen` (x, y, body frame), known at
-        `landmark` (x, y), the noise both covariances with the landmark's turned by the
-        filter's heading `yaw` when it was fused (as the filter did)."""
+        `landmark` (x, y). Without `key`, as the filter fuses an independent sighting: the
+        noise both covariances with the landmark's turned by the filter's heading `yaw` when it
+        was fused. With `key`, as the filter fuses a landmark whose error it estimates
+        (`PlanarEkf.update_landmark` with a key): the sighting's noise alone, on the node and
+        the landmark's true position, whose prior is the position and covariance published at
+        its first sighting, widened by a later published covariance's growth (a published
+        move keeps the truth: no change)."""
         c, s = math.cos(yaw), math.sin(yaw)
         rt = np.array([[c, s], [-s, c]])
-        noise = np.asarray(seen_covariance) + rt @ np.asarray(landmark_covariance) @ rt.T
+        lm_cov = np.asarray(landmark_covariance, np.float64)
+        noise = np.asarray(seen_covariance) + rt @ lm_cov @ rt.T
         value = np.concatenate([np.asarray(seen).reshape(2), np.asarray(landmark).reshape(2)])
-        self._landmark.add(np.array([[self.nodes - 1]]), value[None], _information(noise)[None])
+        node = np.array([[self.nodes - 1]])
+        if key is None:
+            self._landmark.add(node, value[None], _information(noise)[None])
+            return
+        self._keyed_alone.add(node, value[None], _information(noise)[None])
+        var = self._landmark_keys.get(int(key))
+        if var is None:
+            var = self._landmark_keys[int(key)] = len(self._landmark_prior)
+            self._landmark_prior.append((value[2:].copy(), 0.5 * (lm_cov + lm_cov.T)))
+        else:
+            first, accounted = self._landmark_prior[var]
+            grown = lm_cov - accounted
+            w, v = np.linalg.eigh(0.5 * (grown + grown.T))
+            self._landmark_prior[var] = (first, accounted + (v * np.maximum(w, 0.0)) @ v.T)
+        info = _information(np.asarray(seen_covariance, np.float64))
+        self._keyed.add(np.array([[self.nodes - 1, var]]), value[None, :2], info[None])
+
+    @property
+    def landmarks(self) -> int:
+        """Number of keyed landmark variables."""
+        return len(self._landmark_prior)
 
     def reset_offset(self, covariance: np.ndarray) -> None:
         """A new shared map's error: a new offset variable, zero with `covariance`."""
@@ -234,6 +277,7 @@ class PoseGraph:
             "absolute": self._absolute,
             "colony": self._colony,
             "landmark": self._landmark,
+            "landmark_keyed": self._keyed,
         }
         out = {k: int(sum(len(n) for n in e.nodes)) for k, e in kinds.items()}
         out["match"] = sum(len(g) for g in self._match.values())
@@ -243,27 +287,33 @@ class PoseGraph:
         """Every node's body pose (N, 3) minimising the graph's cost, from the filter's
         estimates, the offsets from zero (Gauss-Newton, damped when a step raises the cost)."""
         poses = np.array(self.online)
-        n = len(poses)
-        start = np.concatenate([poses, np.zeros((self.offsets, 3))])
+        n, m = len(poses), self.offsets
+        landmarks = np.array([np.append(first, 0.0) for first, _ in self._landmark_prior])
+        start = np.concatenate([poses, np.zeros((m, 3)), landmarks.reshape(-1, 3)])
 
         def linearised(x: np.ndarray) -> tuple[float, sp.csr_matrix, np.ndarray]:
             return self._linearised(x[:n], x[n:])
 
         x, first, cost, done = gauss_newton(linearised, start, n, iterations, tolerance)
-        return Smoothed(x[:n], x[n:], first, cost, done)
+        return Smoothed(x[:n], x[n : n + m], first, cost, done, x[n + m :, :2].copy())
 
     def _linearised(
         self, poses: np.ndarray, offsets: np.ndarray
     ) -> tuple[float, sp.csr_matrix, np.ndarray]:
-        """The cost, normal matrix and gradient (of half the cost) at `poses` and `offsets`."""
+        """The cost, normal matrix and gradient (of half the cost) at `poses` and `offsets`
+        (the offsets, then the keyed landmarks)."""
         return normal_equations(self.terms(poses, offsets), 3 * (len(poses) + len(offsets)))
 
     def terms(self, poses: np.ndarray, offsets: np.ndarray, shared: bool = True) -> list[Term]:
-        """The graph's edges linearised at `poses` (N, 3) and `offsets` (M, 3), grouped by kind
-        (`Term`: variable ids, nodes first, then offsets from N); without `shared`, no colony
-        edge nor offset (a joint graph models the shared map otherwise, `JointGraph`)."""
+        """The graph's edges linearised at `poses` (N, 3) and `offsets` (M + L, 3: the offsets,
+        then the keyed landmarks' positions), grouped by kind (`Term`: variable ids, nodes
+        first, then offsets from N, then landmarks); without `shared`, no colony edge nor
+        offset nor landmark variable, keyed landmarks as independent edges (a joint graph
+        models the shared map otherwise, `JointGraph`)."""
         n = len(poses)
         terms: list[Term] = []
+        if shared and self._landmark_prior:
+            terms.extend(self._keyed_terms(poses, offsets))
         odo = self._odometry.stacked()
         if odo is not None:
             ids, u, info = odo
@@ -312,8 +362,10 @@ class PoseGraph:
             eye = np.tile(np.eye(3), (len(ids), 1, 1))
             r = offsets[ids[:, 1]] - offsets[ids[:, 0]]
             terms.append(([(n + ids[:, 0], -eye), (n + ids[:, 1], eye)], r, info))
-        landmarks = self._landmark.stacked()
-        if landmarks is not None:
+        for kind in (self._landmark, None if shared else self._keyed_alone):
+            landmarks = None if kind is None else kind.stacked()
+            if landmarks is None:
+                continue
             ids, values, info = landmarks
             x = poses[ids[:, 0]]
             d = values[:, 2:] - x[:, :2]
@@ -323,6 +375,33 @@ class PoseGraph:
             j[:, :, :2] = -rt
             j[:, :, 2] = _d_rot_t(x[:, 2], d)
             terms.append(([(ids[:, 0], j)], r, info))
+        return terms
+
+    def _keyed_terms(self, poses: np.ndarray, extra: np.ndarray) -> list[Term]:
+        """The keyed landmarks' sightings (R(yaw)^T (t - position) - seen, on the node and the
+        landmark's true position t) and their priors (t - the position first published)."""
+        n, m = len(poses), self.offsets
+        lms = extra[m:]
+        ids, seen, info = self._keyed.stacked() or (np.zeros((0, 2), np.int64), None, None)
+        terms: list[Term] = []
+        if seen is not None and info is not None:
+            x, t = poses[ids[:, 0]], lms[ids[:, 1]]
+            d = t[:, :2] - x[:, :2]
+            rt = np.swapaxes(_rot(x[:, 2]), 1, 2)
+            r = np.einsum("eij,ej->ei", rt, d) - seen
+            jx = np.zeros((len(ids), 2, 3))
+            jx[:, :, :2] = -rt
+            jx[:, :, 2] = _d_rot_t(x[:, 2], d)
+            jt = np.zeros((len(ids), 2, 3))
+            jt[:, :, :2] = rt
+            terms.append(([(ids[:, 0], jx), (n + m + ids[:, 1], jt)], r, info))
+        first = np.array([f for f, _ in self._landmark_prior])
+        prior = np.zeros((len(first), 3, 3))
+        prior[:, :2, :2] = _information(np.array([c for _, c in self._landmark_prior]))
+        prior[:, 2, 2] = UNUSED_INFORMATION
+        r = lms - np.column_stack([first, np.zeros(len(first))])
+        eye = np.tile(np.eye(3), (len(first), 1, 1))
+        terms.append(([(n + m + np.arange(len(first)), eye)], r, prior))
         return terms
 
     def colony_edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
