@@ -266,12 +266,9 @@ class ScanLocaliser:
         if self.ekf is None:
             return None
         yaw = float(self.ekf.pose[2])
+        keyed = key if self.params.landmark_errors else None
         fused = self.ekf.update_landmark(
-            seen,
-            seen_covariance,
-            landmark,
-            landmark_covariance,
-            key=key if self.params.landmark_errors else None,
+            seen, seen_covariance, landmark, landmark_covariance, key=keyed
         )
         if fused:
             self.landmark_accepted += 1
@@ -282,7 +279,7 @@ class ScanLocaliser:
                     landmark,
                     landmark_covariance,
                     yaw,
-                    key=key if self.params.landmark_errors else None,
+                    key=keyed,
                 )
                 self.graph.place(self.ekf.pose)
         else:
