@@ -9,7 +9,7 @@ import time
 
 def _spec(agent: str, epoch: float, extra: str = "") -> str:
     return (
-        f"sim:world=office,agent={agent},frames=400,seed=1,odometry_noise=realistic,"
+        f"sim:world=office,agent={agent},frames=900,seed=1,odometry_noise=realistic,"
         f"epoch={epoch}{extra}"
     )
 
@@ -40,8 +40,9 @@ def test_a_lidar_robot_matches_its_scans_against_an_aligned_peers_map(make_colon
             and seen[0]["pose_std_m"] is not None
         )
 
-    # (the sims run 40 s from the epoch: the whole run, however late the daemons started)
-    reports = colony.wait_status(fused, 60, agents=("lidar-1", "depth-1"))
+    # (the sims run 90 s from the epoch: on a loaded machine the pair may align only after 45 s,
+    # and the paths must still be running then; the wait ends as soon as the matches are in)
+    reports = colony.wait_status(fused, 90, agents=("lidar-1", "depth-1"))
     lidar = next(r for r in reports if r["agent"] == "lidar-1")
     counts = _localisation(lidar)
     assert counts["colony_accepted"] >= 5, counts

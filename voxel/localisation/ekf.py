@@ -46,15 +46,52 @@ def _residual(z: np.ndarray, hx: np.ndarray) -> np.ndarray:
     return y
 
 
+def _import_kalman() -> Any:
+    """filterpy.kalman, imported without scipy.stats and scipy.ndimage.
+
+    Importing filterpy imports all of it: its filters import `logpdf` from filterpy.stats, which
+    imports scipy.stats, and filterpy.discrete_bayes imports scipy.ndimage: ~1 s of CPU at the
+    start of every process with a filter (measured: importing filterpy.kalman takes 1.6-1.7 s of
+    CPU, 0.75 without), for a likelihood this filter never computes (its updates are its own,
+    `PlanarEkf._fuse`) and a filter it does not use. While filterpy is imported, those two are
+    stand-ins (filterpy.stats's `logpdf`, the only name filterpy.kalman takes from it, imports
+    the real one when first called); they leave sys.modules before this returns, so any later
+    import of them gets the real modules."""
+    import importlib
+    import sys
+    import types
+
+    if "filterpy" in sys.modules:
+        return importlib.import_module("filterpy.kalman")
+
+    def logpdf(*args: Any, **kwargs: Any) -> Any:
+        return importlib.import_module("filterpy.stats").logpdf(*args, **kwargs)
+
+    stand_ins = {
+        name: types.ModuleType(name, "stands in while filterpy is imported")
+        for name in ("filterpy.stats", "filterpy.discrete_bayes")
+    }
+    stand_ins["filterpy.stats"].logpdf = logpdf  # type: ignore[attr-defined]
+    sys.modules.update(stand_ins)
+    try:
+        return importlib.import_module("filterpy.kalman")
+    finally:
+        parent = sys.modules.get("filterpy")
+        for name, module in stand_ins.items():
+            if sys.modules.get(name) is module:
+                del sys.modules[name]
+            if parent is not None and getattr(parent, name.split(".")[1], None) is module:
+                delattr(parent, name.split(".")[1])
+
+
 @functools.cache
 def _filter_class() -> Any:
     """filterpy's EKF with the nonlinear planar motion model as its state prediction.
 
-    Imported on first use: filterpy pulls in scipy.stats (~0.5 s of CPU), which a daemon does
-    not need before its first observation."""
-    from filterpy.kalman import ExtendedKalmanFilter
+    Imported on first use, without scipy.stats (`_import_kalman`)."""
+    base: Any = _import_kalman().ExtendedKalmanFilter
 
-    class _Filter(ExtendedKalmanFilter):  # type: ignore[misc]  # filterpy has no type hints
+    class _Filter(base):  # type: ignore[misc]  # filterpy has no type hints
         x: np.ndarray  # the state (3, 1), as filterpy keeps it
 
         def predict_x(self, u: np.ndarray) -> None:

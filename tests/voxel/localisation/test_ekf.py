@@ -390,3 +390,33 @@ def test_keyframes_enter_and_leave_with_the_pose_correlation() -> None:
         np.array([0.2, 0.0, 0.0]), np.eye(3) * 0.01, np.array([3]), np.eye(3)[None]
     )
     np.testing.assert_allclose(g.pose, [0.1, 0.0, 0.0], atol=1e-9)
+
+
+def test_the_filter_starts_without_scipy_stats_and_filterpys_likelihood_still_works() -> None:
+    """filterpy.kalman is imported without scipy.stats or scipy.ndimage (~1 s of CPU at every
+    daemon start):
+    a fresh process builds, predicts and updates a filter without it, filterpy's own likelihood
+    loads it when called and gives the real value, and filterpy.stats is the real module after."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, math, numpy as np\n"
+        "from voxel.localisation.ekf import PlanarEkf\n"
+        "f = PlanarEkf(np.zeros(3))\n"
+        "f.predict(np.array([0.1, 0.0, 0.01]))\n"
+        "f.update(np.array([0.1, 0.0, 0.0]), np.eye(3) * 0.01)\n"
+        "print('scipy.stats' in sys.modules or 'scipy.ndimage' in sys.modules)\n"
+        "import filterpy.kalman.EKF as ekf\n"
+        "print(ekf.logpdf(x=np.array([0.1]), cov=np.array([[1.0]])))\n"
+        "import filterpy.stats, filterpy.discrete_bayes\n"
+        "print(hasattr(filterpy.stats, 'multivariate_gaussian'), 'scipy.stats' in sys.modules,"
+        " hasattr(filterpy.discrete_bayes, 'predict'), 'scipy.ndimage' in sys.modules)\n"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
+    )
+    before, value, after = run.stdout.split("\n")[:3]
+    assert before == "False", run.stdout
+    assert float(value) == pytest.approx(-0.5 * math.log(2 * math.pi) - 0.005, abs=1e-12)
+    assert after == "True True True True", run.stdout
