@@ -394,9 +394,9 @@ def test_keyframes_enter_and_leave_with_the_pose_correlation() -> None:
 
 def test_the_filter_starts_without_scipy_stats_and_filterpys_likelihood_still_works() -> None:
     """filterpy.kalman is imported without scipy.stats or scipy.ndimage (~1 s of CPU at every
-    daemon start):
-    a fresh process builds, predicts and updates a filter without it, filterpy's own likelihood
-    loads it when called and gives the real value, and filterpy.stats is the real module after."""
+    daemon start): a fresh process builds, predicts and updates a filter without them,
+    filterpy's own likelihood loads scipy.stats when called and gives the real value, and
+    filterpy.stats and filterpy.discrete_bayes are the real modules after."""
     import subprocess
     import sys
 
