@@ -29,7 +29,7 @@ from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError, DuplicateAgentError, PersistenceError, StoppedError
 from colonyd.estimator import Estimator, PoseError, ScanEstimator, get_estimator
 from colonyd.export import MapReply, encode_map, export_time, write_maps
-from colonyd.fixes import fix_covariance, fix_in_own_frame, sightings_covariance
+from colonyd.fixes import fix_covariance, fix_in_own_frame, sightings_covariance, through
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
 from colonyd.gossip import Gossip
 from colonyd.identity import get_trust, identity_path, load_signer
@@ -648,14 +648,21 @@ class Daemon:
             if estimator.localiser.ahead(msg.stamp):
                 later.append(msg)
                 continue
+            me, framed = self.config.agent_id, estimator.framed
             own = fix_in_own_frame(
-                frame, self.config.agent_id, msg.origin, msg.matrix(), np.asarray(msg.covariance)
+                frame,
+                me,
+                msg.origin,
+                msg.matrix(),
+                np.asarray(msg.covariance),
+                alignment=not framed,
             )
             if own is None:
                 self.metrics.add("fix_unaligned")
                 self._sighted(estimator, msg)
                 continue
-            result = estimator.fix(own[0], own[1], msg.stamp)
+            via = through(frame, me, msg.origin) if framed else None
+            result = estimator.fix(own[0], own[1], msg.stamp, via)
             self.metrics.add(
                 "fix_stale" if result is None else "fix_fused" if result else "fix_refused"
             )
@@ -670,7 +677,9 @@ class Daemon:
             if objects:
                 lists[layer.origin] = objects
         if lists:
-            known = colony_landmarks(self.colony_frame(), self.config.agent_id, lists)
+            known = colony_landmarks(
+                self.colony_frame(), self.config.agent_id, lists, framed=estimator.framed
+            )
             estimator.landmarks(obs, known)
 
     def _sighted(self, estimator: ScanEstimator, msg: PoseFix) -> None:

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Protocol
+from collections.abc import Mapping
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -11,7 +12,7 @@ from plugins.depth import marker_sd
 from plugins.observation import Observation
 from voxel.localisation import se2
 from voxel.localisation.colony_map import ColonyMap
-from voxel.localisation.localiser import ScanLocaliser, ScanParams
+from voxel.localisation.localiser import ScanLocaliser, ScanParams, Through
 from voxel.localisation.visual import VisualOdometry
 
 
@@ -55,15 +56,29 @@ class ScanEstimator:
         pose: np.ndarray = se2.to_matrix(step.pose) @ self.mount
         return pose
 
-    def fix(self, pose: np.ndarray, covariance: np.ndarray, stamp: float) -> bool | None:
-        """Fuse an absolute body pose (x, y, yaw) in our frame seen at `stamp` (see
-        `ScanLocaliser.fix`)."""
-        return self.localiser.fix(pose, covariance, stamp)
+    @property
+    def framed(self) -> bool:
+        """Whether the filter estimates the error of the alignments fixes and landmarks come
+        through (`ScanParams.alignment_frames`): the callers then leave it out of their
+        covariances and give the alignment (`Through`)."""
+        return self.localiser.params.alignment_frames
 
-    def landmarks(self, obs: Observation, known: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
+    def fix(
+        self,
+        pose: np.ndarray,
+        covariance: np.ndarray,
+        stamp: float,
+        through: Through | None = None,
+    ) -> bool | None:
+        """Fuse an absolute body pose (x, y, yaw) in our frame seen at `stamp`, with `through`
+        the alignment it came through (see `ScanLocaliser.fix`)."""
+        return self.localiser.fix(pose, covariance, stamp, through)
+
+    def landmarks(self, obs: Observation, known: Mapping[int, tuple[Any, ...]]) -> None:
         """Fuse every object of `obs` whose identity the colony knows (`known`: object id ->
-        its (x, y) in our frame and 2x2 covariance): its position seen from the body now, with
-        a camera's error of 2 cm + 2 % of the range; the id keys its error in the filter
+        its (x, y) in our frame, 2x2 covariance and optionally the alignment it came through,
+        `colony_landmarks`): its position seen from the body now, with a camera's error of
+        2 cm + 2 % of the range; the id keys its error in the filter
         (`ScanParams.landmark_errors`)."""
         for det in obs.objects:
             entry = known.get(det.object_id)
@@ -71,8 +86,9 @@ class ScanEstimator:
                 continue
             body = self.mount[:3, :3] @ det.position + self.mount[:3, 3]
             sd = marker_sd(float(np.linalg.norm(det.position)))
+            via = entry[2] if len(entry) > 2 else None
             self.localiser.landmark(
-                body[:2], np.eye(2) * sd**2, entry[0], entry[1], key=det.object_id
+                body[:2], np.eye(2) * sd**2, entry[0], entry[1], key=det.object_id, through=via
             )
 
     def counts(self) -> dict[str, int]:

@@ -8,6 +8,7 @@ import numpy as np
 
 from colonyd.alignment import ColonyFrame
 from voxel.localisation import frame_error, se2
+from voxel.localisation.localiser import Through
 
 #: The fix models: "flat" (`FLAT_XY_M`, `YAW_SD`) and "fitted" (`FIX_ALONG_M`, `FIX_ACROSS_M`,
 #: `FIX_YAW_RAD`); `FIX_MODEL` is the daemon's. The fitted model is honest over range but failed
@@ -136,6 +137,7 @@ def fix_in_own_frame(
     covariance: np.ndarray,
     count: int = 1,
     bias: float = 0.0,
+    alignment: bool = True,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """A fix from `origin` (the robot's body pose `body`, 4x4 in origin's frame, with its 6x6
     `covariance`) in `own`'s frame through the colony frame: the body pose (x, y, yaw) and its
@@ -147,7 +149,9 @@ def fix_in_own_frame(
     through one alignment carrying `count` = k times that error (n fixes tell the filter about
     it H_n = 1 + 1/2 + ... + 1/n times what one does, 3.4 for 17, not n times), or k(k+1)
     times (at most once in all); `bias` (m): a systematic error of the camera's positions,
-    shared by its fixes like the alignment's error and counted with it."""
+    shared by its fixes like the alignment's error and counted with it. Without `alignment`,
+    the fix's own covariance alone (rotated; no alignment's error, no `bias`): for a filter that
+    estimates the alignment's error as a state (`through`, `ScanParams.alignment_frames`)."""
     mine, theirs = frame.transforms.get(own), frame.transforms.get(origin)
     if mine is None or theirs is None:
         return None
@@ -157,12 +161,27 @@ def fix_in_own_frame(
     cov = frame_error.positive(frame_error.planar(np.asarray(covariance, np.float64)))
     rot = np.eye(3)
     rot[:2, :2] = to_own[:2, :2]
-    alignment = frame_error.moved(
-        frame.covariance(own) + frame.covariance(origin), np.linalg.inv(mine)
-    )
-    shared = frame_error.at(alignment, seen[:2, 3]) + np.diag([bias**2, bias**2, 0.0])
+    if not alignment:
+        return se2.from_matrix(seen), rot @ cov @ rot.T
+    error = frame_error.moved(frame.covariance(own) + frame.covariance(origin), np.linalg.inv(mine))
+    shared = frame_error.at(error, seen[:2, 3]) + np.diag([bias**2, bias**2, 0.0])
     out = rot @ cov @ rot.T + max(1, count) * shared
     return se2.from_matrix(seen), out
+
+
+def through(frame: ColonyFrame, own: str, origin: str) -> Through | None:
+    """The alignment of `origin`'s frame into `own`'s through the colony frame, for a filter
+    that estimates its error (`ScanLocaliser.fix` and `landmark`): its transform, rounded to
+    1e-4 (as `FixCounter.key`: a changed alignment is a new error), and its error's covariance
+    (x, y, yaw about `own`'s origin: both frames' errors in the colony frame, moved into ours).
+    None when either frame is not aligned."""
+    mine, theirs = frame.transforms.get(own), frame.transforms.get(origin)
+    if mine is None or theirs is None:
+        return None
+    back = np.linalg.inv(mine)
+    key = bytes(np.round(back @ theirs, 4).tobytes())
+    error = frame_error.moved(frame.covariance(own) + frame.covariance(origin), back)
+    return Through(origin, key, frame_error.positive(error))
 
 
 class FixCounter:

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from colonyd.bench.cctv_offline import CCTV, ROBOTS, Cctv, Fix, cctv_view
+from colonyd.bench.cctv_offline import CCTV, ROBOTS, Cctv, Fix, alignment_truth, cctv_view
 from colonyd.bench.files import print_and_append
 from colonyd.bench.paper_offline import Run
 from colonyd.estimator import ScanEstimator
@@ -97,7 +97,9 @@ class Landmarks:
         mine = [o for o in ready[-1] if o.object_id in ids]
         if not mine:
             return
-        known = colony_landmarks(self.fixes.frame(), self.fixes.robot, {CCTV: mine})
+        known = colony_landmarks(
+            self.fixes.frame(), self.fixes.robot, {CCTV: mine}, framed=estimator.framed
+        )
         before = loc.landmark_accepted, loc.landmark_rejected
         estimator.landmarks(obs, known)
         self.fused += loc.landmark_accepted - before[0]
@@ -140,7 +142,8 @@ def run_mode(
     out: dict[str, Any] = {}
     depth = Run("depth-1", 100 * args.seed + 2, args.lidar_range, args.duration, world=args.world)
     depth.spec += ",markers=1"  # depth-1 reads the markers, as in the experiment
-    path = Cctv("depth-1", fixes, args.lag)
+    state = args.alignment == "state"
+    path = Cctv("depth-1", fixes, args.lag, state=state)
     hook = None if mode == "none" else Landmarks(lists, path, args.lag, mode == "once")
     out["depth_ate"] = round(depth.go(before=path, after=hook), 4)
     out["depth_landmarks"] = None if hook is None else [hook.fused, hook.refused]
@@ -148,6 +151,7 @@ def run_mode(
     out["depth_aligned_at"] = path.aligned_at
     out["depth_consistency"] = depth.consistency()
     out["depth_heading"] = heading_consistency(depth)
+    out["depth_alignment"] = alignment_truth(path, depth)
     if args.lidar and path.edge is not None:
         lidar = Run(
             "lidar-1", 100 * args.seed + 1, args.lidar_range, args.duration, world=args.world
@@ -158,6 +162,7 @@ def run_mode(
             args.lag,
             cctv_grid=cctv_grid,
             peer=("depth-1", depth, path.edge, path.edge.time),
+            state=state,
         )
         out["lidar_ate"] = round(lidar.go(before=both), 4)
         out["lidar_fixes"] = [both.fused, both.refused, both.stale]
@@ -173,6 +178,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--lag", type=float, default=0.5, help="s from a stamp to its use")
     parser.add_argument("--modes", default="independent,once", help=f"comma-separated, of {MODES}")
     parser.add_argument("--lidar", action="store_true", help="lidar-1 after each depth-1 run")
+    parser.add_argument(
+        "--alignment",
+        choices=("noise", "state"),
+        default="noise",
+        help="the error of the alignment the fixes and landmarks come through: added to each "
+        "(noise, the daemon's) or one state of the filter (state: ScanParams.alignment_frames)",
+    )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
     modes = args.modes.split(",")
@@ -185,6 +197,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "seed": args.seed,
         "duration": args.duration,
         "lag": args.lag,
+        "alignment": args.alignment,
         "published": [
             {"at_s": t, "markers": sorted(o.object_id for o in objects)} for t, objects in lists
         ][:3],

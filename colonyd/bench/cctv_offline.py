@@ -56,6 +56,7 @@ from colonyd.fixes import (
     fix_covariance,
     fix_in_own_frame,
     sightings_covariance,
+    through,
 )
 from colonyd.mapping import integrate_observation
 from plugins.cctv import AGENT_LABEL
@@ -222,10 +223,13 @@ class Cctv:
         cctv_points: np.ndarray | None = None,
         points: str = "centres",
         drift: bool = False,
+        state: bool = False,
     ) -> None:
         self.robot = robot
         self.model = model
         self.drift = drift  # the alignment from sightings counts our pose's error then
+        self.state = state  # the alignment's error a state of the filter (`alignment_frames`)
+        self.estimator: ScanEstimator | None = None
         self.counter = FixCounter()
         self.queue = model_fixes(fixes, robot, model)
         self.lag, self.fuse = lag, fuse
@@ -251,6 +255,9 @@ class Cctv:
 
     def __call__(self, obs: Observation, estimator: ScanEstimator) -> None:
         loc = estimator.localiser
+        if loc.params.alignment_frames != self.state:
+            loc.params = replace(loc.params, alignment_frames=self.state)
+        self.estimator = estimator
         while self.queue and self.queue[0].stamp + self.lag <= obs.time - 1e-6:
             fix = self.queue.pop(0)
             frame = self.frame()
@@ -264,9 +271,13 @@ class Cctv:
             bias = 0.0
             if self.model == "shared":  # k(k+1): together at most once the shared error
                 count, bias = count * (count + 1), SHARED_BIAS
-            own = fix_in_own_frame(frame, self.robot, CCTV, fix.body, fix.covariance, count, bias)
+            framed = estimator.framed
+            own = fix_in_own_frame(
+                frame, self.robot, CCTV, fix.body, fix.covariance, count, bias, not framed
+            )
             assert own is not None
-            result = estimator.fix(own[0], own[1], fix.stamp)
+            via = through(frame, self.robot, CCTV) if framed else None
+            result = estimator.fix(own[0], own[1], fix.stamp, via)
             if result is None:
                 self.stale += 1
             elif result:
@@ -374,13 +385,27 @@ def _grid(run: Run) -> VoxelGrid:
 def alignment_truth(cctv: Cctv, run: Run) -> dict[str, float] | None:
     """Evaluation: how far the sightings' alignment is from the true transform of the world
     (the CCTV's frame) into the robot's, as a motion about the robot's origin, and at the
-    sightings' place (the robot's first pose seen)."""
+    sightings' place (the robot's first pose seen); with `--alignment state`, the error the
+    filter estimated for it at the end (x, y, yaw about the robot's origin, the fixes moved by
+    it: `PlanarEkf.update_frame`) and its standard deviations."""
     if cctv.edge is None:
         return None
     frame = run.truths[0] @ np.linalg.inv(run.estimates[0])  # the robot's frame in the world
     d = frame_error.difference(np.linalg.inv(frame), cctv.edge.transform)
     cov = frame_error.planar(cctv.edge.covariance)
-    return {
+    ekf = None if cctv.estimator is None else cctv.estimator.localiser.ekf
+    state = None if ekf is None else ekf.frame(("alignment", CCTV))
+    estimated = {}
+    if state is not None:
+        sd = np.sqrt(np.diag(state.covariance))
+        estimated = {
+            "estimated_x_m": round(float(state.value[0]), 4),
+            "estimated_y_m": round(float(state.value[1]), 4),
+            "estimated_yaw_deg": round(math.degrees(float(state.value[2])), 3),
+            "estimated_sd_m": round(float(sd[0]), 4),
+            "estimated_yaw_sd_deg": round(math.degrees(float(sd[2])), 3),
+        }
+    return estimated | {
         "at_s": round(cctv.edge.time, 2),
         "x_m": round(float(d[0]), 4),
         "y_m": round(float(d[1]), 4),
@@ -434,6 +459,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "daemon's) or also the robot's own pose error when seen (drift: failed its A/B, "
         "docs/BENCHMARKS.md 'An alignment from sightings counting the robot's drift')",
     )
+    parser.add_argument(
+        "--alignment",
+        choices=("noise", "state"),
+        default="noise",
+        help="the error of the alignment the fixes come through: added to each fix (noise, the "
+        "daemon's) or one state of the filter, counted once (state: ScanParams.alignment_frames)",
+    )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
     variants = args.variants.split(",")
@@ -453,6 +485,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     out["world"] = args.world
     out["fix_model"] = args.fix_model
     out["sightings"] = args.sightings
+    out["alignment"] = args.alignment
+    state = args.alignment == "state"
     if args.cctv_map != "voxels":
         out["cctv_map"] = args.cctv_map
     if modes != ["centres"]:
@@ -469,7 +503,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     depth = run("depth-1")
     depth.means = "means" in modes
     drift = args.sightings == "drift"
-    depth_cctv = Cctv("depth-1", fixes, args.lag, model=args.fix_model, drift=drift)
+    depth_cctv = Cctv("depth-1", fixes, args.lag, model=args.fix_model, drift=drift, state=state)
     out["depth_with_fixes"] = round(depth.go(before=depth_cctv), 4)
     out["depth_fixes"] = [depth_cctv.fused, depth_cctv.refused, depth_cctv.stale]
     out["depth_alignment"] = alignment_truth(depth_cctv, depth)
@@ -500,6 +534,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             cctv_points=cctv_raw if args.cctv_map == "raw" else None,
             points=points,
             drift=drift,
+            state=state,
         )
         out[key] = round(lidar.go(before=hook), 4)
         out[f"{key}_fixes"] = [hook.fused, hook.refused, hook.stale]

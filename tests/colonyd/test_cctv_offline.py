@@ -33,3 +33,13 @@ def test_cctv_offline_new_model_sends_one_fix_per_image_and_raw_cctv_map_is_matc
     assert got["fix_model"] == "new" and got["cctv_map"] == "raw"
     assert got["lidar_map-cctv_counts"]["colony_accepted"] > 0  # the raw points matched
     assert 0.0 <= got["lidar_map-cctv"] < 0.5
+
+
+def test_cctv_offline_alignment_state_fuses_fixes_through_the_frames_error():
+    got = main(["--seed", "1", "--duration", "7", "--variants", "fixes", "--alignment", "state"])
+    assert got["alignment"] == "state"
+    fused, _, stale = got["lidar_fixes_fixes"]
+    assert fused > 0 and stale == 0
+    aligned = got["lidar_alignment"]  # the filter estimated the alignment's error
+    assert aligned is not None and aligned["estimated_yaw_sd_deg"] > 0.0
+    assert 0.0 <= got["lidar_fixes"] < 0.5

@@ -46,7 +46,8 @@ def test_a_peers_identified_objects_are_landmarks_in_our_frame_with_the_alignmen
     }
     known = colony_landmarks(frame, "me", lists)
     assert set(known) == {7}
-    xy, cov = known[7]
+    xy, cov, via = known[7]
+    assert via is None  # the alignment's error is in the covariance
     np.testing.assert_allclose(xy, [3.0, 0.0], atol=1e-12)  # (2, 3) in the colony: 3 m ahead
     # the yaw error e about the colony's origin moves the landmark by e (-3, 2) there, e (2, 3)
     # here; plus the CCTV's own 1 cm

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Hashable
 from dataclasses import dataclass
 from typing import Any
 
@@ -22,6 +23,12 @@ GATE_2DOF = 13.82
 #: Landmarks whose error the filter estimates at most (`update_landmark` with a key): beyond it
 #: the least recently seen is dropped (marginalised: its rows leave the state).
 MAX_LANDMARKS = 16
+#: Frames whose error the filter estimates at most (`reset_frame`): the colony map's offset and
+#: one per origin whose fixes or landmarks come through an alignment; beyond it the least
+#: recently used is dropped (marginalised).
+MAX_FRAMES = 8
+#: The key of the colony map's offset among the frames (`reset_offset` and the rest).
+COLONY = "colony map"
 
 
 @dataclass(frozen=True)
@@ -114,15 +121,29 @@ class Offset:
 
 
 @dataclass
+class _Frame:
+    """A frame whose error the filter estimates (`reset_frame`): its key, the prior covariance
+    accounted for so far (3, 3), when it was last reset and last used (the filter's count of
+    frame uses: a reset is unique to that frame's error)."""
+
+    key: Hashable
+    accounted: np.ndarray
+    resets: int
+    used: int
+
+
+@dataclass
 class _Landmark:
     """A landmark whose error the filter estimates: its id, the position published at its last
-    sighting (2,), the prior covariance of its error accounted for so far (2, 2), and when it
-    was last seen (the filter's count of landmark updates)."""
+    sighting (2,), the prior covariance of its error accounted for so far (2, 2), when it was
+    last seen (the filter's count of landmark updates), and the frame it came through then
+    (its key and that frame's resets; None: none)."""
 
     key: int
     published: np.ndarray
     accounted: np.ndarray
     seen: int
+    through: tuple[Hashable, int] | None = None
 
 
 class PlanarEkf:
@@ -141,13 +162,15 @@ class PlanarEkf:
     keyframes in proportion to their correlation with the pose: recent keyframes move with the
     pose, so the own map does not pull a correct fix back.
 
-    **Offset** (`reset_offset`): the error of one shared map. Every match against that map
-    shares the alignment's error, so fusing them as independent measurements would count the
-    alignment once per scan and carry the robot into the alignment's error. Estimated as part
-    of the state, the alignment's error is counted once: however many scans match a poor
-    alignment, it moves the pose no more than its covariance against the pose's allows. The
-    map's error may grow after the reset (its peer drifts or gets lost): `widen_offset` adds the
-    growth as process noise.
+    **Frames** (`reset_frame`): the error of a frame measurements come through, keyed. Every
+    match against a shared map shares the alignment's error, and so does every fix or landmark
+    put into this agent's frame by one alignment, so fusing them as independent measurements
+    would count the alignment once per measurement and carry the robot into the alignment's
+    error. Estimated as part of the state, the alignment's error is counted once: however many
+    measurements come through a poor alignment, they move the pose no more than its covariance
+    against the pose's allows. The frame's error may grow after the reset (its peer drifts or
+    gets lost): `widen_frame` adds the growth as process noise. The colony map's is the frame
+    `COLONY` (`reset_offset`, `update_offset` and the rest, its **Offset**).
     """
 
     def __init__(
@@ -165,13 +188,15 @@ class PlanarEkf:
             else np.asarray(covariance, np.float64).copy()
         )
         self.accepted = self.rejected = 0
-        # The rest of the state: the offset (3, first when there is one), then 3 per keyframe,
-        # then 2 per landmark (its error: published minus true position, x and y).
+        # The rest of the state: 3 per frame (first), then 3 per keyframe, then 2 per landmark
+        # (its error: published minus true position, x and y).
         self._mean = np.zeros(0)  # (m,)
         self._cov = np.zeros((0, 0))  # (m, m)
         self._cross = np.zeros((3, 0))  # (3, m): cov(pose, rest)
-        self._has_offset = False
-        self._offset_prior = np.zeros((3, 3))  # the offset's prior covariance accounted for
+        #: Per frame whose error is estimated, in the state's order.
+        self._frames: list[_Frame] = []
+        self._frame_clock = 0
+        self.max_frames = MAX_FRAMES
         self._keys: list[int] = []
         self._key_poses: list[np.ndarray] = []  # the pose each keyframe was placed at
         #: Per landmark whose error is estimated, in the state's order.
@@ -194,14 +219,46 @@ class PlanarEkf:
     @property
     def offset(self) -> Offset | None:
         """The shared map's error (a copy), once `reset_offset` started estimating it."""
-        if not self._has_offset:
+        return self.frame(COLONY)
+
+    @property
+    def frames(self) -> list[Hashable]:
+        """Keys of the frames whose errors are estimated, in the state's order."""
+        return [f.key for f in self._frames]
+
+    def frame(self, key: Hashable) -> Offset | None:
+        """Frame `key`'s error (a copy, as `Offset`), None when it is not estimated."""
+        i = self._frame_index(key)
+        if i is None:
             return None
+        k = self._frame_slice(i)
         return Offset(
-            self._mean[:3].copy(),
-            self._cov[:3, :3].copy(),
-            self._cross[:, :3].copy(),
-            self._offset_prior.copy(),
+            self._mean[k].copy(),
+            self._cov[k, k].copy(),
+            self._cross[:, k].copy(),
+            self._frames[i].accounted.copy(),
         )
+
+    def _frame_index(self, key: Hashable) -> int | None:
+        for i, f in enumerate(self._frames):
+            if f.key == key:
+                return i
+        return None
+
+    def _frame_slice(self, i: int) -> slice:
+        return slice(3 * i, 3 * i + 3)
+
+    def _used(self, key: Hashable, what: str) -> tuple[int, slice]:
+        """Frame `key`'s index and rows, marked as used now; an error naming `what` when the
+        frame is not estimated."""
+        i = self._frame_index(key)
+        if i is None:
+            call = "reset_offset" if key == COLONY else "reset_frame"
+            msg = f"{what}: expected {call}() first (frame {key!r} is not estimated)"
+            raise LocalisationError(msg)
+        self._frame_clock += 1
+        self._frames[i].used = self._frame_clock
+        return i, self._frame_slice(i)
 
     @property
     def keyframes(self) -> list[int]:
@@ -225,13 +282,13 @@ class PlanarEkf:
         return out
 
     def _key_slice(self, i: int) -> slice:
-        first = (3 if self._has_offset else 0) + 3 * i
+        first = 3 * len(self._frames) + 3 * i
         return slice(first, first + 3)
 
     @property
     def _poses_end(self) -> int:
-        """Where the 3-wide blocks (offset, keyframes) end and the landmarks' 2-wide begin."""
-        return (3 if self._has_offset else 0) + 3 * len(self._keys)
+        """Where the 3-wide blocks (frames, keyframes) end and the landmarks' 2-wide begin."""
+        return 3 * (len(self._frames) + len(self._keys))
 
     def _landmark_slice(self, i: int) -> slice:
         first = self._poses_end + 2 * i
@@ -362,7 +419,7 @@ class PlanarEkf:
         h_pose += weights[~known].sum(axis=0)  # unknown keyframes: placed without error
         if np.any(known):
             w, i = weights[known], where[known]
-            first = 3 if self._has_offset else 0
+            first = 3 * len(self._frames)
             errors = self._mean[first : self._poses_end].reshape(-1, 3)[i]
             moved, d_pose, d_key = _seen_from(np.array(self._key_poses)[i], errors, x)
             step = moved - x
@@ -395,6 +452,7 @@ class PlanarEkf:
         landmark_covariance: np.ndarray,
         gate: float | None = GATE_2DOF,
         key: int | None = None,
+        frame: Hashable | None = None,
     ) -> bool:
         """Fuse a landmark (paper Alg. 3): an object whose position (x, y) `landmark` in this
         agent's frame is known with `landmark_covariance` (2x2), seen at `seen` (x, y) in the
@@ -417,33 +475,56 @@ class PlanarEkf:
         beyond drops the least recently seen (marginalised out; it re-enters with its
         published prior if seen again, counted a second time: the bound should exceed the
         landmarks in use). A landmark unseen for long is kept: its error is as valid as when
-        it was last seen, and the bound caps the state."""
+        it was last seen, and the bound caps the state.
+
+        With `frame` (`reset_frame` first), `landmark` came into this agent's frame through
+        that frame's alignment, whose error the filter estimates (shared by every landmark and
+        fix through it): the true position is the published one moved back by the frame's
+        error b, b^-1(landmark) (- e with `key`), and `landmark_covariance` is the landmark's
+        own error alone, without the alignment's. A keyed landmark whose frame was reset since
+        its last sighting (a new alignment) moved with the alignment, not the truth: e's mean
+        stays."""
         z, r_seen, lm, r_lm = _checked_landmark(
             seen, seen_covariance, landmark, landmark_covariance
         )
         x = self.kf.x.ravel()
         c, s = math.cos(x[2]), math.sin(x[2])
         rt = np.array([[c, s], [-s, c]])  # world -> body
+        h_rest = np.zeros((2, len(self._mean)))
+        through: tuple[Hashable, int] | None = None
+        true = lm  # the true position the filter estimates, before the landmark's own error
+        if frame is not None:
+            fi, frows = self._used(frame, f"landmark through frame {frame!r}")
+            through = (frame, self._frames[fi].resets)
+            b = self._mean[frows]
+            cb, sb = math.cos(b[2]), math.sin(b[2])
+            true = np.array([[cb, sb], [-sb, cb]]) @ (lm - b[:2])  # b^-1(landmark)
+            d_b = np.zeros((2, 3))  # of b^-1(landmark) by b
+            d_b[:, :2] = -np.array([[cb, sb], [-sb, cb]])
+            d_b[:, 2] = (true[1], -true[0])
+            h_rest[:, frows] = rt @ d_b
         if key is None:
-            d = lm - x[:2]
+            d = true - x[:2]
             jac = _landmark_jacobian(rt, d, c, s)
-            return self._fuse(jac, None, z - rt @ d, r_seen + rt @ r_lm @ rt.T, gate)
+            hr = None if frame is None else h_rest
+            return self._fuse(jac, hr, z - rt @ d, r_seen + rt @ r_lm @ rt.T, gate)
         new = int(key) not in self.landmarks
         if new:
             self._insert(len(self._mean), np.zeros(2), r_lm)
-            self._landmarks.append(_Landmark(int(key), lm, r_lm, 0))
+            h_rest = np.hstack([h_rest, np.zeros((2, 2))])
+            self._landmarks.append(_Landmark(int(key), lm, r_lm, 0, through))
         i = self.landmarks.index(int(key))
         rows = self._landmark_slice(i)
         entry = self._landmarks[i]
-        self._mean[rows] += lm - entry.published  # the same truth, published elsewhere
+        if entry.through == through:  # the same truth, published elsewhere
+            self._mean[rows] += lm - entry.published
         grown = r_lm - entry.accounted
         w, v = np.linalg.eigh(0.5 * (grown + grown.T))
         q = (v * np.maximum(w, 0.0)) @ v.T  # the positive part of the growth
         self._cov[rows, rows] += q
-        entry.published, entry.accounted = lm, entry.accounted + q
-        d = lm - self._mean[rows] - x[:2]  # to the true position the filter estimates
+        entry.published, entry.accounted, entry.through = lm, entry.accounted + q, through
+        d = true - self._mean[rows] - x[:2]  # to the true position the filter estimates
         jac = _landmark_jacobian(rt, d, c, s)
-        h_rest = np.zeros((2, len(self._mean)))
         h_rest[:, rows] = -rt
         fused = self._fuse(jac, h_rest, z - rt @ d, r_seen, gate)
         self._landmark_clock += 1
@@ -501,85 +582,98 @@ class PlanarEkf:
         self.accepted += 1
         return True
 
-    def reset_offset(self, covariance: np.ndarray) -> None:
-        """Start estimating a new shared map's error: zero, with `covariance` (x, y, yaw about
-        the origin: the alignment's), uncorrelated with the pose and the keyframes."""
-        c = _checked_covariance(covariance, "offset")
-        if not self._has_offset:
-            m = len(self._mean)
-            self._mean = np.concatenate([np.zeros(3), self._mean])
-            self._cov = np.block(
-                [[np.zeros((3, 3)), np.zeros((3, m))], [np.zeros((m, 3)), self._cov]]
-            )
-            self._cross = np.hstack([np.zeros((3, 3)), self._cross])
-            self._has_offset = True
-        self._mean[:3] = 0.0
-        self._cov[:3, :] = 0.0
-        self._cov[:, :3] = 0.0
-        self._cov[:3, :3] = c
-        self._cross[:, :3] = 0.0
-        self._offset_prior = c.copy()
+    def reset_frame(self, key: Hashable, covariance: np.ndarray) -> None:
+        """Start estimating a new error of frame `key` (an alignment measurements come through,
+        changed or first seen): zero, with `covariance` (x, y, yaw about the origin: the
+        alignment's), uncorrelated with the pose and the rest of the state. Beyond
+        `max_frames` the least recently used other frame is dropped (marginalised out)."""
+        c = _checked_covariance(covariance, "offset" if key == COLONY else f"frame {key!r}")
+        i = self._frame_index(key)
+        if i is None:
+            i = len(self._frames)
+            self._insert(3 * i, np.zeros(3), np.zeros((3, 3)))
+            self._frames.append(_Frame(key, c.copy(), 0, 0))
+            if len(self._frames) > self.max_frames:
+                others = [j for j in range(len(self._frames)) if j != i]
+                oldest = min(others, key=lambda j: self._frames[j].used)
+                self._remove(np.arange(3 * oldest, 3 * oldest + 3))
+                del self._frames[oldest]
+                i = self._frame_index(key)
+                assert i is not None
+        rows = self._frame_slice(i)
+        self._mean[rows] = 0.0
+        self._cov[rows, :] = 0.0
+        self._cov[:, rows] = 0.0
+        self._cov[rows, rows] = c
+        self._cross[:, rows] = 0.0
+        f = self._frames[i]
+        self._frame_clock += 1
+        f.accounted, f.resets, f.used = c.copy(), self._frame_clock, self._frame_clock
 
-    def widen_offset(self, covariance: np.ndarray) -> np.ndarray:
-        """The shared map's error now has the prior `covariance` (x, y, yaw about the origin), as
-        its sources say today (a peer that drifted or got lost since `reset_offset`): add, as
+    def widen_frame(self, key: Hashable, covariance: np.ndarray) -> np.ndarray:
+        """Frame `key`'s error now has the prior `covariance` (x, y, yaw about the origin), as
+        its sources say today (a peer that drifted or got lost since `reset_frame`): add, as
         process noise, its growth beyond what is accounted for, and return that noise (3x3).
 
-        The map's error is modelled as a random walk: b' = b + w, w independent of everything
-        else, so the offset's mean and its correlations with the pose and the keyframes stay and
-        its covariance gains cov(w) = Q. Q is `covariance` minus the prior accounted for so far,
-        where that is positive semi-definite; otherwise its positive part (the directions in
-        which the error grew; an eigenvalue below zero is a source more certain than before,
-        which is no evidence that the map here improved: only a measurement shrinks the
-        filter's covariance). What the filter learnt from matches is kept: it only widens."""
-        if not self._has_offset:
-            msg = "offset widening: expected reset_offset() first"
-            raise LocalisationError(msg)
-        c = _checked_covariance(covariance, "offset widening")
-        if np.array_equal(c, self._offset_prior):
+        The frame's error is modelled as a random walk: b' = b + w, w independent of everything
+        else, so the frame's mean and its correlations with the rest stay and its covariance
+        gains cov(w) = Q. Q is `covariance` minus the prior accounted for so far, where that is
+        positive semi-definite; otherwise its positive part (the directions in which the error
+        grew; an eigenvalue below zero is a source more certain than before, which is no
+        evidence that the frame here improved: only a measurement shrinks the filter's
+        covariance). What the filter learnt from measurements is kept: it only widens."""
+        what = "offset widening" if key == COLONY else f"frame {key!r} widening"
+        i, rows = self._used(key, what)
+        c = _checked_covariance(covariance, what)
+        f = self._frames[i]
+        if np.array_equal(c, f.accounted):
             return np.zeros((3, 3))
-        q = frame_error.positive(c - self._offset_prior)
-        self._cov[:3, :3] += q
-        self._offset_prior = self._offset_prior + q
+        q = frame_error.positive(c - f.accounted)
+        self._cov[rows, rows] += q
+        f.accounted = f.accounted + q
         return q
 
-    def walk_offset(self, noise: np.ndarray, about: np.ndarray) -> np.ndarray:
-        """Let the shared map's error wander: add `noise` (3x3: x, y and yaw of a small motion
-        about the point `about` (x, y) of the agent's frame, where the agent now is) to the
-        offset as process noise, and return it as the offset's (x, y, yaw about the origin).
+    def walk_frame(self, key: Hashable, noise: np.ndarray, about: np.ndarray) -> np.ndarray:
+        """Let frame `key`'s error wander: add `noise` (3x3: x, y and yaw of a small motion about
+        the point `about` (x, y) of the agent's frame, where the agent now is) to it as process
+        noise, and return it as the frame's (x, y, yaw about the origin).
 
-        A random walk as in `widen_offset` (b' = b + w; the mean and the correlations stay, the
+        A random walk as in `widen_frame` (b' = b + w; the mean and the correlations stay, the
         covariance only widens), with the noise taken about `about` rather than the origin: a
         map's error that varies from place to place is a local shift and turn there, and a
         turn about the origin would also move the map here by the turn times the distance to
         the origin."""
-        if not self._has_offset:
-            msg = "offset walk: expected reset_offset() first"
-            raise LocalisationError(msg)
-        q_local = _checked_covariance(noise, "offset walk")
+        what = "offset walk" if key == COLONY else f"frame {key!r} walk"
+        _, rows = self._used(key, what)
+        q_local = _checked_covariance(noise, what)
         c = np.asarray(about, np.float64).reshape(-1)
         if c.shape != (2,) or not np.all(np.isfinite(c)):
-            msg = f"offset walk: expected a finite point (x, y), found {c}"
+            msg = f"{what}: expected a finite point (x, y), found {c}"
             raise LocalisationError(msg)
         # b' = (t + dθ J (t - c) + dt, yaw + dθ) for a turn dθ about c and a shift dt: a turn
-        # about c seen from the offset's own translation t
-        q: np.ndarray = frame_error.about(q_local, c - self._mean[:2])
+        # about c seen from the frame's own translation t
+        q: np.ndarray = frame_error.about(q_local, c - self._mean[rows][:2])
         q = 0.5 * (q + q.T)
-        self._cov[:3, :3] += q
+        self._cov[rows, rows] += q
         return q
 
-    def update_offset(
-        self, pose: np.ndarray, covariance: np.ndarray, gate: float | None = GATE_3DOF
+    def update_frame(
+        self,
+        key: Hashable,
+        pose: np.ndarray,
+        covariance: np.ndarray,
+        gate: float | None = GATE_3DOF,
     ) -> bool:
-        """Fuse a pose (x, y, yaw) measured against the shared map whose error `offset` holds
-        (`reset_offset` first): the measurement is the true pose moved by that error, so it
-        corrects pose and error together. False (and no change) when gated out."""
-        if not self._has_offset:
-            msg = "offset update: expected reset_offset() before the first update"
-            raise LocalisationError(msg)
-        z, r = checked_pose(pose, covariance)
+        """Fuse a pose (x, y, yaw) measured through frame `key` (`reset_frame` first: a match
+        against a map that frame's alignment placed, or a fix put into this agent's frame by
+        it) with its own `covariance` alone: the measurement is the true pose moved by the
+        frame's error, so it corrects pose and error together. False (and no change) when
+        gated out."""
+        what = "offset update" if key == COLONY else f"frame {key!r} update"
+        _, rows = self._used(key, what)
+        z, r = checked_pose(pose, covariance, what)
         x = self.kf.x.ravel()
-        b = self._mean[:3]
+        b = self._mean[rows]
         c, s = math.cos(b[2]), math.sin(b[2])
         rot = np.array([[c, -s], [s, c]])
         moved = rot @ x[:2]
@@ -587,11 +681,29 @@ class PlanarEkf:
         h_x = np.eye(3)
         h_x[:2, :2] = rot
         h_b = np.zeros((3, len(self._mean)))
-        h_b[:, :3] = np.eye(3)
-        h_b[:2, 2] = (-moved[1], moved[0])
+        h_b[:, rows] = np.eye(3)
+        h_b[:2, rows.start + 2] = (-moved[1], moved[0])
         y = z - h
         y[2] = se2.wrap(float(y[2]))
         return self._fuse(h_x, h_b, y, r, gate)
+
+    def reset_offset(self, covariance: np.ndarray) -> None:
+        """Start estimating a new shared map's error (`reset_frame` of `COLONY`)."""
+        self.reset_frame(COLONY, covariance)
+
+    def widen_offset(self, covariance: np.ndarray) -> np.ndarray:
+        """The shared map's error grew (`widen_frame` of `COLONY`)."""
+        return self.widen_frame(COLONY, covariance)
+
+    def walk_offset(self, noise: np.ndarray, about: np.ndarray) -> np.ndarray:
+        """Let the shared map's error wander (`walk_frame` of `COLONY`)."""
+        return self.walk_frame(COLONY, noise, about)
+
+    def update_offset(
+        self, pose: np.ndarray, covariance: np.ndarray, gate: float | None = GATE_3DOF
+    ) -> bool:
+        """Fuse a pose matched against the shared map (`update_frame` of `COLONY`)."""
+        return self.update_frame(COLONY, pose, covariance, gate)
 
 
 #: Relative asymmetry and negative eigenvalue (of the largest variance) a covariance may have:

@@ -5,15 +5,16 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Hashable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from voxel.localisation import se2
+from voxel.localisation import frame_error, se2
 from voxel.localisation.colony_map import ColonyMap
 from voxel.localisation.drift import OffsetWalk
-from voxel.localisation.ekf import MotionNoise, PlanarEkf
+from voxel.localisation.ekf import COLONY, MotionNoise, PlanarEkf
 from voxel.localisation.pose_graph import PoseGraph
 from voxel.localisation.scan_match import LocalMap, Match, MatchTarget, match, thin
 
@@ -59,8 +60,26 @@ class ScanParams:
     #: published error counted every time (docs/BENCHMARKS.md "A landmark's error counted
     #: once").
     landmark_errors: bool = True
+    #: Estimate the error of each alignment fixes and landmarks come through (a CCTV's frame,
+    #: a peer's) as one state of the filter, keyed by its origin, counted once
+    #: (`PlanarEkf.reset_frame`): the callers then give a fix's and a landmark's own covariance
+    #: and the alignment (`Through`) apart. False: the alignment's error added to each (the
+    #: default until its A/B; docs/BENCHMARKS.md "An alignment's error as one shared state").
+    alignment_frames: bool = False
     history: int = 100  # (time, pose) of the last steps, to carry a late fix to the present
     fix_tolerance: float = 0.15  # seconds between a fix's stamp and the nearest step
+
+
+@dataclass(frozen=True)
+class Through:
+    """The alignment a fix or a landmark came through into this agent's frame: its origin (the
+    frame the measurement was made in: a CCTV, a peer), the alignment's identity (its transform,
+    rounded: a changed alignment is a new error) and its error's covariance (x, y, yaw: a small
+    motion about this agent's origin, as `frame_error`'s)."""
+
+    origin: str
+    alignment: bytes
+    covariance: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -123,6 +142,9 @@ class ScanLocaliser:
         self._colony_outcomes: deque[bool] = deque(maxlen=self.params.colony_window)
         self._distrusted: bytes | None = None  # the alignment of a colony map that disagreed
         self._offset_of: bytes | None = None  # the alignment whose error the filter estimates
+        #: per origin the alignment whose error the filter estimates (`Through`)
+        self._frames_of: dict[str, bytes] = {}
+        self._graph_offsets: dict[Hashable, int] = {}  # the graph's offset variable per frame
         self._travel = np.zeros(2)  # m driven and rad turned since the last colony match
         self.fix_accepted = self.fix_rejected = self.fix_stale = 0
         self.landmark_accepted = self.landmark_rejected = 0
@@ -222,12 +244,21 @@ class ScanLocaliser:
         from a sensor that is ahead of this agent (it maps late), to be fused once it gets there."""
         return bool(self.history) and stamp > self.history[-1][0] + self.params.fix_tolerance
 
-    def fix(self, pose: np.ndarray, covariance: np.ndarray, stamp: float) -> bool | None:
+    def fix(
+        self,
+        pose: np.ndarray,
+        covariance: np.ndarray,
+        stamp: float,
+        through: Through | None = None,
+    ) -> bool | None:
         """Fuse an absolute measurement of the body pose (x, y, yaw) in this agent's frame, taken
         at `stamp` (a CCTV saw the agent's marker): carried to the present by the estimated motion
         since the step nearest `stamp`, its covariance widened by the filter's motion noise over
-        that motion, and gated like every update. None (and nothing changes) when `stamp` is not
-        within `fix_tolerance` of a recent step."""
+        that motion, and gated like every update. With `through`, the fix came through that
+        alignment, whose error the filter estimates as one state per origin (`covariance` is
+        the fix's own, without the alignment's): measured as the true pose moved by that error
+        (`PlanarEkf.update_frame`). None (and nothing changes) when `stamp` is not within
+        `fix_tolerance` of a recent step."""
         then = self.pose_at(stamp)
         if self.ekf is None or then is None:
             self.fix_stale += 1
@@ -240,11 +271,15 @@ class ScanLocaliser:
             [m.trans**2 * d, m.trans**2 * d, m.rot**2 * abs(motion[2]) + m.rot_per_m**2 * d]
         )
         r = np.asarray(covariance, np.float64) + widen
-        fused = self.ekf.update(z, r)
+        key = None if through is None else self._through(through)
+        fused = self.ekf.update(z, r) if key is None else self.ekf.update_frame(key, z, r)
         if fused:
             self.fix_accepted += 1
             if self.graph is not None:
-                self.graph.add_absolute(z, r)
+                if key is None:
+                    self.graph.add_absolute(z, r)
+                else:
+                    self.graph.add_colony(z, r, self._graph_offsets[key])
                 self.graph.place(self.ekf.pose)
         else:
             self.fix_rejected += 1
@@ -257,27 +292,38 @@ class ScanLocaliser:
         landmark: np.ndarray,
         landmark_covariance: np.ndarray,
         key: int | None = None,
+        through: Through | None = None,
     ) -> bool | None:
         """Fuse a landmark (paper Alg. 3): an identified object (id `key`) seen at `seen` (x, y,
         body frame, now) whose position `landmark` (x, y, this agent's frame) the colony knows
         (`PlanarEkf.update_landmark`, gated; with `landmark_errors` its error is estimated
         under `key`, counted once, and the pose graph, when recording, keeps the landmark as
-        a variable too). None before the first step."""
+        a variable too). With `through`, the landmark came through that alignment, whose error
+        the filter estimates as one state per origin, shared with the fixes through it
+        (`landmark_covariance` is the landmark's own, without the alignment's). The pose
+        graph does not model that frame for landmarks: it keeps the landmark with the
+        alignment's error added to its covariance, as without `through`. None before the
+        first step."""
         if self.ekf is None:
             return None
         yaw = float(self.ekf.pose[2])
         keyed = key if self.params.landmark_errors else None
+        frame = None if through is None else self._through(through)
         fused = self.ekf.update_landmark(
-            seen, seen_covariance, landmark, landmark_covariance, key=keyed
+            seen, seen_covariance, landmark, landmark_covariance, key=keyed, frame=frame
         )
         if fused:
             self.landmark_accepted += 1
             if self.graph is not None:
+                shared = np.zeros((2, 2))
+                if through is not None:
+                    xy = np.asarray(landmark, np.float64).reshape(2)
+                    shared = frame_error.at(through.covariance, xy)[:2, :2]
                 self.graph.add_landmark(
                     seen,
                     seen_covariance,
                     landmark,
-                    landmark_covariance,
+                    np.asarray(landmark_covariance, np.float64) + shared,
                     yaw,
                     key=keyed,
                 )
@@ -285,6 +331,25 @@ class ScanLocaliser:
         else:
             self.landmark_rejected += 1
         return fused
+
+    def _through(self, through: Through) -> Hashable:
+        """The filter's frame for the alignment `through` (its key): a new error, zero with the
+        alignment's covariance, when the origin's alignment changed or the filter dropped it
+        (`PlanarEkf.reset_frame`); else widened by the growth of its claim (`widen_frame`).
+        The pose graph, when recording, follows (`reset_offset`, `walk_offset`)."""
+        assert self.ekf is not None  # the first step made it
+        key = ("alignment", through.origin)
+        graph = self.graph
+        if self.ekf.frame(key) is None or self._frames_of.get(through.origin) != through.alignment:
+            self.ekf.reset_frame(key, through.covariance)
+            self._frames_of[through.origin] = through.alignment
+            if graph is not None:
+                self._graph_offsets[key] = graph.reset_offset(through.covariance)
+        else:
+            noise = self.ekf.widen_frame(key, through.covariance)
+            if graph is not None and np.any(noise):
+                self._graph_offsets[key] = graph.walk_offset(noise, self._graph_offsets[key])
+        return key
 
     def _match(self, pts: np.ndarray, target: LocalMap | ColonyMap, **extra: Any) -> Match:
         """The scan matched (x, y, yaw) against `target` from the current estimate (for the own
@@ -335,7 +400,7 @@ class ScanLocaliser:
             self.ekf.reset_offset(colony.covariance)  # new alignments: a new error to estimate
             self._offset_of = colony.alignment
             if self.graph is not None:
-                self.graph.reset_offset(colony.covariance)
+                self._graph_offsets[COLONY] = self.graph.reset_offset(colony.covariance)
         else:  # the same alignments; a peer that drifted or got lost since widens their error
             grown = [self.ekf.widen_offset(colony.covariance)]
             walk = self.walk_of(colony)
@@ -346,13 +411,17 @@ class ScanLocaliser:
                 grown.append(self.ekf.walk_offset(walk.noise(travel), self.ekf.pose[:2]))
             noise = sum(grown[1:], grown[0])
             if self.graph is not None and np.any(noise):
-                self.graph.walk_offset(noise)
+                self._graph_offsets[COLONY] = self.graph.walk_offset(
+                    noise, self._graph_offsets[COLONY]
+                )
         self._travel = np.zeros(2)
         fused = self.ekf.update_offset(se2.from_matrix(result.pose), result.covariance)
         if fused:
             self.colony_accepted += 1
             if self.graph is not None:
-                self.graph.add_colony(se2.from_matrix(result.pose), result.covariance)
+                self.graph.add_colony(
+                    se2.from_matrix(result.pose), result.covariance, self._graph_offsets[COLONY]
+                )
         else:
             self.colony_rejected += 1
         outcomes = self._colony_outcomes

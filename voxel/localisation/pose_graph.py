@@ -241,32 +241,44 @@ class PoseGraph:
         """Number of keyed landmark variables."""
         return len(self._landmark_prior)
 
-    def reset_offset(self, covariance: np.ndarray) -> None:
-        """A new shared map's error: a new offset variable, zero with `covariance`."""
+    def reset_offset(self, covariance: np.ndarray) -> int:
+        """A new shared map's (or alignment's) error: a new offset variable, zero with
+        `covariance`; its index."""
         self.offsets += 1
         self._offset_prior.add(
             np.array([[self.offsets - 1]]), np.zeros((1, 3)), _information(covariance)[None]
         )
+        return self.offsets - 1
 
-    def walk_offset(self, covariance: np.ndarray) -> None:
-        """The shared map's error grew by `covariance` (process noise about the origin): a new
-        offset variable, the last one plus that noise."""
-        if not self.offsets:
-            msg = "pose graph: expected reset_offset() before walk_offset()"
-            raise LocalisationError(msg)
+    def walk_offset(self, covariance: np.ndarray, offset: int | None = None) -> int:
+        """Offset `offset`'s error (None: the newest offset) grew by `covariance` (process noise
+        about the origin): a new offset variable, that one plus the noise; its index."""
+        before = self._offset(offset, "walk_offset")
         self.offsets += 1
-        pair = np.array([[self.offsets - 2, self.offsets - 1]])
+        pair = np.array([[before, self.offsets - 1]])
         # a direction the noise leaves out is one the error keeps: nearly rigid there
         floored = np.asarray(covariance, np.float64) + WALK_FLOOR * np.eye(3)
         self._offset_walk.add(pair, np.zeros((1, 3)), _information(floored)[None])
+        return self.offsets - 1
 
-    def add_colony(self, pose: np.ndarray, covariance: np.ndarray) -> None:
-        """A pose (x, y, yaw) matched against the shared map, fused at the newest node through
-        the current offset."""
+    def _offset(self, offset: int | None, what: str) -> int:
         if not self.offsets:
-            msg = "pose graph: expected reset_offset() before add_colony()"
+            msg = f"pose graph: expected reset_offset() before {what}()"
             raise LocalisationError(msg)
-        pair = np.array([[self.nodes - 1, self.offsets - 1]])
+        if offset is None:
+            return self.offsets - 1
+        if not 0 <= offset < self.offsets:
+            msg = f"pose graph: {what}: expected an offset below {self.offsets}, found {offset}"
+            raise LocalisationError(msg)
+        return offset
+
+    def add_colony(
+        self, pose: np.ndarray, covariance: np.ndarray, offset: int | None = None
+    ) -> None:
+        """A pose (x, y, yaw) measured through an offset (matched against the shared map, or a
+        fix through an alignment whose error the filter estimates), fused at the newest node
+        through offset `offset` (None: the newest)."""
+        pair = np.array([[self.nodes - 1, self._offset(offset, "add_colony")]])
         z = np.asarray(pose, np.float64).reshape(1, 3)
         self._colony.add(pair, z, _information(covariance)[None])
 
