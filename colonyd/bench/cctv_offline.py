@@ -471,6 +471,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     variants = args.variants.split(",")
     if not set(variants) <= set(VARIANTS):
         parser.error(f"--variants: expected names of {VARIANTS}, found {args.variants!r}")
+    if args.alignment == "state" and args.fix_model in ("new", "shared"):
+        # (their counts and the camera's shared bias ride on the alignment's error per fix)
+        parser.error(
+            f"--fix-model {args.fix_model}: expected old or fitted with --alignment state (the "
+            "alignment's error is then a state, not added to each fix)"
+        )
     modes = args.peer_points.split(",")
     if not set(modes) <= set(PEER_POINTS):
         parser.error(f"--peer-points: expected names of {PEER_POINTS}, found {args.peer_points!r}")

@@ -128,3 +128,27 @@ def test_an_estimator_passes_the_alignment_of_its_landmarks() -> None:
     assert est.counts()["landmark_accepted"] == 1
     ekf = est.localiser.ekf
     assert ekf is not None and ekf.frames == [("alignment", "cctv")] and ekf.landmarks == [4]
+
+
+def test_an_alignment_compares_by_identity_and_a_bad_claim_leaves_the_frames_order_alone() -> None:
+    """`Through` holds an array: compared and hashed by identity, never raising; a widening or a
+    walk with a bad covariance raises before it marks its frame as used, so the frame dropped
+    next (the least recently used) is the same as without the bad call."""
+    import pytest
+
+    from voxel.errors import LocalisationError
+
+    a = through(FRAME, "me", "cctv")
+    b = through(FRAME, "me", "cctv")
+    assert a is not None and b is not None
+    assert a == a and a != b and len({a, b}) == 2  # (a dataclass with eq would raise here)
+    ekf = PlanarEkf(np.zeros(3))
+    ekf.max_frames = 2
+    ekf.reset_frame("old", np.eye(3) * 1e-4)
+    ekf.reset_frame("new", np.eye(3) * 1e-4)
+    with pytest.raises(LocalisationError, match="non-finite"):
+        ekf.widen_frame("old", np.full((3, 3), np.nan))
+    with pytest.raises(LocalisationError, match="finite point"):
+        ekf.walk_frame("old", np.eye(3) * 1e-6, np.array([np.inf, 0.0]))
+    ekf.reset_frame("third", np.eye(3) * 1e-4)  # drops the least recently used: "old"
+    assert ekf.frames == ["new", "third"]

@@ -623,8 +623,8 @@ class PlanarEkf:
         evidence that the frame here improved: only a measurement shrinks the filter's
         covariance). What the filter learnt from measurements is kept: it only widens."""
         what = "offset widening" if key == COLONY else f"frame {key!r} widening"
+        c = _checked_covariance(covariance, what)  # (checked before the frame counts as used)
         i, rows = self._used(key, what)
-        c = _checked_covariance(covariance, what)
         f = self._frames[i]
         if np.array_equal(c, f.accounted):
             return np.zeros((3, 3))
@@ -644,12 +644,12 @@ class PlanarEkf:
         turn about the origin would also move the map here by the turn times the distance to
         the origin."""
         what = "offset walk" if key == COLONY else f"frame {key!r} walk"
-        _, rows = self._used(key, what)
         q_local = _checked_covariance(noise, what)
         c = np.asarray(about, np.float64).reshape(-1)
         if c.shape != (2,) or not np.all(np.isfinite(c)):
             msg = f"{what}: expected a finite point (x, y), found {c}"
             raise LocalisationError(msg)
+        _, rows = self._used(key, what)
         # b' = (t + dθ J (t - c) + dt, yaw + dθ) for a turn dθ about c and a shift dt: a turn
         # about c seen from the frame's own translation t
         q: np.ndarray = frame_error.about(q_local, c - self._mean[rows][:2])
@@ -670,8 +670,8 @@ class PlanarEkf:
         frame's error, so it corrects pose and error together. False (and no change) when
         gated out."""
         what = "offset update" if key == COLONY else f"frame {key!r} update"
-        _, rows = self._used(key, what)
         z, r = checked_pose(pose, covariance, what)
+        _, rows = self._used(key, what)
         x = self.kf.x.ravel()
         b = self._mean[rows]
         c, s = math.cos(b[2]), math.sin(b[2])
@@ -715,8 +715,11 @@ def _checked_covariance(covariance: np.ndarray, what: str) -> np.ndarray:
     """A 3x3 covariance (symmetrised), or an error saying what was wrong: finite, symmetric and
     positive semi-definite within `COVARIANCE_TOLERANCE` of its largest variance."""
     c = np.asarray(covariance, np.float64)
-    if c.shape != (3, 3) or not np.all(np.isfinite(c)):
+    if c.shape != (3, 3):
         msg = f"{what}: expected a finite 3x3 covariance, found shape {c.shape}"
+        raise LocalisationError(msg)
+    if not np.all(np.isfinite(c)):
+        msg = f"{what}: expected a finite 3x3 covariance, found non-finite values {c.tolist()}"
         raise LocalisationError(msg)
     found = frame_error.problem(c, COVARIANCE_TOLERANCE)
     if found is not None:

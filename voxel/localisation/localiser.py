@@ -70,12 +70,13 @@ class ScanParams:
     fix_tolerance: float = 0.15  # seconds between a fix's stamp and the nearest step
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Through:
     """The alignment a fix or a landmark came through into this agent's frame: its origin (the
     frame the measurement was made in: a CCTV, a peer), the alignment's identity (its transform,
     rounded: a changed alignment is a new error) and its error's covariance (x, y, yaw: a small
-    motion about this agent's origin, as `frame_error`'s)."""
+    motion about this agent's origin, as `frame_error`'s). Compared and hashed by identity
+    (its covariance is an array): the frame's key is (origin, alignment)."""
 
     origin: str
     alignment: bytes
