@@ -61,11 +61,14 @@ def marker_corners(length: float) -> np.ndarray:
     return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
 
 
-def refine_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray:
-    """`edge_corners`, or the detector's corners `quad` (4, 2) where its lines cannot be fitted
-    (a detection that falls back: `FALLBACK_CORNER_PX`)."""
+def refine_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> tuple[np.ndarray, float]:
+    """A detected marker's corners (4, 2) and how well its apparent side is known (pixels, one
+    standard deviation: `marker_covariance`'s `corner_px`): `edge_corners` and `CORNER_PX`, or
+    the detector's corners `quad` and `FALLBACK_CORNER_PX` where its lines cannot be fitted."""
     edges = edge_corners(grey, quad, cells)
-    return np.asarray(quad, np.float64).reshape(4, 2) if edges is None else edges
+    if edges is None:
+        return np.asarray(quad, np.float64).reshape(4, 2), FALLBACK_CORNER_PX
+    return edges, CORNER_PX
 
 
 def edge_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray | None:
@@ -108,7 +111,8 @@ def edge_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray |
     weight = fall.sum(axis=2)
     if np.any(weight <= 1e-6):
         return None
-    offset = (fall @ (0.5 * (across[:-1] + across[1:]))) / weight  # (4, A)
+    at = 0.5 * (across[:-1] + across[1:])
+    offset = (fall @ at) / weight  # (4, A)
     edge = base + offset[..., None] * normal[:, None, :]
     centre = edge.mean(axis=1)
     _, _, vt = np.linalg.svd(edge - centre[:, None, :])
@@ -240,8 +244,7 @@ class CctvCamera:
         for detected, marker in zip(corners, ids.reshape(-1), strict=True):
             on_agent = self.agent_markers.get(int(marker))
             model = marker_corners(self.marker_length if on_agent is None else on_agent[2])
-            edges = edge_corners(grey, detected.reshape(4, 2), self.cells)
-            quad = detected.reshape(4, 2).astype(np.float64) if edges is None else edges
+            quad, corner_px = refine_corners(grey, detected.reshape(4, 2), self.cells)
             ok, rvec, tvec = cv2.solvePnP(
                 model, quad, self.K, self.distortion, flags=cv2.SOLVEPNP_IPPE_SQUARE
             )
@@ -269,7 +272,6 @@ class CctvCamera:
                 pose = pose @ np.linalg.inv(on_agent[1])
                 label = f"{AGENT_LABEL}{on_agent[0]}"
             else:
-                corner_px = CORNER_PX if edges is not None else FALLBACK_CORNER_PX
                 covariance = marker_covariance(pose[:3, 3], float(sides.mean()), corner_px)
             found.append(
                 ObjectDetection(

@@ -86,7 +86,7 @@ def corner_errors(
     out = {}
     centre = uv.mean(axis=0)
     outward = (uv - centre) / np.linalg.norm(uv - centre, axis=1)[:, None]
-    for name, quad in (("subpix", found), ("edges", refine_corners(grey, found, camera.cells))):
+    for name, quad in (("subpix", found), ("edges", refine_corners(grey, found, camera.cells)[0])):
         inward = -float(np.einsum("ij,ij->i", quad - uv, outward).mean()) / math.sqrt(2.0)
         _, _, tvec = cv2.solvePnP(
             marker_corners(LENGTH), quad, camera.K, None, flags=cv2.SOLVEPNP_IPPE

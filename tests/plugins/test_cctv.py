@@ -158,7 +158,8 @@ def test_refined_corners_of_an_area_sampled_square_are_exact() -> None:
     band = (local.max(axis=2) <= 10.0) & (local.max(axis=2) > 10.0 - 20.0 / 6)
     grey = (255 * (1 - band.reshape(n, s, n, s).mean(axis=(1, 3)))).astype(np.float32)
     start = corners + np.array([[0.4, 0.3], [-0.3, 0.4], [-0.4, -0.3], [0.3, -0.4]])  # inside
-    refined = refine_corners(np.round(grey).astype(np.uint8), start, 6)
+    refined, corner_px = refine_corners(np.round(grey).astype(np.uint8), start, 6)
+    assert corner_px == CORNER_PX
     assert np.abs(refined - corners).max() < 0.03
 
 
@@ -171,7 +172,9 @@ def test_a_marker_600_px_wide_is_refined_too() -> None:
     inner = (np.abs(yx - 400.0).max(axis=0)) <= 200.0
     grey = np.where(outer & ~inner, 0, 255).astype(np.uint8)
     corners = np.array([[99.5, 99.5], [700.5, 99.5], [700.5, 700.5], [99.5, 700.5]])
-    refined = refine_corners(grey, corners + np.array([[1.0, 1.0], [-1, 1], [-1, -1], [1, -1]]), 6)
+    refined, _ = refine_corners(
+        grey, corners + np.array([[1.0, 1.0], [-1, 1], [-1, -1], [1, -1]]), 6
+    )
     assert np.abs(refined - corners).max() < 0.1
 
 
