@@ -26,7 +26,7 @@ import math
 import cv2
 import numpy as np
 
-from plugins.cctv import CctvCamera, CctvFrame, marker_corners, refine_corners
+from plugins.cctv import CORNER_PX, CctvCamera, CctvFrame, marker_corners, refine_corners
 from plugins.checks import pose_matrix
 from plugins.sim import OPTICAL, Rig, make_rig, render
 from plugins.world import CLASSES, Box, Marker, World
@@ -163,6 +163,7 @@ def clutter(distances: list[float]) -> list[dict[str, float]]:
                     continue
                 grey = cv2.cvtColor(banded, cv2.COLOR_BGR2GRAY)
                 detected = camera.detector.detectMarkers(grey)[0][0].reshape(4, 2)
+                claim = refine_corners(grey, detected, camera.cells)[1]
                 error = float((found[0].position - truth) @ ray)
                 sd = float(np.sqrt(ray @ found[0].covariance @ ray))
                 rows.append(
@@ -173,7 +174,7 @@ def clutter(distances: list[float]) -> list[dict[str, float]]:
                         "along_m": error,
                         "claimed_m": sd,
                         "sigmas": abs(error) / sd,
-                        "fallback": float(np.array_equal(found[0].corners, detected)),
+                        "fallback": float(claim != CORNER_PX),
                     }
                 )
     return rows
