@@ -42,6 +42,14 @@ FALLBACK_CORNER_PX = 1.0
 #: step (pixels) of the samples across it (`refine_corners`).
 EDGE_ALONG = np.linspace(0.2, 0.8, 9)
 EDGE_STEP = 0.1
+#: The widest (pixels, one standard deviation about its centroid) an edge's fall across a side
+#: may be at any of its samples: one blurred edge's is narrow (0.29 px for a hard step sampled
+#: bilinearly; the sim's renders 0.38-0.75 px over 175 markers and boards at 3-15 m), a sample
+#: window holding two falls (the square's edge and clutter's, e.g. a dark band 1-5 px outside a
+#: side) is as wide as half their distance or more (1.2-4 px measured). A wider one is a fit to
+#: the wrong edge: the detector's corners are kept (`edge_corners` returns None; docs/BENCHMARKS.md
+#: "Clutter beside a marker").
+EDGE_SPREAD_PX = 1.0
 #: The smallest standard deviation (m) of a solved marker's position, along and across the ray.
 MARKER_FLOOR_M = 0.01
 
@@ -86,8 +94,9 @@ def edge_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray |
     0.1 px at 12 px; below ~12 px the border cell is under 2 px wide, its two edges blur
     together and the side comes out up to 0.4 px long (docs/BENCHMARKS.md "The CCTV's marker
     corners"). The sides are taken as straight (no lens distortion). None where a line cannot
-    be fitted or a corner would move more than 1 px + a quarter cell (`refine_corners` then
-    keeps the detector's)."""
+    be fitted, a sample's fall is wider than `EDGE_SPREAD_PX` (two edges in its window: the
+    square's and clutter's) or a corner would move more than 1 px + a quarter cell
+    (`refine_corners` then keeps the detector's)."""
     q = np.asarray(quad, np.float64).reshape(4, 2)
     side = np.roll(q, -1, axis=0) - q  # side i runs from corner i to corner i + 1
     length = np.linalg.norm(side, axis=1)
@@ -113,6 +122,8 @@ def edge_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray |
         return None
     at = 0.5 * (across[:-1] + across[1:])
     offset = (fall @ at) / weight  # (4, A)
+    if np.any((fall @ at**2) / weight - offset**2 > EDGE_SPREAD_PX**2):
+        return None  # a sample's fall is two edges' (the square's and clutter's)
     edge = base + offset[..., None] * normal[:, None, :]
     centre = edge.mean(axis=1)
     _, _, vt = np.linalg.svd(edge - centre[:, None, :])

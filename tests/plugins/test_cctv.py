@@ -204,6 +204,51 @@ def test_a_rendered_markers_range_is_within_1_5_percent_at_5_to_10m(
     assert abs(np.linalg.norm(found.position) - r) < 0.015 * r
 
 
+def with_bands(image: np.ndarray, quad: np.ndarray, out: float, to: float) -> np.ndarray:
+    """`image` with black bands `out` to `to` px outside the sides of `quad` from corner 0 to 1
+    and from corner 3 to 0 (clutter in the marker's white margin)."""
+    import cv2
+
+    image = image.copy()
+    for i in (0, 3):
+        a, b = quad[i], quad[(i + 1) % 4]
+        inward = quad.mean(axis=0) - (a + b) / 2
+        inward /= np.linalg.norm(inward)
+        band = np.array([a - out * inward, b - out * inward, b - to * inward, a - to * inward])
+        cv2.fillPoly(image, [np.round(band).astype(np.int32)], (0, 0, 0))
+    return image
+
+
+@pytest.mark.parametrize(("out", "to"), [(2.5, 5.5), (1.5, 3.5), (3.0, 5.0)])
+def test_clutter_beside_a_marker_is_not_fitted_as_its_edge(out: float, to: float) -> None:
+    """Dark bands a few pixels outside two sides of a 0.2 m marker 2 m away (55 px): the
+    detector's corners move ~1 px out, the edges' sample windows then hold the band's outer edge
+    as well as the square's, and lines fitted to both pulled the marker 7-10 cm along its ray
+    while it claimed 1 cm (the fit moved its corners less than its 1 px + a quarter cell limit).
+    Such a sample's fall is two edges wide (`EDGE_SPREAD_PX`): the corners fall back to the
+    detector's and the claim widens (`FALLBACK_CORNER_PX`), within 3 claimed sd."""
+    import cv2
+
+    world = tagged_pillar()
+    pose = pose_matrix(0.0, 0.0, 1.0, 0.0) @ OPTICAL
+    camera = CctvCamera(pose=pose, fov=math.radians(60), marker_classes={7: CLASSES["landmark"]})
+    image = render(world, "cctv", camera_rig(camera), pose, np.random.default_rng(0), 0.0).image
+    (clean,) = camera.detect(image)
+    assert clean.corners is not None
+    banded = with_bands(image, clean.corners, out, to)
+    (found,) = camera.detect(banded)
+    truth = (np.linalg.inv(pose) @ world.markers[0].frame())[:3, 3]
+    ray = truth / np.linalg.norm(truth)
+    assert found.covariance is not None
+    error = float((found.position - truth) @ ray)
+    claimed = math.sqrt(ray @ found.covariance @ ray)
+    assert abs(error) < 3.0 * claimed, (error, claimed)
+    grey = cv2.cvtColor(banded, cv2.COLOR_BGR2GRAY)
+    detected = camera.detector.detectMarkers(grey)[0][0].reshape(4, 2)
+    assert edge_corners(grey, detected, camera.cells) is None
+    assert refine_corners(grey, detected, camera.cells)[1] == FALLBACK_CORNER_PX
+
+
 def test_a_marker_whose_edge_fit_fails_keeps_the_detectors_corners_and_a_wider_covariance() -> None:
     """Dark bands in the white margin along two sides of a marker (2-6.8 px out, clutter the
     detector ignores) pull their edges' lines off the square: the corners fall back to OpenCV's
