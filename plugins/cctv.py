@@ -297,6 +297,22 @@ class CctvCamera:
             )
         return found
 
+    def board_incidence(self, detection: ObjectDetection) -> float:
+        """The angle (radians, 0-pi/2) between the solved normal of the board an agent's
+        detection was solved from and the camera's ray to it: 0 seen square on, pi/2 edge-on
+        (`colonyd.fixes.fix_covariance`'s "angle" model). Raises for a detection of no agent's
+        board."""
+        found = self.agent_markers.get(detection.object_id)
+        if found is None or not detection.label.startswith(AGENT_LABEL):
+            msg = (
+                f"detection: expected an agent's board (one of {sorted(self.agent_markers)}), "
+                f"found marker {detection.object_id} labelled {detection.label!r}"
+            )
+            raise SensorInputError(msg)
+        board = detection.pose @ found[1]
+        ray = board[:3, 3] / max(float(np.linalg.norm(board[:3, 3])), 1e-9)
+        return float(np.arccos(np.clip(abs(float(board[:3, 2] @ ray)), 0.0, 1.0)))
+
     def _at_board_height(self, marker: np.ndarray, height: float) -> np.ndarray:
         """A robot's board pose (camera frame) moved along the camera's ray through its centre to
         the board's known height above the floor (z = 0 of the camera's surveyed frame): range is
