@@ -290,3 +290,26 @@ def test_a_marker_whose_edge_fit_fails_keeps_the_detectors_corners_and_a_wider_c
     np.testing.assert_allclose(
         clean.covariance, marker_covariance(clean.position, clean_sides, CORNER_PX)
     )
+
+
+@pytest.mark.parametrize("angle", [0.0, 35.0, 60.0])
+def test_a_boards_incidence_is_its_solved_normal_against_the_camera_ray(angle: float) -> None:
+    """A robot's 0.2 m board 2.5 m away seen at 0, 35 and 60 degrees off its normal: its
+    incidence (`board_incidence`, the fix model "angle"'s) is the true angle within 5 degrees;
+    a landmark's detection has none."""
+    world = tagged_pillar()
+    centre = np.array(world.markers[0].centre)
+    a = math.radians(angle)
+    eye = centre + 2.5 * np.array([-math.cos(a), math.sin(a), 0.0])
+    eye[2] = 1.0
+    pose = pose_matrix(eye[0], eye[1], eye[2], -a) @ OPTICAL
+    mount = np.eye(4)
+    mount[2, 3] = centre[2]  # the board 1.05 m above the body (z = 0, the floor)
+    camera = CctvCamera(pose=pose, fov=math.radians(60), agent_markers={7: ("robot-1", mount, 0.2)})
+    frame = render(world, "cctv", camera_rig(camera), pose, np.random.default_rng(0), 0.0)
+    (found,) = camera.detect(frame.image)
+    assert found.label == "agent:robot-1"
+    assert abs(math.degrees(camera.board_incidence(found)) - angle) < 5.0
+    landmark = CctvCamera(pose=pose, fov=math.radians(60)).detect(frame.image)[0]
+    with pytest.raises(SensorInputError, match="detection: expected an agent's board"):
+        camera.board_incidence(landmark)
