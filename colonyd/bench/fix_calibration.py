@@ -14,8 +14,9 @@ range is) against the truth, in pixels of its side (`marker_covariance`'s model)
 `--experiment S`, also the paper experiment's own fixes over S seconds (`cctv_offline.cctv_view`:
 the robots' scripted paths, one image a second). The landmark markers are solved from one image
 (the camera and they are fixed, the image has no noise: every frame repeats it). Tables per range
-bin: mean (a bias the bin's fixes share) and RMS error, RMS over claimed sd, mean NEES. The truth
-only evaluates.
+bin: mean (a bias the bin's fixes share) and RMS error, RMS over claimed sd, mean NEES; the same
+per band of the board's incidence (`ANGLE_BINS`, `CctvCamera.board_incidence`), and the "angle"
+model's growth fitted (`fit_angle`). The truth only evaluates.
 """
 
 from __future__ import annotations
