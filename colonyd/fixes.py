@@ -16,9 +16,10 @@ from voxel.localisation import frame_error, se2
 #: (seed 1: office depth-1 0.041 -> 0.191 m, hall lidar-1 0.047 -> 0.071; the alignment the fixes
 #: go through claims less than its error): the daemon keeps "flat" (5-17x the error below 7.5 m).
 #: "angle" (the fitted model grown with the board's incidence, `FIX_ANGLE_K`) halves the
-#: calibration's edge-on NEES but failed its A/B rule as the fitted one did (seed 1: office
-#: depth-1 0.041 -> 0.452 m, hall lidar-1 0.047 -> 0.077; docs/BENCHMARKS.md "The fix's claim by
-#: the board's angle"): a bench model; the daemon's `_send_fixes` passes no incidence.
+#: calibration's edge-on NEES but failed its A/B rule as the fitted one did (5 of 10
+#: world-seeds; seed 1: office depth-1 0.041 -> 0.452 m, hall lidar-1 0.047 -> 0.077;
+#: docs/BENCHMARKS.md "The fix's claim by the board's angle"): a bench model; the daemon's
+#: `_send_fixes` passes no incidence.
 FIX_MODELS = ("flat", "fitted", "angle")
 FIX_MODEL = "flat"
 #: The flat model: (floor, per metre of range) of the x and y standard deviation (m), and the yaw
