@@ -16,7 +16,12 @@ from voxel.localisation.localiser import Through
 #: experiment's fixes (one board seen edge-on: range alone cannot tell it) and the offline ATE
 #: (seed 1: office depth-1 0.041 -> 0.191 m, hall lidar-1 0.047 -> 0.071; the alignment the fixes
 #: go through claims less than its error): the daemon keeps "flat" (5-17x the error below 7.5 m).
-FIX_MODELS = ("flat", "fitted")
+#: "angle" (the fitted model grown with the board's incidence, `FIX_ANGLE_K`) halves the
+#: calibration's edge-on NEES but failed its A/B rule as the fitted one did (5 of 10
+#: world-seeds; seed 1: office depth-1 0.041 -> 0.452 m, hall lidar-1 0.047 -> 0.077;
+#: docs/BENCHMARKS.md "The fix's claim by the board's angle"): a bench model; the daemon's
+#: `_send_fixes` passes no incidence.
+FIX_MODELS = ("flat", "fitted", "angle")
 FIX_MODEL = "flat"
 #: The flat model: (floor, per metre of range) of the x and y standard deviation (m), and the yaw
 #: one (rad) at any range. Set before the CCTV's corners were refined; now 3-5x the errors.
@@ -39,6 +44,16 @@ FIX_ALONG_M = (0.0031, 4.97e-6)
 FIX_ACROSS_M = (0.0052, 1.48e-6)
 FIX_YAW_RAD = (0.0035, 6.87e-6)
 RANGE_POWER = 4
+#: The "angle" model: the fitted model's standard deviations, each times 1 + k tan^2(incidence),
+#: the incidence the angle between the board's solved normal and the camera's ray to it (0 square
+#: on; `CctvCamera.board_incidence`), capped at `MAX_INCIDENCE`: k along the ray, across it, in
+#: yaw. Fitted by maximum likelihood (a Gaussian error, the fitted model's sd over range kept;
+#: tan^2 likelier than 1 / cos - 1 and tan) to the same 198 boards (`python -m
+#: colonyd.bench.fix_calibration`, docs/BENCHMARKS.md "The fix's claim by the board's angle"):
+#: along and across grow edge-on (x1.6 and x1.9 at 75 degrees, x2.3 and x3.0 at 80), the yaw
+#: does not (k 0).
+FIX_ANGLE_K = (0.040, 0.064, 0.0)
+MAX_INCIDENCE = math.radians(85.0)
 #: An alternative measured offline (`cctv_offline --fix-model new`, not the daemon's): a yaw
 #: standard deviation per metre of range, as a board's solved normal gets worse the smaller it
 #: looks (sim office, cctv-1, 0.24 m boards, before the corners' refinement: RMS 2 degrees at
@@ -58,15 +73,18 @@ def fix_covariance(
     yaw_per_m: float | None = None,
     ray: np.ndarray | None = None,
     model: str = FIX_MODEL,
+    incidence: float | None = None,
 ) -> np.ndarray:
     """The covariance (6x6, x y z roll pitch yaw, the camera's site frame) a CCTV sends with a
     robot's body pose seen `range_m` m away, by `model` (`FIX_MODELS`): "flat", `FLAT_XY_M` in x
     and y and `YAW_SD` in yaw; "fitted", `FIX_ALONG_M` along `ray` (the horizontal direction
     from the camera to the robot, x and y, any length) and `FIX_ACROSS_M` across it, or the
     along one in every direction without a ray or with a zero one (the larger: claims no less
-    than the error), and `FIX_YAW_RAD` in yaw. `yaw_per_m`: yaw `yaw_per_m` per metre of range
-    instead (`cctv_offline`'s alternative). 5 cm and 0.05 rad in z, roll and pitch (a planar
-    robot's fix carries none)."""
+    than the error), and `FIX_YAW_RAD` in yaw; "angle", the fitted model's each times 1 + k
+    tan^2(`incidence`) (`FIX_ANGLE_K`; `incidence` in radians, 0 to pi/2, needed by this model
+    only: the board's normal against the camera's ray). `yaw_per_m`: yaw `yaw_per_m` per metre
+    of range instead (`cctv_offline`'s alternative). 5 cm and 0.05 rad in z, roll and pitch (a
+    planar robot's fix carries none)."""
     if not (math.isfinite(range_m) and range_m >= 0.0):
         msg = f"range_m: expected a finite range >= 0 in metres, found {range_m!r}"
         raise ValueError(msg)
@@ -80,6 +98,16 @@ def fix_covariance(
         along = fix_sd(FIX_ALONG_M, range_m)
         across = fix_sd(FIX_ACROSS_M, range_m)
         yaw = fix_sd(FIX_YAW_RAD, range_m)
+    if model == "angle":
+        if incidence is None or not (math.isfinite(incidence) and 0.0 <= incidence <= math.pi / 2):
+            msg = (
+                f"incidence: expected the board's angle to the ray, 0 to pi/2, found {incidence!r}"
+            )
+            raise ValueError(msg)
+        grow = math.tan(min(incidence, MAX_INCIDENCE)) ** 2
+        along, across, yaw = (
+            sd * (1.0 + k * grow) for sd, k in zip((along, across, yaw), FIX_ANGLE_K, strict=True)
+        )
     if yaw_per_m is not None:
         yaw = yaw_per_m * range_m
     cov = np.diag([along**2, along**2, 0.05**2, 0.05**2, 0.05**2, yaw**2])

@@ -42,6 +42,14 @@ FALLBACK_CORNER_PX = 1.0
 #: step (pixels) of the samples across it (`refine_corners`).
 EDGE_ALONG = np.linspace(0.2, 0.8, 9)
 EDGE_STEP = 0.1
+#: The widest (pixels, one standard deviation about its centroid) an edge's fall across a side
+#: may be at any of its samples: one blurred edge's is narrow (0.29 px for a hard step sampled
+#: bilinearly; the sim's renders 0.38-0.75 px over 175 markers and boards at 3-15 m), a sample
+#: window holding two falls (the square's edge and clutter's, e.g. a dark band 1-5 px outside a
+#: side) is as wide as half their distance or more (1.2-4 px measured). A wider one is a fit to
+#: the wrong edge: the detector's corners are kept (`edge_corners` returns None; docs/BENCHMARKS.md
+#: "Clutter beside a marker").
+EDGE_SPREAD_PX = 1.0
 #: The smallest standard deviation (m) of a solved marker's position, along and across the ray.
 MARKER_FLOOR_M = 0.01
 
@@ -61,11 +69,14 @@ def marker_corners(length: float) -> np.ndarray:
     return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
 
 
-def refine_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray:
-    """`edge_corners`, or the detector's corners `quad` (4, 2) where its lines cannot be fitted
-    (a detection that falls back: `FALLBACK_CORNER_PX`)."""
+def refine_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> tuple[np.ndarray, float]:
+    """A detected marker's corners (4, 2) and how well its apparent side is known (pixels, one
+    standard deviation: `marker_covariance`'s `corner_px`): `edge_corners` and `CORNER_PX`, or
+    the detector's corners `quad` and `FALLBACK_CORNER_PX` where its lines cannot be fitted."""
     edges = edge_corners(grey, quad, cells)
-    return np.asarray(quad, np.float64).reshape(4, 2) if edges is None else edges
+    if edges is None:
+        return np.asarray(quad, np.float64).reshape(4, 2), FALLBACK_CORNER_PX
+    return edges, CORNER_PX
 
 
 def edge_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray | None:
@@ -83,8 +94,9 @@ def edge_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray |
     0.1 px at 12 px; below ~12 px the border cell is under 2 px wide, its two edges blur
     together and the side comes out up to 0.4 px long (docs/BENCHMARKS.md "The CCTV's marker
     corners"). The sides are taken as straight (no lens distortion). None where a line cannot
-    be fitted or a corner would move more than 1 px + a quarter cell (`refine_corners` then
-    keeps the detector's)."""
+    be fitted, a sample's fall is wider than `EDGE_SPREAD_PX` (two edges in its window: the
+    square's and clutter's) or a corner would move more than 1 px + a quarter cell
+    (`refine_corners` then keeps the detector's)."""
     q = np.asarray(quad, np.float64).reshape(4, 2)
     side = np.roll(q, -1, axis=0) - q  # side i runs from corner i to corner i + 1
     length = np.linalg.norm(side, axis=1)
@@ -108,7 +120,10 @@ def edge_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray |
     weight = fall.sum(axis=2)
     if np.any(weight <= 1e-6):
         return None
-    offset = (fall @ (0.5 * (across[:-1] + across[1:]))) / weight  # (4, A)
+    at = 0.5 * (across[:-1] + across[1:])
+    offset = (fall @ at) / weight  # (4, A)
+    if np.any((fall @ at**2) / weight - offset**2 > EDGE_SPREAD_PX**2):
+        return None  # a sample's fall is two edges' (the square's and clutter's)
     edge = base + offset[..., None] * normal[:, None, :]
     centre = edge.mean(axis=1)
     _, _, vt = np.linalg.svd(edge - centre[:, None, :])
@@ -240,8 +255,7 @@ class CctvCamera:
         for detected, marker in zip(corners, ids.reshape(-1), strict=True):
             on_agent = self.agent_markers.get(int(marker))
             model = marker_corners(self.marker_length if on_agent is None else on_agent[2])
-            edges = edge_corners(grey, detected.reshape(4, 2), self.cells)
-            quad = detected.reshape(4, 2).astype(np.float64) if edges is None else edges
+            quad, corner_px = refine_corners(grey, detected.reshape(4, 2), self.cells)
             ok, rvec, tvec = cv2.solvePnP(
                 model, quad, self.K, self.distortion, flags=cv2.SOLVEPNP_IPPE_SQUARE
             )
@@ -269,7 +283,6 @@ class CctvCamera:
                 pose = pose @ np.linalg.inv(on_agent[1])
                 label = f"{AGENT_LABEL}{on_agent[0]}"
             else:
-                corner_px = CORNER_PX if edges is not None else FALLBACK_CORNER_PX
                 covariance = marker_covariance(pose[:3, 3], float(sides.mean()), corner_px)
             found.append(
                 ObjectDetection(
@@ -283,6 +296,22 @@ class CctvCamera:
                 )
             )
         return found
+
+    def board_incidence(self, detection: ObjectDetection) -> float:
+        """The angle (radians, 0-pi/2) between the solved normal of the board an agent's
+        detection was solved from and the camera's ray to it: 0 seen square on, pi/2 edge-on
+        (`colonyd.fixes.fix_covariance`'s "angle" model). Raises for a detection of no agent's
+        board."""
+        found = self.agent_markers.get(detection.object_id)
+        if found is None or not detection.label.startswith(AGENT_LABEL):
+            msg = (
+                f"detection: expected an agent's board (one of {sorted(self.agent_markers)}), "
+                f"found marker {detection.object_id} labelled {detection.label!r}"
+            )
+            raise SensorInputError(msg)
+        board = detection.pose @ found[1]
+        ray = board[:3, 3] / max(float(np.linalg.norm(board[:3, 3])), 1e-9)
+        return float(np.arccos(np.clip(abs(float(board[:3, 2] @ ray)), 0.0, 1.0)))
 
     def _at_board_height(self, marker: np.ndarray, height: float) -> np.ndarray:
         """A robot's board pose (camera frame) moved along the camera's ray through its centre to

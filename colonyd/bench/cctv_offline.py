@@ -25,7 +25,8 @@ occupied voxels' surface points, their grids keeping the grid's `surface` channe
 daemon's colony map takes a replica's (`paper_offline.surfaces`); comma-separated: each, keys of
 the others with `@means`; raw wins over means for the CCTV's map). `--fix-model`: old, the
 daemon's fixes; fitted, the daemon's with `fix_covariance`'s fitted model (docs/BENCHMARKS.md
-"The CCTV's claimed covariances"); new and shared, alternatives measured against it (`model_fixes`,
+"The CCTV's claimed covariances"); angle, with its angle model ("The fix's claim by the board's
+angle"); new and shared, alternatives measured against it (`model_fixes`,
 `fix_in_own_frame`'s `count` and `bias`).
 Truth renders and evaluates; no estimator reads it.
 
@@ -59,7 +60,7 @@ from colonyd.fixes import (
     through,
 )
 from colonyd.mapping import integrate_observation
-from plugins.cctv import AGENT_LABEL
+from plugins.cctv import AGENT_LABEL, CctvCamera
 from plugins.observation import Observation
 from plugins.sim import AGENTS, SimSource
 from plugins.sim import Path as SimPath
@@ -101,6 +102,7 @@ class Fix:
     confidence: float
     range_m: float
     truth: np.ndarray
+    incidence: float = 0.0  # the board's normal against the camera's ray (rad)
 
 
 def cctv_view(
@@ -128,6 +130,7 @@ def cctv_view(
     paths = {r: SimPath(agents[r].waypoints, agents[r].speed, agents[r].turn_rate) for r in ROBOTS}
     grid = VoxelGrid(0.1, surface=surface)
     adapter = source.adapter
+    assert isinstance(adapter, CctvCamera)  # cctv-1's
     fixes = []
     raw = []
     for obs in source:
@@ -141,16 +144,19 @@ def cctv_view(
             target = det.label[len(AGENT_LABEL) :]
             body = obs.pose @ det.pose
             ray = body[:2, 3] - obs.pose[:2, 3]  # the daemon's (`_send_fixes`)
+            range_m = float(np.linalg.norm(det.pose[:3, 3]))
+            incidence = adapter.board_incidence(det)
             fixes.append(
                 Fix(
                     target,
                     obs.time,
                     body,
-                    fix_covariance(float(np.linalg.norm(det.pose[:3, 3])), ray=ray, model=model),
+                    fix_covariance(range_m, ray=ray, model=model, incidence=incidence),
                     det.object_id,
                     det.probability,
-                    float(np.linalg.norm(det.pose[:3, 3])),
+                    range_m,
                     np.array(paths[target](obs.time)),
+                    incidence,
                 )
             )
     return fixes, grid, thin(np.concatenate(raw), 0.02) if raw else np.zeros((0, 3))
@@ -162,7 +168,7 @@ def model_fixes(fixes: list[Fix], robot: str, model: str) -> list[Fix]:
     one image are solved from the same moment, their errors alike: as two fixes, the filter
     counts one sighting twice) with a yaw error of `YAW_PER_M` per metre of range."""
     mine = [f for f in fixes if f.target == robot]
-    if model not in ("old", "fitted"):
+    if model not in ("old", "fitted", "angle"):
         best: dict[float, Fix] = {}
         for f in mine:
             if f.stamp not in best or f.confidence > best[f.stamp].confidence:
@@ -267,7 +273,7 @@ class Cctv:
                 continue
             if not self.fuse:
                 continue
-            count = 1 if self.model in ("old", "fitted") else self.counter.next(CCTV, key)
+            count = 1 if self.model in ("old", "fitted", "angle") else self.counter.next(CCTV, key)
             bias = 0.0
             if self.model == "shared":  # k(k+1): together at most once the shared error
                 count, bias = count * (count + 1), SHARED_BIAS
@@ -430,10 +436,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     parser.add_argument(
         "--fix-model",
-        choices=("old", "fitted", "new", "shared"),
+        choices=("old", "fitted", "angle", "new", "shared"),
         default="old",
         help="old: the daemon's fixes (every board, its fix model, the alignment's error in "
-        "each); fitted: old with fix_covariance's fitted model; new: the most confident board "
+        "each); fitted: old with fix_covariance's fitted model; angle: old with its angle model "
+        "(the fitted one grown with the board's incidence); new: the most confident board "
         "per image, 1 degree per metre of range in yaw, the k-th fix through one alignment "
         "with k times its error; shared: new, with the camera's bias shared and k(k+1) times",
     )
@@ -485,7 +492,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         args.duration,
         args.world,
         surface="means" in modes,
-        model="fitted" if args.fix_model == "fitted" else FIX_MODEL,
+        model=args.fix_model if args.fix_model in ("fitted", "angle") else FIX_MODEL,
     )
     out: dict[str, Any] = {"seed": args.seed, "duration": args.duration, "lag": args.lag}
     out["world"] = args.world

@@ -14,8 +14,9 @@ range is) against the truth, in pixels of its side (`marker_covariance`'s model)
 `--experiment S`, also the paper experiment's own fixes over S seconds (`cctv_offline.cctv_view`:
 the robots' scripted paths, one image a second). The landmark markers are solved from one image
 (the camera and they are fixed, the image has no noise: every frame repeats it). Tables per range
-bin: mean (a bias the bin's fixes share) and RMS error, RMS over claimed sd, mean NEES. The truth
-only evaluates.
+bin: mean (a bias the bin's fixes share) and RMS error, RMS over claimed sd, mean NEES; the same
+per band of the board's incidence (`ANGLE_BINS`, `CctvCamera.board_incidence`), and the "angle"
+model's growth fitted (`fit_angle`). The truth only evaluates.
 """
 
 from __future__ import annotations
@@ -31,7 +32,15 @@ import numpy as np
 from scipy import optimize
 
 from colonyd.bench.files import print_and_append
-from colonyd.fixes import FIX_MODELS, fix_covariance
+from colonyd.fixes import (
+    FIX_ACROSS_M,
+    FIX_ALONG_M,
+    FIX_MODELS,
+    FIX_YAW_RAD,
+    MAX_INCIDENCE,
+    fix_covariance,
+    fix_sd,
+)
 from plugins.cctv import AGENT_LABEL, CORNER_PX, CctvCamera, marker_corners
 from plugins.checks import pose_matrix
 from plugins.sim import AGENTS, BOARD_LENGTH, SimSource, boards_at, robot_markers
@@ -49,6 +58,8 @@ BINS = (3.0, 4.5, 6.0, 7.5, 9.0, 10.5, 12.0, 14.0, 18.0)
 SAMPLES = {"office": 300, "hall": 400}
 #: Bins of a marker's apparent side (px) for its PnP range's error.
 SIDE_BINS = (8.0, 12.0, 15.0, 18.0, 22.0, 26.0, 40.0)
+#: Bins of a board's incidence (degrees: its solved normal against the camera's ray).
+ANGLE_BINS = (0.0, 30.0, 45.0, 60.0, 70.0, 90.0)
 #: How far (m) a sampled body may be off its robot's path, either side.
 OFF_PATH_M = 0.2
 
@@ -154,8 +165,10 @@ def board_rows(world: str, samples: int, seed: int, model: str = "fitted") -> li
             range_m = float(np.linalg.norm(det.pose[:3, 3]))
             seen = cam.pose @ det.pose
             ray = seen[:2, 3] - cam.pose[:2, 3]  # as the daemon's `_send_fixes`
-            cov = fix_covariance(range_m, ray=ray, model=model)
+            incidence = cam.board_incidence(det)
+            cov = fix_covariance(range_m, ray=ray, model=model, incidence=incidence)
             row = fix_row(cam, seen, cov, truth, range_m)
+            row["incidence_deg"] = math.degrees(incidence)
             board = to_cam @ body @ mounts[det.object_id]
             true_range = float(np.linalg.norm(board[:3, 3]))
             side = float(
@@ -184,6 +197,7 @@ def experiment_rows(world: str, duration: float, model: str = "fitted") -> list[
     for f in fixes:
         row = fix_row(cam, f.body, f.covariance, f.truth, f.range_m)
         row.update(image=f.stamp, robot=f.target, marker=f.marker)
+        row["incidence_deg"] = math.degrees(f.incidence)
         rows.append(row)
     return rows
 
@@ -222,16 +236,19 @@ def marker_rows(world: str) -> list[dict[str, float]]:
     return rows
 
 
-def by_range(rows: list[dict[str, Any]], bins: tuple[float, ...] = BINS) -> list[dict[str, Any]]:
-    """Per range bin of fixes: count, images, mean (shared) and RMS error along, across and in
-    yaw, RMS over the claimed sd (1 when honest) and the mean NEES (2 in x-y, 3 in all)."""
+def by_range(
+    rows: list[dict[str, Any]], bins: tuple[float, ...] = BINS, key: str = "range_m"
+) -> list[dict[str, Any]]:
+    """Per range bin of fixes (or bin of another of the rows' `key`, e.g. "incidence_deg"):
+    count, images, mean (shared) and RMS error along, across and in yaw, RMS over the claimed
+    sd (1 when honest) and the mean and median NEES (2 in x-y, 3 in all)."""
     out = []
-    r = np.array([row["range_m"] for row in rows])
+    r = np.array([row[key] for row in rows])
     for lo, hi in itertools.pairwise(bins):
         sel = [row for row, x in zip(rows, r, strict=True) if lo <= x < hi]
         if not sel:
             continue
-        s: dict[str, Any] = {"range_m": f"{lo:g}-{hi:g}", "n": len(sel)}
+        s: dict[str, Any] = {key: f"{lo:g}-{hi:g}", "n": len(sel)}
         s["images"] = len({(row["image"], row.get("robot")) for row in sel})
         for axis, unit in (("along", "m"), ("across", "m"), ("yaw", "rad")):
             e = np.array([row[f"{axis}_{unit}"] for row in sel])
@@ -243,7 +260,34 @@ def by_range(rows: list[dict[str, Any]], bins: tuple[float, ...] = BINS) -> list
             s[f"{axis}_ratio"] = round(float(np.sqrt(np.mean((e / sd) ** 2))), 2)
         s["nees_xy"] = round(float(np.mean([row["nees_xy"] for row in sel])), 2)
         s["nees"] = round(float(np.mean([row["nees"] for row in sel])), 2)
+        s["nees_median"] = round(float(np.median([row["nees"] for row in sel])), 2)
         out.append(s)
+    return out
+
+
+def fit_angle(rows: list[dict[str, Any]]) -> dict[str, float]:
+    """Per axis (along, across, yaw), the k of a standard deviation `fix_sd`(range) x (1 + k
+    tan^2(incidence)) (the fitted model over range kept, the incidence capped at
+    `MAX_INCIDENCE`) that makes the fixes' errors likeliest as zero-mean Gaussian (k >= 0):
+    `colonyd.fixes.FIX_ANGLE_K`'s fit."""
+    r = np.array([row["range_m"] for row in rows])
+    grow = np.tan(np.minimum(np.radians([row["incidence_deg"] for row in rows]), MAX_INCIDENCE))
+    grow = grow**2
+    out = {}
+    for axis, model in (
+        ("along_m", FIX_ALONG_M),
+        ("across_m", FIX_ACROSS_M),
+        ("yaw_rad", FIX_YAW_RAD),
+    ):
+        e2 = np.array([row[axis] for row in rows]) ** 2
+        base = np.array([fix_sd(model, x) for x in r])
+
+        def nll(k: float, e2: np.ndarray = e2, base: np.ndarray = base) -> float:
+            sd = base * (1.0 + k * grow)
+            return float(np.sum(np.log(sd) + e2 / (2.0 * sd**2)))
+
+        best = optimize.minimize_scalar(nll, bounds=(0.0, 10.0), method="bounded")
+        out[axis] = round(float(best.x), 4)
     return out
 
 
@@ -356,12 +400,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         if args.experiment > 0:
             seen = experiment_rows(world, args.experiment, args.model)
             out[f"experiment_{world}"] = by_range(seen)
+            out[f"experiment_{world}_angles"] = by_range(seen, ANGLE_BINS, "incidence_deg")
             out[f"experiment_{world}_serial"] = serial(seen)
         found = marker_rows(world)
         markers += found
         out[f"markers_{world}"] = [{k: round(v, 4) for k, v in row.items()} for row in found]
     out["fixes"] = by_range(pooled)
+    out["angles"] = by_range(pooled, ANGLE_BINS, "incidence_deg")
     out["fits"] = fits(pooled)
+    out["angle_fit"] = fit_angle(pooled)
     out["sides"] = sides(pooled)
     out["markers_nees"] = round(
         float(np.mean([(row["along_m"] / row["sd_along_m"]) ** 2 for row in markers])), 2

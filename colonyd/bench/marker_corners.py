@@ -1,6 +1,6 @@
 """The sim CCTV's ArUco corners against the true projected corners, renderer and detector apart.
 
-`python -m colonyd.bench.marker_corners [--distances M ...] [--yaws RAD ...]`
+`python -m colonyd.bench.marker_corners [--distances M ...] [--yaws RAD ...] [--clutter]`
 
 A 0.3 m landmark marker on a pillar is seen by the sim CCTV's camera (640 x 480, 75 degrees)
 from each distance and yaw (0.3 m to its side, 0.2 m above it). Each view is drawn twice: by the
@@ -10,6 +10,12 @@ detector (`cornerSubPix`, as `CctvCamera` sets it) and the same refined by `refi
 `CctvCamera.detect`) are compared with the true projected corners: their mean displacement into
 the square (px, each axis) and the range PnP solves from them (% of the true range)
 (docs/BENCHMARKS.md "The CCTV's marker corners"). The truth only evaluates.
+
+With `--clutter`, instead: each distance's sim render (yaw 0) with dark bands `CLUTTER_OUT` px
+out of the marker's top and left sides (from the clean image's corners), `CLUTTER_WIDTH` px wide,
+clutter the detector ignores; per band, the error of the position `CctvCamera.detect` solves
+along the ray against the standard deviation its covariance claims there, and whether its
+corners fell back to the detector's (docs/BENCHMARKS.md "Clutter beside a marker").
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ import math
 import cv2
 import numpy as np
 
-from plugins.cctv import CctvCamera, CctvFrame, marker_corners, refine_corners
+from plugins.cctv import CORNER_PX, CctvCamera, CctvFrame, marker_corners, refine_corners
 from plugins.checks import pose_matrix
 from plugins.sim import OPTICAL, Rig, make_rig, render
 from plugins.world import CLASSES, Box, Marker, World
@@ -28,6 +34,9 @@ from voxel.depth import pixel_rays
 
 LENGTH = 0.3  # the worlds' landmark markers (m)
 SAMPLES = 8  # per pixel and axis, for the area-sampled image
+#: `--clutter`: where a dark band starts outside a side (px) and how wide it is (px).
+CLUTTER_OUT = (1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0)
+CLUTTER_WIDTH = (1.0, 2.0, 3.0, 5.0)
 
 
 def pillar() -> World:
@@ -77,7 +86,7 @@ def corner_errors(
     out = {}
     centre = uv.mean(axis=0)
     outward = (uv - centre) / np.linalg.norm(uv - centre, axis=1)[:, None]
-    for name, quad in (("subpix", found), ("edges", refine_corners(grey, found, camera.cells))):
+    for name, quad in (("subpix", found), ("edges", refine_corners(grey, found, camera.cells)[0])):
         inward = -float(np.einsum("ij,ij->i", quad - uv, outward).mean()) / math.sqrt(2.0)
         _, _, tvec = cv2.solvePnP(
             marker_corners(LENGTH), quad, camera.K, None, flags=cv2.SOLVEPNP_IPPE
@@ -115,11 +124,93 @@ def views(distances: list[float], yaws: list[float]) -> list[dict[str, float]]:
     return rows
 
 
+def with_bands(image: np.ndarray, quad: np.ndarray, out: float, width: float) -> np.ndarray:
+    """`image` with a black band `out` to `out + width` px outside the sides of `quad` (4, 2)
+    from corner 0 to 1 and from corner 3 to 0."""
+    image = image.copy()
+    for i in (0, 3):
+        a, b = quad[i], quad[(i + 1) % 4]
+        inward = quad.mean(axis=0) - (a + b) / 2
+        inward /= np.linalg.norm(inward)
+        far = out + width
+        band = np.array([a - out * inward, b - out * inward, b - far * inward, a - far * inward])
+        cv2.fillPoly(image, [np.round(band).astype(np.int32)], (0, 0, 0))
+    return image
+
+
+def clutter(distances: list[float]) -> list[dict[str, float]]:
+    """Per distance (yaw 0) and band (`CLUTTER_OUT`, `CLUTTER_WIDTH`) whose marker is still
+    detected: the solved position's error along the ray (m), the sd its covariance claims there
+    (m), and whether its corners are the detector's (fallen back: 1)."""
+    world = pillar()
+    rig, _ = make_rig("cctv")
+    assert rig.K is not None
+    rows = []
+    for distance in distances:
+        pose = pose_matrix(2.0 - distance, 0.3, 1.2, 0.0) @ OPTICAL
+        camera = CctvCamera(pose=pose, K=rig.K, marker_length=LENGTH)
+        truth = (np.linalg.inv(pose) @ world.markers[0].frame())[:3, 3]
+        ray = truth / np.linalg.norm(truth)
+        image = colour(world, rig, pose)
+        clean = camera.detect(image)
+        if not clean or clean[0].corners is None:
+            continue
+        for out in CLUTTER_OUT:
+            for width in CLUTTER_WIDTH:
+                banded = with_bands(image, clean[0].corners, out, width)
+                found = camera.detect(banded)
+                if not found or found[0].covariance is None:
+                    continue
+                grey = cv2.cvtColor(banded, cv2.COLOR_BGR2GRAY)
+                detected = camera.detector.detectMarkers(grey)[0][0].reshape(4, 2)
+                claim = refine_corners(grey, detected, camera.cells)[1]
+                error = float((found[0].position - truth) @ ray)
+                sd = float(np.sqrt(ray @ found[0].covariance @ ray))
+                rows.append(
+                    {
+                        "distance_m": distance,
+                        "out_px": out,
+                        "width_px": width,
+                        "along_m": error,
+                        "claimed_m": sd,
+                        "sigmas": abs(error) / sd,
+                        "fallback": float(claim != CORNER_PX),
+                    }
+                )
+    return rows
+
+
+def main_clutter(distances: list[float]) -> list[dict[str, float]]:
+    """`clutter`'s rows printed, with the worst error in claimed sds and the mean NEES."""
+    rows = clutter(distances)
+    print("dist m  out px  width px  along m  claimed m  sigmas  fallback")
+    for r in rows:
+        print(
+            f"{r['distance_m']:6.1f}  {r['out_px']:6.1f}  {r['width_px']:8.1f}  "
+            f"{r['along_m']:+7.3f}  {r['claimed_m']:9.3f}  {r['sigmas']:6.1f}  "
+            f"{int(r['fallback']):8d}"
+        )
+    if rows:
+        s = np.array([r["sigmas"] for r in rows])
+        e = np.array([r["along_m"] for r in rows])
+        print(
+            f"{len(rows)} detected: along RMS {np.sqrt(np.mean(e**2)):.3f} m, worst "
+            f"{np.abs(e).max():.3f} m, worst {s.max():.1f} sd, mean NEES {np.mean(s**2):.2f}, "
+            f"fallen back {int(sum(r['fallback'] for r in rows))}"
+        )
+    return rows
+
+
 def main(argv: list[str] | None = None) -> list[dict[str, float]]:
     parser = argparse.ArgumentParser(prog="python -m colonyd.bench.marker_corners")
     parser.add_argument("--distances", type=float, nargs="+", default=[3.0, 5.0, 7.0, 10.0, 15.0])
     parser.add_argument("--yaws", type=float, nargs="+", default=[-0.3, 0.0, 0.3])
+    parser.add_argument(
+        "--clutter", action="store_true", help="dark bands beside the marker (yaw 0) instead"
+    )
     args = parser.parse_args(argv)
+    if args.clutter:
+        return main_clutter(args.distances)
     rows = views(args.distances, args.yaws)
     keys = [f"{i}_{m}" for i in ("sim", "area") for m in ("subpix", "edges")]
     print("dist m   yaw  side px  " + "  ".join(f"{k:>20s}" for k in keys))

@@ -12,6 +12,7 @@ from colonyd.alignment import ColonyFrame
 from colonyd.fixes import (
     FIX_ACROSS_M,
     FIX_ALONG_M,
+    FIX_ANGLE_K,
     FIX_MODEL,
     YAW_PER_M,
     YAW_SD,
@@ -69,6 +70,29 @@ def test_the_daemons_fix_model_is_flat_until_the_fitted_one_passes_its_rule() ->
     cov = fix_covariance(5.0, ray=np.array([0.0, 3.0]))
     np.testing.assert_allclose(np.diag(cov)[[0, 1, 5]], [0.06**2, 0.06**2, YAW_SD**2])
     assert cov[0, 1] == 0.0
+
+
+def test_the_angle_model_grows_the_fitted_one_with_the_boards_incidence() -> None:
+    # docs/BENCHMARKS.md "The fix's claim by the board's angle": square on it is the fitted
+    # model; at 75 degrees along x1.6 and across x1.9 (k tan^2), the yaw unchanged
+    ray = np.array([1.0, 0.0])
+    fitted = fix_covariance(6.0, ray=ray, model="fitted")
+    np.testing.assert_allclose(fix_covariance(6.0, ray=ray, model="angle", incidence=0.0), fitted)
+    edge_on = fix_covariance(6.0, ray=ray, model="angle", incidence=math.radians(75.0))
+    grow = math.tan(math.radians(75.0)) ** 2
+    for i, k in ((0, FIX_ANGLE_K[0]), (1, FIX_ANGLE_K[1]), (5, FIX_ANGLE_K[2])):
+        assert math.sqrt(edge_on[i, i] / fitted[i, i]) == pytest.approx(1.0 + k * grow)
+    assert 1.4 < math.sqrt(edge_on[0, 0] / fitted[0, 0]) < 1.8
+    assert 1.7 < math.sqrt(edge_on[1, 1] / fitted[1, 1]) < 2.1
+    # capped: a board seen exactly edge-on claims a finite covariance
+    grazing = fix_covariance(6.0, ray=ray, model="angle", incidence=math.pi / 2)
+    assert np.isfinite(grazing).all() and grazing[0, 0] > edge_on[0, 0]
+    # the other models ignore the angle
+    flat = fix_covariance(6.0, ray=ray, model="flat", incidence=1.3)
+    np.testing.assert_allclose(flat, fix_covariance(6.0, ray=ray, model="flat"))
+    for bad in (None, -0.1, 2.0, float("nan")):
+        with pytest.raises(ValueError, match="incidence: expected the board's angle to the ray"):
+            fix_covariance(6.0, ray=ray, model="angle", incidence=bad)
 
 
 def test_fix_covariance_says_what_it_expected() -> None:

@@ -9,7 +9,7 @@ import pytest
 
 from colonyd.errors import WireError
 from colonyd.grid import new_grid
-from colonyd.layers import FusedMap, Layer, Layers, fused, layer_weights
+from colonyd.layers import SURFACE_REACH, FusedMap, Layer, Layers, fused, layer_weights
 from voxel import keys as vk
 from voxel.delta import Delta
 
@@ -215,7 +215,7 @@ def test_fused_surface_is_the_layers_surface_points_and_centres_without_them():
     """A fused view's points (ROS 2 cloud, export, PLYs): each occupied voxel at the surface
     points of the layers that keep them, moved into the fused frame; the centres where none
     does (they were the centres everywhere, 37 mm off this wall)."""
-    from colonyd.layers import SURFACE_REACH, fused_surface
+    from colonyd.layers import fused_surface
 
     x = np.linspace(-1.0, 1.0, 201)
     wall = np.column_stack([x, np.full(x.size, 2.013), np.full(x.size, 0.3)])
@@ -315,6 +315,54 @@ def test_live_fused_outputs_are_computed_once_and_follow_a_layer_and_its_alignme
         points = live.surface(layers, 0.1, keys[lo >= 0], transforms)
         together = live.outputs(layers, 0.1, transforms)  # one index for both: the same
         assert same([keys, lo, classes, points], list(vars(together).values()))
+        expected = reference(transforms)  # and what they should be, computed apart
+        np.testing.assert_array_equal(keys, expected[0])
+        np.testing.assert_allclose(lo, expected[1], rtol=1e-6, atol=1e-6)
+        np.testing.assert_array_equal(classes, expected[2])
+        np.testing.assert_allclose(points, expected[3], atol=1e-9)
+        return [keys, lo, classes, points]
+
+    def reference(transforms: dict[str, np.ndarray]) -> list[np.ndarray]:
+        """The fused view from the agents' own grids, voxel by voxel in plain Python: each
+        grid's voxel centres moved into the fused frame and keyed at 0.1 m; per key a grid's
+        mean log-odds, summed over the grids; the class of the most probable labelled voxel
+        landing there; an occupied key's point the mean of the surface points of the grids'
+        occupied voxels landing there (moved), where within SURFACE_REACH of its centre."""
+        total: dict[tuple[int, ...], float] = {}
+        best: dict[tuple[int, ...], tuple[float, int]] = {}
+        near: dict[tuple[int, ...], list[np.ndarray]] = {}
+        for origin, grid in grids.items():
+            t = transforms[origin]
+            full = grid.delta_since(0)
+            centres = vk.keys_to_centers(full.keys, 0.1) @ t[:3, :3].T + t[:3, 3]
+            own: dict[tuple[int, ...], list[float]] = {}
+            n = len(full.keys)
+            ids = full.channels["class_ids"].reshape(n, -1)
+            probs = full.channels["class_probs"].reshape(n, -1)
+            for i, key in enumerate(map(tuple, vk.points_to_keys(centres, 0.1).tolist())):
+                if not np.isnan(full.logodds[i]):
+                    own.setdefault(key, []).append(float(full.logodds[i]))
+                for cls, prob in zip(ids[i].tolist(), probs[i].tolist(), strict=True):
+                    if cls >= 0 and prob > best.get(key, (-1.0, -1))[0]:
+                        best[key] = (prob, cls)
+            for key, values in own.items():
+                total[key] = total.get(key, 0.0) + sum(values) / len(values)
+            occupied = grid.occupied_keys()
+            moved = vk.keys_to_centers(occupied, 0.1) @ t[:3, :3].T + t[:3, 3]
+            surface = grid.surface_points(occupied) @ t[:3, :3].T + t[:3, 3]
+            landed = map(tuple, vk.points_to_keys(moved, 0.1).tolist())
+            for key, point in zip(landed, surface, strict=True):
+                near.setdefault(key, []).append(point)
+        order = sorted(total, key=lambda k: int(vk.pack(np.array([k]))[0]))
+        keys = np.array(order, np.int64).reshape(-1, 3)
+        lo = np.array([total[k] for k in order])
+        classes = np.array([best.get(k, (0.0, -1))[1] for k in order])
+        points = vk.keys_to_centers(keys[lo >= 0], 0.1)
+        for row, key in enumerate(k for k in order if total[k] >= 0):
+            if key in near:
+                mean = np.mean(near[key], axis=0)
+                if np.abs(mean - points[row]).max() <= SURFACE_REACH * 0.1:
+                    points[row] = mean
         return [keys, lo, classes, points]
 
     def same(x: list[np.ndarray], y: list[np.ndarray]) -> bool:

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from colonyd.bench.fix_calibration import by_range, fit_sd, fix_row
-from colonyd.fixes import fix_covariance
+from colonyd.bench.fix_calibration import by_range, fit_angle, fit_sd, fix_row
+from colonyd.fixes import FIX_ACROSS_M, FIX_ALONG_M, FIX_YAW_RAD, fix_covariance, fix_sd
 from plugins.cctv import CctvCamera
 from voxel.localisation import se2
 
@@ -35,3 +35,27 @@ def test_a_fix_error_splits_along_and_across_the_ray_from_the_camera() -> None:
     row.update(image=0, robot="r")
     (bin_,) = by_range([row])
     assert bin_["n"] == 1 and bin_["along_mean"] == pytest.approx(3.0, abs=0.01)  # cm
+
+
+def test_fit_angle_recovers_the_growth_errors_were_drawn_with() -> None:
+    rng = np.random.default_rng(5)
+    n = 6000
+    r = rng.uniform(3.0, 10.0, n)
+    angle = rng.uniform(0.0, 80.0, n)
+    grow = np.tan(np.radians(angle)) ** 2
+    rows = []
+    for axis, model, k in (
+        ("along_m", FIX_ALONG_M, 0.1),
+        ("across_m", FIX_ACROSS_M, 0.03),
+        ("yaw_rad", FIX_YAW_RAD, 0.0),
+    ):
+        sd = np.array([fix_sd(model, x) for x in r]) * (1.0 + k * grow)
+        e = rng.normal(size=n) * sd
+        for i in range(n):
+            if not rows or len(rows) <= i:
+                rows.append({"range_m": r[i], "incidence_deg": angle[i]})
+            rows[i][axis] = e[i]
+    fit = fit_angle(rows)
+    assert fit["along_m"] == pytest.approx(0.1, rel=0.15)
+    assert fit["across_m"] == pytest.approx(0.03, rel=0.15)
+    assert fit["yaw_rad"] < 0.005
