@@ -32,7 +32,15 @@ from typing import Any
 
 import numpy as np
 
-from colonyd.bench.cctv_offline import CCTV, ROBOTS, Cctv, Fix, alignment_truth, cctv_view
+from colonyd.bench.cctv_offline import (
+    CCTV,
+    ROBOTS,
+    Cctv,
+    Fix,
+    alignment_option,
+    alignment_truth,
+    cctv_view,
+)
 from colonyd.bench.files import print_and_append
 from colonyd.bench.paper_offline import Run
 from colonyd.estimator import ScanEstimator
@@ -178,13 +186,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--lag", type=float, default=0.5, help="s from a stamp to its use")
     parser.add_argument("--modes", default="independent,once", help=f"comma-separated, of {MODES}")
     parser.add_argument("--lidar", action="store_true", help="lidar-1 after each depth-1 run")
-    parser.add_argument(
-        "--alignment",
-        choices=("noise", "state"),
-        default="noise",
-        help="the error of the alignment the fixes and landmarks come through: added to each "
-        "(noise, the daemon's) or one state of the filter (state: ScanParams.alignment_frames)",
-    )
+    alignment_option(parser, "the fixes and landmarks")
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
     modes = args.modes.split(",")

@@ -422,6 +422,18 @@ def alignment_truth(cctv: Cctv, run: Run) -> dict[str, float] | None:
     }
 
 
+def alignment_option(parser: argparse.ArgumentParser, what: str) -> None:
+    """The benches' `--alignment`: the error of the alignment `what` come through added to
+    each (noise, the daemon's) or one state of the filter, counted once (state)."""
+    parser.add_argument(
+        "--alignment",
+        choices=("noise", "state"),
+        default="noise",
+        help=f"the error of the alignment {what} come through: added to each (noise, the "
+        "daemon's) or one state of the filter, counted once (state: ScanParams.alignment_frames)",
+    )
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m colonyd.bench.cctv_offline")
     parser.add_argument("--seed", type=int, default=1)
@@ -466,13 +478,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "daemon's) or also the robot's own pose error when seen (drift: failed its A/B, "
         "docs/BENCHMARKS.md 'An alignment from sightings counting the robot's drift')",
     )
-    parser.add_argument(
-        "--alignment",
-        choices=("noise", "state"),
-        default="noise",
-        help="the error of the alignment the fixes come through: added to each fix (noise, the "
-        "daemon's) or one state of the filter, counted once (state: ScanParams.alignment_frames)",
-    )
+    alignment_option(parser, "the fixes")
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
     variants = args.variants.split(",")
