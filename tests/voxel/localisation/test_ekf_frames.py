@@ -189,3 +189,30 @@ def test_frames_are_keyed_bounded_and_the_colony_offset_is_one_of_them() -> None
     placed, _, cov = f.keyframe(4)
     np.testing.assert_allclose(placed, f.pose)
     np.testing.assert_allclose(cov, f.covariance)
+
+
+def test_a_keyed_landmarks_error_follows_a_move_of_its_truth_not_of_a_new_alignment() -> None:
+    # A landmark published at p through the frame, then at p + 10 cm: through the same
+    # alignment that is the same truth published elsewhere, so its error's mean shifts by the
+    # move; through a new alignment (the frame reset since) the move is the alignment's, which
+    # the reset frame carries, so its error's mean stays.
+    seen, r, own = np.array([0.0, 5.0]), np.eye(2) * 0.02**2, np.eye(2) * 0.01**2
+    first = np.array([5.0, 5.0])
+    moved = first + np.array([0.1, 0.0])
+    errors = {}
+    for reset in (False, True):
+        f = _robot()
+        f.reset_frame("cctv", ALIGNMENT)
+        assert f.update_landmark(seen, r, first, own, key=7, frame="cctv")
+        before = f.landmark(7)[1].copy()
+        if reset:
+            f.reset_frame("cctv", ALIGNMENT)  # a new alignment of the same origin
+        f.update_landmark(seen, r, moved, own, key=7, frame="cctv", gate=None)
+        errors[reset] = (before, f.landmark(7))
+    (before, (published, after, _)) = errors[False]
+    np.testing.assert_allclose(published, moved)
+    # shifted by the move, then corrected a little by the sighting (cm-level, not 10 cm)
+    assert after[0] - before[0] == pytest.approx(0.1, abs=0.03)
+    (before, (published, after, _)) = errors[True]
+    np.testing.assert_allclose(published, moved)
+    assert abs(after[0] - before[0]) < 0.03
