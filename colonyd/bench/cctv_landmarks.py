@@ -37,11 +37,11 @@ from colonyd.bench.cctv_offline import (
     ROBOTS,
     Cctv,
     Fix,
-    alignment_option,
     alignment_truth,
     cctv_view,
 )
 from colonyd.bench.files import print_and_append
+from colonyd.bench.options import alignment_option, names
 from colonyd.bench.paper_offline import Run
 from colonyd.estimator import ScanEstimator
 from colonyd.landmarks import colony_landmarks
@@ -184,14 +184,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--duration", type=float, default=60.0, help="seconds of path")
     parser.add_argument("--lidar-range", type=float, default=4.0)
     parser.add_argument("--lag", type=float, default=0.5, help="s from a stamp to its use")
-    parser.add_argument("--modes", default="independent,once", help=f"comma-separated, of {MODES}")
+    parser.add_argument(
+        "--modes",
+        type=names(MODES),
+        default="independent,once",
+        help=f"comma-separated, of {MODES}",
+    )
     parser.add_argument("--lidar", action="store_true", help="lidar-1 after each depth-1 run")
     alignment_option(parser, "the fixes and landmarks")
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
-    modes = args.modes.split(",")
-    if not set(modes) <= set(MODES):
-        parser.error(f"--modes: expected names of {MODES}, found {args.modes!r}")
+    modes = args.modes
     fixes, cctv_grid, _ = cctv_view(args.seed, args.duration, world=args.world)
     lists = published_markers(args.seed, args.duration, args.world)
     out: dict[str, Any] = {

@@ -47,6 +47,7 @@ import numpy as np
 
 from colonyd.alignment import Alignments, ColonyFrame, Edge
 from colonyd.bench.files import print_and_append
+from colonyd.bench.options import alignment_option, names
 from colonyd.bench.paper_offline import PEER_POINTS, Run, surfaces
 from colonyd.colonymap import PeerError, alignment_error, cut_error, peer_map_error
 from colonyd.estimator import ScanEstimator
@@ -422,18 +423,6 @@ def alignment_truth(cctv: Cctv, run: Run) -> dict[str, float] | None:
     }
 
 
-def alignment_option(parser: argparse.ArgumentParser, what: str) -> None:
-    """The benches' `--alignment`: the error of the alignment `what` come through added to
-    each (noise, the daemon's) or one state of the filter, counted once (state)."""
-    parser.add_argument(
-        "--alignment",
-        choices=("noise", "state"),
-        default="noise",
-        help=f"the error of the alignment {what} come through: added to each (noise, the "
-        "daemon's) or one state of the filter, counted once (state: ScanParams.alignment_frames)",
-    )
-
-
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m colonyd.bench.cctv_offline")
     parser.add_argument("--seed", type=int, default=1)
@@ -443,6 +432,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--lag", type=float, default=0.5, help="s from a fix's stamp to its use")
     parser.add_argument(
         "--variants",
+        type=names(VARIANTS),
         default=",".join(VARIANTS),
         help=f"comma-separated runs of lidar-1, of {VARIANTS}",
     )
@@ -465,6 +455,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     parser.add_argument(
         "--peer-points",
+        type=names(PEER_POINTS),
         default="centres",
         help=f"comma-separated, of {PEER_POINTS}: depth-1's and the CCTV's maps as their voxels' "
         "centres (default) or their surface points (the grid's surface channel, as the "
@@ -481,18 +472,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     alignment_option(parser, "the fixes")
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
-    variants = args.variants.split(",")
-    if not set(variants) <= set(VARIANTS):
-        parser.error(f"--variants: expected names of {VARIANTS}, found {args.variants!r}")
+    variants = args.variants
     if args.alignment == "state" and args.fix_model in ("new", "shared"):
         # (their counts and the camera's shared bias ride on the alignment's error per fix)
         parser.error(
             f"--fix-model {args.fix_model}: expected old or fitted with --alignment state (the "
             "alignment's error is then a state, not added to each fix)"
         )
-    modes = args.peer_points.split(",")
-    if not set(modes) <= set(PEER_POINTS):
-        parser.error(f"--peer-points: expected names of {PEER_POINTS}, found {args.peer_points!r}")
+    modes = args.peer_points
     fixes, cctv_grid, cctv_raw = cctv_view(
         args.seed,
         args.duration,

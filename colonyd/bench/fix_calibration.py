@@ -32,6 +32,7 @@ import numpy as np
 from scipy import optimize
 
 from colonyd.bench.files import print_and_append
+from colonyd.bench.options import names
 from colonyd.fixes import (
     FIX_ACROSS_M,
     FIX_ALONG_M,
@@ -367,7 +368,10 @@ def serial(rows: list[dict[str, Any]]) -> dict[str, float]:
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m colonyd.bench.fix_calibration")
     parser.add_argument(
-        "--worlds", default="office,hall", help="comma-separated sim worlds (office, hall)"
+        "--worlds",
+        type=names(("office", "hall")),
+        default="office,hall",
+        help="comma-separated sim worlds (office, hall)",
     )
     parser.add_argument(
         "--samples", type=int, default=0, help=f"images per world (default {SAMPLES})"
@@ -384,9 +388,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
-    worlds = args.worlds.split(",")
-    if not worlds or not set(worlds) <= {"office", "hall"}:
-        parser.error(f"--worlds: expected names of office, hall, found {args.worlds!r}")
+    worlds = args.worlds
     if args.samples < 0:
         parser.error(f"--samples: expected a whole number >= 0 (0: SAMPLES), found {args.samples}")
     out: dict[str, Any] = {"worlds": worlds, "samples": args.samples, "seed": args.seed}
