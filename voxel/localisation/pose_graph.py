@@ -6,13 +6,15 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.linalg import spsolve
 
 from voxel.errors import LocalisationError
 from voxel.localisation import se2
+
+if TYPE_CHECKING:  # scipy.sparse loads where a graph is solved: ~0.3 CPU-s off every start-up
+    import scipy.sparse as sp
 
 #: Variance (m^2, rad^2) added to an offset walk's noise: where the filter added none, the two
 #: offsets are tied to 1e-5 (m, rad), not left free.
@@ -437,6 +439,9 @@ def gauss_newton(
     equations `linearised` gives (cost, normal matrix, gradient), damped when a step raises the
     cost; the first `wrapped` variables' third component is an angle (wrapped). The variables,
     the cost before and after, and the iterations taken."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import spsolve
+
     x = np.asarray(start, np.float64).copy()
     cost, h, g = linearised(x)
     first = cost
@@ -504,6 +509,8 @@ def normal_equations(terms: list[Term], size: int) -> tuple[float, sp.csr_matrix
     """Cost sum r^T L r, normal matrix sum J^T L J and gradient sum J^T L r of edge groups, each
     given as its blocks [(variable ids (E,), Jacobians (E, d, 3))], residuals (E, d) and
     information (E, d, d)."""
+    import scipy.sparse as sp
+
     cost = 0.0
     grad = np.zeros(size)
     rows: list[np.ndarray] = []

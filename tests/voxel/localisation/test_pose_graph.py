@@ -237,3 +237,31 @@ def test_a_keyed_landmark_is_one_variable_counted_once_as_in_the_filter() -> Non
     np.testing.assert_allclose(2 * g, numeric, rtol=1e-5, atol=1e-4)
     # without shared variables (a joint graph's view) the keyed sightings are independent edges
     assert len(graph.terms(poses, np.zeros((0, 3)), shared=False)) == 3  # prior, odometry, lm
+
+
+def test_a_daemon_starts_without_scipy_sparse_and_a_graph_still_solves() -> None:
+    """scipy.sparse (~0.5 CPU-s with what it pulls in) loads where a graph is solved, not at every
+    daemon's start: a fresh process imports the daemon without it, then smooths a path."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "import colonyd.daemon, colonyd.cli\n"
+        "print('scipy.sparse' in sys.modules)\n"
+        "from voxel.localisation.ekf import PlanarEkf\n"
+        "from voxel.localisation.pose_graph import PoseGraph\n"
+        "ekf = PlanarEkf(np.zeros(3))\n"
+        "g = PoseGraph(ekf.pose, ekf.covariance)\n"
+        "for _ in range(5):\n"
+        "    ekf.predict(np.array([0.1, 0.0, 0.0]))\n"
+        "    g.step(*ekf.motion_step(np.array([0.1, 0.0, 0.0])))\n"
+        "ekf.update(np.array([0.4, 0.0, 0.0]), np.eye(3) * 1e-6)\n"
+        "g.add_absolute(np.array([0.4, 0.0, 0.0]), np.eye(3) * 1e-6)\n"
+        "g.place(ekf.pose)\n"
+        "print(round(float(g.solve().poses[-1, 0]), 3), 'scipy.sparse' in sys.modules)\n"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
+    )
+    assert run.stdout.split("\n")[:2] == ["False", "0.4 True"], run.stdout
