@@ -198,7 +198,9 @@ def test_a_push_only_replica_that_joined_late_pulls_the_history_it_missed(make_c
     """A replica with pulls off that joins while the origin maps: the pushed pages after its
     catch-up leave a gap (the history before it), which it fills with a pull at once."""
     colony = make_colony("late")
-    a = colony.add("a", ["synthetic:scans=24,rate=4,points=240,seed=3"], start=False)
+    # 15 s of mapping: a still pushes after b's catch-up (with 6 s, a loaded machine started b
+    # after a had stopped, and no pushed page showed b the gap: seen once under load 12)
+    a = colony.add("a", ["synthetic:scans=60,rate=4,points=240,seed=3"], start=False)
     a.env["COLONYD_HISTORY_PUSH"] = "true"
     a.start()
     colony.wait_status(
