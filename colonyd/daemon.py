@@ -100,7 +100,7 @@ KERNELS_WAIT_S = 10.0
 #: imported with the kernels' loading instead, so that the daemon's start-up ends at a moment it
 #: reports (`warm` in its status) and what they allocate is frozen out of the collector's passes
 #: at once (`heap.Freezer`) rather than a few at a time as the jobs first run. A daemon without
-#: sources imports none of them (~0.4 CPU-s): its jobs use them rarely if ever (a peer's
+#: sources imports none of them (~0.6 CPU-s): its jobs use them rarely if ever (a peer's
 #: alignment offer or fix loads `scipy.spatial.transform` when one comes). Registration's own
 #: modules (scipy.ndimage, scipy.fft) load in the aligner's worker process, never here.
 WARM_IMPORTS = (

@@ -62,7 +62,7 @@ def test_compiled_kernels_load_once_catch_up_is_idle(monkeypatch) -> None:
 
 
 def test_a_daemon_without_sources_ends_start_up_without_scipy() -> None:
-    """The warm-up imports scipy (~0.4 CPU-s) only where a job of this process uses it: with
+    """The warm-up imports scipy (~0.6 CPU-s) only where a job of this process uses it: with
     sources (scan matching, colony maps, own poses as quaternions), never registration's
     scipy.ndimage and scipy.fft (they load in the aligner's worker). A fresh process warms up a
     daemon without sources (warm, nothing imported), turns a quaternion into a matrix (scipy
