@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import contextlib
-import multiprocessing
-import multiprocessing.pool
 import os
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from colonyd.errors import StoppedError
+
+if TYPE_CHECKING:
+    import multiprocessing.pool
 
 T = TypeVar("T")
 
@@ -75,6 +76,8 @@ class Aligner:
         if the aligner is closed before it returns."""
         if self._closed.is_set():
             raise StoppedError("the aligner is closed: no registration is started")
+        import multiprocessing  # loads with the worker, not at start-up
+
         if self._pool is None:
             self._pool = multiprocessing.get_context("spawn").Pool(
                 1, initializer=background, initargs=(self.session_nice,)

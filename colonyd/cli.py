@@ -196,7 +196,7 @@ def _non_negative_float(text: str) -> float:
 
 
 def _lidar_range(p: argparse.ArgumentParser) -> None:
-    from colonyd.experiment import LIDAR_RANGE
+    from colonyd.experimentopts import LIDAR_RANGE
 
     p.add_argument(
         "--lidar-range",
@@ -207,7 +207,7 @@ def _lidar_range(p: argparse.ArgumentParser) -> None:
 
 
 def _world(p: argparse.ArgumentParser) -> None:
-    from colonyd.experiment import WORLDS
+    from colonyd.experimentopts import WORLDS
 
     p.add_argument(
         "--world",

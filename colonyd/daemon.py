@@ -57,8 +57,7 @@ from colonyd.runtime import get_session
 from colonyd.status import StatusServer
 from colonyd.threadclock import stamp
 from colonyd.tombstones import OWN_LAYER, forget_params, load_tombstones, save_tombstones
-from plugins.cctv import AGENT_LABEL
-from plugins.observation import ObjectDetection, Observation
+from plugins.observation import AGENT_LABEL, ObjectDetection, Observation
 from plugins.source import open_source
 from plugins.stream import Source
 from protocol import PoseFix
@@ -96,16 +95,18 @@ MAX_SIGHTED = 16
 #: catch-up is idle, at most KERNELS_WAIT_S in all.
 KERNELS_SETTLE_S = 0.5
 KERNELS_WAIT_S = 10.0
-#: Modules the periodic jobs import on first use (object clustering, alignment, localisation),
+#: Modules the periodic jobs of a daemon with sources import on first use in its own process
+#: (object clustering, localisation against own and colony maps, own poses as quaternions),
 #: imported with the kernels' loading instead, so that the daemon's start-up ends at a moment it
 #: reports (`warm` in its status) and what they allocate is frozen out of the collector's passes
-#: at once (`heap.Freezer`) rather than a few at a time as the jobs first run.
+#: at once (`heap.Freezer`) rather than a few at a time as the jobs first run. A daemon without
+#: sources imports none of them (~0.6 CPU-s): its jobs use them rarely if ever (a peer's
+#: alignment offer or fix loads `scipy.spatial.transform` when one comes). Registration's own
+#: modules (scipy.ndimage, scipy.fft) load in the aligner's worker process, never here.
 WARM_IMPORTS = (
     "sklearn.cluster",  # only where objects are clustered: `objects_s`, sources that label
-    "scipy.spatial",
-    "scipy.spatial.transform",
-    "scipy.ndimage",
-    "scipy.fft",
+    "scipy.spatial",  # cKDTree: scan matching (`ScanLocaliser`) and colony maps
+    "scipy.spatial.transform",  # voxel.rotation: own poses to and from quaternions
 )
 #: The interpreter's thread switch interval in a daemon (Python's default is 5 ms).
 SWITCH_INTERVAL_S = 0.001
@@ -379,11 +380,11 @@ class Daemon:
             )
 
     def _warm_up(self) -> None:
-        """Load the compiled kernels (optional; ~0.5 s of CPU; only when there are sources:
-        nothing else integrates scans) and import `WARM_IMPORTS` after the first catch-ups,
-        which would otherwise share the interpreter with them; then `warm` is set. A scan
-        integrated sooner starts the kernels' loading in a thread and takes the numpy path
-        meanwhile (`kernels.load_in_background`)."""
+        """Load the compiled kernels (optional; ~0.5 s of CPU) and import `WARM_IMPORTS` after
+        the first catch-ups, which would otherwise share the interpreter with them, only when
+        there are sources (nothing else integrates scans, localises or clusters); then `warm` is
+        set. A scan integrated sooner starts the kernels' loading in a thread and takes the numpy
+        path meanwhile (`kernels.load_in_background`)."""
         deadline = time.monotonic() + KERNELS_WAIT_S
         self.stop.wait(KERNELS_SETTLE_S)
         while not self.gossip.catchup.idle() and time.monotonic() < deadline:
@@ -391,9 +392,11 @@ class Daemon:
                 return
         if self.stop.is_set():
             return
-        if self._sources:
-            kernels.warm()
-            kernels.warm_codec()
+        if not self._sources:  # nothing integrates scans, localises or clusters here
+            self.warm.set()
+            return
+        kernels.warm()
+        kernels.warm_codec()
         clusters = self.config.objects_s > 0 and any(map(may_label, self._sources))
         for name in WARM_IMPORTS:
             if name.startswith("sklearn") and not clusters:

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from colonyd.errors import ConfigError, StatusError
+from colonyd.experimentopts import LIDAR_RANGE, WORLDS
 from colonyd.outdir import output_dir
 from colonyd.plots import Panel, Series, draw_colony, draw_errors
 from colonyd.simrun import SimRun
@@ -42,12 +43,6 @@ MARKER_READERS = ("depth-1",)
 #: a colony, so the runs differ only in what is shared.
 AGENT_SEED = {"lidar-1": 1, "depth-1": 2, "cctv-1": 3}
 ODOMETRY_NOISE = "realistic"
-#: lidar-1's range (m): a short-range 2D LiDAR, like cheap ones. With the sim's 12 m it sees
-#: every wall of the office from anywhere and is at 0.02 m alone (docs/LOCALISATION.md).
-LIDAR_RANGE = 4.0
-#: The sim worlds the experiment runs in: the furnished office (default) and the paper's "relatively
-#: sparse environment", the hall (docs/LOCALISATION.md "The sparse hall").
-WORLDS = ("office", "hall")
 #: Seconds from starting a run's daemons to its shared clock's zero (`epoch=`): every agent's path
 #: starts then, so a daemon slow to start does not skip the first frames.
 EPOCH_DELAY_S = 15.0

@@ -7,7 +7,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import msgpack
 import numpy as np
 import zenoh
@@ -189,6 +188,8 @@ def map_colours(points: np.ndarray, classes: np.ndarray | None) -> np.ndarray:
     z = points[:, 2]
     lo, hi = np.percentile(z, [2, 98])
     level = np.clip((z - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
+    import cv2  # loads where a map is exported, not at start-up
+
     ramp = cv2.applyColorMap(level.reshape(-1, 1), cv2.COLORMAP_VIRIDIS).reshape(n, 3)
     colours: np.ndarray = ramp[:, ::-1].copy()  # BGR -> RGB
     if classes is not None:

@@ -11,7 +11,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TextIO
 
-import cv2
 import numpy as np
 
 from colonyd.outdir import run_output
@@ -242,6 +241,8 @@ def write_floor_plan(
     """`floorplan.png` of voxel layer z = `layer` and its ROS map_server `floorplan.yaml`."""
     image, lo = floor_plan(occupied, free, layer)
     files = {"floorplan": out_dir / "floorplan.png", "floorplan_yaml": out_dir / "floorplan.yaml"}
+    import cv2  # loads where a floor plan is written, not at start-up
+
     if not cv2.imwrite(str(files["floorplan"]), image):
         msg = f"{files['floorplan']}: cannot write the floor plan PNG"
         raise OSError(msg)

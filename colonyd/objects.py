@@ -12,8 +12,7 @@ import numpy as np
 from colonyd.errors import WireError
 from colonyd.grid import VoxelGrid
 from colonyd.layers import Layer
-from plugins.cctv import AGENT_LABEL
-from plugins.observation import Observation
+from plugins.observation import AGENT_LABEL, Observation
 from protocol import ObjectCentroid as WireObject
 from voxel.objects import (
     LabelledVoxels,

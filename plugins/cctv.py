@@ -10,12 +10,9 @@ import numpy as np
 from plugins.checks import as_array, as_pose, camera_intrinsics
 from plugins.depth import DepthCamera, DepthFrame
 from plugins.errors import SensorInputError
-from plugins.observation import ObjectDetection, Observation
+from plugins.observation import AGENT_LABEL, ObjectDetection, Observation
 from voxel.sensor import SensorModel
 
-#: Label of a detection that is another agent's marker (followed by the agent id); its pose is
-#: that agent's body pose in the camera frame.
-AGENT_LABEL = "agent:"
 #: A robot's board whose solved normal leaves the horizontal by more than 10 degrees is an
 #: ambiguous (flipped) pose solution of a small marker, and dropped.
 VERTICAL_SIN = 0.17

@@ -11,6 +11,10 @@ from plugins.checks import as_array, as_intrinsics, as_pose
 from plugins.errors import SensorInputError
 from voxel.delta import Delta
 
+#: Label of a detection that is another agent's marker (followed by the agent id); its pose is
+#: that agent's body pose in the camera frame.
+AGENT_LABEL = "agent:"
+
 
 @dataclass(frozen=True)
 class ObjectDetection:

@@ -3,37 +3,48 @@
 
 from __future__ import annotations
 
+import importlib
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
-from plugins.bulk import BulkOptions, open_bulk
-from plugins.carmen import CarmenOptions
-from plugins.replay import ReplayOptions, open_replay
-from plugins.ros2 import Ros2Options, open_ros2
-from plugins.rosbag import RosbagOptions
-from plugins.sevenscenes import RgbdOptions
-from plugins.sim import SimOptions, open_sim
 from plugins.spec import OptionDoc, Options, SourceSpec, option_docs, split_spec
 from plugins.stream import Source, SourceContext
-from plugins.synthetic import SyntheticOptions, open_synthetic
+
+
+def _load(name: str) -> Any:
+    """The object a "module:attribute" name names, its module imported now."""
+    module, attribute = name.split(":")
+    return getattr(importlib.import_module(module), attribute)
 
 
 @dataclass(frozen=True)
 class SourceKind:
     """A kind of source: how its spec looks, what it reads, its options models and how to open it.
 
-    `options` lists (heading, model): the kind's own options under heading "", then options that
-    depend on what is read (replay: per recording format).
+    `models` lists (heading, "module:Model"): the kind's own options under heading "", then options
+    that depend on what is read (replay: per recording format); `opener` names its open function.
+    Both are named, not imported: a kind's plugin modules load when a spec of that kind is opened
+    (or the options are listed), so a daemon or command imports only the plugins it uses.
     """
 
     name: str
     usage: str
     reads: str
-    options: tuple[tuple[str, type[Options]], ...]
-    open: Callable[[SourceSpec, SourceContext], Source]
+    models: tuple[tuple[str, str], ...]
+    opener: str
     takes_path: bool = False
+
+    @property
+    def options(self) -> tuple[tuple[str, type[Options]], ...]:
+        """(heading, model) of every options model (imports the kind's plugin modules)."""
+        return tuple((heading, cast(type[Options], _load(name))) for heading, name in self.models)
+
+    @property
+    def open(self) -> Callable[[SourceSpec, SourceContext], Source]:
+        """The kind's open function (imports its plugin module)."""
+        return cast(Callable[[SourceSpec, SourceContext], Source], _load(self.opener))
 
 
 SOURCE_KINDS: dict[str, SourceKind] = {
@@ -45,8 +56,8 @@ SOURCE_KINDS: dict[str, SourceKind] = {
             "an agent of a simulated world: a depth camera, 2D or 3D LiDAR or CCTV camera "
             "rendered by ray casting along the agent's path, pose guesses from noisy odometry, "
             "ground truth kept; deterministic for a seed",
-            (("", SimOptions),),
-            open_sim,
+            (("", "plugins.sim:SimOptions"),),
+            "plugins.sim:open_sim",
         ),
         SourceKind(
             "replay",
@@ -55,12 +66,12 @@ SOURCE_KINDS: dict[str, SourceKind] = {
             "RGB-D folder, or a ROS 1/2 bag (.bag, .db3, .mcap, or a folder with metadata.yaml; "
             "needs the [ros] extra); bad frames are skipped and counted unless strict",
             (
-                ("", ReplayOptions),
-                ("carmen", CarmenOptions),
-                ("7scenes, tum", RgbdOptions),
-                ("rosbag", RosbagOptions),
+                ("", "plugins.replay:ReplayOptions"),
+                ("carmen", "plugins.carmen:CarmenOptions"),
+                ("7scenes, tum", "plugins.sevenscenes:RgbdOptions"),
+                ("rosbag", "plugins.rosbag:RosbagOptions"),
             ),
-            open_replay,
+            "plugins.replay:open_replay",
             takes_path=True,
         ),
         SourceKind(
@@ -69,24 +80,24 @@ SOURCE_KINDS: dict[str, SourceKind] = {
             "a live ROS 2 robot on rmw_zenoh (no ROS install): one LaserScan, PointCloud2 or "
             "depth Image topic, its sensor pose from Odometry and /tf, /tf_static at each "
             "reading's time (docs/ROS2.md; needs the [ros] extra); runs until stopped or frames",
-            (("", Ros2Options),),
-            open_ros2,
+            (("", "plugins.ros2:Ros2Options"),),
+            "plugins.ros2:open_ros2",
         ),
         SourceKind(
             "synthetic",
             "synthetic:key=value,...",
             "nothing: a 2.5D scanner walking an empty square room, horizontal beams to the walls "
             "with returns at random heights, paced in real time (daemon tests and benchmarks)",
-            (("", SyntheticOptions),),
-            open_synthetic,
+            (("", "plugins.synthetic:SyntheticOptions"),),
+            "plugins.synthetic:open_synthetic",
         ),
         SourceKind(
             "bulk",
             "bulk:key=value,...",
             "nothing: one ready-made layer of occupied voxels with random log-odds, at the grid's "
             "resolution, integrated at once (benchmarks of catch-up)",
-            (("", BulkOptions),),
-            open_bulk,
+            (("", "plugins.bulk:BulkOptions"),),
+            "plugins.bulk:open_bulk",
         ),
     )
 }

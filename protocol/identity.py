@@ -9,12 +9,6 @@ from typing import Literal
 
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
-from cryptography.hazmat.primitives.serialization import (
-    Encoding,
-    NoEncryption,
-    PrivateFormat,
-    PublicFormat,
-)
 
 from protocol.errors import IdentityError, UnknownIdentityError
 
@@ -33,7 +27,7 @@ class Signer:
 
     def __init__(self, private: Ed25519PrivateKey) -> None:
         self._key = private
-        self.public = private.public_key().public_bytes(Encoding.Raw, PublicFormat.Raw)
+        self.public = private.public_key().public_bytes_raw()
 
     @classmethod
     def generate(cls) -> Signer:
@@ -48,7 +42,7 @@ class Signer:
         return cls(Ed25519PrivateKey.from_private_bytes(raw))
 
     def private_bytes(self) -> bytes:
-        return self._key.private_bytes(Encoding.Raw, PrivateFormat.Raw, NoEncryption())
+        return self._key.private_bytes_raw()
 
     def sign(self, data: bytes) -> bytes:
         return self._key.sign(data)

@@ -61,8 +61,8 @@ from colonyd.fixes import (
     through,
 )
 from colonyd.mapping import integrate_observation
-from plugins.cctv import AGENT_LABEL, CctvCamera
-from plugins.observation import Observation
+from plugins.cctv import CctvCamera
+from plugins.observation import AGENT_LABEL, Observation
 from plugins.sim import AGENTS, SimSource
 from plugins.sim import Path as SimPath
 from voxel import keys as vk

@@ -42,8 +42,9 @@ from colonyd.fixes import (
     fix_covariance,
     fix_sd,
 )
-from plugins.cctv import AGENT_LABEL, CORNER_PX, CctvCamera, marker_corners
+from plugins.cctv import CORNER_PX, CctvCamera, marker_corners
 from plugins.checks import pose_matrix
+from plugins.observation import AGENT_LABEL
 from plugins.sim import AGENTS, BOARD_LENGTH, SimSource, boards_at, robot_markers
 from plugins.world import Hits
 from voxel.localisation import frame_error, se2

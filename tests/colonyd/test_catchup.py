@@ -59,3 +59,44 @@ def test_compiled_kernels_load_once_catch_up_is_idle(monkeypatch) -> None:
     fake.warm.clear()
     dm.Daemon._warm_up(fake)  # type: ignore[arg-type]
     assert len(loaded) == 1 and not fake.warm.is_set()
+
+
+def test_a_daemon_without_sources_ends_start_up_without_scipy() -> None:
+    """The warm-up imports scipy (~0.6 CPU-s) only where a job of this process uses it: with
+    sources (scan matching, colony maps, own poses as quaternions), never registration's
+    scipy.ndimage and scipy.fft (they load in the aligner's worker). A fresh process warms up a
+    daemon without sources (warm, nothing imported), turns a quaternion into a matrix (scipy
+    on first use, as a peer's alignment offer does), then warms up one with a source."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, threading\n"
+        "from types import SimpleNamespace\n"
+        "import numpy as np\n"
+        "from colonyd import daemon as dm\n"
+        "dm.KERNELS_SETTLE_S = 0.0\n"
+        "loads = []\n"
+        "dm.kernels.warm = lambda: loads.append('kernels') or True\n"
+        "dm.kernels.warm_codec = lambda: loads.append('codec') or True\n"
+        "SCIPY = ('scipy.spatial', 'scipy.spatial.transform', 'scipy.ndimage', 'scipy.fft',\n"
+        "         'sklearn.cluster')\n"
+        "def warm_up(sources):\n"
+        "    fake = SimpleNamespace(stop=threading.Event(), warm=threading.Event(),\n"
+        "        _sources=sources, config=SimpleNamespace(objects_s=0.0),\n"
+        "        gossip=SimpleNamespace(catchup=SimpleNamespace(idle=lambda: True)))\n"
+        "    dm.Daemon._warm_up(fake)\n"
+        "    print(fake.warm.is_set(), loads, [m for m in SCIPY if m in sys.modules])\n"
+        "warm_up([])\n"
+        "from voxel.rotation import quaternion_to_matrix\n"
+        "print(np.allclose(quaternion_to_matrix((0.0, 0.0, 0.0, 1.0)), np.eye(3)))\n"
+        "warm_up([SimpleNamespace(adapter=SimpleNamespace(labels=False))])\n"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
+    )
+    assert run.stdout.split("\n")[:3] == [
+        "True [] []",
+        "True",
+        "True ['kernels', 'codec'] ['scipy.spatial', 'scipy.spatial.transform']",
+    ], run.stdout

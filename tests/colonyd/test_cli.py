@@ -223,3 +223,33 @@ def test_an_unknown_flag_is_reported_by_its_command_with_the_closest_flag(
     assert "colonyd experiment paper: error: unrecognized arguments: --bogus\n" in (
         capsys.readouterr().err
     )
+
+
+def test_the_command_line_and_the_daemon_load_neither_the_experiment_nor_opencv() -> None:
+    """Building the parser no longer imports the paper experiment (its simulator, plots, export
+    and OpenCV: ~0.1 CPU-s off every command), and the daemon loads OpenCV and multiprocessing
+    where they are used (a map exported, a depth camera's odometry, the aligner's worker). A
+    fresh process builds the parser and imports the daemon, then uses each."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "import numpy as np\n"
+        "from colonyd.cli import build_parser\n"
+        "import colonyd.daemon\n"
+        "args = build_parser().parse_args(['experiment', 'paper', '--out', 'x'])\n"
+        "LAZY = ('colonyd.experiment', 'cv2', 'multiprocessing')\n"
+        "print([m for m in LAZY if m in sys.modules])\n"
+        "from colonyd.experiment import LIDAR_RANGE, WORLDS\n"
+        "print(args.world == WORLDS[0], args.lidar_range == LIDAR_RANGE)\n"
+        "from colonyd.export import map_colours\n"
+        "from voxel.localisation.visual import VisualOdometry\n"
+        "VisualOdometry(np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]))\n"
+        "colours = map_colours(np.array([[0.0, 0, 0], [0, 0, 1.0]]), None)\n"
+        "print(colours.shape, 'cv2' in sys.modules)\n"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
+    )
+    assert run.stdout.split("\n")[:3] == ["[]", "True True", "(2, 3) True"], run.stdout

@@ -95,3 +95,32 @@ def test_bad_keys_and_modes_are_refused() -> None:
     with pytest.raises(IdentityError, match="expected 32 raw Ed25519 private key bytes, found 3"):
         Signer.from_bytes(b"abc")
     assert Signer.from_bytes(A.private_bytes()).public == A.public
+
+
+def test_keys_are_raw_bytes_without_the_key_serialization_modules() -> None:
+    """Raw key bytes come from the key objects themselves: cryptography's serialization package
+    (SSH, PKCS, ciphers: ~30 ms of CPU) is not imported by the daemon. A fresh process signs and
+    verifies, then checks the bytes against that package's raw encodings."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "import colonyd.daemon, colonyd.cli\n"
+        "from protocol.identity import Signer, verify_signature\n"
+        "s = Signer.generate()\n"
+        "again = Signer.from_bytes(s.private_bytes())\n"
+        "verify_signature(again.public, b'data', s.sign(b'data'), 'a')\n"
+        "SER = 'cryptography.hazmat.primitives.serialization'\n"
+        "print(SER in sys.modules, len(s.public), again.public == s.public)\n"
+        "from cryptography.hazmat.primitives import serialization as ser\n"
+        "raw = ser.Encoding.Raw\n"
+        "key = s._key\n"
+        "print(key.private_bytes(raw, ser.PrivateFormat.Raw, ser.NoEncryption())\n"
+        "      == s.private_bytes(), key.public_key().public_bytes(raw, ser.PublicFormat.Raw)\n"
+        "      == s.public)\n"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
+    )
+    assert run.stdout.split("\n")[:2] == ["False 32 True", "True True"], run.stdout

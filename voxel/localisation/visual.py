@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from voxel.errors import LocalisationError
@@ -61,6 +60,8 @@ class VisualOdometry:
         if self.K.shape != (3, 3):
             msg = f"K: expected 3x3 intrinsics, found shape {self.K.shape}"
             raise LocalisationError(msg)
+        import cv2  # loads with a depth camera's odometry, not at start-up
+
         self.params = p = params or VisualParams()
         self.orb = cv2.ORB_create(nfeatures=p.features)  # type: ignore[attr-defined]  # not in cv2's stubs
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
@@ -115,6 +116,8 @@ class VisualOdometry:
             return None, len(pairs)
         a = np.array([m.queryIdx for m in pairs])
         b = np.array([m.trainIdx for m in pairs])
+        import cv2
+
         ok, rvec, tvec, inliers = cv2.solvePnPRansac(
             self.previous[0][a],
             px[b],
