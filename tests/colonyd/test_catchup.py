@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from colonyd.catchup import timeline
 from colonyd.metrics import Metrics
+from tests.shared import fresh_process
 
 
 def test_a_catch_up_timeline_reads_in_order_of_its_steps() -> None:
@@ -67,8 +68,6 @@ def test_a_daemon_without_sources_ends_start_up_without_scipy() -> None:
     scipy.ndimage and scipy.fft (they load in the aligner's worker). A fresh process warms up a
     daemon without sources (warm, nothing imported), turns a quaternion into a matrix (scipy
     on first use, as a peer's alignment offer does), then warms up one with a source."""
-    import subprocess
-    import sys
 
     code = (
         "import sys, threading\n"
@@ -92,11 +91,9 @@ def test_a_daemon_without_sources_ends_start_up_without_scipy() -> None:
         "print(np.allclose(quaternion_to_matrix((0.0, 0.0, 0.0, 1.0)), np.eye(3)))\n"
         "warm_up([SimpleNamespace(adapter=SimpleNamespace(labels=False))])\n"
     )
-    run = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
-    )
-    assert run.stdout.split("\n")[:3] == [
+    stdout = fresh_process(code)
+    assert stdout.split("\n")[:3] == [
         "True [] []",
         "True",
         "True ['kernels', 'codec'] ['scipy.spatial', 'scipy.spatial.transform']",
-    ], run.stdout
+    ], stdout

@@ -11,6 +11,7 @@ import pytest
 
 from colonyd.cli import EXIT_CONFIG, EXIT_DATA, main
 from plugins.source import SOURCE_KINDS, describe_sources
+from tests.shared import fresh_process
 from voxel.grid import VoxelGrid
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "SOURCES.md"
@@ -230,8 +231,6 @@ def test_the_command_line_and_the_daemon_load_neither_the_experiment_nor_opencv(
     and OpenCV: ~0.1 CPU-s off every command), and the daemon loads OpenCV and multiprocessing
     where they are used (a map exported, a depth camera's odometry, the aligner's worker). A
     fresh process builds the parser and imports the daemon, then uses each."""
-    import subprocess
-    import sys
 
     code = (
         "import sys\n"
@@ -249,7 +248,5 @@ def test_the_command_line_and_the_daemon_load_neither_the_experiment_nor_opencv(
         "colours = map_colours(np.array([[0.0, 0, 0], [0, 0, 1.0]]), None)\n"
         "print(colours.shape, 'cv2' in sys.modules)\n"
     )
-    run = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
-    )
-    assert run.stdout.split("\n")[:3] == ["[]", "True True", "(2, 3) True"], run.stdout
+    stdout = fresh_process(code)
+    assert stdout.split("\n")[:3] == ["[]", "True True", "(2, 3) True"], stdout

@@ -16,7 +16,7 @@ from plugins.sim import SimOptions, SimSource
 from plugins.source import SOURCE_KINDS, describe_sources, open_source, parse_spec
 from plugins.stream import Source
 from plugins.synthetic import SyntheticOptions, SyntheticSource
-from tests.shared import SHARED_DATA
+from tests.shared import SHARED_DATA, fresh_process
 
 DATA = SHARED_DATA
 
@@ -178,8 +178,6 @@ def test_a_kind_s_plugin_modules_load_when_a_spec_of_that_kind_is_opened() -> No
     was ~14 % of an idle daemon's start-up): a fresh process imports the daemon and the command
     line without any, opens a synthetic source (its module and the world it walks, not the other
     kinds'), then lists every kind's options (every plugin)."""
-    import subprocess
-    import sys
 
     code = (
         "import sys\n"
@@ -196,11 +194,9 @@ def test_a_kind_s_plugin_modules_load_when_a_spec_of_that_kind_is_opened() -> No
         "text = describe_sources()\n"
         "print(len(loaded()), 'max_range' in text)\n"
     )
-    run = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
-    )
-    assert run.stdout.split("\n")[:3] == [
+    stdout = fresh_process(code)
+    assert stdout.split("\n")[:3] == [
         "[]",
         "1 ['plugins.synthetic']",
         "10 True",
-    ], run.stdout
+    ], stdout

@@ -10,6 +10,7 @@ from protocol.identity import Signer, Trust, parse_public, verify_signature
 from protocol.messages import DeltaRangeRequest, Heartbeat, Pose
 from protocol.receiver import Receiver
 from tests.protocol.helpers import KEY
+from tests.shared import fresh_process
 
 A, B = Signer.generate(), Signer.generate()
 
@@ -101,8 +102,6 @@ def test_keys_are_raw_bytes_without_the_key_serialization_modules() -> None:
     """Raw key bytes come from the key objects themselves: cryptography's serialization package
     (SSH, PKCS, ciphers: ~30 ms of CPU) is not imported by the daemon. A fresh process signs and
     verifies, then checks the bytes against that package's raw encodings."""
-    import subprocess
-    import sys
 
     code = (
         "import sys\n"
@@ -120,7 +119,5 @@ def test_keys_are_raw_bytes_without_the_key_serialization_modules() -> None:
         "      == s.private_bytes(), key.public_key().public_bytes(raw, ser.PublicFormat.Raw)\n"
         "      == s.public)\n"
     )
-    run = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
-    )
-    assert run.stdout.split("\n")[:2] == ["False 32 True", "True True"], run.stdout
+    stdout = fresh_process(code)
+    assert stdout.split("\n")[:2] == ["False 32 True", "True True"], stdout

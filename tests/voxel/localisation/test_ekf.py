@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from tests.shared import fresh_process
 from voxel.errors import LocalisationError
 from voxel.localisation.ekf import GATE_3DOF, MotionNoise, PlanarEkf
 
@@ -397,8 +398,6 @@ def test_the_filter_starts_without_scipy_stats_and_filterpys_likelihood_still_wo
     daemon start): a fresh process builds, predicts and updates a filter without them,
     filterpy's own likelihood loads scipy.stats when called and gives the real value, and
     filterpy.stats and filterpy.discrete_bayes are the real modules after."""
-    import subprocess
-    import sys
 
     code = (
         "import sys, math, numpy as np\n"
@@ -413,10 +412,8 @@ def test_the_filter_starts_without_scipy_stats_and_filterpys_likelihood_still_wo
         "print(hasattr(filterpy.stats, 'multivariate_gaussian'), 'scipy.stats' in sys.modules,"
         " hasattr(filterpy.discrete_bayes, 'predict'), 'scipy.ndimage' in sys.modules)\n"
     )
-    run = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
-    )
-    before, value, after = run.stdout.split("\n")[:3]
-    assert before == "False", run.stdout
+    stdout = fresh_process(code)
+    before, value, after = stdout.split("\n")[:3]
+    assert before == "False", stdout
     assert float(value) == pytest.approx(-0.5 * math.log(2 * math.pi) - 0.005, abs=1e-12)
-    assert after == "True True True True", run.stdout
+    assert after == "True True True True", stdout

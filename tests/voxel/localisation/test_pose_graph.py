@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from tests.shared import fresh_process
 from tests.voxel.localisation.test_scan_match import ROOM, _segments_scan
 from voxel.errors import LocalisationError
 from voxel.localisation import se2
@@ -242,8 +243,6 @@ def test_a_keyed_landmark_is_one_variable_counted_once_as_in_the_filter() -> Non
 def test_a_daemon_starts_without_scipy_sparse_and_a_graph_still_solves() -> None:
     """scipy.sparse (~0.5 CPU-s with what it pulls in) loads where a graph is solved, not at every
     daemon's start: a fresh process imports the daemon without it, then smooths a path."""
-    import subprocess
-    import sys
 
     code = (
         "import sys, numpy as np\n"
@@ -261,7 +260,5 @@ def test_a_daemon_starts_without_scipy_sparse_and_a_graph_still_solves() -> None
         "g.place(ekf.pose)\n"
         "print(round(float(g.solve().poses[-1, 0]), 3), 'scipy.sparse' in sys.modules)\n"
     )
-    run = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
-    )
-    assert run.stdout.split("\n")[:2] == ["False", "0.4 True"], run.stdout
+    stdout = fresh_process(code)
+    assert stdout.split("\n")[:2] == ["False", "0.4 True"], stdout
