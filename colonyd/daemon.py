@@ -403,7 +403,9 @@ class Daemon:
                 continue  # ~90 MB of modules (RSS) a daemon that clusters nothing never needs
             try:
                 importlib.import_module(name)
-            except ImportError as exc:  # the job that needs it says so when it runs
+            except Exception as exc:  # noqa: BLE001 - the job that needs it says so when it runs
+                # (an ImportError, or the import lock's deadlock error when a job's thread
+                # imports a neighbouring module at the same moment): start-up still ends
                 log.debug("warm-up: cannot import %s: %s", name, exc)
         self.warm.set()
 

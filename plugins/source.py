@@ -9,14 +9,19 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, cast
 
+from plugins.errors import SourceError
 from plugins.spec import OptionDoc, Options, SourceSpec, option_docs, split_spec
 from plugins.stream import Source, SourceContext
 
 
 def _load(name: str) -> Any:
-    """The object a "module:attribute" name names, its module imported now."""
+    """The object a "module:attribute" name names, its module imported now (a plugin that cannot
+    load is a SourceError naming it, as a bad spec is)."""
     module, attribute = name.split(":")
-    return getattr(importlib.import_module(module), attribute)
+    try:
+        return getattr(importlib.import_module(module), attribute)
+    except (ImportError, AttributeError) as exc:
+        raise SourceError(f"expected the source plugin {name} to load, found: {exc}") from exc
 
 
 @dataclass(frozen=True)

@@ -9,21 +9,32 @@ from the rotated frame into the reference frame: a quaternion (0, 0, sin(a/2), c
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 
+def _rotation() -> Any:
+    """scipy's Rotation, loaded on first use (not at start-up). scipy.spatial first: a thread
+    importing scipy.spatial.transform while another imports scipy.spatial would otherwise take
+    the two module locks in opposite orders (Python's import deadlock error, seen with six
+    threads' first imports at once)."""
+    import scipy.spatial  # noqa: F401 - its lock before .transform's
+    from scipy.spatial.transform import Rotation
+
+    return Rotation
+
+
 def quaternion_to_matrix(q: np.ndarray | tuple[float, float, float, float]) -> np.ndarray:
     """Rotation matrix (3, 3) float64 of a non-zero quaternion (x, y, z, w), normalised first."""
-    from scipy.spatial.transform import Rotation  # loads on first use, not at start-up
-
+    Rotation = _rotation()
     matrix: np.ndarray = Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix()
     return matrix
 
 
 def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
     """Unit quaternion (x, y, z, w) float64, w >= 0, of a rotation matrix (3, 3)."""
-    from scipy.spatial.transform import Rotation
+    Rotation = _rotation()
 
     q: np.ndarray = Rotation.from_matrix(np.asarray(rotation, dtype=np.float64)).as_quat(
         canonical=True

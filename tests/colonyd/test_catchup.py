@@ -62,6 +62,33 @@ def test_compiled_kernels_load_once_catch_up_is_idle(monkeypatch) -> None:
     assert len(loaded) == 1 and not fake.warm.is_set()
 
 
+def test_start_up_ends_when_a_warm_import_fails_in_any_way(monkeypatch) -> None:
+    """An import the warm-up cannot do (missing, or the import lock's deadlock error when a job's
+    thread imports a neighbouring module at the same moment) is left to the job that needs it:
+    start-up still ends."""
+    import threading
+    from types import SimpleNamespace
+
+    from colonyd import daemon as dm
+
+    def fail(name: str) -> None:
+        raise (ImportError if name.startswith("sklearn") else RuntimeError)(f"cannot {name}")
+
+    monkeypatch.setattr(dm.importlib, "import_module", fail)
+    monkeypatch.setattr(dm.kernels, "warm", lambda: True)
+    monkeypatch.setattr(dm.kernels, "warm_codec", lambda: True)
+    monkeypatch.setattr(dm, "KERNELS_SETTLE_S", 0.0)
+    fake = SimpleNamespace(
+        stop=threading.Event(),
+        warm=threading.Event(),
+        _sources=[SimpleNamespace(adapter=SimpleNamespace())],
+        config=SimpleNamespace(objects_s=2.0),
+        gossip=SimpleNamespace(catchup=SimpleNamespace(idle=lambda: True)),
+    )
+    dm.Daemon._warm_up(fake)  # type: ignore[arg-type]
+    assert fake.warm.is_set()
+
+
 def test_a_daemon_without_sources_ends_start_up_without_scipy() -> None:
     """The warm-up imports scipy (~0.6 CPU-s) only where a job of this process uses it: with
     sources (scan matching, colony maps, own poses as quaternions), never registration's

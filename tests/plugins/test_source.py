@@ -200,3 +200,17 @@ def test_a_kind_s_plugin_modules_load_when_a_spec_of_that_kind_is_opened() -> No
         "1 ['plugins.synthetic']",
         "10 True",
     ], stdout
+
+
+def test_a_plugin_that_cannot_load_is_a_source_error_naming_it() -> None:
+    from plugins.errors import SourceError
+    from plugins.source import _load
+
+    assert callable(_load("plugins.sim:open_sim"))
+    for name, found in (
+        ("plugins.nosuch:open", "No module named"),
+        ("plugins.sim:nosuch", "nosuch"),
+    ):
+        with pytest.raises(SourceError, match=f"expected the source plugin {name} to load") as e:
+            _load(name)
+        assert found in str(e.value)
