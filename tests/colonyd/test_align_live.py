@@ -11,7 +11,9 @@ def test_office_agents_at_unknown_poses_share_one_aligned_frame(tmp_path):
     names = ("depth", "lidar3d", "room")
     # 100 frames (10 s of each path): both office agents have seen the landmarks (4 each) and
     # enough walls to align; with 150 the daemons mapped ~10 s longer for the same checks.
-    r = run_live(tmp_path, agents, names=names, frames=100, noise=0.0, align_s=1.0, timeout=120)
+    # (it ends once aligned: 60-70 s idle; under load 10-18 the pair took over 120 s, three
+    # times in CI runs beside other work, so the limit is 240 s)
+    r = run_live(tmp_path, agents, names=names, frames=100, noise=0.0, align_s=1.0, timeout=240)
     assert r["converged"], r
     assert r["same_frame_everywhere"], r  # every daemon computed the same colony frame
     assert r["colony_frame_agents"] == ["depth", "lidar3d"], r
