@@ -352,7 +352,7 @@ def _unbacked(rival: ObjectEvidence, best: ObjectEvidence, prefer_backed: int | 
     `prefer_backed` objects on the other map's surfaces (more than fall where it has not looked,
     and is not ruled out), the rival at most UNBACKED_SHARE as many, and most of the rival's
     objects fall where the other map has not looked (no evidence either way)."""
-    if prefer_backed is None or best.supported < max(prefer_backed, 2):
+    if prefer_backed is None or best.supported < prefer_backed:
         return False
     if best.supported <= best.unknown or _ruled_out(best):
         return False
@@ -435,6 +435,12 @@ def _objects_record(
 def _check(a: MapCloud, b: MapCloud, p: AlignParams) -> None:
     if p.dof not in (3, 4, 6):
         msg = f"dof: expected 3 (x, y, yaw), 4 (x, y, z, yaw) or 6, found {p.dof!r}"
+        raise AlignmentError(msg)
+    if p.prefer_backed is not None and p.prefer_backed < 2:
+        msg = (
+            "prefer_backed: expected None (off) or at least 2 objects on the other map's "
+            f"surfaces, found {p.prefer_backed!r}"
+        )
         raise AlignmentError(msg)
     for name, m in (("A", a), ("B", b)):
         if m.occupied.ndim != 2 or m.occupied.shape[1] != 3 or len(m.occupied) < 10:

@@ -8,6 +8,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
+from voxel.errors import AlignmentError
 from voxel.registration import AlignParams, Landmarks, MapCloud, align_clouds, match_landmarks
 from voxel.registration.transform import apply, rigid
 
@@ -201,3 +202,9 @@ def test_unobserved_rivals_stay_when_objects_are_few_contradicted_or_back_them_t
         assert result.objects["contradicted"] >= 2 and "objects" in result.failed_checks
     else:
         assert "ambiguous" in (result.reason or "")
+
+
+def test_prefer_backed_below_two_objects_is_refused() -> None:
+    a, b = _room(FURNITURE, 4.6)
+    with pytest.raises(AlignmentError, match="prefer_backed: expected None"):
+        align_clouds(a, b, AlignParams(dof=4, prefer_backed=1))
