@@ -9,7 +9,9 @@ The run is the experiment's (`colonyd.experiment`: the same specs, seeds, shared
 daemon settings); `--session-nice` sets the daemons' `align_session_nice` (the registration
 worker's autogroup niceness; -1: no session of its own). Each attempt is recorded from the
 daemons' status (polled every 0.25 s: one attempt per `align_s` = 2 s, so none is missed), with
-the sim time it ended at (seconds since the shared clock's zero). The worker's CPU is read from
+the sim time it ended at (seconds since the shared clock's zero) and the frames its daemon had
+mapped by then (`frames_mapped`: a loaded daemon maps its frames late, so an attempt at sim
+time 100 s may see maps of 40 s of poses). The worker's CPU is read from
 /proc (user + system, the pool process the daemon spawned). The sim's start poses are read only
 to evaluate: an accepted attempt's error against the true transform between the two frames.
 """
@@ -125,6 +127,9 @@ def run(
                     entry = {
                         "peer": peer,
                         "sim_s": round(when - epoch, 1),
+                        "frames_mapped": sum(
+                            int(s.get("delivered", 0)) for s in report.get("sources", [])
+                        ),
                         "worker_cpu_s": round(cpu.get(agent, 0.0), 2),
                         **{
                             k: rec.get(k)
@@ -188,7 +193,8 @@ def summary(result: dict[str, Any]) -> str:
             verdict = "ok" if a.get("aligned") else (a.get("reason") or "?")[:70]
             err = f" err {a['error_m']} m {a['error_deg']} deg" if "error_m" in a else ""
             lines.append(
-                f"  {agent} t={a['sim_s']:6.1f} {a.get('seconds', 0) or 0:6.2f} s "
+                f"  {agent} t={a['sim_s']:6.1f} f={a.get('frames_mapped', '?')} "
+                f"{a.get('seconds', 0) or 0:6.2f} s "
                 f"cpu {a['worker_cpu_s']:6.2f} amb {a.get('ambiguity')} "
                 f"geo {a.get('geometric_ambiguity')} ov {a.get('overlap')}{err}: {verdict}"
             )

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from colonyd.aligner import Aligner
-from colonyd.bench.paper_align import error_of, true_transform, worker_cpu
+from colonyd.bench.paper_align import error_of, summary, true_transform, worker_cpu
 
 
 def _spin(seconds: float) -> int:
@@ -43,3 +43,31 @@ def test_error_of_an_estimate_against_the_true_start_frames():
     off[:2, :2], off[:2, 3] = planar[:2, :2], planar[:2, 2]
     pos, yaw = error_of({"transform": off.tolist()}, truth)
     assert pos == pytest.approx(0.05) and yaw == pytest.approx(1.0)
+
+
+def test_summary_shows_each_attempts_frames_mapped():
+    attempt = {
+        "sim_s": 104.1,
+        "frames_mapped": 294,
+        "seconds": 5.1,
+        "worker_cpu_s": 2.4,
+        "aligned": True,
+        "ambiguity": 0.0,
+        "geometric_ambiguity": 0.79,
+        "overlap": 0.43,
+        "error_m": 0.206,
+        "error_deg": 3.72,
+    }
+    result = {
+        "seed": 2,
+        "session_nice": None,
+        "load": [8.2, 12.5],
+        "seconds": 369.2,
+        "first_contact_sim_s": {"depth-1": 117.7},
+        "first_identified_object_sim_s": {"depth-1": 0.7},
+        "worker_cpu_s": {"depth-1": 11.7},
+        "attempts": {"depth-1": [attempt, {**attempt, "aligned": False, "reason": "ambiguous"}]},
+    }
+    lines = summary(result).splitlines()
+    assert "f=294" in lines[1] and lines[1].endswith(": ok")
+    assert lines[2].endswith(": ambiguous")

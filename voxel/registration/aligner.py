@@ -41,6 +41,9 @@ METHOD = "yaw-correlation+icp"
 #: Objects placed by a pose must not land in the other map's open space more than this share of
 #: the objects the other map observed (more rules the pose out).
 MAX_OBJECT_CONFLICT = 0.25
+#: A rival pose the objects give no ground (`AlignParams.prefer_backed`) has at most this share
+#: of the best pose's objects on the other map's surfaces.
+UNBACKED_SHARE = 1.0 / 3.0
 
 
 @dataclass(frozen=True)
@@ -59,6 +62,11 @@ class AlignParams:
     distinct_m: float = 0.5  # poses moving B's extent less than this apart are the same pose
     seed: int = 0
     limits: Thresholds = field(default_factory=Thresholds)
+    #: Objects that must land on the other map's surfaces at the best pose (more than fall where
+    #: it has not looked, few in its open space) for rivals whose objects fall unobserved (at
+    #: most UNBACKED_SHARE as many on surfaces, most unobserved) to leave the ambiguity; None:
+    #: off (only objects in the open space rule a rival out).
+    prefer_backed: int | None = 4
 
 
 @dataclass(frozen=True)
@@ -235,7 +243,9 @@ def align_clouds(
         )
     geometric_ambiguity = _ambiguity(ranked)
     votes = [_object_votes(c.transform, full_a, full_b, oa, ob) for c in ranked]
-    ranked, votes, ambiguity, ruled_out = _resolve(ranked, votes, geometric_ambiguity)
+    ranked, votes, ambiguity, ruled_out, unbacked = _resolve(
+        ranked, votes, geometric_ambiguity, p.prefer_backed
+    )
     best = ranked[0]
 
     b_fine = _sample(b.occupied, p.fine_samples, rng)
@@ -293,7 +303,9 @@ def align_clouds(
         method=method,
         geometric_ambiguity=geometric_ambiguity,
         conflict_extent_m=evidence.conflict_extent,
-        objects=_objects_record(vote, fit, ruled_out, len(oa), len(ob)) if used else None,
+        objects=(
+            _objects_record(vote, fit, ruled_out, unbacked, len(oa), len(ob)) if used else None
+        ),
         covariance_centre=centre,
     )
 
@@ -335,18 +347,39 @@ def _ruled_out(v: ObjectEvidence) -> bool:
     return v.contradicted > MAX_OBJECT_CONFLICT * v.observed
 
 
+def _unbacked(rival: ObjectEvidence, best: ObjectEvidence, prefer_backed: int | None) -> bool:
+    """The objects give the rival pose no ground against the best: the best has at least
+    `prefer_backed` objects on the other map's surfaces (more than fall where it has not looked,
+    and is not ruled out), the rival at most UNBACKED_SHARE as many, and most of the rival's
+    objects fall where the other map has not looked (no evidence either way)."""
+    if prefer_backed is None or best.supported < prefer_backed:
+        return False
+    if best.supported <= best.unknown or _ruled_out(best):
+        return False
+    return rival.supported <= UNBACKED_SHARE * best.supported and rival.unknown > rival.supported
+
+
 def _resolve(
-    ranked: list[_Candidate], votes: list[ObjectEvidence], ambiguity: float
-) -> tuple[list[_Candidate], list[ObjectEvidence], float, int]:
+    ranked: list[_Candidate],
+    votes: list[ObjectEvidence],
+    ambiguity: float,
+    prefer_backed: int | None = None,
+) -> tuple[list[_Candidate], list[ObjectEvidence], float, int, int]:
     """Let objects settle what geometry cannot: poses the objects rule out are dropped, and when
     the best remaining pose is backed by objects the ambiguity is counted among the remaining
-    poses only. Returns the candidates, their votes, the ambiguity and how many were dropped."""
+    poses only; with `prefer_backed`, rivals the objects give no ground against it (`_unbacked`)
+    leave the count too. Returns the candidates, their votes, the ambiguity and how many were
+    ruled out and how many left as unbacked."""
     keep = [i for i, v in enumerate(votes) if not _ruled_out(v)]
     if not keep or not _backed(votes[keep[0]]):
-        return ranked, votes, ambiguity, 0
+        return ranked, votes, ambiguity, 0, 0
     dropped = len(ranked) - len(keep)
+    first = votes[keep[0]]
+    rivals = [i for i in keep[1:] if not _unbacked(votes[i], first, prefer_backed)]
+    unbacked = len(keep) - 1 - len(rivals)
+    keep = [keep[0], *rivals]
     ranked, votes = [ranked[i] for i in keep], [votes[i] for i in keep]
-    return ranked, votes, _ambiguity(ranked), dropped
+    return ranked, votes, _ambiguity(ranked), dropped, unbacked
 
 
 def _objection(
@@ -382,7 +415,7 @@ def _objection(
 
 
 def _objects_record(
-    vote: ObjectEvidence, fit: LandmarkFit, ruled_out: int, n_a: int, n_b: int
+    vote: ObjectEvidence, fit: LandmarkFit, ruled_out: int, unbacked: int, n_a: int, n_b: int
 ) -> dict[str, object]:
     return {
         "a": n_a,
@@ -395,12 +428,19 @@ def _objects_record(
         "fit_rmse_m": round(fit.rmse, 4) if fit.found and math.isfinite(fit.rmse) else None,
         "fit_ambiguity": round(fit.ambiguity, 4) if fit.found else None,
         "poses_ruled_out": ruled_out,
+        "poses_unbacked": unbacked,
     }
 
 
 def _check(a: MapCloud, b: MapCloud, p: AlignParams) -> None:
     if p.dof not in (3, 4, 6):
         msg = f"dof: expected 3 (x, y, yaw), 4 (x, y, z, yaw) or 6, found {p.dof!r}"
+        raise AlignmentError(msg)
+    if p.prefer_backed is not None and p.prefer_backed < 2:
+        msg = (
+            "prefer_backed: expected None (off) or at least 2 objects on the other map's "
+            f"surfaces, found {p.prefer_backed!r}"
+        )
         raise AlignmentError(msg)
     for name, m in (("A", a), ("B", b)):
         if m.occupied.ndim != 2 or m.occupied.shape[1] != 3 or len(m.occupied) < 10:

@@ -8,6 +8,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
+from voxel.errors import AlignmentError
 from voxel.registration import AlignParams, Landmarks, MapCloud, align_clouds, match_landmarks
 from voxel.registration.transform import apply, rigid
 
@@ -134,3 +135,76 @@ def test_objects_in_the_other_maps_open_space_refuse_a_foreign_map(office) -> No
     result = align_clouds(a, b, AlignParams(dof=4), objects_a=oa, objects_b=ob)
     assert not result.aligned
     assert result.objects is not None and result.objects["contradicted"] >= 1
+
+
+# A 9 x 5 m room with furniture in its west half, seen by A only as far as x = 4.6 m (a short-
+# range scanner: every wall, but open space and furniture only in the west); B is the same map
+# moved. Turned 180 degrees B fits the walls nearly as well, and its objects then fall in A's
+# unseen east half, where nothing rules them out.
+FURNITURE = ((1.5, 1.5), (2.5, 3.5), (3.8, 1.2), (1.2, 3.8), (4.0, 3.0))
+MOVE = rigid(1.3, -0.7, 0.0, yaw=math.radians(37.0))
+
+
+def _room(furniture: tuple[tuple[float, float], ...], seen_x: float) -> tuple[MapCloud, MapCloud]:
+    """A (planar, open space known for x < seen_x) and B (A moved by MOVE)."""
+    from tests.voxel.registration.worlds import RES, crop_and_move
+
+    occ = np.zeros((90, 50), bool)
+    occ[[0, -1], :] = occ[:, [0, -1]] = True
+    for x, y in furniture:
+        i, j = round(x / RES), round(y / RES)
+        occ[i - 2 : i + 2, j - 2 : j + 2] = True
+    known = occ.copy()
+    known[: round(seen_x / RES), :] = True
+    cells = np.argwhere(known)
+    keys = np.column_stack([cells, np.zeros(len(cells), np.int64)])
+    mask = occ[cells[:, 0], cells[:, 1]]
+    return crop_and_move(keys, mask, -1.0, 99.0), crop_and_move(keys, mask, -1.0, 99.0, MOVE)
+
+
+def _objects(where: tuple[tuple[float, float], ...]) -> Landmarks:
+    """Objects (class 5) at `where` in A's frame, as B sees them (in B's frame)."""
+    return Landmarks.of([(5, apply(MOVE, np.array([[x, y, 0.5]]))[0]) for x, y in where])
+
+
+def test_objects_on_surfaces_outvote_rivals_whose_objects_fall_unobserved() -> None:
+    a, b = _room(FURNITURE, 4.6)
+    ob = _objects(FURNITURE)
+    off = align_clouds(a, b, AlignParams(dof=4, prefer_backed=None), objects_b=ob)
+    assert not off.aligned and "ambiguous" in (off.reason or "")  # main's rule
+    result = align_clouds(a, b, AlignParams(dof=4), objects_b=ob)
+    assert result.aligned, result.reason
+    t_err, yaw_err = _error(result.transform, np.eye(4), np.linalg.inv(MOVE))
+    assert t_err < 0.05 and yaw_err < 1.0
+    assert result.objects is not None and result.objects["supported"] == 5
+    assert result.objects["poses_unbacked"] >= 1
+    assert result.geometric_ambiguity > 0.5 >= result.ambiguity
+
+
+@pytest.mark.parametrize("case", ["too few", "contradicted", "rival backed too"])
+def test_unobserved_rivals_stay_when_objects_are_few_contradicted_or_back_them_too(
+    case: str,
+) -> None:
+    """Too few objects (3 of the 4 needed) back the pose; objects land in A's open space at the
+    geometry's best pose (which they rule out: the rival left has none on surfaces); alike
+    halves (a room symmetric under a half turn, seen whole) back the turned pose as well."""
+    mirrored = tuple((9.0 - x, 5.0 - y) for x, y in FURNITURE)
+    furniture, seen_x, where = {
+        "too few": (FURNITURE, 4.6, FURNITURE[:3]),
+        "contradicted": (FURNITURE, 4.6, (*FURNITURE, (2.0, 2.5), (3.2, 2.4), (1.0, 2.6))),
+        "rival backed too": (FURNITURE + mirrored, 9.0, FURNITURE + mirrored),
+    }[case]
+    a, b = _room(furniture, seen_x)
+    result = align_clouds(a, b, AlignParams(dof=4), objects_b=_objects(where))
+    assert not result.aligned
+    assert result.objects is not None and result.objects["poses_unbacked"] == 0
+    if case == "contradicted":
+        assert result.objects["contradicted"] >= 2 and "objects" in result.failed_checks
+    else:
+        assert "ambiguous" in (result.reason or "")
+
+
+def test_prefer_backed_below_two_objects_is_refused() -> None:
+    a, b = _room(FURNITURE, 4.6)
+    with pytest.raises(AlignmentError, match="prefer_backed: expected None"):
+        align_clouds(a, b, AlignParams(dof=4, prefer_backed=1))
