@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Callable
+from types import SimpleNamespace
+
 from colonyd.catchup import timeline
 from colonyd.metrics import Metrics
 from tests.shared import fresh_process
@@ -31,11 +35,21 @@ def test_a_snapshot_that_did_not_arrive_whole_is_asked_for_with_a_longer_timeout
     assert snapshot_timeout(5.0, 100) == 5.0 * 2**MAX_DOUBLINGS
 
 
+def _labelling_daemon(idle: Callable[[], bool]) -> SimpleNamespace:
+    """What `Daemon._warm_up` reads of a daemon: one source that may label (every warm import
+    applies), objects clustered, and catch-up idle when `idle()` says so."""
+    return SimpleNamespace(
+        stop=threading.Event(),
+        warm=threading.Event(),
+        _sources=[SimpleNamespace(adapter=SimpleNamespace())],
+        config=SimpleNamespace(objects_s=2.0),
+        gossip=SimpleNamespace(catchup=SimpleNamespace(idle=idle)),
+    )
+
+
 def test_compiled_kernels_load_once_catch_up_is_idle(monkeypatch) -> None:
     import sys
-    import threading
     import time
-    from types import SimpleNamespace
 
     from colonyd import daemon as dm
 
@@ -43,14 +57,7 @@ def test_compiled_kernels_load_once_catch_up_is_idle(monkeypatch) -> None:
     monkeypatch.setattr(dm.kernels, "warm", lambda: loaded.append(time.monotonic()) or True)
     monkeypatch.setattr(dm, "KERNELS_SETTLE_S", 0.0)
     busy_until = time.monotonic() + 0.3
-    catchup = SimpleNamespace(idle=lambda: time.monotonic() >= busy_until)
-    fake = SimpleNamespace(
-        stop=threading.Event(),
-        warm=threading.Event(),
-        _sources=[SimpleNamespace(adapter=SimpleNamespace())],  # may label: every import warms
-        config=SimpleNamespace(objects_s=2.0),
-        gossip=SimpleNamespace(catchup=catchup),
-    )
+    fake = _labelling_daemon(idle=lambda: time.monotonic() >= busy_until)
     dm.Daemon._warm_up(fake)  # type: ignore[arg-type]
     assert len(loaded) == 1 and loaded[0] >= busy_until
     assert fake.warm.is_set()  # start-up over: the status says so
@@ -66,8 +73,6 @@ def test_start_up_ends_when_a_warm_import_fails_in_any_way(monkeypatch) -> None:
     """An import the warm-up cannot do (missing, or the import lock's deadlock error when a job's
     thread imports a neighbouring module at the same moment) is left to the job that needs it:
     start-up still ends."""
-    import threading
-    from types import SimpleNamespace
 
     from colonyd import daemon as dm
 
@@ -78,13 +83,7 @@ def test_start_up_ends_when_a_warm_import_fails_in_any_way(monkeypatch) -> None:
     monkeypatch.setattr(dm.kernels, "warm", lambda: True)
     monkeypatch.setattr(dm.kernels, "warm_codec", lambda: True)
     monkeypatch.setattr(dm, "KERNELS_SETTLE_S", 0.0)
-    fake = SimpleNamespace(
-        stop=threading.Event(),
-        warm=threading.Event(),
-        _sources=[SimpleNamespace(adapter=SimpleNamespace())],
-        config=SimpleNamespace(objects_s=2.0),
-        gossip=SimpleNamespace(catchup=SimpleNamespace(idle=lambda: True)),
-    )
+    fake = _labelling_daemon(idle=lambda: True)
     dm.Daemon._warm_up(fake)  # type: ignore[arg-type]
     assert fake.warm.is_set()
 
