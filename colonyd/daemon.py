@@ -96,17 +96,15 @@ MAX_SIGHTED = 16
 KERNELS_SETTLE_S = 0.5
 KERNELS_WAIT_S = 10.0
 #: Modules the periodic jobs of a daemon with sources import on first use in its own process
-#: (object clustering, localisation against own and colony maps, own poses as quaternions),
+#: (object clustering, localisation against own and colony maps),
 #: imported with the kernels' loading instead, so that the daemon's start-up ends at a moment it
 #: reports (`warm` in its status) and what they allocate is frozen out of the collector's passes
 #: at once (`heap.Freezer`) rather than a few at a time as the jobs first run. A daemon without
-#: sources imports none of them (~0.6 CPU-s): its jobs use them rarely if ever (a peer's
-#: alignment offer or fix loads `scipy.spatial.transform` when one comes). Registration's own
-#: modules (scipy.ndimage, scipy.fft) load in the aligner's worker process, never here.
+#: sources imports none of them (~0.6 CPU-s). Registration's own modules (scipy.ndimage,
+#: scipy.fft) load in the aligner's worker process, never here.
 WARM_IMPORTS = (
     "sklearn.cluster",  # only where objects are clustered: `objects_s`, sources that label
     "scipy.spatial",  # cKDTree: scan matching (`ScanLocaliser`) and colony maps
-    "scipy.spatial.transform",  # voxel.rotation: own poses to and from quaternions
 )
 #: The interpreter's thread switch interval in a daemon (Python's default is 5 ms).
 SWITCH_INTERVAL_S = 0.001

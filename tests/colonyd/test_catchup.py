@@ -90,10 +90,10 @@ def test_start_up_ends_when_a_warm_import_fails_in_any_way(monkeypatch) -> None:
 
 def test_a_daemon_without_sources_ends_start_up_without_scipy() -> None:
     """The warm-up imports scipy (~0.6 CPU-s) only where a job of this process uses it: with
-    sources (scan matching, colony maps, own poses as quaternions), never registration's
-    scipy.ndimage and scipy.fft (they load in the aligner's worker). A fresh process warms up a
-    daemon without sources (warm, nothing imported), turns a quaternion into a matrix (scipy
-    on first use, as a peer's alignment offer does), then warms up one with a source."""
+    sources (scan matching, colony maps), never registration's scipy.ndimage and scipy.fft (they
+    load in the aligner's worker). A fresh process warms up a daemon without sources (warm,
+    nothing imported), turns a quaternion into a matrix (numpy alone: still no scipy), then warms
+    up one with a source."""
 
     code = (
         "import sys, threading\n"
@@ -114,12 +114,13 @@ def test_a_daemon_without_sources_ends_start_up_without_scipy() -> None:
         "    print(fake.warm.is_set(), loads, [m for m in SCIPY if m in sys.modules])\n"
         "warm_up([])\n"
         "from voxel.rotation import quaternion_to_matrix\n"
-        "print(np.allclose(quaternion_to_matrix((0.0, 0.0, 0.0, 1.0)), np.eye(3)))\n"
+        "print(np.allclose(quaternion_to_matrix((0.0, 0.0, 0.0, 1.0)), np.eye(3)),\n"
+        "      [m for m in SCIPY if m in sys.modules])\n"
         "warm_up([SimpleNamespace(adapter=SimpleNamespace(labels=False))])\n"
     )
     stdout = fresh_process(code)
     assert stdout.split("\n")[:3] == [
         "True [] []",
-        "True",
-        "True ['kernels', 'codec'] ['scipy.spatial', 'scipy.spatial.transform']",
+        "True []",
+        "True ['kernels', 'codec'] ['scipy.spatial', 'scipy.spatial.transform']",  # (its package's)
     ], stdout

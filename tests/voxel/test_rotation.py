@@ -74,3 +74,26 @@ def test_trajectory_lines_use_the_same_convention() -> None:
     pose[:3, :3] = QUARTER_Z_MATRIX
     fields = [float(v) for v in tum_line(0.0, pose).split()]
     np.testing.assert_allclose(fields[4:], QUARTER_Z, atol=1e-9)
+
+
+def test_conversions_equal_scipys_rotation() -> None:
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(5)
+    axes = [[0, 0, 0, 1], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, 0], [0.5, -0.5, 0.5, 0]]
+    for q in np.vstack([rng.normal(size=(500, 4)), axes]):
+        np.testing.assert_allclose(
+            quaternion_to_matrix(q), Rotation.from_quat(q).as_matrix(), atol=1e-15
+        )
+        m = Rotation.from_quat(q).as_matrix()  # w = 0 too: the first non-zero one positive
+        np.testing.assert_array_equal(
+            matrix_to_quaternion(m), Rotation.from_matrix(m).as_quat(canonical=True)
+        )
+
+
+def test_a_zero_or_non_finite_quaternion_is_an_input_error() -> None:
+    from voxel.errors import InputError
+
+    for bad in [(0.0, 0.0, 0.0, 0.0), (math.nan, 0.0, 0.0, 1.0), (math.inf, 0.0, 0.0, 1.0)]:
+        with pytest.raises(InputError, match="expected a non-zero finite quaternion"):
+            quaternion_to_matrix(bad)
