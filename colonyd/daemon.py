@@ -349,7 +349,9 @@ class Daemon:
             peer_history_entries=cfg.peer_history_entries,
             history_push=cfg.history_push,
         )
-        self.membership = Membership(self.session, ns, cfg.agent_id, self.gossip.on_member_event)
+        self.membership = Membership(
+            self.session, ns, cfg.agent_id, self.gossip.on_member_event, cfg.max_layers
+        )
         self.status_server = StatusServer(
             self.session, ns, cfg.agent_id, self.report, activity=self.metrics.activity
         )

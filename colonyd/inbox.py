@@ -278,6 +278,8 @@ class Inbox:
 
     def _handle_hb(self, key: str, raw: bytes) -> None:
         msg = expect(self.receiver.decode(raw, key_expr=key), Heartbeat, f"on {key}")
+        if self.membership is not None:
+            self.membership.admit(msg.origin)  # bounded: a flood of made-up agents is refused
         accept(self.receiver, self.metrics, msg, raw)
         if self.membership is None:
             return

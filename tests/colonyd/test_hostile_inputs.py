@@ -1,0 +1,162 @@
+"""Hostile input a daemon's inbox, membership and catch-up take in-process, on real (loopback, no
+scouting) Zenoh sessions and real frames: refused, bounded, and leaving nothing behind."""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from types import SimpleNamespace
+
+import zenoh
+
+from colonyd.alignment import Alignments
+from colonyd.frames import Sender, colony_key
+from colonyd.inbox import Inbox, Item
+from colonyd.layers import Layers
+from colonyd.membership import Membership
+from colonyd.metrics import Metrics
+from colonyd.objects import PeerObjects
+from colonyd.replicas import Replicas
+from colonyd.runtime import open_session, zenoh_config
+from protocol import Heartbeat, Receiver
+from protocol.identity import Signer, Trust
+from protocol.keyexpr import alive_key, topic_key
+
+NS = "hostile-in"
+KEY = colony_key("correct horse battery staple")
+
+
+def _endpoint() -> str:
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return f"tcp/127.0.0.1:{port}"
+
+
+@contextmanager
+def _sessions(n: int) -> Iterator[list[zenoh.Session]]:
+    """`n` sessions on loopback, the first listening and the others connected to it."""
+    ep = _endpoint()
+    sessions = [open_session(zenoh_config(listen=[ep]))]
+    try:
+        for _ in range(n - 1):
+            sessions.append(open_session(zenoh_config(listen=["tcp/127.0.0.1:0"], connect=[ep])))
+        yield sessions
+    finally:
+        for s in sessions:
+            s.close()
+
+
+def _until(check: Callable[[], bool], seconds: float = 10.0) -> bool:
+    deadline = time.monotonic() + seconds
+    while not check():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
+def _daemon(session: zenoh.Session, *, max_members: int = 256) -> SimpleNamespace:
+    """The receiving side of daemon "me" (closed colony, identities on first use): its inbox (not
+    started: items are handed to it as its worker would), membership and what they fill."""
+    metrics = Metrics()
+    layers = Layers("me", 0.1, max_peer_blocks=1000)
+    trust = Trust("tofu")
+    receiver = Receiver(key=KEY, own="me", trust=trust)
+    inbox = Inbox(
+        session,
+        NS,
+        Replicas(layers, metrics),
+        receiver,
+        metrics,
+        PeerObjects(),
+        Alignments(),
+        request_repair=lambda origin, servers: None,
+        send_heartbeat=lambda: None,
+    )
+    membership = Membership(session, NS, "me", inbox.on_member_event, max_members)
+    inbox.membership = membership
+
+    def feed(kind: str, agent: str, raw: bytes) -> None:
+        item: Item = (kind, topic_key(NS, agent, {"hb": "heartbeat"}.get(kind, kind)), raw, {})
+        try:
+            inbox._handle(item)
+        except Exception as exc:  # noqa: BLE001 - as the inbox's worker takes a refusal
+            inbox._worker._failed(item, exc)
+
+    return SimpleNamespace(
+        metrics=metrics,
+        layers=layers,
+        trust=trust,
+        receiver=receiver,
+        inbox=inbox,
+        membership=membership,
+        feed=feed,
+        close=lambda: (membership.close(), inbox.close()),
+    )
+
+
+def _heartbeat(agent: str, signer: Signer, seq: int = 1) -> bytes:
+    sender = Sender(agent, 7, key=KEY, signer=signer, first_seq=seq)
+    hb = Heartbeat(
+        **sender.header(), kind="robot", frame_id=f"{agent}.odom", identity=signer.public
+    )
+    return sender.encode(hb)
+
+
+def test_liveliness_tokens_of_strangers_leave_no_members_behind() -> None:
+    """Liveliness tokens are not authenticated (no colony key reaches them): a stranger that
+    declares and undeclares made-up agent ids must not grow the member table without end."""
+    with _sessions(3) as (mine, real, stranger):
+        d = _daemon(mine)
+        try:
+            b = Membership(real, NS, "b", lambda agent, event: None)
+            assert _until(lambda: d.membership.find("b") is not None)
+            tokens = [
+                stranger.liveliness().declare_token(alive_key(NS, f"x{i}")) for i in range(40)
+            ]
+            assert _until(lambda: len(d.membership.alive()) == 41)
+            for token in tokens:
+                token.undeclare()
+            assert _until(lambda: d.membership.alive() == ["b"])
+            time.sleep(0.2)  # any late leave event
+            assert [m.agent for m in d.membership.table()] == ["b"]
+            b.close()
+        finally:
+            d.close()
+
+
+def test_heartbeats_of_made_up_agents_fill_no_more_than_max_members() -> None:
+    """A key holder (or anyone, in an open colony) sending heartbeats under ever new agent ids:
+    the table keeps at most `max_members` heard members, forgetting those without a liveliness
+    token first; when every one holds a token a newcomer is refused before it is accepted (no
+    replay window moved, no key pinned)."""
+    with _sessions(2) as (mine, other):
+        d = _daemon(mine, max_members=4)
+        try:
+            tokens = [other.liveliness().declare_token(alive_key(NS, "real"))]
+            assert _until(lambda: d.membership.alive() == ["real"])
+            d.feed("hb", "real", _heartbeat("real", Signer.generate()))
+            for i in range(10):  # no tokens: the least recently seen of them makes room
+                d.feed("hb", f"fake{i}", _heartbeat(f"fake{i}", Signer.generate()))
+            table = {m.agent for m in d.membership.table()}
+            assert table == {"real", "fake7", "fake8", "fake9"}, table
+            tokens += [
+                other.liveliness().declare_token(alive_key(NS, f"fake{i}")) for i in (7, 8, 9)
+            ]
+            assert _until(lambda: len(d.membership.alive()) == 4)
+            d.feed("hb", "late", _heartbeat("late", Signer.generate()))
+            assert d.metrics.rejected["too-many-members"] == 1
+            assert d.membership.find("late") is None
+            assert "late" not in d.trust.pins()
+            assert d.receiver.accepted["heartbeat"] == 11
+            # its window did not move: the same frame numbers are still fresh for it
+            d.receiver.replay.peek("late", 7, 1)
+            assert "late" not in d.receiver.replay._state
+            for token in tokens:
+                token.undeclare()
+        finally:
+            d.close()
