@@ -15,6 +15,7 @@ import zenoh
 from colonyd.alignment import Alignments, edge_from_offer
 from colonyd.errors import WireError
 from colonyd.frames import Assembler, accept, expect, frame_of
+from colonyd.layers import BLOCK_VOXELS
 from colonyd.membership import Membership
 from colonyd.metrics import Metrics
 from colonyd.objects import PeerObjects
@@ -111,7 +112,8 @@ class Inbox:
         self.alignments = alignments
         self.receiver = receiver
         self.metrics = metrics
-        self.parts = Assembler()
+        #: a whole delta holds at most the peer budget's voxels (`Layers.admit` refuses more)
+        self.parts = Assembler(max_voxels=replicas.layers.max_peer_blocks * BLOCK_VOXELS)
         self.membership: Membership | None = None
         self._request_repair = request_repair
         self._send_heartbeat = send_heartbeat
@@ -262,13 +264,13 @@ class Inbox:
             raise WireError("inexact", "expected an exact delta, found a free-space summary")
         d = msg.delta
         self.replicas.admit(msg.origin, msg.epoch, [d])
+        whole = (msg.origin, msg.epoch, d.from_version, d.to_version)
+        self.parts.check(whole, msg.part, msg.parts, d)  # its parts' count, their voxels
         accept(
             self.receiver, self.metrics, msg, raw
         )  # only now: a frame refused above moved no window
         stamp(marks, "admitted")
-        delta = self.parts.add(
-            (msg.origin, msg.epoch, d.from_version, d.to_version), msg.part, msg.parts, d
-        )
+        delta = self.parts.add(whole, msg.part, msg.parts, d)
         if delta is None:
             return
         if self.replicas.offer(msg.origin, msg.epoch, delta, admitted=msg.parts == 1):

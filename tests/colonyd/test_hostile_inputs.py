@@ -9,20 +9,22 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import SimpleNamespace
 
+import numpy as np
 import zenoh
 
 from colonyd.alignment import Alignments
 from colonyd.frames import Sender, colony_key
 from colonyd.inbox import Inbox, Item
-from colonyd.layers import Layers
+from colonyd.layers import BLOCK_VOXELS, Layers
 from colonyd.membership import Membership
 from colonyd.metrics import Metrics
 from colonyd.objects import PeerObjects
 from colonyd.replicas import Replicas
 from colonyd.runtime import open_session, zenoh_config
-from protocol import Heartbeat, Receiver
+from protocol import Heartbeat, Receiver, VoxelDelta
 from protocol.identity import Signer, Trust
 from protocol.keyexpr import alive_key, topic_key
+from voxel.delta import Delta
 
 NS = "hostile-in"
 KEY = colony_key("correct horse battery staple")
@@ -158,5 +160,70 @@ def test_heartbeats_of_made_up_agents_fill_no_more_than_max_members() -> None:
             assert "late" not in d.receiver.replay._state
             for token in tokens:
                 token.undeclare()
+        finally:
+            d.close()
+
+
+def _block_delta(x0: int, to_version: int) -> Delta:
+    """51,200 voxels filling 800 4x4x4 blocks (a box 40 x 40 x 32 from x = `x0`), occupied."""
+    g = np.stack(np.meshgrid(np.arange(40), np.arange(40), np.arange(32), indexing="ij"), -1)
+    keys = g.reshape(-1, 3) + np.array([x0, 0, 0])
+    n = len(keys)
+    return Delta(0.1, to_version - 1, to_version, keys, np.full(n, 1.0, np.float32), np.ones(n))
+
+
+def _parts(sender: Sender, delta: Delta, indices: list[int], parts: int) -> list[bytes]:
+    return [
+        sender.encode(
+            VoxelDelta(**sender.header(), frame_id="evil.odom", part=i, parts=parts, delta=delta)
+        )
+        for i in indices
+    ]
+
+
+def test_parts_of_split_deltas_hold_no_more_voxels_than_the_peer_budget() -> None:
+    """A peer (a key holder, or anyone in an open colony) sends parts of a delta of 1000 parts,
+    each part within the peer budget (1000 blocks: 64,000 voxels) but never the last: a few KB
+    of zstd each, they must not pile up decoded (each part of a real attack: 4 million voxels,
+    ~150 MB). Parts beyond what a whole delta may hold are refused before they are accepted,
+    and parts of many deltas are dropped oldest first."""
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            signer = Signer.generate()
+            d.feed("hb", "evil", _heartbeat("evil", signer))
+            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+            budget = d.layers.max_peer_blocks * BLOCK_VOXELS
+            for i, frame in enumerate(_parts(sender, _block_delta(0, 1), list(range(10)), 1000)):
+                d.feed("delta", "evil", frame)
+                held = sum(len(x) for p in d.inbox.parts._open.values() for x in p.got.values())
+                assert held <= budget, f"{held} voxels held after part {i}"
+            assert d.metrics.rejected["over-budget"] == 9
+            assert d.receiver.accepted["delta"] == 1  # the refused parts moved no window
+            d.receiver.replay.peek("evil", 7, 11)
+            for v in range(2, 12):  # parts of ten deltas: the oldest make room
+                d.feed("delta", "evil", _parts(sender, _block_delta(0, v), [0], 2)[0])
+                held = sum(len(x) for p in d.inbox.parts._open.values() for x in p.got.values())
+                assert held <= budget, f"{held} voxels held after delta {v}"
+            assert d.layers.find("evil") is None  # nothing applied
+        finally:
+            d.close()
+
+
+def test_a_part_of_another_count_is_refused_before_it_moves_the_window() -> None:
+    """Part 1 of 5 of a delta whose part 0 said 3 parts: refused (`bad-parts`) with no side
+    effect: the sender's replay window stays where its last accepted frame left it."""
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            signer = Signer.generate()
+            d.feed("hb", "evil", _heartbeat("evil", signer))
+            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+            small = Delta(0.1, 0, 1, [[0, 0, 0], [1, 0, 0]], [1.0, 1.0], [1.0, 1.0])
+            d.feed("delta", "evil", _parts(sender, small, [0], 3)[0])  # seq 10
+            d.feed("delta", "evil", _parts(sender, small, [1], 5)[0])  # seq 11: refused
+            assert d.metrics.rejected["bad-parts"] == 1
+            assert d.receiver.accepted["delta"] == 1
+            d.receiver.replay.peek("evil", 7, 11)  # still fresh: the window did not move
         finally:
             d.close()
