@@ -13,6 +13,7 @@ import numpy as np
 import zenoh
 
 from colonyd.alignment import Alignments
+from colonyd.catchup import CatchUp
 from colonyd.frames import Sender, colony_key
 from colonyd.inbox import Inbox, Item
 from colonyd.layers import BLOCK_VOXELS, Layers
@@ -21,9 +22,16 @@ from colonyd.metrics import Metrics
 from colonyd.objects import PeerObjects
 from colonyd.replicas import Replicas
 from colonyd.runtime import open_session, zenoh_config
-from protocol import Heartbeat, Receiver, VoxelDelta
+from protocol import (
+    Heartbeat,
+    Receiver,
+    SnapshotReply,
+    SnapshotRequest,
+    VoxelDelta,
+    decode,
+)
 from protocol.identity import Signer, Trust
-from protocol.keyexpr import alive_key, topic_key
+from protocol.keyexpr import alive_key, query_key, topic_key
 from voxel.delta import Delta
 
 NS = "hostile-in"
@@ -66,12 +74,13 @@ def _daemon(session: zenoh.Session, *, max_members: int = 256) -> SimpleNamespac
     started: items are handed to it as its worker would), membership and what they fill."""
     metrics = Metrics()
     layers = Layers("me", 0.1, max_peer_blocks=1000)
+    replicas = Replicas(layers, metrics)
     trust = Trust("tofu")
     receiver = Receiver(key=KEY, own="me", trust=trust)
     inbox = Inbox(
         session,
         NS,
-        Replicas(layers, metrics),
+        replicas,
         receiver,
         metrics,
         PeerObjects(),
@@ -92,6 +101,7 @@ def _daemon(session: zenoh.Session, *, max_members: int = 256) -> SimpleNamespac
     return SimpleNamespace(
         metrics=metrics,
         layers=layers,
+        replicas=replicas,
         trust=trust,
         receiver=receiver,
         inbox=inbox,
@@ -226,4 +236,104 @@ def test_a_part_of_another_count_is_refused_before_it_moves_the_window() -> None
             assert d.receiver.accepted["delta"] == 1
             d.receiver.replay.peek("evil", 7, 11)  # still fresh: the window did not move
         finally:
+            d.close()
+
+
+def _serve(session: zenoh.Session, signer: Signer, frames: Callable[[int, Sender], list[bytes]]):
+    """A hostile holder "evil": its snapshot queryable for its own layer answers every request
+    with `frames(request_id, sender)`."""
+    sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=100)
+
+    def answer(query: zenoh.Query) -> None:
+        request = decode(query.payload.to_bytes(), key=KEY)
+        for frame in frames(request.request_id, sender):
+            query.reply(query.key_expr, frame)
+        query.drop()
+
+    return session.declare_queryable(query_key(NS, "evil", "snapshot", "evil"), answer)
+
+
+def _answers(session: zenoh.Session) -> bool:
+    """True once "evil"'s snapshot queryable answers `session` (its answer taken by nobody)."""
+    probe = Sender("probe", 1, key=KEY)
+    request = SnapshotRequest(**probe.header(), layer="evil", request_id=1)
+    key = query_key(NS, "evil", "snapshot", "evil")
+    replies = session.get(key, payload=probe.encode(request), timeout=1.0)
+    return any(r.ok is not None for r in replies)
+
+
+def _snapshot_reply(sender: Sender, rid: int, delta: Delta, part: int, parts: int) -> bytes:
+    return sender.encode(
+        SnapshotReply(
+            **sender.header(),
+            layer="evil",
+            request_id=rid,
+            frame_id="evil.odom",
+            layer_epoch=7,
+            part=part,
+            parts=parts,
+            delta=delta,
+        )
+    )
+
+
+def _ask(d: SimpleNamespace, session: zenoh.Session, part_bytes: int) -> list:
+    me = Sender("me", 1, key=KEY)
+    catchup = CatchUp(session, NS, d.replicas, me, d.receiver, d.metrics, part_bytes=part_bytes)
+    request = SnapshotRequest(
+        **me.header(), layer="evil", request_id=5, max_part_bytes=catchup.part_bytes
+    )
+    return catchup.ask("evil", "snapshot", "evil", request, SnapshotReply, timeout_s=5.0)
+
+
+def test_reply_frames_larger_than_the_request_allows_are_refused() -> None:
+    """The protocol: every reply frame is at most the request's `max_part_bytes`. A holder that
+    sends larger ones is refused, before its frame is decoded."""
+    with _sessions(2) as (mine, evil):
+        d = _daemon(mine)
+        signer = Signer.generate()
+        d.feed("hb", "evil", _heartbeat("evil", signer))
+        rng = np.random.default_rng(1)
+        keys = rng.integers(-1000, 1000, (3000, 3))
+        keys = np.unique(keys, axis=0)
+        n = len(keys)
+        big = Delta(0.1, 0, 1, keys, rng.uniform(-2, 3, n).astype(np.float32), rng.uniform(0, 9, n))
+        q = _serve(evil, signer, lambda rid, s: [_snapshot_reply(s, rid, big, 0, 1)])
+        try:
+            assert _until(lambda: _answers(mine))
+            assert len(_snapshot_reply(Sender("evil", 7), 5, big, 0, 1)) > 4096
+            replies = _ask(d, mine, part_bytes=4096)
+            assert replies == []
+            assert d.metrics.rejected["oversized"] == 1
+            assert d.receiver.accepted["snapshot_reply"] == 0
+        finally:
+            q.undeclare()
+            d.close()
+
+
+def test_snapshot_replies_hold_no_more_voxels_than_the_peer_budget() -> None:
+    """A hostile holder answers a snapshot request with 10 parts of 51,200 voxels each (a few KB
+    of zstd each; a real attack: 4096 parts of 4 million voxels), more than the peer budget
+    (64,000 voxels) could ever admit: the requester stops taking them once past the budget,
+    and decodes none after."""
+    with _sessions(2) as (mine, evil):
+        d = _daemon(mine)
+        signer = Signer.generate()
+        d.feed("hb", "evil", _heartbeat("evil", signer))
+        parts = [_block_delta(64 * i, 1) for i in range(10)]
+        parts = [Delta(0.1, 0, 1, p.keys, p.logodds, p.last_time) for p in parts]
+        q = _serve(
+            evil,
+            signer,
+            lambda rid, s: [_snapshot_reply(s, rid, p, i, 10) for i, p in enumerate(parts)],
+        )
+        try:
+            assert _until(lambda: _answers(mine))
+            replies = _ask(d, mine, part_bytes=4 << 20)
+            held = sum(len(r.delta) for r in replies)
+            assert held <= d.layers.max_peer_blocks * BLOCK_VOXELS, held
+            assert d.metrics.rejected["over-budget"] == 9
+            assert d.receiver.accepted["snapshot_reply"] == len(replies) == 1
+        finally:
+            q.undeclare()
             d.close()
