@@ -23,7 +23,10 @@ from colonyd.objects import PeerObjects
 from colonyd.replicas import Replicas
 from colonyd.runtime import open_session, zenoh_config
 from protocol import (
+    AlignOffer,
     Heartbeat,
+    ObjectCentroid,
+    Objects,
     Receiver,
     SnapshotReply,
     SnapshotRequest,
@@ -69,22 +72,27 @@ def _until(check: Callable[[], bool], seconds: float = 10.0) -> bool:
     return True
 
 
-def _daemon(session: zenoh.Session, *, max_members: int = 256) -> SimpleNamespace:
-    """The receiving side of daemon "me" (closed colony, identities on first use): its inbox (not
-    started: items are handed to it as its worker would), membership and what they fill."""
+def _daemon(
+    session: zenoh.Session, *, max_members: int = 256, key: bytes | None = KEY
+) -> SimpleNamespace:
+    """The receiving side of daemon "me" (a colony closed with `key`, identities on first use):
+    its inbox (not started: items are handed to it as its worker would), membership and what
+    they fill."""
     metrics = Metrics()
     layers = Layers("me", 0.1, max_peer_blocks=1000)
     replicas = Replicas(layers, metrics)
     trust = Trust("tofu")
-    receiver = Receiver(key=KEY, own="me", trust=trust)
+    receiver = Receiver(key=key, own="me", trust=trust)
+    alignments = Alignments()
+    peer_objects = PeerObjects()
     inbox = Inbox(
         session,
         NS,
         replicas,
         receiver,
         metrics,
-        PeerObjects(),
-        Alignments(),
+        peer_objects,
+        alignments,
         request_repair=lambda origin, servers: None,
         send_heartbeat=lambda: None,
     )
@@ -102,6 +110,8 @@ def _daemon(session: zenoh.Session, *, max_members: int = 256) -> SimpleNamespac
         metrics=metrics,
         layers=layers,
         replicas=replicas,
+        alignments=alignments,
+        peer_objects=peer_objects,
         trust=trust,
         receiver=receiver,
         inbox=inbox,
@@ -111,8 +121,8 @@ def _daemon(session: zenoh.Session, *, max_members: int = 256) -> SimpleNamespac
     )
 
 
-def _heartbeat(agent: str, signer: Signer, seq: int = 1) -> bytes:
-    sender = Sender(agent, 7, key=KEY, signer=signer, first_seq=seq)
+def _heartbeat(agent: str, signer: Signer, seq: int = 1, key: bytes | None = KEY) -> bytes:
+    sender = Sender(agent, 7, key=key, signer=signer, first_seq=seq)
     hb = Heartbeat(
         **sender.header(), kind="robot", frame_id=f"{agent}.odom", identity=signer.public
     )
@@ -336,4 +346,59 @@ def test_snapshot_replies_hold_no_more_voxels_than_the_peer_budget() -> None:
             assert d.receiver.accepted["snapshot_reply"] == len(replies) == 1
         finally:
             q.undeclare()
+            d.close()
+
+
+def test_signed_frames_replayed_in_an_open_colony_are_refused() -> None:
+    """An open colony (no key; the default) with identities on first use (the default): a
+    stranger cannot sign as a pinned agent, but must not replay its old signed frames either: an
+    old alignment offer replayed after its withdrawal would bring back an alignment its origin
+    took back, an old object list the list that replaced it."""
+    with _sessions(1) as (mine,):
+        d = _daemon(mine, key=None)
+        try:
+            signer = Signer.generate()
+            d.feed("hb", "a", _heartbeat("a", signer, key=None))
+            a = Sender("a", 7, signer=signer, first_seq=2)
+
+            def offer(confidence: float) -> bytes:
+                return a.encode(
+                    AlignOffer(
+                        **a.header(),
+                        target="b",
+                        source_frame="a.odom",
+                        target_frame="b.odom",
+                        position=(1.0, 2.0, 0.0),
+                        covariance=list(np.eye(6).ravel() * 1e-4),
+                        confidence=confidence,
+                    )
+                )
+
+            def objects(n: int) -> bytes:
+                listed = [
+                    ObjectCentroid(
+                        object_id=i, class_id=3, position=(i, 0.0, 0.0), voxel_count=9, time=1.0
+                    )
+                    for i in range(n)
+                ]
+                return a.encode(Objects(**a.header(), frame_id="a.odom", objects=listed))
+
+            old_offer, withdrawal, old_list, new_list = (
+                offer(0.9),
+                offer(0.0),
+                objects(2),
+                objects(0),
+            )
+            for frame, kind in ((old_offer, "align"), (withdrawal, "align")):
+                d.feed(kind, "a", frame)
+            assert d.alignments.edges() == []  # withdrawn
+            d.feed("objects", "a", old_list)
+            d.feed("objects", "a", new_list)
+            assert d.peer_objects.get("a") == []
+            d.feed("align", "a", old_offer)  # the stranger replays what it recorded
+            d.feed("objects", "a", old_list)
+            assert d.alignments.edges() == []
+            assert d.peer_objects.get("a") == []
+            assert d.metrics.rejected["replay"] == 2
+        finally:
             d.close()
