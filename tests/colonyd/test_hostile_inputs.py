@@ -402,3 +402,38 @@ def test_signed_frames_replayed_in_an_open_colony_are_refused() -> None:
             assert d.metrics.rejected["replay"] == 2
         finally:
             d.close()
+
+
+def test_deltas_a_replica_cannot_store_are_refused_before_they_change_it() -> None:
+    """Valid on the wire, but not storable: a layer version of 2^32 or more (the grid keeps 32-bit
+    versions; it used to allocate the delta's blocks, then fail) and a voxel without a time (the
+    NaN time code; it used to write the log-odds, then fail on the time). Both are refused at
+    admission: the replica is as it was, no block allocated, no window moved, and the layer
+    takes its next real delta."""
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            signer = Signer.generate()
+            d.feed("hb", "evil", _heartbeat("evil", signer))
+            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+
+            def frame(delta: Delta) -> bytes:
+                return _parts(sender, delta, [0], 1)[0]
+
+            d.feed("delta", "evil", frame(Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9])))
+            layer = d.layers.find("evil")
+            before = (layer.seq, layer.blocks(), layer.digest())
+            far = Delta(0.1, 1, 1 << 32, [[400, 400, 400]], [1.0], [1.7e9])
+            untimed = Delta(0.1, 1, 2, [[0, 0, 0], [8, 0, 0]], [2.0, 1.0], [np.nan, 1.7e9])
+            future = Delta(0.1, 1, 2, [[0, 0, 0]], [2.0], [1e13])
+            for bad in (far, untimed, future):
+                d.feed("delta", "evil", frame(bad))
+            assert (layer.seq, layer.blocks(), layer.digest()) == before
+            assert d.metrics.rejected["bad-header"] == 1
+            assert d.metrics.rejected["bad-time"] == 2
+            assert d.metrics.rejected["internal"] == 0
+            assert d.receiver.accepted["delta"] == 1
+            d.feed("delta", "evil", frame(Delta(0.1, 1, 2, [[0, 0, 0]], [2.0], [1.7e9 + 1])))
+            assert layer.seq == 2 and d.receiver.accepted["delta"] == 2
+        finally:
+            d.close()
