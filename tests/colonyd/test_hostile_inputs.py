@@ -437,3 +437,42 @@ def test_deltas_a_replica_cannot_store_are_refused_before_they_change_it() -> No
             assert layer.seq == 2 and d.receiver.accepted["delta"] == 2
         finally:
             d.close()
+
+
+def test_channels_a_replica_cannot_hold_are_refused_before_they_change_it() -> None:
+    """Channels valid on the wire that a replica's grid cannot take: class lists of another
+    width than its (3; it used to write the log-odds, then fail on the channel, leaving the
+    replica half-applied and the delta failing again on every repair), and scalar channels of
+    ever new names (each one an array as large as the layer: a few bytes of wire each, they
+    were a memory bomb outside the block budget). Refused at admission, replica unchanged."""
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            signer = Signer.generate()
+            d.feed("hb", "evil", _heartbeat("evil", signer))
+            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+
+            def frame(delta: Delta) -> bytes:
+                return _parts(sender, delta, [0], 1)[0]
+
+            d.feed("delta", "evil", frame(Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9])))
+            layer = d.layers.find("evil")
+            before = (layer.seq, layer.blocks(), layer.digest())
+            keys, one = [[0, 0, 0], [9, 9, 9]], [1.7e9, 1.7e9]
+            wide = {
+                "class_ids": np.array([[1, 2, 3, 4, 5]] * 2, np.int16),
+                "class_probs": np.full((2, 5), 0.2, np.float32),
+            }
+            d.feed("delta", "evil", frame(Delta(0.1, 1, 2, keys, [2.0, 1.0], one, channels=wide)))
+            assert (layer.seq, layer.blocks(), layer.digest()) == before
+            assert d.metrics.rejected["bad-channel"] == 1
+            for v in range(2, 6):  # 31 new scalar channels a delta, at one voxel
+                names = {f"scalar:t{v}_{i}": np.array([1.0], np.float32) for i in range(31)}
+                d.feed("delta", "evil", frame(Delta(0.1, v - 1, v, [[0, 0, v]], [1.0], [1.7e9],
+                                                    channels=names)))  # fmt: skip
+            held = [n for n in layer.grid.store.channels if n.startswith("scalar:")]
+            assert len(held) <= 32, f"{len(held)} scalar channels held"
+            assert d.metrics.rejected["bad-channel"] == 1 + 3
+            assert d.metrics.rejected["internal"] == d.metrics.rejected["invalid"] == 0
+        finally:
+            d.close()
