@@ -476,3 +476,40 @@ def test_channels_a_replica_cannot_hold_are_refused_before_they_change_it() -> N
             assert d.metrics.rejected["internal"] == d.metrics.rejected["invalid"] == 0
         finally:
             d.close()
+
+
+def test_an_absurd_alignment_offer_cannot_break_the_colony_frame() -> None:
+    """An AlignOffer is finite by the protocol, yet one with a translation of 1e200 m (or
+    variances of 1e300) overflowed the colony frame's error propagation: `colony()` raised on
+    every call, and with it the fixes (mapping stopped while one was pending), status, exports
+    and ROS outputs. Such an offer is refused (`bad-align`); the frame stays computable."""
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            cov = list(np.diag([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4]).ravel())
+
+            def offer(agent: str, target: str, position: tuple, covariance: list) -> bytes:
+                signer = Signer.generate()
+                d.feed("hb", agent, _heartbeat(agent, signer))
+                s = Sender(agent, 7, key=KEY, signer=signer, first_seq=2)
+                msg = AlignOffer(
+                    **s.header(),
+                    target=target,
+                    source_frame=f"{agent}.odom",
+                    target_frame=f"{target}.odom",
+                    position=position,
+                    covariance=covariance,
+                    confidence=0.8,
+                )
+                return s.encode(msg)
+
+            d.feed("align", "a", offer("a", "b", (1.0, 0.0, 0.0), cov))
+            d.feed("align", "b", offer("b", "c", (1.0, 0.0, 0.0), cov))
+            d.feed("align", "x", offer("x", "a", (1e200, 0.0, 0.0), cov))
+            d.feed("align", "y", offer("y", "c", (2.0, 0.0, 0.0), list(np.eye(6).ravel() * 1e300)))
+            frame = d.alignments.colony(["a", "b", "c"])
+            assert sorted(frame.transforms) == ["a", "b", "c"]
+            assert all(np.isfinite(c).all() for c in frame.covariances.values())
+            assert d.metrics.rejected["bad-align"] == 2
+        finally:
+            d.close()
