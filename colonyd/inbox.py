@@ -297,7 +297,7 @@ class Inbox:
 
     def _handle_objects(self, key: str, raw: bytes) -> None:
         msg = expect(self.receiver.decode(raw, key_expr=key), Objects, f"on {key}")
-        self.objects.admit(msg.origin)
+        self.objects.admit(msg.origin, len(msg.objects))
         accept(self.receiver, self.metrics, msg, raw)
         self.objects.put(msg.origin, msg.objects)
         self.metrics.add("objects_received")

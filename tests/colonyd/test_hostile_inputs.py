@@ -19,7 +19,7 @@ from colonyd.inbox import Inbox, Item
 from colonyd.layers import BLOCK_VOXELS, Layers
 from colonyd.membership import Membership
 from colonyd.metrics import Metrics
-from colonyd.objects import PeerObjects
+from colonyd.objects import MAX_PEER_OBJECTS, PeerObjects
 from colonyd.replicas import Replicas
 from colonyd.runtime import open_session, zenoh_config
 from protocol import (
@@ -511,5 +511,45 @@ def test_an_absurd_alignment_offer_cannot_break_the_colony_frame() -> None:
             assert sorted(frame.transforms) == ["a", "b", "c"]
             assert all(np.isfinite(c).all() for c in frame.covariances.values())
             assert d.metrics.rejected["bad-align"] == 2
+        finally:
+            d.close()
+
+
+def test_peers_object_lists_are_bounded_together() -> None:
+    """Object lists of at most 16,384 objects each, from up to 256 peers: a few hundred KB of
+    wire each, ~2 KB of memory an object once decoded (~8 GB for 256 full lists, outside every
+    budget). Together they hold at most `MAX_PEER_OBJECTS`; a list past that is refused before
+    it is accepted, and a peer may still replace its own list (making room)."""
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            listed = [
+                ObjectCentroid(
+                    object_id=i, class_id=3, position=(i, 0.0, 0.0), voxel_count=9, time=1.0
+                )
+                for i in range(16_384)
+            ]
+            n = MAX_PEER_OBJECTS // len(listed) + 1
+            senders = []
+            for k in range(n):
+                signer = Signer.generate()
+                d.feed("hb", f"p{k}", _heartbeat(f"p{k}", signer))
+                senders.append(Sender(f"p{k}", 7, key=KEY, signer=signer, first_seq=2))
+
+            def send(k: int, objects: list) -> None:
+                s = senders[k]
+                msg = Objects(**s.header(), frame_id=f"p{k}.odom", objects=objects)
+                d.feed("objects", f"p{k}", s.encode(msg))
+
+            for k in range(n):
+                send(k, listed)
+            held = sum(len(d.peer_objects.get(o)) for o in d.peer_objects.origins())
+            assert held <= MAX_PEER_OBJECTS, held
+            assert d.metrics.rejected["over-budget"] == 1
+            assert d.receiver.accepted["objects"] == n - 1
+            assert d.peer_objects.get(f"p{n - 1}") == []
+            send(0, listed[:10])  # p0 replaces its list by a shorter one: room for p{n-1}'s
+            send(n - 1, listed[:10])
+            assert len(d.peer_objects.get(f"p{n - 1}")) == 10
         finally:
             d.close()
