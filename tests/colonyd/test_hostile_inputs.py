@@ -4,6 +4,7 @@ scouting) Zenoh sessions and real frames: refused, bounded, and leaving nothing 
 from __future__ import annotations
 
 import socket
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -25,6 +26,7 @@ from colonyd.runtime import open_session, zenoh_config
 from protocol import (
     AlignOffer,
     Heartbeat,
+    HistoryReply,
     ObjectCentroid,
     Objects,
     Receiver,
@@ -35,7 +37,10 @@ from protocol import (
 )
 from protocol.identity import Signer, Trust
 from protocol.keyexpr import alive_key, query_key, topic_key
+from voxel import keys as vk
 from voxel.delta import Delta
+from voxel.history import MAX_AGENTS, HistoryPage
+from voxel.record import RECORD_DTYPE
 
 NS = "hostile-in"
 KEY = colony_key("correct horse battery staple")
@@ -551,5 +556,44 @@ def test_peers_object_lists_are_bounded_together() -> None:
             send(0, listed[:10])  # p0 replaces its list by a shorter one: room for p{n-1}'s
             send(n - 1, listed[:10])
             assert len(d.peer_objects.get(f"p{n - 1}")) == 10
+        finally:
+            d.close()
+
+
+def test_pushed_history_pages_of_ever_new_agents_keep_the_agent_table_bounded() -> None:
+    """History pages each naming 4096 new agents (the most a page's table holds) for one record
+    each: the replica's history table grew without end, and once past 65,536 names (records
+    code agents in 16 bits) every further page failed (an internal error, its names appended all
+    the same). Now a page that would take the table past `MAX_AGENTS` is refused whole."""
+    from colonyd.historysync import HistorySync
+
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            signer = Signer.generate()
+            d.feed("hb", "evil", _heartbeat("evil", signer))
+            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+            d.feed("delta", "evil", _parts(sender, Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9]),
+                                           [0], 1)[0])  # fmt: skip
+            layer = d.layers.find("evil")
+            sync = HistorySync(
+                d.layers, SimpleNamespace(), d.metrics, period_s=0, stop=threading.Event()
+            )
+            d.inbox._on_history = lambda msg: sync.offer(
+                layer, msg.layer_epoch, msg.from_version, msg.records
+            )  # as the daemon takes a pushed page (`Gossip._take_history`)
+            for p in range(18):
+                rec = np.zeros(4096, RECORD_DTYPE)
+                rec["key"] = vk.pack(np.stack([np.arange(4096), np.zeros(4096), np.zeros(4096)], 1))
+                rec["agent"] = np.arange(4096)
+                rec["version"] = p + 1
+                rec["reliability"] = 1.0
+                page = HistoryPage(rec, [f"g{p}_{i}" for i in range(4096)])
+                reply = HistoryReply(**sender.header(), layer="evil", request_id=0, layer_epoch=7,
+                                     from_version=0, to_version=p + 1, records=page)  # fmt: skip
+                d.feed("history", "evil", sender.encode(reply))
+            assert len(layer.grid.history.agents) <= MAX_AGENTS == 4096
+            assert d.metrics.rejected["internal"] == 0
+            assert d.metrics.rejected["invalid"] == 17
         finally:
             d.close()
