@@ -47,6 +47,9 @@ class Receiver:
         # strangers from replaying a pinned agent's old frames even without a colony key
         checks = key is not None or (trust is not None and trust.checks)
         self.replay = ReplayWindow(replay_window) if checks else None
+        # requests (unsigned: anyone may send them under any origin) in a window of their own, so
+        # that made-up requesters cannot push a signed agent's state out of `replay`
+        self.request_replay = ReplayWindow(replay_window) if checks else None
         self.accepted: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         self._lock = threading.Lock()
@@ -66,8 +69,9 @@ class Receiver:
                 raise OwnOriginError(text, kind=msg.KIND, epoch=msg.epoch, time=msg.time)
             if self.trust is not None:
                 verify_identity(data, msg, self.trust)
-            if self.replay is not None:
-                self.replay.peek(msg.origin, msg.epoch, msg.seq)
+            window = self._window(msg)
+            if window is not None:
+                window.peek(msg.origin, msg.epoch, msg.seq)
         except ProtocolError as exc:
             self.count_rejected(exc.reason)
             raise
@@ -78,9 +82,10 @@ class Receiver:
 
         Raises ReplayError (counted) if the same frame was accepted meanwhile on another thread.
         """
-        if self.replay is not None:
+        window = self._window(msg)
+        if window is not None:
             try:
-                self.replay.check(msg.origin, msg.epoch, msg.seq)
+                window.check(msg.origin, msg.epoch, msg.seq)
             except ProtocolError as exc:
                 self.count_rejected(exc.reason)
                 raise
@@ -89,6 +94,10 @@ class Receiver:
             self.trust.pin(msg.origin, identity)  # first use: verified with this very key
         with self._lock:
             self.accepted[msg.KIND] += 1
+
+    def _window(self, msg: Message) -> ReplayWindow | None:
+        """The replay window of `msg`: requests have their own."""
+        return self.request_replay if msg.REQUEST else self.replay
 
     def receive(self, data: bytes, key_expr: str | None = None) -> Message:
         """`decode` then `accept`: for a caller with nothing of its own to check."""
