@@ -185,9 +185,8 @@ def concat(parts: list[Delta]) -> Delta:
 class _Partial:
     parts: int
     got: dict[int, Delta] = field(default_factory=dict)
-
-    def voxels(self) -> int:
-        return sum(len(d) for d in self.got.values())
+    voxels: int = 0  # of the parts in `got`, kept as they come (a sum over 65535 parts each
+    # time one arrives would be quadratic)
 
 
 class Assembler:
@@ -227,7 +226,7 @@ class Assembler:
                 msg = f"expected {entry.parts} parts, found a part of {parts}"
                 raise WireError("bad-parts", msg)
             else:
-                held = entry.voxels() - len(entry.got.get(part, ()))
+                held = entry.voxels - len(entry.got.get(part, ()))
         if held + len(delta) > self._max_voxels:
             msg = (
                 f"expected a delta of at most {self._max_voxels} voxels in its parts, found "
@@ -245,15 +244,17 @@ class Assembler:
             if entry is None:
                 entry = self._open[key] = _Partial(parts)
             old = entry.got.get(part)
-            self._voxels += len(delta) - (len(old) if old is not None else 0)
+            grown = len(delta) - (len(old) if old is not None else 0)
+            entry.voxels += grown
+            self._voxels += grown
             entry.got[part] = delta
             self._open.move_to_end(key)  # the least recently added to goes first
             while len(self._open) > 1 and (
                 len(self._open) > self._max or self._voxels > self._max_voxels
             ):
-                self._voxels -= self._open.popitem(last=False)[1].voxels()
+                self._voxels -= self._open.popitem(last=False)[1].voxels
             if len(entry.got) < parts:
                 return None
             del self._open[key]
-            self._voxels -= entry.voxels()
+            self._voxels -= entry.voxels
         return concat([entry.got[i] for i in range(parts)])
