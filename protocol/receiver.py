@@ -18,12 +18,12 @@ class Receiver:
     """Decodes every frame a daemon receives and counts what it accepted and rejected, by reason.
 
     With a colony `key`, frames must be authenticated and each (origin, epoch, seq) is accepted
-    once (replay window; also without a key when `trust` checks identities). Given the Zenoh key
-    a frame arrived on, the key's origin must be the frame's origin. Frames claiming the
-    receiver's `own` origin are forgeries or echoes of its own frames and are rejected. With a
-    `trust` that checks identities, every frame but a request must carry its origin's Ed25519
-    signature (an agent's first Heartbeat introduces its key when the trust is on first use;
-    `accept` pins it).
+    once (replay window; also without a key, requests apart, when `trust` checks identities).
+    Given the Zenoh key a frame arrived on, the key's origin must be the frame's origin. Frames
+    claiming the receiver's `own` origin are forgeries or echoes of its own frames and are
+    rejected. With a `trust` that checks identities, every frame but a request must carry its
+    origin's Ed25519 signature (an agent's first Heartbeat introduces its key when the trust is
+    on first use; `accept` pins it).
 
     Receiving is two steps so that a rejected frame has no side effect: `decode` validates and
     records nothing but a rejection; the caller then checks what only it can check (message type,
@@ -48,8 +48,9 @@ class Receiver:
         checks = key is not None or (trust is not None and trust.checks)
         self.replay = ReplayWindow(replay_window) if checks else None
         # requests (unsigned: anyone may send them under any origin) in a window of their own, so
-        # that made-up requesters cannot push a signed agent's state out of `replay`
-        self.request_replay = ReplayWindow(replay_window) if checks else None
+        # that made-up requesters cannot push a signed agent's state out of `replay`; and only
+        # with a key: without one anybody can make a fresh request, a replayed one is no worse
+        self.request_replay = ReplayWindow(replay_window) if key is not None else None
         self.accepted: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         self._lock = threading.Lock()
