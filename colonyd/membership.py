@@ -118,16 +118,17 @@ class Membership:
         with self._lock:
             self._room(agent)
 
-    def _room(self, agent: str) -> Member | None:
+    def _room(self, agent: str, strict: bool = True) -> Member | None:
         """The member `heard` forgets to make room for `agent` (None: no need); WireError when
-        there is no room (lock held)."""
+        there is no room, unless not `strict` (then the least recently seen heard member: a
+        token that came between `admit` and `heard`) (lock held)."""
         m = self.members.get(agent)
         if m is not None and m.heard:
             return None
         heard = [x for x in self.members.values() if x.heard]
         if len(heard) < self.max_members:
             return None
-        gone = [x for x in heard if not x.alive]
+        gone = [x for x in heard if not x.alive] or ([] if strict else heard)
         if not gone:
             text = (
                 f"expected heartbeats of at most {self.max_members} members, all alive, found "
@@ -139,7 +140,7 @@ class Membership:
     def heard(self, agent: str, hb: Heartbeat) -> Member:
         """Record a (validated, `admit`ted) heartbeat; returns the member."""
         with self._lock:
-            evicted = self._room(agent)
+            evicted = self._room(agent, strict=False)
             if evicted is not None:  # the least recently seen member without a token
                 del self.members[evicted.agent]
             m = self.members.get(agent)
