@@ -22,7 +22,7 @@ from colonyd.objects import PeerObjects
 from colonyd.replicas import Replicas
 from colonyd.runtime import undeclare
 from colonyd.threadclock import stamp
-from colonyd.worker import Bounded, Worker
+from colonyd.worker import Bounded, Throttle, Worker, held_text
 from protocol import (
     AlignOffer,
     Heartbeat,
@@ -125,6 +125,7 @@ class Inbox:
         #: without it the inbox does not subscribe to `<origin>/history`).
         self._on_history = on_history
         self._drop_rate = drop_rate
+        self._log = Throttle()  # a flood of refusals logs a line per reason now and then
         self._rng = random.Random()
         #: Per Zenoh callback thread: its clocks when our callback last returned ("idle").
         self._idle = threading.local()
@@ -246,8 +247,8 @@ class Inbox:
             self.metrics.reject(exc.reason)
             if self._on_own_origin is not None and exc.kind == Heartbeat.KIND:
                 self._on_own_origin(exc)
-            else:
-                log.warning("rejected %s on %s: %s", kind, key, exc)
+            elif (held := self._log.allow(exc.reason)) is not None:
+                log.warning("rejected %s on %s: %s%s", kind, key, exc, held_text(held))
 
     def _wait(self) -> None:
         """The inbox thread is about to wait for an item: its clocks then ("waited")."""

@@ -597,3 +597,26 @@ def test_pushed_history_pages_of_ever_new_agents_keep_the_agent_table_bounded() 
             assert d.metrics.rejected["invalid"] == 17
         finally:
             d.close()
+
+
+def test_a_flood_of_refused_frames_does_not_flood_the_log(caplog) -> None:
+    """A stranger without the colony key puts junk on a delta key as fast as it can: every frame
+    is refused and counted, but the log gets a few lines per reason, not one per frame (it was
+    one warning a frame: a disk filled by anyone who reaches the network)."""
+    import logging
+
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            stranger = Sender("x", 1)  # no key
+            unkeyed = stranger.encode(Heartbeat(**stranger.header(), kind="r", frame_id="x.odom"))
+            with caplog.at_level(logging.WARNING):
+                for _ in range(300):
+                    d.feed("delta", "x", unkeyed)
+                    d.feed("delta", "x", b"CLNY")
+            assert d.metrics.rejected["auth"] == 300
+            assert d.metrics.rejected["truncated"] == 300
+            lines = [r for r in caplog.records if r.levelno >= logging.WARNING]
+            assert len(lines) <= 6, f"{len(lines)} lines, the first: {lines[0].getMessage()}"
+        finally:
+            d.close()
