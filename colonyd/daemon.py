@@ -57,6 +57,7 @@ from colonyd.runtime import get_session
 from colonyd.status import StatusServer
 from colonyd.threadclock import stamp
 from colonyd.tombstones import OWN_LAYER, forget_params, load_tombstones, save_tombstones
+from colonyd.worker import Throttle, held_text
 from plugins.observation import AGENT_LABEL, ObjectDetection, Observation
 from plugins.source import open_source
 from plugins.stream import Source
@@ -169,6 +170,7 @@ class Daemon:
         self._estimate_s = 0.0  # running mean of one estimator step, seconds
         #: PoseFix messages for us (a CCTV saw our marker), applied by the mapping thread.
         self._fixes: deque[PoseFix] = deque(maxlen=32)
+        self._forget_log = Throttle()  # refused forget requests: anyone may send them
         #: Fixes of observers not aligned with us: (pose seen, our estimate then) per observer.
         self._sightings: dict[str, deque[tuple[np.ndarray, np.ndarray]]] = {}
         self.pose_matrix: np.ndarray | None = None  # the latest sensor pose estimate (own frame)
@@ -1123,7 +1125,8 @@ class Daemon:
             agent = forget_params(params, colony_key(cfg.colony_key), time.time())
         except ValueError as exc:
             self.metrics.reject("bad-forget")
-            log.warning("refused a forget request: %s", exc)
+            if (held := self._forget_log.allow("bad-forget")) is not None:  # anyone may ask
+                log.warning("refused a forget request: %s%s", exc, held_text(held))
             return {"agent": cfg.agent_id, "forgotten": None, "error": str(exc)}
         if agent == cfg.agent_id:
             return {"agent": cfg.agent_id, "forgotten": None, "error": OWN_LAYER}
