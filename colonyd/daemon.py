@@ -71,6 +71,10 @@ log = logging.getLogger(__name__)
 #: The own object list is published again every this many refreshes, changed or not.
 OBJECTS_REPEAT = 5
 
+#: The shortest time between two heartbeats when one is asked for early (a liveliness join, a
+#: forget request): joins come from liveliness tokens, which nobody authenticates, and a stranger
+#: declaring and undeclaring tokens made a daemon send one every 10 ms to the whole colony.
+MIN_EARLY_HEARTBEAT_S = 0.25
 #: Own alignments are offered again every this many alignment rounds, so that members that
 #: joined later (or missed an offer) learn them and compute the same colony frame.
 OFFERS_REPEAT = 3
@@ -452,6 +456,7 @@ class Daemon:
         wd = self.notifier.watchdog_s
         next_hb = 0.0
         next_wd = 0.0
+        last_hb = -math.inf
         while not self.stop.is_set():
             now = time.monotonic()
             with self.metrics.activity.timed("freeze"):
@@ -459,8 +464,10 @@ class Daemon:
             if self.reload.is_set():
                 self.reload.clear()
                 self._reload()
-            if now >= next_hb or self.gossip.hb_now.is_set():
+            early = self.gossip.hb_now.is_set() and now - last_hb >= MIN_EARLY_HEARTBEAT_S
+            if now >= next_hb or early:
                 self.gossip.hb_now.clear()
+                last_hb = now
                 try:
                     with self.metrics.activity.timed("heartbeat"):
                         self.gossip.heartbeat(self.config.kind, self.pose)
@@ -477,7 +484,11 @@ class Daemon:
             timeout = next_hb - time.monotonic()
             if wd:
                 timeout = min(timeout, next_wd - time.monotonic())
-            self.gossip.hb_now.wait(max(0.01, min(timeout, 0.5)))
+            if self.gossip.hb_now.is_set():  # asked for early, too soon after the last one
+                soon = last_hb + MIN_EARLY_HEARTBEAT_S - time.monotonic()
+                self.stop.wait(max(0.01, min(timeout, soon)))
+            else:
+                self.gossip.hb_now.wait(max(0.01, min(timeout, 0.5)))
 
     def _shutdown(self) -> None:
         lap = _Laps(self.stopping)
