@@ -153,8 +153,26 @@ def offer_of(edge: Edge, header: Header) -> AlignOffer:
     )
 
 
+#: The largest translation (m, per axis: beyond the Earth, so that a site frame in projected
+#: coordinates passes) and covariance entry (m², rad², m·rad; a standard deviation of 1000 km) an
+#: AlignOffer may claim: beyond them an offer says nothing about robots' frames, and its error
+#: propagated along the colony frame's tree (products with the translations) overflowed to inf,
+#: which made every computation of the colony frame fail.
+MAX_OFFER_M = 1e8
+MAX_OFFER_COVARIANCE = 1e12
+
+
 def edge_from_offer(msg: AlignOffer) -> Edge:
-    """The edge a peer offers, after checking it is consistent; else WireError."""
+    """The edge a peer offers, after checking it is consistent and within `MAX_OFFER_M` and
+    `MAX_OFFER_COVARIANCE`; else WireError."""
+    position = np.abs(np.asarray(msg.position, float))
+    covariance = np.abs(np.asarray(msg.covariance, float))
+    if position.max() > MAX_OFFER_M or covariance.max() > MAX_OFFER_COVARIANCE:
+        text = (
+            f"expected a translation within {MAX_OFFER_M:g} m and covariance entries within "
+            f"{MAX_OFFER_COVARIANCE:g}, found {position.max():.3g} m and {covariance.max():.3g}"
+        )
+        raise WireError("bad-align", text)
     if msg.target == msg.origin:
         raise WireError(
             "bad-align", f"expected an offer for another agent, found {msg.origin!r} itself"

@@ -4,9 +4,11 @@ reports."""
 from __future__ import annotations
 
 import logging
+import math
 import random
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass
 from typing import Any
 
@@ -14,7 +16,7 @@ import zenoh
 
 from colonyd.errors import WireError
 from colonyd.frames import Sender, accept, concat
-from colonyd.layers import Layer, Layers
+from colonyd.layers import BLOCK_VOXELS, Layer, Layers
 from colonyd.membership import Membership
 from colonyd.metrics import Metrics
 from colonyd.replicas import Replicas
@@ -61,6 +63,12 @@ class Repair:
     asked: float  # time.monotonic() when it was scheduled
 
 
+def reply_items(msg: Message) -> int:
+    """Voxels a reply's delta holds (0 for a reply without one)."""
+    delta = getattr(msg, "delta", None)
+    return 0 if delta is None else len(delta)
+
+
 def complete(msgs: list[Any], what: str) -> bool:
     """True if `msgs` are every part of one reply, each once."""
     if not msgs:
@@ -99,6 +107,11 @@ class CatchUp:
         self.metrics = metrics
         self.query_timeout_s = query_timeout_s
         self.part_bytes = part_bytes
+        #: Most voxels the replies of one snapshot or range query may hold together: what the
+        #: peer budget holds (a layer's snapshot or range beyond it is refused by `Layers.admit`
+        #: anyway): a few bytes of zstd decode to millions of voxels, and 4096 parts of them must
+        #: not pile up decoded before that refusal.
+        self.max_voxels = self.layers.max_peer_blocks * BLOCK_VOXELS
         self.membership: Membership | None = None
         self._rng = random.Random()
         self._repairing: set[str] = set()
@@ -198,6 +211,11 @@ class CatchUp:
         )
         out: list[Message] = []
         decode_s = 0.0
+        held = 0  # voxels of the replies taken
+        # (history pages are not capped here: a single version goes whole, however large)
+        cap = math.inf if cls is HistoryReply else self.max_voxels
+        full = False  # a reply went past `cap`: the rest is refused undecoded
+        refused: Counter[str] = Counter()
         for reply in replies:
             if reply.ok is None:
                 continue
@@ -208,6 +226,14 @@ class CatchUp:
             try:
                 if len(out) >= MAX_REPLY_PARTS:
                     raise WireError("oversized", f"expected at most {MAX_REPLY_PARTS} replies")
+                if len(raw) > request.max_part_bytes:
+                    text = (
+                        f"expected reply frames of at most {request.max_part_bytes} bytes (the "
+                        f"request's max_part_bytes), found {len(raw)}"
+                    )
+                    raise WireError("oversized", text)
+                if full:
+                    raise WireError("over-budget", f"expected replies within {cap} voxels")
                 msg = self.receiver.decode(raw, key_expr=str(reply.ok.key_expr))
                 if not (
                     isinstance(msg, cls)
@@ -219,12 +245,31 @@ class CatchUp:
                         f"{request.request_id}, found a {msg.KIND}"
                     )
                     raise WireError("bad-reply", text)
+                n = reply_items(msg)
+                if held + n > cap:  # the layer's budget could never take them all
+                    full = True
+                    text = (
+                        f"expected replies holding at most {cap} voxels together, found {held} "
+                        f"taken + {n} in part {msg.part} of {msg.parts}"
+                    )
+                    raise WireError("over-budget", text)
                 accept(self.receiver, self.metrics, msg, raw)
+                held += n
                 out.append(msg)
             except (ProtocolError, WireError) as exc:
                 self.metrics.reject(exc.reason)
-                log.warning("rejected a %s reply from %s: %s", query, server, exc)
+                if not refused:  # one warning per query: a flood of replies floods no log
+                    log.warning("rejected a %s reply from %s: %s", query, server, exc)
+                refused[exc.reason] += 1
             decode_s += time.monotonic() - t
+        if refused.total() > 1:
+            log.warning(
+                "rejected %d %s replies from %s in all (%s)",
+                refused.total(),
+                query,
+                server,
+                ", ".join(f"{reason} {n}" for reason, n in sorted(refused.items())),
+            )
         if marks is not None:
             marks["decode_s"] = decode_s
         return out

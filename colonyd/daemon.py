@@ -57,6 +57,7 @@ from colonyd.runtime import get_session
 from colonyd.status import StatusServer
 from colonyd.threadclock import stamp
 from colonyd.tombstones import OWN_LAYER, forget_params, load_tombstones, save_tombstones
+from colonyd.worker import Throttle, held_text
 from plugins.observation import AGENT_LABEL, ObjectDetection, Observation
 from plugins.source import open_source
 from plugins.stream import Source
@@ -70,6 +71,10 @@ log = logging.getLogger(__name__)
 #: The own object list is published again every this many refreshes, changed or not.
 OBJECTS_REPEAT = 5
 
+#: The shortest time between two heartbeats when one is asked for early (a liveliness join, a
+#: forget request): joins come from liveliness tokens, which nobody authenticates, and a stranger
+#: declaring and undeclaring tokens made a daemon send one every 10 ms to the whole colony.
+MIN_EARLY_HEARTBEAT_S = 0.25
 #: Own alignments are offered again every this many alignment rounds, so that members that
 #: joined later (or missed an offer) learn them and compute the same colony frame.
 OFFERS_REPEAT = 3
@@ -167,6 +172,7 @@ class Daemon:
         self._estimate_s = 0.0  # running mean of one estimator step, seconds
         #: PoseFix messages for us (a CCTV saw our marker), applied by the mapping thread.
         self._fixes: deque[PoseFix] = deque(maxlen=32)
+        self._forget_log = Throttle()  # refused forget requests: anyone may send them
         #: Fixes of observers not aligned with us: (pose seen, our estimate then) per observer.
         self._sightings: dict[str, deque[tuple[np.ndarray, np.ndarray]]] = {}
         self.pose_matrix: np.ndarray | None = None  # the latest sensor pose estimate (own frame)
@@ -347,7 +353,9 @@ class Daemon:
             peer_history_entries=cfg.peer_history_entries,
             history_push=cfg.history_push,
         )
-        self.membership = Membership(self.session, ns, cfg.agent_id, self.gossip.on_member_event)
+        self.membership = Membership(
+            self.session, ns, cfg.agent_id, self.gossip.on_member_event, cfg.max_layers
+        )
         self.status_server = StatusServer(
             self.session, ns, cfg.agent_id, self.report, activity=self.metrics.activity
         )
@@ -446,6 +454,7 @@ class Daemon:
         wd = self.notifier.watchdog_s
         next_hb = 0.0
         next_wd = 0.0
+        last_hb = -math.inf
         while not self.stop.is_set():
             now = time.monotonic()
             with self.metrics.activity.timed("freeze"):
@@ -453,8 +462,10 @@ class Daemon:
             if self.reload.is_set():
                 self.reload.clear()
                 self._reload()
-            if now >= next_hb or self.gossip.hb_now.is_set():
+            early = self.gossip.hb_now.is_set() and now - last_hb >= MIN_EARLY_HEARTBEAT_S
+            if now >= next_hb or early:
                 self.gossip.hb_now.clear()
+                last_hb = now
                 try:
                     with self.metrics.activity.timed("heartbeat"):
                         self.gossip.heartbeat(self.config.kind, self.pose)
@@ -471,7 +482,11 @@ class Daemon:
             timeout = next_hb - time.monotonic()
             if wd:
                 timeout = min(timeout, next_wd - time.monotonic())
-            self.gossip.hb_now.wait(max(0.01, min(timeout, 0.5)))
+            if self.gossip.hb_now.is_set():  # asked for early, too soon after the last one
+                soon = last_hb + MIN_EARLY_HEARTBEAT_S - time.monotonic()
+                self.stop.wait(max(0.01, min(timeout, soon)))
+            else:
+                self.gossip.hb_now.wait(max(0.01, min(timeout, 0.5)))
 
     def _shutdown(self) -> None:
         lap = _Laps(self.stopping)
@@ -1119,7 +1134,8 @@ class Daemon:
             agent = forget_params(params, colony_key(cfg.colony_key), time.time())
         except ValueError as exc:
             self.metrics.reject("bad-forget")
-            log.warning("refused a forget request: %s", exc)
+            if (held := self._forget_log.allow("bad-forget")) is not None:  # anyone may ask
+                log.warning("refused a forget request: %s%s", exc, held_text(held))
             return {"agent": cfg.agent_id, "forgotten": None, "error": str(exc)}
         if agent == cfg.agent_id:
             return {"agent": cfg.agent_id, "forgotten": None, "error": OWN_LAYER}

@@ -185,31 +185,76 @@ def concat(parts: list[Delta]) -> Delta:
 class _Partial:
     parts: int
     got: dict[int, Delta] = field(default_factory=dict)
+    voxels: int = 0  # of the parts in `got`, kept as they come (a sum over 65535 parts each
+    # time one arrives would be quadratic)
 
 
 class Assembler:
-    """Collects the parts of deltas sent in several messages; bounded (oldest dropped first)."""
+    """Collects the parts of deltas sent in several messages; bounded in open deltas and in the
+    voxels their parts hold together (the delta least recently added to dropped first).
 
-    def __init__(self, max_open: int = 128) -> None:
+    `max_voxels` is the most a whole delta may hold (a peer layer's budget: one larger could
+    never be admitted), so the parts of one delta beyond it are refused (`check`) rather than
+    kept: a few bytes of zstd decode to millions of voxels, and 65535 parts of each must not
+    pile up unapplied.
+    """
+
+    def __init__(self, max_open: int = 128, max_voxels: int = 1 << 62) -> None:
         self._open: OrderedDict[tuple[object, ...], _Partial] = OrderedDict()
         self._max = max_open
+        self._max_voxels = max_voxels
+        self._voxels = 0
         self._lock = threading.Lock()
 
+    @property
+    def voxels(self) -> int:
+        """Voxels the parts of open deltas hold."""
+        with self._lock:
+            return self._voxels
+
+    def check(self, key: tuple[object, ...], part: int, parts: int, delta: Delta) -> None:
+        """Raise WireError unless part `part` of `parts` of delta `key` may be added: the number
+        of parts of the delta's other parts, and the voxels of its parts together within
+        `max_voxels`. Changes nothing."""
+        if parts == 1:
+            return
+        with self._lock:
+            entry = self._open.get(key)
+            if entry is None:
+                held = 0
+            elif entry.parts != parts:
+                msg = f"expected {entry.parts} parts, found a part of {parts}"
+                raise WireError("bad-parts", msg)
+            else:
+                held = entry.voxels - len(entry.got.get(part, ()))
+        if held + len(delta) > self._max_voxels:
+            msg = (
+                f"expected a delta of at most {self._max_voxels} voxels in its parts, found "
+                f"{held} held + {len(delta)} in part {part} of {parts}"
+            )
+            raise WireError("over-budget", msg)
+
     def add(self, key: tuple[object, ...], part: int, parts: int, delta: Delta) -> Delta | None:
-        """The whole delta once every part of `key` arrived, else None."""
+        """The whole delta once every part of `key` arrived, else None (`check` first)."""
+        self.check(key, part, parts, delta)
         if parts == 1:
             return delta
         with self._lock:
             entry = self._open.get(key)
             if entry is None:
                 entry = self._open[key] = _Partial(parts)
-                while len(self._open) > self._max:
-                    self._open.popitem(last=False)
-            if entry.parts != parts:
-                msg = f"expected {entry.parts} parts, found a part of {parts}"
-                raise WireError("bad-parts", msg)
+            old = entry.got.get(part)
+            grown = len(delta) - (len(old) if old is not None else 0)
+            entry.voxels += grown
+            self._voxels += grown
             entry.got[part] = delta
+            self._open.move_to_end(key)  # the least recently added to goes first
+            while len(self._open) > 1 and (
+                len(self._open) > self._max or self._voxels > self._max_voxels
+            ):
+                self._voxels -= self._open.popitem(last=False)[1].voxels
             if len(entry.got) < parts:
                 return None
             del self._open[key]
+            self._voxels -= entry.voxels
         return concat([entry.got[i] for i in range(parts)])

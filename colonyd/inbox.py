@@ -15,13 +15,14 @@ import zenoh
 from colonyd.alignment import Alignments, edge_from_offer
 from colonyd.errors import WireError
 from colonyd.frames import Assembler, accept, expect, frame_of
+from colonyd.layers import BLOCK_VOXELS
 from colonyd.membership import Membership
 from colonyd.metrics import Metrics
 from colonyd.objects import PeerObjects
 from colonyd.replicas import Replicas
 from colonyd.runtime import undeclare
 from colonyd.threadclock import stamp
-from colonyd.worker import Bounded, Worker
+from colonyd.worker import Bounded, Throttle, Worker, held_text
 from protocol import (
     AlignOffer,
     Heartbeat,
@@ -111,7 +112,8 @@ class Inbox:
         self.alignments = alignments
         self.receiver = receiver
         self.metrics = metrics
-        self.parts = Assembler()
+        #: a whole delta holds at most the peer budget's voxels (`Layers.admit` refuses more)
+        self.parts = Assembler(max_voxels=replicas.layers.max_peer_blocks * BLOCK_VOXELS)
         self.membership: Membership | None = None
         self._request_repair = request_repair
         self._send_heartbeat = send_heartbeat
@@ -123,6 +125,7 @@ class Inbox:
         #: without it the inbox does not subscribe to `<origin>/history`).
         self._on_history = on_history
         self._drop_rate = drop_rate
+        self._log = Throttle()  # a flood of refusals logs a line per reason now and then
         self._rng = random.Random()
         #: Per Zenoh callback thread: its clocks when our callback last returned ("idle").
         self._idle = threading.local()
@@ -244,8 +247,8 @@ class Inbox:
             self.metrics.reject(exc.reason)
             if self._on_own_origin is not None and exc.kind == Heartbeat.KIND:
                 self._on_own_origin(exc)
-            else:
-                log.warning("rejected %s on %s: %s", kind, key, exc)
+            elif (held := self._log.allow(exc.reason)) is not None:
+                log.warning("rejected %s on %s: %s%s", kind, key, exc, held_text(held))
 
     def _wait(self) -> None:
         """The inbox thread is about to wait for an item: its clocks then ("waited")."""
@@ -262,13 +265,13 @@ class Inbox:
             raise WireError("inexact", "expected an exact delta, found a free-space summary")
         d = msg.delta
         self.replicas.admit(msg.origin, msg.epoch, [d])
+        whole = (msg.origin, msg.epoch, d.from_version, d.to_version)
+        self.parts.check(whole, msg.part, msg.parts, d)  # its parts' count, their voxels
         accept(
             self.receiver, self.metrics, msg, raw
         )  # only now: a frame refused above moved no window
         stamp(marks, "admitted")
-        delta = self.parts.add(
-            (msg.origin, msg.epoch, d.from_version, d.to_version), msg.part, msg.parts, d
-        )
+        delta = self.parts.add(whole, msg.part, msg.parts, d)
         if delta is None:
             return
         if self.replicas.offer(msg.origin, msg.epoch, delta, admitted=msg.parts == 1):
@@ -278,6 +281,8 @@ class Inbox:
 
     def _handle_hb(self, key: str, raw: bytes) -> None:
         msg = expect(self.receiver.decode(raw, key_expr=key), Heartbeat, f"on {key}")
+        if self.membership is not None:
+            self.membership.admit(msg.origin)  # bounded: a flood of made-up agents is refused
         accept(self.receiver, self.metrics, msg, raw)
         if self.membership is None:
             return
@@ -293,7 +298,7 @@ class Inbox:
 
     def _handle_objects(self, key: str, raw: bytes) -> None:
         msg = expect(self.receiver.decode(raw, key_expr=key), Objects, f"on {key}")
-        self.objects.admit(msg.origin)
+        self.objects.admit(msg.origin, len(msg.objects))
         accept(self.receiver, self.metrics, msg, raw)
         self.objects.put(msg.origin, msg.objects)
         self.metrics.add("objects_received")

@@ -16,7 +16,7 @@ import numpy as np
 from colonyd.errors import WireError
 from colonyd.grid import VoxelGrid, new_grid
 from voxel import keys as vk
-from voxel.blocks import BLOCK_SHAPES, block_shifts, count_blocks
+from voxel.blocks import BLOCK_SHAPES, CORE_CHANNELS, block_shifts, count_blocks
 from voxel.delta import Delta
 
 _T = TypeVar("_T")
@@ -306,6 +306,36 @@ class Layer:
         return h.hexdigest()[:16]
 
 
+#: Most channels (beyond log-odds, version and time) a replica's grid holds: the protocol's most
+#: in one delta. Each is an array as large as the layer, so ever new names (a `scalar:NAME` costs
+#: a few bytes of wire) would grow a replica's memory outside the block budget.
+MAX_REPLICA_CHANNELS = 32
+
+
+def check_channels(layer: Layer, deltas: list[Delta], *, replace: bool = False) -> None:
+    """Raise WireError("bad-channel") unless `layer`'s grid can hold the channels of `deltas`
+    (with its own, unless a snapshot `replace`s it): class lists of its width (`class_k`), and
+    at most `MAX_REPLICA_CHANNELS` channels together. Changes nothing."""
+    store = layer.grid.store
+    for d in deltas:
+        for name in ("class_ids", "class_probs"):
+            values = d.channels.get(name)
+            if values is not None and values.shape[1:] != (store.class_k,):
+                text = (
+                    f"expected {name} of {store.class_k} classes a voxel (this replica's), "
+                    f"found {values.shape[1] if values.ndim > 1 else 0}"
+                )
+                raise WireError("bad-channel", text)
+    held = set() if replace else {n for n in store.channels if n not in CORE_CHANNELS}
+    names = held.union(*(d.channels for d in deltas))
+    if len(names) > MAX_REPLICA_CHANNELS:
+        text = (
+            f"expected at most {MAX_REPLICA_CHANNELS} channels in a replica, found {len(held)} "
+            f"held and {len(names) - len(held)} new"
+        )
+        raise WireError("bad-channel", text)
+
+
 class Layers:
     """All layers of a daemon by origin; the own layer is written by this daemon only.
 
@@ -361,6 +391,7 @@ class Layers:
             raise WireError(
                 "bad-resolution", f"expected resolution {layer.resolution}, found {bad[0]}"
             )
+        check_channels(layer, deltas, replace=replace)
         used = sum(p.blocks() for p in self.all() if p.origin != self.own_id)
         keys = [d.keys for d in deltas]
         if replace:

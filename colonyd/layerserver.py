@@ -18,7 +18,7 @@ from colonyd.frames import Sender, accept, expect, frame_of
 from colonyd.layers import Layer, Layers
 from colonyd.metrics import Metrics
 from colonyd.runtime import undeclare
-from colonyd.worker import Bounded, Worker
+from colonyd.worker import Bounded, Throttle, Worker, held_text
 from protocol import (
     DeltaRangeReply,
     DeltaRangeRequest,
@@ -80,6 +80,7 @@ class LayerServer:
         self.epoch = epoch
         self.chunk_voxels = chunk_voxels
         self.part_bytes = part_bytes
+        self._log = Throttle()
         self._worker: Worker[Arrived] = Worker(
             "gossip-serve",
             self._answer,
@@ -142,13 +143,15 @@ class LayerServer:
             self._serve_range(query, key, layer, request, deadline)
         except Abandoned as exc:
             self.metrics.add("queries_abandoned")
-            log.info(
-                "stopped answering %s from %s: its requester waited %d ms (%s)",
-                key,
-                request.origin,
-                timeout_ms,
-                exc,
-            )
+            if (held := self._log.allow("abandoned")) is not None:  # anyone may ask: throttled
+                log.info(
+                    "stopped answering %s from %s: its requester waited %d ms (%s)%s",
+                    key,
+                    request.origin,
+                    timeout_ms,
+                    exc,
+                    held_text(held),
+                )
 
     def _layer_epoch(self, layer: Layer) -> int:
         return self.epoch if layer.origin == self.own else layer.epoch

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import zenoh
 
+from colonyd.errors import WireError
 from colonyd.runtime import undeclare
 from protocol import Heartbeat, KeyExprError, Pose
 from protocol.keyexpr import alive_key, alive_subscription, parse_key
@@ -55,10 +56,20 @@ class Member:
     #: its drift along its path, from its Pose messages (`PeerDrift`: a walk of its map's error)
     drift: PeerDrift = field(default_factory=PeerDrift)
     layers: dict[str, tuple[int, int]] = field(default_factory=dict)
+    #: an accepted heartbeat of it arrived (a liveliness token alone, which anyone who reaches
+    #: the colony can declare, makes a member that is forgotten when the token goes)
+    heard: bool = False
 
 
 class Membership:
-    """Tracks members from liveliness (join/leave) and heartbeats (kind, pose, layers)."""
+    """Tracks members from liveliness (join/leave) and heartbeats (kind, pose, layers).
+
+    Bounded: a member known from its liveliness token alone is forgotten when the token goes
+    (tokens are not authenticated: a stranger declaring and undeclaring made-up agent ids must not
+    grow the table), and at most `max_members` members were heard (`admit`: a heartbeat of a new
+    agent beyond them makes room by forgetting the least recently seen member without a token,
+    else it is refused).
+    """
 
     def __init__(
         self,
@@ -66,8 +77,10 @@ class Membership:
         namespace: str,
         own: str,
         on_event: Callable[[str, str], None],
+        max_members: int = 256,
     ) -> None:
         self.own = own
+        self.max_members = max_members
         self._on_event = on_event  # (agent, "join"|"leave"); must only enqueue
         self._lock = threading.Lock()
         self.members: dict[str, Member] = {}
@@ -86,20 +99,54 @@ class Membership:
         joined = sample.kind == zenoh.SampleKind.PUT
         with self._lock:
             m = self.members.get(agent)
+            if m is None and not joined:
+                return  # the token of a member forgotten already
             if m is None:
                 m = self.members[agent] = Member(agent)
             m.alive = joined
             m.last_seen = time.time()
             if joined:
                 m.joined = m.last_seen
+            elif not m.heard:
+                del self.members[agent]  # a token alone, gone: nothing of it to keep
         self._on_event(agent, "join" if joined else "leave")
 
-    def heard(self, agent: str, hb: Heartbeat) -> Member:
-        """Record a (validated) heartbeat; returns the member."""
+    def admit(self, agent: str) -> None:
+        """Raise WireError unless a heartbeat of `agent` may be recorded (`heard`): a member
+        already heard, or room for one more, or a heard member without a liveliness token that
+        `heard` may forget to make room. Changes nothing."""
         with self._lock:
+            self._room(agent)
+
+    def _room(self, agent: str, strict: bool = True) -> Member | None:
+        """The member `heard` forgets to make room for `agent` (None: no need); WireError when
+        there is no room, unless not `strict` (then the least recently seen heard member: a
+        token that came between `admit` and `heard`) (lock held)."""
+        m = self.members.get(agent)
+        if m is not None and m.heard:
+            return None
+        heard = [x for x in self.members.values() if x.heard]
+        if len(heard) < self.max_members:
+            return None
+        gone = [x for x in heard if not x.alive] or ([] if strict else heard)
+        if not gone:
+            text = (
+                f"expected heartbeats of at most {self.max_members} members, all alive, found "
+                f"another: {agent!r}"
+            )
+            raise WireError("too-many-members", text)
+        return min(gone, key=lambda x: x.last_seen)
+
+    def heard(self, agent: str, hb: Heartbeat) -> Member:
+        """Record a (validated, `admit`ted) heartbeat; returns the member."""
+        with self._lock:
+            evicted = self._room(agent, strict=False)
+            if evicted is not None:  # the least recently seen member without a token
+                del self.members[evicted.agent]
             m = self.members.get(agent)
             if m is None:  # alive only once its liveliness token is seen
                 m = self.members[agent] = Member(agent, alive=False)
+            m.heard = True
             m.last_seen = time.time()
             m.kind = hb.kind
             m.pose = list(hb.position) if hb.position is not None else []

@@ -162,17 +162,26 @@ def to_wire(objects: list[ObjectCentroid]) -> list[WireObject]:
     ]
 
 
+#: Most objects the lists of all peers hold together (~2 KB each decoded: ~130 MB). A list holds
+#: up to 16,384 (the protocol's most) and up to 256 peers send one: without a bound, a few hundred
+#: KB of wire each, they would hold ~8 GB.
+MAX_PEER_OBJECTS = 65_536
+
+
 class PeerObjects:
     """The latest object list each peer published (a full list replaces the previous one), for
-    at most `max_origins` peers (a hostile peer cannot invent many)."""
+    at most `max_origins` peers (a hostile peer cannot invent many), holding at most
+    `max_objects` objects together."""
 
-    def __init__(self, max_origins: int = 256) -> None:
+    def __init__(self, max_origins: int = 256, max_objects: int = MAX_PEER_OBJECTS) -> None:
         self.max_origins = max_origins
+        self.max_objects = max_objects
         self._lists: dict[str, tuple[float, list[WireObject]]] = {}
         self._lock = threading.Lock()
 
-    def admit(self, origin: str) -> None:
-        """Raise WireError unless a list of `origin` may be kept."""
+    def admit(self, origin: str, count: int = 0) -> None:
+        """Raise WireError unless a list of `count` objects of `origin` may be kept (replacing
+        its previous one)."""
         with self._lock:
             if origin not in self._lists and len(self._lists) >= self.max_origins:
                 text = (
@@ -180,6 +189,13 @@ class PeerObjects:
                     f"found another: {origin!r}"
                 )
                 raise WireError("too-many-layers", text)
+            others = sum(len(v[1]) for o, v in self._lists.items() if o != origin)
+            if others + count > self.max_objects:
+                text = (
+                    f"expected peers' object lists within {self.max_objects} objects together, "
+                    f"found {others} held + {count} from {origin!r}"
+                )
+                raise WireError("over-budget", text)
 
     def put(self, origin: str, objects: list[WireObject]) -> None:
         with self._lock:

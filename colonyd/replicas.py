@@ -4,10 +4,20 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
+
 from colonyd.errors import WireError
 from colonyd.layers import Layers
 from colonyd.metrics import Metrics
 from voxel.delta import Delta
+
+#: The highest layer version a replica takes: its grid keeps versions as 32-bit integers (the
+#: wire allows 63 bits; a layer publishing ten deltas a second reaches it in 13 years).
+MAX_VERSION = (1 << 32) - 1
+#: The furthest from the Unix epoch (seconds) a voxel's time may lie: its grid keeps times as
+#: integer milliseconds in int64 arithmetic (2^53 ms, ~285,000 years); a voxel without a time
+#: (the wire's NaN code) has no place there either.
+MAX_ABS_TIME_S = float(1 << 53) / 1000.0
 
 
 class Replicas:
@@ -23,6 +33,20 @@ class Replicas:
             prev, seq = d.from_version, d.to_version
             if not (0 <= prev < seq) or epoch <= 0:
                 raise WireError("bad-header", f"delta header invalid: epoch {epoch} {prev}->{seq}")
+            if seq > MAX_VERSION:
+                text = (
+                    f"expected layer versions up to {MAX_VERSION} (a replica's grid keeps 32-bit "
+                    f"versions), found {prev}->{seq}"
+                )
+                raise WireError("bad-header", text)
+            times = d.last_time
+            if len(times) and not bool(np.all(np.abs(times) <= MAX_ABS_TIME_S)):
+                bad = times[~(np.abs(times) <= MAX_ABS_TIME_S)][0]
+                text = (
+                    f"expected a time within {MAX_ABS_TIME_S:.3g} s of the Unix epoch for every "
+                    f"voxel (a replica's grid keeps one), found {bad}"
+                )
+                raise WireError("bad-time", text)
         self.layers.admit(origin, deltas, replace=replace)
 
     def offer(

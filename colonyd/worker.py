@@ -20,6 +20,38 @@ T = TypeVar("T")
 
 #: How often an idle worker looks at its stop event (seconds).
 POLL_S = 0.2
+#: Seconds between two log lines of one worker about refusals of one reason (or failures of one
+#: exception type): a flood of hostile input is counted, and logged a line per reason at most
+#: this often, saying how many it left out.
+LOG_EVERY_S = 10.0
+
+
+class Throttle:
+    """Whether a line of one kind may be logged now: the first, then one per `every_s`; it
+    counts the lines it held back (kinds: refusal reasons and exception types, a bounded set)."""
+
+    def __init__(self, every_s: float = LOG_EVERY_S) -> None:
+        self.every_s = every_s
+        self._last: dict[str, float] = {}
+        self._held: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    def allow(self, kind: str) -> int | None:
+        """None: hold this line back; else log it, with the count of lines of `kind` held back
+        since the last one."""
+        now = time.monotonic()
+        with self._lock:
+            last = self._last.get(kind)
+            if last is not None and now - last < self.every_s:
+                self._held[kind] = self._held.get(kind, 0) + 1
+                return None
+            self._last[kind] = now
+            return self._held.pop(kind, 0)
+
+
+def held_text(held: int) -> str:
+    """What a throttled line adds about the lines held back before it."""
+    return f" (and {held} more like it since the last such line)" if held else ""
 
 
 class Bounded(Generic[T]):
@@ -68,11 +100,12 @@ class Worker(Generic[T]):
     No exception ends the thread. With `metrics`, a refusal (`ProtocolError`, `WireError`) is
     counted by its reason and logged as a warning; with `hostile` (items straight from the
     network) any other `ColonydError` or `ValueError` counts as `invalid` and anything else as
-    `internal`. Every other exception is logged with its stack. `done(item)` runs once per item,
-    handled or refused by `put` (a query is dropped there); a refused `put` counts `drops`.
-    `idle()` runs on the thread each time it is about to wait for the next item. Each item's
-    handling goes to `activity` (by default the metrics'), named `label(item)` or the worker's
-    name.
+    `internal`. Every other exception is logged with its stack. Lines are throttled: one per
+    reason or exception type at most every `LOG_EVERY_S` (`Throttle`). `done(item)` runs once
+    per item, handled or refused by `put` (a query is dropped there); a refused `put` counts
+    `drops`. `idle()` runs on the thread each time it is about to wait for the next item. Each
+    item's handling goes to `activity` (by default the metrics'), named `label(item)` or the
+    worker's name.
     """
 
     def __init__(
@@ -103,6 +136,7 @@ class Worker(Generic[T]):
         self._done = done
         self._idle = idle
         self.stop = stop if stop is not None else threading.Event()
+        self._throttle = Throttle()
         self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
 
     def put(self, item: T) -> bool:
@@ -147,14 +181,24 @@ class Worker(Generic[T]):
                     self._activity.record(name, start, time.monotonic())
 
     def _failed(self, item: T, exc: Exception) -> None:
+        """Count a refusal or failure; log it, a line per reason or exception type at most every
+        `LOG_EVERY_S` (`Throttle`: a flood of hostile input must not flood the log)."""
         metrics = self._metrics
         if metrics is not None and isinstance(exc, (ProtocolError, WireError)):
             metrics.reject(exc.reason)
-            log.warning("rejected %s: %s", self._describe(item), exc)
+            held = self._throttle.allow(exc.reason)
+            if held is not None:
+                log.warning("rejected %s: %s%s", self._describe(item), exc, held_text(held))
         elif metrics is not None and self._hostile and isinstance(exc, (ColonydError, ValueError)):
             metrics.reject("invalid")
-            log.warning("rejected %s: %s", self._describe(item), exc)
+            held = self._throttle.allow(f"invalid:{type(exc).__name__}")
+            if held is not None:
+                log.warning("rejected %s: %s%s", self._describe(item), exc, held_text(held))
         else:
             if metrics is not None and self._hostile:
                 metrics.reject("internal")
-            log.exception("%s: failed to handle %s", self.name, self._describe(item))
+            held = self._throttle.allow(f"failed:{type(exc).__name__}")
+            if held is not None:
+                log.exception(
+                    "%s: failed to handle %s%s", self.name, self._describe(item), held_text(held)
+                )

@@ -20,6 +20,10 @@ PUBLIC_BYTES = 32
 #: "list" accepts only the agents and keys it was given.
 TrustMode = Literal["off", "tofu", "list"]
 TRUST_MODES: tuple[TrustMode, ...] = ("off", "tofu", "list")
+#: Most agents a receiver pins on first use: past them a new agent's key is refused (a stranger
+#: inventing agent ids must not grow the pins, which a daemon keeps on disk, without end; a pin is
+#: never dropped to make room, or its agent could be impersonated after).
+MAX_PINS = 4096
 
 
 class Signer:
@@ -80,7 +84,8 @@ class Trust:
     `pins` are known keys (from a trust list or earlier first uses). In "tofu" mode an agent not
     pinned yet may introduce its key in a Heartbeat (self-signed); `pin` then records it (called
     only once the frame is accepted), and `on_pin(agent, key)` may persist it. A different key
-    for a pinned agent is refused: that is how impersonation by another key holder shows.
+    for a pinned agent is refused: that is how impersonation by another key holder shows. At most
+    `max_pins` agents are pinned on first use (a new one past them is refused).
     """
 
     def __init__(
@@ -88,11 +93,13 @@ class Trust:
         mode: TrustMode = "tofu",
         pins: Mapping[str, bytes] | None = None,
         on_pin: Callable[[str, bytes], None] | None = None,
+        max_pins: int = MAX_PINS,
     ) -> None:
         if mode not in TRUST_MODES:
             msg = f"trust mode must be one of {TRUST_MODES}, found {mode!r}"
             raise IdentityError(msg)
         self.mode: TrustMode = mode
+        self.max_pins = max_pins
         self._pins = dict(pins or {})
         self._on_pin = on_pin
         self._lock = threading.Lock()
@@ -119,6 +126,14 @@ class Trust:
                 raise IdentityError(msg)
             return pinned
         if self.mode == "tofu" and offered is not None:
+            with self._lock:
+                full = len(self._pins) >= self.max_pins
+            if full:
+                msg = (
+                    f"identity of {origin!r}: expected one of the {self.max_pins} agents pinned "
+                    "(the most pinned on first use), found a new agent"
+                )
+                raise UnknownIdentityError(msg)
             return offered
         want = "a pinned key (trust list)" if self.mode == "list" else "its heartbeat first"
         msg = f"identity of {origin!r}: expected {want}, found no key for it"
@@ -127,7 +142,7 @@ class Trust:
     def pin(self, origin: str, key: bytes) -> None:
         """Record `origin`'s key on first use (tofu); a known pin stays as it is."""
         with self._lock:
-            if origin in self._pins or self.mode != "tofu":
+            if origin in self._pins or self.mode != "tofu" or len(self._pins) >= self.max_pins:
                 return
             self._pins[origin] = key
         if self._on_pin is not None:

@@ -18,11 +18,12 @@ class Receiver:
     """Decodes every frame a daemon receives and counts what it accepted and rejected, by reason.
 
     With a colony `key`, frames must be authenticated and each (origin, epoch, seq) is accepted
-    once (replay window). Given the Zenoh key a frame arrived on, the key's origin must be the
-    frame's origin. Frames claiming the receiver's `own` origin are forgeries or echoes of its own
-    frames and are rejected. With a `trust` that checks identities, every frame but a request must
-    carry its origin's Ed25519 signature (an agent's first Heartbeat introduces its key when the
-    trust is on first use; `accept` pins it).
+    once (replay window; also without a key, requests apart, when `trust` checks identities).
+    Given the Zenoh key a frame arrived on, the key's origin must be the frame's origin. Frames
+    claiming the receiver's `own` origin are forgeries or echoes of its own frames and are
+    rejected. With a `trust` that checks identities, every frame but a request must carry its
+    origin's Ed25519 signature (an agent's first Heartbeat introduces its key when the trust is
+    on first use; `accept` pins it).
 
     Receiving is two steps so that a rejected frame has no side effect: `decode` validates and
     records nothing but a rejection; the caller then checks what only it can check (message type,
@@ -42,7 +43,14 @@ class Receiver:
         self.trust = trust
         self.limits = limits
         self.own = own
-        self.replay = ReplayWindow(replay_window) if key is not None else None
+        # signatures prove who sent a frame, not when: with identities checked, a window keeps
+        # strangers from replaying a pinned agent's old frames even without a colony key
+        checks = key is not None or (trust is not None and trust.checks)
+        self.replay = ReplayWindow(replay_window) if checks else None
+        # requests (unsigned: anyone may send them under any origin) in a window of their own, so
+        # that made-up requesters cannot push a signed agent's state out of `replay`; and only
+        # with a key: without one anybody can make a fresh request, a replayed one is no worse
+        self.request_replay = ReplayWindow(replay_window) if key is not None else None
         self.accepted: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         self._lock = threading.Lock()
@@ -62,8 +70,9 @@ class Receiver:
                 raise OwnOriginError(text, kind=msg.KIND, epoch=msg.epoch, time=msg.time)
             if self.trust is not None:
                 verify_identity(data, msg, self.trust)
-            if self.replay is not None:
-                self.replay.peek(msg.origin, msg.epoch, msg.seq)
+            window = self._window(msg)
+            if window is not None:
+                window.peek(msg.origin, msg.epoch, msg.seq)
         except ProtocolError as exc:
             self.count_rejected(exc.reason)
             raise
@@ -74,9 +83,10 @@ class Receiver:
 
         Raises ReplayError (counted) if the same frame was accepted meanwhile on another thread.
         """
-        if self.replay is not None:
+        window = self._window(msg)
+        if window is not None:
             try:
-                self.replay.check(msg.origin, msg.epoch, msg.seq)
+                window.check(msg.origin, msg.epoch, msg.seq)
             except ProtocolError as exc:
                 self.count_rejected(exc.reason)
                 raise
@@ -85,6 +95,10 @@ class Receiver:
             self.trust.pin(msg.origin, identity)  # first use: verified with this very key
         with self._lock:
             self.accepted[msg.KIND] += 1
+
+    def _window(self, msg: Message) -> ReplayWindow | None:
+        """The replay window of `msg`: requests have their own."""
+        return self.request_replay if msg.REQUEST else self.replay
 
     def receive(self, data: bytes, key_expr: str | None = None) -> Message:
         """`decode` then `accept`: for a caller with nothing of its own to check."""

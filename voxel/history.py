@@ -10,6 +10,7 @@ import numpy as np
 
 from voxel import kernels
 from voxel import keys as vk
+from voxel.errors import InputError
 from voxel.occupancy import FREE_STATE, Changes, Evidence
 from voxel.raycast import FREE, HIT
 from voxel.record import RECORD_DTYPE, SEEN_DTYPE
@@ -18,6 +19,10 @@ from voxel.record import RECORD_DTYPE, SEEN_DTYPE
 #: doubling from it and shrink back to it (`drop_keys`), so an empty or mostly forgotten
 #: history costs ~50 KB, not the 4.8 MB a 65,536-entry floor held.
 MIN_BUFFER = 1024
+#: Most agents a history's table holds from merged pages (a page may bring 4096 at a time, and
+#: records code them in 16 bits): a holder sending pages of ever new agent names must not grow
+#: it without end. A layer's records are its origin's scans: one agent, or a few.
+MAX_AGENTS = 4096
 #: Log-odds `last_at` reports for a voxel known only from the seen log (OctoMap's first miss).
 FIRST_MISS = np.float32(-0.40625)  # log(0.4 / 0.6) on the quantum grid
 
@@ -413,7 +418,16 @@ class History:
         rec = page.records[page.records["version"] > newest]
         seen = page.seen[page.seen["version"] > newest]
         if rec.size:
-            codes = np.array([self.agent_code(a) for a in page.agents], dtype=np.uint16)
+            used = np.unique(rec["agent"])
+            new = {page.agents[i] for i in used if page.agents[i] not in self._agent_index}
+            if len(self.agents) + len(new) > MAX_AGENTS:
+                msg = (
+                    f"history page: expected at most {MAX_AGENTS} agents in a history, found "
+                    f"{len(self.agents)} held and {len(new)} new"
+                )
+                raise InputError(msg)
+            codes = np.zeros(len(page.agents), dtype=np.uint16)
+            codes[used] = [self.agent_code(page.agents[i]) for i in used]
             rec = rec.copy()
             rec["agent"] = codes[rec["agent"]]
             rec = rec[np.argsort(rec["version"], kind="stable")]

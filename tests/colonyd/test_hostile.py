@@ -128,3 +128,33 @@ def test_a_key_holder_cannot_forge_another_agents_layer(make_colony):
     colony.wait_converged(30)
     b2 = colony.reports(["b"])["b"]
     assert b2["metrics"]["rejected"].get("identity", 0) == b["metrics"]["rejected"]["identity"]
+
+
+def test_liveliness_churn_of_a_stranger_does_not_multiply_heartbeats(make_colony):
+    """Liveliness tokens are not authenticated (no colony key covers them): a stranger that
+    declares and undeclares tokens as fast as it can made a daemon send a heartbeat (and a pose)
+    for every join, up to one every 10 ms, to the whole colony. Early heartbeats after a join
+    are now at most one every `MIN_EARLY_HEARTBEAT_S`."""
+    import time
+
+    from colonyd.daemon import MIN_EARLY_HEARTBEAT_S
+    from protocol.keyexpr import alive_key
+
+    colony = make_colony("churn", extra=["--colony-key", SECRET], heartbeat_s=60.0)
+    colony.add("a")
+    colony.wait_members(1)
+    s = colony.session()
+    beats: list[float] = []
+    sub = s.declare_subscriber(
+        topic_key(colony.namespace, "a", "heartbeat"), lambda _: beats.append(time.monotonic())
+    )
+    start = time.monotonic()
+    for i in range(300):
+        s.liveliness().declare_token(alive_key(colony.namespace, f"x{i}")).undeclare()
+        time.sleep(0.005)
+    time.sleep(0.5)  # the last joins handled
+    sub.undeclare()
+    elapsed = time.monotonic() - start
+    during = [t for t in beats if t >= start]
+    assert len(during) <= elapsed / MIN_EARLY_HEARTBEAT_S + 2, (len(during), elapsed)
+    assert colony.reports(["a"])["a"]["metrics"]["counts"].get("joins", 0) >= 100

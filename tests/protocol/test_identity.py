@@ -6,7 +6,7 @@ import pytest
 
 from protocol.codec import decode, encode
 from protocol.errors import IdentityError, UnknownIdentityError
-from protocol.identity import Signer, Trust, parse_public, verify_signature
+from protocol.identity import MAX_PINS, Signer, Trust, parse_public, verify_signature
 from protocol.messages import DeltaRangeRequest, Heartbeat, Pose
 from protocol.receiver import Receiver
 from tests.protocol.helpers import KEY
@@ -121,3 +121,29 @@ def test_keys_are_raw_bytes_without_the_key_serialization_modules() -> None:
     )
     stdout = fresh_process(code)
     assert stdout.split("\n")[:2] == ["False 32 True", "True True"], stdout
+
+
+def test_trust_on_first_use_pins_a_bounded_number_of_agents() -> None:
+    """An open colony (no key) trusting on first use, the default: a stranger sending heartbeats
+    under ever new agent ids must not grow the pins (which a daemon writes to disk, whole, at
+    every new pin) without end; past the bound a new agent is refused before anything is
+    recorded, and every pin kept stays (pins loaded from disk count: here all but 3)."""
+    pinned: list[str] = []
+    signer = Signer.generate()
+    earlier = {f"old{i}": signer.public for i in range(MAX_PINS - 3)}
+    rx = Receiver(trust=Trust("tofu", earlier, on_pin=lambda agent, key: pinned.append(agent)))
+    for i in range(6):
+        hb = Heartbeat(
+            origin=f"x{i}", epoch=1, seq=1, time=1.0, kind="robot", frame_id="map",
+            identity=signer.public,
+        )  # fmt: skip
+        try:
+            rx.receive(encode(hb, signer=signer))
+        except UnknownIdentityError as exc:
+            assert "expected one of the 4096 agents pinned" in str(exc), exc
+    assert len(rx.trust.pins()) == MAX_PINS == 4096
+    assert pinned == ["x0", "x1", "x2"]
+    assert rx.rejected == {"unknown_identity": 3}
+    assert rx.replay is not None and "x3" not in rx.replay._state  # refused: no window moved
+    again = Heartbeat(origin="x0", epoch=1, seq=2, time=1.0, kind="robot", frame_id="map")
+    rx.receive(encode(again, signer=signer))  # a pinned agent carries on

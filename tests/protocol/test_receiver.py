@@ -77,3 +77,29 @@ def test_open_colony_receiver_has_no_replay_window() -> None:
     rx.receive(frame)
     rx.receive(frame)
     assert rx.accepted == {"pose": 2} and rx.replay is None
+
+
+def test_requests_of_made_up_origins_cannot_push_a_signed_agent_out_of_the_replay_window() -> None:
+    """Requests need no signature, so anyone may send them under any origin, each moving the
+    replay window of its origin. The window keeps 4096 origins (least recently updated
+    forgotten first): 4096 requests of made-up origins used to push a signed agent's state out,
+    after which its old frames could be replayed. Requests have a window of their own."""
+    from protocol.identity import Signer, Trust
+    from protocol.messages import DeltaRangeRequest, Heartbeat
+
+    a = Signer.generate()
+    rx = Receiver(key=KEY, trust=Trust("tofu"))
+    hb = Heartbeat(
+        origin="a", epoch=1, seq=1, time=1.0, kind="robot", frame_id="a.odom", identity=a.public
+    )
+    rx.receive(encode(hb, key=KEY, signer=a))
+    old = encode(_pose(2, origin="a"), key=KEY, signer=a)
+    rx.receive(old)
+    for i in range(4096):
+        request = DeltaRangeRequest(
+            origin=f"x{i}", epoch=1, seq=1, time=1.0, layer="a", request_id=i,
+            from_version=0, to_version=1,
+        )  # fmt: skip
+        rx.receive(encode(request, key=KEY))
+    with pytest.raises(ReplayError):
+        rx.decode(old)

@@ -1,0 +1,622 @@
+"""Hostile input a daemon's inbox, membership and catch-up take in-process, on real (loopback, no
+scouting) Zenoh sessions and real frames: refused, bounded, and leaving nothing behind."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from types import SimpleNamespace
+
+import numpy as np
+import zenoh
+
+from colonyd.alignment import Alignments
+from colonyd.catchup import CatchUp
+from colonyd.frames import Sender, colony_key
+from colonyd.inbox import Inbox, Item
+from colonyd.layers import BLOCK_VOXELS, Layers
+from colonyd.membership import Membership
+from colonyd.metrics import Metrics
+from colonyd.objects import MAX_PEER_OBJECTS, PeerObjects
+from colonyd.replicas import Replicas
+from colonyd.runtime import open_session, zenoh_config
+from protocol import (
+    AlignOffer,
+    Heartbeat,
+    HistoryReply,
+    ObjectCentroid,
+    Objects,
+    Receiver,
+    SnapshotReply,
+    SnapshotRequest,
+    VoxelDelta,
+    decode,
+)
+from protocol.identity import Signer, Trust
+from protocol.keyexpr import alive_key, query_key, topic_key
+from voxel import keys as vk
+from voxel.delta import Delta
+from voxel.history import MAX_AGENTS, HistoryPage
+from voxel.record import RECORD_DTYPE
+
+NS = "hostile-in"
+KEY = colony_key("correct horse battery staple")
+
+
+def _endpoint() -> str:
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return f"tcp/127.0.0.1:{port}"
+
+
+@contextmanager
+def _sessions(n: int) -> Iterator[list[zenoh.Session]]:
+    """`n` sessions on loopback, the first listening and the others connected to it."""
+    ep = _endpoint()
+    sessions = [open_session(zenoh_config(listen=[ep]))]
+    try:
+        for _ in range(n - 1):
+            sessions.append(open_session(zenoh_config(listen=["tcp/127.0.0.1:0"], connect=[ep])))
+        yield sessions
+    finally:
+        for s in sessions:
+            s.close()
+
+
+def _until(check: Callable[[], bool], seconds: float = 10.0) -> bool:
+    deadline = time.monotonic() + seconds
+    while not check():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
+def _daemon(
+    session: zenoh.Session, *, max_members: int = 256, key: bytes | None = KEY
+) -> SimpleNamespace:
+    """The receiving side of daemon "me" (a colony closed with `key`, identities on first use):
+    its inbox (not started: items are handed to it as its worker would), membership and what
+    they fill."""
+    metrics = Metrics()
+    layers = Layers("me", 0.1, max_peer_blocks=1000)
+    replicas = Replicas(layers, metrics)
+    trust = Trust("tofu")
+    receiver = Receiver(key=key, own="me", trust=trust)
+    alignments = Alignments()
+    peer_objects = PeerObjects()
+    inbox = Inbox(
+        session,
+        NS,
+        replicas,
+        receiver,
+        metrics,
+        peer_objects,
+        alignments,
+        request_repair=lambda origin, servers: None,
+        send_heartbeat=lambda: None,
+    )
+    membership = Membership(session, NS, "me", inbox.on_member_event, max_members)
+    inbox.membership = membership
+
+    def feed(kind: str, agent: str, raw: bytes) -> None:
+        item: Item = (kind, topic_key(NS, agent, {"hb": "heartbeat"}.get(kind, kind)), raw, {})
+        try:
+            inbox._handle(item)
+        except Exception as exc:  # noqa: BLE001 - as the inbox's worker takes a refusal
+            inbox._worker._failed(item, exc)
+
+    return SimpleNamespace(
+        metrics=metrics,
+        layers=layers,
+        replicas=replicas,
+        alignments=alignments,
+        peer_objects=peer_objects,
+        trust=trust,
+        receiver=receiver,
+        inbox=inbox,
+        membership=membership,
+        feed=feed,
+        close=lambda: (membership.close(), inbox.close()),
+    )
+
+
+def _heartbeat(agent: str, signer: Signer, seq: int = 1, key: bytes | None = KEY) -> bytes:
+    sender = Sender(agent, 7, key=key, signer=signer, first_seq=seq)
+    hb = Heartbeat(
+        **sender.header(), kind="robot", frame_id=f"{agent}.odom", identity=signer.public
+    )
+    return sender.encode(hb)
+
+
+def test_liveliness_tokens_of_strangers_leave_no_members_behind() -> None:
+    """Liveliness tokens are not authenticated (no colony key reaches them): a stranger that
+    declares and undeclares made-up agent ids must not grow the member table without end."""
+    with _sessions(3) as (mine, real, stranger):
+        d = _daemon(mine)
+        try:
+            b = Membership(real, NS, "b", lambda agent, event: None)
+            assert _until(lambda: d.membership.find("b") is not None)
+            tokens = [
+                stranger.liveliness().declare_token(alive_key(NS, f"x{i}")) for i in range(40)
+            ]
+            assert _until(lambda: len(d.membership.alive()) == 41)
+            for token in tokens:
+                token.undeclare()
+            assert _until(lambda: d.membership.alive() == ["b"])
+            time.sleep(0.2)  # any late leave event
+            assert [m.agent for m in d.membership.table()] == ["b"]
+            b.close()
+        finally:
+            d.close()
+
+
+def test_heartbeats_of_made_up_agents_fill_no_more_than_max_members() -> None:
+    """A key holder (or anyone, in an open colony) sending heartbeats under ever new agent ids:
+    the table keeps at most `max_members` heard members, forgetting those without a liveliness
+    token first; when every one holds a token a newcomer is refused before it is accepted (no
+    replay window moved, no key pinned)."""
+    with _sessions(2) as (mine, other):
+        d = _daemon(mine, max_members=4)
+        try:
+            tokens = [other.liveliness().declare_token(alive_key(NS, "real"))]
+            assert _until(lambda: d.membership.alive() == ["real"])
+            d.feed("hb", "real", _heartbeat("real", Signer.generate()))
+            for i in range(10):  # no tokens: the least recently seen of them makes room
+                d.feed("hb", f"fake{i}", _heartbeat(f"fake{i}", Signer.generate()))
+            table = {m.agent for m in d.membership.table()}
+            assert table == {"real", "fake7", "fake8", "fake9"}, table
+            tokens += [
+                other.liveliness().declare_token(alive_key(NS, f"fake{i}")) for i in (7, 8, 9)
+            ]
+            assert _until(lambda: len(d.membership.alive()) == 4)
+            d.feed("hb", "late", _heartbeat("late", Signer.generate()))
+            assert d.metrics.rejected["too-many-members"] == 1
+            assert d.membership.find("late") is None
+            assert "late" not in d.trust.pins()
+            assert d.receiver.accepted["heartbeat"] == 11
+            # its window did not move: the same frame numbers are still fresh for it
+            d.receiver.replay.peek("late", 7, 1)
+            assert "late" not in d.receiver.replay._state
+            for token in tokens:
+                token.undeclare()
+        finally:
+            d.close()
+
+
+def _block_delta(x0: int, to_version: int) -> Delta:
+    """51,200 voxels filling 800 4x4x4 blocks (a box 40 x 40 x 32 from x = `x0`), occupied."""
+    g = np.stack(np.meshgrid(np.arange(40), np.arange(40), np.arange(32), indexing="ij"), -1)
+    keys = g.reshape(-1, 3) + np.array([x0, 0, 0])
+    n = len(keys)
+    return Delta(0.1, to_version - 1, to_version, keys, np.full(n, 1.0, np.float32), np.ones(n))
+
+
+def _parts(sender: Sender, delta: Delta, indices: list[int], parts: int) -> list[bytes]:
+    return [
+        sender.encode(
+            VoxelDelta(**sender.header(), frame_id="evil.odom", part=i, parts=parts, delta=delta)
+        )
+        for i in indices
+    ]
+
+
+def test_parts_of_split_deltas_hold_no_more_voxels_than_the_peer_budget() -> None:
+    """A peer (a key holder, or anyone in an open colony) sends parts of a delta of 1000 parts,
+    each part within the peer budget (1000 blocks: 64,000 voxels) but never the last: a few KB
+    of zstd each, they must not pile up decoded (each part of a real attack: 4 million voxels,
+    ~150 MB). Parts beyond what a whole delta may hold are refused before they are accepted,
+    and parts of many deltas are dropped oldest first."""
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            signer = Signer.generate()
+            d.feed("hb", "evil", _heartbeat("evil", signer))
+            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+            budget = d.layers.max_peer_blocks * BLOCK_VOXELS
+            for i, frame in enumerate(_parts(sender, _block_delta(0, 1), list(range(10)), 1000)):
+                d.feed("delta", "evil", frame)
+                held = sum(len(x) for p in d.inbox.parts._open.values() for x in p.got.values())
+                assert held <= budget, f"{held} voxels held after part {i}"
+            assert d.metrics.rejected["over-budget"] == 9
+            assert d.receiver.accepted["delta"] == 1  # the refused parts moved no window
+            d.receiver.replay.peek("evil", 7, 11)
+            for v in range(2, 12):  # parts of ten deltas: the oldest make room
+                d.feed("delta", "evil", _parts(sender, _block_delta(0, v), [0], 2)[0])
+                held = sum(len(x) for p in d.inbox.parts._open.values() for x in p.got.values())
+                assert held <= budget, f"{held} voxels held after delta {v}"
+            assert d.layers.find("evil") is None  # nothing applied
+        finally:
+            d.close()
+
+
+def test_a_part_of_another_count_is_refused_before_it_moves_the_window() -> None:
+    """Part 1 of 5 of a delta whose part 0 said 3 parts: refused (`bad-parts`) with no side
+    effect: the sender's replay window stays where its last accepted frame left it."""
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            signer = Signer.generate()
+            d.feed("hb", "evil", _heartbeat("evil", signer))
+            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+            small = Delta(0.1, 0, 1, [[0, 0, 0], [1, 0, 0]], [1.0, 1.0], [1.0, 1.0])
+            d.feed("delta", "evil", _parts(sender, small, [0], 3)[0])  # seq 10
+            d.feed("delta", "evil", _parts(sender, small, [1], 5)[0])  # seq 11: refused
+            assert d.metrics.rejected["bad-parts"] == 1
+            assert d.receiver.accepted["delta"] == 1
+            d.receiver.replay.peek("evil", 7, 11)  # still fresh: the window did not move
+        finally:
+            d.close()
+
+
+def _serve(session: zenoh.Session, signer: Signer, frames: Callable[[int, Sender], list[bytes]]):
+    """A hostile holder "evil": its snapshot queryable for its own layer answers every request
+    with `frames(request_id, sender)`."""
+    sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=100)
+
+    def answer(query: zenoh.Query) -> None:
+        request = decode(query.payload.to_bytes(), key=KEY)
+        for frame in frames(request.request_id, sender):
+            query.reply(query.key_expr, frame)
+        query.drop()
+
+    return session.declare_queryable(query_key(NS, "evil", "snapshot", "evil"), answer)
+
+
+def _answers(session: zenoh.Session) -> bool:
+    """True once "evil"'s snapshot queryable answers `session` (its answer taken by nobody)."""
+    probe = Sender("probe", 1, key=KEY)
+    request = SnapshotRequest(**probe.header(), layer="evil", request_id=1)
+    key = query_key(NS, "evil", "snapshot", "evil")
+    replies = session.get(key, payload=probe.encode(request), timeout=1.0)
+    return any(r.ok is not None for r in replies)
+
+
+def _snapshot_reply(sender: Sender, rid: int, delta: Delta, part: int, parts: int) -> bytes:
+    return sender.encode(
+        SnapshotReply(
+            **sender.header(),
+            layer="evil",
+            request_id=rid,
+            frame_id="evil.odom",
+            layer_epoch=7,
+            part=part,
+            parts=parts,
+            delta=delta,
+        )
+    )
+
+
+def _ask(d: SimpleNamespace, session: zenoh.Session, part_bytes: int) -> list:
+    me = Sender("me", 1, key=KEY)
+    catchup = CatchUp(session, NS, d.replicas, me, d.receiver, d.metrics, part_bytes=part_bytes)
+    request = SnapshotRequest(
+        **me.header(), layer="evil", request_id=5, max_part_bytes=catchup.part_bytes
+    )
+    return catchup.ask("evil", "snapshot", "evil", request, SnapshotReply, timeout_s=5.0)
+
+
+def test_reply_frames_larger_than_the_request_allows_are_refused() -> None:
+    """The protocol: every reply frame is at most the request's `max_part_bytes`. A holder that
+    sends larger ones is refused, before its frame is decoded."""
+    with _sessions(2) as (mine, evil):
+        d = _daemon(mine)
+        signer = Signer.generate()
+        d.feed("hb", "evil", _heartbeat("evil", signer))
+        rng = np.random.default_rng(1)
+        keys = rng.integers(-1000, 1000, (3000, 3))
+        keys = np.unique(keys, axis=0)
+        n = len(keys)
+        big = Delta(0.1, 0, 1, keys, rng.uniform(-2, 3, n).astype(np.float32), rng.uniform(0, 9, n))
+        q = _serve(evil, signer, lambda rid, s: [_snapshot_reply(s, rid, big, 0, 1)])
+        try:
+            assert _until(lambda: _answers(mine))
+            assert len(_snapshot_reply(Sender("evil", 7), 5, big, 0, 1)) > 4096
+            replies = _ask(d, mine, part_bytes=4096)
+            assert replies == []
+            assert d.metrics.rejected["oversized"] == 1
+            assert d.receiver.accepted["snapshot_reply"] == 0
+        finally:
+            q.undeclare()
+            d.close()
+
+
+def test_snapshot_replies_hold_no_more_voxels_than_the_peer_budget() -> None:
+    """A hostile holder answers a snapshot request with 10 parts of 51,200 voxels each (a few KB
+    of zstd each; a real attack: 4096 parts of 4 million voxels), more than the peer budget
+    (64,000 voxels) could ever admit: the requester stops taking them once past the budget,
+    and decodes none after."""
+    with _sessions(2) as (mine, evil):
+        d = _daemon(mine)
+        signer = Signer.generate()
+        d.feed("hb", "evil", _heartbeat("evil", signer))
+        parts = [_block_delta(64 * i, 1) for i in range(10)]
+        parts = [Delta(0.1, 0, 1, p.keys, p.logodds, p.last_time) for p in parts]
+        q = _serve(
+            evil,
+            signer,
+            lambda rid, s: [_snapshot_reply(s, rid, p, i, 10) for i, p in enumerate(parts)],
+        )
+        try:
+            assert _until(lambda: _answers(mine))
+            replies = _ask(d, mine, part_bytes=4 << 20)
+            held = sum(len(r.delta) for r in replies)
+            assert held <= d.layers.max_peer_blocks * BLOCK_VOXELS, held
+            assert d.metrics.rejected["over-budget"] == 9
+            assert d.receiver.accepted["snapshot_reply"] == len(replies) == 1
+        finally:
+            q.undeclare()
+            d.close()
+
+
+def test_signed_frames_replayed_in_an_open_colony_are_refused() -> None:
+    """An open colony (no key; the default) with identities on first use (the default): a
+    stranger cannot sign as a pinned agent, but must not replay its old signed frames either: an
+    old alignment offer replayed after its withdrawal would bring back an alignment its origin
+    took back, an old object list the list that replaced it."""
+    with _sessions(1) as (mine,):
+        d = _daemon(mine, key=None)
+        try:
+            signer = Signer.generate()
+            d.feed("hb", "a", _heartbeat("a", signer, key=None))
+            a = Sender("a", 7, signer=signer, first_seq=2)
+
+            def offer(confidence: float) -> bytes:
+                return a.encode(
+                    AlignOffer(
+                        **a.header(),
+                        target="b",
+                        source_frame="a.odom",
+                        target_frame="b.odom",
+                        position=(1.0, 2.0, 0.0),
+                        covariance=list(np.eye(6).ravel() * 1e-4),
+                        confidence=confidence,
+                    )
+                )
+
+            def objects(n: int) -> bytes:
+                listed = [
+                    ObjectCentroid(
+                        object_id=i, class_id=3, position=(i, 0.0, 0.0), voxel_count=9, time=1.0
+                    )
+                    for i in range(n)
+                ]
+                return a.encode(Objects(**a.header(), frame_id="a.odom", objects=listed))
+
+            old_offer, withdrawal, old_list, new_list = (
+                offer(0.9),
+                offer(0.0),
+                objects(2),
+                objects(0),
+            )
+            for frame, kind in ((old_offer, "align"), (withdrawal, "align")):
+                d.feed(kind, "a", frame)
+            assert d.alignments.edges() == []  # withdrawn
+            d.feed("objects", "a", old_list)
+            d.feed("objects", "a", new_list)
+            assert d.peer_objects.get("a") == []
+            d.feed("align", "a", old_offer)  # the stranger replays what it recorded
+            d.feed("objects", "a", old_list)
+            assert d.alignments.edges() == []
+            assert d.peer_objects.get("a") == []
+            assert d.metrics.rejected["replay"] == 2
+        finally:
+            d.close()
+
+
+def test_deltas_a_replica_cannot_store_are_refused_before_they_change_it() -> None:
+    """Valid on the wire, but not storable: a layer version of 2^32 or more (the grid keeps 32-bit
+    versions; it used to allocate the delta's blocks, then fail) and a voxel without a time (the
+    NaN time code; it used to write the log-odds, then fail on the time). Both are refused at
+    admission: the replica is as it was, no block allocated, no window moved, and the layer
+    takes its next real delta."""
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            signer = Signer.generate()
+            d.feed("hb", "evil", _heartbeat("evil", signer))
+            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+
+            def frame(delta: Delta) -> bytes:
+                return _parts(sender, delta, [0], 1)[0]
+
+            d.feed("delta", "evil", frame(Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9])))
+            layer = d.layers.find("evil")
+            before = (layer.seq, layer.blocks(), layer.digest())
+            far = Delta(0.1, 1, 1 << 32, [[400, 400, 400]], [1.0], [1.7e9])
+            untimed = Delta(0.1, 1, 2, [[0, 0, 0], [8, 0, 0]], [2.0, 1.0], [np.nan, 1.7e9])
+            future = Delta(0.1, 1, 2, [[0, 0, 0]], [2.0], [1e13])
+            for bad in (far, untimed, future):
+                d.feed("delta", "evil", frame(bad))
+            assert (layer.seq, layer.blocks(), layer.digest()) == before
+            assert d.metrics.rejected["bad-header"] == 1
+            assert d.metrics.rejected["bad-time"] == 2
+            assert d.metrics.rejected["internal"] == 0
+            assert d.receiver.accepted["delta"] == 1
+            d.feed("delta", "evil", frame(Delta(0.1, 1, 2, [[0, 0, 0]], [2.0], [1.7e9 + 1])))
+            assert layer.seq == 2 and d.receiver.accepted["delta"] == 2
+        finally:
+            d.close()
+
+
+def test_channels_a_replica_cannot_hold_are_refused_before_they_change_it() -> None:
+    """Channels valid on the wire that a replica's grid cannot take: class lists of another
+    width than its (3; it used to write the log-odds, then fail on the channel, leaving the
+    replica half-applied and the delta failing again on every repair), and scalar channels of
+    ever new names (each one an array as large as the layer: a few bytes of wire each, they
+    were a memory bomb outside the block budget). Refused at admission, replica unchanged."""
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            signer = Signer.generate()
+            d.feed("hb", "evil", _heartbeat("evil", signer))
+            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+
+            def frame(delta: Delta) -> bytes:
+                return _parts(sender, delta, [0], 1)[0]
+
+            d.feed("delta", "evil", frame(Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9])))
+            layer = d.layers.find("evil")
+            before = (layer.seq, layer.blocks(), layer.digest())
+            keys, one = [[0, 0, 0], [9, 9, 9]], [1.7e9, 1.7e9]
+            wide = {
+                "class_ids": np.array([[1, 2, 3, 4, 5]] * 2, np.int16),
+                "class_probs": np.full((2, 5), 0.2, np.float32),
+            }
+            d.feed("delta", "evil", frame(Delta(0.1, 1, 2, keys, [2.0, 1.0], one, channels=wide)))
+            assert (layer.seq, layer.blocks(), layer.digest()) == before
+            assert d.metrics.rejected["bad-channel"] == 1
+            for v in range(2, 6):  # 31 new scalar channels a delta, at one voxel
+                names = {f"scalar:t{v}_{i}": np.array([1.0], np.float32) for i in range(31)}
+                d.feed("delta", "evil", frame(Delta(0.1, v - 1, v, [[0, 0, v]], [1.0], [1.7e9],
+                                                    channels=names)))  # fmt: skip
+            held = [n for n in layer.grid.store.channels if n.startswith("scalar:")]
+            assert len(held) <= 32, f"{len(held)} scalar channels held"
+            assert d.metrics.rejected["bad-channel"] == 1 + 3
+            assert d.metrics.rejected["internal"] == d.metrics.rejected["invalid"] == 0
+        finally:
+            d.close()
+
+
+def test_an_absurd_alignment_offer_cannot_break_the_colony_frame() -> None:
+    """An AlignOffer is finite by the protocol, yet one with a translation of 1e200 m (or
+    variances of 1e300) overflowed the colony frame's error propagation: `colony()` raised on
+    every call, and with it the fixes (mapping stopped while one was pending), status, exports
+    and ROS outputs. Such an offer is refused (`bad-align`); the frame stays computable."""
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            cov = list(np.diag([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4]).ravel())
+
+            def offer(agent: str, target: str, position: tuple, covariance: list) -> bytes:
+                signer = Signer.generate()
+                d.feed("hb", agent, _heartbeat(agent, signer))
+                s = Sender(agent, 7, key=KEY, signer=signer, first_seq=2)
+                msg = AlignOffer(
+                    **s.header(),
+                    target=target,
+                    source_frame=f"{agent}.odom",
+                    target_frame=f"{target}.odom",
+                    position=position,
+                    covariance=covariance,
+                    confidence=0.8,
+                )
+                return s.encode(msg)
+
+            d.feed("align", "a", offer("a", "b", (1.0, 0.0, 0.0), cov))
+            d.feed("align", "b", offer("b", "c", (1.0, 0.0, 0.0), cov))
+            d.feed("align", "x", offer("x", "a", (1e200, 0.0, 0.0), cov))
+            d.feed("align", "y", offer("y", "c", (2.0, 0.0, 0.0), list(np.eye(6).ravel() * 1e300)))
+            frame = d.alignments.colony(["a", "b", "c"])
+            assert sorted(frame.transforms) == ["a", "b", "c"]
+            assert all(np.isfinite(c).all() for c in frame.covariances.values())
+            assert d.metrics.rejected["bad-align"] == 2
+        finally:
+            d.close()
+
+
+def test_peers_object_lists_are_bounded_together() -> None:
+    """Object lists of at most 16,384 objects each, from up to 256 peers: a few hundred KB of
+    wire each, ~2 KB of memory an object once decoded (~8 GB for 256 full lists, outside every
+    budget). Together they hold at most `MAX_PEER_OBJECTS`; a list past that is refused before
+    it is accepted, and a peer may still replace its own list (making room)."""
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            listed = [
+                ObjectCentroid(
+                    object_id=i, class_id=3, position=(i, 0.0, 0.0), voxel_count=9, time=1.0
+                )
+                for i in range(16_384)
+            ]
+            n = MAX_PEER_OBJECTS // len(listed) + 1
+            senders = []
+            for k in range(n):
+                signer = Signer.generate()
+                d.feed("hb", f"p{k}", _heartbeat(f"p{k}", signer))
+                senders.append(Sender(f"p{k}", 7, key=KEY, signer=signer, first_seq=2))
+
+            def send(k: int, objects: list) -> None:
+                s = senders[k]
+                msg = Objects(**s.header(), frame_id=f"p{k}.odom", objects=objects)
+                d.feed("objects", f"p{k}", s.encode(msg))
+
+            for k in range(n):
+                send(k, listed)
+            held = sum(len(d.peer_objects.get(o)) for o in d.peer_objects.origins())
+            assert held <= MAX_PEER_OBJECTS, held
+            assert d.metrics.rejected["over-budget"] == 1
+            assert d.receiver.accepted["objects"] == n - 1
+            assert d.peer_objects.get(f"p{n - 1}") == []
+            send(0, listed[:10])  # p0 replaces its list by a shorter one: room for p{n-1}'s
+            send(n - 1, listed[:10])
+            assert len(d.peer_objects.get(f"p{n - 1}")) == 10
+        finally:
+            d.close()
+
+
+def test_pushed_history_pages_of_ever_new_agents_keep_the_agent_table_bounded() -> None:
+    """History pages each naming 4096 new agents (the most a page's table holds) for one record
+    each: the replica's history table grew without end, and once past 65,536 names (records
+    code agents in 16 bits) every further page failed (an internal error, its names appended all
+    the same). Now a page that would take the table past `MAX_AGENTS` is refused whole."""
+    from colonyd.historysync import HistorySync
+
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            signer = Signer.generate()
+            d.feed("hb", "evil", _heartbeat("evil", signer))
+            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+            d.feed("delta", "evil", _parts(sender, Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9]),
+                                           [0], 1)[0])  # fmt: skip
+            layer = d.layers.find("evil")
+            sync = HistorySync(
+                d.layers, SimpleNamespace(), d.metrics, period_s=0, stop=threading.Event()
+            )
+            d.inbox._on_history = lambda msg: sync.offer(
+                layer, msg.layer_epoch, msg.from_version, msg.records
+            )  # as the daemon takes a pushed page (`Gossip._take_history`)
+            for p in range(18):
+                rec = np.zeros(4096, RECORD_DTYPE)
+                rec["key"] = vk.pack(np.stack([np.arange(4096), np.zeros(4096), np.zeros(4096)], 1))
+                rec["agent"] = np.arange(4096)
+                rec["version"] = p + 1
+                rec["reliability"] = 1.0
+                page = HistoryPage(rec, [f"g{p}_{i}" for i in range(4096)])
+                reply = HistoryReply(**sender.header(), layer="evil", request_id=0, layer_epoch=7,
+                                     from_version=0, to_version=p + 1, records=page)  # fmt: skip
+                d.feed("history", "evil", sender.encode(reply))
+            assert len(layer.grid.history.agents) <= MAX_AGENTS == 4096
+            assert d.metrics.rejected["internal"] == 0
+            assert d.metrics.rejected["invalid"] == 17
+        finally:
+            d.close()
+
+
+def test_a_flood_of_refused_frames_does_not_flood_the_log(caplog) -> None:
+    """A stranger without the colony key puts junk on a delta key as fast as it can: every frame
+    is refused and counted, but the log gets a few lines per reason, not one per frame (it was
+    one warning a frame: a disk filled by anyone who reaches the network)."""
+    import logging
+
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            stranger = Sender("x", 1)  # no key
+            unkeyed = stranger.encode(Heartbeat(**stranger.header(), kind="r", frame_id="x.odom"))
+            with caplog.at_level(logging.WARNING):
+                for _ in range(300):
+                    d.feed("delta", "x", unkeyed)
+                    d.feed("delta", "x", b"CLNY")
+            assert d.metrics.rejected["auth"] == 300
+            assert d.metrics.rejected["truncated"] == 300
+            lines = [r for r in caplog.records if r.levelno >= logging.WARNING]
+            assert len(lines) <= 6, f"{len(lines)} lines, the first: {lines[0].getMessage()}"
+        finally:
+            d.close()
