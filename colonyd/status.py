@@ -261,4 +261,25 @@ def format_status(reports: list[dict[str, Any]]) -> str:
         )
         ago = f"{max(0.0, now - seen[agent]):.1f}s"
         lines.append(f"{agent:<16} {kind:<8} {ago:>9} {'-':<22} {'?':>6} {'?':>7}  (not answering)")
+    lines.extend(frame_lines(reports, sorted(seen)))
     return "\n".join(lines)
+
+
+def frame_lines(reports: list[dict[str, Any]], members: list[str]) -> list[str]:
+    """The colony frame as the answering members see it: its root, the members aligned with it
+    and those that are not (one line per distinct view, naming who holds it; `--json` has each
+    member's transforms and alignment attempts)."""
+    views: dict[tuple[str, tuple[str, ...]], list[str]] = {}
+    for r in reports:
+        frame = r.get("colony_frame") or {}
+        key = (str(frame.get("root", "?")), tuple(sorted(frame.get("agents", {}))))
+        views.setdefault(key, []).append(r["agent"])
+    lines = []
+    for (root, aligned), holders in sorted(views.items()):
+        apart = [m for m in members if m not in aligned]
+        seen_by = "" if len(views) == 1 else f" (as {', '.join(sorted(holders))} see it)"
+        lines.append(
+            f"colony frame: root {root}; aligned: {', '.join(aligned) or 'none'}; "
+            f"not aligned: {', '.join(apart) or 'none'}{seen_by}"
+        )
+    return lines

@@ -82,3 +82,32 @@ def test_nobody_answered_names_the_colonies_it_does_see() -> None:
     finally:
         a.close()
         b.close()
+
+
+def test_the_table_says_which_members_are_aligned_with_the_colony_frame() -> None:
+    """`colonyd status` without --json showed no alignment at all, though alignment is what a
+    user of a new colony waits for: one line per view of the colony frame follows the members."""
+    from colonyd.status import format_status
+
+    now = time.time()
+    frame = {"root": "robot-a", "agents": {"robot-a": [], "robot-b": []}}
+    reports = [
+        {"agent": "robot-a", "time": now, "colony_frame": frame, "members": []},
+        {"agent": "robot-b", "time": now, "colony_frame": frame, "members": []},
+        {
+            "agent": "robot-c",
+            "time": now,
+            "colony_frame": {"root": "robot-c", "agents": {"robot-c": []}},
+            "members": [{"agent": "robot-d", "last_seen": now - 4.0}],  # gone: not answering
+        },
+    ]
+    lines = format_status(reports).splitlines()
+    assert "(not answering)" in lines[4] and lines[4].startswith("robot-d")
+    assert lines[5:] == [
+        "colony frame: root robot-a; aligned: robot-a, robot-b; not aligned: robot-c, robot-d "
+        "(as robot-a, robot-b see it)",
+        "colony frame: root robot-c; aligned: robot-c; not aligned: robot-a, robot-b, robot-d "
+        "(as robot-c see it)",
+    ]
+    one = format_status(reports[:2]).splitlines()[-1]
+    assert one == "colony frame: root robot-a; aligned: robot-a, robot-b; not aligned: none"
