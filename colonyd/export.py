@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -307,6 +308,15 @@ def diff_maps(before: MapReply, after: MapReply, since: float) -> Changes:
     return Changes(since, after.frame, after.resolution, appeared, disappeared)
 
 
+def changes_between(fetch: Callable[[float], MapReply], since: float, until: float) -> Changes:
+    """What changed between the maps `fetch` gives as they were at `since` and at `until`, both
+    from the layers' history. A history keeps each voxel's log-odds as of its last state change
+    (VOXEL.md, "History"), not its present value: a fused voxel summed from such values can be
+    occupied where the live sum is free, so comparing the map at `since` with the live map
+    reported voxels of an unchanged colony as appeared or disappeared."""
+    return diff_maps(fetch(since), fetch(until), since)
+
+
 def map_changes(
     config: Config,
     out: Path,
@@ -321,25 +331,27 @@ def map_changes(
     _check_names(layer, agent)
     output_dir(out, "--out")
     session = get_client_session(config, "changes")
+
+    def fetch(at: float) -> MapReply:
+        nonlocal agent
+        fused, layers = fetch_maps(
+            session,
+            config.key_namespace,
+            layer=layer,
+            agent=agent,
+            wait_s=wait_s,
+            at=at,
+            layers_too=layer is not None,
+        )
+        agent = fused.agent  # both from the same daemon
+        return fused if layer is None else layers[layer]
+
     try:
-        maps = []
-        for at in (since, None):
-            fused, layers = fetch_maps(
-                session,
-                config.key_namespace,
-                layer=layer,
-                agent=agent,
-                wait_s=wait_s,
-                at=at,
-                layers_too=layer is not None,
-            )
-            maps.append(fused if layer is None else layers[layer])
-            agent = fused.agent  # both from the same daemon
+        changes = changes_between(fetch, since, max(time.time(), since))
     except NoAnswerError as exc:
         raise NoAnswerError(_why(exc, session, config, agent, wait_s)) from None
     finally:
         session.close()
-    changes = diff_maps(maps[0], maps[1], since)
     out.mkdir(parents=True, exist_ok=True)
     files = {"appeared.ply": out / "appeared.ply", "disappeared.ply": out / "disappeared.ply"}
     for name, keys in (

@@ -142,3 +142,31 @@ def test_export_with_nobody_there_says_where_it_looked(tmp_path):
         f"no daemon of colony namespace 'nobody' answered within 5 s (looked through {endpoint}): "
         "expected a running colonyd there, found none"
     ) in run.stderr
+
+
+def test_changes_of_an_unchanged_fused_map_are_none():
+    """A history keeps a voxel's log-odds as of its last state change: a voxel one layer hit
+    once (+0.84) and another saw free ten times (-0.41 at its flip, -2.0 now) is occupied in
+    the fused map from history and free in the live one. `colonyd changes` compared the map
+    at --since with the live map and reported it as disappeared from an unchanged colony."""
+    from colonyd.export import MapReply, changes_between, diff_maps
+    from colonyd.grid import new_grid
+    from colonyd.layers import Layer, fused
+
+    a, b = Layer("a", 0.1), Layer("b", 0.1)
+    a.grid, b.grid = new_grid(0.1), new_grid(0.1)
+    a.grid.integrate(np.array([[2.05, 0.05, 0.05]]), np.zeros(3), time=1.0)
+    for i in range(10):
+        b.grid.integrate(np.array([[4.05, 0.05, 0.05]]), np.zeros(3), time=1.0 + i)
+
+    def fetch(at: float | None) -> MapReply:
+        keys, lo = fused([a, b], 0.1, at=at)
+        return MapReply("a", None, "a.odom", 0.1, keys, lo.astype(np.float32))
+
+    live = diff_maps(fetch(20.0), fetch(None), 20.0)  # what the command did: not like with like
+    assert [20, 0, 0] in live.disappeared.tolist()
+    changes = changes_between(fetch, 20.0, 30.0)
+    assert len(changes.appeared) == len(changes.disappeared) == 0
+    a.grid.integrate(np.array([[0.55, 0.05, 0.05]]), np.zeros(3), time=25.0)  # a real change
+    changes = changes_between(fetch, 20.0, 30.0)
+    assert changes.appeared.tolist() == [[5, 0, 0]] and len(changes.disappeared) == 0
