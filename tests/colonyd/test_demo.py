@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from colonyd.demo import _progress_line, _summary_text
+from colonyd.demo import _progress_line, _replay_line, _summary_text
 
 
 def _robot(carries: str, aligned: bool, after: float | None, ate: float | None) -> dict:
@@ -63,3 +63,11 @@ def test_progress_line_for_a_log():
         "demo at  12.0 s: 2 members answered; aligned with the colony frame (cctv-1): b, cctv-1"
     )
     assert _progress_line([], 1.0).endswith("(?): none yet")
+
+
+def test_the_replays_after_the_colony_are_announced():
+    """After the colony's last table the demo replayed each robot alone for a minute or more
+    with nothing printed: it looked hung."""
+    line = _replay_line(149.1, ["depth-1", "lidar-1"])
+    assert line.startswith("colony stopped at 149.1 s; replaying depth-1, lidar-1 alone")
+    assert "colonyd localize" in line
