@@ -69,7 +69,7 @@ _CONFIG_FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
             "action": "append",
             "metavar": "SPEC",
             "help": "data source, repeatable (sim:..., "
-            "replay:PATH, synthetic:..., bulk:...; see `colonyd sources`)",
+            "replay:PATH, ros2:..., synthetic:..., bulk:...; see `colonyd sources`)",
         },
     ),
     ("resolution", "--resolution", {"type": float, "help": "voxel size in metres"}),
