@@ -766,7 +766,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{summary.spec}: {summary.frames} frames ({summary.skipped} skipped), "
             f"{summary.points} points -> {summary.occupied} occupied, {summary.free} free voxels "
             f"at {summary.resolution} m in {summary.seconds:.1f} s "
-            f"({summary.frames_per_second:.1f} frames/s)\nwrote {written}\n"
+            f"({summary.frames_per_second:.1f} frames/s read and integrated)\nwrote {written}\n"
             f"time: {summary_breakdown(summary.breakdown, summary.seconds)}\n"
         )
         return EXIT_OK
