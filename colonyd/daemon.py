@@ -565,6 +565,7 @@ class Daemon:
 
     def _map_source(self, source: Source) -> None:
         own = self.layers.own
+        began = time.monotonic()
         try:
             for obs in source:
                 if self.stop.is_set():
@@ -579,8 +580,21 @@ class Daemon:
                 self.metrics.add("frames")
         except (ColonydError, ValueError) as exc:  # the source itself failed
             log.error("source %s failed: %s", source.spec, exc)
+            return
         except Exception:
             log.exception("source %s failed", source.spec)
+            return
+        if not self.stop.is_set():  # a recording's end: the daemon goes on serving its map
+            stats = source.stats
+            reasons = ", ".join(f"{k} {v}" for k, v in sorted(stats.reasons.items()))
+            log.info(
+                "source %s done: %d frames in %.1f s, %d skipped%s",
+                source.spec,
+                stats.delivered,
+                time.monotonic() - began,
+                stats.skipped,
+                f" ({reasons})" if reasons else "",
+            )
 
     def _integrate(self, own: Any, obs: Observation, source: Source) -> None:
         covariance = None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -32,6 +33,9 @@ def test_three_converge_late_joiner_and_garbage(make_colony):
     plain.start()
     colony.wait_members(3)
     colony.wait_converged(30)  # every replica equal to its origin's layer (digests)
+    # A finite source's end is in the log (status --json has sources_done; the log said nothing)
+    done = r"source synthetic:\S+ done: 6 frames in \d+\.\d s, 0 skipped\n"
+    assert len(re.findall(done, colony.logs(tail=1_000_000))) == 3
     # Each daemon runs in a session of its own, as systemd starts a service (autogroup shares
     # CPU time by session: docs/RELIABILITY.md).
     for d in colony.daemons.values():
