@@ -76,6 +76,15 @@ def _table(reports: list[dict[str, Any]], tracks: dict[str, Track], now: float) 
     return table
 
 
+def stdout_console() -> Any:
+    """A rich Console on stdout; where stdout is no terminal (a log), 120 columns wide: the
+    table printed there once at the end wrapped at rich's default 80 ("lidar3…", "replic…")."""
+    from rich.console import Console
+
+    console = Console(file=sys.stdout)
+    return console if console.is_terminal else Console(file=sys.stdout, width=120)
+
+
 def _progress_line(reports: list[dict[str, Any]], now: float) -> str:
     """One line of the colony's state, for a log (the live table needs a terminal)."""
     frame: dict[str, Any] = next((r["colony_frame"] for r in reports if "colony_frame" in r), {})
@@ -92,12 +101,11 @@ def run_demo(
 ) -> int:
     """Run the demo for `duration` seconds of mapping, then wait up to `align_wait` seconds for
     every member to align; write maps, pictures and a summary."""
-    from rich.console import Console
     from rich.live import Live
 
     out = Path(out)
     output_dir(out, "--out")
-    console = Console(file=sys.stdout)
+    console = stdout_console()
     # Compile the kernels here once (a fresh install has none cached): otherwise every daemon
     # compiles them at once, answering no status meanwhile (docs/VOXEL.md).
     kernels.warm()

@@ -71,3 +71,30 @@ def test_the_replays_after_the_colony_are_announced():
     line = _replay_line(149.1, ["depth-1", "lidar-1"])
     assert line.startswith("colony stopped at 149.1 s; replaying depth-1, lidar-1 alone")
     assert "colonyd localize" in line
+
+
+def test_the_table_in_a_log_is_not_cut_at_80_columns():
+    """Without a terminal the demo prints its table once, at the end: at rich's default 80
+    columns it read "lidar3…", "replic…" and split every figure over two lines."""
+    from colonyd.demo import _table, stdout_console
+    from colonyd.tracks import Track
+
+    counts = {"bytes_published": 6_689_000, "bytes_received": 15_096_000}
+    reports = [
+        {
+            "agent": agent,
+            "colony_frame": {"root": "cctv-1", "agents": {"cctv-1": []}},
+            "pose_error_m": 0.001,
+            "layers": {agent: {"seq": 141}, "cctv-1": {"seq": 40}},
+            "metrics": {"counts": counts},
+        }
+        for agent in ("cctv-1", "lidar3d-1")
+    ]
+    tracks = {"lidar3d-1": Track("3D LiDAR", 0.0), "cctv-1": Track("CCTV", 0.0)}
+    console = stdout_console()  # pytest captures stdout: not a terminal
+    with console.capture() as captured:
+        console.print(_table(reports, tracks, 149.1))
+    text = captured.get()
+    assert "…" not in text
+    assert "lidar3d-1" in text and "replicas" in text and "14742 KiB" in text
+    assert len(text.splitlines()) == 7  # title, border, header, rule, 2 one-line rows, border
