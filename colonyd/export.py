@@ -247,19 +247,19 @@ def fetch_maps(
     `at`, as they were at that time."""
     when = "" if at is None else f"at={float(at)!r}"
     deadline = time.monotonic() + wait_s
+    answered: set[str] = set()
     while True:
-        fused = [
-            r
-            for r in query_maps(session, namespace, when, 5.0)
-            if agent is None or r.agent == agent
-        ]
+        replies = query_maps(session, namespace, when, 5.0)
+        answered.update(r.agent for r in replies)
+        fused = [r for r in replies if agent is None or r.agent == agent]
         if fused or time.monotonic() >= deadline:
             break
         time.sleep(0.3)
     if not fused:
+        others = f": expected one of those that did: {', '.join(sorted(answered))}"
         msg = (
             f"daemon {agent!r} of colony namespace {namespace!r} did not answer an export query "
-            f"within {wait_s:g} s"
+            f"within {wait_s:g} s{others if answered else ''}"
             if agent
             else f"no daemon of colony namespace {namespace!r} answered an export query within "
             f"{wait_s:g} s"
@@ -272,7 +272,11 @@ def fetch_maps(
         params = ";".join(p for p in (f"layer={name}", when) if p)
         got = [r for r in query_maps(session, namespace, params, 10.0) if r.agent == source.agent]
         if not got:
-            msg = f"daemon {source.agent!r} holds no layer {name!r}"
+            msg = (
+                f"daemon {source.agent!r} holds no layer {name!r}: expected an agent id whose "
+                f"layer it holds (its fused map's: {', '.join(source.layers) or 'none'}; "
+                "`colonyd status` lists every member's layers)"
+            )
             raise StatusError(msg)
         layers[name] = got[0]
     return source, layers

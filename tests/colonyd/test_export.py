@@ -72,7 +72,14 @@ def test_export_fetches_the_fused_map_and_layers(make_colony, tmp_path, capfd):
     try:
         with pytest.raises(SystemExit) as missing:
             launch([*base[3:], "--out", str(out), "--layer", "nobody"])
-        assert missing.value.code == 1 and "holds no layer 'nobody'" in capfd.readouterr().err
+        err = capfd.readouterr().err
+        assert missing.value.code == 1 and "holds no layer 'nobody': expected an agent id" in err
+        assert "(its fused map's: a, b;" in err or "(its fused map's: a;" in err, err
+        with pytest.raises(SystemExit) as unknown:
+            launch([*base[3:], "--out", str(out), "--from", "nobody"])
+        err = capfd.readouterr().err
+        assert unknown.value.code == 1 and "daemon 'nobody' of colony namespace" in err
+        assert "expected one of those that did: a, b" in err, err
         (tmp_path / "file").write_text("x")
         with pytest.raises(SystemExit) as bad:
             launch([*base[3:], "--out", str(tmp_path / "file")])
