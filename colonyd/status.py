@@ -140,6 +140,18 @@ def alive_members(session: zenoh.Session, namespace: str, timeout: float = 2.0) 
     return sorted(agents)
 
 
+def colonies_seen(session: zenoh.Session, timeout: float = 1.0) -> set[str]:
+    """Colony namespaces of the live daemons this session reaches (their liveliness tokens)."""
+    seen: set[str] = set()
+    for r in session.liveliness().get(f"{ROOT}/*/{ALIVE}/*", timeout=timeout):
+        if r.ok is not None:
+            try:
+                seen.add(parse_key(str(r.ok.key_expr)).colony)
+            except KeyExprError:
+                continue
+    return seen
+
+
 def nobody_answered(session: zenoh.Session, config: Config, wait_s: float) -> str:
     """Why no daemon answered: the colonies whose daemons this session does see (a wrong
     `--colony`), or none at all (nothing listens where it looked)."""
@@ -150,13 +162,7 @@ def nobody_answered(session: zenoh.Session, config: Config, wait_s: float) -> st
         if config.multicast
         else "nowhere (no --connect, multicast off)"
     )
-    seen: set[str] = set()
-    for r in session.liveliness().get(f"{ROOT}/*/{ALIVE}/*", timeout=1.0):
-        if r.ok is not None:
-            try:
-                seen.add(parse_key(str(r.ok.key_expr)).colony)
-            except KeyExprError:
-                continue
+    seen = colonies_seen(session)
     head = (
         f"no daemon of colony namespace {config.key_namespace!r} answered within {wait_s:g} s "
         f"(looked through {where})"

@@ -212,6 +212,24 @@ def test_two_colonies_do_not_see_each_other(make_colony):
         assert {m["agent"] for m in r["members"]} <= {"x1", "x2"}
 
 
+def test_a_daemon_of_another_colony_at_its_peer_says_so(make_colony):
+    """A --colony that differs from its peer's: the daemon ran alone without a word. After ten
+    heartbeat periods with no member it names the colonies it does reach."""
+    x = make_colony("x")
+    hub = x.add("x1")
+    hub.wait_listening()
+    y = make_colony("y")
+    typo = y.add("y1", extra=["--connect", hub.endpoint, "--heartbeat-s", "0.2"])
+    want = (
+        f"no member of colony namespace '{y.namespace}' reached through {hub.endpoint}, but "
+        f"daemons of '{x.namespace}': expected every member to run with the same --colony"
+    )
+    deadline = time.monotonic() + 30
+    while want not in (text := typo.log_path.read_text(errors="replace")):
+        assert time.monotonic() < deadline, text[-3000:]
+        time.sleep(0.2)
+
+
 def test_flood_is_bounded_and_counted(make_colony):
     colony = make_colony("flood", extra=["--log-level", "error"])
     a = colony.add("a", src(1, 3))
