@@ -98,16 +98,21 @@ def test_the_table_says_which_members_are_aligned_with_the_colony_frame() -> Non
             "agent": "robot-c",
             "time": now,
             "colony_frame": {"root": "robot-c", "agents": {"robot-c": []}},
-            "members": [{"agent": "robot-d", "last_seen": now - 4.0}],  # gone: not answering
+            "members": [
+                {"agent": "robot-d", "last_seen": now - 4.0, "alive": True},  # not answering
+                {"agent": "robot-e", "last_seen": now - 9.0, "alive": False},  # stopped
+            ],
         },
     ]
     lines = format_status(reports).splitlines()
-    assert "(not answering)" in lines[4] and lines[4].startswith("robot-d")
+    assert lines[4].startswith("robot-d") and lines[4].endswith("(not answering)")
+    assert lines[5].startswith("robot-e") and lines[5].endswith("(left)")  # was "not answering"
+    del lines[5]
     assert lines[5:] == [
-        "colony frame: root robot-a; aligned: robot-a, robot-b; not aligned: robot-c, robot-d "
-        "(as robot-a, robot-b see it)",
-        "colony frame: root robot-c; aligned: robot-c; not aligned: robot-a, robot-b, robot-d "
-        "(as robot-c see it)",
+        "colony frame: root robot-a; aligned: robot-a, robot-b; not aligned: robot-c, robot-d, "
+        "robot-e (as robot-a, robot-b see it)",
+        "colony frame: root robot-c; aligned: robot-c; not aligned: robot-a, robot-b, robot-d, "
+        "robot-e (as robot-c see it)",
     ]
     one = format_status(reports[:2]).splitlines()[-1]
     assert one == "colony frame: root robot-a; aligned: robot-a, robot-b; not aligned: none"
