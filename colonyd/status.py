@@ -266,8 +266,12 @@ def format_status(reports: list[dict[str, Any]]) -> str:
             "?",
         )
         ago = f"{max(0.0, now - seen[agent]):.1f}s"
-        alive = [m.get("alive", True) for r in reports for m in r.get("members", [])
-                 if m["agent"] == agent]  # fmt: skip
+        alive = [
+            m.get("alive", True)
+            for r in reports
+            for m in r.get("members", [])
+            if m["agent"] == agent
+        ]
         # its liveliness token withdrawn (a clean stop, or a lease that ran out) for every
         # member that knows it: it left; else it is there but does not answer (frozen, busy)
         state = "(left)" if alive and not any(alive) else "(not answering)"
