@@ -704,7 +704,7 @@ def main(argv: list[str] | None = None) -> int:
             sys.stdout.write(json.dumps(counts) + "\n")
             return EXIT_OK
         if cmd == "export":
-            from colonyd.export import export_maps, parse_time
+            from colonyd.export import UNALIGNED, export_maps, parse_time
             from colonyd.logs import setup_logging
 
             setup_logging("warning")
@@ -717,6 +717,12 @@ def main(argv: list[str] | None = None) -> int:
                 + ", ".join(str(p) for p in files.values())
                 + "\n"
             )
+            apart = sorted({p.stem for k, p in files.items() if k.startswith(f"{UNALIGNED}/")})
+            if apart:
+                sys.stdout.write(
+                    f"not aligned with the colony frame, so not in the fused map: "
+                    f"{', '.join(apart)} (each in its own frame in {UNALIGNED}/)\n"
+                )
             return EXIT_OK
         if cmd == "identity":
             from colonyd.identity import identity_path, load_signer

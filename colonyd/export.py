@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Callable
@@ -23,6 +24,8 @@ from voxel import keys as vk
 from voxel.octomap_io import write_bt
 from voxel.ply import write_ply
 
+#: Sub-folder of `colonyd export --out` for the layers not aligned with the colony frame.
+UNALIGNED = "unaligned"
 #: Most voxels an export reply may carry (a reply is bounded like any network input).
 MAX_EXPORT_VOXELS = 50_000_000
 
@@ -387,7 +390,9 @@ def export_maps(
 ) -> tuple[str, dict[str, Path]]:
     """Fetch the fused map in the colony frame and every layer's map (or one `layer`) from a
     running colony (the daemon `agent`, or the first to answer), as they are or were `at` a
-    time, and write them into `out`; returns the fused map's frame and the files."""
+    time, and write them into `out`; returns the fused map's frame and the files. The layers
+    that daemon holds but has not aligned with the colony frame are not in the fused map: each
+    is written in its own frame under `out/unaligned/` (`UNALIGNED`), not left out unsaid."""
     _check_names(layer, agent)
     output_dir(out, "--out")
     session = get_client_session(config, "export")
@@ -395,6 +400,15 @@ def export_maps(
         fused, layers = fetch_maps(
             session, config.key_namespace, layer=layer, agent=agent, wait_s=wait_s, at=at
         )
+        apart: dict[str, MapReply] = {}
+        if layer is None:
+            for name in unaligned_layers(session, config.key_namespace, fused):
+                with contextlib.suppress(StatusError):  # dropped meanwhile: nothing to write
+                    apart.update(
+                        fetch_maps(
+                            session, config.key_namespace, layer=name, agent=fused.agent, at=at
+                        )[1]
+                    )
     except NoAnswerError as exc:
         raise NoAnswerError(_why(exc, session, config, agent, wait_s)) from None
     finally:
@@ -404,4 +418,18 @@ def export_maps(
         files.update(write_maps(fused, out, "fused"))
     for name, reply in layers.items():
         files.update(write_maps(reply, out, name))
+    for name, reply in apart.items():
+        (out / UNALIGNED).mkdir(exist_ok=True)
+        written = write_maps(reply, out / UNALIGNED, name)
+        files.update({f"{UNALIGNED}/{key}": path for key, path in written.items()})
     return fused.frame, files
+
+
+def unaligned_layers(session: zenoh.Session, namespace: str, fused: MapReply) -> list[str]:
+    """The layers with data that the daemon which sent `fused` holds but has not fused (not
+    aligned with its colony frame), from its status report."""
+    from colonyd.status import query_status
+
+    report = next((r for r in query_status(session, namespace) if r["agent"] == fused.agent), {})
+    held = report.get("layers", {})
+    return sorted(o for o, v in held.items() if v.get("seq") and o not in fused.layers)

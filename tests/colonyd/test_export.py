@@ -177,3 +177,30 @@ def test_changes_of_an_unchanged_fused_map_are_none():
     a.grid.integrate(np.array([[0.55, 0.05, 0.05]]), np.zeros(3), time=25.0)  # a real change
     changes = changes_between(fetch, 20.0, 30.0)
     assert changes.appeared.tolist() == [[5, 0, 0]] and len(changes.disappeared) == 0
+
+
+def test_export_writes_the_layers_not_aligned_in_their_own_frames(make_colony, tmp_path):
+    """Two robots whose maps are not aligned (no alignment attempts here): the export wrote the
+    fused map and the root's layer only, and said nothing of the other robot's map."""
+    colony = make_colony("apart")
+    for agent, seed in (("a", 1), ("c", 2)):
+        d = colony.add(agent, [f"synthetic:scans=3,rate=8,points=200,seed={seed}"], start=False)
+        d.env["COLONYD_ALIGN_S"] = "0"
+        d.start()
+    colony.wait_converged(30)
+    out = tmp_path / "maps"
+    run = subprocess.run(
+        [
+            sys.executable, "-m", "colonyd", "export", "--colony", "apart",
+            "--namespace", colony.namespace, "--no-multicast",
+            "--connect", colony.daemons["a"].endpoint, "--out", str(out), "--from", "a",
+        ],
+        capture_output=True, check=False, text=True, timeout=60,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["a.bt", "a.ply", "fused.bt", "fused.ply",
+                                                     "unaligned"]  # fmt: skip
+    assert sorted(p.name for p in (out / "unaligned").iterdir()) == ["c.bt", "c.ply"]
+    assert "not in the fused map: c (each in its own frame in unaligned/)" in run.stdout
+    c = read_bt(out / "unaligned" / "c.bt")
+    assert c.occupied.sum() > 50  # c's own map, as its origin holds it
