@@ -13,6 +13,7 @@ from colonyd.activity import Activity
 from colonyd.errors import ColonydError, WireError
 from colonyd.metrics import Metrics
 from protocol import ProtocolError
+from protocol.errors import NotIntroducedError
 
 log = logging.getLogger(__name__)
 
@@ -150,7 +151,10 @@ class Worker(Generic[T]):
         metrics = self._metrics
         if metrics is not None and isinstance(exc, (ProtocolError, WireError)):
             metrics.reject(exc.reason)
-            log.warning("rejected %s: %s", self._describe(item), exc)
+            # a peer's frame that overtook its first heartbeat (every join, trust on first
+            # use) is counted like the rest but is no cause for alarm: info, not a warning
+            level = logging.INFO if isinstance(exc, NotIntroducedError) else logging.WARNING
+            log.log(level, "rejected %s: %s", self._describe(item), exc)
         elif metrics is not None and self._hostile and isinstance(exc, (ColonydError, ValueError)):
             metrics.reject("invalid")
             log.warning("rejected %s: %s", self._describe(item), exc)
