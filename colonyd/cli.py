@@ -34,7 +34,7 @@ _CONFIG_FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
         {"help": "colony name (default: default); every member must use the same"},
     ),
     ("namespace", "--namespace", {"help": "key-expression namespace (default: the colony name)"}),
-    ("agent_id", "--agent-id", {"help": "this agent's unique id"}),
+    ("agent_id", "--agent-id", {"help": "this agent's unique id (default: the host name)"}),
     ("kind", "--kind", {"help": "agent kind shown in status"}),
     ("state_dir", "--state-dir", {"type": Path, "help": "state directory"}),
     ("mode", "--mode", {"choices": ["peer", "client"], "help": "Zenoh mode"}),
@@ -69,7 +69,7 @@ _CONFIG_FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
             "action": "append",
             "metavar": "SPEC",
             "help": "data source, repeatable (sim:..., "
-            "replay:PATH, synthetic:..., bulk:...; see `colonyd sources`)",
+            "replay:PATH, ros2:..., synthetic:..., bulk:...; see `colonyd sources`)",
         },
     ),
     ("resolution", "--resolution", {"type": float, "help": "voxel size in metres"}),
@@ -92,7 +92,11 @@ _CONFIG_FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
             "help": "fsync each own delta's log record before publishing it (slower)",
         },
     ),
-    ("lease_ms", "--lease-ms", {"type": int, "help": "Zenoh transport lease"}),
+    (
+        "lease_ms",
+        "--lease-ms",
+        {"type": int, "help": "Zenoh transport lease (default: Zenoh's 10 s)"},
+    ),
     ("colony_key", "--colony-key", {"help": "shared secret for authentication"}),
     (
         "export_dir",
@@ -121,7 +125,26 @@ def _config_flags(p: argparse.ArgumentParser, only: tuple[str, ...] | None = Non
     g = p.add_argument_group(f"configuration (precedence: {' > '.join(PRECEDENCE)})")
     for dest, flag, kwargs in _CONFIG_FLAGS:
         if only is None or dest in only:
-            g.add_argument(flag, dest=dest, **kwargs)
+            g.add_argument(flag, dest=dest, **_with_default(dest, kwargs))
+
+
+def _with_default(dest: str, kwargs: dict[str, Any]) -> dict[str, Any]:
+    """A config flag's help with the configuration's default (`Config`), where the help does not
+    say it already: the flags' own default is None (unset: the environment, the file or the
+    configuration's default applies), so --help showed none (`--resolution`: "voxel size in
+    metres", not that it is 0.1)."""
+    from colonyd.config import Config
+
+    field = Config.model_fields.get(dest)
+    help_text = str(kwargs.get("help", ""))
+    if field is None or field.is_required() or "default" in help_text:
+        return kwargs
+    default = field.get_default(call_default_factory=True)
+    if default in (None, [], {}):
+        return kwargs
+    if isinstance(default, bool) or kwargs.get("action") == "store_const":
+        return kwargs  # a switch: its help says what it turns on or off
+    return {**kwargs, "help": f"{help_text} (default {default})"}
 
 
 _FLAG_NAMES = (
@@ -270,7 +293,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--digest", action="store_true", help="include layer digests")
     p.add_argument(
-        "--wait", type=_positive_float, default=3.0, help="seconds to wait for all members"
+        "--wait",
+        type=_positive_float,
+        default=3.0,
+        help="seconds to wait for all members (default 3)",
     )
 
     p = sub.add_parser("dump-config", help="print the effective configuration as TOML")
@@ -704,7 +730,7 @@ def main(argv: list[str] | None = None) -> int:
             sys.stdout.write(json.dumps(counts) + "\n")
             return EXIT_OK
         if cmd == "export":
-            from colonyd.export import export_maps, parse_time
+            from colonyd.export import UNALIGNED, export_maps, parse_time
             from colonyd.logs import setup_logging
 
             setup_logging("warning")
@@ -717,6 +743,12 @@ def main(argv: list[str] | None = None) -> int:
                 + ", ".join(str(p) for p in files.values())
                 + "\n"
             )
+            apart = sorted({p.stem for k, p in files.items() if k.startswith(f"{UNALIGNED}/")})
+            if apart:
+                sys.stdout.write(
+                    f"not aligned with the colony frame, so not in the fused map: "
+                    f"{', '.join(apart)} (each in its own frame in {UNALIGNED}/)\n"
+                )
             return EXIT_OK
         if cmd == "identity":
             from colonyd.identity import identity_path, load_signer
@@ -766,7 +798,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{summary.spec}: {summary.frames} frames ({summary.skipped} skipped), "
             f"{summary.points} points -> {summary.occupied} occupied, {summary.free} free voxels "
             f"at {summary.resolution} m in {summary.seconds:.1f} s "
-            f"({summary.frames_per_second:.1f} frames/s)\nwrote {written}\n"
+            f"({summary.frames_per_second:.1f} frames/s read and integrated)\nwrote {written}\n"
             f"time: {summary_breakdown(summary.breakdown, summary.seconds)}\n"
         )
         return EXIT_OK

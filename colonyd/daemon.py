@@ -54,7 +54,7 @@ from colonyd.persistence import StateStore
 from colonyd.provenance import agent_bias, agent_reliability, pose_error
 from colonyd.rosout import Ros2Outputs, RosPublishers
 from colonyd.runtime import get_session
-from colonyd.status import StatusServer
+from colonyd.status import StatusServer, colonies_seen
 from colonyd.threadclock import stamp
 from colonyd.tombstones import OWN_LAYER, forget_params, load_tombstones, save_tombstones
 from colonyd.worker import Throttle, held_text
@@ -100,6 +100,9 @@ MAX_SIGHTED = 16
 #: catch-up is idle, at most KERNELS_WAIT_S in all.
 KERNELS_SETTLE_S = 0.5
 KERNELS_WAIT_S = 10.0
+#: Heartbeat periods after start at which a daemon with --connect endpoints and no member yet
+#: says so (and which other colonies' daemons it reaches there).
+LONELY_HEARTBEATS = 10
 #: Modules the periodic jobs of a daemon with sources import on first use in its own process
 #: (object clustering, localisation against own and colony maps),
 #: imported with the kernels' loading instead, so that the daemon's start-up ends at a moment it
@@ -443,6 +446,10 @@ class Daemon:
             )
         if self.ros is not None:
             self._threads.append(threading.Thread(target=self._ros_loop, name="ros2", daemon=True))
+        if self.config.connect:
+            self._threads.append(
+                threading.Thread(target=self._lonely_check, name="lonely-check", daemon=True)
+            )
         if self.config.localise and self.config.colony_map_s > 0:
             self._threads.append(
                 threading.Thread(target=self._colony_map_loop, name="colony-map", daemon=True)
@@ -556,6 +563,32 @@ class Daemon:
         )
         self.notifier.ready()
 
+    def _lonely_check(self) -> None:
+        """Once, `LONELY_HEARTBEATS` heartbeat periods after start: a daemon given --connect
+        endpoints that has met no member says so, naming the colonies whose daemons it does
+        reach there (a --colony that differs from its peers' ran alone without a word)."""
+        cfg = self.config
+        if self.stop.wait(LONELY_HEARTBEATS * cfg.heartbeat_s):
+            return
+        if self.membership.table():  # peers only: a member joined (even if it left since)
+            return
+        others = sorted(colonies_seen(self.session) - {cfg.key_namespace})
+        where = ", ".join(cfg.connect)
+        if others:
+            log.warning(
+                "no member of colony namespace %r reached through %s, but daemons of %s: "
+                "expected every member to run with the same --colony (or --namespace)",
+                cfg.key_namespace,
+                where,
+                ", ".join(repr(o) for o in others),
+            )
+        else:
+            log.info(
+                "no member of colony namespace %r reached through %s yet (Zenoh keeps trying)",
+                cfg.key_namespace,
+                where,
+            )
+
     # -- mapping (never waits on the network) ---------------------------------------------
     def _map_loop(self) -> None:
         """Recordings and simulations one after another; each live source (`ros2:`, which runs
@@ -578,6 +611,7 @@ class Daemon:
 
     def _map_source(self, source: Source) -> None:
         own = self.layers.own
+        began = time.monotonic()
         try:
             for obs in source:
                 if self.stop.is_set():
@@ -592,8 +626,21 @@ class Daemon:
                 self.metrics.add("frames")
         except (ColonydError, ValueError) as exc:  # the source itself failed
             log.error("source %s failed: %s", source.spec, exc)
+            return
         except Exception:
             log.exception("source %s failed", source.spec)
+            return
+        if not self.stop.is_set():  # a recording's end: the daemon goes on serving its map
+            stats = source.stats
+            reasons = ", ".join(f"{k} {v}" for k, v in sorted(stats.reasons.items()))
+            log.info(
+                "source %s done: %d frames in %.1f s, %d skipped%s",
+                source.spec,
+                stats.delivered,
+                time.monotonic() - began,
+                stats.skipped,
+                f" ({reasons})" if reasons else "",
+            )
 
     def _integrate(self, own: Any, obs: Observation, source: Source) -> None:
         covariance = None

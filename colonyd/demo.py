@@ -76,6 +76,15 @@ def _table(reports: list[dict[str, Any]], tracks: dict[str, Track], now: float) 
     return table
 
 
+def stdout_console() -> Any:
+    """A rich Console on stdout; where stdout is no terminal (a log), 120 columns wide: the
+    table printed there once at the end wrapped at rich's default 80 ("lidar3…", "replic…")."""
+    from rich.console import Console
+
+    console = Console(file=sys.stdout)
+    return console if console.is_terminal else Console(file=sys.stdout, width=120)
+
+
 def _progress_line(reports: list[dict[str, Any]], now: float) -> str:
     """One line of the colony's state, for a log (the live table needs a terminal)."""
     frame: dict[str, Any] = next((r["colony_frame"] for r in reports if "colony_frame" in r), {})
@@ -92,12 +101,11 @@ def run_demo(
 ) -> int:
     """Run the demo for `duration` seconds of mapping, then wait up to `align_wait` seconds for
     every member to align; write maps, pictures and a summary."""
-    from rich.console import Console
     from rich.live import Live
 
     out = Path(out)
     output_dir(out, "--out")
-    console = Console(file=sys.stdout)
+    console = stdout_console()
     # Compile the kernels here once (a fresh install has none cached): otherwise every daemon
     # compiles them at once, answering no status meanwhile (docs/VOXEL.md).
     kernels.warm()
@@ -142,6 +150,8 @@ def run_demo(
         run.close()
         # What each robot achieves alone, replayed only now: beside the colony these replays
         # (~45 s of CPU) took the idle CPU its map registration runs on (SCHED_IDLE).
+        sys.stdout.write(_replay_line(seconds, [a for a, _, _ in _robots(duration)]) + "\n")
+        sys.stdout.flush()
         for agent, seed, mapped in _robots(duration):
             replays[agent] = AloneReplay(
                 work / f"alone-{agent}", agent, mapped, seed, ODOMETRY_NOISE
@@ -156,6 +166,15 @@ def run_demo(
             replay.close()
         run.close()
         shutil.rmtree(work, ignore_errors=True)
+
+
+def _replay_line(seconds: float, robots: list[str]) -> str:
+    """What the demo does once the colony stopped (a minute or more of nothing printed else)."""
+    return (
+        f"colony stopped at {seconds:.1f} s; replaying {', '.join(robots)} alone "
+        "(`colonyd localize`, the same frames and odometry noise) for the 'alone' figures "
+        f"(up to {REPLAY_WAIT_S:.0f} s)"
+    )
 
 
 def _unfused_layers(
@@ -236,7 +255,7 @@ def _write_outputs(
             "layers_fused": fused.layers,
         },
         "files": sorted(str(p.relative_to(out)) for p in files.values()),
-        # Registration runs only on idle CPU (docs/DAEMON.md): the load says why it may not have.
+        # Registration runs at a low CPU share (docs/DAEMON.md): the load says why it may not have.
         "load_average": [round(x, 2) for x in load],
         "cpus": os.cpu_count(),
     }
@@ -289,8 +308,9 @@ def _summary_text(summary: dict[str, Any], out: Path) -> str:
     if apart:
         load = summary.get("load_average") or ["?"]
         lines.append(
-            f"  not aligned within the run: {', '.join(apart)}. Map registration runs only on "
-            f"idle CPU (SCHED_IDLE, docs/DAEMON.md), and the load average was {load[0]} on "
+            f"  not aligned within the run: {', '.join(apart)}. Map registration runs at a low "
+            "CPU share (a session of its own at autogroup niceness align_session_nice, "
+            f"docs/DAEMON.md), and the load average was {load[0]} on "
             f"{summary.get('cpus', '?')} cores (the demo's daemons included) at the colony's "
             "end. Their maps are in layers/ in their own frames, not in the fused map"
         )

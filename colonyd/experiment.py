@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from colonyd.demo import stdout_console
 from colonyd.errors import ConfigError, StatusError
 from colonyd.experimentopts import LIDAR_RANGE, WORLDS
 from colonyd.outdir import output_dir
@@ -221,7 +222,6 @@ def run_paper(
     whose sources are not done after `timeout` seconds, default 6 x duration + 120, is evaluated
     as far as it got and marked incomplete); write trajectories, pictures and results.json into
     `out`; return the results."""
-    from rich.console import Console
     from rich.live import Live
 
     if world not in WORLDS:
@@ -231,7 +231,7 @@ def run_paper(
     output_dir(out, "--out")
     timeout = timeout if timeout is not None else 6 * duration + 120
     lidar_range = LIDAR_RANGE if lidar_range is None else lidar_range
-    console = Console(file=sys.stdout)
+    console = stdout_console()
     # Compile the kernels here once (a fresh install has none cached): otherwise every daemon
     # compiles them at once, answering no status meanwhile (docs/VOXEL.md).
     kernels.warm()

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,6 +24,8 @@ from voxel import keys as vk
 from voxel.octomap_io import write_bt
 from voxel.ply import write_ply
 
+#: Sub-folder of `colonyd export --out` for the layers not aligned with the colony frame.
+UNALIGNED = "unaligned"
 #: Most voxels an export reply may carry (a reply is bounded like any network input).
 MAX_EXPORT_VOXELS = 50_000_000
 
@@ -246,19 +250,19 @@ def fetch_maps(
     `at`, as they were at that time."""
     when = "" if at is None else f"at={float(at)!r}"
     deadline = time.monotonic() + wait_s
+    answered: set[str] = set()
     while True:
-        fused = [
-            r
-            for r in query_maps(session, namespace, when, 5.0)
-            if agent is None or r.agent == agent
-        ]
+        replies = query_maps(session, namespace, when, 5.0)
+        answered.update(r.agent for r in replies)
+        fused = [r for r in replies if agent is None or r.agent == agent]
         if fused or time.monotonic() >= deadline:
             break
         time.sleep(0.3)
     if not fused:
+        others = f": expected one of those that did: {', '.join(sorted(answered))}"
         msg = (
             f"daemon {agent!r} of colony namespace {namespace!r} did not answer an export query "
-            f"within {wait_s:g} s"
+            f"within {wait_s:g} s{others if answered else ''}"
             if agent
             else f"no daemon of colony namespace {namespace!r} answered an export query within "
             f"{wait_s:g} s"
@@ -271,7 +275,11 @@ def fetch_maps(
         params = ";".join(p for p in (f"layer={name}", when) if p)
         got = [r for r in query_maps(session, namespace, params, 10.0) if r.agent == source.agent]
         if not got:
-            msg = f"daemon {source.agent!r} holds no layer {name!r}"
+            msg = (
+                f"daemon {source.agent!r} holds no layer {name!r}: expected an agent id whose "
+                f"layer it holds (its fused map's: {', '.join(source.layers) or 'none'}; "
+                "`colonyd status` lists every member's layers)"
+            )
             raise StatusError(msg)
         layers[name] = got[0]
     return source, layers
@@ -307,6 +315,15 @@ def diff_maps(before: MapReply, after: MapReply, since: float) -> Changes:
     return Changes(since, after.frame, after.resolution, appeared, disappeared)
 
 
+def changes_between(fetch: Callable[[float], MapReply], since: float, until: float) -> Changes:
+    """What changed between the maps `fetch` gives as they were at `since` and at `until`, both
+    from the layers' history. A history keeps each voxel's log-odds as of its last state change
+    (VOXEL.md, "History"), not its present value: a fused voxel summed from such values can be
+    occupied where the live sum is free, so comparing the map at `since` with the live map
+    reported voxels of an unchanged colony as appeared or disappeared."""
+    return diff_maps(fetch(since), fetch(until), since)
+
+
 def map_changes(
     config: Config,
     out: Path,
@@ -321,25 +338,27 @@ def map_changes(
     _check_names(layer, agent)
     output_dir(out, "--out")
     session = get_client_session(config, "changes")
+
+    def fetch(at: float) -> MapReply:
+        nonlocal agent
+        fused, layers = fetch_maps(
+            session,
+            config.key_namespace,
+            layer=layer,
+            agent=agent,
+            wait_s=wait_s,
+            at=at,
+            layers_too=layer is not None,
+        )
+        agent = fused.agent  # both from the same daemon
+        return fused if layer is None else layers[layer]
+
     try:
-        maps = []
-        for at in (since, None):
-            fused, layers = fetch_maps(
-                session,
-                config.key_namespace,
-                layer=layer,
-                agent=agent,
-                wait_s=wait_s,
-                at=at,
-                layers_too=layer is not None,
-            )
-            maps.append(fused if layer is None else layers[layer])
-            agent = fused.agent  # both from the same daemon
+        changes = changes_between(fetch, since, max(time.time(), since))
     except NoAnswerError as exc:
         raise NoAnswerError(_why(exc, session, config, agent, wait_s)) from None
     finally:
         session.close()
-    changes = diff_maps(maps[0], maps[1], since)
     out.mkdir(parents=True, exist_ok=True)
     files = {"appeared.ply": out / "appeared.ply", "disappeared.ply": out / "disappeared.ply"}
     for name, keys in (
@@ -371,7 +390,9 @@ def export_maps(
 ) -> tuple[str, dict[str, Path]]:
     """Fetch the fused map in the colony frame and every layer's map (or one `layer`) from a
     running colony (the daemon `agent`, or the first to answer), as they are or were `at` a
-    time, and write them into `out`; returns the fused map's frame and the files."""
+    time, and write them into `out`; returns the fused map's frame and the files. The layers
+    that daemon holds but has not aligned with the colony frame are not in the fused map: each
+    is written in its own frame under `out/unaligned/` (`UNALIGNED`), not left out unsaid."""
     _check_names(layer, agent)
     output_dir(out, "--out")
     session = get_client_session(config, "export")
@@ -379,6 +400,15 @@ def export_maps(
         fused, layers = fetch_maps(
             session, config.key_namespace, layer=layer, agent=agent, wait_s=wait_s, at=at
         )
+        apart: dict[str, MapReply] = {}
+        if layer is None:
+            for name in unaligned_layers(session, config.key_namespace, fused):
+                with contextlib.suppress(StatusError):  # dropped meanwhile: nothing to write
+                    apart.update(
+                        fetch_maps(
+                            session, config.key_namespace, layer=name, agent=fused.agent, at=at
+                        )[1]
+                    )
     except NoAnswerError as exc:
         raise NoAnswerError(_why(exc, session, config, agent, wait_s)) from None
     finally:
@@ -388,4 +418,18 @@ def export_maps(
         files.update(write_maps(fused, out, "fused"))
     for name, reply in layers.items():
         files.update(write_maps(reply, out, name))
+    for name, reply in apart.items():
+        (out / UNALIGNED).mkdir(exist_ok=True)
+        written = write_maps(reply, out / UNALIGNED, name)
+        files.update({f"{UNALIGNED}/{key}": path for key, path in written.items()})
     return fused.frame, files
+
+
+def unaligned_layers(session: zenoh.Session, namespace: str, fused: MapReply) -> list[str]:
+    """The layers with data that the daemon which sent `fused` holds but has not fused (not
+    aligned with its colony frame), from its status report."""
+    from colonyd.status import query_status
+
+    report = next((r for r in query_status(session, namespace) if r["agent"] == fused.agent), {})
+    held = report.get("layers", {})
+    return sorted(o for o, v in held.items() if v.get("seq") and o not in fused.layers)

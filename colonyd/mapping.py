@@ -348,7 +348,8 @@ def summary_breakdown(spent: dict[str, float], total: float) -> str:
 
 
 def write_map(grid: VoxelGrid, out_dir: Path, trajectory: list[str]) -> dict[str, Path]:
-    """Snapshot, OctoMap .bt, PLY of occupied voxel centres (with colour) and TUM trajectory."""
+    """Snapshot, OctoMap .bt, PLY of the occupied voxels' surface points (their mean hit positions,
+    with colour) and TUM trajectory."""
     files = {
         "snapshot": out_dir / "grid.npz",
         "bt": out_dir / "map.bt",

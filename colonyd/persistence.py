@@ -113,8 +113,9 @@ class StateStore:
             self.dir.mkdir(parents=True, exist_ok=True)
             self._lock_fd = os.open(self.dir / "lock", os.O_RDWR | os.O_CREAT, 0o600)
         except OSError as exc:
+            found = "a file" if self.dir.is_file() else f"not writable: {exc.strerror}"
             msg = (
-                f"state directory {self.dir} is not writable: {exc.strerror}; expected a "
+                f"state directory {self.dir} is {found}; expected a "
                 "directory this user may create and write (--state-dir DIR, or state_dir in the "
                 "config; the default /var/lib/colonyd is the systemd unit's)"
             )
@@ -123,7 +124,11 @@ class StateStore:
             fcntl.flock(self._lock_fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
             os.close(self._lock_fd)
-            msg = f"state directory {self.dir} is in use by another colonyd"
+            msg = (
+                f"state directory {self.dir} is in use by another colonyd (it holds "
+                f"{self.dir / 'lock'}); expected a directory no running daemon holds: stop that "
+                "daemon, or give this one a --state-dir of its own"
+            )
             raise PersistenceError(msg) from None
         self._wal: Any = None
         self.wal_bytes = 0
@@ -210,7 +215,8 @@ class StateStore:
         if meta.get("agent_id") != self.agent_id:
             msg = (
                 f"state directory {self.dir} belongs to agent {meta.get('agent_id')!r}, "
-                f"expected {self.agent_id!r}"
+                f"expected {self.agent_id!r}: every agent keeps its own state directory (give "
+                f"--agent-id {meta.get('agent_id')} to run that agent, or another --state-dir)"
             )
             raise PersistenceError(msg)
         if abs(float(meta.get("resolution", 0)) - self.resolution) > 1e-12:

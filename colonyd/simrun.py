@@ -3,10 +3,8 @@ watched through their status (the demo and the paper's experiment both are such 
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
-import os
 import subprocess
 import sys
 import threading
@@ -16,6 +14,7 @@ from typing import Any
 
 from colonyd.bench.launcher import LocalColony
 from colonyd.export import MapReply, fetch_maps
+from colonyd.priority import as_us, below_us
 from colonyd.tracks import Track, record
 
 log = logging.getLogger(__name__)
@@ -184,13 +183,11 @@ class AloneReplay:
                 stdout=log,
                 stderr=log,
             )
-        with contextlib.suppress(OSError):  # not permitted here: it runs at normal priority
-            os.setpriority(os.PRIO_PROCESS, self.proc.pid, 10)
+        below_us(self.proc.pid)
 
     def hurry(self) -> None:
-        """Back to normal priority (the run it gave way to is over)."""
-        with contextlib.suppress(OSError):  # lowering niceness needs privileges
-            os.setpriority(os.PRIO_PROCESS, self.proc.pid, 0)
+        """Back to our priority (the run it gave way to is over)."""
+        as_us(self.proc.pid)
 
     def result(self, wait_s: float) -> dict[str, float | None]:
         """ATE RMSE (m) of the estimate and of dead reckoning alone, waiting up to `wait_s`

@@ -140,6 +140,18 @@ def alive_members(session: zenoh.Session, namespace: str, timeout: float = 2.0) 
     return sorted(agents)
 
 
+def colonies_seen(session: zenoh.Session, timeout: float = 1.0) -> set[str]:
+    """Colony namespaces of the live daemons this session reaches (their liveliness tokens)."""
+    seen: set[str] = set()
+    for r in session.liveliness().get(f"{ROOT}/*/{ALIVE}/*", timeout=timeout):
+        if r.ok is not None:
+            try:
+                seen.add(parse_key(str(r.ok.key_expr)).colony)
+            except KeyExprError:
+                continue
+    return seen
+
+
 def nobody_answered(session: zenoh.Session, config: Config, wait_s: float) -> str:
     """Why no daemon answered: the colonies whose daemons this session does see (a wrong
     `--colony`), or none at all (nothing listens where it looked)."""
@@ -150,13 +162,7 @@ def nobody_answered(session: zenoh.Session, config: Config, wait_s: float) -> st
         if config.multicast
         else "nowhere (no --connect, multicast off)"
     )
-    seen: set[str] = set()
-    for r in session.liveliness().get(f"{ROOT}/*/{ALIVE}/*", timeout=1.0):
-        if r.ok is not None:
-            try:
-                seen.add(parse_key(str(r.ok.key_expr)).colony)
-            except KeyExprError:
-                continue
+    seen = colonies_seen(session)
     head = (
         f"no daemon of colony namespace {config.key_namespace!r} answered within {wait_s:g} s "
         f"(looked through {where})"
@@ -260,5 +266,35 @@ def format_status(reports: list[dict[str, Any]]) -> str:
             "?",
         )
         ago = f"{max(0.0, now - seen[agent]):.1f}s"
-        lines.append(f"{agent:<16} {kind:<8} {ago:>9} {'-':<22} {'?':>6} {'?':>7}  (not answering)")
+        alive = [
+            m.get("alive", True)
+            for r in reports
+            for m in r.get("members", [])
+            if m["agent"] == agent
+        ]
+        # its liveliness token withdrawn (a clean stop, or a lease that ran out) for every
+        # member that knows it: it left; else it is there but does not answer (frozen, busy)
+        state = "(left)" if alive and not any(alive) else "(not answering)"
+        lines.append(f"{agent:<16} {kind:<8} {ago:>9} {'-':<22} {'?':>6} {'?':>7}  {state}")
+    lines.extend(frame_lines(reports, sorted(seen)))
     return "\n".join(lines)
+
+
+def frame_lines(reports: list[dict[str, Any]], members: list[str]) -> list[str]:
+    """The colony frame as the answering members see it: its root, the members aligned with it
+    and those that are not (one line per distinct view, naming who holds it; `--json` has each
+    member's transforms and alignment attempts)."""
+    views: dict[tuple[str, tuple[str, ...]], list[str]] = {}
+    for r in reports:
+        frame = r.get("colony_frame") or {}
+        key = (str(frame.get("root", "?")), tuple(sorted(frame.get("agents", {}))))
+        views.setdefault(key, []).append(r["agent"])
+    lines = []
+    for (root, aligned), holders in sorted(views.items()):
+        apart = [m for m in members if m not in aligned]
+        seen_by = "" if len(views) == 1 else f" (as {', '.join(sorted(holders))} see it)"
+        lines.append(
+            f"colony frame: root {root}; aligned: {', '.join(aligned) or 'none'}; "
+            f"not aligned: {', '.join(apart) or 'none'}{seen_by}"
+        )
+    return lines

@@ -119,8 +119,7 @@ def forget_agent(
     finally:
         session.close()
     if not took:
-        errors = sorted({str(a.get("error")) for a in answers.values() if a.get("error")})
-        found = f"{len(answers)} answers{': ' + '; '.join(errors) if errors else ''}"
+        found = answers_found(answers)
         if not answers:
             where = ", ".join(config.connect) if config.connect else "multicast"
             found = f"no answer from a daemon reached through {where}"
@@ -131,3 +130,18 @@ def forget_agent(
         )
         raise StatusError(msg)
     return sorted(answers.values(), key=lambda a: str(a.get("agent")))
+
+
+def answers_found(answers: dict[str, dict[str, Any]]) -> str:
+    """What the daemons' answers to a forget request said, when none took it: each error once,
+    with the daemons that gave it (a daemon never forgets its own layer: only its peers can)."""
+    by_error: dict[str, list[str]] = {}
+    for agent, answer in sorted(answers.items()):
+        if answer.get("error"):
+            by_error.setdefault(str(answer["error"]), []).append(agent)
+    parts = []
+    own = "its own layer (a daemon never forgets its own: its peers do)"
+    for error, agents in sorted(by_error.items()):
+        parts.append(f"{', '.join(agents)}: {own if error == OWN_LAYER else error}")
+    n = len(answers)
+    return f"{n} answer{'' if n == 1 else 's'}" + (": " + "; ".join(parts) if parts else "")

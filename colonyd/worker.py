@@ -13,6 +13,7 @@ from colonyd.activity import Activity
 from colonyd.errors import ColonydError, WireError
 from colonyd.metrics import Metrics
 from protocol import ProtocolError
+from protocol.errors import NotIntroducedError
 
 log = logging.getLogger(__name__)
 
@@ -188,7 +189,10 @@ class Worker(Generic[T]):
             metrics.reject(exc.reason)
             held = self._throttle.allow(exc.reason)
             if held is not None:
-                log.warning("rejected %s: %s%s", self._describe(item), exc, held_text(held))
+                # a peer's frame that overtook its first heartbeat (every join, trust on first
+                # use) is counted like the rest but is no cause for alarm: info, not a warning
+                level = logging.INFO if isinstance(exc, NotIntroducedError) else logging.WARNING
+                log.log(level, "rejected %s: %s%s", self._describe(item), exc, held_text(held))
         elif metrics is not None and self._hostile and isinstance(exc, (ColonydError, ValueError)):
             metrics.reject("invalid")
             held = self._throttle.allow(f"invalid:{type(exc).__name__}")

@@ -151,12 +151,16 @@ class CarmenOptions(Options):
     )
     seed: int = Field(0, description="seed of the synthesised odometry noise")
     move_x: float = Field(
-        0.0, description="moves every scan pose: x shift, metres (after the rotation move_yaw)"
+        0.0,
+        description="moves every scan pose and the odometry: x shift, metres (after the "
+        "rotation move_yaw)",
     )
-    move_y: float = Field(0.0, description="moves every scan pose: y shift, metres")
+    move_y: float = Field(
+        0.0, description="moves every scan pose and the odometry: y shift, metres"
+    )
     move_yaw: float = Field(
         0.0,
-        description="moves every scan pose: rotation about z through the "
+        description="moves every scan pose and the odometry: rotation about z through the "
         "origin, degrees (then the shift)",
     )
 
@@ -166,7 +170,9 @@ class CarmenSource:
 
     poses: "reference" (the corrected x y theta) or "odometry"; bad lines are skipped and counted
     unless strict; start/stop/step select scans by index; move_x/move_y/move_yaw (degrees) move
-    every delivered pose by one rigid transform, as if the robot had started elsewhere.
+    every delivered pose and odometry reading by one rigid transform, as if the robot had started
+    elsewhere (an estimator starts from the first odometry reading: moving the poses alone left a
+    localised agent's map where it was).
     """
 
     def __init__(
@@ -273,7 +279,7 @@ class CarmenSource:
                 ),
                 pose=self.move @ pose_matrix(x, y, 0.0, th),
                 time=record.time,
-                odometry=pose_matrix(ox, oy, 0.0, oth),
+                odometry=self.move @ pose_matrix(ox, oy, 0.0, oth),
                 frame=f"{self.path}:{record.line}",
             )
             self.stats.delivered += 1

@@ -38,6 +38,9 @@ _NOMINAL_K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]
 LATCHED = ("tf_static", "camera_info")
 #: Sensor messages waiting for their transforms, at most.
 PENDING = 64
+#: Seconds without a single sample on any topic after which the source says so (and again at
+#: every multiple): a wrong topic, ROS domain or router endpoint otherwise waited in silence.
+QUIET_S = 10.0
 
 
 class WrongTypeError(SensorInputError):
@@ -283,6 +286,7 @@ class Ros2Source:
         entities = self._declare(session)
         stop = self.context.stop
         delivered = 0
+        began, said = clock.monotonic(), 0
         try:
             while not stop.is_set():
                 item: _Sample | None
@@ -290,6 +294,10 @@ class Ros2Source:
                     item = self._queue.get(timeout=0.1)
                 except queue.Empty:
                     item = None
+                    quiet = int((clock.monotonic() - began) / QUIET_S)
+                    if quiet > said and not self.received and not self.stats.skipped:
+                        said = quiet
+                        log.warning("%s", self._quiet(quiet * QUIET_S))
                 ready: list[Observation] = []
                 if item is not None:
                     with self._lock:
@@ -313,6 +321,17 @@ class Ros2Source:
                     log.debug("undeclare: %s", exc)
             if own:
                 session.close()
+
+    def _quiet(self, seconds: float) -> str:
+        """What to check when nothing at all arrived within `seconds`."""
+        topics = ", ".join(t for t, _ in self.topics.values())
+        through = self.options.connect or "the daemon's Zenoh session"
+        return (
+            f"{self.spec}: nothing received in {seconds:g} s on {topics} (ROS domain "
+            f"{self.options.domain}, through {through}): expected the robot's rmw_zenoh graph "
+            "to publish them: check the topic names, domain= (the robot's ROS_DOMAIN_ID) and "
+            "that its router listens at connect="
+        )
 
     def _session(self) -> tuple[Any, bool]:
         """(session, owned): a new one to `connect`, else the daemon's."""

@@ -91,6 +91,11 @@ class UnknownIdentityError(IdentityError):
     reason = "unknown_identity"
 
 
+class NotIntroducedError(UnknownIdentityError):
+    """Trust on first use, and the origin's first Heartbeat (which introduces its key) has not
+    arrived yet: a frame that overtook it, as at every join; repaired later like any loss."""
+
+
 class KeyExprError(ProtocolError, ValueError):
     """A key expression or one of its names is not valid."""
 

@@ -10,7 +10,7 @@ from typing import Literal
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
-from protocol.errors import IdentityError, UnknownIdentityError
+from protocol.errors import IdentityError, NotIntroducedError, UnknownIdentityError
 
 #: Bytes of an Ed25519 signature (it follows a signed frame's envelope) and of a public key.
 SIG_BYTES = 64
@@ -135,9 +135,11 @@ class Trust:
                 )
                 raise UnknownIdentityError(msg)
             return offered
-        want = "a pinned key (trust list)" if self.mode == "list" else "its heartbeat first"
-        msg = f"identity of {origin!r}: expected {want}, found no key for it"
-        raise UnknownIdentityError(msg)
+        if self.mode == "list":
+            msg = f"identity of {origin!r}: expected a pinned key (trust list), found no key for it"
+            raise UnknownIdentityError(msg)
+        msg = f"identity of {origin!r}: expected its heartbeat first, found no key for it"
+        raise NotIntroducedError(msg)
 
     def pin(self, origin: str, key: bytes) -> None:
         """Record `origin`'s key on first use (tofu); a known pin stays as it is."""

@@ -250,3 +250,27 @@ def test_the_command_line_and_the_daemon_load_neither_the_experiment_nor_opencv(
     )
     stdout = fresh_process(code)
     assert stdout.split("\n")[:3] == ["[]", "True True", "(2, 3) True"], stdout
+
+
+def test_run_help_shows_the_configuration_defaults(capsys: pytest.CaptureFixture[str]) -> None:
+    """The flags' own default is None (the environment or the file may set the field), so
+    `colonyd run --help` showed no default at all: it shows the configuration's now."""
+    import re
+
+    from colonyd.config import Config
+
+    with pytest.raises(SystemExit) as done:
+        main(["run", "--help"])
+    assert done.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    for flag, field in (
+        ("--resolution", "resolution"),
+        ("--publish-hz", "publish_hz"),
+        ("--heartbeat-s", "heartbeat_s"),
+        ("--block-shape", "block_shape"),
+        ("--state-dir", "state_dir"),
+        ("--kind", "kind"),
+    ):
+        default = Config.model_fields[field].default
+        assert re.search(rf"{flag} \S+ .*?\(default {re.escape(str(default))}\)", text), flag
+    assert "PydanticUndefined" not in text and "(default: the host name)" in text

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -32,6 +33,9 @@ def test_three_converge_late_joiner_and_garbage(make_colony):
     plain.start()
     colony.wait_members(3)
     colony.wait_converged(30)  # every replica equal to its origin's layer (digests)
+    # A finite source's end is in the log (status --json has sources_done; the log said nothing)
+    done = r"source synthetic:\S+ done: 6 frames in \d+\.\d s, 0 skipped\n"
+    assert len(re.findall(done, colony.logs(tail=1_000_000))) == 3
     # Each daemon runs in a session of its own, as systemd starts a service (autogroup shares
     # CPU time by session: docs/RELIABILITY.md).
     for d in colony.daemons.values():
@@ -206,6 +210,24 @@ def test_two_colonies_do_not_see_each_other(make_colony):
     for r in rx.values():
         assert set(r["layers"]) <= {"x1", "x2"}
         assert {m["agent"] for m in r["members"]} <= {"x1", "x2"}
+
+
+def test_a_daemon_of_another_colony_at_its_peer_says_so(make_colony):
+    """A --colony that differs from its peer's: the daemon ran alone without a word. After ten
+    heartbeat periods with no member it names the colonies it does reach."""
+    x = make_colony("x")
+    hub = x.add("x1")
+    hub.wait_listening()
+    y = make_colony("y")
+    typo = y.add("y1", extra=["--connect", hub.endpoint, "--heartbeat-s", "0.2"])
+    want = (
+        f"no member of colony namespace '{y.namespace}' reached through {hub.endpoint}, but "
+        f"daemons of '{x.namespace}': expected every member to run with the same --colony"
+    )
+    deadline = time.monotonic() + 30
+    while want not in (text := typo.log_path.read_text(errors="replace")):
+        assert time.monotonic() < deadline, text[-3000:]
+        time.sleep(0.2)
 
 
 def test_flood_is_bounded_and_counted(make_colony):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from colonyd.demo import _progress_line, _summary_text
+from colonyd.demo import _progress_line, _replay_line, _summary_text
 
 
 def _robot(carries: str, aligned: bool, after: float | None, ate: float | None) -> dict:
@@ -63,3 +63,38 @@ def test_progress_line_for_a_log():
         "demo at  12.0 s: 2 members answered; aligned with the colony frame (cctv-1): b, cctv-1"
     )
     assert _progress_line([], 1.0).endswith("(?): none yet")
+
+
+def test_the_replays_after_the_colony_are_announced():
+    """After the colony's last table the demo replayed each robot alone for a minute or more
+    with nothing printed: it looked hung."""
+    line = _replay_line(149.1, ["depth-1", "lidar-1"])
+    assert line.startswith("colony stopped at 149.1 s; replaying depth-1, lidar-1 alone")
+    assert "colonyd localize" in line
+
+
+def test_the_table_in_a_log_is_not_cut_at_80_columns():
+    """Without a terminal the demo prints its table once, at the end: at rich's default 80
+    columns it read "lidar3…", "replic…" and split every figure over two lines."""
+    from colonyd.demo import _table, stdout_console
+    from colonyd.tracks import Track
+
+    counts = {"bytes_published": 6_689_000, "bytes_received": 15_096_000}
+    reports = [
+        {
+            "agent": agent,
+            "colony_frame": {"root": "cctv-1", "agents": {"cctv-1": []}},
+            "pose_error_m": 0.001,
+            "layers": {agent: {"seq": 141}, "cctv-1": {"seq": 40}},
+            "metrics": {"counts": counts},
+        }
+        for agent in ("cctv-1", "lidar3d-1")
+    ]
+    tracks = {"lidar3d-1": Track("3D LiDAR", 0.0), "cctv-1": Track("CCTV", 0.0)}
+    console = stdout_console()  # pytest captures stdout: not a terminal
+    with console.capture() as captured:
+        console.print(_table(reports, tracks, 149.1))
+    text = captured.get()
+    assert "…" not in text
+    assert "lidar3d-1" in text and "replicas" in text and "14742 KiB" in text
+    assert len(text.splitlines()) == 7  # title, border, header, rule, 2 one-line rows, border

@@ -72,7 +72,14 @@ def test_export_fetches_the_fused_map_and_layers(make_colony, tmp_path, capfd):
     try:
         with pytest.raises(SystemExit) as missing:
             launch([*base[3:], "--out", str(out), "--layer", "nobody"])
-        assert missing.value.code == 1 and "holds no layer 'nobody'" in capfd.readouterr().err
+        err = capfd.readouterr().err
+        assert missing.value.code == 1 and "holds no layer 'nobody': expected an agent id" in err
+        assert "(its fused map's: a, b;" in err or "(its fused map's: a;" in err, err
+        with pytest.raises(SystemExit) as unknown:
+            launch([*base[3:], "--out", str(out), "--from", "nobody"])
+        err = capfd.readouterr().err
+        assert unknown.value.code == 1 and "daemon 'nobody' of colony namespace" in err
+        assert "expected one of those that did: a, b" in err, err
         (tmp_path / "file").write_text("x")
         with pytest.raises(SystemExit) as bad:
             launch([*base[3:], "--out", str(tmp_path / "file")])
@@ -142,3 +149,58 @@ def test_export_with_nobody_there_says_where_it_looked(tmp_path):
         f"no daemon of colony namespace 'nobody' answered within 5 s (looked through {endpoint}): "
         "expected a running colonyd there, found none"
     ) in run.stderr
+
+
+def test_changes_of_an_unchanged_fused_map_are_none():
+    """A history keeps a voxel's log-odds as of its last state change: a voxel one layer hit
+    once (+0.84) and another saw free ten times (-0.41 at its flip, -2.0 now) is occupied in
+    the fused map from history and free in the live one. `colonyd changes` compared the map
+    at --since with the live map and reported it as disappeared from an unchanged colony."""
+    from colonyd.export import MapReply, changes_between, diff_maps
+    from colonyd.grid import new_grid
+    from colonyd.layers import Layer, fused
+
+    a, b = Layer("a", 0.1), Layer("b", 0.1)
+    a.grid, b.grid = new_grid(0.1), new_grid(0.1)
+    a.grid.integrate(np.array([[2.05, 0.05, 0.05]]), np.zeros(3), time=1.0)
+    for i in range(10):
+        b.grid.integrate(np.array([[4.05, 0.05, 0.05]]), np.zeros(3), time=1.0 + i)
+
+    def fetch(at: float | None) -> MapReply:
+        keys, lo = fused([a, b], 0.1, at=at)
+        return MapReply("a", None, "a.odom", 0.1, keys, lo.astype(np.float32))
+
+    live = diff_maps(fetch(20.0), fetch(None), 20.0)  # what the command did: not like with like
+    assert [20, 0, 0] in live.disappeared.tolist()
+    changes = changes_between(fetch, 20.0, 30.0)
+    assert len(changes.appeared) == len(changes.disappeared) == 0
+    a.grid.integrate(np.array([[0.55, 0.05, 0.05]]), np.zeros(3), time=25.0)  # a real change
+    changes = changes_between(fetch, 20.0, 30.0)
+    assert changes.appeared.tolist() == [[5, 0, 0]] and len(changes.disappeared) == 0
+
+
+def test_export_writes_the_layers_not_aligned_in_their_own_frames(make_colony, tmp_path):
+    """Two robots whose maps are not aligned (no alignment attempts here): the export wrote the
+    fused map and the root's layer only, and said nothing of the other robot's map."""
+    colony = make_colony("apart")
+    for agent, seed in (("a", 1), ("c", 2)):
+        d = colony.add(agent, [f"synthetic:scans=3,rate=8,points=200,seed={seed}"], start=False)
+        d.env["COLONYD_ALIGN_S"] = "0"
+        d.start()
+    colony.wait_converged(30)
+    out = tmp_path / "maps"
+    run = subprocess.run(
+        [
+            sys.executable, "-m", "colonyd", "export", "--colony", "apart",
+            "--namespace", colony.namespace, "--no-multicast",
+            "--connect", colony.daemons["a"].endpoint, "--out", str(out), "--from", "a",
+        ],
+        capture_output=True, check=False, text=True, timeout=60,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["a.bt", "a.ply", "fused.bt", "fused.ply",
+                                                     "unaligned"]  # fmt: skip
+    assert sorted(p.name for p in (out / "unaligned").iterdir()) == ["c.bt", "c.ply"]
+    assert "not in the fused map: c (each in its own frame in unaligned/)" in run.stdout
+    c = read_bt(out / "unaligned" / "c.bt")
+    assert c.occupied.sum() > 50  # c's own map, as its origin holds it

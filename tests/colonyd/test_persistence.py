@@ -91,11 +91,15 @@ def test_torn_wal_tail_is_dropped(tmp_path):
 def test_state_dir_guards(tmp_path):
     store = StateStore(tmp_path, "a", 0.1)
     store.recover()
-    with pytest.raises(PersistenceError, match="in use by another colonyd"):
+    with pytest.raises(
+        PersistenceError,
+        match=r"in use by another colonyd \(it holds .*/lock\); expected a directory no running "
+        "daemon holds: stop that daemon, or give this one a --state-dir of its own",
+    ):
         StateStore(tmp_path, "a", 0.1)
     store.close()
     for agent, res, match in (
-        ("b", 0.1, "belongs to agent 'a', expected 'b'"),
+        ("b", 0.1, "belongs to agent 'a', expected 'b': every agent keeps its own state"),
         ("a", 0.2, "resolution 0.1, expected 0.2"),
     ):
         other = StateStore(tmp_path, agent, res)
@@ -107,6 +111,9 @@ def test_state_dir_guards(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(PersistenceError, match="not writable"):
         StateStore(tmp_path / "file" / "sub", "a", 0.1)
+    # --state-dir naming a file: was "not writable: File exists"
+    with pytest.raises(PersistenceError, match=r"/file is a file; expected a directory"):
+        StateStore(tmp_path / "file", "a", 0.1)
 
 
 def test_changes_after_the_last_publish_are_sent_after_a_restart(tmp_path):

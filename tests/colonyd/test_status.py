@@ -82,3 +82,37 @@ def test_nobody_answered_names_the_colonies_it_does_see() -> None:
     finally:
         a.close()
         b.close()
+
+
+def test_the_table_says_which_members_are_aligned_with_the_colony_frame() -> None:
+    """`colonyd status` without --json showed no alignment at all, though alignment is what a
+    user of a new colony waits for: one line per view of the colony frame follows the members."""
+    from colonyd.status import format_status
+
+    now = time.time()
+    frame = {"root": "robot-a", "agents": {"robot-a": [], "robot-b": []}}
+    reports = [
+        {"agent": "robot-a", "time": now, "colony_frame": frame, "members": []},
+        {"agent": "robot-b", "time": now, "colony_frame": frame, "members": []},
+        {
+            "agent": "robot-c",
+            "time": now,
+            "colony_frame": {"root": "robot-c", "agents": {"robot-c": []}},
+            "members": [
+                {"agent": "robot-d", "last_seen": now - 4.0, "alive": True},  # not answering
+                {"agent": "robot-e", "last_seen": now - 9.0, "alive": False},  # stopped
+            ],
+        },
+    ]
+    lines = format_status(reports).splitlines()
+    assert lines[4].startswith("robot-d") and lines[4].endswith("(not answering)")
+    assert lines[5].startswith("robot-e") and lines[5].endswith("(left)")  # was "not answering"
+    del lines[5]
+    assert lines[5:] == [
+        "colony frame: root robot-a; aligned: robot-a, robot-b; not aligned: robot-c, robot-d, "
+        "robot-e (as robot-a, robot-b see it)",
+        "colony frame: root robot-c; aligned: robot-c; not aligned: robot-a, robot-b, robot-d, "
+        "robot-e (as robot-c see it)",
+    ]
+    one = format_status(reports[:2]).splitlines()[-1]
+    assert one == "colony frame: root robot-a; aligned: robot-a, robot-b; not aligned: none"

@@ -149,3 +149,19 @@ def test_forget_agent_gives_up_after_its_wait_and_says_so(tmp_path):
         capture_output=True, text=True, timeout=60, check=False,
     )  # fmt: skip
     assert bad.returncode == 1 and "--wait: expected seconds > 0, found 0.0" in bad.stderr
+
+
+def test_what_the_answers_said_when_nobody_took_the_request():
+    """A one-daemon colony asked to forget that daemon: "found 1 answers: own layer" said
+    neither who answered nor why."""
+    from colonyd.tombstones import OWN_LAYER, answers_found
+
+    assert answers_found({"a": {"agent": "a", "error": OWN_LAYER}}) == (
+        "1 answer: a: its own layer (a daemon never forgets its own: its peers do)"
+    )
+    answers = {
+        "b": {"agent": "b", "error": "bad-forget"},
+        "c": {"agent": "c", "error": "bad-forget"},
+        "d": {"agent": "d"},
+    }
+    assert answers_found(answers) == "3 answers: b, c: bad-forget"

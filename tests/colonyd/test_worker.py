@@ -9,6 +9,7 @@ from colonyd.errors import WireError
 from colonyd.metrics import Metrics
 from colonyd.worker import Bounded, Worker
 from protocol import TruncatedError
+from protocol.errors import NotIntroducedError, UnknownIdentityError
 
 
 def wait_for(cond, seconds: float = 5.0) -> bool:
@@ -108,3 +109,26 @@ def test_idle_runs_on_the_thread_before_each_wait() -> None:
     at = events.index(("item", 7))
     assert events[at - 1] == ("idle", "t")  # it was waiting (stamped) when 7 came
     assert events[at + 1] == ("idle", "t")  # and waits again after it
+
+
+def test_a_frame_ahead_of_its_origins_first_heartbeat_is_logged_as_info(caplog) -> None:
+    """Every join logged "WARNING ... rejected pose ...: expected its heartbeat first" (a pose
+    that overtook the newcomer's first heartbeat): counted as before, logged as info."""
+    metrics = Metrics()
+    seen: list[str] = []
+
+    def handle(item: str) -> None:
+        seen.append(item)
+        if item == "early":
+            raise NotIntroducedError("identity of 'a': expected its heartbeat first")
+        raise UnknownIdentityError("identity of 'a': expected a pinned key (trust list)")
+
+    w: Worker[str] = Worker("h", handle, Bounded(8), metrics=metrics, hostile=True)
+    with caplog.at_level("INFO", logger="colonyd.worker"):
+        w.start()
+        w.put("early")
+        w.put("listed")
+        assert wait_for(lambda: metrics.rejected.get("unknown_identity") == 2)
+        w.close()
+    levels = {r.getMessage().split(": ", 1)[0]: r.levelname for r in caplog.records}
+    assert levels == {"rejected early": "INFO", "rejected listed": "WARNING"}

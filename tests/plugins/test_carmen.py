@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from plugins.carmen import CarmenSource, parse_flaser, read_lines
+from plugins.checks import pose_matrix
 from plugins.errors import ParseError, SourceError, SourceSpecError
 from tests.shared import SHARED_DATA
 
@@ -131,6 +132,29 @@ def test_move_options_move_every_pose_rigidly() -> None:
             np.column_stack([-a.points_world()[:, 1] + 5.0, a.points_world()[:, 0] - 2.0]),
             atol=1e-9,
         )
+
+
+@needs_log
+@pytest.mark.parametrize("noise", [None, "realistic"])
+def test_move_options_move_the_odometry_too(noise: str | None) -> None:
+    """An estimator starts from the first odometry reading and maps from there: with the
+    odometry left where it was, a localised agent's map ignored move_* (two daemons replaying
+    the log with different moves aligned at the identity)."""
+    move = pose_matrix(5.0, -2.0, 0.0, math.radians(90.0))
+    plain = list(CarmenSource(LOG, stop=5, odometry_noise=noise))
+    moved = list(
+        CarmenSource(LOG, stop=5, odometry_noise=noise, move_x=5.0, move_y=-2.0, move_yaw=90.0)
+    )
+    for a, b in zip(plain, moved, strict=True):
+        assert a.odometry is not None and b.odometry is not None
+        np.testing.assert_allclose(b.odometry, move @ a.odometry, atol=1e-9)
+        np.testing.assert_allclose(b.pose, move @ a.pose, atol=1e-9)
+    # the motion between readings is the same: only the frame moved
+    np.testing.assert_allclose(
+        np.linalg.inv(moved[0].odometry) @ moved[-1].odometry,
+        np.linalg.inv(plain[0].odometry) @ plain[-1].odometry,
+        atol=1e-9,
+    )
 
 
 def test_move_options_must_be_finite(tmp_path: Path) -> None:

@@ -84,6 +84,34 @@ def collect(spec: str, sessions: tuple[Any, Any], frames: int, publish: Any) -> 
     return out
 
 
+def test_a_source_that_hears_nothing_says_what_to_check(
+    sessions: tuple[Any, Any], monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A wrong topic, domain or router endpoint waited in silence (`colonyd map` with nobody
+    publishing ran until killed): after QUIET_S without a sample the source says what to check."""
+    import plugins.ros2
+
+    monkeypatch.setattr(plugins.ros2, "QUIET_S", 0.3)
+    _, mapper = sessions
+    stop = threading.Event()
+    source = open_source("ros2:scan=/nobody,odom=/odom,domain=7", session=lambda: mapper, stop=stop)
+    thread = threading.Thread(target=lambda: list(source))
+    with caplog.at_level("WARNING", logger="plugins.ros2"):
+        thread.start()
+        try:
+            deadline = time.monotonic() + 20.0
+            while "nothing received" not in caplog.text and time.monotonic() < deadline:
+                time.sleep(0.05)
+        finally:
+            stop.set()
+            thread.join(10.0)
+    assert not thread.is_alive()
+    assert (
+        "nothing received in 0.3 s on /nobody, /odom, /tf, /tf_static (ROS domain 7, through the "
+        "daemon's Zenoh session): expected the robot's rmw_zenoh graph to publish them"
+    ) in caplog.text
+
+
 def test_point_clouds_are_placed_by_tf_at_their_stamps(sessions: tuple[Any, Any]) -> None:
     robot, mapper = sessions
     node = RosNode(robot, "lidar")

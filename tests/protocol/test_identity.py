@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from protocol.codec import decode, encode
-from protocol.errors import IdentityError, UnknownIdentityError
+from protocol.errors import IdentityError, NotIntroducedError, UnknownIdentityError
 from protocol.identity import MAX_PINS, Signer, Trust, parse_public, verify_signature
 from protocol.messages import DeltaRangeRequest, Heartbeat, Pose
 from protocol.receiver import Receiver
@@ -50,8 +50,9 @@ def test_signatures_verify_and_tampering_is_caught() -> None:
 def test_trust_on_first_use_pins_at_accept_and_refuses_another_key() -> None:
     pinned: list[tuple[str, bytes]] = []
     rx = Receiver(key=KEY, trust=Trust("tofu", on_pin=lambda a, k: pinned.append((a, k))))
-    with pytest.raises(UnknownIdentityError, match="expected its heartbeat first"):
+    with pytest.raises(NotIntroducedError, match="expected its heartbeat first") as early:
         rx.decode(_pose(1, A))  # nothing known of 'a' yet
+    assert early.value.reason == "unknown_identity"  # counted as before; a daemon logs it as info
     rx.decode(_hb(2, A))  # checked with the key it carries, not yet accepted: nothing pinned
     assert pinned == [] and rx.trust.pins() == {}
     rx.receive(_hb(3, A))
@@ -80,8 +81,9 @@ def test_requests_need_no_signature_and_off_checks_nothing() -> None:
         to_version=3,
     )
     rx.receive(encode(request, key=KEY))
-    with pytest.raises(UnknownIdentityError, match="trust list"):
+    with pytest.raises(UnknownIdentityError, match="trust list") as listed:
         rx.decode(_hb(1, A))  # a list admits only the agents on it, heartbeat or not
+    assert not isinstance(listed.value, NotIntroducedError)  # a refusal to warn about
     off = Receiver(key=KEY, trust=Trust("off"))
     off.receive(_pose(1, None))
     off.receive(_hb(2, B))
