@@ -287,6 +287,8 @@ class Inbox:
         if self.membership is None:
             return
         member = self.membership.heard(msg.origin, msg)
+        if member is None:  # no room after all (tokens came back since `admit`): not recorded
+            return
         for origin in msg.forgotten:  # a tombstone travels with every member's heartbeat
             if self.replicas.layers.forget_agent(origin):
                 log.warning("forgot the layer of %s (tombstone from %s)", origin, msg.origin)

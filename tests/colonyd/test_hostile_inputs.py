@@ -189,6 +189,42 @@ def test_heartbeats_of_made_up_agents_fill_no_more_than_max_members() -> None:
             d.close()
 
 
+def test_a_token_between_admit_and_heard_evicts_no_live_member() -> None:
+    """A heard member without a token makes room for a newcomer (`admit`), but its token comes
+    back before the newcomer's heartbeat is recorded (`heard`): no live member may be forgotten
+    for it (the least recently seen one was, and its heartbeats were then refused as one too
+    many: a stranger timing tokens could lock real members out one by one)."""
+    with _sessions(2) as (mine, other):
+        d = _daemon(mine, max_members=2)
+        try:
+            tokens = [other.liveliness().declare_token(alive_key(NS, "real"))]
+            assert _until(lambda: d.membership.alive() == ["real"])
+            real = Signer.generate()
+            d.feed("hb", "real", _heartbeat("real", real))
+            d.feed("hb", "ghost", _heartbeat("ghost", Signer.generate()))  # no token
+            d.membership.admit("new")  # room: the ghost has no token
+            tokens.append(other.liveliness().declare_token(alive_key(NS, "ghost")))
+            assert _until(lambda: sorted(d.membership.alive()) == ["ghost", "real"])
+            signer = Signer.generate()
+            hb = Heartbeat(
+                **Sender("new", 7, key=KEY, signer=signer).header(),
+                kind="robot",
+                frame_id="new.odom",
+                identity=signer.public,
+            )
+            d.membership.heard("new", hb)
+            table = {m.agent for m in d.membership.table()}
+            assert table == {"real", "ghost"}, table  # "new" not recorded: no room after all
+            assert len([m for m in d.membership.table() if m.heard]) <= 2
+            d.feed("hb", "real", _heartbeat("real", real, seq=2))  # still a member: accepted
+            assert d.metrics.rejected["too-many-members"] == 0
+            assert d.receiver.accepted["heartbeat"] == 3
+            for token in tokens:
+                token.undeclare()
+        finally:
+            d.close()
+
+
 def _block_delta(x0: int, to_version: int) -> Delta:
     """51,200 voxels filling 800 4x4x4 blocks (a box 40 x 40 x 32 from x = `x0`), occupied."""
     g = np.stack(np.meshgrid(np.arange(40), np.arange(40), np.arange(32), indexing="ij"), -1)
