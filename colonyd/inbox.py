@@ -356,6 +356,10 @@ class Inbox:
                 f"{msg.parts} parts"
             )
             raise WireError("bad-history", text)
+        layer = self.replicas.layers.find(msg.origin)
+        if msg.records is not None and layer is not None:  # refused before it is accepted
+            with layer.lock:
+                layer.grid.history.check_agents(msg.records)
         accept(self.receiver, self.metrics, msg, raw)
         if msg.records is not None and self._on_history is not None:
             self._on_history(msg)
