@@ -259,6 +259,7 @@ def test_parts_of_split_deltas_hold_no_more_voxels_than_the_peer_budget() -> Non
                 d.feed("delta", "evil", frame)
                 held = sum(len(x) for p in d.inbox.parts._open.values() for x in p.got.values())
                 assert held <= budget, f"{held} voxels held after part {i}"
+                assert d.inbox.parts.voxels == held  # its running count, kept as parts come
             assert d.metrics.rejected["over-budget"] == 9
             assert d.receiver.accepted["delta"] == 1  # the refused parts moved no window
             d.receiver.replay.peek("evil", 7, 11)
@@ -266,6 +267,7 @@ def test_parts_of_split_deltas_hold_no_more_voxels_than_the_peer_budget() -> Non
                 d.feed("delta", "evil", _parts(sender, _block_delta(0, v), [0], 2)[0])
                 held = sum(len(x) for p in d.inbox.parts._open.values() for x in p.got.values())
                 assert held <= budget, f"{held} voxels held after delta {v}"
+                assert d.inbox.parts.voxels == held  # its running count, kept as parts come
             assert d.layers.find("evil") is None  # nothing applied
         finally:
             d.close()
