@@ -187,11 +187,13 @@ class Worker(Generic[T]):
         metrics = self._metrics
         if metrics is not None and isinstance(exc, (ProtocolError, WireError)):
             metrics.reject(exc.reason)
-            held = self._throttle.allow(exc.reason)
+            # a peer's frame that overtook its first heartbeat (every join, trust on first use)
+            # is counted like the rest but is no cause for alarm: info, not a warning, and
+            # throttled apart (it held back the warnings of its reason: a trust list's refusals)
+            benign = isinstance(exc, NotIntroducedError)
+            held = self._throttle.allow(f"{exc.reason}:info" if benign else exc.reason)
             if held is not None:
-                # a peer's frame that overtook its first heartbeat (every join, trust on first
-                # use) is counted like the rest but is no cause for alarm: info, not a warning
-                level = logging.INFO if isinstance(exc, NotIntroducedError) else logging.WARNING
+                level = logging.INFO if benign else logging.WARNING
                 log.log(level, "rejected %s: %s%s", self._describe(item), exc, held_text(held))
         elif metrics is not None and self._hostile and isinstance(exc, (ColonydError, ValueError)):
             metrics.reject("invalid")
