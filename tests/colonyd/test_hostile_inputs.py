@@ -684,6 +684,47 @@ def test_a_history_page_refused_for_its_agents_moves_no_window() -> None:
             d.close()
 
 
+def test_a_pulled_history_page_of_too_many_agents_is_a_counted_refusal() -> None:
+    """A holder answers history pulls with a page that would take the replica's agent table past
+    `MAX_AGENTS`: refused and counted (`invalid`) like a pushed one. The pull raised, and the
+    history thread logged the error with its stack every round, counted nowhere."""
+    from colonyd.historysync import HistorySync
+
+    with _sessions(2) as (mine, evil):
+        d = _daemon(mine)
+        signer = Signer.generate()
+        d.feed("hb", "evil", _heartbeat("evil", signer))
+        sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+        d.feed("delta", "evil", _parts(sender, Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9]),
+                                       [0], 1)[0])  # fmt: skip
+        layer = d.layers.find("evil")
+        with layer.lock:
+            for i in range(MAX_AGENTS):
+                layer.grid.history.agent_code(f"g{i}")  # the table full already
+
+        def answer(query: zenoh.Query) -> None:
+            request = decode(query.payload.to_bytes(), key=KEY)
+            rec = np.zeros(1, RECORD_DTYPE)
+            rec["version"] = 1
+            reply = HistoryReply(**sender.header(), layer="evil", request_id=request.request_id,
+                                 layer_epoch=7, from_version=request.from_version, to_version=1,
+                                 records=HistoryPage(rec, ["one-more"]))  # fmt: skip
+            query.reply(query.key_expr, sender.encode(reply))
+            query.drop()
+
+        queryable = evil.declare_queryable(query_key(NS, "evil", "history", "evil"), answer)
+        try:
+            me = Sender("me", 1, key=KEY)
+            catchup = CatchUp(mine, NS, d.replicas, me, d.receiver, d.metrics)
+            sync = HistorySync(d.layers, catchup, d.metrics, period_s=0, stop=threading.Event())
+            assert _until(lambda: sync.pull(layer) == 0 and d.metrics.rejected["invalid"] > 0)
+            assert "one-more" not in layer.grid.history.agents
+            assert d.metrics.rejected["internal"] == 0
+        finally:
+            queryable.undeclare()
+            d.close()
+
+
 def test_a_flood_of_refused_frames_does_not_flood_the_log(caplog) -> None:
     """A stranger without the colony key puts junk on a delta key as fast as it can: every frame
     is refused and counted, but the log gets a few lines per reason, not one per frame (it was
