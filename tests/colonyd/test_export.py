@@ -188,6 +188,15 @@ def test_export_writes_the_layers_not_aligned_in_their_own_frames(make_colony, t
         d.env["COLONYD_ALIGN_S"] = "0"
         d.start()
     colony.wait_converged(30)
+    from protocol.keyexpr import EXPORT, status_selector
+
+    asked: list[str] = []  # the export queries' parameters, as every daemon gets them
+
+    def spy(query) -> None:
+        asked.append(str(query.parameters))
+        query.drop()
+
+    spying = colony.session().declare_queryable(status_selector(colony.namespace, EXPORT), spy)
     out = tmp_path / "maps"
     run = subprocess.run(
         [
@@ -197,7 +206,11 @@ def test_export_writes_the_layers_not_aligned_in_their_own_frames(make_colony, t
         ],
         capture_output=True, check=False, text=True, timeout=60,
     )  # fmt: skip
+    spying.undeclare()
     assert run.returncode == 0, run.stderr
+    # the fused map asked for once: every daemon computes and sends its own (it was asked again
+    # for each layer not aligned); then each layer once
+    assert sorted(asked) == ["", "layer=a", "layer=c"], asked
     assert sorted(p.name for p in out.iterdir()) == ["a.bt", "a.ply", "fused.bt", "fused.ply",
                                                      "unaligned"]  # fmt: skip
     assert sorted(p.name for p in (out / "unaligned").iterdir()) == ["c.bt", "c.ply"]
