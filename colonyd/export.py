@@ -18,7 +18,7 @@ from colonyd.layers import SURFACE_REACH
 from colonyd.mapping import write_floor_plan
 from colonyd.outdir import output_dir
 from colonyd.runtime import get_client_session
-from protocol.keyexpr import EXPORT, NAME_PATTERN, status_selector
+from protocol.keyexpr import EXPORT, NAME_PATTERN, status_key, status_selector
 from voxel import keys as vk
 from voxel.octomap_io import write_bt
 from voxel.ply import write_ply
@@ -223,11 +223,17 @@ def write_maps(reply: MapReply, out: Path, stem: str) -> dict[str, Path]:
 
 
 def query_maps(
-    session: zenoh.Session, namespace: str, params: str, timeout: float
+    session: zenoh.Session, namespace: str, params: str, timeout: float, agent: str | None = None
 ) -> list[MapReply]:
-    """Map replies of every daemon to an export query with `params` ("k=v;k=v")."""
+    """Map replies of every daemon (or of daemon `agent` only) to an export query with `params`
+    ("k=v;k=v")."""
+    where = (
+        status_selector(namespace, EXPORT)
+        if agent is None
+        else status_key(namespace, agent, EXPORT)
+    )
     replies = session.get(
-        status_selector(namespace, EXPORT) + (f"?{params}" if params else ""),
+        where + (f"?{params}" if params else ""),
         consolidation=zenoh.ConsolidationMode.NONE,
         timeout=timeout,
     )
@@ -287,10 +293,11 @@ def fetch_layer(
     session: zenoh.Session, namespace: str, agent: str, name: str, at: float | None = None
 ) -> MapReply | None:
     """The map of layer `name` as daemon `agent` holds it (with `at`, as it was then); None if
-    it does not hold it."""
+    it does not hold it. Asked of `agent` alone: every daemon holding a replica of the layer
+    sent its copy, all but one thrown away."""
     when = "" if at is None else f"at={float(at)!r}"
     params = ";".join(p for p in (f"layer={name}", when) if p)
-    got = [r for r in query_maps(session, namespace, params, 10.0) if r.agent == agent]
+    got = [r for r in query_maps(session, namespace, params, 10.0, agent) if r.agent == agent]
     return got[0] if got else None
 
 
