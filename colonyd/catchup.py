@@ -233,7 +233,11 @@ class CatchUp:
                     )
                     raise WireError("oversized", text)
                 if full:
-                    raise WireError("over-budget", f"expected replies within {cap} voxels")
+                    text = (
+                        f"expected replies holding at most {cap} voxels together, found more in "
+                        f"the {len(out)} taken and the one past them: the rest refused undecoded"
+                    )
+                    raise WireError("over-budget", text)
                 msg = self.receiver.decode(raw, key_expr=str(reply.ok.key_expr))
                 if not (
                     isinstance(msg, cls)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import math
 import time
 from collections.abc import Callable
@@ -19,7 +18,7 @@ from colonyd.layers import SURFACE_REACH
 from colonyd.mapping import write_floor_plan
 from colonyd.outdir import output_dir
 from colonyd.runtime import get_client_session
-from protocol.keyexpr import EXPORT, NAME_PATTERN, status_selector
+from protocol.keyexpr import EXPORT, NAME_PATTERN, status_key, status_selector
 from voxel import keys as vk
 from voxel.octomap_io import write_bt
 from voxel.ply import write_ply
@@ -224,11 +223,17 @@ def write_maps(reply: MapReply, out: Path, stem: str) -> dict[str, Path]:
 
 
 def query_maps(
-    session: zenoh.Session, namespace: str, params: str, timeout: float
+    session: zenoh.Session, namespace: str, params: str, timeout: float, agent: str | None = None
 ) -> list[MapReply]:
-    """Map replies of every daemon to an export query with `params` ("k=v;k=v")."""
+    """Map replies of every daemon (or of daemon `agent` only) to an export query with `params`
+    ("k=v;k=v")."""
+    where = (
+        status_selector(namespace, EXPORT)
+        if agent is None
+        else status_key(namespace, agent, EXPORT)
+    )
     replies = session.get(
-        status_selector(namespace, EXPORT) + (f"?{params}" if params else ""),
+        where + (f"?{params}" if params else ""),
         consolidation=zenoh.ConsolidationMode.NONE,
         timeout=timeout,
     )
@@ -272,17 +277,28 @@ def fetch_maps(
     layers: dict[str, MapReply] = {}
     names = [layer] if layer is not None else source.layers if layers_too else []
     for name in names:
-        params = ";".join(p for p in (f"layer={name}", when) if p)
-        got = [r for r in query_maps(session, namespace, params, 10.0) if r.agent == source.agent]
-        if not got:
+        got = fetch_layer(session, namespace, source.agent, name, at)
+        if got is None:
             msg = (
                 f"daemon {source.agent!r} holds no layer {name!r}: expected an agent id whose "
                 f"layer it holds (its fused map's: {', '.join(source.layers) or 'none'}; "
                 "`colonyd status` lists every member's layers)"
             )
             raise StatusError(msg)
-        layers[name] = got[0]
+        layers[name] = got
     return source, layers
+
+
+def fetch_layer(
+    session: zenoh.Session, namespace: str, agent: str, name: str, at: float | None = None
+) -> MapReply | None:
+    """The map of layer `name` as daemon `agent` holds it (with `at`, as it was then); None if
+    it does not hold it. Asked of `agent` alone: every daemon holding a replica of the layer
+    sent its copy, all but one thrown away."""
+    when = "" if at is None else f"at={float(at)!r}"
+    params = ";".join(p for p in (f"layer={name}", when) if p)
+    got = [r for r in query_maps(session, namespace, params, 10.0, agent) if r.agent == agent]
+    return got[0] if got else None
 
 
 def _check_names(layer: str | None, agent: str | None) -> None:
@@ -403,12 +419,9 @@ def export_maps(
         apart: dict[str, MapReply] = {}
         if layer is None:
             for name in unaligned_layers(session, config.key_namespace, fused):
-                with contextlib.suppress(StatusError):  # dropped meanwhile: nothing to write
-                    apart.update(
-                        fetch_maps(
-                            session, config.key_namespace, layer=name, agent=fused.agent, at=at
-                        )[1]
-                    )
+                got = fetch_layer(session, config.key_namespace, fused.agent, name, at)
+                if got is not None:  # else dropped meanwhile: nothing to write
+                    apart[name] = got
     except NoAnswerError as exc:
         raise NoAnswerError(_why(exc, session, config, agent, wait_s)) from None
     finally:

@@ -12,7 +12,9 @@ from colonyd.catchup import MAX_SERVERS, CatchUp, complete
 from colonyd.layers import Layer, Layers
 from colonyd.membership import Membership
 from colonyd.metrics import Metrics
+from colonyd.worker import Throttle, held_text
 from protocol import HistoryReply, HistoryRequest
+from voxel.errors import InputError
 from voxel.history import HistoryPage
 
 log = logging.getLogger(__name__)
@@ -72,6 +74,7 @@ class HistorySync:
         self.stop = stop
         self.membership: Membership | None = None
         self._thread = threading.Thread(target=self._loop, name="history-sync", daemon=True)
+        self._log = Throttle()  # refused pages: a holder may send the same one every round
         #: a pushed page left a gap: pull at once, even when `period_s` is 0 (pulls off)
         self._repair = threading.Event()
         #: origin -> epoch of a pushed page dropped because the replica did not hold the layer
@@ -205,7 +208,19 @@ class HistorySync:
                     break  # another epoch of the layer (or none held): nothing to take here
                 page = join_pages(msgs)
                 if page is not None:
-                    taken += self.offer(layer, epoch, after, page)
+                    try:
+                        taken += self.offer(layer, epoch, after, page)
+                    except InputError as exc:  # a page the replica cannot take (from the network)
+                        self.metrics.reject("invalid")
+                        if (held := self._log.allow("invalid")) is not None:
+                            log.warning(
+                                "refused a history page of %s from %s: %s%s",
+                                layer.origin,
+                                server,
+                                exc,
+                                held_text(held),
+                            )
+                        break  # the next holder, if any
                 if not more:
                     return taken
             else:

@@ -287,6 +287,8 @@ class Inbox:
         if self.membership is None:
             return
         member = self.membership.heard(msg.origin, msg)
+        if member is None:  # no room after all (tokens came back since `admit`): not recorded
+            return
         for origin in msg.forgotten:  # a tombstone travels with every member's heartbeat
             if self.replicas.layers.forget_agent(origin):
                 log.warning("forgot the layer of %s (tombstone from %s)", origin, msg.origin)
@@ -354,6 +356,10 @@ class Inbox:
                 f"{msg.parts} parts"
             )
             raise WireError("bad-history", text)
+        layer = self.replicas.layers.find(msg.origin)
+        if msg.records is not None and layer is not None:  # refused before it is accepted
+            with layer.lock:
+                layer.grid.history.check_agents(msg.records)
         accept(self.receiver, self.metrics, msg, raw)
         if msg.records is not None and self._on_history is not None:
             self._on_history(msg)

@@ -118,17 +118,17 @@ class Membership:
         with self._lock:
             self._room(agent)
 
-    def _room(self, agent: str, strict: bool = True) -> Member | None:
-        """The member `heard` forgets to make room for `agent` (None: no need); WireError when
-        there is no room, unless not `strict` (then the least recently seen heard member: a
-        token that came between `admit` and `heard`) (lock held)."""
+    def _room(self, agent: str) -> Member | None:
+        """The member `heard` forgets to make room for `agent` (None: no need): the least
+        recently seen heard member without a liveliness token; WireError when every heard
+        member holds one (lock held)."""
         m = self.members.get(agent)
         if m is not None and m.heard:
             return None
         heard = [x for x in self.members.values() if x.heard]
         if len(heard) < self.max_members:
             return None
-        gone = [x for x in heard if not x.alive] or ([] if strict else heard)
+        gone = [x for x in heard if not x.alive]
         if not gone:
             text = (
                 f"expected heartbeats of at most {self.max_members} members, all alive, found "
@@ -137,10 +137,16 @@ class Membership:
             raise WireError("too-many-members", text)
         return min(gone, key=lambda x: x.last_seen)
 
-    def heard(self, agent: str, hb: Heartbeat) -> Member:
-        """Record a (validated, `admit`ted) heartbeat; returns the member."""
+    def heard(self, agent: str, hb: Heartbeat) -> Member | None:
+        """Record a (validated, `admit`ted) heartbeat; returns the member, or None when the room
+        `admit` saw is gone: a token came back between the two for every heard member (then
+        `agent` is not recorded: forgetting a live member for it would refuse that member's
+        next heartbeats as one too many)."""
         with self._lock:
-            evicted = self._room(agent, strict=False)
+            try:
+                evicted = self._room(agent)
+            except WireError:
+                return None
             if evicted is not None:  # the least recently seen member without a token
                 del self.members[evicted.agent]
             m = self.members.get(agent)

@@ -188,12 +188,12 @@ class Worker(Generic[T]):
         if metrics is not None and isinstance(exc, (ProtocolError, WireError)):
             metrics.reject(exc.reason)
             # a peer's frame that overtook its first heartbeat (every join, trust on first use)
-            # is counted like the rest but is no cause for alarm: info, not a warning (and
-            # throttled apart, so that joins never hold back a warning of the same reason)
-            early = isinstance(exc, NotIntroducedError)
-            held = self._throttle.allow(f"{exc.reason}:joining" if early else exc.reason)
+            # is counted like the rest but is no cause for alarm: info, not a warning, and
+            # throttled apart (it held back the warnings of its reason: a trust list's refusals)
+            benign = isinstance(exc, NotIntroducedError)
+            held = self._throttle.allow(f"{exc.reason}:info" if benign else exc.reason)
             if held is not None:
-                level = logging.INFO if early else logging.WARNING
+                level = logging.INFO if benign else logging.WARNING
                 log.log(level, "rejected %s: %s%s", self._describe(item), exc, held_text(held))
         elif metrics is not None and self._hostile and isinstance(exc, (ColonydError, ValueError)):
             metrics.reject("invalid")

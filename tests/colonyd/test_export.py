@@ -188,6 +188,16 @@ def test_export_writes_the_layers_not_aligned_in_their_own_frames(make_colony, t
         d.env["COLONYD_ALIGN_S"] = "0"
         d.start()
     colony.wait_converged(30)
+    from protocol.keyexpr import EXPORT, status_selector
+
+    asked: list[str] = []  # "<agent asked>?<parameters>" of every export query
+
+    def spy(query) -> None:
+        who = str(query.key_expr).split("/")[-2]
+        asked.append(f"{who}?{query.parameters}" if str(query.parameters) else who)
+        query.drop()
+
+    spying = colony.session().declare_queryable(status_selector(colony.namespace, EXPORT), spy)
     out = tmp_path / "maps"
     run = subprocess.run(
         [
@@ -197,7 +207,15 @@ def test_export_writes_the_layers_not_aligned_in_their_own_frames(make_colony, t
         ],
         capture_output=True, check=False, text=True, timeout=60,
     )  # fmt: skip
+    spying.undeclare()
     assert run.returncode == 0, run.stderr
+    # each layer asked of that daemon alone (every holder of a replica sent its copy), and the
+    # fused map not asked again after the first layer (every daemon computed and sent its own
+    # again for each layer not aligned; the spy may miss the very first query, made while the
+    # command's session still learns where queryables are)
+    layer_queries = [i for i, x in enumerate(asked) if "layer=" in x]
+    assert sorted(asked[i] for i in layer_queries) == ["a?layer=a", "a?layer=c"], asked
+    assert "*" not in asked[layer_queries[0] :], asked
     assert sorted(p.name for p in out.iterdir()) == ["a.bt", "a.ply", "fused.bt", "fused.ply",
                                                      "unaligned"]  # fmt: skip
     assert sorted(p.name for p in (out / "unaligned").iterdir()) == ["c.bt", "c.ply"]

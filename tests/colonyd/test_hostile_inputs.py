@@ -189,6 +189,42 @@ def test_heartbeats_of_made_up_agents_fill_no_more_than_max_members() -> None:
             d.close()
 
 
+def test_a_token_between_admit_and_heard_evicts_no_live_member() -> None:
+    """A heard member without a token makes room for a newcomer (`admit`), but its token comes
+    back before the newcomer's heartbeat is recorded (`heard`): no live member may be forgotten
+    for it (the least recently seen one was, and its heartbeats were then refused as one too
+    many: a stranger timing tokens could lock real members out one by one)."""
+    with _sessions(2) as (mine, other):
+        d = _daemon(mine, max_members=2)
+        try:
+            tokens = [other.liveliness().declare_token(alive_key(NS, "real"))]
+            assert _until(lambda: d.membership.alive() == ["real"])
+            real = Signer.generate()
+            d.feed("hb", "real", _heartbeat("real", real))
+            d.feed("hb", "ghost", _heartbeat("ghost", Signer.generate()))  # no token
+            d.membership.admit("new")  # room: the ghost has no token
+            tokens.append(other.liveliness().declare_token(alive_key(NS, "ghost")))
+            assert _until(lambda: sorted(d.membership.alive()) == ["ghost", "real"])
+            signer = Signer.generate()
+            hb = Heartbeat(
+                **Sender("new", 7, key=KEY, signer=signer).header(),
+                kind="robot",
+                frame_id="new.odom",
+                identity=signer.public,
+            )
+            d.membership.heard("new", hb)
+            table = {m.agent for m in d.membership.table()}
+            assert table == {"real", "ghost"}, table  # "new" not recorded: no room after all
+            assert len([m for m in d.membership.table() if m.heard]) <= 2
+            d.feed("hb", "real", _heartbeat("real", real, seq=2))  # still a member: accepted
+            assert d.metrics.rejected["too-many-members"] == 0
+            assert d.receiver.accepted["heartbeat"] == 3
+            for token in tokens:
+                token.undeclare()
+        finally:
+            d.close()
+
+
 def _block_delta(x0: int, to_version: int) -> Delta:
     """51,200 voxels filling 800 4x4x4 blocks (a box 40 x 40 x 32 from x = `x0`), occupied."""
     g = np.stack(np.meshgrid(np.arange(40), np.arange(40), np.arange(32), indexing="ij"), -1)
@@ -223,6 +259,7 @@ def test_parts_of_split_deltas_hold_no_more_voxels_than_the_peer_budget() -> Non
                 d.feed("delta", "evil", frame)
                 held = sum(len(x) for p in d.inbox.parts._open.values() for x in p.got.values())
                 assert held <= budget, f"{held} voxels held after part {i}"
+                assert d.inbox.parts.voxels == held  # its running count, kept as parts come
             assert d.metrics.rejected["over-budget"] == 9
             assert d.receiver.accepted["delta"] == 1  # the refused parts moved no window
             d.receiver.replay.peek("evil", 7, 11)
@@ -230,6 +267,7 @@ def test_parts_of_split_deltas_hold_no_more_voxels_than_the_peer_budget() -> Non
                 d.feed("delta", "evil", _parts(sender, _block_delta(0, v), [0], 2)[0])
                 held = sum(len(x) for p in d.inbox.parts._open.values() for x in p.got.values())
                 assert held <= budget, f"{held} voxels held after delta {v}"
+                assert d.inbox.parts.voxels == held  # its running count, kept as parts come
             assert d.layers.find("evil") is None  # nothing applied
         finally:
             d.close()
@@ -596,6 +634,94 @@ def test_pushed_history_pages_of_ever_new_agents_keep_the_agent_table_bounded() 
             assert d.metrics.rejected["internal"] == 0
             assert d.metrics.rejected["invalid"] == 17
         finally:
+            d.close()
+
+
+def test_a_history_page_refused_for_its_agents_moves_no_window() -> None:
+    """A pushed page that would take the history's agent table past `MAX_AGENTS` is refused
+    before it is accepted: it was accepted first (its window moved, counted accepted and then
+    refused as invalid)."""
+    from colonyd.historysync import HistorySync
+
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        try:
+            signer = Signer.generate()
+            d.feed("hb", "evil", _heartbeat("evil", signer))
+            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+            d.feed("delta", "evil", _parts(sender, Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9]),
+                                           [0], 1)[0])  # fmt: skip
+            layer = d.layers.find("evil")
+            sync = HistorySync(
+                d.layers, SimpleNamespace(), d.metrics, period_s=0, stop=threading.Event()
+            )
+            d.inbox._on_history = lambda msg: sync.offer(
+                layer, msg.layer_epoch, msg.from_version, msg.records
+            )  # as the daemon takes a pushed page (`Gossip._take_history`)
+
+            def page(version: int, agents: list[str]) -> bytes:
+                rec = np.zeros(len(agents), RECORD_DTYPE)
+                rec["key"] = vk.pack(np.stack([np.arange(len(agents)), np.zeros(len(agents)),
+                                               np.zeros(len(agents))], 1))  # fmt: skip
+                rec["agent"] = np.arange(len(agents))
+                rec["version"] = version
+                reply = HistoryReply(**sender.header(), layer="evil", request_id=0, layer_epoch=7,
+                                     from_version=version - 1, to_version=version,
+                                     records=HistoryPage(rec, agents))  # fmt: skip
+                return sender.encode(reply)
+
+            d.feed("history", "evil", page(1, [f"g{i}" for i in range(MAX_AGENTS)]))
+            assert len(layer.grid.history.agents) == MAX_AGENTS
+            refused = page(2, ["one-more"])
+            d.feed("history", "evil", refused)
+            assert d.metrics.rejected["invalid"] == 1
+            assert d.receiver.accepted["history_reply"] == 1
+            d.receiver.replay.peek("evil", 7, sender.take() - 1)  # its seq is still fresh
+            d.feed("history", "evil", page(2, ["g0"]))  # an agent it holds: taken
+            assert d.receiver.accepted["history_reply"] == 2
+            assert layer.grid.history.newest_version() == 2
+        finally:
+            d.close()
+
+
+def test_a_pulled_history_page_of_too_many_agents_is_a_counted_refusal() -> None:
+    """A holder answers history pulls with a page that would take the replica's agent table past
+    `MAX_AGENTS`: refused and counted (`invalid`) like a pushed one. The pull raised, and the
+    history thread logged the error with its stack every round, counted nowhere."""
+    from colonyd.historysync import HistorySync
+
+    with _sessions(2) as (mine, evil):
+        d = _daemon(mine)
+        signer = Signer.generate()
+        d.feed("hb", "evil", _heartbeat("evil", signer))
+        sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+        d.feed("delta", "evil", _parts(sender, Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9]),
+                                       [0], 1)[0])  # fmt: skip
+        layer = d.layers.find("evil")
+        with layer.lock:
+            for i in range(MAX_AGENTS):
+                layer.grid.history.agent_code(f"g{i}")  # the table full already
+
+        def answer(query: zenoh.Query) -> None:
+            request = decode(query.payload.to_bytes(), key=KEY)
+            rec = np.zeros(1, RECORD_DTYPE)
+            rec["version"] = 1
+            reply = HistoryReply(**sender.header(), layer="evil", request_id=request.request_id,
+                                 layer_epoch=7, from_version=request.from_version, to_version=1,
+                                 records=HistoryPage(rec, ["one-more"]))  # fmt: skip
+            query.reply(query.key_expr, sender.encode(reply))
+            query.drop()
+
+        queryable = evil.declare_queryable(query_key(NS, "evil", "history", "evil"), answer)
+        try:
+            me = Sender("me", 1, key=KEY)
+            catchup = CatchUp(mine, NS, d.replicas, me, d.receiver, d.metrics)
+            sync = HistorySync(d.layers, catchup, d.metrics, period_s=0, stop=threading.Event())
+            assert _until(lambda: sync.pull(layer) == 0 and d.metrics.rejected["invalid"] > 0)
+            assert "one-more" not in layer.grid.history.agents
+            assert d.metrics.rejected["internal"] == 0
+        finally:
+            queryable.undeclare()
             d.close()
 
 
