@@ -410,22 +410,31 @@ class History:
         seen = seen[np.argsort(seen["version"], kind="stable")]
         return HistoryPage(rec, list(self.agents), seen), to, to < hi
 
+    def admit(self, page: HistoryPage) -> None:
+        """Raise InputError unless `merge` can take `page`: the agents its new records name
+        would keep the agent table within `MAX_AGENTS`. Changes nothing."""
+        rec = page.records[page.records["version"] > self.newest_version()]
+        if not rec.size:
+            return
+        used = np.unique(rec["agent"])
+        new = {page.agents[i] for i in used if page.agents[i] not in self._agent_index}
+        if len(self.agents) + len(new) > MAX_AGENTS:
+            msg = (
+                f"history page: expected at most {MAX_AGENTS} agents in a history, found "
+                f"{len(self.agents)} held and {len(new)} new"
+            )
+            raise InputError(msg)
+
     def merge(self, page: HistoryPage) -> int:
         """Append the records and seen entries of a page (another holder's) whose versions are
         newer than everything held; agent codes are translated to this history's. The bound
         holds: past `capacity` the oldest go first. Returns records and entries taken."""
+        self.admit(page)
         newest = self.newest_version()
         rec = page.records[page.records["version"] > newest]
         seen = page.seen[page.seen["version"] > newest]
         if rec.size:
             used = np.unique(rec["agent"])
-            new = {page.agents[i] for i in used if page.agents[i] not in self._agent_index}
-            if len(self.agents) + len(new) > MAX_AGENTS:
-                msg = (
-                    f"history page: expected at most {MAX_AGENTS} agents in a history, found "
-                    f"{len(self.agents)} held and {len(new)} new"
-                )
-                raise InputError(msg)
             codes = np.zeros(len(page.agents), dtype=np.uint16)
             codes[used] = [self.agent_code(page.agents[i]) for i in used]
             rec = rec.copy()
