@@ -31,9 +31,11 @@ from protocol import (
     OwnOriginError,
     Pose,
     PoseFix,
+    ProtocolError,
     Receiver,
     VoxelDelta,
 )
+from protocol.codec import peek
 from protocol.keyexpr import topic_subscription
 from voxel.localisation import frame_error
 
@@ -319,7 +321,14 @@ class Inbox:
         self._compare(msg.origin, member.layers)
 
     def _handle_objects(self, key: str, raw: bytes) -> None:
+        try:
+            claimed = peek(raw, self.receiver.limits).origin
+        except ProtocolError:
+            claimed = None  # `decode` says what is wrong with it, and counts it
+        if claimed is not None:
+            self.objects.allow(claimed)  # before the body is parsed: the cost is there
         msg = expect(self.receiver.decode(raw, key_expr=key), Objects, f"on {key}")
+        self.objects.charge(msg.origin, len(msg.objects))
         if msg.objects:
             check_positions([o.position for o in msg.objects], "bad-objects", "object positions")
             covariance = np.abs(np.array([o.covariance for o in msg.objects], np.float64))

@@ -33,6 +33,7 @@ from protocol import (
     Objects,
     Pose,
     PoseFix,
+    ProtocolError,
     Receiver,
     SnapshotReply,
     SnapshotRequest,
@@ -812,3 +813,65 @@ def test_a_member_that_never_answers_cannot_stall_repairs() -> None:
                 t.undeclare()
             held.clear()
             d.close()
+
+
+def _full_list(sender: Sender, x: float = 0.0) -> bytes:
+    listed = [
+        ObjectCentroid(object_id=i, class_id=3, position=(i, x, 0.0), voxel_count=9, time=1.0)
+        for i in range(16_384)
+    ]
+    frame_id = f"{sender.origin}.odom"
+    return sender.encode(Objects(**sender.header(), frame_id=frame_id, objects=listed))
+
+
+def test_full_object_lists_back_to_back_cannot_hold_the_inbox() -> None:
+    """A member sends object lists of 16,384 objects (the protocol's most; ~0.4 s of decoding
+    each on the inbox's one thread) back to back: every one was decoded, and the inbox served
+    nothing else. Past its allowance (`OBJECTS_BURST` at once, `OBJECTS_PER_S` a second; a list
+    refused once parsed is charged too: it cost as much) its lists are refused before their
+    body is parsed (`too-often`, not `bad-objects`), until it has earned some back; another
+    member's list passes meanwhile."""
+    from colonyd.objects import OBJECTS_BURST, OBJECTS_PER_S
+
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        now = [1000.0]
+        d.peer_objects._clock = lambda: now[0]
+        try:
+            senders = {}
+            for agent in ("p", "q"):
+                signer = Signer.generate()
+                d.feed("hb", agent, _heartbeat(agent, signer))
+                senders[agent] = Sender(agent, 7, key=KEY, signer=signer, first_seq=2)
+            p = senders["p"]
+            d.feed("objects", "p", _full_list(p, 1e12))  # parsed, refused: its cost charged
+            for _ in range(3):
+                d.feed("objects", "p", _full_list(p, 1e12))
+            assert d.metrics.rejected["bad-objects"] == 1
+            assert d.metrics.rejected["too-often"] == 3
+            assert d.receiver.accepted["objects"] == 0
+            d.feed("objects", "q", _full_list(senders["q"]))
+            assert d.receiver.accepted["objects"] == 1
+            now[0] += OBJECTS_BURST / OBJECTS_PER_S / 2  # half a list's worth earned back
+            d.feed("objects", "p", _full_list(p, 1.0))
+            assert d.receiver.accepted["objects"] == 2
+            assert d.peer_objects.get("p")[0].position == (0.0, 1.0, 0.0)
+        finally:
+            d.close()
+
+
+def test_a_strangers_frame_is_refused_before_its_body_is_parsed() -> None:
+    """An open colony trusting identities on first use: a stranger's frame under an origin not
+    introduced (or a pinned one's, without its key) was decompressed and parsed whole (up to
+    ~0.5 s for the largest bodies) before its signature was checked. The signature is now
+    checked first: a frame whose body is garbage is refused for its identity, not its body."""
+    receiver = Receiver(own="me", trust=Trust("tofu"))
+    stranger = Sender("zz", 7, signer=Signer.generate(), first_seq=2)
+    raw = bytearray(_full_list(stranger))
+    body = raw.find(b"zz") + 40  # inside the body (the envelope: origin, epoch, seq, time)
+    raw[body : body + 64] = bytes(64)
+    try:
+        receiver.decode(bytes(raw))
+        raise AssertionError("a stranger's frame was accepted")
+    except ProtocolError as exc:
+        assert exc.reason == "unknown_identity", exc
