@@ -875,3 +875,44 @@ def test_a_strangers_frame_is_refused_before_its_body_is_parsed() -> None:
         raise AssertionError("a stranger's frame was accepted")
     except ProtocolError as exc:
         assert exc.reason == "unknown_identity", exc
+
+
+def test_range_replies_refused_at_admission_move_no_window() -> None:
+    """A holder answers a range request with two deltas: the first fine, the second with a
+    voxel time no replica can keep (refused at admission, `bad-time`). The range is refused as
+    a whole before any of it is applied or accepted: the layer is as it was and every reply
+    frame of the holder is still fresh (each moved its window, then the second was refused
+    after the first was applied)."""
+    with _sessions(2) as (mine, evil):
+        d = _daemon(mine)
+        signer = Signer.generate()
+        d.feed("hb", "evil", _heartbeat("evil", signer))
+        sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+        d.feed("delta", "evil", _parts(sender, Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9]),
+                                       [0], 1)[0])  # fmt: skip
+        replier = Sender("evil", 7, key=KEY, signer=signer, first_seq=100)
+        good = Delta(0.1, 1, 2, [[1, 0, 0]], [1.0], [1.7e9])
+        bad = Delta(0.1, 2, 3, [[2, 0, 0]], [1.0], [1e13])
+
+        def answer(query: zenoh.Query) -> None:
+            request = decode(query.payload.to_bytes(), key=KEY)
+            for i, delta in enumerate((good, bad)):
+                reply = DeltaRangeReply(**replier.header(), layer="evil",
+                                        request_id=request.request_id, frame_id="evil.odom",
+                                        layer_epoch=7, part=i, parts=2, delta=delta)  # fmt: skip
+                query.reply(query.key_expr, replier.encode(reply))
+            query.drop()
+
+        q = evil.declare_queryable(query_key(NS, "evil", "deltas", "evil"), answer)
+        try:
+            catchup = _catchup(d, mine)
+            layer = d.layers.find("evil")
+            assert _until(lambda: catchup._fetch_range("evil", "evil", layer, 3) == "failed"
+                          and d.metrics.rejected["bad-time"] >= 1)  # fmt: skip
+            assert layer.seq == 1
+            assert d.receiver.accepted["delta_range_reply"] == 0
+            for seq in range(100, 102):
+                d.receiver.replay.peek("evil", 7, seq)
+        finally:
+            q.undeclare()
+            d.close()
