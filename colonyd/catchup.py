@@ -258,7 +258,7 @@ class CatchUp:
             timeout=timeout,
         )
         out = Replies()
-        frames: set[tuple[int, int]] = set()  # (epoch, seq) of the replies taken
+        frames: set[tuple[str, int, int]] = set()  # (origin, epoch, seq) of the replies taken
         decode_s = 0.0
         held = 0  # voxels of the replies taken
         # (history pages are not capped here: a single version goes whole, however large)
@@ -302,10 +302,11 @@ class CatchUp:
                         f"taken + {n} in part {msg.part} of {msg.parts}"
                     )
                     raise WireError("over-budget", text)
-                if (msg.epoch, msg.seq) in frames:  # peeked, not recorded: a copy passes
+                frame = (msg.origin, msg.epoch, msg.seq)
+                if frame in frames:  # peeked, not recorded: a copy passes `decode`
                     text = f"expected each reply frame once, found seq {msg.seq} again"
                     raise WireError("replay", text)
-                frames.add((msg.epoch, msg.seq))
+                frames.add(frame)
                 held += n
                 out.append(msg)
                 out.sizes.append(len(raw))
@@ -333,7 +334,7 @@ class CatchUp:
         meanwhile on another thread."""
         pairs = zip(replies, replies.sizes, strict=True)
         for msg, size in sorted(pairs, key=lambda r: (r[0].epoch, r[0].seq)):
-            self.receiver.accept(msg)
+            self.receiver.accept(msg, answer=True)
             self.metrics.add("bytes_received", size)
 
     def _fetch_range(self, server: str, origin: str, layer: Layer, want: int) -> str:

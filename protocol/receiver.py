@@ -83,15 +83,18 @@ class Receiver:
             raise
         return msg
 
-    def accept(self, msg: Message) -> None:
+    def accept(self, msg: Message, *, answer: bool = False) -> None:
         """Take a decoded message: record its (origin, epoch, seq) and count it as accepted.
+        `answer`: a reply that matched our fresh random request id, taken once every reply of
+        its query passed; one that fell behind the replay window meanwhile (its holder sent
+        more than the window's frames while the query ran) is taken without being recorded.
 
         Raises ReplayError (counted) if the same frame was accepted meanwhile on another thread.
         """
         window = self._window(msg)
         if window is not None:
             try:
-                window.check(msg.origin, msg.epoch, msg.seq)
+                window.check(msg.origin, msg.epoch, msg.seq, late_ok=answer)
             except ProtocolError as exc:
                 self.count_rejected(exc.reason)
                 raise

@@ -916,3 +916,26 @@ def test_range_replies_refused_at_admission_move_no_window() -> None:
         finally:
             q.undeclare()
             d.close()
+
+
+def test_replies_behind_the_window_when_taken_are_still_taken() -> None:
+    """Replies are recorded only once their query passed as a whole; meanwhile their holder may
+    have sent more than the replay window's frames (deltas, other requesters' replies) and the
+    inbox accepted them: the replies, answers to a fresh random request id, are taken without
+    being recorded rather than refused as replays (a busy holder's snapshots would never be
+    taken). Any other frame so old is a replay as before."""
+    receiver = Receiver(key=KEY, own="me", trust=Trust("tofu"))
+    signer = Signer.generate()
+    receiver.receive(_heartbeat("evil", signer))
+    holder = Sender("evil", 7, key=KEY, signer=signer, first_seq=100)
+    small = Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9])
+    reply = receiver.decode(_snapshot_reply(holder, 5, small, 0, 1))
+    later = Sender("evil", 7, key=KEY, signer=signer, first_seq=100 + 5000)
+    receiver.receive(_parts(later, small, [0], 1)[0])  # the holder's delta, 5000 frames on
+    receiver.accept(reply, answer=True)
+    assert receiver.accepted["snapshot_reply"] == 1
+    try:
+        receiver.accept(reply)
+        raise AssertionError("a frame older than the window was accepted")
+    except ProtocolError as exc:
+        assert exc.reason == "replay"
