@@ -382,7 +382,7 @@ class CatchUp:
             return FAILED
         if deltas:
             return TAKEN
-        return NOTHING_NEWER if epoch == layer.epoch else FAILED
+        return NOTHING_NEWER if epoch == layer.epoch else NOT_HELD  # another epoch: snapshot
 
     def _fetch_snapshot(self, server: str, origin: str, asked: float) -> bool:
         cpu0, process0 = time.thread_time(), time.process_time()
