@@ -15,7 +15,7 @@ from typing import Any
 import zenoh
 
 from colonyd.errors import WireError
-from colonyd.frames import Sender, accept, concat
+from colonyd.frames import Sender, concat
 from colonyd.layers import BLOCK_VOXELS, Layer, Layers
 from colonyd.membership import Membership
 from colonyd.metrics import Metrics
@@ -45,8 +45,13 @@ MAX_SERVERS = 3
 #: timeout doubled, at most this many times over (a large layer served by a busy holder takes
 #: longer than the timeout; asking again as briefly would never get it).
 MAX_DOUBLINGS = 4
-#: Most origins whose incomplete snapshots are remembered.
+#: Most origins whose incomplete snapshots are remembered, and most holders resting.
 MAX_SHORT = 1024
+
+#: What `CatchUp._fetch_range` found: deltas taken, nothing newer held at our epoch (a snapshot
+#: from that holder would bring nothing), the range no longer held (its snapshot is asked for),
+#: or no usable answer.
+TAKEN, NOTHING_NEWER, NOT_HELD, FAILED = "taken", "nothing-newer", "not-held", "failed"
 
 
 def snapshot_timeout(base_s: float, failures: int) -> float:
@@ -61,6 +66,15 @@ class Repair:
     origin: str
     servers: list[str]
     asked: float  # time.monotonic() when it was scheduled
+
+
+class Replies(list[Any]):
+    """The validated replies of one query, not yet accepted (no replay window moved): `CatchUp.take`
+    accepts them once the reply as a whole passed its checks. `sizes` are their frames' bytes."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.sizes: list[int] = []
 
 
 def reply_items(msg: Message) -> int:
@@ -115,8 +129,11 @@ class CatchUp:
         self.membership: Membership | None = None
         self._rng = random.Random()
         self._repairing: set[str] = set()
-        #: Origin -> snapshot requests in a row that did not arrive whole (`snapshot_timeout`).
+        #: Origin -> snapshot requests in a row that came in part only (`snapshot_timeout`).
         self._short: dict[str, int] = {}
+        #: Holder -> time.monotonic() until which it is not asked (`_rest`): a holder whose query
+        #: gave nothing usable rests as long as that query took, whatever layer a repair is for.
+        self._resting: dict[str, float] = {}
         self._lock = threading.Lock()
         self._worker: Worker[Repair] = Worker(
             "gossip-repair",
@@ -164,27 +181,56 @@ class CatchUp:
     def _repair(self, rep: Repair) -> None:
         servers = list(rep.servers)
         want_epoch, want_seq = 0, 0
-        if self.membership is not None:
-            want_epoch, want_seq, holders = self.membership.best(rep.origin)
-            servers = holders + [s for s in servers if s not in holders]
         layer = self.layers.find(rep.origin)
-        for server in servers[:MAX_SERVERS]:
+        if self.membership is not None:
+            want_epoch, want_seq, _ = self.membership.best(rep.origin)
+            # the best first, then any other with more than we hold (a claim nobody can serve
+            # must not hide the real holders)
+            have = (layer.epoch, layer.seq) if layer else (0, 0)
+            holders = [a for v, a in self.membership.holders(rep.origin) if v > have]
+            servers = holders + [s for s in servers if s not in holders]
+        now = time.monotonic()
+        awake = [s for s in servers if self._resting.get(s, 0.0) <= now]
+        if len(awake) < len(servers):
+            self.metrics.add("repair_holders_resting", len(servers) - len(awake))
+        for server in awake[:MAX_SERVERS]:
             if self._worker.stop.is_set():
                 return
             have = (layer.epoch, layer.seq) if layer else (0, 0)
             if want_epoch and (want_epoch, want_seq) <= have and not (layer and layer.pending):
                 return
-            if (
-                layer
-                and layer.seq > 0
-                and want_epoch in (0, layer.epoch)
-                and self._fetch_range(server, rep.origin, layer, want_seq)
-            ):
-                layer = self.layers.find(rep.origin)
-                if layer is not None and not layer.pending:
-                    return
+            if layer and layer.seq > 0 and want_epoch in (0, layer.epoch):
+                t0 = time.monotonic()
+                found = self._fetch_range(server, rep.origin, layer, want_seq)
+                if found == TAKEN:
+                    self._resting.pop(server, None)
+                    layer = self.layers.find(rep.origin)
+                    if layer is not None and not layer.pending:
+                        return
+                elif found == NOTHING_NEWER:  # (a heartbeat claimed more than it holds)
+                    self._resting.pop(server, None)
+                    continue
+                elif found == FAILED:
+                    self._rest(server, t0)
+                    continue
+            t0 = time.monotonic()
             if self._fetch_snapshot(server, rep.origin, rep.asked):
+                self._resting.pop(server, None)
                 return
+            self._rest(server, t0)
+
+    def _rest(self, server: str, since: float) -> None:
+        """`server` gave nothing usable to a query sent at `since`: it is not asked again, for
+        any layer, for as long as that query took. A member whose heartbeat lists made-up
+        layers (or claims versions it does not hold) while its queryable never answers gets
+        at most about half of the one repair worker's time, not a query timeout per layer."""
+        now = time.monotonic()
+        if len(self._resting) >= MAX_SHORT:
+            self._resting = {s: t for s, t in self._resting.items() if t > now}
+            if len(self._resting) >= MAX_SHORT:
+                self._resting.clear()
+        self._resting[server] = now + (now - since)
+        self.metrics.add("repair_holders_rested")
 
     def ask(
         self,
@@ -195,9 +241,11 @@ class CatchUp:
         cls: type[SnapshotReply] | type[DeltaRangeReply] | type[HistoryReply],
         marks: dict[str, float] | None = None,
         timeout_s: float | None = None,
-    ) -> list[Any]:
+    ) -> Replies:
         """Send a request frame to `server`'s queryable; the replies of type `cls` for `layer`
-        and this request (every other reply is rejected and counted). `marks`, if given, gets
+        and this request (every other reply is rejected and counted), validated but not accepted:
+        the caller checks them as a whole, then `take`s them (a refused reply moves no replay
+        window). `marks`, if given, gets
         "first" (time.monotonic() of the first reply) and "decode_s" (seconds decoding);
         `timeout_s` overrides the query timeout, which the request carries (`timeout_ms`)."""
         timeout = self.query_timeout_s if timeout_s is None else timeout_s
@@ -209,7 +257,8 @@ class CatchUp:
             consolidation=zenoh.ConsolidationMode.NONE,
             timeout=timeout,
         )
-        out: list[Message] = []
+        out = Replies()
+        frames: set[tuple[str, int, int]] = set()  # (origin, epoch, seq) of the replies taken
         decode_s = 0.0
         held = 0  # voxels of the replies taken
         # (history pages are not capped here: a single version goes whole, however large)
@@ -257,9 +306,14 @@ class CatchUp:
                         f"taken + {n} in part {msg.part} of {msg.parts}"
                     )
                     raise WireError("over-budget", text)
-                accept(self.receiver, self.metrics, msg, raw)
+                frame = (msg.origin, msg.epoch, msg.seq)
+                if frame in frames:  # peeked, not recorded: a copy passes `decode`
+                    text = f"expected each reply frame once, found seq {msg.seq} again"
+                    raise WireError("replay", text)
+                frames.add(frame)
                 held += n
                 out.append(msg)
+                out.sizes.append(len(raw))
             except (ProtocolError, WireError) as exc:
                 self.metrics.reject(exc.reason)
                 if not refused:  # one warning per query: a flood of replies floods no log
@@ -278,7 +332,18 @@ class CatchUp:
             marks["decode_s"] = decode_s
         return out
 
-    def _fetch_range(self, server: str, origin: str, layer: Layer, want: int) -> bool:
+    def take(self, replies: Replies) -> None:
+        """Accept the replies of one query that passed every check (their replay windows move,
+        their bytes count), oldest frame first; ProtocolError (counted) if one was accepted
+        meanwhile on another thread."""
+        pairs = zip(replies, replies.sizes, strict=True)
+        for msg, size in sorted(pairs, key=lambda r: (r[0].epoch, r[0].seq)):
+            self.receiver.accept(msg, answer=True)
+            self.metrics.add("bytes_received", size)
+
+    def _fetch_range(self, server: str, origin: str, layer: Layer, want: int) -> str:
+        """Deltas of `origin`'s layer above ours from `server`: `TAKEN`, `NOTHING_NEWER`,
+        `NOT_HELD` or `FAILED`."""
         want = max(want, max((p for p, *_ in layer.pending.values()), default=0), layer.seq + 1)
         rid = self._rng.getrandbits(63)
         request = DeltaRangeRequest(
@@ -291,8 +356,10 @@ class CatchUp:
         )
         msgs = self.ask(server, "deltas", origin, request, DeltaRangeReply)
         self.metrics.add("range_repairs")
-        if not complete(msgs, "range") or not all(m.complete for m in msgs):
-            return False
+        if not complete(msgs, "range"):
+            return FAILED
+        if not all(m.complete for m in msgs):
+            return NOT_HELD
         groups: dict[tuple[int, int], list[tuple[int, Delta]]] = {}
         for m in msgs:
             if m.delta is not None:
@@ -301,20 +368,25 @@ class CatchUp:
         epochs = {m.layer_epoch for m in msgs}
         if len(epochs) != 1:
             self.metrics.reject("bad-parts")
-            return False
+            return FAILED
         epoch = epochs.pop()
-        got = 0
-        for versions in sorted(groups, key=lambda v: v[1]):
-            try:
-                delta = concat([d for _, d in sorted(groups[versions], key=lambda x: x[0])])
+        try:
+            deltas = [
+                concat([d for _, d in sorted(groups[versions], key=lambda x: x[0])])
+                for versions in sorted(groups, key=lambda v: v[1])
+            ]
+            self.replicas.admit(origin, epoch, deltas)  # all of them, before any is taken
+            self.take(msgs)
+            for delta in deltas:
                 # a gap it leaves is this repair's own: `_repair` goes on to a snapshot
                 self.replicas.offer(origin, epoch, delta, via="range")
-                got += 1
-            except (ProtocolError, WireError) as exc:
-                self.metrics.reject(exc.reason)
-                log.warning("range reply from %s refused: %s", server, exc)
-                return False
-        return got > 0
+        except (ProtocolError, WireError) as exc:
+            self.metrics.reject(exc.reason)
+            log.warning("range reply from %s refused: %s", server, exc)
+            return FAILED
+        if deltas:
+            return TAKEN
+        return NOTHING_NEWER if epoch == layer.epoch else NOT_HELD  # another epoch: snapshot
 
     def _fetch_snapshot(self, server: str, origin: str, asked: float) -> bool:
         cpu0, process0 = time.thread_time(), time.process_time()
@@ -328,6 +400,8 @@ class CatchUp:
         msgs = self.ask(server, "snapshot", origin, request, SnapshotReply, marks, timeout)
         marks["received"] = time.monotonic()
         if not complete(msgs, "snapshot"):
+            if not msgs:  # nothing came: a longer wait would not help
+                return False
             if len(self._short) >= MAX_SHORT:
                 self._short.clear()  # origins a hostile heartbeat made up: bounded
             self._short[origin] = short + 1
@@ -351,7 +425,8 @@ class CatchUp:
         chunks = [m.delta for m in sorted(msgs, key=lambda m: m.part)]
         try:
             self.replicas.admit(origin, epoch, chunks, replace=True)
-        except WireError as exc:
+            self.take(msgs)  # only now: a refused snapshot moved no window
+        except (ProtocolError, WireError) as exc:
             self.metrics.reject(exc.reason)
             log.warning("snapshot of %s from %s refused: %s", origin, server, exc)
             return False

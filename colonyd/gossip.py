@@ -98,6 +98,7 @@ class Gossip:
             on_own_origin=on_own_origin,
             on_fix=on_fix,
             on_history=self._take_history if history_push else None,
+            admit_history=self._admit_history,
             size=inbox_size,
             max_bytes=inbox_bytes,
             drop_rate=drop_rate,
@@ -150,6 +151,13 @@ class Gossip:
     def push_history(self) -> int:
         """With history push on, publish the own history records not pushed yet."""
         return self.publisher.push_history() if self.history_push else 0
+
+    def _admit_history(self, msg: HistoryReply) -> None:
+        """WireError unless `_take_history` can take a peer's pushed history (inbox thread,
+        before the frame is accepted)."""
+        layer = self.layers.find(msg.origin)
+        if msg.records is not None and layer is not None and layer.seq > 0:
+            self.history.admit(layer, msg.layer_epoch, msg.from_version, msg.records)
 
     def _take_history(self, msg: HistoryReply) -> None:
         """A peer's pushed history (inbox thread): into its replica when it follows on; one

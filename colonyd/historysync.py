@@ -9,11 +9,12 @@ import time
 import numpy as np
 
 from colonyd.catchup import MAX_SERVERS, CatchUp, complete
+from colonyd.errors import WireError
 from colonyd.layers import Layer, Layers
 from colonyd.membership import Membership
 from colonyd.metrics import Metrics
 from colonyd.worker import Throttle, held_text
-from protocol import HistoryReply, HistoryRequest
+from protocol import HistoryReply, HistoryRequest, ProtocolError
 from voxel.errors import InputError
 from voxel.history import HistoryPage
 
@@ -174,6 +175,19 @@ class HistorySync:
         self.metrics.add("history_records", n)
         return n
 
+    def admit(self, layer: Layer, epoch: int, after: int, page: HistoryPage) -> None:
+        """Raise WireError ("bad-history") unless `offer` can merge `page` (it would take the
+        history's agent table past its bound); a page `offer` would leave aside (another epoch,
+        a gap) passes. Changes nothing: the frames that brought the page are accepted after."""
+        with layer.lock:
+            history = layer.grid.history
+            if layer.epoch != epoch or after > history.newest_version():
+                return
+            try:
+                history.admit(page)
+            except InputError as exc:
+                raise WireError("bad-history", str(exc)) from exc
+
     def servers(self, origin: str) -> list[str]:
         """Who to ask for `origin`'s history: live holders of its newest version, origin first."""
         if self.membership is None:
@@ -207,6 +221,14 @@ class HistorySync:
                 if got_epoch != epoch or start != after:
                     break  # another epoch of the layer (or none held): nothing to take here
                 page = join_pages(msgs)
+                try:
+                    if page is not None:
+                        self.admit(layer, epoch, after, page)
+                    self.catchup.take(msgs)  # only now: a page refused moved no window
+                except (ProtocolError, WireError) as exc:
+                    self.metrics.reject(exc.reason)
+                    log.warning("history of %s from %s refused: %s", layer.origin, server, exc)
+                    break
                 if page is not None:
                     try:
                         taken += self.offer(layer, epoch, after, page)

@@ -12,7 +12,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import zenoh
 
-from colonyd.alignment import Alignments, edge_from_offer
+from colonyd.alignment import MAX_OFFER_COVARIANCE, MAX_OFFER_M, Alignments, edge_from_offer
 from colonyd.errors import WireError
 from colonyd.frames import Assembler, accept, expect, frame_of
 from colonyd.layers import BLOCK_VOXELS
@@ -31,9 +31,11 @@ from protocol import (
     OwnOriginError,
     Pose,
     PoseFix,
+    ProtocolError,
     Receiver,
     VoxelDelta,
 )
+from protocol.codec import peek
 from protocol.keyexpr import topic_subscription
 from voxel.localisation import frame_error
 
@@ -77,6 +79,22 @@ def check_pose_covariance(
     return c
 
 
+#: The largest position (m, per axis) a Pose, PoseFix, Heartbeat or listed object may claim:
+#: the AlignOffer bound (beyond the Earth, so that a site frame in projected coordinates
+#: passes); beyond, a position says nothing about a robot and inflates what is computed from it
+#: (a peer's drift path, the colony's objects). Object covariances: the offers' bound too.
+MAX_POSITION_M = MAX_OFFER_M
+
+
+def check_positions(positions: object, reason: str, what: str) -> None:
+    """WireError(`reason`) unless every coordinate of `positions` (one or several x, y, z) is
+    within `MAX_POSITION_M` m."""
+    p = np.abs(np.asarray(positions, np.float64))
+    if p.size and not p.max() <= MAX_POSITION_M:
+        text = f"expected {what} within {MAX_POSITION_M:g} m per axis, found {p.max():.3g} m"
+        raise WireError(reason, text)
+
+
 #: An inbox item: (kind "delta" | "hb" | "objects" | "align" | "pose" | "fix" | "history" |
 #: "join", key expression or agent, raw frame, a delta's hand-off marks so far: `threadclock`
 #: stamps of the callback thread's last return ("idle"), our callback entered and it queued).
@@ -102,6 +120,7 @@ class Inbox:
         on_own_origin: Callable[[OwnOriginError], None] | None = None,
         on_fix: Callable[[PoseFix], None] | None = None,
         on_history: Callable[[HistoryReply], None] | None = None,
+        admit_history: Callable[[HistoryReply], None] | None = None,
         size: int = 256,
         max_bytes: int = 128 << 20,
         drop_rate: float = 0.0,
@@ -124,6 +143,9 @@ class Inbox:
         #: Called (on the inbox thread) with a validated pushed history (history push, opt-in:
         #: without it the inbox does not subscribe to `<origin>/history`).
         self._on_history = on_history
+        #: Called (on the inbox thread) with a pushed history before it is accepted: raises
+        #: WireError if `on_history` could not take it (a refused frame moves no window).
+        self._admit_history = admit_history
         self._drop_rate = drop_rate
         self._log = Throttle()  # a flood of refusals logs a line per reason now and then
         self._rng = random.Random()
@@ -281,6 +303,8 @@ class Inbox:
 
     def _handle_hb(self, key: str, raw: bytes) -> None:
         msg = expect(self.receiver.decode(raw, key_expr=key), Heartbeat, f"on {key}")
+        if msg.position is not None:
+            check_positions(msg.position, "bad-heartbeat", "a heartbeat's position")
         if self.membership is not None:
             self.membership.admit(msg.origin)  # bounded: a flood of made-up agents is refused
         accept(self.receiver, self.metrics, msg, raw)
@@ -299,7 +323,23 @@ class Inbox:
         self._compare(msg.origin, member.layers)
 
     def _handle_objects(self, key: str, raw: bytes) -> None:
+        try:
+            claimed = peek(raw, self.receiver.limits).origin
+        except ProtocolError:
+            claimed = None  # `decode` says what is wrong with it, and counts it
+        if claimed is not None:
+            self.objects.allow(claimed)  # before the body is parsed: the cost is there
         msg = expect(self.receiver.decode(raw, key_expr=key), Objects, f"on {key}")
+        self.objects.charge(msg.origin, len(msg.objects))
+        if msg.objects:
+            check_positions([o.position for o in msg.objects], "bad-objects", "object positions")
+            covariance = np.abs(np.array([o.covariance for o in msg.objects], np.float64))
+            if not covariance.max() <= MAX_OFFER_COVARIANCE:
+                text = (
+                    f"expected object covariance entries within {MAX_OFFER_COVARIANCE:g}, found "
+                    f"{covariance.max():.3g}"
+                )
+                raise WireError("bad-objects", text)
         self.objects.admit(msg.origin, len(msg.objects))
         accept(self.receiver, self.metrics, msg, raw)
         self.objects.put(msg.origin, msg.objects)
@@ -318,6 +358,7 @@ class Inbox:
         if msg.frame_id != frame_of(msg.origin):
             text = f"expected a pose in {frame_of(msg.origin)!r}, found frame {msg.frame_id!r}"
             raise WireError("bad-pose", text)
+        check_positions(msg.position, "bad-pose", "a pose's position")
         check_pose_covariance(msg.covariance)  # a bad one: the whole Pose ignored, counted
         if self.membership is None or self.membership.find(msg.origin) is None:
             raise WireError("unknown-member", f"expected a pose of a member, found {msg.origin!r}")
@@ -329,6 +370,7 @@ class Inbox:
         if msg.frame_id != frame_of(msg.origin):
             text = f"expected a fix in {frame_of(msg.origin)!r}, found frame {msg.frame_id!r}"
             raise WireError("bad-fix", text)
+        check_positions(msg.position, "bad-fix", "a fix's position")
         check_pose_covariance(msg.covariance, "bad-fix")  # the filter's measurement noise
         variances = [msg.covariance[i] for i in (0, 7, 35)]  # x, y, yaw
         if not all(v >= MIN_FIX_VARIANCE for v in variances):
@@ -356,10 +398,8 @@ class Inbox:
                 f"{msg.parts} parts"
             )
             raise WireError("bad-history", text)
-        layer = self.replicas.layers.find(msg.origin)
-        if msg.records is not None and layer is not None:  # refused before it is accepted
-            with layer.lock:
-                layer.grid.history.check_agents(msg.records)
+        if self._admit_history is not None:
+            self._admit_history(msg)
         accept(self.receiver, self.metrics, msg, raw)
         if msg.records is not None and self._on_history is not None:
             self._on_history(msg)

@@ -221,5 +221,16 @@ class Membership:
             holders.insert(0, origin)
         return best[0], best[1], holders
 
+    def holders(self, origin: str) -> list[tuple[tuple[int, int], str]]:
+        """Every live member that reports `origin`'s layer with the (epoch, seq) it reports,
+        highest first (the origin first among equals)."""
+        with self._lock:
+            found = [
+                (m.layers[origin], a)
+                for a, m in self.members.items()
+                if m.alive and origin in m.layers
+            ]
+        return sorted(found, key=lambda h: (h[0], h[1] == origin), reverse=True)
+
     def close(self) -> None:
         undeclare(self._sub, self._token)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import time
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -167,17 +168,69 @@ def to_wire(objects: list[ObjectCentroid]) -> list[WireObject]:
 #: KB of wire each, they would hold ~8 GB.
 MAX_PEER_OBJECTS = 65_536
 
+#: Objects one peer's lists may bring per second, and at once (one full list): decoding a list
+#: costs ~25 us an object on the inbox's one thread (0.4 s for 16,384), so a peer sending full
+#: lists back to back held the inbox (deltas, heartbeats) to itself. Past its allowance a peer's
+#: lists are refused before their body is parsed (`too-often`) until it has earned it back: a
+#: full list then every 8 s; a list of 1000 objects every 0.5 s passes. A list is a peer's whole
+#: current list, so a refused one is made good by the next (the daemon repeats an unchanged list).
+OBJECTS_PER_S = 2048.0
+OBJECTS_BURST = 16_384
+#: Most peers whose allowance is remembered (those back at a full allowance are forgotten first).
+MAX_ALLOWANCES = 4096
+
 
 class PeerObjects:
     """The latest object list each peer published (a full list replaces the previous one), for
     at most `max_origins` peers (a hostile peer cannot invent many), holding at most
     `max_objects` objects together."""
 
-    def __init__(self, max_origins: int = 256, max_objects: int = MAX_PEER_OBJECTS) -> None:
+    def __init__(
+        self,
+        max_origins: int = 256,
+        max_objects: int = MAX_PEER_OBJECTS,
+        *,
+        per_s: float = OBJECTS_PER_S,
+        burst: int = OBJECTS_BURST,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.max_origins = max_origins
         self.max_objects = max_objects
+        self.per_s = per_s
+        self.burst = burst
+        self._clock = clock
         self._lists: dict[str, tuple[float, list[WireObject]]] = {}
+        #: origin -> (objects it may still send, clock then): `allow` and `charge`
+        self._allowance: dict[str, tuple[float, float]] = {}
         self._lock = threading.Lock()
+
+    def _earned(self, origin: str, now: float) -> float:
+        left, then = self._allowance.get(origin, (float(self.burst), now))
+        return min(float(self.burst), left + (now - then) * self.per_s)
+
+    def allow(self, origin: str) -> None:
+        """WireError (`too-often`) unless `origin` may send a list now: it has not spent more
+        than its allowance (`per_s` objects a second, `burst` at once). Changes nothing."""
+        with self._lock:
+            left = self._earned(origin, self._clock())
+        if left <= 0:
+            text = (
+                f"expected at most {self.per_s:g} listed objects a second from {origin!r} "
+                f"({self.burst} at once), found it {-left:.0f} objects past its allowance"
+            )
+            raise WireError("too-often", text)
+
+    def charge(self, origin: str, count: int) -> None:
+        """`origin` (authenticated: its frame was decoded) sent a list of `count` objects: they
+        are taken from its allowance, kept or not (decoding them cost the same)."""
+        with self._lock:
+            now = self._clock()
+            left = self._earned(origin, now) - count
+            if origin not in self._allowance and len(self._allowance) >= MAX_ALLOWANCES:
+                full = [o for o in self._allowance if self._earned(o, now) >= self.burst]
+                for o in full or list(self._allowance)[: MAX_ALLOWANCES // 2]:
+                    del self._allowance[o]
+            self._allowance[origin] = (left, now)
 
     def admit(self, origin: str, count: int = 0) -> None:
         """Raise WireError unless a list of `count` objects of `origin` may be kept (replacing

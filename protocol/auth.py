@@ -60,12 +60,23 @@ class ReplayWindow:
         self._state: dict[str, tuple[int, int, int]] = {}
         self._lock = threading.Lock()
 
-    def check(self, origin: str, epoch: int, seq: int) -> None:
+    def check(self, origin: str, epoch: int, seq: int, *, late_ok: bool = False) -> None:
         """Raise ReplayError if (origin, epoch, seq) was seen or is too old; else record it.
+        `late_ok`: a frame of the current epoch older than the window is let through without
+        being recorded (a reply to a fresh random request id, which proves it fresh, that fell
+        behind the window while its query ran).
 
         Thread-safe: daemons decode on several worker threads.
         """
         with self._lock:
+            state = self._state.get(origin)
+            if (
+                late_ok
+                and state is not None
+                and epoch == state[0]
+                and state[1] - seq >= self.window
+            ):
+                return
             state = self._next_state(origin, epoch, seq)
             self._state.pop(origin, None)
             if len(self._state) >= self.max_origins:

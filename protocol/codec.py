@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal, cast
 
@@ -267,6 +268,7 @@ def decode(
     limits: Limits = DEFAULT_LIMITS,
     replay: ReplayWindow | None = None,
     trust: Trust | None = None,
+    before_body: Callable[[type[Message], str, int, int, float], None] | None = None,
 ) -> Message:
     """Validated message of hostile frame bytes, or a ProtocolError subclass saying why not.
 
@@ -275,6 +277,11 @@ def decode(
     checks identities, every message but a request must carry its origin's valid signature
     (IdentityError). With a `replay` window, a frame whose (origin, epoch, seq) was already
     accepted raises ReplayError.
+
+    The cheap checks come before the body is decompressed and parsed (which costs up to ~0.5 s
+    for the largest bodies): the tag, the envelope, `before_body(class, origin, epoch, seq,
+    time)` (the caller's own checks; it raises to refuse), and the signature of a message type
+    that does not carry its key in its body (all but the Heartbeat, checked after).
     """
     mtype, flags, compression = _prefix(data, limits)
     auth = bool(flags & FLAG_AUTH)
@@ -295,12 +302,17 @@ def decode(
         raise AuthError(msg)
     end = _envelope_end(data, flags)
     origin, epoch, seq, time, body = _envelope(data, end, limits)
+    cls = MESSAGE_TYPES[mtype]
+    if before_body is not None:
+        before_body(cls, origin, epoch, seq, time)
+    early = trust is not None and "identity" not in cls.model_fields
+    if trust is not None and early:
+        _verify(data, cls, origin, None, trust)  # a stranger's frame costs no body parse
     if compression == COMPRESSION_ZSTD:
         body = fields.decompress(body, limits, "body")
     elif len(body) > limits.max_body_bytes:
         msg = f"body: expected at most {limits.max_body_bytes} bytes, found {len(body)}"
         raise OversizedError(msg)
-    cls = MESSAGE_TYPES[mtype]
     content = fields.as_map(fields.unpack(body, f"{cls.KIND} body", limits), f"{cls.KIND} body")
     known = {k: v for k, v in content.items() if k in cls.model_fields and k not in HEADER_FIELDS}
     if "delta" in cls.model_fields:
@@ -338,7 +350,7 @@ def decode(
         )
     except ValidationError as exc:
         raise _validation_error(cls, exc) from None
-    if trust is not None:
+    if trust is not None and not early:
         verify_identity(data, message, trust)
     if replay is not None:
         replay.check(origin, epoch, seq)
@@ -348,18 +360,23 @@ def decode(
 def verify_identity(data: bytes, message: Message, trust: Trust) -> None:
     """Raise IdentityError unless frame `data` of the decoded `message` carries its origin's
     valid signature (requests and a `trust` that checks nothing pass)."""
-    if not trust.checks or message.REQUEST:
+    _verify(data, type(message), message.origin, getattr(message, "identity", None), trust)
+
+
+def _verify(
+    data: bytes, cls: type[Message], origin: str, identity: bytes | None, trust: Trust
+) -> None:
+    """`verify_identity` of a frame of `cls` from `origin` whose body offers key `identity`."""
+    if not trust.checks or cls.REQUEST:
         return
     _, flags, _ = _prefix(data, DEFAULT_LIMITS)
     if not flags & FLAG_SIGNED:
-        msg = (
-            f"frame: expected {message.origin!r}'s signature on a {message.KIND} frame, found none"
-        )
+        msg = f"frame: expected {origin!r}'s signature on a {cls.KIND} frame, found none"
         raise IdentityError(msg)
     end = _envelope_end(data, flags)
-    public = trust.key_for(message.origin, getattr(message, "identity", None))
+    public = trust.key_for(origin, identity)
     view = memoryview(data)
-    verify_signature(public, view[:end], view[end : end + SIG_BYTES], message.origin)
+    verify_signature(public, view[:end], view[end : end + SIG_BYTES], origin)
 
 
 # --------------------------------------------------------------------------- delta helpers

@@ -6,7 +6,7 @@ import threading
 from collections import Counter
 
 from protocol.auth import ReplayWindow
-from protocol.codec import decode, verify_identity
+from protocol.codec import decode
 from protocol.errors import OwnOriginError, ProtocolError
 from protocol.identity import Trust
 from protocol.keyexpr import check_origin
@@ -59,34 +59,42 @@ class Receiver:
         """The validated message of `data`, or a ProtocolError (counted under its `reason`).
 
         A replay is rejected here, but nothing is recorded for a frame that passes: the replay
-        window moves only in `accept`.
+        window moves only in `accept`. The key's origin, our own origin, the replay window and
+        (but for a Heartbeat, whose body carries its key) the signature are checked before the
+        body is parsed: a stranger's frame costs no body parse.
         """
-        try:
-            msg = decode(data, key=self.key, limits=self.limits)
+
+        def before_body(cls: type[Message], origin: str, epoch: int, seq: int, time: float) -> None:
             if key_expr is not None:
-                check_origin(key_expr, msg.origin)
-            if msg.origin == self.own:
-                text = f"frame: expected another agent's origin, found our own {msg.origin!r}"
-                raise OwnOriginError(text, kind=msg.KIND, epoch=msg.epoch, time=msg.time)
-            if self.trust is not None:
-                verify_identity(data, msg, self.trust)
-            window = self._window(msg)
+                check_origin(key_expr, origin)
+            if origin == self.own:
+                text = f"frame: expected another agent's origin, found our own {origin!r}"
+                raise OwnOriginError(text, kind=cls.KIND, epoch=epoch, time=time)
+            window = self.request_replay if cls.REQUEST else self.replay
             if window is not None:
-                window.peek(msg.origin, msg.epoch, msg.seq)
+                window.peek(origin, epoch, seq)
+
+        try:
+            msg = decode(
+                data, key=self.key, limits=self.limits, trust=self.trust, before_body=before_body
+            )
         except ProtocolError as exc:
             self.count_rejected(exc.reason)
             raise
         return msg
 
-    def accept(self, msg: Message) -> None:
+    def accept(self, msg: Message, *, answer: bool = False) -> None:
         """Take a decoded message: record its (origin, epoch, seq) and count it as accepted.
+        `answer`: a reply that matched our fresh random request id, taken once every reply of
+        its query passed; one that fell behind the replay window meanwhile (its holder sent
+        more than the window's frames while the query ran) is taken without being recorded.
 
         Raises ReplayError (counted) if the same frame was accepted meanwhile on another thread.
         """
         window = self._window(msg)
         if window is not None:
             try:
-                window.check(msg.origin, msg.epoch, msg.seq)
+                window.check(msg.origin, msg.epoch, msg.seq, late_ok=answer)
             except ProtocolError as exc:
                 self.count_rejected(exc.reason)
                 raise

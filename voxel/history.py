@@ -410,10 +410,12 @@ class History:
         seen = seen[np.argsort(seen["version"], kind="stable")]
         return HistoryPage(rec, list(self.agents), seen), to, to < hi
 
-    def check_agents(self, page: HistoryPage) -> None:
-        """Raise InputError if `merge` would take the agent table past `MAX_AGENTS` (the agents
-        of the page's records newer than everything held). Changes nothing."""
+    def admit(self, page: HistoryPage) -> None:
+        """Raise InputError unless `merge` can take `page`: the agents its new records name
+        would keep the agent table within `MAX_AGENTS`. Changes nothing."""
         rec = page.records[page.records["version"] > self.newest_version()]
+        if not rec.size:
+            return
         used = np.unique(rec["agent"])
         new = {page.agents[i] for i in used if page.agents[i] not in self._agent_index}
         if len(self.agents) + len(new) > MAX_AGENTS:
@@ -427,7 +429,7 @@ class History:
         """Append the records and seen entries of a page (another holder's) whose versions are
         newer than everything held; agent codes are translated to this history's. The bound
         holds: past `capacity` the oldest go first. Returns records and entries taken."""
-        self.check_agents(page)
+        self.admit(page)
         newest = self.newest_version()
         rec = page.records[page.records["version"] > newest]
         seen = page.seen[page.seen["version"] > newest]

@@ -25,10 +25,15 @@ from colonyd.replicas import Replicas
 from colonyd.runtime import open_session, zenoh_config
 from protocol import (
     AlignOffer,
+    DeltaRangeReply,
     Heartbeat,
     HistoryReply,
+    LayerVersion,
     ObjectCentroid,
     Objects,
+    Pose,
+    PoseFix,
+    ProtocolError,
     Receiver,
     SnapshotReply,
     SnapshotRequest,
@@ -386,7 +391,8 @@ def test_snapshot_replies_hold_no_more_voxels_than_the_peer_budget() -> None:
             held = sum(len(r.delta) for r in replies)
             assert held <= d.layers.max_peer_blocks * BLOCK_VOXELS, held
             assert d.metrics.rejected["over-budget"] == 9
-            assert d.receiver.accepted["snapshot_reply"] == len(replies) == 1
+            assert len(replies) == 1
+            assert d.receiver.accepted["snapshot_reply"] == 0  # the caller takes them, if whole
         finally:
             q.undeclare()
             d.close()
@@ -617,6 +623,9 @@ def test_pushed_history_pages_of_ever_new_agents_keep_the_agent_table_bounded() 
             sync = HistorySync(
                 d.layers, SimpleNamespace(), d.metrics, period_s=0, stop=threading.Event()
             )
+            d.inbox._admit_history = lambda msg: sync.admit(
+                layer, msg.layer_epoch, msg.from_version, msg.records
+            )  # as the daemon checks a pushed page (`Gossip._admit_history`)
             d.inbox._on_history = lambda msg: sync.offer(
                 layer, msg.layer_epoch, msg.from_version, msg.records
             )  # as the daemon takes a pushed page (`Gossip._take_history`)
@@ -632,7 +641,11 @@ def test_pushed_history_pages_of_ever_new_agents_keep_the_agent_table_bounded() 
                 d.feed("history", "evil", sender.encode(reply))
             assert len(layer.grid.history.agents) <= MAX_AGENTS == 4096
             assert d.metrics.rejected["internal"] == 0
-            assert d.metrics.rejected["invalid"] == 17
+            assert d.metrics.rejected["bad-history"] == 17
+            # refused before accepted: the 17 refused frames (seq 12 to 28) moved no window
+            assert d.receiver.accepted["history_reply"] == 1
+            for seq in range(12, 29):
+                d.receiver.replay.peek("evil", 7, seq)
         finally:
             d.close()
 
@@ -746,3 +759,309 @@ def test_a_flood_of_refused_frames_does_not_flood_the_log(caplog) -> None:
             assert len(lines) <= 6, f"{len(lines)} lines, the first: {lines[0].getMessage()}"
         finally:
             d.close()
+
+
+def _catchup(d: SimpleNamespace, session: zenoh.Session) -> CatchUp:
+    return CatchUp(session, NS, d.replicas, Sender("me", 1, key=KEY), d.receiver, d.metrics)
+
+
+def test_snapshot_replies_refused_as_a_whole_move_no_window() -> None:
+    """A holder answers snapshot requests with replies each valid alone but refused as a whole:
+    two of three parts (incomplete), a snapshot not from version 0, and one past the peer budget
+    (refused at admission). Nothing is installed and no reply frame is accepted: the holder's
+    replay window stays where its heartbeat left it (it moved for each reply, then the reply
+    was refused)."""
+    small = Delta(0.1, 0, 3, [[0, 0, 0], [1, 0, 0]], [1.0, 1.0], [1.7e9, 1.7e9])
+    late = Delta(0.1, 2, 3, [[0, 0, 0]], [1.0], [1.7e9])
+    big = [Delta(0.1, 0, 3, p.keys, p.logodds, p.last_time)
+           for p in (_block_delta(0, 1), _block_delta(64, 1))]  # fmt: skip
+    answers = [
+        lambda rid, s: [_snapshot_reply(s, rid, small, i, 3) for i in (0, 1)],
+        lambda rid, s: [_snapshot_reply(s, rid, late, 0, 1)],
+        lambda rid, s: [_snapshot_reply(s, rid, b, i, 2) for i, b in enumerate(big)],
+    ]
+    with _sessions(2) as (mine, evil):
+        d = _daemon(mine)
+        signer = Signer.generate()
+        d.feed("hb", "evil", _heartbeat("evil", signer))
+        current: list = [answers[0]]
+        q = _serve(evil, signer, lambda rid, s: current[0](rid, s))  # noqa: PLW0108 - late
+        try:
+            assert _until(lambda: _answers(mine))
+            catchup = _catchup(d, mine)
+            for answer in answers:
+                current[0] = answer
+                assert not catchup._fetch_snapshot("evil", "evil", time.monotonic())
+            assert d.layers.find("evil") is None
+            assert d.metrics.rejected["bad-snapshot"] == 1
+            assert d.metrics.rejected["over-budget"] == 1
+            assert d.receiver.accepted["snapshot_reply"] == 0
+            assert "evil" in d.receiver.replay._state  # its heartbeat's
+            for seq in range(100, 110):  # every reply frame the holder sent is still fresh
+                d.receiver.replay.peek("evil", 7, seq)
+            current[0] = lambda rid, s: [_snapshot_reply(s, rid, small, 0, 1)]
+            assert catchup._fetch_snapshot("evil", "evil", time.monotonic())
+            assert d.receiver.accepted["snapshot_reply"] == 1
+        finally:
+            q.undeclare()
+            d.close()
+
+
+def test_positions_beyond_the_earth_are_refused() -> None:
+    """Finite on the wire, meaningless for a robot: a Pose at 1e300 m (it went into the peer's
+    drift path: a walk of 1e300 m per metre), a PoseFix, a heartbeat's position and an object at
+    1e12 m, an object covariance of 1e300. Each is refused (past `MAX_POSITION_M`, the
+    AlignOffer bound) before it is accepted; a position of 1e7 m (projected site coordinates)
+    passes."""
+    with _sessions(2) as (mine, other):
+        d = _daemon(mine)
+        token = other.liveliness().declare_token(alive_key(NS, "a"))
+        try:
+            assert _until(lambda: d.membership.alive() == ["a"])
+            signer = Signer.generate()
+            d.feed("hb", "a", _heartbeat("a", signer))
+            a = Sender("a", 7, key=KEY, signer=signer, first_seq=2)
+            cov = list(np.diag([0.01, 0.01, 0.01, 0.001, 0.001, 0.001]).ravel())
+
+            def pose(x: float) -> bytes:
+                msg = Pose(**a.header(), frame_id="a.odom", position=(x, 0, 0), covariance=cov)
+                return a.encode(msg)
+
+            def fix(x: float) -> bytes:
+                msg = PoseFix(**a.header(), target="me", frame_id="a.odom", stamp=1.7e9,
+                              position=(x, 0, 0), covariance=cov)  # fmt: skip
+                return a.encode(msg)
+
+            def objects(x: float, c: float = 0.0) -> bytes:
+                listed = [ObjectCentroid(object_id=1, class_id=3, position=(0, x, 0),
+                                         covariance=[c] * 9, voxel_count=9, time=1.0)]  # fmt: skip
+                return a.encode(Objects(**a.header(), frame_id="a.odom", objects=listed))
+
+            def heartbeat(x: float) -> bytes:
+                hb = Heartbeat(**a.header(), kind="robot", frame_id="a.odom", position=(0, 0, x))
+                return a.encode(hb)
+
+            for x in (0.0, 1.0, 2.0):
+                d.feed("pose", "a", pose(x))
+            walk_before = d.membership.pose_drifts().get("a")
+            bad = {
+                "pose": pose(1e300),
+                "fix": fix(1e12),
+                "objects": objects(1e12),
+                "hb": heartbeat(-1e300),
+            }
+            for kind, frame in bad.items():
+                d.feed(kind, "a", frame)
+            d.feed("objects", "a", objects(1.0, 1e300))
+            for reason in ("bad-pose", "bad-fix", "bad-heartbeat"):
+                assert d.metrics.rejected[reason] == 1, reason
+            assert d.metrics.rejected["bad-objects"] == 2
+            assert d.receiver.accepted["pose"] == 3
+            assert d.receiver.accepted["objects"] == d.receiver.accepted["fix"] == 0
+            assert d.receiver.accepted["heartbeat"] == 1
+            assert d.membership.find("a").pose == [2.0, 0.0, 0.0]
+            walk = d.membership.pose_drifts().get("a")
+            assert (walk is None) == (walk_before is None)
+            assert d.peer_objects.get("a") == []
+            d.feed("pose", "a", pose(1e7))
+            d.feed("objects", "a", objects(-1e7, 1e3))
+            assert d.membership.find("a").pose == [1e7, 0.0, 0.0]
+            assert len(d.peer_objects.get("a")) == 1
+        finally:
+            token.undeclare()
+            d.close()
+
+
+def test_a_member_that_never_answers_cannot_stall_repairs() -> None:
+    """Member "evil" lists 40 made-up layers in its heartbeat and claims a version of "b"'s
+    layer far beyond b's, while its queryables never answer. Each repair waited the query
+    timeout on it (then its doubling), one repair at a time: b's real layer waited behind
+    them all. Now a holder that gave nothing usable rests as long as its query took: b's layer
+    is caught up from b after one query to evil, and evil's claim brings no snapshot again."""
+    with _sessions(2) as (mine, other):
+        d = _daemon(mine)
+        held: list = []
+        asked = {"evil": 0, "b": 0}
+        b_signer, evil_signer = Signer.generate(), Signer.generate()
+        b = Sender("b", 7, key=KEY, signer=b_signer, first_seq=100)
+        layer = Delta(0.1, 0, 3, [[0, 0, 0], [1, 0, 0]], [1.0, 1.0], [1.7e9, 1.7e9])
+
+        def silent(query: zenoh.Query) -> None:
+            asked["evil"] += 1
+            held.append(query)  # never answered, never dropped: the requester waits it out
+
+        def serve_b(query: zenoh.Query) -> None:
+            asked["b"] += 1
+            request = decode(query.payload.to_bytes(), key=KEY)
+            if isinstance(request, SnapshotRequest):
+                reply = SnapshotReply(**b.header(), layer="b", request_id=request.request_id,
+                                      frame_id="b.odom", layer_epoch=7, delta=layer)  # fmt: skip
+            else:
+                reply = DeltaRangeReply(**b.header(), layer="b", request_id=request.request_id,
+                                        frame_id="b.odom", layer_epoch=7)  # fmt: skip
+            query.reply(query.key_expr, b.encode(reply))
+            query.drop()
+
+        def heartbeat(agent: str, signer: Signer, seq: int, layers: dict) -> bytes:
+            s = Sender(agent, 7, key=KEY, signer=signer, first_seq=seq)
+            listed = [LayerVersion(origin=o, epoch=e, version=v) for o, (e, v) in layers.items()]
+            hb = Heartbeat(**s.header(), kind="robot", frame_id=f"{agent}.odom",
+                           identity=signer.public, layers=listed)  # fmt: skip
+            return s.encode(hb)
+
+        tokens = [other.liveliness().declare_token(alive_key(NS, a)) for a in ("evil", "b")]
+        queryables = [
+            other.declare_queryable(f"colony/{NS}/evil/**", silent),
+            other.declare_queryable(f"colony/{NS}/b/**", serve_b),
+        ]
+        me = Sender("me", 1, key=KEY)
+        catchup = CatchUp(mine, NS, d.replicas, me, d.receiver, d.metrics, query_timeout_s=0.5)
+        try:
+            assert _until(lambda: sorted(d.membership.alive()) == ["b", "evil"])
+            d.inbox._request_repair = catchup.request
+            catchup.start(d.membership)
+            made_up = {f"f{i}": (1, 5) for i in range(40)}
+            d.feed("hb", "evil", heartbeat("evil", evil_signer, 1, {**made_up, "b": (7, 10**6)}))
+            d.feed("hb", "b", heartbeat("b", b_signer, 1, {"b": (7, 3)}))
+            ok = _until(lambda: (r := d.layers.find("b")) is not None and r.seq == 3, 8.0)
+            assert ok, (asked, d.metrics.counts)
+            assert asked["evil"] <= 2, asked
+            assert d.metrics.counts["snapshots_installed"] == 1
+            for seq in range(2, 5):  # evil's claim again: b says it holds nothing newer
+                d.feed("hb", "evil", heartbeat("evil", evil_signer, seq, {"b": (7, 10**6)}))
+                assert _until(catchup.idle)
+            assert d.metrics.counts["snapshots_installed"] == 1
+        finally:
+            catchup.close()
+            for q in queryables:
+                q.undeclare()
+            for t in tokens:
+                t.undeclare()
+            held.clear()
+            d.close()
+
+
+def _full_list(sender: Sender, x: float = 0.0) -> bytes:
+    listed = [
+        ObjectCentroid(object_id=i, class_id=3, position=(i, x, 0.0), voxel_count=9, time=1.0)
+        for i in range(16_384)
+    ]
+    frame_id = f"{sender.origin}.odom"
+    return sender.encode(Objects(**sender.header(), frame_id=frame_id, objects=listed))
+
+
+def test_full_object_lists_back_to_back_cannot_hold_the_inbox() -> None:
+    """A member sends object lists of 16,384 objects (the protocol's most; ~0.4 s of decoding
+    each on the inbox's one thread) back to back: every one was decoded, and the inbox served
+    nothing else. Past its allowance (`OBJECTS_BURST` at once, `OBJECTS_PER_S` a second; a list
+    refused once parsed is charged too: it cost as much) its lists are refused before their
+    body is parsed (`too-often`, not `bad-objects`), until it has earned some back; another
+    member's list passes meanwhile."""
+    from colonyd.objects import OBJECTS_BURST, OBJECTS_PER_S
+
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        now = [1000.0]
+        d.peer_objects._clock = lambda: now[0]
+        try:
+            senders = {}
+            for agent in ("p", "q"):
+                signer = Signer.generate()
+                d.feed("hb", agent, _heartbeat(agent, signer))
+                senders[agent] = Sender(agent, 7, key=KEY, signer=signer, first_seq=2)
+            p = senders["p"]
+            d.feed("objects", "p", _full_list(p, 1e12))  # parsed, refused: its cost charged
+            for _ in range(3):
+                d.feed("objects", "p", _full_list(p, 1e12))
+            assert d.metrics.rejected["bad-objects"] == 1
+            assert d.metrics.rejected["too-often"] == 3
+            assert d.receiver.accepted["objects"] == 0
+            d.feed("objects", "q", _full_list(senders["q"]))
+            assert d.receiver.accepted["objects"] == 1
+            now[0] += OBJECTS_BURST / OBJECTS_PER_S / 2  # half a list's worth earned back
+            d.feed("objects", "p", _full_list(p, 1.0))
+            assert d.receiver.accepted["objects"] == 2
+            assert d.peer_objects.get("p")[0].position == (0.0, 1.0, 0.0)
+        finally:
+            d.close()
+
+
+def test_a_strangers_frame_is_refused_before_its_body_is_parsed() -> None:
+    """An open colony trusting identities on first use: a stranger's frame under an origin not
+    introduced (or a pinned one's, without its key) was decompressed and parsed whole (up to
+    ~0.5 s for the largest bodies) before its signature was checked. The signature is now
+    checked first: a frame whose body is garbage is refused for its identity, not its body."""
+    receiver = Receiver(own="me", trust=Trust("tofu"))
+    stranger = Sender("zz", 7, signer=Signer.generate(), first_seq=2)
+    raw = bytearray(_full_list(stranger))
+    body = raw.find(b"zz") + 40  # inside the body (the envelope: origin, epoch, seq, time)
+    raw[body : body + 64] = bytes(64)
+    try:
+        receiver.decode(bytes(raw))
+        raise AssertionError("a stranger's frame was accepted")
+    except ProtocolError as exc:
+        assert exc.reason == "unknown_identity", exc
+
+
+def test_range_replies_refused_at_admission_move_no_window() -> None:
+    """A holder answers a range request with two deltas: the first fine, the second with a
+    voxel time no replica can keep (refused at admission, `bad-time`). The range is refused as
+    a whole before any of it is applied or accepted: the layer is as it was and every reply
+    frame of the holder is still fresh (each moved its window, then the second was refused
+    after the first was applied)."""
+    with _sessions(2) as (mine, evil):
+        d = _daemon(mine)
+        signer = Signer.generate()
+        d.feed("hb", "evil", _heartbeat("evil", signer))
+        sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+        d.feed("delta", "evil", _parts(sender, Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9]),
+                                       [0], 1)[0])  # fmt: skip
+        replier = Sender("evil", 7, key=KEY, signer=signer, first_seq=100)
+        good = Delta(0.1, 1, 2, [[1, 0, 0]], [1.0], [1.7e9])
+        bad = Delta(0.1, 2, 3, [[2, 0, 0]], [1.0], [1e13])
+
+        def answer(query: zenoh.Query) -> None:
+            request = decode(query.payload.to_bytes(), key=KEY)
+            for i, delta in enumerate((good, bad)):
+                reply = DeltaRangeReply(**replier.header(), layer="evil",
+                                        request_id=request.request_id, frame_id="evil.odom",
+                                        layer_epoch=7, part=i, parts=2, delta=delta)  # fmt: skip
+                query.reply(query.key_expr, replier.encode(reply))
+            query.drop()
+
+        q = evil.declare_queryable(query_key(NS, "evil", "deltas", "evil"), answer)
+        try:
+            catchup = _catchup(d, mine)
+            layer = d.layers.find("evil")
+            assert _until(lambda: catchup._fetch_range("evil", "evil", layer, 3) == "failed"
+                          and d.metrics.rejected["bad-time"] >= 1)  # fmt: skip
+            assert layer.seq == 1
+            assert d.receiver.accepted["delta_range_reply"] == 0
+            for seq in range(100, 102):
+                d.receiver.replay.peek("evil", 7, seq)
+        finally:
+            q.undeclare()
+            d.close()
+
+
+def test_replies_behind_the_window_when_taken_are_still_taken() -> None:
+    """Replies are recorded only once their query passed as a whole; meanwhile their holder may
+    have sent more than the replay window's frames (deltas, other requesters' replies) and the
+    inbox accepted them: the replies, answers to a fresh random request id, are taken without
+    being recorded rather than refused as replays (a busy holder's snapshots would never be
+    taken). Any other frame so old is a replay as before."""
+    receiver = Receiver(key=KEY, own="me", trust=Trust("tofu"))
+    signer = Signer.generate()
+    receiver.receive(_heartbeat("evil", signer))
+    holder = Sender("evil", 7, key=KEY, signer=signer, first_seq=100)
+    small = Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9])
+    reply = receiver.decode(_snapshot_reply(holder, 5, small, 0, 1))
+    later = Sender("evil", 7, key=KEY, signer=signer, first_seq=100 + 5000)
+    receiver.receive(_parts(later, small, [0], 1)[0])  # the holder's delta, 5000 frames on
+    receiver.accept(reply, answer=True)
+    assert receiver.accepted["snapshot_reply"] == 1
+    try:
+        receiver.accept(reply)
+        raise AssertionError("a frame older than the window was accepted")
+    except ProtocolError as exc:
+        assert exc.reason == "replay"
