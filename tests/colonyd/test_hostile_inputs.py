@@ -650,56 +650,9 @@ def test_pushed_history_pages_of_ever_new_agents_keep_the_agent_table_bounded() 
             d.close()
 
 
-def test_a_history_page_refused_for_its_agents_moves_no_window() -> None:
-    """A pushed page that would take the history's agent table past `MAX_AGENTS` is refused
-    before it is accepted: it was accepted first (its window moved, counted accepted and then
-    refused as invalid)."""
-    from colonyd.historysync import HistorySync
-
-    with _sessions(1) as (mine,):
-        d = _daemon(mine)
-        try:
-            signer = Signer.generate()
-            d.feed("hb", "evil", _heartbeat("evil", signer))
-            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
-            d.feed("delta", "evil", _parts(sender, Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9]),
-                                           [0], 1)[0])  # fmt: skip
-            layer = d.layers.find("evil")
-            sync = HistorySync(
-                d.layers, SimpleNamespace(), d.metrics, period_s=0, stop=threading.Event()
-            )
-            d.inbox._on_history = lambda msg: sync.offer(
-                layer, msg.layer_epoch, msg.from_version, msg.records
-            )  # as the daemon takes a pushed page (`Gossip._take_history`)
-
-            def page(version: int, agents: list[str]) -> bytes:
-                rec = np.zeros(len(agents), RECORD_DTYPE)
-                rec["key"] = vk.pack(np.stack([np.arange(len(agents)), np.zeros(len(agents)),
-                                               np.zeros(len(agents))], 1))  # fmt: skip
-                rec["agent"] = np.arange(len(agents))
-                rec["version"] = version
-                reply = HistoryReply(**sender.header(), layer="evil", request_id=0, layer_epoch=7,
-                                     from_version=version - 1, to_version=version,
-                                     records=HistoryPage(rec, agents))  # fmt: skip
-                return sender.encode(reply)
-
-            d.feed("history", "evil", page(1, [f"g{i}" for i in range(MAX_AGENTS)]))
-            assert len(layer.grid.history.agents) == MAX_AGENTS
-            refused = page(2, ["one-more"])
-            d.feed("history", "evil", refused)
-            assert d.metrics.rejected["invalid"] == 1
-            assert d.receiver.accepted["history_reply"] == 1
-            d.receiver.replay.peek("evil", 7, sender.take() - 1)  # its seq is still fresh
-            d.feed("history", "evil", page(2, ["g0"]))  # an agent it holds: taken
-            assert d.receiver.accepted["history_reply"] == 2
-            assert layer.grid.history.newest_version() == 2
-        finally:
-            d.close()
-
-
 def test_a_pulled_history_page_of_too_many_agents_is_a_counted_refusal() -> None:
     """A holder answers history pulls with a page that would take the replica's agent table past
-    `MAX_AGENTS`: refused and counted (`invalid`) like a pushed one. The pull raised, and the
+    `MAX_AGENTS`: refused and counted (`bad-history`) like a pushed one. The pull raised, and the
     history thread logged the error with its stack every round, counted nowhere."""
     from colonyd.historysync import HistorySync
 
@@ -730,7 +683,7 @@ def test_a_pulled_history_page_of_too_many_agents_is_a_counted_refusal() -> None
             me = Sender("me", 1, key=KEY)
             catchup = CatchUp(mine, NS, d.replicas, me, d.receiver, d.metrics)
             sync = HistorySync(d.layers, catchup, d.metrics, period_s=0, stop=threading.Event())
-            assert _until(lambda: sync.pull(layer) == 0 and d.metrics.rejected["invalid"] > 0)
+            assert _until(lambda: sync.pull(layer) == 0 and d.metrics.rejected["bad-history"] > 0)
             assert "one-more" not in layer.grid.history.agents
             assert d.metrics.rejected["internal"] == 0
         finally:
