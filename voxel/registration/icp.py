@@ -154,17 +154,11 @@ def icp(
         if matched < 6:
             break
         rmse = float(np.sqrt(np.mean(d[ok] ** 2)))
-        step = fit_rigid(moved[ok], target[idx[ok]], dof)
+        pairs = moved[ok]
+        step = fit_rigid(pairs, target[idx[ok]], dof)
         t = step @ t
-        shift = float(
-            np.max(
-                np.linalg.norm(
-                    apply(step, moved[ok][:: max(1, matched // 200)])
-                    - moved[ok][:: max(1, matched // 200)],
-                    axis=1,
-                )
-            )
-        )
+        every = pairs[:: max(1, matched // 200)]
+        shift = float(np.max(np.linalg.norm(apply(step, every) - every, axis=1)))
         if it > half and shift < tol_m:
             break
     return IcpResult(t, matched, rmse, it)
