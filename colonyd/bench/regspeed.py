@@ -5,9 +5,9 @@ results compared field by field and the CPU per `align_clouds` call timed, inter
 office and hall partial maps, CARMEN halves, OctoMap crops, negatives; one .npz per pair);
 `record --corpus DIR --out FILE [--code ROOT]` aligns every pair once with the code at ROOT
 (default: this checkout) and pickles the results; `compare A B` says which results differ;
-`bench --corpus DIR --main ROOT [--repeats N] [--rounds R] [--json FILE]` times both checkouts
-in alternating child processes (process CPU per call; median and min per case) and the CPU a
-fresh registration process spends importing what registration loads on first use.
+`bench --corpus DIR --main ROOT [--branch ROOT] [--repeats N] [--rounds R] [--json FILE]` times
+both checkouts in alternating child processes (process CPU per call; median and min per case)
+and the CPU a fresh registration process spends importing what registration loads on first use.
 """
 
 from __future__ import annotations
@@ -265,10 +265,15 @@ def _child(root: str, script: str) -> dict[str, Any]:
 
 
 def bench(
-    corpus: Path, main_root: Path, repeats: int, rounds: int, import_case: str
+    corpus: Path,
+    main_root: Path,
+    repeats: int,
+    rounds: int,
+    import_case: str,
+    branch_root: Path = HERE,
 ) -> dict[str, Any]:
     """CPU per call of both checkouts, alternating child processes, `rounds` each."""
-    roots = {"main": str(main_root.resolve()), "branch": str(HERE)}
+    roots = {"main": str(main_root.resolve()), "branch": str(branch_root.resolve())}
     times: dict[str, dict[str, list[float]]] = {"main": {}, "branch": {}}
     imports: dict[str, list[dict[str, Any]]] = {"main": [], "branch": []}
     for r in range(rounds):
@@ -335,6 +340,7 @@ def main() -> None:
     p = sub.add_parser("bench")
     p.add_argument("--corpus", type=Path, required=True)
     p.add_argument("--main", type=Path, required=True)
+    p.add_argument("--branch", type=Path, default=HERE, help="default: this checkout")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--import-case", default="office_lidar150_depth150_objects")
@@ -357,7 +363,9 @@ def main() -> None:
         print("\n".join(lines) if lines else "identical: every field of every case")
         sys.exit(1 if lines else 0)
     else:
-        result = bench(args.corpus, args.main, args.repeats, args.rounds, args.import_case)
+        result = bench(
+            args.corpus, args.main, args.repeats, args.rounds, args.import_case, args.branch
+        )
         result["command"] = "python -m colonyd.bench.regspeed " + " ".join(sys.argv[1:])
         text = json.dumps(result, indent=1)
         print(text)
