@@ -153,8 +153,10 @@ def _one_way(
     moved: np.ndarray, wall: np.ndarray, target: Side, inlier_m: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Distances, inlier, overlap and conflict masks of points moved into `target`'s frame
-    (`wall`: which of them are wall points; only those can contradict)."""
-    d, _ = target.tree.query(moved, distance_upper_bound=CLEAR_M)
+    (`wall`: which of them are wall points; only those can contradict). Distances beyond the
+    inlier distance are inf (only the inliers' are used): the look-up stops there."""
+    reach = min(CLEAR_M, inlier_m * (1.0 + 1e-9) + 1e-9)  # every d <= inlier_m found
+    d, _ = target.tree.query(moved, distance_upper_bound=reach)
     inlier = d <= inlier_m
     seen = target.sees(moved)
     conflict = np.zeros(len(moved), bool)
@@ -203,18 +205,23 @@ def _extent(points: np.ndarray, cell: float = 0.2) -> float:
     (rays through glass or doors)."""
     if len(points) < 2:
         return 0.0
-    from scipy import ndimage
+    import cv2  # loads on first use (the yaw search has loaded it), not at start-up
 
     ij = np.floor(points[:, :2] / cell).astype(np.int64)
     ij -= ij.min(axis=0)
     if int(ij.max()) > 4096:
         return float("inf")
-    img = np.zeros(tuple(ij.max(axis=0) + 1), bool)
-    img[ij[:, 0], ij[:, 1]] = True
-    labels, n = ndimage.label(ndimage.binary_dilation(img), structure=np.ones((3, 3)))
-    if n == 0:
-        return 0.0
-    lab = labels[ij[:, 0], ij[:, 1]]
+    img = np.zeros(tuple(ij.max(axis=0) + 1), np.uint8)
+    img[ij[:, 0], ij[:, 1]] = 1
+    grown = cv2.dilate(img, cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3)))
+    _, labels = cv2.connectedComponents(grown, connectivity=8, ltype=cv2.CV_32S)
+    # number the patches in raster order of their first cell, so that of equally big patches
+    # the first is chosen whatever order the labelling gave them
+    found, first = np.unique(labels.ravel(), return_index=True)
+    patch = found > 0
+    rank = np.zeros(int(found[-1]) + 1, np.int64)
+    rank[found[patch][np.argsort(first[patch])]] = np.arange(1, int(patch.sum()) + 1)
+    lab = rank[labels[ij[:, 0], ij[:, 1]]]
     sizes = np.bincount(lab)
     biggest = ij[lab == int(np.argmax(sizes[1:]) + 1)]
     return float((np.ptp(biggest, axis=0).max() + 1) * cell)

@@ -155,7 +155,7 @@ def yaw_search(
         cells = np.floor(rot / cell).astype(np.int64) + half
         image[:] = 0.0
         image[cells[:, 0], cells[:, 1]] = 1.0
-        corr = fft.irfft2(fa * np.conj(fft.rfft2(image, s=shape)), s=shape)
+        corr = fft.irfft2(fa * np.conj(_rfft2_padded(image, shape)), s=shape)
         for _ in range(peaks_per_yaw):
             u, v = divmod(int(np.argmax(corr)), shape[1])
             cand_yaw.append(yaw)
@@ -199,6 +199,15 @@ def yaw_search(
             if len(chosen) >= keep:
                 break
     return chosen
+
+
+def _rfft2_padded(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """`scipy.fft.rfft2(image, s=shape)`, bit for bit, for an image smaller than `shape`: the
+    transform of its own rows, then of the columns (the padding rows' transforms are zeros)."""
+    from scipy import fft
+
+    spectrum: np.ndarray = fft.fft(fft.rfft(image, n=shape[1], axis=1), n=shape[0], axis=0)
+    return spectrum
 
 
 def _extent_corners(xy: np.ndarray) -> np.ndarray:

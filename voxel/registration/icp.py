@@ -15,6 +15,10 @@ if TYPE_CHECKING:
     from scipy.spatial import cKDTree
 
 
+#: Relative and absolute slack (metres) of `Nearest`'s reuse tests, far above rounding.
+_SLACK = 1e-9
+
+
 @dataclass(frozen=True)
 class IcpResult:
     """Refined transform (B into A), the correspondences it ended with and their RMS distance."""
@@ -47,6 +51,77 @@ def fit_rigid(p: np.ndarray, q: np.ndarray, dof: int) -> np.ndarray:
     return planar(yaw, float(txy[0]), float(txy[1]), float(cq[2] - cp[2]) if dof == 4 else 0.0)
 
 
+class Nearest:
+    """Exactly `tree.query(points, distance_upper_bound=limit)` for the same points moving a little
+    between calls (ICP's iterations), with fewer tree look-ups.
+
+    A look-up finds each point's two nearest target points within twice the limit; while a point
+    has moved by less than half the gap between them (`_SLACK` spare), the nearest is still the
+    same target point (any other is farther by the triangle inequality) and its distance is
+    computed directly, as the tree computes it (x, y, z squares summed in order, the square
+    root; within the limit when the squared distance is below the squared limit). A point with
+    nothing within the look-up's range stays without a neighbour while that range, less its
+    move, is beyond the limit. Only the others are looked up again. Ties of the two nearest are
+    looked up as the tree alone would (never reused).
+    """
+
+    def __init__(self, tree: cKDTree, target: np.ndarray) -> None:
+        self.tree, self.target = tree, target
+        self.at: np.ndarray | None = None  # where each point was at its last look-up
+        self.nn = np.empty(0, np.int64)  # its nearest target point then (len(target): none)
+        self.d1 = np.empty(0)  # the distance to it (inf: none within `reach`)
+        self.gap = np.empty(0)  # a lower bound on the distance to every other target point
+        self.reach = np.empty(0)  # the look-up's range
+
+    def query(self, points: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
+        """Distances (inf beyond `limit`) and indices (len(target) beyond) of the nearest target
+        points, as `tree.query(points, distance_upper_bound=limit)` returns them."""
+        n_target = len(self.target)
+        if self.at is None or len(self.at) != len(points):
+            self.at = points.copy()
+            self.nn = np.full(len(points), n_target, np.int64)
+            self.d1 = np.full(len(points), np.inf)
+            self.gap = np.zeros(len(points))
+            self.reach = np.zeros(len(points))
+            stale = np.ones(len(points), bool)
+        else:
+            moved = np.sqrt(np.sum((points - self.at) ** 2, axis=1)) * (1.0 + _SLACK) + _SLACK
+            has = self.nn < n_target
+            kept = np.where(
+                has, self.d1 + 2.0 * moved < self.gap, self.reach - moved > limit * (1.0 + _SLACK)
+            )
+            stale = ~kept
+        if stale.any():
+            self._look_up(points, stale, limit)
+        has = self.nn < n_target
+        diff = points[has] - self.target[self.nn[has]]
+        sq = (diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1]) + diff[:, 2] * diff[:, 2]
+        within = sq < limit * limit
+        d = np.full(len(points), np.inf)
+        idx = np.full(len(points), n_target, np.int64)
+        rows = np.flatnonzero(has)[within]
+        d[rows] = np.sqrt(sq[within])
+        idx[rows] = self.nn[has][within]
+        return d, idx
+
+    def _look_up(self, points: np.ndarray, stale: np.ndarray, limit: float) -> None:
+        assert self.at is not None
+        at = points[stale]
+        reach = 1.5 * limit
+        dd, ii = self.tree.query(at, k=2, distance_upper_bound=reach)
+        if len(self.target) < 2:  # k=2 of a one-point tree: the second is always missing
+            dd, ii = np.asarray(dd).reshape(-1, 2), np.asarray(ii).reshape(-1, 2)
+        nn, d1 = ii[:, 0].copy(), dd[:, 0].copy()
+        gap = np.where(np.isfinite(dd[:, 1]), dd[:, 1], reach)
+        tie = np.isfinite(d1) & (dd[:, 1] == d1)
+        if tie.any():  # which of equals the tree returns alone: its own query, never reused
+            _, i1 = self.tree.query(at[tie], distance_upper_bound=limit)
+            nn[tie] = np.where(i1 < len(self.target), i1, nn[tie])
+            gap[tie] = 0.0
+        self.at[stale], self.nn[stale], self.d1[stale] = at, nn, d1
+        self.gap[stale], self.reach[stale] = gap, reach
+
+
 def icp(
     source: np.ndarray,
     tree: cKDTree,
@@ -69,26 +144,21 @@ def icp(
     half = max(1, iterations // 2)
     matched, rmse = 0, math.inf
     it = 0
+    nearest = Nearest(tree, target)
     for it in range(1, iterations + 1):
         limit = end_m if it > half else start_m * (end_m / start_m) ** ((it - 1) / half)
         moved = apply(t, source)
-        d, idx = tree.query(moved, distance_upper_bound=limit)
+        d, idx = nearest.query(moved, limit)
         ok = np.isfinite(d)
         matched = int(ok.sum())
         if matched < 6:
             break
         rmse = float(np.sqrt(np.mean(d[ok] ** 2)))
-        step = fit_rigid(moved[ok], target[idx[ok]], dof)
+        pairs = moved[ok]
+        step = fit_rigid(pairs, target[idx[ok]], dof)
         t = step @ t
-        shift = float(
-            np.max(
-                np.linalg.norm(
-                    apply(step, moved[ok][:: max(1, matched // 200)])
-                    - moved[ok][:: max(1, matched // 200)],
-                    axis=1,
-                )
-            )
-        )
+        every = pairs[:: max(1, matched // 200)]
+        shift = float(np.max(np.linalg.norm(apply(step, every) - every, axis=1)))
         if it > half and shift < tol_m:
             break
     return IcpResult(t, matched, rmse, it)

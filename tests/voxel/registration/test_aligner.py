@@ -112,3 +112,17 @@ def test_bad_dof_and_tiny_maps_raise() -> None:
     bad[0, 0] = np.nan
     with pytest.raises(AlignmentError, match=r"map A .*expected finite coordinates, found NaN"):
         align_clouds(MapCloud(0.1, bad), cloud)
+
+
+@pytest.mark.parametrize(("side", "shape"), [(21, (64, 48)), (105, (300, 270)), (57, (125, 160))])
+def test_the_padded_forward_transform_is_rfft2_bit_for_bit(
+    side: int, shape: tuple[int, int]
+) -> None:
+    from scipy import fft
+
+    from voxel.registration.global_search import _rfft2_padded
+
+    rng = np.random.default_rng(side)
+    image = np.zeros((side, side), np.float32)
+    image[rng.integers(0, side, 4 * side), rng.integers(0, side, 4 * side)] = 1.0
+    assert np.array_equal(_rfft2_padded(image, shape), fft.rfft2(image, s=shape))

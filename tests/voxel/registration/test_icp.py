@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from voxel.registration.icp import covariance, fit_rigid, icp, normals
+from voxel.registration.icp import Nearest, covariance, fit_rigid, icp, normals
 from voxel.registration.transform import apply, euler, rigid, wrap_angle
 
 
@@ -52,3 +52,62 @@ def test_covariance_is_small_on_a_corner_and_huge_along_a_corridor() -> None:
         assert names == ["x", "y", "yaw"]
         assert bool(cov[0, 0] > 1.0) is degenerate
         assert cov[1, 1] < 1e-4
+
+
+def test_nearest_answers_exactly_as_the_tree_while_points_move() -> None:
+    """Nearest reuses look-ups between small moves; every answer (distances and indices, bit for
+    bit) is the tree's own, through large and small moves, a shrinking limit and ties (points
+    midway between two voxel centres)."""
+
+    class Counting(cKDTree):  # type: ignore[misc]
+        looked_up = 0
+
+        def query(self, x: np.ndarray, *args: object, **kwargs: object) -> object:
+            Counting.looked_up += len(x)
+            return super().query(x, *args, **kwargs)
+
+    rng = np.random.default_rng(3)
+    target = np.unique(np.floor(rng.uniform(0, 6, (3000, 3)) / 0.2), axis=0) * 0.2 + 0.1
+    tree, counted = cKDTree(target), Counting(target)
+    start = np.concatenate([rng.uniform(0, 6, (1500, 3)), target[:300] + np.array([0.1, 0.0, 0.0])])
+    nearest = Nearest(counted, target)
+    points = start
+    for step in range(24):
+        move = rigid(*rng.normal(0, 0.3 if step < 4 else 0.002, 3), yaw=rng.normal(0, 0.002))
+        points = start if step in (0, 12) else apply(move, points)
+        limit = 0.4 * 0.97**step
+        expected_d, expected_i = tree.query(points, distance_upper_bound=limit)
+        d, i = nearest.query(points, limit)
+        assert np.array_equal(d, expected_d) and np.array_equal(i, expected_i), step
+    # the reuse did happen: small moves leave most points' neighbours as they were
+    assert Counting.looked_up < 0.5 * 24 * len(start)
+
+
+def test_icp_equals_a_plain_tree_query_loop() -> None:
+    """icp with Nearest returns what ICP with a look-up of every point at every iteration does."""
+    rng = np.random.default_rng(4)
+    target = np.unique(np.floor(rng.uniform(0, 8, (6000, 3)) / 0.1), axis=0) * 0.1 + 0.05
+    tree = cKDTree(target)
+    source = apply(rigid(0.15, -0.1, 0.05, yaw=0.03), target[rng.choice(len(target), 800)])
+    init = np.eye(4)
+    t = init.copy()
+    for it in range(1, 25):
+        limit = 0.1 if it > 12 else 0.4 * (0.1 / 0.4) ** ((it - 1) / 12)
+        moved = apply(t, source)
+        d, idx = tree.query(moved, distance_upper_bound=limit)
+        ok = np.isfinite(d)
+        step = fit_rigid(moved[ok], target[idx[ok]], 4)
+        t = step @ t
+        shift = float(
+            np.max(
+                np.linalg.norm(
+                    apply(step, moved[ok][:: max(1, int(ok.sum()) // 200)])
+                    - moved[ok][:: max(1, int(ok.sum()) // 200)],
+                    axis=1,
+                )
+            )
+        )
+        if it > 12 and shift < 1e-4:
+            break
+    got = icp(source, tree, target, init, 4, start_m=0.4, end_m=0.1, iterations=24)
+    assert np.array_equal(got.transform, t) and got.iterations == it
