@@ -1,5 +1,5 @@
-"""The registration CPU bench: a corpus pair recorded twice compares identical, a changed field is
-named, and the timed A/B of a checkout against itself reports every case and the worker's imports."""
+"""The registration CPU bench: a pair recorded twice compares identical, a changed field is named,
+and the timed A/B of a checkout against itself reports every case and the worker's imports."""
 
 from __future__ import annotations
 
