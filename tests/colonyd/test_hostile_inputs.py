@@ -17,7 +17,7 @@ from colonyd.alignment import Alignments
 from colonyd.catchup import CatchUp
 from colonyd.frames import Sender, colony_key
 from colonyd.inbox import Inbox, Item
-from colonyd.layers import BLOCK_VOXELS, Layers
+from colonyd.layers import BLOCK_VOXELS, Layer, Layers
 from colonyd.membership import Membership
 from colonyd.metrics import Metrics
 from colonyd.objects import MAX_PEER_OBJECTS, PeerObjects
@@ -247,6 +247,24 @@ def _parts(sender: Sender, delta: Delta, indices: list[int], parts: int) -> list
     ]
 
 
+def _introduce(d: SimpleNamespace, origin: str = "evil") -> tuple[Signer, Sender]:
+    """A peer `origin` with a fresh key, introduced to `d` by its heartbeat, and its sender
+    (epoch 7, frames from seq 10)."""
+    signer = Signer.generate()
+    d.feed("hb", origin, _heartbeat(origin, signer))
+    return signer, Sender(origin, 7, key=KEY, signer=signer, first_seq=10)
+
+
+def _first_delta(d: SimpleNamespace, sender: Sender) -> Layer | None:
+    """`sender`'s first delta (version 1, one voxel) fed to `d`: the replica of its layer."""
+    d.feed(
+        "delta",
+        sender.origin,
+        _parts(sender, Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9]), [0], 1)[0],
+    )
+    return d.layers.find(sender.origin)
+
+
 def test_parts_of_split_deltas_hold_no_more_voxels_than_the_peer_budget() -> None:
     """A peer (a key holder, or anyone in an open colony) sends parts of a delta of 1000 parts,
     each part within the peer budget (1000 blocks: 64,000 voxels) but never the last: a few KB
@@ -256,9 +274,7 @@ def test_parts_of_split_deltas_hold_no_more_voxels_than_the_peer_budget() -> Non
     with _sessions(1) as (mine,):
         d = _daemon(mine)
         try:
-            signer = Signer.generate()
-            d.feed("hb", "evil", _heartbeat("evil", signer))
-            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+            _, sender = _introduce(d)
             budget = d.layers.max_peer_blocks * BLOCK_VOXELS
             for i, frame in enumerate(_parts(sender, _block_delta(0, 1), list(range(10)), 1000)):
                 d.feed("delta", "evil", frame)
@@ -284,9 +300,7 @@ def test_a_part_of_another_count_is_refused_before_it_moves_the_window() -> None
     with _sessions(1) as (mine,):
         d = _daemon(mine)
         try:
-            signer = Signer.generate()
-            d.feed("hb", "evil", _heartbeat("evil", signer))
-            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+            _, sender = _introduce(d)
             small = Delta(0.1, 0, 1, [[0, 0, 0], [1, 0, 0]], [1.0, 1.0], [1.0, 1.0])
             d.feed("delta", "evil", _parts(sender, small, [0], 3)[0])  # seq 10
             d.feed("delta", "evil", _parts(sender, small, [1], 5)[0])  # seq 11: refused
@@ -462,15 +476,12 @@ def test_deltas_a_replica_cannot_store_are_refused_before_they_change_it() -> No
     with _sessions(1) as (mine,):
         d = _daemon(mine)
         try:
-            signer = Signer.generate()
-            d.feed("hb", "evil", _heartbeat("evil", signer))
-            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+            _, sender = _introduce(d)
 
             def frame(delta: Delta) -> bytes:
                 return _parts(sender, delta, [0], 1)[0]
 
-            d.feed("delta", "evil", frame(Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9])))
-            layer = d.layers.find("evil")
+            layer = _first_delta(d, sender)
             before = (layer.seq, layer.blocks(), layer.digest())
             far = Delta(0.1, 1, 1 << 32, [[400, 400, 400]], [1.0], [1.7e9])
             untimed = Delta(0.1, 1, 2, [[0, 0, 0], [8, 0, 0]], [2.0, 1.0], [np.nan, 1.7e9])
@@ -497,15 +508,12 @@ def test_channels_a_replica_cannot_hold_are_refused_before_they_change_it() -> N
     with _sessions(1) as (mine,):
         d = _daemon(mine)
         try:
-            signer = Signer.generate()
-            d.feed("hb", "evil", _heartbeat("evil", signer))
-            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
+            _, sender = _introduce(d)
 
             def frame(delta: Delta) -> bytes:
                 return _parts(sender, delta, [0], 1)[0]
 
-            d.feed("delta", "evil", frame(Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9])))
-            layer = d.layers.find("evil")
+            layer = _first_delta(d, sender)
             before = (layer.seq, layer.blocks(), layer.digest())
             keys, one = [[0, 0, 0], [9, 9, 9]], [1.7e9, 1.7e9]
             wide = {
@@ -614,12 +622,8 @@ def test_pushed_history_pages_of_ever_new_agents_keep_the_agent_table_bounded() 
     with _sessions(1) as (mine,):
         d = _daemon(mine)
         try:
-            signer = Signer.generate()
-            d.feed("hb", "evil", _heartbeat("evil", signer))
-            sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
-            d.feed("delta", "evil", _parts(sender, Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9]),
-                                           [0], 1)[0])  # fmt: skip
-            layer = d.layers.find("evil")
+            _, sender = _introduce(d)
+            layer = _first_delta(d, sender)
             sync = HistorySync(
                 d.layers, SimpleNamespace(), d.metrics, period_s=0, stop=threading.Event()
             )
@@ -658,12 +662,8 @@ def test_a_pulled_history_page_of_too_many_agents_is_a_counted_refusal() -> None
 
     with _sessions(2) as (mine, evil):
         d = _daemon(mine)
-        signer = Signer.generate()
-        d.feed("hb", "evil", _heartbeat("evil", signer))
-        sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
-        d.feed("delta", "evil", _parts(sender, Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9]),
-                                       [0], 1)[0])  # fmt: skip
-        layer = d.layers.find("evil")
+        _, sender = _introduce(d)
+        layer = _first_delta(d, sender)
         with layer.lock:
             for i in range(MAX_AGENTS):
                 layer.grid.history.agent_code(f"g{i}")  # the table full already
@@ -964,11 +964,8 @@ def test_range_replies_refused_at_admission_move_no_window() -> None:
     after the first was applied)."""
     with _sessions(2) as (mine, evil):
         d = _daemon(mine)
-        signer = Signer.generate()
-        d.feed("hb", "evil", _heartbeat("evil", signer))
-        sender = Sender("evil", 7, key=KEY, signer=signer, first_seq=10)
-        d.feed("delta", "evil", _parts(sender, Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9]),
-                                       [0], 1)[0])  # fmt: skip
+        signer, sender = _introduce(d)
+        _first_delta(d, sender)
         replier = Sender("evil", 7, key=KEY, signer=signer, first_seq=100)
         good = Delta(0.1, 1, 2, [[1, 0, 0]], [1.0], [1.7e9])
         bad = Delta(0.1, 2, 3, [[2, 0, 0]], [1.0], [1e13])
