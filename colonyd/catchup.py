@@ -287,7 +287,8 @@ class CatchUp:
                         f"the {len(out)} taken and the one past them: the rest refused undecoded"
                     )
                     raise WireError("over-budget", text)
-                msg = self.receiver.decode(raw, key_expr=str(reply.ok.key_expr))
+                # (a reply behind the replay window passes: its request id proves it fresh)
+                msg = self.receiver.decode(raw, key_expr=str(reply.ok.key_expr), answer=True)
                 if not (
                     isinstance(msg, cls)
                     and msg.layer == layer

@@ -1015,3 +1015,36 @@ def test_replies_behind_the_window_when_taken_are_still_taken() -> None:
         raise AssertionError("a frame older than the window was accepted")
     except ProtocolError as exc:
         assert exc.reason == "replay"
+
+
+def test_replies_behind_the_window_when_they_arrive_are_still_taken() -> None:
+    """A holder encodes a snapshot's parts up front, then sends them; its deltas and heartbeats
+    (and other requesters' replies) go on meanwhile, and the inbox accepts them. Parts that are
+    more than the replay window behind its newest frame when they are decoded are answers to our
+    fresh random request id all the same: `ask` takes them (as `take` does), rather than
+    refusing every part of a busy holder's snapshot as a replay."""
+    small = Delta(0.1, 0, 3, [[0, 0, 0], [1, 0, 0]], [1.0, 1.0], [1.7e9, 1.7e9])
+    with _sessions(2) as (mine, evil):
+        d = _daemon(mine)
+        signer = Signer.generate()
+        d.feed("hb", "evil", _heartbeat("evil", signer, seq=100 + 5000))  # 5000 frames on
+        assert d.receiver.accepted["heartbeat"] == 1
+        q = _serve(evil, signer, lambda rid, s: [_snapshot_reply(s, rid, small, 0, 1)])
+        try:
+            assert _until(lambda: _answers(mine))
+            catchup = _catchup(d, mine)
+            assert catchup._fetch_snapshot("evil", "evil", time.monotonic())
+            assert d.receiver.accepted["snapshot_reply"] == 1
+            assert d.metrics.rejected["replay"] == 0
+            try:  # any other frame so old is a replay as before
+                d.receiver.decode(
+                    _snapshot_reply(
+                        Sender("evil", 7, key=KEY, signer=signer, first_seq=100), 5, small, 0, 1
+                    )
+                )
+                raise AssertionError("a frame older than the window was decoded")
+            except ProtocolError as exc:
+                assert exc.reason == "replay"
+        finally:
+            q.undeclare()
+            d.close()
