@@ -50,8 +50,15 @@ MAX_SHORT = 1024
 
 #: What `CatchUp._fetch_range` found: deltas taken, nothing newer held at our epoch (a snapshot
 #: from that holder would bring nothing), the range no longer held (its snapshot is asked for),
-#: or no usable answer.
-TAKEN, NOTHING_NEWER, NOT_HELD, FAILED = "taken", "nothing-newer", "not-held", "failed"
+#: part of a reply only (a slow holder: its snapshot is asked for, whose timeout doubles), or no
+#: usable answer.
+TAKEN, NOTHING_NEWER, NOT_HELD, PARTIAL, FAILED = (
+    "taken",
+    "nothing-newer",
+    "not-held",
+    "partial",
+    "failed",
+)
 
 
 def snapshot_timeout(base_s: float, failures: int) -> float:
@@ -213,7 +220,10 @@ class CatchUp:
                 elif found == FAILED:
                     self._rest(server, t0)
                     continue
-            t0 = time.monotonic()
+                if found != PARTIAL:  # (a partial range's holder rests for both queries)
+                    t0 = time.monotonic()
+            else:
+                t0 = time.monotonic()
             if self._fetch_snapshot(server, rep.origin, rep.asked):
                 self._resting.pop(server, None)
                 return
@@ -344,7 +354,7 @@ class CatchUp:
 
     def _fetch_range(self, server: str, origin: str, layer: Layer, want: int) -> str:
         """Deltas of `origin`'s layer above ours from `server`: `TAKEN`, `NOTHING_NEWER`,
-        `NOT_HELD` or `FAILED`."""
+        `NOT_HELD`, `PARTIAL` or `FAILED`."""
         want = max(want, max((p for p, *_ in layer.pending.values()), default=0), layer.seq + 1)
         rid = self._rng.getrandbits(63)
         request = DeltaRangeRequest(
@@ -358,7 +368,7 @@ class CatchUp:
         msgs = self.ask(server, "deltas", origin, request, DeltaRangeReply)
         self.metrics.add("range_repairs")
         if not complete(msgs, "range"):
-            return FAILED
+            return PARTIAL if msgs else FAILED
         if not all(m.complete for m in msgs):
             return NOT_HELD
         groups: dict[tuple[int, int], list[tuple[int, Delta]]] = {}

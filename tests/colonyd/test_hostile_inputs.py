@@ -1048,3 +1048,44 @@ def test_replies_behind_the_window_when_they_arrive_are_still_taken() -> None:
         finally:
             q.undeclare()
             d.close()
+
+
+def test_a_range_reply_that_came_in_part_goes_on_to_the_snapshot() -> None:
+    """A slow holder's range reply came in part only (its last part not there within the query
+    timeout: a range of up to `ring_size` large deltas over a slow link). That is no hostile
+    silence: the repair goes on to the holder's snapshot (whose timeout doubles), as it did
+    before holders were rested, rather than resting the holder and asking the same range again
+    at the next repair, never repairing a layer that stopped changing."""
+    from colonyd.catchup import Repair
+
+    with _sessions(2) as (mine, evil):
+        d = _daemon(mine)
+        signer, sender = _introduce(d)
+        _first_delta(d, sender)
+        replier = Sender("evil", 7, key=KEY, signer=signer, first_seq=100)
+        step = Delta(0.1, 1, 2, [[1, 0, 0]], [1.0], [1.7e9])
+        whole = Delta(0.1, 0, 3, [[0, 0, 0], [1, 0, 0]], [1.0, 1.0], [1.7e9, 1.7e9])
+
+        def answer(query: zenoh.Query) -> None:
+            request = decode(query.payload.to_bytes(), key=KEY)
+            if isinstance(request, SnapshotRequest):
+                frame = _snapshot_reply(replier, request.request_id, whole, 0, 1)
+            else:  # part 0 of 2: part 1 still on its way when the query ends
+                reply = DeltaRangeReply(**replier.header(), layer="evil",
+                                        request_id=request.request_id, frame_id="evil.odom",
+                                        layer_epoch=7, part=0, parts=2, delta=step)  # fmt: skip
+                frame = replier.encode(reply)
+            query.reply(query.key_expr, frame)
+            query.drop()
+
+        q = evil.declare_queryable(f"colony/{NS}/evil/**", answer)
+        try:
+            assert _until(lambda: _answers(mine))
+            catchup = _catchup(d, mine)
+            assert d.layers.find("evil").seq == 1
+            catchup._repair(Repair("evil", ["evil"], time.monotonic()))
+            assert d.layers.find("evil").seq == 3, d.metrics.counts
+            assert d.metrics.counts["snapshots_installed"] == 1
+        finally:
+            q.undeclare()
+            d.close()
