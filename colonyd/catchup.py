@@ -136,7 +136,7 @@ class CatchUp:
         self.membership: Membership | None = None
         self._rng = random.Random()
         self._repairing: set[str] = set()
-        #: Origin -> snapshot requests in a row that came in part only (`snapshot_timeout`).
+        #: Origin -> snapshot requests in a row that did not arrive whole (`snapshot_timeout`).
         self._short: dict[str, int] = {}
         #: Holder -> time.monotonic() until which it is not asked (`_rest`): a holder whose query
         #: gave nothing usable rests as long as that query took, whatever layer a repair is for.
@@ -411,8 +411,9 @@ class CatchUp:
         msgs = self.ask(server, "snapshot", origin, request, SnapshotReply, marks, timeout)
         marks["received"] = time.monotonic()
         if not complete(msgs, "snapshot"):
-            if not msgs:  # nothing came: a longer wait would not help
-                return False
+            # nothing at all came too: a holder makes and encodes a big layer's whole snapshot
+            # before its first part, and sends nothing once our timeout has passed (a silent
+            # holder rests as long as the query took: `_rest`)
             if len(self._short) >= MAX_SHORT:
                 self._short.clear()  # origins a hostile heartbeat made up: bounded
             self._short[origin] = short + 1
