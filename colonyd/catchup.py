@@ -50,8 +50,15 @@ MAX_SHORT = 1024
 
 #: What `CatchUp._fetch_range` found: deltas taken, nothing newer held at our epoch (a snapshot
 #: from that holder would bring nothing), the range no longer held (its snapshot is asked for),
-#: or no usable answer.
-TAKEN, NOTHING_NEWER, NOT_HELD, FAILED = "taken", "nothing-newer", "not-held", "failed"
+#: part of a reply only (a slow holder: its snapshot is asked for, whose timeout doubles), or no
+#: usable answer.
+TAKEN, NOTHING_NEWER, NOT_HELD, PARTIAL, FAILED = (
+    "taken",
+    "nothing-newer",
+    "not-held",
+    "partial",
+    "failed",
+)
 
 
 def snapshot_timeout(base_s: float, failures: int) -> float:
@@ -129,7 +136,7 @@ class CatchUp:
         self.membership: Membership | None = None
         self._rng = random.Random()
         self._repairing: set[str] = set()
-        #: Origin -> snapshot requests in a row that came in part only (`snapshot_timeout`).
+        #: Origin -> snapshot requests in a row that did not arrive whole (`snapshot_timeout`).
         self._short: dict[str, int] = {}
         #: Holder -> time.monotonic() until which it is not asked (`_rest`): a holder whose query
         #: gave nothing usable rests as long as that query took, whatever layer a repair is for.
@@ -213,7 +220,10 @@ class CatchUp:
                 elif found == FAILED:
                     self._rest(server, t0)
                     continue
-            t0 = time.monotonic()
+                if found != PARTIAL:  # (a partial range's holder rests for both queries)
+                    t0 = time.monotonic()
+            else:
+                t0 = time.monotonic()
             if self._fetch_snapshot(server, rep.origin, rep.asked):
                 self._resting.pop(server, None)
                 return
@@ -287,7 +297,8 @@ class CatchUp:
                         f"the {len(out)} taken and the one past them: the rest refused undecoded"
                     )
                     raise WireError("over-budget", text)
-                msg = self.receiver.decode(raw, key_expr=str(reply.ok.key_expr))
+                # (a reply behind the replay window passes: its request id proves it fresh)
+                msg = self.receiver.decode(raw, key_expr=str(reply.ok.key_expr), answer=True)
                 if not (
                     isinstance(msg, cls)
                     and msg.layer == layer
@@ -343,7 +354,7 @@ class CatchUp:
 
     def _fetch_range(self, server: str, origin: str, layer: Layer, want: int) -> str:
         """Deltas of `origin`'s layer above ours from `server`: `TAKEN`, `NOTHING_NEWER`,
-        `NOT_HELD` or `FAILED`."""
+        `NOT_HELD`, `PARTIAL` or `FAILED`."""
         want = max(want, max((p for p, *_ in layer.pending.values()), default=0), layer.seq + 1)
         rid = self._rng.getrandbits(63)
         request = DeltaRangeRequest(
@@ -357,7 +368,7 @@ class CatchUp:
         msgs = self.ask(server, "deltas", origin, request, DeltaRangeReply)
         self.metrics.add("range_repairs")
         if not complete(msgs, "range"):
-            return FAILED
+            return PARTIAL if msgs else FAILED
         if not all(m.complete for m in msgs):
             return NOT_HELD
         groups: dict[tuple[int, int], list[tuple[int, Delta]]] = {}
@@ -400,8 +411,9 @@ class CatchUp:
         msgs = self.ask(server, "snapshot", origin, request, SnapshotReply, marks, timeout)
         marks["received"] = time.monotonic()
         if not complete(msgs, "snapshot"):
-            if not msgs:  # nothing came: a longer wait would not help
-                return False
+            # nothing at all came too: a holder makes and encodes a big layer's whole snapshot
+            # before its first part, and sends nothing once our timeout has passed (a silent
+            # holder rests as long as the query took: `_rest`)
             if len(self._short) >= MAX_SHORT:
                 self._short.clear()  # origins a hostile heartbeat made up: bounded
             self._short[origin] = short + 1

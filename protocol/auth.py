@@ -69,13 +69,7 @@ class ReplayWindow:
         Thread-safe: daemons decode on several worker threads.
         """
         with self._lock:
-            state = self._state.get(origin)
-            if (
-                late_ok
-                and state is not None
-                and epoch == state[0]
-                and state[1] - seq >= self.window
-            ):
+            if late_ok and self._late(origin, epoch, seq):
                 return
             state = self._next_state(origin, epoch, seq)
             self._state.pop(origin, None)
@@ -83,10 +77,17 @@ class ReplayWindow:
                 self._state.pop(next(iter(self._state)))
             self._state[origin] = state
 
-    def peek(self, origin: str, epoch: int, seq: int) -> None:
-        """Raise ReplayError if `check` would; never records anything (the window stays put)."""
+    def peek(self, origin: str, epoch: int, seq: int, *, late_ok: bool = False) -> None:
+        """Raise ReplayError if `check` (with the same `late_ok`) would; never records anything
+        (the window stays put)."""
         with self._lock:
-            self._next_state(origin, epoch, seq)
+            if not (late_ok and self._late(origin, epoch, seq)):
+                self._next_state(origin, epoch, seq)
+
+    def _late(self, origin: str, epoch: int, seq: int) -> bool:
+        """True if (epoch, seq) is of `origin`'s current epoch and older than the window."""
+        state = self._state.get(origin)
+        return state is not None and epoch == state[0] and state[1] - seq >= self.window
 
     def _next_state(self, origin: str, epoch: int, seq: int) -> tuple[int, int, int]:
         """The origin's state after accepting (epoch, seq), or ReplayError."""

@@ -55,13 +55,16 @@ class Receiver:
         self.rejected: Counter[str] = Counter()
         self._lock = threading.Lock()
 
-    def decode(self, data: bytes, key_expr: str | None = None) -> Message:
+    def decode(self, data: bytes, key_expr: str | None = None, *, answer: bool = False) -> Message:
         """The validated message of `data`, or a ProtocolError (counted under its `reason`).
 
         A replay is rejected here, but nothing is recorded for a frame that passes: the replay
-        window moves only in `accept`. The key's origin, our own origin, the replay window and
-        (but for a Heartbeat, whose body carries its key) the signature are checked before the
-        body is parsed: a stranger's frame costs no body parse.
+        window moves only in `accept`. `answer`: a reply to one of our queries, which the caller
+        matches to its fresh random request id, passes though older than the window (its holder
+        encoded it, then sent more than the window's frames before it arrived), as in `accept`.
+        The key's origin, our own origin, the replay window and (but for a Heartbeat, whose body
+        carries its key) the signature are checked before the body is parsed: a stranger's frame
+        costs no body parse.
         """
 
         def before_body(cls: type[Message], origin: str, epoch: int, seq: int, time: float) -> None:
@@ -72,7 +75,7 @@ class Receiver:
                 raise OwnOriginError(text, kind=cls.KIND, epoch=epoch, time=time)
             window = self.request_replay if cls.REQUEST else self.replay
             if window is not None:
-                window.peek(origin, epoch, seq)
+                window.peek(origin, epoch, seq, late_ok=answer)
 
         try:
             msg = decode(
