@@ -42,7 +42,9 @@ SIM_PAIRS = (
 SIM_PREFIXES = ("office_", "hall_")
 
 
-def _sim_map(world: str, agent: str, frames: int) -> tuple[Any, Any]:
+def sim_map(world: str, agent: str, frames: int) -> tuple[Any, Any]:
+    """`agent`'s map of the sim `world` after `frames` frames (noise off), as
+    registration takes it: a MapCloud at 0.1 m and its objects as Landmarks."""
     from colonyd.mapping import integrate_observation
     from plugins.source import open_source
     from voxel.grid import VoxelGrid
@@ -97,7 +99,7 @@ def build(corpus: Path, shared_data: Path | None) -> None:
     for name, world, ag_a, fr_a, ag_b, fr_b, dof, objects in SIM_PAIRS:
         for key in ((world, ag_a, fr_a), (world, ag_b, fr_b)):
             if key not in maps:
-                maps[key] = _sim_map(*key)
+                maps[key] = sim_map(*key)
         (a, oa), (b, ob) = maps[world, ag_a, fr_a], maps[world, ag_b, fr_b]
         _save(corpus / f"{name}.npz", a, b, dof, oa if objects else None, ob if objects else None)
         print("built", name, flush=True)

@@ -257,12 +257,18 @@ def _introduce(d: SimpleNamespace, origin: str = "evil") -> tuple[Signer, Sender
 
 def _first_delta(d: SimpleNamespace, sender: Sender) -> Layer | None:
     """`sender`'s first delta (version 1, one voxel) fed to `d`: the replica of its layer."""
-    d.feed(
-        "delta",
-        sender.origin,
-        _parts(sender, Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9]), [0], 1)[0],
-    )
+    d.feed("delta", sender.origin, _one_part(sender, Delta(0.1, 0, 1, [[0, 0, 0]], [1.0], [1.7e9])))
     return d.layers.find(sender.origin)
+
+
+def _one_part(sender: Sender, delta: Delta) -> bytes:
+    """`delta` as one frame of `sender` (a split delta of one part)."""
+    return _parts(sender, delta, [0], 1)[0]
+
+
+def _state(layer: Layer) -> tuple[int, int, str]:
+    """What a refused delta must leave as it was: the replica's seq, blocks and digest."""
+    return layer.seq, layer.blocks(), layer.digest()
 
 
 def test_parts_of_split_deltas_hold_no_more_voxels_than_the_peer_budget() -> None:
@@ -478,22 +484,23 @@ def test_deltas_a_replica_cannot_store_are_refused_before_they_change_it() -> No
         try:
             _, sender = _introduce(d)
 
-            def frame(delta: Delta) -> bytes:
-                return _parts(sender, delta, [0], 1)[0]
-
             layer = _first_delta(d, sender)
-            before = (layer.seq, layer.blocks(), layer.digest())
+            before = _state(layer)
             far = Delta(0.1, 1, 1 << 32, [[400, 400, 400]], [1.0], [1.7e9])
             untimed = Delta(0.1, 1, 2, [[0, 0, 0], [8, 0, 0]], [2.0, 1.0], [np.nan, 1.7e9])
             future = Delta(0.1, 1, 2, [[0, 0, 0]], [2.0], [1e13])
             for bad in (far, untimed, future):
-                d.feed("delta", "evil", frame(bad))
-            assert (layer.seq, layer.blocks(), layer.digest()) == before
+                d.feed("delta", "evil", _one_part(sender, bad))
+            assert _state(layer) == before
             assert d.metrics.rejected["bad-header"] == 1
             assert d.metrics.rejected["bad-time"] == 2
             assert d.metrics.rejected["internal"] == 0
             assert d.receiver.accepted["delta"] == 1
-            d.feed("delta", "evil", frame(Delta(0.1, 1, 2, [[0, 0, 0]], [2.0], [1.7e9 + 1])))
+            d.feed(
+                "delta",
+                "evil",
+                _one_part(sender, Delta(0.1, 1, 2, [[0, 0, 0]], [2.0], [1.7e9 + 1])),
+            )
             assert layer.seq == 2 and d.receiver.accepted["delta"] == 2
         finally:
             d.close()
@@ -510,23 +517,24 @@ def test_channels_a_replica_cannot_hold_are_refused_before_they_change_it() -> N
         try:
             _, sender = _introduce(d)
 
-            def frame(delta: Delta) -> bytes:
-                return _parts(sender, delta, [0], 1)[0]
-
             layer = _first_delta(d, sender)
-            before = (layer.seq, layer.blocks(), layer.digest())
+            before = _state(layer)
             keys, one = [[0, 0, 0], [9, 9, 9]], [1.7e9, 1.7e9]
             wide = {
                 "class_ids": np.array([[1, 2, 3, 4, 5]] * 2, np.int16),
                 "class_probs": np.full((2, 5), 0.2, np.float32),
             }
-            d.feed("delta", "evil", frame(Delta(0.1, 1, 2, keys, [2.0, 1.0], one, channels=wide)))
-            assert (layer.seq, layer.blocks(), layer.digest()) == before
+            d.feed(
+                "delta",
+                "evil",
+                _one_part(sender, Delta(0.1, 1, 2, keys, [2.0, 1.0], one, channels=wide)),
+            )
+            assert _state(layer) == before
             assert d.metrics.rejected["bad-channel"] == 1
             for v in range(2, 6):  # 31 new scalar channels a delta, at one voxel
                 names = {f"scalar:t{v}_{i}": np.array([1.0], np.float32) for i in range(31)}
-                d.feed("delta", "evil", frame(Delta(0.1, v - 1, v, [[0, 0, v]], [1.0], [1.7e9],
-                                                    channels=names)))  # fmt: skip
+                delta = Delta(0.1, v - 1, v, [[0, 0, v]], [1.0], [1.7e9], channels=names)
+                d.feed("delta", "evil", _one_part(sender, delta))
             held = [n for n in layer.grid.store.channels if n.startswith("scalar:")]
             assert len(held) <= 32, f"{len(held)} scalar channels held"
             assert d.metrics.rejected["bad-channel"] == 1 + 3

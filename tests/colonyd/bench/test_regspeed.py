@@ -14,8 +14,8 @@ from colonyd.bench import regspeed
 def _corpus(tmp_path: Path) -> Path:
     corpus = tmp_path / "corpus"
     corpus.mkdir()
-    a, _ = regspeed._sim_map("office", "lidar-1", 40)
-    b, _ = regspeed._sim_map("office", "lidar-1", 20)
+    a, _ = regspeed.sim_map("office", "lidar-1", 40)
+    b, _ = regspeed.sim_map("office", "lidar-1", 20)
     regspeed._save(corpus / "office_lidar40_lidar20.npz", a, b, 3)
     return corpus
 

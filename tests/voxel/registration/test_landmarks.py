@@ -74,29 +74,14 @@ def office() -> Callable[[str, str, int], Mapped]:
 
 
 def _mapped(world: str, agent: str, frames: int) -> Mapped:
-    from colonyd.mapping import integrate_observation
+    from colonyd.bench.regspeed import sim_map
     from plugins.checks import pose_matrix
     from plugins.sim import AGENTS, Path
-    from plugins.source import open_source
-    from voxel.grid import VoxelGrid
-    from voxel.objects import extract_objects
 
-    spec = f"sim:world={world},agent={agent},frames={frames},noise=0"
-    src = open_source(spec, resolution=0.1)
-    grid = VoxelGrid(0.1, block_shape="planar" if agent == "lidar-1" else "cube")
-    for obs in src:
-        integrate_observation(grid, obs, sensor=src.adapter.sensor_model, reliability=1.0)
-    d = grid.delta_since(0)
-    known = ~np.isnan(d.logodds)
-    cloud = MapCloud.from_keys(0.1, d.keys[known], d.logodds[known] >= 0, agent)
-    objs = extract_objects(grid, exclude=frozenset({1, 2}), min_voxels=20, link=3.0)
+    cloud, objects = sim_map(world, agent, frames)
     s = AGENTS[world][agent]
     x, y, yaw = Path(s.waypoints, s.speed, s.turn_rate)(0.0)  # evaluation only
-    return (
-        cloud,
-        Landmarks.of([(o.class_id, o.position) for o in objs]),
-        pose_matrix(x, y, 0.0, yaw),
-    )
+    return cloud, objects, pose_matrix(x, y, 0.0, yaw)
 
 
 def _error(found: np.ndarray, a_start: np.ndarray, b_start: np.ndarray) -> tuple[float, float]:
