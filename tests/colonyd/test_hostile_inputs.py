@@ -1136,3 +1136,87 @@ def test_a_holder_slower_than_the_timeout_to_its_first_part_is_waited_for_longer
         finally:
             q.undeclare()
             d.close()
+
+
+def _box(x0: int, blocks_z: int, version: int, origin_seq: int = 0) -> Delta:
+    """A box 40 x 40 x (4 `blocks_z`) voxels from x = `x0`: 100 `blocks_z` 4x4x4 blocks,
+    covering (`version` - 1, `version`]."""
+    g = np.stack(
+        np.meshgrid(np.arange(40), np.arange(40), np.arange(4 * blocks_z), indexing="ij"), -1
+    )
+    keys = g.reshape(-1, 3) + np.array([x0, 0, 0])
+    n = len(keys)
+    return Delta(0.1, version - 1, version, keys, np.full(n, 1.0, np.float32), np.full(n, 1.7e9))
+
+
+def test_a_live_delta_between_a_ranges_admission_and_its_offer_rests_no_holder() -> None:
+    """`_fetch_range` admitted a holder's range as a whole, took it, then offered its deltas
+    one by one, each admitted again: a live delta of another peer applied in between (the inbox
+    runs on its own thread) could take the budget the range was admitted for, and the offer
+    failed (`over-budget`): the legitimate holder was rested, for every layer, and part of
+    its range may have been applied. The interleaving is forced at the one point it can
+    happen: the catch-up's receiver (a subclass whose `accept` starts the other peer's real
+    delta frame through the real inbox on another thread, and waits up to 0.5 s for it) is
+    the only stand-in. Now a range is admitted and applied under the layers' apply lock, which
+    the inbox holds from a delta's admission to its offer: the range is taken whole, its
+    holder not rested, and the live delta comes after it (refused, `over-budget`, as the
+    budget is full: first come, first served, the budget never exceeded)."""
+    with _sessions(2) as (mine, evil):
+        d = _daemon(mine)  # a peer budget of 1000 blocks
+        signer, sender = _introduce(d)
+        _first_delta(d, sender)  # evil's layer at version 1: one block
+        _, b = _introduce(d, "b")
+        replier = Sender("evil", 7, key=KEY, signer=signer, first_seq=100)
+        ranged = _box(0, 6, 2)  # 600 blocks: fits the budget alone
+        live = _box(1000, 5, 1)  # b's first delta, 500 blocks: fits alone too, not both
+        live_frame = _one_part(b, live)
+
+        def answer(query: zenoh.Query) -> None:
+            request = decode(query.payload.to_bytes(), key=KEY)
+            reply = DeltaRangeReply(**replier.header(), layer="evil",
+                                    request_id=request.request_id, frame_id="evil.odom",
+                                    layer_epoch=7, delta=ranged)  # fmt: skip
+            query.reply(query.key_expr, replier.encode(reply))
+            query.drop()
+
+        fed: list[threading.Thread] = []
+
+        class Racing(Receiver):
+            def accept(self, msg, *, answer=False) -> None:
+                super().accept(msg, answer=answer)
+                if answer and not fed:  # between the range's admission and its offer
+                    fed.append(threading.Thread(target=d.feed, args=("delta", "b", live_frame)))
+                    fed[0].start()
+                    fed[0].join(0.5)  # done unless it waits for the range to be applied
+
+        q = evil.declare_queryable(query_key(NS, "evil", "deltas", "evil"), answer)
+        try:
+            receiver = Racing(key=KEY, own="me", trust=d.trust)
+            catchup = CatchUp(mine, NS, d.replicas, Sender("me", 1, key=KEY), receiver, d.metrics)
+            layer = d.layers.find("evil")
+            assert _until(lambda: _answers_range(mine))
+            found = catchup._fetch_range("evil", "evil", layer, 2)
+            fed[0].join(5.0)
+            assert found == "taken", (found, d.metrics.rejected)
+            assert "evil" not in catchup._resting
+            assert d.layers.find("evil").seq == 2
+            blocks = sum(x.blocks() for x in d.layers.all() if x.origin != "me")
+            assert blocks <= d.layers.max_peer_blocks, blocks
+            assert d.layers.find("b") is None or d.layers.find("b").seq == 0
+            assert d.metrics.rejected["over-budget"] == 1  # b's live delta, after the range
+        finally:
+            q.undeclare()
+            d.close()
+
+
+def _answers_range(session: zenoh.Session) -> bool:
+    """True once "evil"'s range queryable answers `session` (its answer taken by nobody)."""
+    from protocol import DeltaRangeRequest
+
+    probe = Sender("probe", 1, key=KEY)
+    request = DeltaRangeRequest(**probe.header(), layer="evil", request_id=1, from_version=0,
+                                to_version=1)  # fmt: skip
+    key = query_key(NS, "evil", "deltas", "evil")
+    return any(
+        r.ok is not None for r in session.get(key, payload=probe.encode(request), timeout=1.0)
+    )
