@@ -171,7 +171,10 @@ class Config(BaseSettings):
         description="reliability weight in the fused map per agent id or agent kind (default 1.0)",
     )
     objects_s: float = Field(
-        2.0, ge=0, description="seconds between object-list refreshes (0: no objects)"
+        2.0,
+        ge=0,
+        description="seconds between object-list refreshes (0: no objects); peers take 16,384 "
+        "listed objects a second, shared by the members sending lists (docs/DAEMON.md)",
     )
     structure_classes: list[int] = Field(
         [1, 2], description="class ids that are structure (walls, floors), never objects; the sim's"

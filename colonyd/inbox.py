@@ -340,9 +340,11 @@ class Inbox:
                     f"{covariance.max():.3g}"
                 )
                 raise WireError("bad-objects", text)
-        self.objects.admit(msg.origin, len(msg.objects))
+        self.objects.admit(msg.origin)
         accept(self.receiver, self.metrics, msg, raw)
-        self.objects.put(msg.origin, msg.objects)
+        cut = self.objects.put(msg.origin, msg.objects)
+        if cut:  # the peers' objects bound reached: the longest lists cut to a fair share
+            self.metrics.add("objects_cut", cut)
         self.metrics.add("objects_received")
 
     def _handle_align(self, key: str, raw: bytes) -> None:
