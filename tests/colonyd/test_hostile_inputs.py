@@ -11,6 +11,7 @@ from contextlib import contextmanager
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 import zenoh
 
 from colonyd.alignment import Alignments
@@ -1323,3 +1324,34 @@ def test_peers_flooding_object_lists_together_get_the_inbox_rate_and_no_more() -
         now[0] += 0.1
     assert passed <= objects.per_s * now[0] + 10 * objects.burst, passed
     assert objects.rate() == objects.per_s / 10
+
+
+@pytest.mark.xfail(strict=True, reason="members bounded by max_layers (fixed next commit)")
+def test_members_without_layers_keep_no_robot_out() -> None:
+    """The daemon bounded the members whose heartbeats it keeps by `max_layers`: members that
+    hold no layer (CCTV daemons that publish none, command-line clients) filled that table,
+    every one alive, and a robot's heartbeats were then refused (`too-many-members`): no repair
+    of its layer. Members are now bounded by `max_members` (default 1024) and peer layers by
+    `max_layers`, separately: a daemon that holds at most 2 peer layers hears 5 cameras and
+    then a robot."""
+    from colonyd.config import Config
+    from colonyd.daemon import member_table
+
+    with _sessions(2) as (mine, other):
+        d = _daemon(mine)
+        cfg = Config(agent_id="me", namespace=NS, max_layers=2)
+        table = member_table(mine, cfg, lambda agent, event: None)
+        d.inbox.membership = table
+        agents = [f"cam{i}" for i in range(5)] + ["robot"]
+        tokens = [other.liveliness().declare_token(alive_key(NS, a)) for a in agents]
+        try:
+            assert _until(lambda: len(table.alive()) == len(agents))
+            for agent in agents:
+                d.feed("hb", agent, _heartbeat(agent, Signer.generate()))
+            assert d.metrics.rejected["too-many-members"] == 0, d.metrics.rejected
+            assert table.find("robot") is not None and table.find("robot").heard
+        finally:
+            for t in tokens:
+                t.undeclare()
+            table.close()
+            d.close()
