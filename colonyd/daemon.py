@@ -358,6 +358,7 @@ class Daemon:
             history_sync_s=cfg.history_sync_s,
             peer_history_entries=cfg.peer_history_entries,
             history_push=cfg.history_push,
+            max_members=cfg.max_members,
         )
         self.membership = member_table(self.session, cfg, self.gossip.on_member_event)
         self.status_server = StatusServer(
@@ -1298,8 +1299,18 @@ def _pose_text(t: Any) -> str:
 def member_table(
     session: zenoh.Session, cfg: Config, on_event: Callable[[str, str], None]
 ) -> Membership:
-    """The daemon's member table (liveliness and heartbeats), bounded as `cfg` says."""
-    return Membership(session, cfg.key_namespace, cfg.agent_id, on_event, cfg.max_layers)
+    """The daemon's member table (liveliness and heartbeats): `max_members` members heard,
+    whatever `max_layers` (members that hold no layer, cameras or command-line clients, keep no
+    robot out), each remembered to hold at most `max_layers` + 1 layers (what this daemon could
+    hold of them: the bound on the table's memory)."""
+    return Membership(
+        session,
+        cfg.key_namespace,
+        cfg.agent_id,
+        on_event,
+        cfg.max_members,
+        max_listed=cfg.max_layers + 1,
+    )
 
 
 def run_daemon(

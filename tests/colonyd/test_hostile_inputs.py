@@ -11,7 +11,6 @@ from contextlib import contextmanager
 from types import SimpleNamespace
 
 import numpy as np
-import pytest
 import zenoh
 
 from colonyd.alignment import Alignments
@@ -1326,7 +1325,6 @@ def test_peers_flooding_object_lists_together_get_the_inbox_rate_and_no_more() -
     assert objects.rate() == objects.per_s / 10
 
 
-@pytest.mark.xfail(strict=True, reason="members bounded by max_layers (fixed next commit)")
 def test_members_without_layers_keep_no_robot_out() -> None:
     """The daemon bounded the members whose heartbeats it keeps by `max_layers`: members that
     hold no layer (CCTV daemons that publish none, command-line clients) filled that table,
@@ -1346,10 +1344,19 @@ def test_members_without_layers_keep_no_robot_out() -> None:
         tokens = [other.liveliness().declare_token(alive_key(NS, a)) for a in agents]
         try:
             assert _until(lambda: len(table.alive()) == len(agents))
+            signers = {agent: Signer.generate() for agent in agents}
             for agent in agents:
-                d.feed("hb", agent, _heartbeat(agent, Signer.generate()))
+                d.feed("hb", agent, _heartbeat(agent, signers[agent]))
             assert d.metrics.rejected["too-many-members"] == 0, d.metrics.rejected
             assert table.find("robot") is not None and table.find("robot").heard
+            # what a member's heartbeat lists is remembered up to max_layers + 1, its own first
+            s = Sender("robot", 7, key=KEY, signer=signers["robot"], first_seq=5)
+            listed = [LayerVersion(origin=f"l{i}", epoch=1, version=1) for i in range(100)]
+            listed.append(LayerVersion(origin="robot", epoch=7, version=3))
+            hb = Heartbeat(**s.header(), kind="robot", frame_id="robot.odom", layers=listed)
+            d.feed("hb", "robot", s.encode(hb))
+            kept = table.find("robot").layers
+            assert len(kept) == 3 and kept["robot"] == (7, 3), kept
         finally:
             for t in tokens:
                 t.undeclare()
