@@ -386,11 +386,15 @@ class CatchUp:
                 concat([d for _, d in sorted(groups[versions], key=lambda x: x[0])])
                 for versions in sorted(groups, key=lambda v: v[1])
             ]
-            self.replicas.admit(origin, epoch, deltas)  # all of them, before any is taken
-            self.take(msgs)
-            for delta in deltas:
-                # a gap it leaves is this repair's own: `_repair` goes on to a snapshot
-                self.replicas.offer(origin, epoch, delta, via="range")
+            # admitted, taken and applied with no other delta applied in between (the inbox
+            # applies live ones on its thread): what the admission found still holds, and a
+            # holder whose range passed it is not refused (and rested) for another's delta
+            with self.layers.apply_lock:
+                self.replicas.admit(origin, epoch, deltas)  # all of them, before any is taken
+                self.take(msgs)
+                for delta in deltas:
+                    # a gap it leaves is this repair's own: `_repair` goes on to a snapshot
+                    self.replicas.offer(origin, epoch, delta, admitted=True, via="range")
         except (ProtocolError, WireError) as exc:
             self.metrics.reject(exc.reason)
             log.warning("range reply from %s refused: %s", server, exc)

@@ -123,7 +123,16 @@ class Config(BaseSettings):
     inbox_size: int = Field(256, ge=8, description="bounded queue of received messages")
     inbox_mb: float = Field(128.0, gt=0, description="bytes the received-message queue may hold")
     max_layers: int = Field(
-        256, ge=1, description="most peer layers held, and members heard (hostile origins)"
+        256,
+        ge=1,
+        description="most peer layers held (hostile origins), and layers a member's heartbeat "
+        "is remembered to hold (beyond its own)",
+    )
+    max_members: int = Field(
+        1024,
+        ge=1,
+        description="most members whose heartbeats are kept, with a layer or without (cameras, "
+        "command-line clients), and peers whose object lists are kept",
     )
     max_peer_blocks: int = Field(
         100_000, ge=1, description="voxel blocks (64 voxels each) in peer layers"
@@ -171,7 +180,10 @@ class Config(BaseSettings):
         description="reliability weight in the fused map per agent id or agent kind (default 1.0)",
     )
     objects_s: float = Field(
-        2.0, ge=0, description="seconds between object-list refreshes (0: no objects)"
+        2.0,
+        ge=0,
+        description="seconds between object-list refreshes (0: no objects); peers take 16,384 "
+        "listed objects a second, shared by the members sending lists (docs/DAEMON.md)",
     )
     structure_classes: list[int] = Field(
         [1, 2], description="class ids that are structure (walls, floors), never objects; the sim's"

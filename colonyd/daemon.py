@@ -17,7 +17,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -65,6 +65,9 @@ from protocol import PoseFix
 from voxel import kernels
 from voxel.localisation import frame_error, se2
 from voxel.localisation.sightings import frame_from_sightings
+
+if TYPE_CHECKING:
+    import zenoh
 
 log = logging.getLogger(__name__)
 
@@ -355,10 +358,9 @@ class Daemon:
             history_sync_s=cfg.history_sync_s,
             peer_history_entries=cfg.peer_history_entries,
             history_push=cfg.history_push,
+            max_members=cfg.max_members,
         )
-        self.membership = Membership(
-            self.session, ns, cfg.agent_id, self.gossip.on_member_event, cfg.max_layers
-        )
+        self.membership = member_table(self.session, cfg, self.gossip.on_member_event)
         self.status_server = StatusServer(
             self.session, ns, cfg.agent_id, self.report, activity=self.metrics.activity
         )
@@ -1292,6 +1294,23 @@ class Daemon:
 def _pose_text(t: Any) -> str:
     yaw = math.degrees(math.atan2(t[1, 0], t[0, 0]))
     return f"x {t[0, 3]:.2f} y {t[1, 3]:.2f} z {t[2, 3]:.2f} m, yaw {yaw:.1f} deg"
+
+
+def member_table(
+    session: zenoh.Session, cfg: Config, on_event: Callable[[str, str], None]
+) -> Membership:
+    """The daemon's member table (liveliness and heartbeats): `max_members` members heard,
+    whatever `max_layers` (members that hold no layer, cameras or command-line clients, keep no
+    robot out), each remembered to hold at most `max_layers` + 1 layers (what this daemon could
+    hold of them: the bound on the table's memory)."""
+    return Membership(
+        session,
+        cfg.key_namespace,
+        cfg.agent_id,
+        on_event,
+        cfg.max_members,
+        max_listed=cfg.max_layers + 1,
+    )
 
 
 def run_daemon(

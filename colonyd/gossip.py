@@ -56,10 +56,11 @@ class Gossip:
         history_sync_s: float = 5.0,
         peer_history_entries: int = 2_000_000,
         history_push: bool = False,
+        max_members: int = 1024,
     ) -> None:
         self.stop = threading.Event()  # one stop for every worker: they wind down together
         replicas = Replicas(layers, metrics)
-        self.peer_objects = PeerObjects(layers.max_layers)
+        self.peer_objects = PeerObjects(max_members)  # cameras list objects, with no layer
         self.alignments = Alignments(layers.max_layers)
         self.publisher = Publisher(
             session, namespace, layers, sender, metrics, epoch=epoch, part_bytes=part_bytes

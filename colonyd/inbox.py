@@ -286,17 +286,17 @@ class Inbox:
         if not msg.exact:
             raise WireError("inexact", "expected an exact delta, found a free-space summary")
         d = msg.delta
-        self.replicas.admit(msg.origin, msg.epoch, [d])
-        whole = (msg.origin, msg.epoch, d.from_version, d.to_version)
-        self.parts.check(whole, msg.part, msg.parts, d)  # its parts' count, their voxels
-        accept(
-            self.receiver, self.metrics, msg, raw
-        )  # only now: a frame refused above moved no window
-        stamp(marks, "admitted")
-        delta = self.parts.add(whole, msg.part, msg.parts, d)
-        if delta is None:
-            return
-        if self.replicas.offer(msg.origin, msg.epoch, delta, admitted=msg.parts == 1):
+        with self.replicas.layers.apply_lock:  # no range applied between admission and offer
+            self.replicas.admit(msg.origin, msg.epoch, [d])
+            whole = (msg.origin, msg.epoch, d.from_version, d.to_version)
+            self.parts.check(whole, msg.part, msg.parts, d)  # its parts' count, their voxels
+            accept(self.receiver, self.metrics, msg, raw)  # only now: a refusal moved no window
+            stamp(marks, "admitted")
+            delta = self.parts.add(whole, msg.part, msg.parts, d)
+            if delta is None:
+                return
+            gap = self.replicas.offer(msg.origin, msg.epoch, delta, admitted=msg.parts == 1)
+        if gap:
             self._request_repair(msg.origin, [msg.origin])
         stamp(marks, "applied")
         self.metrics.stage("in", msg.origin, delta.to_version, marks)
@@ -340,9 +340,11 @@ class Inbox:
                     f"{covariance.max():.3g}"
                 )
                 raise WireError("bad-objects", text)
-        self.objects.admit(msg.origin, len(msg.objects))
+        self.objects.admit(msg.origin)
         accept(self.receiver, self.metrics, msg, raw)
-        self.objects.put(msg.origin, msg.objects)
+        cut = self.objects.put(msg.origin, msg.objects)
+        if cut:  # the peers' objects bound reached: the longest lists cut to a fair share
+            self.metrics.add("objects_cut", cut)
         self.metrics.add("objects_received")
 
     def _handle_align(self, key: str, raw: bytes) -> None:

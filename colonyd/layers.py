@@ -359,6 +359,10 @@ class Layers:
         self.max_peer_blocks = max_peer_blocks
         self._layers: dict[str, Layer] = {}
         self._lock = threading.Lock()
+        #: Held from a peer delta's (or a range's) admission to its application, and to forget
+        #: an agent: what `admit` found (room in the budget, a layer not forgotten) still holds
+        #: when the delta is applied, whichever thread (inbox, catch-up) applies another meanwhile.
+        self.apply_lock = threading.RLock()
         #: origins forgotten colony-wide (`forget_agent`): never held again, whoever offers them
         self.forgotten: set[str] = set()
         self.on_forget: Callable[[str], None] | None = None  # persists a new tombstone
@@ -444,8 +448,9 @@ class Layers:
             return False
         if len(self.forgotten) >= self.max_layers:
             return False  # bounded: a hostile flood of names cannot grow it without end
-        self.forgotten.add(origin)
-        self.drop(origin)
+        with self.apply_lock:  # not between a delta's admission and its application
+            self.forgotten.add(origin)
+            self.drop(origin)
         if self.on_forget is not None:
             self.on_forget(origin)
         return True

@@ -68,7 +68,10 @@ class Membership:
     (tokens are not authenticated: a stranger declaring and undeclaring made-up agent ids must not
     grow the table), and at most `max_members` members were heard (`admit`: a heartbeat of a new
     agent beyond them makes room by forgetting the least recently seen member without a token,
-    else it is refused).
+    else it is refused). Members are bounded apart from layers: a member that holds no layer (a
+    camera that publishes none, a command-line client) counts here only. Of the layers a
+    heartbeat lists, `max_listed` are remembered (the sender's own first, then in its order):
+    at most `max_members` x `max_listed` entries, whatever a heartbeat lists (up to 4096).
     """
 
     def __init__(
@@ -77,10 +80,13 @@ class Membership:
         namespace: str,
         own: str,
         on_event: Callable[[str, str], None],
-        max_members: int = 256,
+        max_members: int = 1024,
+        *,
+        max_listed: int = 4096,
     ) -> None:
         self.own = own
         self.max_members = max_members
+        self.max_listed = max_listed
         self._on_event = on_event  # (agent, "join"|"leave"); must only enqueue
         self._lock = threading.Lock()
         self.members: dict[str, Member] = {}
@@ -156,7 +162,8 @@ class Membership:
             m.last_seen = time.time()
             m.kind = hb.kind
             m.pose = list(hb.position) if hb.position is not None else []
-            m.layers = {entry.origin: (entry.epoch, entry.version) for entry in hb.layers}
+            listed = sorted(hb.layers, key=lambda e: e.origin != agent)[: self.max_listed]
+            m.layers = {entry.origin: (entry.epoch, entry.version) for entry in listed}
             return m
 
     def find(self, agent: str) -> Member | None:

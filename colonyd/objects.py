@@ -165,25 +165,45 @@ def to_wire(objects: list[ObjectCentroid]) -> list[WireObject]:
 
 #: Most objects the lists of all peers hold together (~2 KB each decoded: ~130 MB). A list holds
 #: up to 16,384 (the protocol's most) and up to 256 peers send one: without a bound, a few hundred
-#: KB of wire each, they would hold ~8 GB.
+#: KB of wire each, they would hold ~8 GB. Shared fairly: once full, the longest lists are trimmed
+#: to an equal share (`fair_level`), so that every peer keeps at least the bound over the peers
+#: holding lists (256 robots: 256 objects each, more for those next to peers with fewer).
 MAX_PEER_OBJECTS = 65_536
 
-#: Objects one peer's lists may bring per second, and at once (one full list): decoding a list
-#: costs ~25 us an object on the inbox's one thread (0.4 s for 16,384), so a peer sending full
-#: lists back to back held the inbox (deltas, heartbeats) to itself. Past its allowance a peer's
-#: lists are refused before their body is parsed (`too-often`) until it has earned it back: a
-#: full list then every 8 s; a list of 1000 objects every 0.5 s passes. A list is a peer's whole
-#: current list, so a refused one is made good by the next (the daemon repeats an unchanged list).
-OBJECTS_PER_S = 2048.0
+#: Objects the lists of all peers together may bring per second, and one peer's at once (one
+#: full list): decoding a list costs ~22 us an object on the inbox's one thread (0.4 s for
+#: 16,384), so a peer sending full lists back to back held the inbox (deltas, heartbeats) to
+#: itself. The rate is shared by the peers spending their allowance (those back at a full one,
+#: which send lists seldom, take none of it): alone, a peer may send 16,384 objects a second (a
+#: full list a second; ~0.36 s of the inbox's second at most); beside three others sending as
+#: much, 4096 (2000 objects at every `objects_s` = 0.5 s refresh pass). Past its allowance a
+#: peer's lists are refused before their body is parsed (`too-often`) until it has earned it
+#: back. A list is a peer's whole current list, so a refused one is made good by the next (the
+#: daemon repeats an unchanged list).
+OBJECTS_PER_S = 16_384.0
 OBJECTS_BURST = 16_384
 #: Most peers whose allowance is remembered (those back at a full allowance are forgotten first).
 MAX_ALLOWANCES = 4096
 
 
+def fair_level(counts: list[int], total: int) -> int | None:
+    """The largest level L such that the `counts` cut to L (min(count, L) each) sum to at most
+    `total` (max-min fair shares), or None if they fit uncut."""
+    if sum(counts) <= total:
+        return None
+    left, n = total, len(counts)
+    for i, c in enumerate(sorted(counts)):
+        level = left // (n - i)
+        if level < c:
+            return level
+        left -= c
+    return None  # (not reached: they would fit)
+
+
 class PeerObjects:
     """The latest object list each peer published (a full list replaces the previous one), for
     at most `max_origins` peers (a hostile peer cannot invent many), holding at most
-    `max_objects` objects together."""
+    `max_objects` objects together (the longest trimmed to a fair share)."""
 
     def __init__(
         self,
@@ -202,27 +222,38 @@ class PeerObjects:
         self._lists: dict[str, tuple[float, list[WireObject]]] = {}
         #: origin -> (objects it may still send, clock then): `allow` and `charge`
         self._allowance: dict[str, tuple[float, float]] = {}
+        #: objects a second each peer earns back: `per_s` over the peers spending theirs
+        self._rate = per_s
         self._lock = threading.Lock()
 
     def _earned(self, origin: str, now: float) -> float:
         left, then = self._allowance.get(origin, (float(self.burst), now))
-        return min(float(self.burst), left + (now - then) * self.per_s)
+        return min(float(self.burst), left + (now - then) * self._rate)
+
+    def rate(self) -> float:
+        """Objects a second each peer earns back now."""
+        with self._lock:
+            return self._rate
 
     def allow(self, origin: str) -> None:
         """WireError (`too-often`) unless `origin` may send a list now: it has not spent more
-        than its allowance (`per_s` objects a second, `burst` at once). Changes nothing."""
+        than its allowance (its share of `per_s` objects a second, `burst` at once). Changes
+        nothing."""
         with self._lock:
             left = self._earned(origin, self._clock())
+            rate = self._rate
         if left <= 0:
             text = (
-                f"expected at most {self.per_s:g} listed objects a second from {origin!r} "
-                f"({self.burst} at once), found it {-left:.0f} objects past its allowance"
+                f"expected at most {rate:g} listed objects a second from {origin!r} "
+                f"({self.per_s:g} shared by the peers sending lists, {self.burst} at once), found "
+                f"it {-left:.0f} objects past its allowance"
             )
             raise WireError("too-often", text)
 
     def charge(self, origin: str, count: int) -> None:
         """`origin` (authenticated: its frame was decoded) sent a list of `count` objects: they
-        are taken from its allowance, kept or not (decoding them cost the same)."""
+        are taken from its allowance, kept or not (decoding them cost the same); the rate is
+        shared anew among the peers now spending theirs."""
         with self._lock:
             now = self._clock()
             left = self._earned(origin, now) - count
@@ -230,11 +261,15 @@ class PeerObjects:
                 full = [o for o in self._allowance if self._earned(o, now) >= self.burst]
                 for o in full or list(self._allowance)[: MAX_ALLOWANCES // 2]:
                     del self._allowance[o]
+            # each peer's allowance brought to now at the old rate, then the new rate shared
+            self._allowance = {o: (self._earned(o, now), now) for o in self._allowance}
             self._allowance[origin] = (left, now)
+            spending = sum(1 for v, _ in self._allowance.values() if v < self.burst)
+            self._rate = self.per_s / max(1, spending)
 
-    def admit(self, origin: str, count: int = 0) -> None:
-        """Raise WireError unless a list of `count` objects of `origin` may be kept (replacing
-        its previous one)."""
+    def admit(self, origin: str) -> None:
+        """Raise WireError unless a list of `origin` may be kept (replacing its previous one):
+        a peer already holding one, or room for one more."""
         with self._lock:
             if origin not in self._lists and len(self._lists) >= self.max_origins:
                 text = (
@@ -242,17 +277,22 @@ class PeerObjects:
                     f"found another: {origin!r}"
                 )
                 raise WireError("too-many-layers", text)
-            others = sum(len(v[1]) for o, v in self._lists.items() if o != origin)
-            if others + count > self.max_objects:
-                text = (
-                    f"expected peers' object lists within {self.max_objects} objects together, "
-                    f"found {others} held + {count} from {origin!r}"
-                )
-                raise WireError("over-budget", text)
 
-    def put(self, origin: str, objects: list[WireObject]) -> None:
+    def put(self, origin: str, objects: list[WireObject]) -> int:
+        """Keep `origin`'s list (replacing its previous one); past `max_objects` together, the
+        longest lists, this one included, are cut to their first objects down to a fair share
+        (`fair_level`). Returns the objects cut (from every list)."""
         with self._lock:
             self._lists[origin] = (time.time(), list(objects))
+            level = fair_level([len(v[1]) for v in self._lists.values()], self.max_objects)
+            if level is None:
+                return 0
+            cut = 0
+            for o, (t, listed) in self._lists.items():
+                if len(listed) > level:
+                    cut += len(listed) - level
+                    self._lists[o] = (t, listed[:level])
+            return cut
 
     def drop(self, origin: str) -> None:
         with self._lock:

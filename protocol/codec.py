@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Literal, cast
 
 import numpy as np
@@ -280,10 +280,21 @@ def decode(
 
     The cheap checks come before the body is decompressed and parsed (which costs up to ~0.5 s
     for the largest bodies): the tag, the envelope, `before_body(class, origin, epoch, seq,
-    time)` (the caller's own checks; it raises to refuse), and the signature of a message type
-    that does not carry its key in its body (all but the Heartbeat, checked after).
+    time)` (the caller's own checks; it raises to refuse), and the signature: with the key the
+    `trust` knows for the origin; only a Heartbeat of an origin not pinned yet (trust on first
+    use) offers it in its body, and then its body, at most `limits.max_heartbeat_bytes`, is
+    decompressed and its `identity` alone read (the rest skipped undecoded) to check it.
     """
     mtype, flags, compression = _prefix(data, limits)
+    cls = MESSAGE_TYPES[mtype]
+    keyed = "identity" in cls.model_fields  # a Heartbeat: its body carries its key
+    max_body = min(limits.max_body_bytes, limits.max_heartbeat_bytes) if keyed else None
+    if max_body is not None and len(data) > max_body + FRAME_OVERHEAD:
+        msg = (
+            f"frame: expected a {cls.KIND} frame of at most {max_body + FRAME_OVERHEAD} bytes, "
+            f"found {len(data)}"
+        )
+        raise OversizedError(msg)
     auth = bool(flags & FLAG_AUTH)
     view = memoryview(data)
     if key is not None:
@@ -302,17 +313,28 @@ def decode(
         raise AuthError(msg)
     end = _envelope_end(data, flags)
     origin, epoch, seq, time, body = _envelope(data, end, limits)
-    cls = MESSAGE_TYPES[mtype]
     if before_body is not None:
         before_body(cls, origin, epoch, seq, time)
-    early = trust is not None and "identity" not in cls.model_fields
+    # the signature before the body, with the key the receiver knows (for a Heartbeat, the
+    # pinned or listed one): a stranger's frame costs no body parse
+    early = trust is not None and (
+        not keyed or not trust.checks or trust.mode == "list" or trust.pinned(origin) is not None
+    )
     if trust is not None and early:
-        _verify(data, cls, origin, None, trust)  # a stranger's frame costs no body parse
+        _verify(data, cls, origin, None, trust)
+    if max_body is not None:
+        limits = replace(limits, max_body_bytes=max_body)
     if compression == COMPRESSION_ZSTD:
         body = fields.decompress(body, limits, "body")
     elif len(body) > limits.max_body_bytes:
         msg = f"body: expected at most {limits.max_body_bytes} bytes, found {len(body)}"
         raise OversizedError(msg)
+    offered: bytes | None = None
+    if trust is not None and not early:
+        # a stranger's Heartbeat (trust on first use): the key it offers, read alone (the rest
+        # skipped undecoded), checks its signature before the body is scanned and validated
+        offered = fields.map_bin(body, "identity", f"{cls.KIND} body", limits)
+        _verify(data, cls, origin, offered, trust)
     content = fields.as_map(fields.unpack(body, f"{cls.KIND} body", limits), f"{cls.KIND} body")
     known = {k: v for k, v in content.items() if k in cls.model_fields and k not in HEADER_FIELDS}
     if "delta" in cls.model_fields:
@@ -350,8 +372,12 @@ def decode(
         )
     except ValidationError as exc:
         raise _validation_error(cls, exc) from None
-    if trust is not None and not early:
-        verify_identity(data, message, trust)
+    identity = getattr(message, "identity", None)
+    if trust is not None and trust.checks and keyed and identity != offered:
+        if not early:  # (a key the walk above did not see as one: no bin)
+            msg = f"identity of {origin!r}: expected the key its signature was checked with"
+            raise IdentityError(msg)
+        trust.key_for(origin, identity)  # the key it offers is the pinned one, if it offers one
     if replay is not None:
         replay.check(origin, epoch, seq)
     return message

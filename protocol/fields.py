@@ -169,6 +169,48 @@ def unpack(data: bytes, what: str, limits: Limits) -> Any:
         raise MalformedError(msg) from None
 
 
+#: msgpack heads of a str (fixstr, str8, str16) and of a bin (bin8, bin16, bin32).
+_STR_HEADS = frozenset([*range(0xA0, 0xC0), 0xD9, 0xDA])
+_BIN_HEADS = frozenset([0xC4, 0xC5, 0xC6])
+
+
+def map_bin(data: bytes, key: str, what: str, limits: Limits) -> bytes | None:
+    """The bin value of `key` (its last, as `unpack` keeps it) in the msgpack map `data`, read
+    without building anything else: the map's other values are skipped by msgpack's own
+    unpacker, and a value of `key` that is not a bin is None. MalformedError for data that is
+    not a map of string keys (what `unpack` refuses too)."""
+    if not data or not (0x80 <= data[0] <= 0x8F or data[0] in (0xDE, 0xDF)):
+        head = f"0x{data[0]:02x}" if data else "nothing"
+        msg = f"{what}: expected a msgpack map, found {head}"
+        raise MalformedError(msg)
+    unpacker = msgpack.Unpacker(
+        raw=False,
+        ext_hook=_no_ext,
+        max_buffer_size=max(len(data), 1),
+        max_str_len=max(limits.max_string, 1024),
+        max_bin_len=len(data),
+        max_array_len=limits.max_list,
+        max_map_len=limits.max_list,
+    )
+    unpacker.feed(data)
+    found: bytes | None = None
+    try:
+        for _ in range(unpacker.read_map_header()):
+            if data[unpacker.tell()] not in _STR_HEADS:
+                msg = f"{what}: expected string map keys, found byte 0x{data[unpacker.tell()]:02x}"
+                raise MalformedError(msg)
+            name = unpacker.unpack()
+            if name == key and data[unpacker.tell()] in _BIN_HEADS:
+                found = unpacker.unpack()
+            else:
+                unpacker.skip()
+                found = None if name == key else found
+    except (ValueError, TypeError, IndexError, msgpack.UnpackException) as exc:
+        msg = f"{what}: expected valid msgpack, found {type(exc).__name__}: {exc}"
+        raise MalformedError(msg) from None
+    return found
+
+
 def pack(obj: Any) -> bytes:
     """msgpack encoding of `obj` (binary strings as bin, floats as float64)."""
     packed: bytes = msgpack.packb(obj, use_bin_type=True)

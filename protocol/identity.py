@@ -112,6 +112,11 @@ class Trust:
         with self._lock:
             return dict(self._pins)
 
+    def pinned(self, origin: str) -> bytes | None:
+        """`origin`'s pinned key, if any."""
+        with self._lock:
+            return self._pins.get(origin)
+
     def key_for(self, origin: str, offered: bytes | None) -> bytes:
         """The key `origin`'s frame must verify with (`offered`: the key its heartbeat carries)."""
         with self._lock:

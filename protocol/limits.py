@@ -13,6 +13,10 @@ class Limits:
     max_message_bytes: int = 32 << 20
     #: Largest body after decompression.
     max_body_bytes: int = 64 << 20
+    #: Largest Heartbeat body (before and after decompression): the largest valid one (4096
+    #: layers and 4096 forgotten agents of the longest names) packs to ~0.8 MB. A heartbeat's
+    #: key is in its body, so this is what a stranger's may make a receiver read.
+    max_heartbeat_bytes: int = 1 << 20
     #: Most voxels (exact voxels plus summary cells) in one delta.
     max_voxels: int = 4_000_000
     #: Most voxels a free-space summary may expand to when a receiver expands it.

@@ -5,9 +5,14 @@ from __future__ import annotations
 import pytest
 
 from protocol.codec import decode, encode
-from protocol.errors import IdentityError, NotIntroducedError, UnknownIdentityError
+from protocol.errors import (
+    IdentityError,
+    NotIntroducedError,
+    ProtocolError,
+    UnknownIdentityError,
+)
 from protocol.identity import MAX_PINS, Signer, Trust, parse_public, verify_signature
-from protocol.messages import DeltaRangeRequest, Heartbeat, Pose
+from protocol.messages import DeltaRangeRequest, Heartbeat, LayerVersion, Pose
 from protocol.receiver import Receiver
 from tests.protocol.helpers import KEY
 from tests.shared import fresh_process
@@ -58,14 +63,16 @@ def test_trust_on_first_use_pins_at_accept_and_refuses_another_key() -> None:
     rx.receive(_hb(3, A))
     assert pinned == [("a", A.public)] and rx.trust.pins() == {"a": A.public}
     rx.receive(_pose(4, A))
-    with pytest.raises(IdentityError, match="expected its pinned key") as info:
-        rx.decode(_hb(5, B))  # another key holder claiming to be 'a'
+    with pytest.raises(IdentityError, match="does not verify") as info:
+        rx.decode(_hb(5, B))  # another key holder claiming to be 'a': checked with a's pin
     assert info.value.reason == "identity"
+    with pytest.raises(IdentityError, match="expected its pinned key"):
+        rx.decode(_hb(8, A, identity=B.public))  # a's signature, offering another key
     with pytest.raises(IdentityError, match="does not verify"):
         rx.decode(_hb(6, B, identity=A.public))  # claims a's key, cannot sign with it
     with pytest.raises(IdentityError, match="found none"):
         rx.decode(_pose(7, None))  # unsigned
-    assert rx.rejected == {"unknown_identity": 1, "identity": 3}
+    assert rx.rejected == {"unknown_identity": 1, "identity": 4}
 
 
 def test_requests_need_no_signature_and_off_checks_nothing() -> None:
@@ -149,3 +156,97 @@ def test_trust_on_first_use_pins_a_bounded_number_of_agents() -> None:
     assert rx.replay is not None and "x3" not in rx.replay._state  # refused: no window moved
     again = Heartbeat(origin="x0", epoch=1, seq=2, time=1.0, kind="robot", frame_id="map")
     rx.receive(encode(again, signer=signer))  # a pinned agent carries on
+
+
+def _raw_hb(body: dict, origin: str, signer: Signer, seq: int = 2, zstd: bool = True) -> bytes:
+    """A Heartbeat frame of any `body` (keys the model may not know, values it refuses)."""
+    from protocol import fields
+    from protocol.codec import COMPRESSION_SHIFT, COMPRESSION_ZSTD, FLAG_SIGNED, MAGIC, PREFIX
+    from protocol.messages import PROTOCOL_VERSION
+
+    packed = fields.pack(body)
+    packed = fields.compress(packed) if zstd else packed
+    flags = ((COMPRESSION_ZSTD << COMPRESSION_SHIFT) if zstd else 0) | FLAG_SIGNED
+    envelope = fields.pack([origin, 7, seq, 1.0, packed])
+    frame = PREFIX.pack(MAGIC, PROTOCOL_VERSION, Heartbeat.TYPE, flags, 0) + envelope
+    return frame + signer.sign(frame)
+
+
+def _count_unpacks(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Bodies `decode` scans and unpacks whole (the parse work a hostile frame may cost)."""
+    import protocol.codec
+
+    calls: list[int] = []
+    real = protocol.codec.fields.unpack
+
+    def counted(data: bytes, what: str, *args: object) -> object:
+        if "body" in what:  # (not the envelope: unpacked for every frame)
+            calls.append(len(data))
+        return real(data, what, *args)
+
+    monkeypatch.setattr(protocol.codec.fields, "unpack", counted)
+    return calls
+
+
+def test_a_pinned_agents_heartbeat_is_checked_before_its_body_is_read(monkeypatch) -> None:
+    """A Heartbeat carries its key in its body, so every one was decompressed, scanned,
+    unpacked and validated before its signature was checked (a 286-byte frame padded with
+    ~1 million msgpack objects: ~0.25 s of CPU, `colonyd.bench.hostile_heartbeat`). For an
+    agent whose key is pinned the pinned key checks it first: a forged one is refused for its
+    signature however broken its body, and no body is unpacked."""
+    unpacked = _count_unpacks(monkeypatch)
+    rx = Receiver(trust=Trust("tofu", {"a": A.public}))
+    garbage = {"kind": "robot", "frame_id": "map", "layers": [{"origin": "x", "epoch": -1}]}
+    for body in (garbage, {"pad": [[1] * 1024 for _ in range(100)]}):
+        with pytest.raises(IdentityError, match="does not verify"):
+            rx.decode(_raw_hb(body, "a", B))
+    assert unpacked == []
+    assert rx.decode(_raw_hb({"kind": "robot", "frame_id": "map"}, "a", A)).origin == "a"
+    assert len(unpacked) == 1
+
+
+def test_a_strangers_heartbeat_is_checked_before_its_body_is_parsed(monkeypatch) -> None:
+    """Trust on first use: a stranger's Heartbeat offers its key in its body. Only that key is
+    read (the rest of the body skipped, undecoded) and the signature checked with it before the
+    body is scanned, unpacked and validated: a forged one whose layers are out of range is
+    refused for its signature (it was refused for its range, after all the work)."""
+    unpacked = _count_unpacks(monkeypatch)
+    rx = Receiver(trust=Trust("tofu"))
+    bad = [{"origin": "x", "epoch": -1, "version": 1}] * 4096
+    body = {"kind": "robot", "frame_id": "map", "layers": bad, "identity": A.public}
+    with pytest.raises(IdentityError, match="does not verify"):
+        rx.decode(_raw_hb(body, "a", B))  # offers a's key, signed by another
+    with pytest.raises(NotIntroducedError):
+        rx.decode(_raw_hb({**body, "identity": "x" * 32}, "a", B))  # no key (not a bin)
+    assert unpacked == []
+    with pytest.raises(ProtocolError) as info:  # signed with the key it offers: parsed
+        rx.decode(_raw_hb(body, "a", A))
+    assert info.value.reason == "range"
+    assert len(unpacked) == 1
+
+
+def test_heartbeat_bodies_past_their_bound_are_refused_unread() -> None:
+    """The largest valid Heartbeat body (4096 layers, 4096 forgotten agents) packs to ~0.8 MB:
+    a body (compressed or not) past `Limits.max_heartbeat_bytes` (1 MiB) is refused before it
+    is decompressed or read, though it were signed by its pinned key (other types keep the 64
+    MiB body bound)."""
+    rx = Receiver(trust=Trust("tofu", {"a": A.public}))
+    pad = {"kind": "robot", "frame_id": "map", "pad": bytes(2 << 20)}
+    with pytest.raises(ProtocolError) as info:
+        rx.decode(_raw_hb(pad, "a", A))  # 2 MiB of zeros: a small zstd frame
+    assert info.value.reason == "decompression_bomb"
+    with pytest.raises(ProtocolError) as info:
+        rx.decode(_raw_hb(pad, "a", A, zstd=False))
+    assert info.value.reason == "oversized"
+    assert rx.decode(_raw_hb({**pad, "pad": bytes(1 << 19)}, "a", A)).origin == "a"
+    name, top = "a" * 64, 2**63 - 1
+    largest = Heartbeat(
+        origin="a", epoch=top, seq=top, time=1.0, kind=name, frame_id=name,
+        position=(1e300, 1e300, 1e300), identity=A.public,
+        layers=[LayerVersion(origin=f"{name[:59]}{i:05d}", epoch=top, version=top,
+                             half_life=1e300) for i in range(4096)],
+        forgotten=[f"{name[:59]}{i:05d}" for i in range(4096)],
+    )  # fmt: skip
+    for compression in ("zstd", "none"):
+        frame = encode(largest, signer=A, compression=compression)
+        assert len(rx.decode(frame).layers) == 4096
