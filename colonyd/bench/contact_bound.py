@@ -1,6 +1,7 @@
 """The most a perfect correction at first contact could do for a robot's ATE (issue 12's bound).
 
 `python -m colonyd.bench.contact_bound DIR... [--contacts 10,15,20,30,40] [--json FILE]`
+`python -m colonyd.bench.contact_bound --experiment OUT [--json FILE]`
 
 Each DIR holds a robot's estimated and true trajectories as TUM files (`colonyd localize --out
 DIR`: `estimate.tum`, `groundtruth.tum`; or a run of `colonyd experiment paper`:
@@ -17,12 +18,16 @@ correcting the robot online from c on, whatever the peer, in two frames for the 
   two in every case measured.
 
 A ratio above the claim's 0.5 at the experiment's contact time says no estimator, however good
-its peer, can meet the claim online with contact that late. Truth is read only to evaluate.
+its peer, can meet the claim online with contact that late. `--experiment OUT` reads a
+`colonyd experiment paper --out OUT` folder: for each sharing run, lidar-1's first contact there
+(as seconds of its recorded path) and the bound at that contact on the `lidar-alone` run's
+trajectories, beside the ratio the run measured. Truth is read only to evaluate.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -108,6 +113,41 @@ def measure(directory: Path, contacts: tuple[float, ...] = CONTACTS) -> dict[str
     return {"directory": str(directory), **out}
 
 
+#: The experiment's runs in which lidar-1 shares, scored against `lidar-alone`.
+SHARED_RUNS = ("lidar+depth", "lidar+depth+cctv")
+ROBOT = "lidar-1"
+
+
+def experiment(out: Path) -> dict[str, Any]:
+    """The bound at each sharing run's own first contact, with the ratio the run measured."""
+    try:
+        results = json.loads((out / "results.json").read_text())
+        runs = results["runs"]
+        alone = runs["lidar-alone"][ROBOT]["ate_rmse_m"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        msg = (
+            f"{out}: expected a `colonyd experiment paper` folder with results.json, found: {exc!r}"
+        )
+        raise ContactBoundError(msg) from exc
+    rows: dict[str, Any] = {}
+    for run in SHARED_RUNS:
+        metrics = runs.get(run, {}).get(ROBOT, {})
+        contact = metrics.get("first_contact_s")
+        measured = metrics.get("ate_rmse_m")
+        row: dict[str, Any] = {
+            "first_contact_s": contact,
+            "measured": None if not (measured and alone) else round(measured / alone, 3),
+        }
+        if contact is not None:
+            first = read_tum(trajectories(out / run)[0])[0][0]
+            path_s = round(max(contact - first, 1e-3), 2)
+            bound = measure(out / "lidar-alone", (path_s,))[f"{path_s:g}"]
+            row |= {"contact_path_s": path_s, "bound_start": bound["start"]}
+            row["bound_fitted"] = bound["fitted"]
+        rows[run] = row
+    return {"directory": str(out), "ate_alone_m": alone, "runs": rows}
+
+
 def _contacts(text: str) -> tuple[float, ...]:
     try:
         values = tuple(float(v) for v in text.split(","))
@@ -122,12 +162,24 @@ def _contacts(text: str) -> tuple[float, ...]:
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m colonyd.bench.contact_bound")
-    parser.add_argument("directories", type=Path, nargs="+")
+    parser.add_argument("directories", type=Path, nargs="*")
+    parser.add_argument(
+        "--experiment", type=Path, help="a `colonyd experiment paper --out` folder instead of DIRs"
+    )
     parser.add_argument(
         "--contacts", type=_contacts, default=CONTACTS, help="seconds of path, comma-separated"
     )
     parser.add_argument("--json", type=Path, help="append the result as one JSON line")
     args = parser.parse_args(argv)
+    if bool(args.directories) == bool(args.experiment):
+        parser.error("expected trajectory folders or --experiment OUT, one of the two")
+    if args.experiment:
+        try:
+            result = experiment(args.experiment)
+        except ContactBoundError as exc:
+            parser.error(str(exc))
+        print_and_append(result, args.json)
+        return result
     try:
         rows = [measure(d, args.contacts) for d in args.directories]
     except ContactBoundError as exc:

@@ -4,6 +4,7 @@ files it cannot score are named."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -31,16 +32,16 @@ def _write(path: Path, times: np.ndarray, positions: np.ndarray, first: np.ndarr
     path.write_text("\n".join(lines) + "\n")
 
 
-def _run(tmp_path: Path) -> Path:
+def _run(tmp_path: Path, prefix: str = "", start: float = 1000.0) -> Path:
     """The robot's own frame is the world turned by 40 degrees and moved; its estimate is exact
     until JUMP_S, then 0.5 m off sideways for good."""
-    times = np.arange(0.0, 60.0, 0.1) + 1000.0
+    times = np.arange(0.0, 60.0, 0.1) + start
     truth = _truth(times - times[0])
     own = euler_pose(1.0, -2.0, 0.0, math.radians(40))
     estimate = truth @ own[:3, :3].T + own[:3, 3]
     estimate[times - times[0] >= JUMP_S] += [0.0, 0.5, 0.0]
-    _write(tmp_path / "estimate.tum", times, estimate, own)
-    _write(tmp_path / "groundtruth.tum", times, truth, np.eye(4))
+    _write(tmp_path / f"{prefix}estimate.tum", times, estimate, own)
+    _write(tmp_path / f"{prefix}groundtruth.tum", times, truth, np.eye(4))
     return tmp_path
 
 
@@ -73,3 +74,30 @@ def test_files_it_cannot_score_are_named(tmp_path: Path) -> None:
         contact_bound.measure(run)
     with pytest.raises(SystemExit):
         contact_bound.main([str(tmp_path), "--contacts", "ten"])
+
+
+def test_an_experiment_folder_is_scored_at_each_runs_own_contact(tmp_path: Path) -> None:
+    """Runs' tracks start 15 s into the run (the start delay): a contact at 30 s of the run is
+    15 s of path, before the jump (bound 0); one at 50 s of the run is after it."""
+    for run in ("lidar-alone", "lidar+depth", "lidar+depth+cctv"):
+        (tmp_path / run).mkdir()
+        _run(tmp_path / run, "lidar-1.", start=15.0)
+    results = {
+        "runs": {
+            "lidar-alone": {"lidar-1": {"ate_rmse_m": 0.2, "first_contact_s": None}},
+            "lidar+depth": {"lidar-1": {"ate_rmse_m": 0.1, "first_contact_s": 30.0}},
+            "lidar+depth+cctv": {"lidar-1": {"ate_rmse_m": 0.3, "first_contact_s": 50.0}},
+        }
+    }
+    (tmp_path / "results.json").write_text(json.dumps(results))
+    out = contact_bound.main(["--experiment", str(tmp_path)])
+    shared, cctv = out["runs"]["lidar+depth"], out["runs"]["lidar+depth+cctv"]
+    assert shared["contact_path_s"] == pytest.approx(15.0)
+    assert shared["bound_start"] == pytest.approx(0.0, abs=1e-3)
+    assert shared["measured"] == pytest.approx(0.5)
+    assert cctv["contact_path_s"] == pytest.approx(35.0)
+    assert cctv["bound_start"] > 0.1
+    assert cctv["measured"] == pytest.approx(1.5)
+    (tmp_path / "results.json").write_text("{}")
+    with pytest.raises(contact_bound.ContactBoundError, match="experiment paper"):
+        contact_bound.experiment(tmp_path)
