@@ -52,7 +52,7 @@ from colonyd.objects import OwnObjects, to_wire
 from colonyd.outdir import output_dir
 from colonyd.persistence import StateStore
 from colonyd.provenance import agent_bias, agent_reliability, pose_error
-from colonyd.resume import Positions
+from colonyd.resume import EstimatorState, Positions, agrees
 from colonyd.rosout import Ros2Outputs, RosPublishers
 from colonyd.runtime import get_session
 from colonyd.status import StatusServer, colonies_seen
@@ -170,6 +170,8 @@ class Daemon:
         # registration in a worker process, started on first use
         self.aligner = Aligner(None if config.align_session_nice < 0 else config.align_session_nice)
         self._estimators: dict[str, Estimator] = {}  # per source spec
+        #: Stored estimator states a resumed source's next estimator continues from, per spec.
+        self._restore: dict[str, EstimatorState] = {}
         self._own_edges: dict[str, Edge] = {}  # peer -> the alignment we last offered
         self.fused_map = FusedMap()  # the live fused view, kept layer by layer
         self._colony_maps: dict[str, ColonyMaps] = {}  # per source spec with a scan estimator
@@ -619,9 +621,12 @@ class Daemon:
         began = time.monotonic()
         try:
             # a recording resumes where the recovered layer's evidence of it ends
-            frames = self.positions.start(source, self.stop)
+            frames = self.positions.start(source, self.stop, lambda o: self._pass_over(source, o))
             if frames is None:
                 return
+            stored = self.positions.restored(source.spec)
+            if stored is not None:
+                self._continue_estimate(source.spec, stored)
             position = self.positions.resumed.get(source.spec, 0)
             for obs in frames:
                 if self.stop.is_set():
@@ -667,7 +672,7 @@ class Daemon:
             estimator = self._estimators.get(source.spec)
             if estimator is None:
                 estimator = self._estimators[source.spec] = get_estimator(source.adapter, obs)
-                restored = self.positions.restored(source.spec)
+                restored = self._restore.pop(source.spec, None)
                 if restored is not None and isinstance(estimator, ScanEstimator):
                     estimator.restore(restored)
             started = time.perf_counter()
@@ -705,6 +710,42 @@ class Daemon:
         self.pose = [float(v) for v in obs.origin]
         self.pose_matrix = obs.pose
         self.truth_matrix = obs.truth  # evaluation only (a simulator's truth): reported, never used
+
+    def _pass_over(self, source: Source, obs: Observation) -> None:
+        """A frame a resumed recording passes over (its evidence is in the layer): only the
+        estimator steps through it again, rebuilding its keyframe map and filter state."""
+        if not (self.config.localise and obs.odometry is not None):
+            return
+        estimator = self._estimators.get(source.spec)
+        if estimator is None:
+            estimator = self._estimators[source.spec] = get_estimator(source.adapter, obs)
+        try:
+            estimator(obs)
+        except ValueError as exc:  # as when the frame was integrated
+            log.debug("source %s: passed-over frame refused by the estimator: %s", source.spec, exc)
+
+    def _continue_estimate(self, spec: str, stored: EstimatorState) -> None:
+        """After a resumed recording's passed-over frames: keep the estimator they rebuilt if
+        it reached the stored pose (it read only the recording: the same estimate), else
+        continue from the stored pose (what the layer was built with), keyframes anew."""
+        estimator = self._estimators.get(spec)
+        now = estimator.state() if isinstance(estimator, ScanEstimator) else None
+        if now is not None and agrees(now, stored):
+            log.info(
+                "source %s: its estimator, stepped again through the passed-over frames, "
+                "reached the stored pose: it continues with its keyframe map",
+                spec,
+            )
+            return
+        self._estimators.pop(spec, None)
+        self._restore[spec] = stored
+        log.info(
+            "source %s: its estimator continues from the stored pose (x %.3f, y %.3f, yaw "
+            "%.4f)%s; its keyframe map starts anew from there",
+            spec,
+            *stored.pose,
+            "" if now is None else f", not the {now.pose.round(3).tolist()} the frames gave again",
+        )
 
     # -- pose fixes (a fixed camera tells a robot where it saw it) -------------------------
     def _send_fixes(self, obs: Observation, seen: list[ObjectDetection]) -> None:

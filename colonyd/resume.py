@@ -6,7 +6,7 @@ import logging
 import math
 import os
 import threading
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -262,8 +262,7 @@ def decide(
         False,
         mine.estimator,
         f"source {spec}: resumes after frame {mine.frames} ({mine.frame}), the last whose "
-        f"evidence is in the layer; the {mine.frames} before it are passed over, not integrated"
-        + ("" if mine.estimator is None else "; its estimator continues from its stored pose"),
+        f"evidence is in the layer; the {mine.frames} before it are passed over, not integrated",
         "info",
     )
 
@@ -296,9 +295,15 @@ class Positions:
         #: Per spec: frames passed over at start (already in the layer), for the status report.
         self.resumed: dict[str, int] = {}
 
-    def start(self, source: Source, stop: threading.Event) -> Iterator[Observation] | None:
+    def start(
+        self,
+        source: Source,
+        stop: threading.Event,
+        pass_over: Callable[[Observation], None] | None = None,
+    ) -> Iterator[Observation] | None:
         """The source's frames from where the layer's evidence of it ends (None: nothing to
-        read, a recording already read to its end). A source that does not resume is
+        read, a recording already read to its end); each frame passed over on the way is given
+        to `pass_over` (the estimator steps through it again). A source that does not resume is
         iterated from its start; one whose stored position does not match the recording (the
         frame named is not there) is logged and read afresh."""
         spec = source.spec
@@ -320,6 +325,8 @@ class Positions:
         passed, last = 0, ""
         for obs in frames:
             passed, last = passed + 1, obs.frame
+            if pass_over is not None:
+                pass_over(obs)
             if passed == decision.frames or stop.is_set():
                 break
         if stop.is_set():
@@ -347,7 +354,7 @@ class Positions:
         return frames
 
     def restored(self, spec: str) -> EstimatorState | None:
-        """The estimator state a resumed source's new estimator continues from (once)."""
+        """The estimator state stored with a resumed source's position (once)."""
         return self._restore.pop(spec, None)
 
     def position(self, spec: str) -> SourcePosition | None:
@@ -381,3 +388,13 @@ class Positions:
         held)."""
         with self._lock:
             return encode(self._now)
+
+
+def agrees(
+    a: EstimatorState, b: EstimatorState, metres: float = 1e-3, radians: float = 1e-3
+) -> bool:
+    """Whether two estimator states put the sensor at the same pose (within `metres` and
+    `radians`)."""
+    d = a.pose - b.pose
+    yaw = math.atan2(math.sin(float(d[2])), math.cos(float(d[2])))
+    return bool(math.hypot(float(d[0]), float(d[1])) <= metres and abs(yaw) <= radians)

@@ -111,29 +111,25 @@ def test_sigkill_mid_recording_resumes_exactly_where_the_layer_ends(make_colony)
     assert np.allclose(lo_ref, lo_a, atol=1e-5), float(np.abs(lo_ref - lo_a).max())
 
 
-def test_sigterm_restart_with_localisation_continues_the_estimate(make_colony):
+def test_sigterm_restart_with_localisation_continues_the_same_estimate(make_colony):
     colony = make_colony("resume-term")
     env = {"COLONYD_ALIGN_S": "0", "COLONYD_OBJECTS_S": "0"}  # the estimator on (the default)
     ref = _reference(colony, env)
     d = _interrupted(colony, "a", signal.SIGTERM, env)
     after = _resumed_after(d)
-    assert "its estimator continues from its stored pose" in d.log_path.read_text()
+    # stepped again through the passed-over scans (the recording alone: the same estimate),
+    # it reached the pose stored with the layer and continues with its keyframe map
+    assert "reached the stored pose: it continues with its keyframe map" in d.log_path.read_text()
     frames = colony.reports(["a"])["a"]["metrics"]["counts"].get("frames", 0)
     assert frames == FRAMES - after
     ref.stop()
     d.stop()
     keys_ref, lo_ref = _layer(ref)
     keys_a, lo_a = _layer(d)
-    # The estimate continues in the same frame, its keyframe map rebuilt from the stored pose
-    # (approximate): most occupied voxels are the same ones, and the evidence is not counted
-    # twice (its total within 10 % of the uninterrupted run's; the first 30+ scans again
-    # would add about a fifth).
-    occ_ref = {tuple(k) for k in keys_ref[lo_ref > 0].tolist()}
-    occ_a = {tuple(k) for k in keys_a[lo_a > 0].tolist()}
-    overlap = len(occ_ref & occ_a) / len(occ_ref | occ_a)
-    assert overlap > 0.7, overlap
-    total_ref, total_a = lo_ref[lo_ref > 0].sum(), lo_a[lo_a > 0].sum()
-    assert abs(total_a / total_ref - 1) < 0.1, (total_a, total_ref)
+    # The uninterrupted run's layer. (Read afresh instead, the first 30+ scans counted twice
+    # leave about 0.4 % of the occupied voxels different: measured, not asserted here.)
+    assert np.array_equal(keys_ref, keys_a)
+    assert np.allclose(lo_ref, lo_a, atol=1e-5), float(np.abs(lo_ref - lo_a).max())
 
 
 def test_changed_spec_starts_afresh_and_a_finished_recording_is_not_read_again(make_colony):
