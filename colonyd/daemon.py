@@ -624,6 +624,8 @@ class Daemon:
             frames = self.positions.start(source, self.stop, lambda o: self._pass_over(source, o))
             if frames is None:
                 return
+            if source.spec not in self.positions.resumed:  # afresh: no passed-over frame counts
+                self._estimators.pop(source.spec, None)
             stored = self.positions.restored(source.spec)
             if stored is not None:
                 self._continue_estimate(source.spec, stored)

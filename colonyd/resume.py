@@ -289,6 +289,7 @@ class Positions:
                 why,
             )
         self._lock = threading.Lock()
+        self._specs = frozenset(specs)
         self._now = {s: p for s, p in self.stored.items() if s in specs and resumes(s)}
         self._restore: dict[str, EstimatorState] = {}
         self._recording: dict[str, dict[str, int]] = {}  # per started recording: `fingerprint`
@@ -310,7 +311,9 @@ class Positions:
         if not resumes(spec):
             return iter(source)
         recording = self._recording[spec] = fingerprint(spec)
-        decision = decide(spec, recording, self.stored, self.refused)
+        # another configured source's position is its own, not an older spec of this one
+        candidates = {s: p for s, p in self.stored.items() if s == spec or s not in self._specs}
+        decision = decide(spec, recording, candidates, self.refused)
         getattr(log, decision.level)("%s", decision.message)
         stored = self.stored.get(spec)
         if decision.done and stored is not None:
