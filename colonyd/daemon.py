@@ -656,11 +656,13 @@ class Daemon:
             self.positions.finished(source.spec)
             stats = source.stats
             reasons = ", ".join(f"{k} {v}" for k, v in sorted(stats.reasons.items()))
+            passed = self.positions.resumed.get(source.spec, 0)
             log.info(
-                "source %s done: %d frames in %.1f s, %d skipped%s",
+                "source %s done: %d frames in %.1f s%s, %d skipped%s",
                 source.spec,
                 stats.delivered,
                 time.monotonic() - began,
+                f" ({passed} of them passed over: already in the layer)" if passed else "",
                 stats.skipped,
                 f" ({reasons})" if reasons else "",
             )
