@@ -159,3 +159,30 @@ def test_corrupt_stored_position_is_logged_and_the_source_starts_afresh(make_col
     assert f"source {SPEC}: its stored position is unusable" in text
     assert report["metrics"]["counts"].get("frames", 0) == FRAMES  # afresh, never crashed
     assert report["layers"]["a"]["voxels"] >= voxels  # the stored layer kept
+
+
+def test_a_stored_pose_the_frames_do_not_reach_again_is_where_the_estimate_continues(make_colony):
+    """As when colony matches or fixes had corrected the estimate: the passed-over frames alone
+    give another pose than the one stored with the layer, and the estimate goes on from the
+    stored one (the frame the layer was built in), its keyframe map anew from there."""
+    colony = make_colony("resume-pose")
+    _reference(colony, ALONE)
+    d = _start(colony, "a", SPEC, ALONE)
+    _until(colony, "a", lambda r: r["sources"][0].get("position", 0) >= KILL_AT)
+    d.stop()
+    pointer_path = d.state_dir / "snapshot.json"
+    pointer = json.loads(pointer_path.read_text())
+    stored = pointer["sources"]["sources"][SPEC]["estimator"]
+    stored["pose"][0] += 0.5  # half a metre along x from where the frames put it
+    pointer_path.write_text(json.dumps(pointer))
+    d.start()
+    report = _until(colony, "a", _finished)
+    text = d.log_path.read_text()
+    assert f"its estimator continues from the stored pose (x {stored['pose'][0]:.3f}" in text
+    assert "its keyframe map starts anew from there" in text
+    want = np.array(_until(colony, "ref", _finished)["pose_matrix"])
+    got = np.array(report["pose_matrix"])
+    shift = got[:2, 3] - want[:2, 3]
+    # the rest of the path from the stored pose: shifted as it was (scan matching against the
+    # keyframes rebuilt from there corrects a few centimetres)
+    assert abs(shift[0] - 0.5) < 0.1 and abs(shift[1]) < 0.1, shift
