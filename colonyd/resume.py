@@ -262,7 +262,7 @@ def decide(
         False,
         mine.estimator,
         f"source {spec}: resumes after frame {mine.frames} ({mine.frame}), the last whose "
-        f"evidence is in the layer; the {mine.frames} before it are passed over, not integrated",
+        f"evidence is in the layer: frames 1 to {mine.frames} are passed over, not integrated",
         "info",
     )
 
