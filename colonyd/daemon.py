@@ -52,6 +52,7 @@ from colonyd.objects import OwnObjects, to_wire
 from colonyd.outdir import output_dir
 from colonyd.persistence import StateStore
 from colonyd.provenance import agent_bias, agent_reliability, pose_error
+from colonyd.resume import EstimatorState, Positions, agrees
 from colonyd.rosout import Ros2Outputs, RosPublishers
 from colonyd.runtime import get_session
 from colonyd.status import StatusServer, colonies_seen
@@ -172,6 +173,8 @@ class Daemon:
         # registration in a worker process, started on first use
         self.aligner = Aligner(None if config.align_session_nice < 0 else config.align_session_nice)
         self._estimators: dict[str, Estimator] = {}  # per source spec
+        #: Stored estimator states a resumed source's next estimator continues from, per spec.
+        self._restore: dict[str, EstimatorState] = {}
         self._own_edges: dict[str, Edge] = {}  # peer -> the alignment we last offered
         self.fused_map = FusedMap()  # the live fused view, kept layer by layer
         self._colony_maps: dict[str, ColonyMaps] = {}  # per source spec with a scan estimator
@@ -292,6 +295,8 @@ class Daemon:
         self.bias = 0.0  # b: this agent's bias against aligned peers (colonyd/provenance.py)
         self._bias_at = time.monotonic()
         self._published_local = rec.published  # changes after it were never logged: send them
+        #: Each recording's position, stored with the layer's versions (colonyd/resume.py).
+        self.positions = Positions(rec.sources, list(cfg.sources))
         log.info(
             "state %s: %s, epoch %d, seq %d, %d log records replayed, layer digest %s",
             self.config.state_dir,
@@ -512,7 +517,9 @@ class Daemon:
             lap("final delta")
             if own.seq > 0:
                 with own.lock:
-                    self.store.snapshot(own.grid, own.seq, self._published_local)
+                    self.store.snapshot(
+                        own.grid, own.seq, self._published_local, self.positions.record()
+                    )
             lap("snapshot")
         except PersistenceError as exc:  # the last good snapshot and the log stay as they were
             log.error("shutting down without a final snapshot: %s", exc)
@@ -615,15 +622,30 @@ class Daemon:
         own = self.layers.own
         began = time.monotonic()
         try:
-            for obs in source:
+            # a recording resumes where the recovered layer's evidence of it ends
+            frames = self.positions.start(source, self.stop, lambda o: self._pass_over(source, o))
+            if frames is None:
+                return
+            if source.spec not in self.positions.resumed:  # afresh: no passed-over frame counts
+                self._estimators.pop(source.spec, None)
+            stored = self.positions.restored(source.spec)
+            if stored is not None:
+                self._continue_estimate(source.spec, stored)
+            position = self.positions.resumed.get(source.spec, 0)
+            for obs in frames:
                 if self.stop.is_set():
                     break
+                position += 1
                 try:
                     with self.metrics.activity.timed("integrate"):
-                        self._integrate(own, obs, source)
+                        self._integrate(own, obs, source, position)
                 except ValueError as exc:  # one bad frame (voxel/plugin input errors)
                     self.metrics.reject("bad-frame")
                     log.warning("source %s: frame skipped: %s", source.spec, exc)
+                    with own.lock:  # not read again either
+                        estimator = self._estimators.get(source.spec)
+                        state = estimator.state() if isinstance(estimator, ScanEstimator) else None
+                        self.positions.advance(source.spec, position, obs.frame, state)
                     continue
                 self.metrics.add("frames")
         except (ColonydError, ValueError) as exc:  # the source itself failed
@@ -633,23 +655,32 @@ class Daemon:
             log.exception("source %s failed", source.spec)
             return
         if not self.stop.is_set():  # a recording's end: the daemon goes on serving its map
+            self.positions.finished(source.spec)
             stats = source.stats
             reasons = ", ".join(f"{k} {v}" for k, v in sorted(stats.reasons.items()))
+            passed = self.positions.resumed.get(source.spec, 0)
             log.info(
-                "source %s done: %d frames in %.1f s, %d skipped%s",
+                "source %s done: %d frames in %.1f s%s, %d skipped%s",
                 source.spec,
                 stats.delivered,
                 time.monotonic() - began,
+                f" ({passed} of them passed over: already in the layer)" if passed else "",
                 stats.skipped,
                 f" ({reasons})" if reasons else "",
             )
 
-    def _integrate(self, own: Any, obs: Observation, source: Source) -> None:
+    def _integrate(self, own: Any, obs: Observation, source: Source, position: int = 0) -> None:
+        """Integrate one observation of `source`, its `position`-th (from 1, counting those
+        the layer already held when it resumed)."""
         covariance = None
+        state = None  # the estimator's state after this frame, stored with its evidence
         if self.config.localise and obs.odometry is not None:  # map from the estimate
             estimator = self._estimators.get(source.spec)
             if estimator is None:
                 estimator = self._estimators[source.spec] = get_estimator(source.adapter, obs)
+                restored = self._restore.pop(source.spec, None)
+                if restored is not None and isinstance(estimator, ScanEstimator):
+                    estimator.restore(restored)
             started = time.perf_counter()
             obs = replace(obs, pose=estimator(obs))
             spent = time.perf_counter() - started
@@ -661,6 +692,8 @@ class Daemon:
             if obs.objects and isinstance(estimator, ScanEstimator):
                 self._apply_landmarks(estimator, obs)
             self.pose_covariance = covariance = estimator.covariance()
+            if isinstance(estimator, ScanEstimator) and self.positions.tracks(source.spec):
+                state = estimator.state()
         seen = [d for d in obs.objects if d.label.startswith(AGENT_LABEL)]
         if seen:
             self._send_fixes(obs, seen)
@@ -678,10 +711,47 @@ class Daemon:
                 ),
                 bias=self.bias,
             )
+            self.positions.advance(source.spec, position, obs.frame, state)
         self.objects.observe(obs)
         self.pose = [float(v) for v in obs.origin]
         self.pose_matrix = obs.pose
         self.truth_matrix = obs.truth  # evaluation only (a simulator's truth): reported, never used
+
+    def _pass_over(self, source: Source, obs: Observation) -> None:
+        """A frame a resumed recording passes over (its evidence is in the layer): only the
+        estimator steps through it again, rebuilding its keyframe map and filter state."""
+        if not (self.config.localise and obs.odometry is not None):
+            return
+        estimator = self._estimators.get(source.spec)
+        if estimator is None:
+            estimator = self._estimators[source.spec] = get_estimator(source.adapter, obs)
+        try:
+            estimator(obs)
+        except ValueError as exc:  # as when the frame was integrated
+            log.debug("source %s: passed-over frame refused by the estimator: %s", source.spec, exc)
+
+    def _continue_estimate(self, spec: str, stored: EstimatorState) -> None:
+        """After a resumed recording's passed-over frames: keep the estimator they rebuilt if
+        it reached the stored pose (it read only the recording: the same estimate), else
+        continue from the stored pose (what the layer was built with), keyframes anew."""
+        estimator = self._estimators.get(spec)
+        now = estimator.state() if isinstance(estimator, ScanEstimator) else None
+        if now is not None and agrees(now, stored):
+            log.info(
+                "source %s: its estimator, stepped again through the passed-over frames, "
+                "reached the stored pose: it continues with its keyframe map",
+                spec,
+            )
+            return
+        self._estimators.pop(spec, None)
+        self._restore[spec] = stored
+        log.info(
+            "source %s: its estimator continues from the stored pose (x %.3f, y %.3f, yaw "
+            "%.4f)%s; its keyframe map starts anew from there",
+            spec,
+            *stored.pose,
+            "" if now is None else f", not the {now.pose.round(3).tolist()} the frames gave again",
+        )
 
     # -- pose fixes (a fixed camera tells a robot where it saw it) -------------------------
     def _send_fixes(self, obs: Observation, seen: list[ObjectDetection]) -> None:
@@ -1071,6 +1141,7 @@ class Daemon:
                 if version != self._published_local
                 else None
             )
+            positions = self.positions.record()  # of exactly this version's frames
         wrote = unsynced = False
         if delta is not None and len(delta):
             created = time.time()
@@ -1082,12 +1153,15 @@ class Daemon:
             if self.config.sync_before_publish or not self.store.early_publish:
                 # durable first (the frames are encoded while the disk flushes)
                 encoded = self.store.append(
-                    seq, delta, meanwhile=lambda: self.gossip.encode_own(prev, seq, delta, created)
+                    seq,
+                    delta,
+                    meanwhile=lambda: self.gossip.encode_own(prev, seq, delta, created),
+                    sources=positions,
                 )
             else:
                 # written (safe from a crash of this process), published, then flushed below:
                 # a reboot that loses it starts a new epoch (StateStore)
-                self.store.write(seq, delta)
+                self.store.write(seq, delta, positions)
                 encoded, unsynced = None, True
             wrote = True
             stamp(marks, "logged")
@@ -1105,7 +1179,9 @@ class Daemon:
         if not final and own.seq > 0 and (due or self.store.wal_bytes > (64 << 20)):
             self._last_snapshot = time.monotonic()  # a failed one is retried after snapshot_s
             with self.metrics.activity.timed("snapshot"), own.lock:
-                self.store.snapshot(own.grid, own.seq, self._published_local)
+                self.store.snapshot(
+                    own.grid, own.seq, self._published_local, self.positions.record()
+                )
             wrote = True
         if wrote and self.state_error:
             log.warning("state directory %s is writable again", self.config.state_dir)
@@ -1249,6 +1325,7 @@ class Daemon:
                     "delivered": s.stats.delivered,
                     "skipped": s.stats.skipped,
                     "reasons": dict(s.stats.reasons),
+                    **self._position_report(s.spec),
                     **({"received": dict(s.received)} if hasattr(s, "received") else {}),
                 }
                 for s in getattr(self, "_sources", [])
@@ -1288,6 +1365,19 @@ class Daemon:
                 for m in self.membership.table()
             ],
             "metrics": self.metrics.snapshot(samples=params.get("samples") == "1"),
+        }
+
+    def _position_report(self, spec: str) -> dict[str, Any]:
+        """A recording's position in the status: frames in the layer, those passed over at
+        start (already in the recovered layer), and whether it was read to its end."""
+        positions: Positions | None = getattr(self, "positions", None)
+        p = None if positions is None else positions.position(spec)
+        if positions is None or p is None:
+            return {}
+        return {
+            "position": p.frames,
+            "resumed_after": positions.resumed.get(spec, 0),
+            "done": p.done,
         }
 
 

@@ -7,11 +7,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from colonyd.resume import EstimatorState
 from plugins.adapter import SensorAdapter
 from plugins.depth import marker_sd
 from plugins.observation import Observation
 from voxel.localisation import se2
 from voxel.localisation.colony_map import ColonyMap
+from voxel.localisation.ekf import PlanarEkf
 from voxel.localisation.localiser import ScanLocaliser, ScanParams, Through
 from voxel.localisation.visual import VisualOdometry
 
@@ -108,6 +110,24 @@ class ScanEstimator:
             "landmark_accepted": loc.landmark_accepted,
             "landmark_rejected": loc.landmark_rejected,
         }
+
+    def state(self) -> EstimatorState | None:
+        """What `restore` needs to continue in the same frame: the filter's pose, its
+        covariance and the last odometry reading (None before the first step)."""
+        loc = self.localiser
+        if loc.ekf is None:
+            return None
+        return EstimatorState(loc.ekf.pose, loc.ekf.covariance, loc.last_odometry)
+
+    def restore(self, state: EstimatorState) -> None:
+        """Continue from a stored `state` (before the first step): the next odometry reading
+        predicts from the stored pose, so the estimate stays in the frame the layer was built
+        in. Only the pose part: the keyframe map and its states in the filter, the estimated
+        errors of alignments and landmarks and the recent poses (`pose_at`) start empty, so the
+        first scans after it match against keyframes rebuilt from the stored pose."""
+        loc = self.localiser
+        loc.ekf = PlanarEkf(state.pose, state.covariance, motion=loc.motion)
+        loc.last_odometry = None if state.odometry is None else state.odometry.copy()
 
     def covariance(self) -> np.ndarray | None:
         ekf = self.localiser.ekf

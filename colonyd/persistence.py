@@ -56,6 +56,9 @@ class Recovered:
     fresh: bool
     published: int  # grid version up to which changes were logged (and so may have been sent)
     frame_seq: int = 0  # first protocol frame number this run may use (reserved by the last run)
+    #: The sources' positions stored with the recovered grid version (`colonyd.resume`'s record,
+    #: not yet validated); None when none was stored (a fresh directory, an older colonyd).
+    sources: Any = None
 
 
 def atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
@@ -162,6 +165,7 @@ class StateStore:
             meta = self._read_json(meta_path)
             epoch = self._check_meta(meta)
         grid, seq, published = new_grid(self.resolution, self.block_shape), 0, 0
+        sources: Any = None
         snap_path = self.dir / SNAPSHOT
         if snap_path.exists():
             snap = self._read_json(snap_path)
@@ -172,6 +176,7 @@ class StateStore:
                 raise PersistenceError(msg) from None
             seq = int(snap["seq"])
             published = int(snap.get("published", grid.version))
+            sources = snap.get("sources")
         header, records = self._read_wal()
         lost = self._lost(header, seq, epoch) or self._rebooted(meta)
         applied = 0
@@ -182,6 +187,7 @@ class StateStore:
                 lost = lost or f"{WAL} skips from seq {seq} to seq {rec['seq']}"
                 break  # later records cannot apply in order
             grid.apply(rec["delta"])
+            sources = rec.get("src")  # the positions stored with this grid version
             seq = rec["seq"]
             published = max(published, int(rec["delta"].to_version))
             applied += 1
@@ -207,8 +213,8 @@ class StateStore:
         self.epoch = epoch
         self._open_wal()
         if lost:
-            self.snapshot(grid, seq, published)
-        return Recovered(epoch, seq, grid, applied, fresh, published, frame_seq)
+            self.snapshot(grid, seq, published, sources)
+        return Recovered(epoch, seq, grid, applied, fresh, published, frame_seq, sources)
 
     def _check_meta(self, meta: dict[str, Any]) -> int:
         """The epoch of a state directory's meta.json, after checking it is ours."""
@@ -348,12 +354,12 @@ class StateStore:
         self._wal = open(self.dir / WAL, "ab", buffering=0)  # noqa: SIM115 - kept open for appends
         self.wal_bytes = self._wal.seek(0, os.SEEK_END)
 
-    def write(self, seq: int, delta: Delta) -> None:
+    def write(self, seq: int, delta: Delta, sources: Any = None) -> None:
         """Write an own delta's record without waiting for the disk: once this returns it may
         be published (a killed process loses nothing written); `sync` makes it durable.
 
-        All or nothing, as `append`. Needs `early_publish`: the first write of a run marks this
-        boot in `meta.json` (see the class)."""
+        All or nothing, as `append` (`sources` as there). Needs `early_publish`: the first
+        write of a run marks this boot in `meta.json` (see the class)."""
         if not self.early_publish:
             msg = "publishing before the log is flushed needs a boot id, and this system has none"
             raise PersistenceError(msg)
@@ -365,7 +371,7 @@ class StateStore:
             except OSError as exc:
                 msg = f"cannot mark {META} in {self.dir} before logging seq {seq}: {exc.strerror}"
                 raise PersistenceError(msg) from None
-        record = _record({"seq": int(seq), "delta": _pack_wal_delta(delta)})
+        record = _delta_record(seq, delta, sources)
         try:
             if self._wal is None:
                 self._open_wal()
@@ -401,8 +407,16 @@ class StateStore:
             raise PersistenceError(self.broken) from None
         self._unsynced = False
 
-    def append(self, seq: int, delta: Delta, meanwhile: Callable[[], T] | None = None) -> T | None:
-        """Log an own delta (grid versions) durably before it is published.
+    def append(
+        self,
+        seq: int,
+        delta: Delta,
+        meanwhile: Callable[[], T] | None = None,
+        sources: Any = None,
+    ) -> T | None:
+        """Log an own delta (grid versions) durably before it is published, with `sources`
+        (plain values: the sources' positions at the delta's last version, `colonyd.resume`),
+        which recovery hands back with the grid it rebuilds up to this record.
 
         `meanwhile()` (encoding the frames, say) runs while the disk flushes, and its result is
         returned once the record is durable: the flush and the work overlap, nothing is sent
@@ -416,7 +430,7 @@ class StateStore:
         """
         if self.broken:
             raise PersistenceError(self.broken)
-        record = _record({"seq": int(seq), "delta": _pack_wal_delta(delta)})
+        record = _delta_record(seq, delta, sources)
         try:
             if self._wal is None:  # closed by a snapshot that failed half-way
                 self._open_wal()
@@ -472,8 +486,12 @@ class StateStore:
             )
             log.error("%s", self.broken)
 
-    def snapshot(self, grid: VoxelGrid, seq: int, published: int | None = None) -> None:
+    def snapshot(
+        self, grid: VoxelGrid, seq: int, published: int | None = None, sources: Any = None
+    ) -> None:
         """Save the grid at `seq`, point snapshot.json at it, then start an empty log after it.
+
+        `sources`: the sources' positions at the grid's version (kept in snapshot.json).
 
         `published` is the grid version up to which changes went into deltas; later changes in
         the saved grid are sent after a restart. The new log's header names `seq` and the epoch,
@@ -495,10 +513,10 @@ class StateStore:
             with open(tmp, "rb") as fh:
                 os.fsync(fh.fileno())
             os.replace(tmp, self.dir / name)
-            atomic_write(
-                self.dir / SNAPSHOT,
-                json.dumps({"seq": int(seq), "file": name, "published": published}).encode(),
-            )
+            pointer = {"seq": int(seq), "file": name, "published": published}
+            if sources is not None:
+                pointer["sources"] = sources
+            atomic_write(self.dir / SNAPSHOT, json.dumps(pointer).encode())
             pointed = True
             # The old log stays in use until the new one is in place (its records up to `seq`
             # are skipped at recovery, as they are in the snapshot).
@@ -548,6 +566,14 @@ def _record(fields: dict[str, Any]) -> bytes:
     """One framed log record: length, CRC32, msgpack body."""
     body: bytes = msgpack.packb(fields, use_bin_type=True)
     return _HEAD.pack(len(body), zlib.crc32(body)) + body
+
+
+def _delta_record(seq: int, delta: Delta, sources: Any) -> bytes:
+    """The log record of an own delta, with the sources' positions when given."""
+    fields: dict[str, Any] = {"seq": int(seq), "delta": _pack_wal_delta(delta)}
+    if sources is not None:
+        fields["src"] = sources
+    return _record(fields)
 
 
 def _wal_header(base: int, epoch: int) -> bytes:
