@@ -38,10 +38,12 @@ RICH_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
     # sub-voxel surface: the published mean hit offset from the centre, 1/254 voxel (voxel.surface)
     "surface": (np.dtype(np.int8), (3,), 0),
 }
-#: Channels only the grid that integrates uses: never carried by deltas (voxel.delta).
+#: Channels never carried by deltas (voxel.delta): the integrating grid's own, and the version a
+#: voxel's surface codes last changed at (kept by replicas too, for the ranges they serve).
 LOCAL_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
     "surface_mean": (np.dtype(np.int16), (3,), 0),  # its running mean, 1/65532 voxel
     "surface_weight": (np.dtype(np.uint16), (), 0),  # scans fused into `surface_mean`
+    "surface_version": (np.dtype(np.uint32), (), 0),  # version `surface` last changed at
 }
 SCALAR_SPEC = (np.dtype(np.float32), (), np.nan)
 

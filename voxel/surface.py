@@ -43,6 +43,13 @@ PUBLISH_CODES = 16
 CHANNEL = "surface"
 MEAN = "surface_mean"
 WEIGHT = "surface_weight"
+#: The version at which a voxel's published codes last changed (uint32, kept by origins and
+#: replicas, never sent): a delta after version V carries the codes of only the voxels whose
+#: codes changed after V (`voxel.delta.delta_of`; PROTOCOL.md §6, "surface").
+VERSION = "surface_version"
+#: Deltas carry codes only where they changed (sparse, the default); False: every delta carries
+#: every voxel's codes, 0 for voxels that are not occupied (the dense form, for comparison).
+SPARSE = True
 
 
 def to_wire(stored: np.ndarray) -> np.ndarray:
