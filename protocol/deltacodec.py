@@ -598,14 +598,17 @@ def fit_delta(
     Tries, in order: the full delta; then (with `prev_logodds`) everything exact but free voxels
     that were already free, those summarised at each of `levels`; then all free space summarised
     at each level; then surfaces and forgotten voxels alone. Returns the first that fits, else
-    the smallest.
+    the smallest. Voxels whose surface codes a sparse `surface` channel carries are kept exact
+    whatever their tier (a later delta leaves out codes that did not change since).
     """
     if encoded_size(delta) <= budget:
         return delta, None
     tiers = significance(delta, prev_logodds)
     free = np.isin(tiers, np.array(_FREE_TIERS, dtype=np.uint8))
+    if delta.surface_mask is not None:  # codes it carries are never cut: later deltas omit them
+        free &= ~delta.surface_mask
     candidates: list[tuple[np.ndarray, np.ndarray]] = []
-    refine = tiers == Tier.FREE
+    refine = (tiers == Tier.FREE) & free
     if prev_logodds is not None and refine.any() and (free & ~refine).any():
         candidates.append((~refine, refine))
     candidates.append((~free, free))

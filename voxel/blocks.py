@@ -38,8 +38,7 @@ RICH_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
     # sub-voxel surface: the published mean hit offset from the centre, 1/254 voxel (voxel.surface)
     "surface": (np.dtype(np.int8), (3,), 0),
 }
-#: Channels never carried by deltas (voxel.delta): the integrating grid's own, and the version a
-#: voxel's surface codes last changed at (kept by replicas too, for the ranges they serve).
+#: Channels only the grid that integrates uses: never carried by deltas (voxel.delta).
 LOCAL_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
     "surface_mean": (np.dtype(np.int16), (3,), 0),  # its running mean, 1/65532 voxel
     "surface_weight": (np.dtype(np.uint16), (), 0),  # scans fused into `surface_mean`

@@ -94,7 +94,8 @@ def fuse_channels(
         if not follow:  # deltas carry only codes that changed: no code moves for free
             sent = np.zeros_like(sent)
         moved = fuse_surface(store, slots, offsets, inverse, *surface, sent)
-        store.channel(SURFACE_VERSION)[slots[moved], offsets[moved]] = np.uint32(version)
+        if not follow:  # codes sent where they changed: when they did
+            store.channel(SURFACE_VERSION)[slots[moved], offsets[moved]] = np.uint32(version)
     if not channels.fused:
         assert moved is not None
         if not moved.any():

@@ -147,8 +147,8 @@ def delta_of(
     """Every voxel of `store` changed after `version`, with its absolute current values.
 
     `sparse`: surface codes only of the voxels whose codes changed after `version` (by the
-    store's `surface_version`), every voxel's as held; else every voxel's, 0 for voxels that
-    are not occupied (the dense form)."""
+    store's `surface_version`; every voxel's when it has none), as held; else every voxel's, 0
+    for voxels that are not occupied (the dense form, for an origin that publishes it)."""
     slots = store.used_slots()
     slots = slots[store.slot_version[slots] > version]
     ver = store.channels["version"][slots]
@@ -170,8 +170,8 @@ def delta_of(
     changed = store.channels.get(surface.VERSION)
     if codes is not None and sparse and changed is not None:
         mask = changed[s, o] > version  # codes as held, carried where they changed
-    elif codes is not None:  # a surface is what an occupied voxel has: free ones travel as 0
-        with np.errstate(invalid="ignore"):
+    elif codes is not None and not sparse:  # a surface is what an occupied voxel has: free
+        with np.errstate(invalid="ignore"):  # ones travel as 0
             codes[~(logodds >= 0)] = 0
     return Delta(
         resolution=resolution,
@@ -240,11 +240,12 @@ def merge_delta(store: BlockStore, times: TimeBase, delta: Delta) -> np.ndarray:
                 f"{arr.shape[2:]}"
             )
             raise DeltaError(msg)
-        if name == surface.CHANNEL:  # carried codes only; their version for ranges served on
+        if name == surface.CHANNEL:  # the codes carried alone (a sparse origin: their version)
             carried = take if delta.surface_mask is None else take & delta.surface_mask
             cs, co = slots[carried], offsets[carried]
             arr[cs, co] = values[carried]
-            store.channel(surface.VERSION)[cs, co] = incoming
+            if surface.VERSION in store.channels:
+                store.channels[surface.VERSION][cs, co] = incoming
             continue
         arr[s, o] = values[take]
     np.maximum.at(store.slot_version, s, incoming)

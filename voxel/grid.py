@@ -127,8 +127,9 @@ class VoxelGrid:
         self.seen_log = seen_log
         #: Keep the sub-voxel surface (the mean hit position) of hit voxels.
         self.surface = surface
-        #: Deltas carry surface codes only where they changed (`voxel.surface.SPARSE`; False: the
-        #: dense form, every voxel's codes, for comparison).
+        #: Deltas carry surface codes only where they changed (`voxel.surface.SPARSE`, off by
+        #: default: docs/BENCHMARKS.md, Wire); False: every voxel's codes, 0 for voxels not
+        #: occupied, codes following their means whenever a voxel is sent anyway.
         self.sparse_surface = SPARSE_SURFACE
         self.store = BlockStore(class_k=class_k, shifts=block_shifts(block_shape))
         self.history = History(capacity=history_capacity, per_voxel=history_per_voxel)
@@ -511,8 +512,8 @@ class VoxelGrid:
         for name in (SURFACE, SURFACE_MEAN, SURFACE_WEIGHT):  # observed again: a surface anew
             if name in st.channels:
                 st.channels[name][slots[b], o] = 0
-        if SURFACE in st.channels:  # codes now 0: deltas carry them
-            st.channel(SURFACE_VERSION)[slots[b], o] = np.uint32(version)
+        if SURFACE_VERSION in st.channels:  # codes now 0: deltas carry them
+            st.channels[SURFACE_VERSION][slots[b], o] = np.uint32(version)
         st.channels["version"][slots[b], o] = np.uint32(version)
         st.channels["last_time"][slots[b], o] = self.times.stamp(quantise_time(now))
         st.slot_version[slots[np.unique(b)]] = np.uint32(version)
@@ -551,7 +552,9 @@ class VoxelGrid:
             resolution=self.resolution,
             to_version=self.version,
             time=self.now,
-            sparse=self.sparse_surface,
+            # a replica (it does not integrate the surface) sends every voxel's codes as it holds
+            # them: zeroing free voxels' would betray a sparse origin's
+            sparse=self.sparse_surface or not self.surface,
         )
         newer = [(k, t) for v, k, t in self.tombstones if v > version]
         if not newer:
@@ -597,6 +600,8 @@ class VoxelGrid:
         if not math.isclose(delta.resolution, self.resolution, rel_tol=1e-9):
             msg = f"delta resolution {delta.resolution} does not match the grid's {self.resolution}"
             raise DeltaError(msg)
+        if self.surface and self.sparse_surface:  # its own codes' versions, for its deltas
+            self.store.channel(SURFACE_VERSION)
         taken = merge_delta(self.store, self.times, delta)
         self.version = max(self.version, delta.to_version)
         if taken.size:
