@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import numpy as np
-
 import msgpack
+import numpy as np
 
 from protocol.codec import encode
 from protocol.deltacodec import encode_delta

@@ -1,13 +1,13 @@
 """Scan matching against a peer's 10 cm map as voxel centres and as surface points (sim office).
 
 `python -m colonyd.bench.surface_match [--seed S] [--poses N] [--range R] [--yaw DEG]
-[--shift M] [--sparse-surface] [--json FILE]`: a peer's planar grid is built from 2D scans of the sim office at known
-poses (range noise 1 cm); then 2D scans at other poses are matched (`scan_match.match`, dof 3)
-against its colony-map cut made from the occupied voxels' centres and from their surface points
-(`occupied_surface`), from the true pose moved by `--offset` in x and -y (default 5 cm) and 20 x
-that in radians (1.15 degrees). The office's walls lie on voxel faces; `--yaw` and `--shift`
-turn the peer's map frame by DEG about z and move it by (M, 0.7 M), so that they do not. Truth
-is for this evaluation only.
+[--shift M] [--sparse-surface] [--json FILE]`: a peer's planar grid is built from 2D scans of
+the sim office at known poses (range noise 1 cm); then 2D scans at other poses are matched
+(`scan_match.match`, dof 3) against its colony-map cut made from the occupied voxels' centres
+and from their surface points (`occupied_surface`), from the true pose moved by `--offset` in x
+and -y (default 5 cm) and 20 x that in radians (1.15 degrees). The office's walls lie on voxel
+faces; `--yaw` and `--shift` turn the peer's map frame by DEG about z and move it by (M, 0.7 M),
+so that they do not. Truth is for this evaluation only.
 """
 
 from __future__ import annotations
