@@ -468,6 +468,13 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="grids without the sub-voxel surface channel (daemons keep it; for comparison)",
     )
+    b.add_argument(
+        "--dense-surface",
+        action="store_true",
+        help="deltas carry every voxel's surface codes (0 when not occupied) and codes follow "
+        "their means whenever a voxel is sent anyway: the format before sparse codes, for "
+        "comparison",
+    )
     b = bsub.add_parser(
         "history",
         help="history bytes per record on the wire, replica temporal queries against the "
@@ -926,7 +933,11 @@ def _bench(args: argparse.Namespace) -> int:
         from colonyd.bench.wire import run_wire_bench
 
         result = run_wire_bench(
-            args.json, args.shared_data, only=args.scenario, surface=not args.no_surface
+            args.json,
+            args.shared_data,
+            only=args.scenario,
+            surface=not args.no_surface,
+            sparse=not args.dense_surface,
         )
     elif args.bench == "history":
         from colonyd.bench.history import run_history_bench

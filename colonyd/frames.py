@@ -176,6 +176,14 @@ def concat(parts: list[Delta]) -> Delta:
             last_time=np.concatenate([p.last_time for p in parts]),
             channels={n: np.concatenate([p.channels[n] for p in parts]) for n in sorted(names)},
             time=first.time,
+            surface_mask=None
+            if all(p.surface_mask is None for p in parts)
+            else np.concatenate(
+                [
+                    np.ones(len(p), dtype=bool) if p.surface_mask is None else p.surface_mask
+                    for p in parts
+                ]
+            ),
         )
     except ValueError as exc:
         raise WireError("bad-parts", f"parts of one delta do not fit together: {exc}") from None

@@ -37,6 +37,7 @@ def relabel(delta: Delta, from_version: int, to_version: int, time: float | None
         last_time=delta.last_time,
         channels=delta.channels,
         time=delta.time if time is None else time,
+        surface_mask=delta.surface_mask,
     )
 
 
@@ -47,6 +48,7 @@ def delta_nbytes(delta: Delta) -> int:
         + delta.logodds.nbytes
         + delta.last_time.nbytes
         + sum(v.nbytes for v in delta.channels.values())
+        + (0 if delta.surface_mask is None else delta.surface_mask.nbytes)
     )
 
 

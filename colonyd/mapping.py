@@ -175,7 +175,17 @@ def integrate_observation(
     if obs.delta is not None:
         v, d = int(grid.version), obs.delta
         grid.apply(
-            Delta(d.resolution, v, v + 1, d.keys, d.logodds, d.last_time, d.channels, d.time)
+            Delta(
+                d.resolution,
+                v,
+                v + 1,
+                d.keys,
+                d.logodds,
+                d.last_time,
+                d.channels,
+                d.time,
+                surface_mask=d.surface_mask,
+            )
         )
         return
     if len(obs) == 0:

@@ -617,6 +617,7 @@ def _pack_wal_delta(delta: Delta) -> dict[str, Any]:
             name: [list(arr.shape[1:]), np.ascontiguousarray(arr).tobytes()]
             for name, arr in delta.channels.items()
         },
+        **({} if delta.surface_mask is None else {"sm": np.packbits(delta.surface_mask).tobytes()}),
     }
 
 
@@ -643,4 +644,9 @@ def _unpack_wal_delta(d: dict[str, Any]) -> Delta:
         _wal_array(d["lt"], np.dtype(np.float64), (n,), "last_time"),
         channels,
         float(d["tm"]),
+        surface_mask=None
+        if d.get("sm") is None
+        else np.unpackbits(
+            _wal_array(d["sm"], np.dtype(np.uint8), ((n + 7) // 8,), "surface_mask"), count=n
+        ).astype(bool),
     )

@@ -341,8 +341,13 @@ def _check_delta_keys(keys: np.ndarray, level: int = 0) -> None:
         raise RangeError(msg)
 
 
-def _channel_column(name: str, values: np.ndarray, ref: float) -> list[Any]:
+def _channel_column(
+    name: str, values: np.ndarray, ref: float, present: np.ndarray | None = None
+) -> list[Any]:
     k = int(values.shape[1]) if values.ndim == 2 else 0
+    if present is not None:  # `surface` of the voxels at `present` alone, and the bitmap
+        codes = values[present].astype(_WIRE_DTYPE[name], copy=False).tobytes()
+        return [name, k, codes, np.packbits(present, bitorder="little").tobytes()]
     if name == "first_time":
         table, index = _time_columns(values, ref)
         return [name, k, table, index]
@@ -485,6 +490,9 @@ def encode_delta(
         return values if order is None else np.take(values, order, axis=0)
 
     lo = wired(delta.logodds)
+    mask = delta.surface_mask
+    if mask is not None and bool(mask.all()):
+        mask = None  # every voxel's codes: the plain form
     q = quantum_exponent(
         delta.logodds if summary is None else np.r_[delta.logodds, summary.logodds]
     )
@@ -503,7 +511,12 @@ def encode_delta(
         "tt": table,
         "ti": index,
         "ch": [
-            _channel_column(name, wired(values), delta.time)
+            _channel_column(
+                name,
+                wired(values),
+                delta.time,
+                wired(mask) if name == surface.CHANNEL and mask is not None else None,
+            )
             for name, values in sorted(delta.channels.items())
         ],
     }
@@ -585,14 +598,17 @@ def fit_delta(
     Tries, in order: the full delta; then (with `prev_logodds`) everything exact but free voxels
     that were already free, those summarised at each of `levels`; then all free space summarised
     at each level; then surfaces and forgotten voxels alone. Returns the first that fits, else
-    the smallest.
+    the smallest. Voxels whose surface codes a sparse `surface` channel carries are kept exact
+    whatever their tier (a later delta leaves out codes that did not change since).
     """
     if encoded_size(delta) <= budget:
         return delta, None
     tiers = significance(delta, prev_logodds)
     free = np.isin(tiers, np.array(_FREE_TIERS, dtype=np.uint8))
+    if delta.surface_mask is not None:  # codes it carries are never cut: later deltas omit them
+        free &= ~delta.surface_mask
     candidates: list[tuple[np.ndarray, np.ndarray]] = []
-    refine = tiers == Tier.FREE
+    refine = (tiers == Tier.FREE) & free
     if prev_logodds is not None and refine.any() and (free & ~refine).any():
         candidates.append((~refine, refine))
     candidates.append((~free, free))
@@ -830,7 +846,33 @@ def _decode_times(table_raw: Any, index_raw: Any, n: int, ref: float, what: str)
     return times
 
 
-def _decode_channel(entry: Any, n: int, ref: float, limits: Limits) -> tuple[str, np.ndarray]:
+def _decode_presence(raw: Any, n: int) -> np.ndarray:
+    """The `surface` channel's bitmap over a delta's n voxels (least significant bit first)."""
+    data = _bin([raw], 0, "delta channel 'surface' bitmap", (n + 7) // 8)
+    bits = np.unpackbits(np.frombuffer(data, dtype=np.uint8), bitorder="little")
+    if bits[n:].any():
+        msg = (
+            f"delta channel 'surface' bitmap: expected bits beyond the delta's {n} voxels to be "
+            "0, found one set"
+        )
+        raise MalformedError(msg)
+    return bits[:n].astype(bool)
+
+
+def _decode_surface(entry: list[Any], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Codes (n, 3) and presence (n,) of a `surface` channel carried for some voxels alone: 0 for
+    the voxels it does not carry (they keep the receiver's)."""
+    present = _decode_presence(entry[3], n)
+    m = int(np.count_nonzero(present))
+    raw = _bin(entry, 2, f"delta channel 'surface' ({m} voxels in its bitmap)", m * 3)
+    values = np.zeros((n, 3), dtype=np.int8)
+    values[present] = np.frombuffer(raw, dtype=np.int8).reshape(m, 3)
+    return values, present
+
+
+def _decode_channel(
+    entry: Any, n: int, ref: float, limits: Limits
+) -> tuple[str, np.ndarray, np.ndarray | None]:
     if not isinstance(entry, list) or len(entry) < 3 or not isinstance(entry[0], str):
         msg = "delta channel: expected [name, k, data...], found something else"
         raise MalformedError(msg)
@@ -859,21 +901,31 @@ def _decode_channel(entry: Any, n: int, ref: float, limits: Limits) -> tuple[str
                 "items"
             )
             raise MalformedError(msg)
-        return name, _decode_times(entry[2], entry[3], n, ref, "delta channel 'first_time'")
-    if len(entry) != 3:
-        msg = f"delta channel {name!r}: expected [name, k, data], found {len(entry)} items"
+        times = _decode_times(entry[2], entry[3], n, ref, "delta channel 'first_time'")
+        return name, times, None
+    present = None
+    if name == surface.CHANNEL and len(entry) == 4:
+        values, present = _decode_surface(entry, n)
+    elif len(entry) != 3:
+        form = (
+            "[name, k, data] or [name, k, codes, bitmap]"
+            if name == "surface"
+            else "[name, k, data]"
+        )
+        msg = f"delta channel {name!r}: expected {form}, found {len(entry)} items"
         raise MalformedError(msg)
-    wire = "<f4" if name.startswith(SCALAR_PREFIX) else _WIRE_DTYPE[name]
-    count = n * max(k, 1)
-    raw = _bin(entry, 2, f"delta channel {name!r}", count * np.dtype(wire).itemsize)
-    values = np.frombuffer(raw, dtype=wire).astype(dtype)
+    else:
+        wire = "<f4" if name.startswith(SCALAR_PREFIX) else _WIRE_DTYPE[name]
+        count = n * max(k, 1)
+        raw = _bin(entry, 2, f"delta channel {name!r}", count * np.dtype(wire).itemsize)
+        values = np.frombuffer(raw, dtype=wire).astype(dtype)
     if name == "surface" and values.size and int(values.min()) < -surface.WIRE_MAX:
         msg = (
             f"delta channel 'surface': expected codes in [-{surface.WIRE_MAX}, "
             f"{surface.WIRE_MAX}] (within half a voxel), found {int(values.min())}"
         )
         raise RangeError(msg)
-    return name, values.reshape((n, k) if k else (n,))
+    return name, values.reshape((n, k) if k else (n,)), present
 
 
 def decode_delta_with_summary(
@@ -961,12 +1013,14 @@ def decode_delta_with_summary(
         )
         raise OversizedError(msg)
     channels: dict[str, np.ndarray] = {}
+    present = None
     for entry in channel_list:
-        name, values = _decode_channel(entry, n, ref, limits)
+        name, values, mask = _decode_channel(entry, n, ref, limits)
         if name in channels:
             msg = f"delta body: expected each channel once, found {name!r} twice"
             raise MalformedError(msg)
         channels[name] = values
+        present = mask if mask is not None else present
     summary = None
     if body.get("sum") is not None:
         summary = _decode_summary(body["sum"], res, v_from, v_to, ref, q, bs, limits.max_voxels - n)
@@ -980,6 +1034,7 @@ def decode_delta_with_summary(
             last_time=last_time,
             channels=channels,
             time=ref,
+            surface_mask=present,
         )
     except DeltaError as exc:
         msg = f"delta body: {exc}"

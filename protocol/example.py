@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import msgpack
 import numpy as np
 
 from protocol.codec import encode
+from protocol.deltacodec import encode_delta
 from protocol.messages import VoxelDelta
 from voxel.delta import Delta
 
@@ -37,3 +39,29 @@ def example_frame(key: bytes | None = None) -> bytes:
 def hexdump(data: bytes, width: int = 16) -> str:
     """Offset + hex bytes, `width` per line."""
     return "\n".join(f"{i:04x}  {data[i : i + width].hex(' ')}" for i in range(0, len(data), width))
+
+
+def example_surface_delta() -> Delta:
+    """The example's delta with surface codes (16, -32, 127) carried for voxel (2, 3, 4) alone:
+    the free voxels' codes did not change since version 41 (PROTOCOL.md §6, `surface`)."""
+    delta = example_message().delta
+    codes = np.array([[16, -32, 127], [0, 0, 0], [0, 0, 0]], dtype=np.int8)
+    return Delta(
+        resolution=delta.resolution,
+        from_version=delta.from_version,
+        to_version=delta.to_version,
+        keys=delta.keys,
+        logodds=delta.logodds,
+        last_time=delta.last_time,
+        channels={**delta.channels, "surface": codes},
+        time=delta.time,
+        surface_mask=np.array([True, False, False]),
+    )
+
+
+def example_surface_channel() -> bytes:
+    """The msgpack bytes of `example_surface_delta`'s `surface` channel entry, as encoded."""
+    body = msgpack.unpackb(encode_delta(example_surface_delta()))
+    entry = next(e for e in body["ch"] if e[0] == "surface")
+    out: bytes = msgpack.packb(entry)
+    return out

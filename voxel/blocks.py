@@ -42,6 +42,7 @@ RICH_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
 LOCAL_CHANNELS: dict[str, tuple[np.dtype, tuple[int, ...], float]] = {
     "surface_mean": (np.dtype(np.int16), (3,), 0),  # its running mean, 1/65532 voxel
     "surface_weight": (np.dtype(np.uint16), (), 0),  # scans fused into `surface_mean`
+    "surface_version": (np.dtype(np.uint32), (), 0),  # version `surface` last changed at
 }
 SCALAR_SPEC = (np.dtype(np.float32), (), np.nan)
 

@@ -8,6 +8,7 @@ import numpy as np
 
 from voxel.blocks import BlockStore
 from voxel.delta import SCALAR_PREFIX
+from voxel.surface import VERSION as SURFACE_VERSION
 from voxel.surface import fuse_surface
 
 #: Weight of a new class observation in the per-voxel class distribution.
@@ -66,13 +67,17 @@ def fuse_channels(
     version: int,
     stamp: np.ndarray,
     surface: tuple[np.ndarray, np.ndarray] | None = None,
+    follow: bool = True,
 ) -> bool:
     """Fold the channels of one scan's hit points into the running means and top-k of their voxels.
 
     `hit_keys` (U, 3) are the hit voxels, `inverse` (H,) each hit point's row in them and
     `channels` one row per hit point; `surface`, when given, per row of `inverse` the sums
     (H, 3) of its points' offsets from their voxel's centre in voxels and its count of points
-    (H,) (`voxel.scan.Beams`; a row per point when channels are given). Voxels that took values
+    (H,) (`voxel.scan.Beams`; a row per point when channels are given); `follow`: a voxel's
+    published code follows its mean's rounding whenever the voxel takes the version anyway
+    (with codes sent with every voxel, it costs nothing; with codes sent only where they
+    changed, it does, and `follow` is off). Voxels that took values
     get `version` and the time `stamp` (for the surface alone: those whose wire codes changed).
     Returns whether anything was written.
     """
@@ -86,7 +91,11 @@ def fuse_channels(
         # this scan's delta carries these voxels anyway: their occupancy changed, or (fused
         # channels) every hit voxel takes the version below
         sent = channels.fused | (store.channels["version"][slots, offsets] == np.uint32(version))
+        if not follow:  # deltas carry only codes that changed: no code moves for free
+            sent = np.zeros_like(sent)
         moved = fuse_surface(store, slots, offsets, inverse, *surface, sent)
+        if not follow:  # codes sent where they changed: when they did
+            store.channel(SURFACE_VERSION)[slots[moved], offsets[moved]] = np.uint32(version)
     if not channels.fused:
         assert moved is not None
         if not moved.any():

@@ -50,6 +50,10 @@ class Delta:
     `logodds` is NaN for a voxel that returned to unknown. Every voxel of a delta takes
     `to_version` as its version when applied, so applying deltas twice or out of order gives
     the same layer: a voxel keeps the value of the highest version that reached it.
+
+    `surface_mask` (N,) bool, with the `surface` channel: the voxels whose codes the delta
+    carries, the others' codes unchanged since `from_version` (they keep what the receiver
+    holds; their rows of the channel are not read). None: every voxel's codes are carried.
     """
 
     resolution: float
@@ -60,6 +64,7 @@ class Delta:
     last_time: np.ndarray  # (N,) float64 seconds
     channels: dict[str, np.ndarray] = field(default_factory=dict)
     time: float = 0.0
+    surface_mask: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.keys = np.asarray(self.keys, dtype=np.int64).reshape(-1, 3)
@@ -94,6 +99,15 @@ class Delta:
                 msg = f"delta channel {name!r} must have shape ({n}, {tail}), found {arr.shape}"
                 raise DeltaError(msg)
             self.channels[name] = arr
+        if self.surface_mask is not None:
+            mask = np.asarray(self.surface_mask)
+            if surface.CHANNEL not in self.channels or mask.dtype != np.bool_ or mask.shape != (n,):
+                msg = (
+                    f"delta surface_mask must be ({n},) bool with a {surface.CHANNEL!r} channel, "
+                    f"found {mask.shape} {mask.dtype} with channels {sorted(self.channels)}"
+                )
+                raise DeltaError(msg)
+            self.surface_mask = mask
 
     def __len__(self) -> int:
         return int(self.keys.shape[0])
@@ -116,6 +130,7 @@ class Delta:
             last_time=self.last_time[mask],
             channels={k: v[mask] for k, v in self.channels.items()},
             time=self.time,
+            surface_mask=None if self.surface_mask is None else self.surface_mask[mask],
         )
 
 
@@ -127,8 +142,13 @@ def delta_of(
     resolution: float,
     to_version: int,
     time: float,
+    sparse: bool = True,
 ) -> Delta:
-    """Every voxel of `store` changed after `version`, with its absolute current values."""
+    """Every voxel of `store` changed after `version`, with its absolute current values.
+
+    `sparse`: surface codes only of the voxels whose codes changed after `version` (by the
+    store's `surface_version`; every voxel's when it has none), as held; else every voxel's, 0
+    for voxels that are not occupied (the dense form, for an origin that publishes it)."""
     slots = store.used_slots()
     slots = slots[store.slot_version[slots] > version]
     ver = store.channels["version"][slots]
@@ -146,8 +166,12 @@ def delta_of(
     }
     logodds = store.channels["logodds"][s, o]
     codes = channels.get(surface.CHANNEL)
-    if codes is not None:  # a surface is what an occupied voxel has: free ones travel as 0
-        with np.errstate(invalid="ignore"):
+    mask = None
+    changed = store.channels.get(surface.VERSION)
+    if codes is not None and sparse and changed is not None:
+        mask = changed[s, o] > version  # codes as held, carried where they changed
+    elif codes is not None and not sparse:  # a surface is what an occupied voxel has: free
+        with np.errstate(invalid="ignore"):  # ones travel as 0
             codes[~(logodds >= 0)] = 0
     return Delta(
         resolution=resolution,
@@ -158,6 +182,7 @@ def delta_of(
         last_time=times.seconds(store.channels["last_time"][s, o]),
         channels=channels,
         time=time,
+        surface_mask=mask,
     )
 
 
@@ -215,6 +240,13 @@ def merge_delta(store: BlockStore, times: TimeBase, delta: Delta) -> np.ndarray:
                 f"{arr.shape[2:]}"
             )
             raise DeltaError(msg)
+        if name == surface.CHANNEL:  # the codes carried alone (a sparse origin: their version)
+            carried = take if delta.surface_mask is None else take & delta.surface_mask
+            cs, co = slots[carried], offsets[carried]
+            arr[cs, co] = values[carried]
+            if surface.VERSION in store.channels:
+                store.channels[surface.VERSION][cs, co] = incoming
+            continue
         arr[s, o] = values[take]
     np.maximum.at(store.slot_version, s, incoming)
     taken: np.ndarray = delta.last_time[take]

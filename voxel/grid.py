@@ -39,6 +39,8 @@ from voxel.sensor import SensorModel
 from voxel.snapshot import load_grid, save_grid
 from voxel.surface import CHANNEL as SURFACE
 from voxel.surface import MEAN as SURFACE_MEAN
+from voxel.surface import SPARSE as SPARSE_SURFACE
+from voxel.surface import VERSION as SURFACE_VERSION
 from voxel.surface import WEIGHT as SURFACE_WEIGHT
 from voxel.surface import wire_offsets
 from voxel.timebase import TIME_SPAN_MS, TimeBase, quantise_time
@@ -125,6 +127,10 @@ class VoxelGrid:
         self.seen_log = seen_log
         #: Keep the sub-voxel surface (the mean hit position) of hit voxels.
         self.surface = surface
+        #: Deltas carry surface codes only where they changed (`voxel.surface.SPARSE`, off by
+        #: default: docs/BENCHMARKS.md, Wire); False: every voxel's codes, 0 for voxels not
+        #: occupied, codes following their means whenever a voxel is sent anyway.
+        self.sparse_surface = SPARSE_SURFACE
         self.store = BlockStore(class_k=class_k, shifts=block_shifts(block_shape))
         self.history = History(capacity=history_capacity, per_voxel=history_per_voxel)
         self.times = TimeBase(self.store)  # stored times are ms since its base
@@ -249,6 +255,7 @@ class VoxelGrid:
             surface=None
             if beams.surface_sums is None or beams.surface_counts is None
             else (beams.surface_sums, beams.surface_counts),
+            follow=not self.sparse_surface,
         )
         objects = ObjectTags.of(traversal.hit_keys, traversal.inverse, hit_channels.object_ids)
         self.history.record(update.chunks, observer, rule.evidence, objects)
@@ -505,6 +512,8 @@ class VoxelGrid:
         for name in (SURFACE, SURFACE_MEAN, SURFACE_WEIGHT):  # observed again: a surface anew
             if name in st.channels:
                 st.channels[name][slots[b], o] = 0
+        if SURFACE_VERSION in st.channels:  # codes now 0: deltas carry them
+            st.channels[SURFACE_VERSION][slots[b], o] = np.uint32(version)
         st.channels["version"][slots[b], o] = np.uint32(version)
         st.channels["last_time"][slots[b], o] = self.times.stamp(quantise_time(now))
         st.slot_version[slots[np.unique(b)]] = np.uint32(version)
@@ -543,6 +552,9 @@ class VoxelGrid:
             resolution=self.resolution,
             to_version=self.version,
             time=self.now,
+            # a replica (it does not integrate the surface) sends every voxel's codes as it holds
+            # them: zeroing free voxels' would betray a sparse origin's
+            sparse=self.sparse_surface or not self.surface,
         )
         newer = [(k, t) for v, k, t in self.tombstones if v > version]
         if not newer:
@@ -574,6 +586,9 @@ class VoxelGrid:
             last_time=np.concatenate([delta.last_time, times]),
             channels=channels,
             time=delta.time,
+            surface_mask=None  # forgotten voxels' codes are 0 since: carried
+            if delta.surface_mask is None
+            else np.r_[delta.surface_mask, np.ones(n, dtype=bool)],
         )
 
     def apply(self, delta: Delta) -> int:
@@ -585,6 +600,8 @@ class VoxelGrid:
         if not math.isclose(delta.resolution, self.resolution, rel_tol=1e-9):
             msg = f"delta resolution {delta.resolution} does not match the grid's {self.resolution}"
             raise DeltaError(msg)
+        if self.surface and self.sparse_surface:  # its own codes' versions, for its deltas
+            self.store.channel(SURFACE_VERSION)
         taken = merge_delta(self.store, self.times, delta)
         self.version = max(self.version, delta.to_version)
         if taken.size:

@@ -43,6 +43,17 @@ PUBLISH_CODES = 16
 CHANNEL = "surface"
 MEAN = "surface_mean"
 WEIGHT = "surface_weight"
+#: The version at which a voxel's published codes last changed (uint32, kept by sparse origins
+#: alone, never sent): a delta after version V carries the codes of only the voxels whose codes
+#: changed after V (`voxel.delta.delta_of`; PROTOCOL.md §6, "surface"). A replica keeps none: it
+#: serves ranges from the deltas it took and snapshots (from version 0) with every code.
+VERSION = "surface_version"
+#: An origin's deltas carry codes only where they changed (sparse), and a code moves only at its
+#: voxel's first hit and PUBLISH_CODES away; off by default (False: every delta carries every
+#: voxel's codes, 0 for voxels that are not occupied, and codes follow their means whenever
+#: the voxel is sent anyway): on the kitchen frames it leaves 1.20 bytes per changed voxel,
+#: not the <= 1.0 its rule asked (docs/BENCHMARKS.md, Wire). Receivers take both forms.
+SPARSE = False
 
 
 def to_wire(stored: np.ndarray) -> np.ndarray:

@@ -1,13 +1,13 @@
 """Scan matching against a peer's 10 cm map as voxel centres and as surface points (sim office).
 
 `python -m colonyd.bench.surface_match [--seed S] [--poses N] [--range R] [--yaw DEG]
-[--shift M] [--json FILE]`: a peer's planar grid is built from 2D scans of the sim office at known
-poses (range noise 1 cm); then 2D scans at other poses are matched (`scan_match.match`, dof 3)
-against its colony-map cut made from the occupied voxels' centres and from their surface points
-(`occupied_surface`), from the true pose moved by `--offset` in x and -y (default 5 cm) and 20 x
-that in radians (1.15 degrees). The office's walls lie on voxel faces; `--yaw` and `--shift`
-turn the peer's map frame by DEG about z and move it by (M, 0.7 M), so that they do not. Truth
-is for this evaluation only.
+[--shift M] [--sparse-surface] [--json FILE]`: a peer's planar grid is built from 2D scans of
+the sim office at known poses (range noise 1 cm); then 2D scans at other poses are matched
+(`scan_match.match`, dof 3) against its colony-map cut made from the occupied voxels' centres
+and from their surface points (`occupied_surface`), from the true pose moved by `--offset` in x
+and -y (default 5 cm) and 20 x that in radians (1.15 degrees). The office's walls lie on voxel
+faces; `--yaw` and `--shift` turn the peer's map frame by DEG about z and move it by (M, 0.7 M),
+so that they do not. Truth is for this evaluation only.
 """
 
 from __future__ import annotations
@@ -69,15 +69,18 @@ def run(
     offset: float = 0.05,
     yaw: float = 0.0,
     shift: float = 0.0,
+    sparse: bool = False,
 ) -> dict[str, object]:
     """Match errors of `poses` scans; the peer's map frame is the world turned by `yaw` degrees
-    about z and moved by (`shift`, 0.7 `shift`, 0) m."""
+    about z and moved by (`shift`, 0.7 `shift`, 0) m. `sparse`: the peer publishes its codes as
+    with sparse surface codes (a code moves only at a voxel's first hit and a step away)."""
     rng = np.random.default_rng(seed)
     world = office_world()
     frame = _pose(shift, 0.7 * shift, math.radians(yaw))  # world -> the peer's map frame
     frame[2, 3] = 0.0
     rot, move = frame[:3, :3], frame[:3, 3]
     grid = VoxelGrid(0.1, block_shape="planar", surface=True)
+    grid.sparse_surface = sparse
     for i, pose in enumerate(_free_poses(world, rng, 150)):  # the peer's mapping run
         pts = _scan(world, pose, rng, 8.0)
         grid.integrate(
@@ -110,6 +113,7 @@ def run(
         "offset_m": offset,
         "yaw_deg": yaw,
         "shift_m": shift,
+        "sparse_surface": sparse,
     }
     for name, e in errors.items():
         arr = np.asarray(e)
@@ -128,9 +132,16 @@ def main() -> None:
     p.add_argument("--offset", type=float, default=0.05, help="start x, -y off (m); yaw 20x rad")
     p.add_argument("--yaw", type=float, default=0.0, help="peer's map frame turned (degrees)")
     p.add_argument("--shift", type=float, default=0.0, help="and moved by (M, 0.7 M) metres")
+    p.add_argument(
+        "--sparse-surface",
+        action="store_true",
+        help="the peer's codes as with sparse surface codes in deltas (voxel.surface.SPARSE)",
+    )
     p.add_argument("--json", type=Path)
     args = p.parse_args()
-    result = run(args.seed, args.poses, args.reach, args.offset, args.yaw, args.shift)
+    result = run(
+        args.seed, args.poses, args.reach, args.offset, args.yaw, args.shift, args.sparse_surface
+    )
     print(json.dumps(result))
     if args.json:
         args.json.write_text(json.dumps(result, indent=1) + "\n")

@@ -157,9 +157,14 @@ def _best_of(fn: Callable[[], T], repeats: int) -> tuple[float, T]:
 
 
 def run_scenario(
-    sc: Scenario, repeats: int = 3, t0: float = 1_700_000_000.0, surface: bool = True
+    sc: Scenario,
+    repeats: int = 3,
+    t0: float = 1_700_000_000.0,
+    surface: bool = True,
+    sparse: bool = True,
 ) -> dict[str, Any]:
     grid = VoxelGrid(sc.resolution, surface=surface)  # a daemon's own layer keeps the surface
+    grid.sparse_surface = sparse  # codes only where they changed (False: every voxel's)
     mirror = VoxelGrid(sc.resolution)  # a peer's replica: each voxel's previous value, and exact?
     totals = {
         "changed": 0,
@@ -221,6 +226,7 @@ def run_scenario(
     return {
         "scenario": sc.name,
         "surface": surface,
+        "surface_sparse": sparse,
         "changed_voxels": totals["changed"],
         "occupied_changed": totals["occupied"],
         "bytes_full": totals["full"],
@@ -252,16 +258,18 @@ def run_wire_bench(
     repeats: int = 3,
     only: list[str] | None = None,
     surface: bool = True,
+    sparse: bool = True,
 ) -> list[dict[str, Any]]:
     """Run every wire scenario, write the JSON list to out_json and return it. `surface`: the
-    grids keep (and their deltas carry) the sub-voxel surface, as daemons' do.
+    grids keep (and their deltas carry) the sub-voxel surface, as daemons' do; `sparse`: their
+    deltas carry codes only where they changed (False: every voxel's, the dense form).
 
     Without `shared_data`, the checkout's sibling `../shared/data` is used when it exists.
     """
     kernels.warm()  # compiled kernels load before timing, as a daemon loads them at start
     kernels.warm_codec()
     results = [
-        run_scenario(sc, repeats, surface=surface)
+        run_scenario(sc, repeats, surface=surface, sparse=sparse)
         for sc in scenarios(shared_data_dir(shared_data))
         if not only or sc.name in only
     ]

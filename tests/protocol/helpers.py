@@ -217,8 +217,14 @@ def assert_delta_close(a: Delta, b: Delta, *, q: float = 2.0**-5) -> None:
         a.time,
     )
     assert set(sa.channels) == set(sb.channels)
+    ma = np.ones(len(sa), bool) if sa.surface_mask is None else sa.surface_mask
+    mb = np.ones(len(sb), bool) if sb.surface_mask is None else sb.surface_mask
+    if "surface" in sa.channels:
+        np.testing.assert_array_equal(ma, mb)  # codes carried for the same voxels
     for name, values in sa.channels.items():
-        if name == "first_time":
+        if name == "surface":
+            np.testing.assert_array_equal(values[ma], sb.channels[name][mb])
+        elif name == "first_time":
             np.testing.assert_allclose(values, sb.channels[name], atol=5e-4, rtol=0)
         else:
             np.testing.assert_array_equal(values, sb.channels[name])

@@ -6,10 +6,19 @@ import json
 import re
 from pathlib import Path
 
+import msgpack
 import numpy as np
 
 from protocol.codec import decode
-from protocol.example import EXAMPLE_KEY, example_frame, example_message, hexdump
+from protocol.deltacodec import decode_delta, encode_delta
+from protocol.example import (
+    EXAMPLE_KEY,
+    example_frame,
+    example_message,
+    example_surface_channel,
+    example_surface_delta,
+    hexdump,
+)
 from protocol.messages import VoxelDelta
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "PROTOCOL.md"
@@ -63,3 +72,14 @@ def test_doc_tag_authenticates_the_example() -> None:
     frame = bytes(signed) + tag
     assert frame == example_frame(EXAMPLE_KEY)
     assert isinstance(decode(frame, key=EXAMPLE_KEY), VoxelDelta)
+
+
+def test_doc_sparse_surface_channel_is_what_the_code_encodes_and_decodes() -> None:
+    entry = _hex("example-surface-channel")
+    assert entry == example_surface_channel(), "regenerate: hexdump(example_surface_channel())"
+    body = msgpack.unpackb(encode_delta(example_surface_delta()))
+    body["ch"] = [c for c in body["ch"] if c[0] != "surface"] + [msgpack.unpackb(entry)]
+    back = decode_delta(msgpack.packb(body))
+    assert back.surface_mask is not None and back.surface_mask.tolist() == [True, False, False]
+    assert back.keys[0].tolist() == [2, 3, 4]
+    assert back.channels["surface"].tolist() == [[16, -32, 127], [0, 0, 0], [0, 0, 0]]
