@@ -447,8 +447,12 @@ class CatchUp:
             log.warning("snapshot of %s from %s refused: %s", origin, server, exc)
             return False
         marks["admitted"] = time.monotonic()
-        layer = self.layers.get(origin, chunks[0].resolution)
-        voxels = layer.install_snapshot(epoch, seq, chunks)
+        try:  # built apart, committed under the apply lock if its admission still holds
+            voxels = self.layers.install_snapshot(origin, epoch, seq, chunks)
+        except WireError as exc:  # a tombstone or another peer's delta came meanwhile
+            self.metrics.reject(exc.reason)
+            log.warning("snapshot of %s from %s refused at its install: %s", origin, server, exc)
+            return False
         marks["installed"] = time.monotonic()
         marks["cpu_s"] = time.thread_time() - cpu0
         marks["process_cpu_s"] = time.process_time() - process0  # every thread's

@@ -310,7 +310,9 @@ class Inbox:
         accept(self.receiver, self.metrics, msg, raw)
         if self.membership is None:
             return
-        member = self.membership.heard(msg.origin, msg)
+        layers = self.replicas.layers
+        held = {x.origin for x in layers.all() if x.origin != layers.own_id}
+        member = self.membership.heard(msg.origin, msg, held)  # what we hold remembered first
         if member is None:  # no room after all (tokens came back since `admit`): not recorded
             return
         for origin in msg.forgotten:  # a tombstone travels with every member's heartbeat
