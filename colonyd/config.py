@@ -183,7 +183,8 @@ class Config(BaseSettings):
         2.0,
         ge=0,
         description="seconds between object-list refreshes (0: no objects); peers take 16,384 "
-        "listed objects a second, shared by the members sending lists (docs/DAEMON.md)",
+        "listed objects a second, shared by the members sending lists, at most 8192 each "
+        "(docs/DAEMON.md)",
     )
     structure_classes: list[int] = Field(
         [1, 2], description="class ids that are structure (walls, floors), never objects; the sim's"

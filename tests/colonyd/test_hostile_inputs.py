@@ -1524,3 +1524,36 @@ def test_a_heartbeat_listing_too_many_layers_keeps_those_held_first() -> None:
         finally:
             table.close()
             d.close()
+
+
+def test_a_peer_flooding_object_lists_alone_gets_no_more_than_a_peers_rate() -> None:
+    """The objects rate (16,384 a second, ~0.36 s of the inbox's second) is shared by the
+    peers spending theirs: a peer flooding alone (a key holder, a member gone wrong) took all
+    of it, where 2048 a second was its bound before. A peer's share is now also at most
+    `PEER_OBJECTS_PER_S` (8192: a full list at every default 2 s refresh, ~0.18 s of the
+    inbox's second): it passes at most that over 20 s, plus its first full list; the member
+    with 2000 objects changing every 0.5 s (4000 a second) still passes every list, alone or
+    beside three others doing as much."""
+    from colonyd.objects import PEER_OBJECTS_PER_S
+
+    now = [0.0]
+    objects = PeerObjects(clock=lambda: now[0])
+    passed = 0
+    for _ in range(200):  # a full list every 0.1 s
+        try:
+            objects.allow("flood")
+        except WireError:
+            pass
+        else:
+            objects.charge("flood", objects.burst)
+            passed += objects.burst
+        now[0] += 0.1
+    assert passed <= PEER_OBJECTS_PER_S * now[0] + 2 * objects.burst, passed
+    assert min(PEER_OBJECTS_PER_S / 4000, PEER_OBJECTS_PER_S / (objects.burst / 2.0)) >= 1.0
+    for peers in (1, 4):
+        busy = PeerObjects(clock=lambda: now[0])
+        for _ in range(40):
+            for k in range(peers):
+                busy.allow(f"b{k}")  # raises if refused
+                busy.charge(f"b{k}", 2000)
+            now[0] += 0.5
