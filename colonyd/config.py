@@ -132,7 +132,8 @@ class Config(BaseSettings):
         1024,
         ge=1,
         description="most members whose heartbeats are kept, with a layer or without (cameras, "
-        "command-line clients), and peers whose object lists are kept",
+        "command-line clients), most kept from their liveliness token alone, and peers whose "
+        "object lists are kept",
     )
     max_peer_blocks: int = Field(
         100_000, ge=1, description="voxel blocks (64 voxels each) in peer layers"
