@@ -342,7 +342,9 @@ class Inbox:
                     f"{covariance.max():.3g}"
                 )
                 raise WireError("bad-objects", text)
-        self.objects.admit(msg.origin)
+        if self.membership is None or not self.membership.known(msg.origin):
+            raise WireError("unknown-member", f"expected objects of a member, found {msg.origin!r}")
+        self.objects.admit(msg.origin, self.membership.known)  # gone agents' lists make room
         accept(self.receiver, self.metrics, msg, raw)
         cut = self.objects.put(msg.origin, msg.objects)
         if cut:  # the peers' objects bound reached: the longest lists cut to a fair share

@@ -182,6 +182,11 @@ class Membership:
             m.layers = {entry.origin: (entry.epoch, entry.version) for entry in listed}
             return m
 
+    def known(self, agent: str) -> bool:
+        """True if `agent` is in the table (heard, or its liveliness token seen)."""
+        with self._lock:
+            return agent in self.members
+
     def find(self, agent: str) -> Member | None:
         """A copy of what is known of `agent`, or None."""
         with self._lock:

@@ -275,10 +275,15 @@ class PeerObjects:
             spending = sum(1 for v, _ in self._allowance.values() if v < self.burst)
             self._rate = min(self.peer_per_s, self.per_s / max(1, spending))
 
-    def admit(self, origin: str) -> None:
+    def admit(self, origin: str, member: Callable[[str], bool] = lambda _: True) -> None:
         """Raise WireError unless a list of `origin` may be kept (replacing its previous one):
-        a peer already holding one, or room for one more."""
+        a peer already holding one, or room for one more, made if need be by forgetting the
+        lists of agents no longer `member`s (else agents come and gone, or made up, would keep
+        every later member's list out for good)."""
         with self._lock:
+            if origin not in self._lists and len(self._lists) >= self.max_origins:
+                for o in [o for o in self._lists if not member(o)]:
+                    del self._lists[o]
             if origin not in self._lists and len(self._lists) >= self.max_origins:
                 text = (
                     f"expected object lists of at most {self.max_origins} peers, "

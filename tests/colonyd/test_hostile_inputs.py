@@ -1557,3 +1557,35 @@ def test_a_peer_flooding_object_lists_alone_gets_no_more_than_a_peers_rate() -> 
                 busy.allow(f"b{k}")  # raises if refused
                 busy.charge(f"b{k}", 2000)
             now[0] += 0.5
+
+
+def test_object_lists_of_agents_no_longer_members_keep_no_member_out() -> None:
+    """Peers' object lists were kept for `max_members` origins and never dropped: once that
+    many agents had sent one (made-up identities, each introduced by one heartbeat, or robots
+    come and gone), every later member's list was refused (`too-many-layers`) for as long as
+    the daemon ran, though those agents had long left the member table. A list is now taken
+    from a member only (`unknown-member`), and a list of an agent no longer a member makes
+    room for a member's."""
+    with _sessions(2) as (mine, other):
+        d = _daemon(mine, max_members=4)
+        d.peer_objects.max_origins = 4
+        tokens = [other.liveliness().declare_token(alive_key(NS, "real"))]
+        try:
+            assert _until(lambda: d.membership.alive() == ["real"])
+            ghosts = [f"g{i}" for i in range(4)]
+            send = _listing(d, ghosts)  # introduced: members (heard, no token)
+            for g in ghosts:
+                send(g, _objects(3))
+            assert d.peer_objects.origins() == ghosts
+            real = _listing(d, ["real"])  # its heartbeat: the least recently seen ghost goes
+            assert d.membership.find("g0") is None
+            real("real", _objects(3))
+            assert len(d.peer_objects.get("real")) == 3, d.metrics.rejected
+            assert "g0" not in d.peer_objects.origins()
+            send("g0", _objects(3))  # pinned still, a member no more: refused
+            assert d.metrics.rejected["unknown-member"] == 1
+            assert d.metrics.rejected["too-many-layers"] == 0
+        finally:
+            for t in tokens:
+                t.undeclare()
+            d.close()
