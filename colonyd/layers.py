@@ -434,13 +434,22 @@ class Layers:
             )
             raise WireError("over-budget", text)
 
-    def install_snapshot(self, origin: str, epoch: int, seq: int, chunks: list[Delta]) -> int:
+    def install_snapshot(
+        self,
+        origin: str,
+        epoch: int,
+        seq: int,
+        chunks: list[Delta],
+        accept: Callable[[], None] | None = None,
+    ) -> int:
         """Replace peer layer `origin` by a snapshot of it (`admit`ted, `replace`): its grid is
         built with no lock held (a big layer takes seconds: the inbox goes on meanwhile), then
         committed under `apply_lock` once what the admission found still holds: the layer not
         forgotten since (a tombstone), room for it, its resolution, and the peer budget with the
         blocks the grid holds (another peer's delta may have taken the room). WireError
-        otherwise, nothing changed. The voxels installed (0: the layer holds as much already)."""
+        otherwise, nothing changed. `accept` (the snapshot's frames accepted; it raises to
+        refuse) is called under the lock once those checks passed, before the commit. The
+        voxels installed (0: the layer holds as much already)."""
         layer = self.find(origin)
         resolution = float(chunks[0].resolution) if layer is None else layer.resolution
         builder = layer or Layer(origin, resolution, ring_size=self.ring_size)
@@ -464,6 +473,8 @@ class Layers:
                     f"held (since the snapshot's admission) + {blocks} for {origin!r}'s snapshot"
                 )
                 raise WireError("over-budget", text)
+            if accept is not None:
+                accept()
             return self.get(origin, resolution).commit_snapshot(epoch, seq, grid, voxels)
 
     def get(self, origin: str, resolution: float | None = None) -> Layer:

@@ -1364,20 +1364,20 @@ def test_members_without_layers_keep_no_robot_out() -> None:
             d.close()
 
 
-class _Racing(Receiver):
-    """A receiver whose `accept` of the first reply frame (the catch-up's `take`: after the
-    reply's admission, before the snapshot's install) runs `race` on another thread and waits
-    up to 0.5 s for it: the one stand-in, forcing the interleaving at the one point it can
-    happen (the frames, sessions, inbox and catch-up are real)."""
+class _Racing(Replicas):
+    """Replicas whose admission of a snapshot (`admit(replace=True)`: the catch-up's, before
+    the snapshot is built and installed) runs `race` on another thread, then waits up to 0.5 s
+    for it: the one stand-in, forcing the interleaving at the one point it can happen (the
+    frames, sessions, inbox, layers and catch-up are real)."""
 
-    def __init__(self, race: Callable[[], None], **kwargs: object) -> None:
-        super().__init__(**kwargs)  # type: ignore[arg-type]
+    def __init__(self, d: SimpleNamespace, race: Callable[[], None]) -> None:
+        super().__init__(d.layers, d.metrics)
         self._race = race
         self.raced: list[threading.Thread] = []
 
-    def accept(self, msg, *, answer=False) -> None:
-        super().accept(msg, answer=answer)
-        if answer and not self.raced:
+    def admit(self, origin, epoch, deltas, replace=False) -> None:
+        super().admit(origin, epoch, deltas, replace)
+        if replace and not self.raced:
             self.raced.append(threading.Thread(target=self._race))
             self.raced[0].start()
             self.raced[0].join(0.5)  # done unless it waits for the install
@@ -1395,7 +1395,8 @@ def test_a_tombstone_during_a_snapshot_install_leaves_the_layer_forgotten() -> N
     between the two dropped nothing yet held, and the install then made the layer again, a
     forgotten agent's layer held (and served) until the next tombstone. Now the install is
     committed under the apply lock, after checking the layer is still not forgotten (refused,
-    `forgotten`). Real sessions, frames, inbox and catch-up; `_Racing` forces the interleaving."""
+    `forgotten`, its frames not accepted). Real sessions, frames, inbox, layers and catch-up;
+    `_Racing` forces the interleaving."""
     chunk = Delta(0.1, 0, 3, [[0, 0, 0], [1, 0, 0]], [1.0, 1.0], [1.7e9, 1.7e9])
     with _sessions(2) as (mine, evil):
         d = _daemon(mine)
@@ -1406,15 +1407,16 @@ def test_a_tombstone_during_a_snapshot_install_leaves_the_layer_forgotten() -> N
         q = _serve(evil, signer, lambda rid, s: [_snapshot_reply(s, rid, chunk, 0, 1)])
         try:
             assert _until(lambda: _answers(mine))
-            race = lambda: d.feed("hb", "b", _tombstone("b", b, ["evil"], 2))  # noqa: E731
-            receiver = _Racing(race, key=KEY, own="me", trust=d.trust)
-            catchup = CatchUp(mine, NS, d.replicas, Sender("me", 1, key=KEY), receiver, d.metrics)
+            replicas = _Racing(d, lambda: d.feed("hb", "b", _tombstone("b", b, ["evil"], 2)))
+            catchup = CatchUp(mine, NS, replicas, Sender("me", 1, key=KEY), d.receiver, d.metrics)
             installed = catchup._fetch_snapshot("evil", "evil", time.monotonic())
-            receiver.raced[0].join(5.0)
+            replicas.raced[0].join(5.0)
             assert "evil" in d.layers.forgotten
             assert d.layers.find("evil") is None, d.layers.find("evil").seq
             assert not installed
             assert d.metrics.rejected["forgotten"] == 1
+            assert d.receiver.accepted["snapshot_reply"] == 0  # refused: no window moved
+            d.receiver.replay.peek("evil", 7, 100)
         finally:
             q.undeclare()
             d.close()
@@ -1438,11 +1440,10 @@ def test_a_live_delta_during_a_snapshot_install_cannot_overshoot_the_budget() ->
         q = _serve(evil, signer, lambda rid, s: [_snapshot_reply(s, rid, snap, 0, 1)])
         try:
             assert _until(lambda: _answers(mine))
-            receiver = _Racing(lambda: d.feed("delta", "b", live), key=KEY, own="me",
-                               trust=d.trust)  # fmt: skip
-            catchup = CatchUp(mine, NS, d.replicas, Sender("me", 1, key=KEY), receiver, d.metrics)
+            replicas = _Racing(d, lambda: d.feed("delta", "b", live))
+            catchup = CatchUp(mine, NS, replicas, Sender("me", 1, key=KEY), d.receiver, d.metrics)
             installed = catchup._fetch_snapshot("evil", "evil", time.monotonic())
-            receiver.raced[0].join(5.0)
+            replicas.raced[0].join(5.0)
             blocks = sum(x.blocks() for x in d.layers.all() if x.origin != "me")
             assert blocks <= d.layers.max_peer_blocks, blocks
             assert d.layers.find("b").seq == 1  # first come, first served
