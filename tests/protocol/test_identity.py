@@ -274,3 +274,19 @@ def test_a_strangers_heartbeat_with_keys_of_any_string_format_is_read() -> None:
     }  # fmt: skip
     hb = Receiver(trust=Trust("tofu")).decode(_raw_hb(body, "a", A))
     assert hb.origin == "a" and hb.identity == A.public
+
+
+def test_a_reinstalled_agents_heartbeat_says_its_pin_may_need_removing() -> None:
+    """An agent reinstalled with a new key (its pin, here or in `known_agents.json`, still the
+    old one) sends heartbeats signed with the new key and offering it. They are refused, as
+    they were; but its heartbeat is now checked with the pinned key before its body is read,
+    and the refusal said only that the signature does not verify, where it said what the
+    operator may have to do: remove the reinstalled agent's pin (or look for an impersonator).
+    The refusal of a pinned agent's heartbeat says so again, with no body read for it."""
+    rx = Receiver(key=KEY, trust=Trust("tofu", {"a": A.public}))
+    with pytest.raises(IdentityError, match="does not verify") as info:
+        rx.decode(_hb(5, B))  # 'a' reinstalled with key B
+    assert "pin must be removed" in str(info.value), info.value
+    with pytest.raises(IdentityError, match="does not verify") as info:
+        rx.decode(_pose(6, B))  # not a heartbeat: no key offered, no hint
+    assert "pin" not in str(info.value)
