@@ -311,8 +311,10 @@ class Inbox:
         if self.membership is None:
             return
         layers = self.replicas.layers
-        held = {x.origin for x in layers.all() if x.origin != layers.own_id}
-        member = self.membership.heard(msg.origin, msg, held)  # what we hold remembered first
+        held: set[str] = set()  # what we hold remembered first, when not all can be
+        if len(msg.layers) > self.membership.max_listed:
+            held = {x.origin for x in layers.all() if x.origin != layers.own_id}
+        member = self.membership.heard(msg.origin, msg, held)
         if member is None:  # no room after all (tokens came back since `admit`): not recorded
             return
         for origin in msg.forgotten:  # a tombstone travels with every member's heartbeat
