@@ -441,14 +441,21 @@ class CatchUp:
         chunks = [m.delta for m in sorted(msgs, key=lambda m: m.part)]
         try:
             self.replicas.admit(origin, epoch, chunks, replace=True)
-            self.take(msgs)  # only now: a refused snapshot moved no window
         except (ProtocolError, WireError) as exc:
             self.metrics.reject(exc.reason)
             log.warning("snapshot of %s from %s refused: %s", origin, server, exc)
             return False
         marks["admitted"] = time.monotonic()
-        layer = self.layers.get(origin, chunks[0].resolution)
-        voxels = layer.install_snapshot(epoch, seq, chunks)
+        try:  # built apart, then taken and committed under the apply lock if its admission
+            # still holds (a tombstone or another peer's delta may have come meanwhile): only
+            # then are its frames accepted, a refused snapshot moved no window
+            voxels = self.layers.install_snapshot(
+                origin, epoch, seq, chunks, accept=lambda: self.take(msgs)
+            )
+        except (ProtocolError, WireError) as exc:
+            self.metrics.reject(exc.reason)
+            log.warning("snapshot of %s from %s refused at its install: %s", origin, server, exc)
+            return False
         marks["installed"] = time.monotonic()
         marks["cpu_s"] = time.thread_time() - cpu0
         marks["process_cpu_s"] = time.process_time() - process0  # every thread's

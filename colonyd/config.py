@@ -132,7 +132,8 @@ class Config(BaseSettings):
         1024,
         ge=1,
         description="most members whose heartbeats are kept, with a layer or without (cameras, "
-        "command-line clients), and peers whose object lists are kept",
+        "command-line clients), most kept from their liveliness token alone, and peers whose "
+        "object lists are kept",
     )
     max_peer_blocks: int = Field(
         100_000, ge=1, description="voxel blocks (64 voxels each) in peer layers"
@@ -183,7 +184,8 @@ class Config(BaseSettings):
         2.0,
         ge=0,
         description="seconds between object-list refreshes (0: no objects); peers take 16,384 "
-        "listed objects a second, shared by the members sending lists (docs/DAEMON.md)",
+        "listed objects a second, shared by the members sending lists, at most 8192 each "
+        "(docs/DAEMON.md)",
     )
     structure_classes: list[int] = Field(
         [1, 2], description="class ids that are structure (walls, floors), never objects; the sim's"

@@ -310,7 +310,11 @@ class Inbox:
         accept(self.receiver, self.metrics, msg, raw)
         if self.membership is None:
             return
-        member = self.membership.heard(msg.origin, msg)
+        layers = self.replicas.layers
+        held: set[str] = set()  # what we hold remembered first, when not all can be
+        if len(msg.layers) > self.membership.max_listed:
+            held = {x.origin for x in layers.all() if x.origin != layers.own_id}
+        member = self.membership.heard(msg.origin, msg, held)
         if member is None:  # no room after all (tokens came back since `admit`): not recorded
             return
         for origin in msg.forgotten:  # a tombstone travels with every member's heartbeat
@@ -340,7 +344,9 @@ class Inbox:
                     f"{covariance.max():.3g}"
                 )
                 raise WireError("bad-objects", text)
-        self.objects.admit(msg.origin)
+        if self.membership is None or not self.membership.known(msg.origin):
+            raise WireError("unknown-member", f"expected objects of a member, found {msg.origin!r}")
+        self.objects.admit(msg.origin, self.membership.known)  # gone agents' lists make room
         accept(self.receiver, self.metrics, msg, raw)
         cut = self.objects.put(msg.origin, msg.objects)
         if cut:  # the peers' objects bound reached: the longest lists cut to a fair share

@@ -198,22 +198,39 @@ class Layer:
 
     def install_snapshot(self, epoch: int, seq: int, chunks: list[Delta]) -> int:
         """Replace the layer by a snapshot at (epoch, seq); later buffered deltas then apply."""
+        grid, voxels = self.build_snapshot(seq, chunks)
+        return self.commit_snapshot(epoch, seq, grid, voxels)
+
+    def build_snapshot(self, seq: int, chunks: list[Delta]) -> tuple[VoxelGrid, int]:
+        """A grid of a snapshot's `chunks` at `seq`, in the block shape they take (as an empty
+        replica would: `_fit_blocks`), and the voxels applied: built apart from this layer
+        (nothing of it changes, its lock is not held; `commit_snapshot` puts it in place)."""
+        grid = self._new_grid(replica_shape([c.keys for c in chunks]))  # not concatenated
+        n = 0
+        for chunk in chunks:
+            if len(chunk):
+                grid.apply(relabel(chunk, 0, seq))
+                n += len(chunk)
+        return grid, n
+
+    def commit_snapshot(self, epoch: int, seq: int, grid: VoxelGrid, voxels: int) -> int:
+        """Replace the layer by a snapshot's `grid` of `voxels` (`build_snapshot`) at (epoch,
+        seq), unless it holds as much already (then 0); later buffered deltas then apply."""
         with self.lock:
             if (epoch, seq) <= (self.epoch, self.seq):
                 return 0
             pending = self.pending if epoch == self.epoch else {}
+            history = self.grid.history if epoch == self.epoch else None  # same epoch: valid
             self._reset(epoch)
-            self._fit_blocks([c.keys for c in chunks])  # not concatenated: 24 B a voxel
-            n = 0
-            for chunk in chunks:
-                if len(chunk):
-                    self.grid.apply(relabel(chunk, 0, seq))
-                    n += len(chunk)
+            grid.half_life = self.half_life  # (as its origin says now)
+            if history is not None:
+                grid.history = history
+            self.grid = grid
             self.seq = seq
             self.updated = time.time()
             self.pending = {s: v for s, v in pending.items() if s > seq}
             self._drain(Applied("applied"))
-            return n
+            return voxels
 
     # -- serving side ---------------------------------------------------------------------
     def snapshot(
@@ -418,6 +435,49 @@ class Layers:
                 f"found {used} held + {new} new for {origin!r}"
             )
             raise WireError("over-budget", text)
+
+    def install_snapshot(
+        self,
+        origin: str,
+        epoch: int,
+        seq: int,
+        chunks: list[Delta],
+        accept: Callable[[], None] | None = None,
+    ) -> int:
+        """Replace peer layer `origin` by a snapshot of it (`admit`ted, `replace`): its grid is
+        built with no lock held (a big layer takes seconds: the inbox goes on meanwhile), then
+        committed under `apply_lock` once what the admission found still holds: the layer not
+        forgotten since (a tombstone), room for it, its resolution, and the peer budget with the
+        blocks the grid holds (another peer's delta may have taken the room). WireError
+        otherwise, nothing changed. `accept` (the snapshot's frames accepted; it raises to
+        refuse) is called under the lock once those checks passed, before the commit. The
+        voxels installed (0: the layer holds as much already)."""
+        layer = self.find(origin)
+        resolution = float(chunks[0].resolution) if layer is None else layer.resolution
+        builder = layer or Layer(origin, resolution, ring_size=self.ring_size)
+        grid, voxels = builder.build_snapshot(seq, chunks)
+        with self.apply_lock:
+            if origin in self.forgotten:
+                text = f"expected a layer not forgotten, found {origin!r}'s (forgotten meanwhile)"
+                raise WireError("forgotten", text)
+            layer = self.find(origin)
+            if layer is None and len(self.all()) > self.max_layers:
+                text = f"expected at most {self.max_layers} peer layers, found another: {origin!r}"
+                raise WireError("too-many-layers", text)
+            if layer is not None and abs(layer.resolution - resolution) > 1e-12:
+                text = f"expected resolution {layer.resolution}, found {resolution}"
+                raise WireError("bad-resolution", text)
+            used = sum(p.blocks() for p in self.all() if p.origin not in (self.own_id, origin))
+            blocks = int(grid.store.sorted_keys.size)
+            if used + blocks > self.max_peer_blocks:
+                text = (
+                    f"expected peer layers within {self.max_peer_blocks} blocks, found {used} "
+                    f"held (since the snapshot's admission) + {blocks} for {origin!r}'s snapshot"
+                )
+                raise WireError("over-budget", text)
+            if accept is not None:
+                accept()
+            return self.get(origin, resolution).commit_snapshot(epoch, seq, grid, voxels)
 
     def get(self, origin: str, resolution: float | None = None) -> Layer:
         with self._lock:

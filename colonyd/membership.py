@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Container
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -66,12 +66,14 @@ class Membership:
 
     Bounded: a member known from its liveliness token alone is forgotten when the token goes
     (tokens are not authenticated: a stranger declaring and undeclaring made-up agent ids must not
-    grow the table), and at most `max_members` members were heard (`admit`: a heartbeat of a new
-    agent beyond them makes room by forgetting the least recently seen member without a token,
-    else it is refused). Members are bounded apart from layers: a member that holds no layer (a
-    camera that publishes none, a command-line client) counts here only. Of the layers a
-    heartbeat lists, `max_listed` are remembered (the sender's own first, then in its order):
-    at most `max_members` x `max_listed` entries, whatever a heartbeat lists (up to 4096).
+    grow the table), at most `max_members` of them are kept while their tokens live (the oldest
+    forgotten for a new one, `_room_for_token`), and at most `max_members` members were heard
+    (`admit`: a heartbeat of a new agent beyond them makes room by forgetting the least recently
+    seen member without a token, else it is refused). Members are bounded apart from layers: a
+    member that holds no layer (a camera that publishes none, a command-line client) counts here
+    only. Of the layers a heartbeat lists, `max_listed` are remembered (the sender's own first,
+    then those this daemon holds, then in its order): at most `max_members` x `max_listed`
+    entries, whatever a heartbeat lists (up to 4096).
     """
 
     def __init__(
@@ -108,6 +110,7 @@ class Membership:
             if m is None and not joined:
                 return  # the token of a member forgotten already
             if m is None:
+                self._room_for_token()
                 m = self.members[agent] = Member(agent)
             m.alive = joined
             m.last_seen = time.time()
@@ -116,6 +119,16 @@ class Membership:
             elif not m.heard:
                 del self.members[agent]  # a token alone, gone: nothing of it to keep
         self._on_event(agent, "join" if joined else "leave")
+
+    def _room_for_token(self) -> None:
+        """Make room for a new member known from its liveliness token alone (lock held): at
+        most `max_members` such members are kept (tokens are not authenticated: a stranger
+        holding ever more made-up tokens must not grow the table), the one whose token came
+        first forgotten for a new one. A member heard (its heartbeat verified) is never
+        forgotten for a token, and counts apart (`admit`)."""
+        tokens = [x for x in self.members.values() if not x.heard]
+        if len(tokens) >= self.max_members:
+            del self.members[min(tokens, key=lambda x: x.joined).agent]
 
     def admit(self, agent: str) -> None:
         """Raise WireError unless a heartbeat of `agent` may be recorded (`heard`): a member
@@ -143,11 +156,13 @@ class Membership:
             raise WireError("too-many-members", text)
         return min(gone, key=lambda x: x.last_seen)
 
-    def heard(self, agent: str, hb: Heartbeat) -> Member | None:
+    def heard(self, agent: str, hb: Heartbeat, held: Container[str] = ()) -> Member | None:
         """Record a (validated, `admit`ted) heartbeat; returns the member, or None when the room
         `admit` saw is gone: a token came back between the two for every heard member (then
         `agent` is not recorded: forgetting a live member for it would refuse that member's
-        next heartbeats as one too many)."""
+        next heartbeats as one too many). Of the layers it lists, `max_listed` are remembered:
+        the sender's own, then those in `held` (the peer layers this daemon holds, whose
+        repairs need what members hold of them), then the rest in the sender's order."""
         with self._lock:
             try:
                 evicted = self._room(agent)
@@ -162,9 +177,15 @@ class Membership:
             m.last_seen = time.time()
             m.kind = hb.kind
             m.pose = list(hb.position) if hb.position is not None else []
-            listed = sorted(hb.layers, key=lambda e: e.origin != agent)[: self.max_listed]
+            ranked = sorted(hb.layers, key=lambda e: (e.origin != agent, e.origin not in held))
+            listed = ranked[: self.max_listed]
             m.layers = {entry.origin: (entry.epoch, entry.version) for entry in listed}
             return m
+
+    def known(self, agent: str) -> bool:
+        """True if `agent` is in the table (heard, or its liveliness token seen)."""
+        with self._lock:
+            return agent in self.members
 
     def find(self, agent: str) -> Member | None:
         """A copy of what is known of `agent`, or None."""

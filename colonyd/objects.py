@@ -174,13 +174,17 @@ MAX_PEER_OBJECTS = 65_536
 #: full list): decoding a list costs ~22 us an object on the inbox's one thread (0.4 s for
 #: 16,384), so a peer sending full lists back to back held the inbox (deltas, heartbeats) to
 #: itself. The rate is shared by the peers spending their allowance (those back at a full one,
-#: which send lists seldom, take none of it): alone, a peer may send 16,384 objects a second (a
-#: full list a second; ~0.36 s of the inbox's second at most); beside three others sending as
-#: much, 4096 (2000 objects at every `objects_s` = 0.5 s refresh pass). Past its allowance a
-#: peer's lists are refused before their body is parsed (`too-often`) until it has earned it
-#: back. A list is a peer's whole current list, so a refused one is made good by the next (the
-#: daemon repeats an unchanged list).
+#: which send lists seldom, take none of it), each peer's share at most `PEER_OBJECTS_PER_S`:
+#: alone, a peer may send 8192 objects a second (~0.18 s of the inbox's second; the peers
+#: together ~0.36 s at most); beside three others sending as much, 4096 (2000 objects at every
+#: `objects_s` = 0.5 s refresh pass). Past its allowance a peer's lists are refused before their
+#: body is parsed (`too-often`) until it has earned it back. A list is a peer's whole current
+#: list, so a refused one is made good by the next (the daemon repeats an unchanged list).
 OBJECTS_PER_S = 16_384.0
+#: The most of `OBJECTS_PER_S` one peer's share may be: a full list at every refresh of the
+#: default `objects_s` (2 s), 2000 objects every 0.5 s twice over; a peer flooding alone takes
+#: no more of the inbox (it took all of `OBJECTS_PER_S`: ~0.36 s of every second).
+PEER_OBJECTS_PER_S = 8192.0
 OBJECTS_BURST = 16_384
 #: Most peers whose allowance is remembered (those back at a full allowance are forgotten first).
 MAX_ALLOWANCES = 4096
@@ -211,19 +215,22 @@ class PeerObjects:
         max_objects: int = MAX_PEER_OBJECTS,
         *,
         per_s: float = OBJECTS_PER_S,
+        peer_per_s: float = PEER_OBJECTS_PER_S,
         burst: int = OBJECTS_BURST,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.max_origins = max_origins
         self.max_objects = max_objects
         self.per_s = per_s
+        self.peer_per_s = peer_per_s
         self.burst = burst
         self._clock = clock
         self._lists: dict[str, tuple[float, list[WireObject]]] = {}
         #: origin -> (objects it may still send, clock then): `allow` and `charge`
         self._allowance: dict[str, tuple[float, float]] = {}
-        #: objects a second each peer earns back: `per_s` over the peers spending theirs
-        self._rate = per_s
+        #: objects a second each peer earns back: `per_s` over the peers spending theirs, at
+        #: most `peer_per_s`
+        self._rate = min(per_s, peer_per_s)
         self._lock = threading.Lock()
 
     def _earned(self, origin: str, now: float) -> float:
@@ -237,15 +244,16 @@ class PeerObjects:
 
     def allow(self, origin: str) -> None:
         """WireError (`too-often`) unless `origin` may send a list now: it has not spent more
-        than its allowance (its share of `per_s` objects a second, `burst` at once). Changes
-        nothing."""
+        than its allowance (its share of `per_s` objects a second, at most `peer_per_s`, `burst`
+        at once). Changes nothing."""
         with self._lock:
             left = self._earned(origin, self._clock())
             rate = self._rate
         if left <= 0:
             text = (
                 f"expected at most {rate:g} listed objects a second from {origin!r} "
-                f"({self.per_s:g} shared by the peers sending lists, {self.burst} at once), found "
+                f"({self.per_s:g} shared by the peers sending lists, at most "
+                f"{self.peer_per_s:g} each, {self.burst} at once), found "
                 f"it {-left:.0f} objects past its allowance"
             )
             raise WireError("too-often", text)
@@ -265,12 +273,17 @@ class PeerObjects:
             self._allowance = {o: (self._earned(o, now), now) for o in self._allowance}
             self._allowance[origin] = (left, now)
             spending = sum(1 for v, _ in self._allowance.values() if v < self.burst)
-            self._rate = self.per_s / max(1, spending)
+            self._rate = min(self.peer_per_s, self.per_s / max(1, spending))
 
-    def admit(self, origin: str) -> None:
+    def admit(self, origin: str, member: Callable[[str], bool] = lambda _: True) -> None:
         """Raise WireError unless a list of `origin` may be kept (replacing its previous one):
-        a peer already holding one, or room for one more."""
+        a peer already holding one, or room for one more, made if need be by forgetting the
+        lists of agents no longer `member`s (else agents come and gone, or made up, would keep
+        every later member's list out for good)."""
         with self._lock:
+            if origin not in self._lists and len(self._lists) >= self.max_origins:
+                for o in [o for o in self._lists if not member(o)]:
+                    del self._lists[o]
             if origin not in self._lists and len(self._lists) >= self.max_origins:
                 text = (
                     f"expected object lists of at most {self.max_origins} peers, "

@@ -402,7 +402,17 @@ def _verify(
     end = _envelope_end(data, flags)
     public = trust.key_for(origin, identity)
     view = memoryview(data)
-    verify_signature(public, view[:end], view[end : end + SIG_BYTES], origin)
+    try:
+        verify_signature(public, view[:end], view[end : end + SIG_BYTES], origin)
+    except IdentityError as exc:
+        if identity is None and "identity" in cls.model_fields:  # a Heartbeat, the pinned key
+            msg = (
+                f"{exc} (a Heartbeat checked with its pinned or listed key before its body is "
+                "read: signed by another key holder impersonating it, or by a reinstalled agent "
+                "whose pin must be removed)"
+            )
+            raise IdentityError(msg) from None
+        raise
 
 
 # --------------------------------------------------------------------------- delta helpers

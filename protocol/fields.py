@@ -169,8 +169,8 @@ def unpack(data: bytes, what: str, limits: Limits) -> Any:
         raise MalformedError(msg) from None
 
 
-#: msgpack heads of a str (fixstr, str8, str16) and of a bin (bin8, bin16, bin32).
-_STR_HEADS = frozenset([*range(0xA0, 0xC0), 0xD9, 0xDA])
+#: msgpack heads of a str (fixstr, str8, str16, str32) and of a bin (bin8, bin16, bin32).
+_STR_HEADS = frozenset([*range(0xA0, 0xC0), 0xD9, 0xDA, 0xDB])
 _BIN_HEADS = frozenset([0xC4, 0xC5, 0xC6])
 
 

@@ -1362,3 +1362,231 @@ def test_members_without_layers_keep_no_robot_out() -> None:
                 t.undeclare()
             table.close()
             d.close()
+
+
+class _Racing(Replicas):
+    """Replicas whose admission of a snapshot (`admit(replace=True)`: the catch-up's, before
+    the snapshot is built and installed) runs `race` on another thread, then waits up to 0.5 s
+    for it: the one stand-in, forcing the interleaving at the one point it can happen (the
+    frames, sessions, inbox, layers and catch-up are real)."""
+
+    def __init__(self, d: SimpleNamespace, race: Callable[[], None]) -> None:
+        super().__init__(d.layers, d.metrics)
+        self._race = race
+        self.raced: list[threading.Thread] = []
+
+    def admit(self, origin, epoch, deltas, replace=False) -> None:
+        super().admit(origin, epoch, deltas, replace)
+        if replace and not self.raced:
+            self.raced.append(threading.Thread(target=self._race))
+            self.raced[0].start()
+            self.raced[0].join(0.5)  # done unless it waits for the install
+
+
+def _tombstone(agent: str, signer: Signer, forgotten: list[str], seq: int) -> bytes:
+    sender = Sender(agent, 7, key=KEY, signer=signer, first_seq=seq)
+    hb = Heartbeat(**sender.header(), kind="robot", frame_id=f"{agent}.odom", forgotten=forgotten)
+    return sender.encode(hb)
+
+
+def test_a_tombstone_during_a_snapshot_install_leaves_the_layer_forgotten() -> None:
+    """A snapshot was admitted (the layer not forgotten), then installed outside the layers'
+    apply lock: a tombstone (`forget_agent`, carried by another member's heartbeat) that came
+    between the two dropped nothing yet held, and the install then made the layer again, a
+    forgotten agent's layer held (and served) until the next tombstone. Now the install is
+    committed under the apply lock, after checking the layer is still not forgotten (refused,
+    `forgotten`, its frames not accepted). Real sessions, frames, inbox, layers and catch-up;
+    `_Racing` forces the interleaving."""
+    chunk = Delta(0.1, 0, 3, [[0, 0, 0], [1, 0, 0]], [1.0, 1.0], [1.7e9, 1.7e9])
+    with _sessions(2) as (mine, evil):
+        d = _daemon(mine)
+        signer = Signer.generate()
+        d.feed("hb", "evil", _heartbeat("evil", signer))
+        b = Signer.generate()
+        d.feed("hb", "b", _heartbeat("b", b))
+        q = _serve(evil, signer, lambda rid, s: [_snapshot_reply(s, rid, chunk, 0, 1)])
+        try:
+            assert _until(lambda: _answers(mine))
+            replicas = _Racing(d, lambda: d.feed("hb", "b", _tombstone("b", b, ["evil"], 2)))
+            catchup = CatchUp(mine, NS, replicas, Sender("me", 1, key=KEY), d.receiver, d.metrics)
+            installed = catchup._fetch_snapshot("evil", "evil", time.monotonic())
+            replicas.raced[0].join(5.0)
+            assert "evil" in d.layers.forgotten
+            assert d.layers.find("evil") is None, d.layers.find("evil").seq
+            assert not installed
+            assert d.metrics.rejected["forgotten"] == 1
+            assert d.receiver.accepted["snapshot_reply"] == 0  # refused: no window moved
+            d.receiver.replay.peek("evil", 7, 100)
+        finally:
+            q.undeclare()
+            d.close()
+
+
+def test_a_live_delta_during_a_snapshot_install_cannot_overshoot_the_budget() -> None:
+    """A snapshot was admitted against the peer budget, then installed outside the apply lock:
+    a live delta of another peer admitted and applied between the two took the room the
+    snapshot was admitted for, and both held more blocks than `max_peer_blocks`. The install
+    is now committed under the apply lock after checking the budget again with the blocks its
+    grid holds: the snapshot (which came second to the budget) is refused, `over-budget`, and
+    the budget is never exceeded. `_Racing` forces the interleaving."""
+    with _sessions(2) as (mine, evil):
+        d = _daemon(mine)  # a peer budget of 1000 blocks
+        signer = Signer.generate()
+        d.feed("hb", "evil", _heartbeat("evil", signer))
+        _, b = _introduce(d, "b")
+        snap = _box(0, 6, 3)  # 600 blocks: fits the budget alone
+        snap = Delta(0.1, 0, 3, snap.keys, snap.logodds, snap.last_time)
+        live = _one_part(b, _box(1000, 5, 1))  # b's first delta, 500 blocks: fits alone too
+        q = _serve(evil, signer, lambda rid, s: [_snapshot_reply(s, rid, snap, 0, 1)])
+        try:
+            assert _until(lambda: _answers(mine))
+            replicas = _Racing(d, lambda: d.feed("delta", "b", live))
+            catchup = CatchUp(mine, NS, replicas, Sender("me", 1, key=KEY), d.receiver, d.metrics)
+            installed = catchup._fetch_snapshot("evil", "evil", time.monotonic())
+            replicas.raced[0].join(5.0)
+            blocks = sum(x.blocks() for x in d.layers.all() if x.origin != "me")
+            assert blocks <= d.layers.max_peer_blocks, blocks
+            assert d.layers.find("b").seq == 1  # first come, first served
+            assert not installed and d.metrics.rejected["over-budget"] == 1
+            assert d.layers.find("evil") is None or d.layers.find("evil").seq == 0
+        finally:
+            q.undeclare()
+            d.close()
+
+
+def test_liveliness_tokens_held_by_a_stranger_keep_the_table_bounded() -> None:
+    """A member known from its liveliness token alone was kept while its token lived: a
+    stranger declaring ever more made-up tokens (and holding them) grew the member table
+    without end (each a join). Now at most `max_members` such members are kept, the oldest
+    forgotten for a new one; a member whose heartbeat was verified is never forgotten for
+    them, and a token-only member's later heartbeat still makes it a member."""
+    with _sessions(3) as (mine, real, stranger):
+        d = _daemon(mine, max_members=4)
+        tokens: list = []
+        try:
+            b = Membership(real, NS, "b", lambda agent, event: None)
+            assert _until(lambda: d.membership.find("b") is not None)
+            d.feed("hb", "b", _heartbeat("b", Signer.generate()))
+            for i in range(40):
+                tokens.append(stranger.liveliness().declare_token(alive_key(NS, f"x{i}")))
+            assert _until(lambda: d.membership.find("x39") is not None)
+            time.sleep(0.2)  # any late join
+            table = {m.agent for m in d.membership.table()}
+            assert table == {"b", "x36", "x37", "x38", "x39"}, sorted(table)
+            assert d.membership.find("b").alive and d.membership.find("b").heard
+            d.feed("hb", "x38", _heartbeat("x38", Signer.generate()))  # heard now: kept
+            for i in range(40, 44):
+                tokens.append(stranger.liveliness().declare_token(alive_key(NS, f"x{i}")))
+            assert _until(lambda: d.membership.find("x43") is not None)
+            time.sleep(0.2)
+            table = {m.agent for m in d.membership.table()}
+            assert table == {"b", "x38", "x40", "x41", "x42", "x43"}, sorted(table)
+            for token in tokens:
+                token.undeclare()
+            tokens.clear()
+            assert _until(lambda: d.membership.alive() == ["b"])
+            time.sleep(0.2)
+            assert {m.agent for m in d.membership.table()} == {"b", "x38"}
+            b.close()
+        finally:
+            for token in tokens:
+                token.undeclare()
+            d.close()
+
+
+def test_a_heartbeat_listing_too_many_layers_keeps_those_held_first() -> None:
+    """A member's heartbeat is remembered to hold at most `max_layers` + 1 layers: those past
+    it were dropped in the sender's order, so a member listing many layers this daemon does not
+    hold first hid what it holds of the layers this daemon does (their repairs ask the members
+    that report more). Now the sender's own comes first, then the layers held here, then the
+    rest in the sender's order."""
+    from colonyd.config import Config
+    from colonyd.daemon import member_table
+
+    with _sessions(1) as (mine,):
+        d = _daemon(mine)
+        table = member_table(mine, Config(agent_id="me", namespace=NS, max_layers=2),
+                             lambda agent, event: None)  # fmt: skip
+        d.inbox.membership = table
+        try:
+            for origin in ("l50", "l70"):  # the peer layers this daemon holds
+                _, sender = _introduce(d, origin)
+                assert _first_delta(d, sender) is not None
+            signer = Signer.generate()
+            d.feed("hb", "robot", _heartbeat("robot", signer))
+            s = Sender("robot", 7, key=KEY, signer=signer, first_seq=5)
+            listed = [LayerVersion(origin=f"l{i}", epoch=7, version=9) for i in range(100)]
+            listed += [LayerVersion(origin="me", epoch=1, version=1),
+                       LayerVersion(origin="robot", epoch=7, version=3)]  # fmt: skip
+            hb = Heartbeat(**s.header(), kind="robot", frame_id="robot.odom", layers=listed)
+            d.feed("hb", "robot", s.encode(hb))
+            kept = table.find("robot").layers
+            assert kept == {"robot": (7, 3), "l50": (7, 9), "l70": (7, 9)}, kept
+        finally:
+            table.close()
+            d.close()
+
+
+def test_a_peer_flooding_object_lists_alone_gets_no_more_than_a_peers_rate() -> None:
+    """The objects rate (16,384 a second, ~0.36 s of the inbox's second) is shared by the
+    peers spending theirs: a peer flooding alone (a key holder, a member gone wrong) took all
+    of it, where 2048 a second was its bound before. A peer's share is now also at most
+    `PEER_OBJECTS_PER_S` (8192: a full list at every default 2 s refresh, ~0.18 s of the
+    inbox's second): it passes at most that over 20 s, plus its first full list; the member
+    with 2000 objects changing every 0.5 s (4000 a second) still passes every list, alone or
+    beside three others doing as much."""
+    from colonyd.objects import PEER_OBJECTS_PER_S
+
+    now = [0.0]
+    objects = PeerObjects(clock=lambda: now[0])
+    passed = 0
+    for _ in range(200):  # a full list every 0.1 s
+        try:
+            objects.allow("flood")
+        except WireError:
+            pass
+        else:
+            objects.charge("flood", objects.burst)
+            passed += objects.burst
+        now[0] += 0.1
+    assert passed <= PEER_OBJECTS_PER_S * now[0] + 2 * objects.burst, passed
+    assert min(PEER_OBJECTS_PER_S / 4000, PEER_OBJECTS_PER_S / (objects.burst / 2.0)) >= 1.0
+    for peers in (1, 4):
+        busy = PeerObjects(clock=lambda: now[0])
+        for _ in range(40):
+            for k in range(peers):
+                busy.allow(f"b{k}")  # raises if refused
+                busy.charge(f"b{k}", 2000)
+            now[0] += 0.5
+
+
+def test_object_lists_of_agents_no_longer_members_keep_no_member_out() -> None:
+    """Peers' object lists were kept for `max_members` origins and never dropped: once that
+    many agents had sent one (made-up identities, each introduced by one heartbeat, or robots
+    come and gone), every later member's list was refused (`too-many-layers`) for as long as
+    the daemon ran, though those agents had long left the member table. A list is now taken
+    from a member only (`unknown-member`), and a list of an agent no longer a member makes
+    room for a member's."""
+    with _sessions(2) as (mine, other):
+        d = _daemon(mine, max_members=4)
+        d.peer_objects.max_origins = 4
+        tokens = [other.liveliness().declare_token(alive_key(NS, "real"))]
+        try:
+            assert _until(lambda: d.membership.alive() == ["real"])
+            ghosts = [f"g{i}" for i in range(4)]
+            send = _listing(d, ghosts)  # introduced: members (heard, no token)
+            for g in ghosts:
+                send(g, _objects(3))
+            assert d.peer_objects.origins() == ghosts
+            real = _listing(d, ["real"])  # its heartbeat: the least recently seen ghost goes
+            assert d.membership.find("g0") is None
+            real("real", _objects(3))
+            assert len(d.peer_objects.get("real")) == 3, d.metrics.rejected
+            assert "g0" not in d.peer_objects.origins()
+            send("g0", _objects(3))  # pinned still, a member no more: refused
+            assert d.metrics.rejected["unknown-member"] == 1
+            assert d.metrics.rejected["too-many-layers"] == 0
+        finally:
+            for t in tokens:
+                t.undeclare()
+            d.close()

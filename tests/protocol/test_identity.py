@@ -158,13 +158,16 @@ def test_trust_on_first_use_pins_a_bounded_number_of_agents() -> None:
     rx.receive(encode(again, signer=signer))  # a pinned agent carries on
 
 
-def _raw_hb(body: dict, origin: str, signer: Signer, seq: int = 2, zstd: bool = True) -> bytes:
-    """A Heartbeat frame of any `body` (keys the model may not know, values it refuses)."""
+def _raw_hb(
+    body: dict | bytes, origin: str, signer: Signer, seq: int = 2, zstd: bool = True
+) -> bytes:
+    """A Heartbeat frame of any `body` (keys the model may not know, values it refuses; bytes:
+    packed already)."""
     from protocol import fields
     from protocol.codec import COMPRESSION_SHIFT, COMPRESSION_ZSTD, FLAG_SIGNED, MAGIC, PREFIX
     from protocol.messages import PROTOCOL_VERSION
 
-    packed = fields.pack(body)
+    packed = body if isinstance(body, bytes) else fields.pack(body)
     packed = fields.compress(packed) if zstd else packed
     flags = ((COMPRESSION_ZSTD << COMPRESSION_SHIFT) if zstd else 0) | FLAG_SIGNED
     envelope = fields.pack([origin, 7, seq, 1.0, packed])
@@ -250,3 +253,40 @@ def test_heartbeat_bodies_past_their_bound_are_refused_unread() -> None:
     for compression in ("zstd", "none"):
         frame = encode(largest, signer=A, compression=compression)
         assert len(rx.decode(frame).layers) == 4096
+
+
+def test_a_strangers_heartbeat_with_keys_of_any_string_format_is_read() -> None:
+    """A body is a msgpack map with string keys (PROTOCOL.md §5): a key may be any of msgpack's
+    string formats (fixstr, str8, str16, str32; an encoder need not pick the shortest), and
+    `unpack` takes them all. The walk that reads a stranger's `identity` before its signature
+    is checked refused a str32 key (`malformed`): a valid heartbeat of another encoder refused
+    from every agent not pinned yet."""
+    from protocol import fields
+
+    def str32(text: str) -> bytes:
+        raw = text.encode()
+        return b"\xdb" + len(raw).to_bytes(4, "big") + raw
+
+    body = (b"\x83" + str32("kind") + fields.pack("robot") + str32("frame_id") + fields.pack("map")
+            + str32("identity") + fields.pack(A.public))  # fmt: skip
+    assert fields.unpack(body, "body", Receiver().limits) == {
+        "kind": "robot", "frame_id": "map", "identity": A.public
+    }  # fmt: skip
+    hb = Receiver(trust=Trust("tofu")).decode(_raw_hb(body, "a", A))
+    assert hb.origin == "a" and hb.identity == A.public
+
+
+def test_a_reinstalled_agents_heartbeat_says_its_pin_may_need_removing() -> None:
+    """An agent reinstalled with a new key (its pin, here or in `known_agents.json`, still the
+    old one) sends heartbeats signed with the new key and offering it. They are refused, as
+    they were; but its heartbeat is now checked with the pinned key before its body is read,
+    and the refusal said only that the signature does not verify, where it said what the
+    operator may have to do: remove the reinstalled agent's pin (or look for an impersonator).
+    The refusal of a pinned agent's heartbeat says so again, with no body read for it."""
+    rx = Receiver(key=KEY, trust=Trust("tofu", {"a": A.public}))
+    with pytest.raises(IdentityError, match="does not verify") as info:
+        rx.decode(_hb(5, B))  # 'a' reinstalled with key B
+    assert "pin must be removed" in str(info.value), info.value
+    with pytest.raises(IdentityError, match="does not verify") as info:
+        rx.decode(_pose(6, B))  # not a heartbeat: no key offered, no hint
+    assert "pin" not in str(info.value)
