@@ -3,6 +3,7 @@ scouting) Zenoh sessions and real frames: refused, bounded, and leaving nothing 
 
 from __future__ import annotations
 
+import functools
 import socket
 import threading
 import time
@@ -581,6 +582,20 @@ def test_an_absurd_alignment_offer_cannot_break_the_colony_frame() -> None:
             d.close()
 
 
+@functools.cache
+def _objects_at(x: float) -> tuple[ObjectCentroid, ...]:
+    return tuple(
+        ObjectCentroid(object_id=i, class_id=3, position=(i, x, 0.0), voxel_count=9, time=1.0)
+        for i in range(16_384)
+    )
+
+
+def _objects(x: float) -> list[ObjectCentroid]:
+    """16,384 objects (the most one list holds) at (i, `x`, 0), validated once per `x` in this
+    module (~0.2 CPU-s a list; a frame encodes them again each time, with its own header)."""
+    return list(_objects_at(x))
+
+
 def test_peers_object_lists_are_bounded_together() -> None:
     """Object lists of at most 16,384 objects each, from up to 256 peers: a few hundred KB of
     wire each, ~2 KB of memory an object once decoded (~8 GB for 256 full lists, outside every
@@ -590,12 +605,7 @@ def test_peers_object_lists_are_bounded_together() -> None:
     with _sessions(1) as (mine,):
         d = _daemon(mine)
         try:
-            listed = [
-                ObjectCentroid(
-                    object_id=i, class_id=3, position=(i, 0.0, 0.0), voxel_count=9, time=1.0
-                )
-                for i in range(16_384)
-            ]
+            listed = _objects(0.0)
             n = MAX_PEER_OBJECTS // len(listed) + 1
             senders = []
             for k in range(n):
@@ -906,12 +916,8 @@ def test_a_member_that_never_answers_cannot_stall_repairs() -> None:
 
 
 def _full_list(sender: Sender, x: float = 0.0) -> bytes:
-    listed = [
-        ObjectCentroid(object_id=i, class_id=3, position=(i, x, 0.0), voxel_count=9, time=1.0)
-        for i in range(16_384)
-    ]
     frame_id = f"{sender.origin}.odom"
-    return sender.encode(Objects(**sender.header(), frame_id=frame_id, objects=listed))
+    return sender.encode(Objects(**sender.header(), frame_id=frame_id, objects=_objects(x)))
 
 
 def test_full_object_lists_back_to_back_cannot_hold_the_inbox() -> None:
