@@ -277,7 +277,26 @@ def format_status(reports: list[dict[str, Any]]) -> str:
         state = "(left)" if alive and not any(alive) else "(not answering)"
         lines.append(f"{agent:<16} {kind:<8} {ago:>9} {'-':<22} {'?':>6} {'?':>7}  {state}")
     lines.extend(frame_lines(reports, sorted(seen)))
+    lines.extend(source_lines(reports))
     return "\n".join(lines)
+
+
+def source_lines(reports: list[dict[str, Any]]) -> list[str]:
+    """Each answering member's sources: frames in its layer (those from before a restart, when
+    a recording resumed), frames skipped, and whether a recording was read to its end."""
+    lines = []
+    for r in reports:
+        for s in r.get("sources", []):
+            frames = s.get("position", s.get("delivered", 0))
+            text = f"{r['agent']}: source {s.get('spec', '?')}: {frames} frames"
+            if s.get("resumed_after"):
+                text += f" ({s['resumed_after']} from before a restart)"
+            if s.get("skipped"):
+                text += f", {s['skipped']} skipped"
+            if s.get("done"):
+                text += ", read to its end"
+            lines.append(text)
+    return lines
 
 
 def frame_lines(reports: list[dict[str, Any]], members: list[str]) -> list[str]:

@@ -116,3 +116,27 @@ def test_the_table_says_which_members_are_aligned_with_the_colony_frame() -> Non
     ]
     one = format_status(reports[:2]).splitlines()[-1]
     assert one == "colony frame: root robot-a; aligned: robot-a, robot-b; not aligned: none"
+
+
+def test_the_table_shows_each_members_sources_and_a_resumed_recordings_position() -> None:
+    """A recording's progress (and where it resumed after a restart) was in `--json` only."""
+    from colonyd.status import format_status
+
+    now = time.time()
+    sources = [
+        {
+            "spec": "replay:run.log",
+            "delivered": 129,
+            "skipped": 2,
+            "position": 160,
+            "resumed_after": 31,
+            "done": True,
+        },
+        {"spec": "sim:agent=lidar-1", "delivered": 40, "skipped": 0},
+    ]
+    reports = [{"agent": "robot-a", "time": now, "members": [], "sources": sources}]
+    assert format_status(reports).splitlines()[-2:] == [
+        "robot-a: source replay:run.log: 160 frames (31 from before a restart), 2 skipped, "
+        "read to its end",
+        "robot-a: source sim:agent=lidar-1: 40 frames",
+    ]
