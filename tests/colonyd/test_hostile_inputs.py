@@ -590,7 +590,7 @@ def _objects_at(x: float) -> tuple[ObjectCentroid, ...]:
     )
 
 
-def _objects(x: float) -> list[ObjectCentroid]:
+def _max_objects(x: float) -> list[ObjectCentroid]:
     """16,384 objects (the most one list holds) at (i, `x`, 0), validated once per `x` in this
     module (~0.2 CPU-s a list; a frame encodes them again each time, with its own header)."""
     return list(_objects_at(x))
@@ -605,7 +605,7 @@ def test_peers_object_lists_are_bounded_together() -> None:
     with _sessions(1) as (mine,):
         d = _daemon(mine)
         try:
-            listed = _objects(0.0)
+            listed = _max_objects(0.0)
             n = MAX_PEER_OBJECTS // len(listed) + 1
             senders = []
             for k in range(n):
@@ -917,7 +917,7 @@ def test_a_member_that_never_answers_cannot_stall_repairs() -> None:
 
 def _full_list(sender: Sender, x: float = 0.0) -> bytes:
     frame_id = f"{sender.origin}.odom"
-    return sender.encode(Objects(**sender.header(), frame_id=frame_id, objects=_objects(x)))
+    return sender.encode(Objects(**sender.header(), frame_id=frame_id, objects=_max_objects(x)))
 
 
 def test_full_object_lists_back_to_back_cannot_hold_the_inbox() -> None:
