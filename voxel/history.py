@@ -217,7 +217,10 @@ class History:
             block["version"] = observer.version
             self.size += n
 
-    def _log_seen(self, keys: np.ndarray, time: float, version: int) -> None:
+    def _log_seen(
+        self, keys: np.ndarray, time: float | np.ndarray, version: int | np.ndarray
+    ) -> None:
+        """Append seen entries: one time and version for all, or one each."""
         n = int(keys.size)
         if n == 0:
             return
@@ -409,6 +412,60 @@ class History:
         rec = rec[np.argsort(rec["version"], kind="stable")]
         seen = seen[np.argsort(seen["version"], kind="stable")]
         return HistoryPage(rec, list(self.agents), seen), to, to < hi
+
+    def since(self, after: int, upto: int) -> HistoryPage:
+        """Every record and seen entry of versions in (`after`, `upto`], in the order held, with
+        the whole agent table: what one own delta's versions added (its write-ahead log record,
+        `replay`). Unbounded, unlike `page`."""
+        rec = self.view()
+        v = rec["version"]
+        rec = rec[(v > after) & (v <= upto)]
+        v = self._seen_column("version")
+        take = (v > after) & (v <= upto)
+        seen = np.empty(int(np.count_nonzero(take)), dtype=SEEN_DTYPE)
+        for k, c in self._seen.items():
+            seen[k] = c[: self.seen_size][take]
+        return HistoryPage(rec, list(self.agents), seen)
+
+    def replay(self, page: HistoryPage, after: int) -> int:
+        """Take back, at recovery, the entries of versions above `after` of a page `since` made
+        of this history: its agent table is registered in order first (the codes stay those of
+        the history that wrote it), entries held of those versions are replaced (records of
+        scans that changed nothing, made before the version was taken), then the page's are
+        appended in its order. The bounds hold as for new scans. Returns entries taken."""
+        codes = np.array([self.agent_code(a) for a in page.agents], dtype=np.uint16)
+        kept = self.view()["version"] <= after
+        if not kept.all():
+            rec = self.view()[kept]
+            self._buf[: rec.size] = rec
+            self.size = rec.size
+        kept = self._seen_column("version") <= after
+        if not kept.all():
+            left = int(np.count_nonzero(kept))
+            for col in self._seen.values():
+                col[:left] = col[: self.seen_size][kept]
+            self.seen_size = left
+        rec = page.records[page.records["version"] > after]
+        if rec.size:
+            if int(rec["agent"].max()) >= codes.size:
+                msg = (
+                    f"history page: expected agent codes below {codes.size} (its table), "
+                    f"found {int(rec['agent'].max())}"
+                )
+                raise InputError(msg)
+            if rec.size > self.capacity:  # more than the bound: its newest only
+                self.dropped += rec.size - self.capacity
+                rec = rec[rec.size - self.capacity :]
+            cols = {n: rec[n] for n in RECORD_COLUMNS if n != "key"}
+            cols["agent"] = codes[rec["agent"]]
+            self.append(rec["key"], **cols)
+        seen = page.seen[page.seen["version"] > after]
+        if seen.size > self.capacity:
+            self.dropped += seen.size - self.capacity
+            seen = seen[seen.size - self.capacity :]
+        if seen.size:
+            self._log_seen(seen["key"], seen["time"], seen["version"])
+        return int(rec.size + seen.size)
 
     def admit(self, page: HistoryPage) -> None:
         """Raise InputError unless `merge` can take `page`: the agents its new records name

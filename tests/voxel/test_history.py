@@ -186,3 +186,49 @@ def test_lowering_the_capacity_returns_memory_at_the_next_merge() -> None:
     assert replica.size <= 12_000 and replica.seen_size <= 12_000
     assert replica.allocated_bytes() <= 12_000 * (RECORD_DTYPE.itemsize + SEEN_DTYPE.itemsize)
     assert replica.allocated_bytes() < big / 2
+
+
+def test_replay_takes_back_what_since_gave_in_order_with_the_same_agent_codes() -> None:
+    """A history rebuilt from a snapshot's and the pages of its later versions (the write-ahead
+    log's, `since`) equals the one that wrote them: records in order, agent codes, seen log;
+    entries held of a replayed version (a scan that changed nothing) are replaced, not doubled."""
+    grid = VoxelGrid(RES)
+    for t in range(3):
+        grid.integrate(
+            WALL + np.array([[0.0, 0.1 * t, 0.0]]), ORIGIN, time=float(t), agent=f"r-{t % 2}"
+        )
+    snap = History()
+    snap.load(grid.history.view().copy(), list(grid.history.agents), grid.history.seen())
+    cut = grid.version
+    pages = []
+    for t in range(3, 7):
+        before = grid.version
+        grid.integrate(
+            WALL + np.array([[0.0, 0.1 * t, 0.0]]), ORIGIN, time=float(t), agent=f"r-{t % 3}"
+        )
+        pages.append((before, grid.history.since(before, grid.version)))
+    src = grid.history
+    assert src.agents == ["r-0", "r-1", "r-2"]
+    # the snapshot also held the first replayed version's records already (replaced)
+    held = src.view()[src.view()["version"] == cut + 1][:2]
+    snap.append(held["key"], **{n: held[n] for n in held.dtype.names if n != "key"})
+    for before, page in pages:
+        assert snap.replay(page, before) == page.records.size + page.seen.size
+    assert np.array_equal(snap.view(), src.view())
+    assert np.array_equal(snap.seen(), src.seen())
+    assert snap.agents == src.agents
+    assert snap.replay(pages[-1][1], grid.version) == 0  # versions held: nothing taken
+
+
+def test_replaying_past_the_capacity_keeps_the_newest() -> None:
+    origin = History()
+    agent = origin.agent_code("a")
+    keys = np.arange(30_000, dtype=np.int64)
+    for v in range(3):
+        part = keys[v * 10_000 : (v + 1) * 10_000]
+        origin.append(part, time=float(v), version=v + 1, agent=agent)
+        origin._log_seen(part + 100_000, float(v), v + 1)
+    small = History(capacity=12_000)
+    assert small.replay(origin.since(0, 3), 0) == 24_000
+    assert small.size <= 12_000 and small.seen_size <= 12_000
+    assert small.newest_version() == 3 and set(small.view()["version"]) <= {2, 3}
