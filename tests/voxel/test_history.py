@@ -232,3 +232,33 @@ def test_replaying_past_the_capacity_keeps_the_newest() -> None:
     assert small.replay(origin.since(0, 3), 0) == 24_000
     assert small.size <= 12_000 and small.seen_size <= 12_000
     assert small.newest_version() == 3 and set(small.view()["version"]) <= {2, 3}
+
+
+def test_since_takes_the_same_entries_in_version_order_or_not() -> None:
+    """`since` bisects while versions come in order, and reads every entry once a compaction
+    (which orders records by time) left them out of order: the same entries either way."""
+    h = History(capacity=4000, per_voxel=2)
+    agent = h.agent_code("a")
+    rng = np.random.default_rng(3)
+    for v in range(1, 41):
+        keys = rng.integers(0, 300, 150)
+        t = float(rng.uniform(0, 100))  # times not in version order
+        h.append(keys, time=t, version=v, agent=agent)
+        h._log_seen(keys + 1000, t, v)
+
+    def brute(hist: History, after: int, upto: int) -> tuple[np.ndarray, np.ndarray]:
+        rec, seen = hist.view(), hist.seen()
+        return (
+            rec[(rec["version"] > after) & (rec["version"] <= upto)],
+            seen[(seen["version"] > after) & (seen["version"] <= upto)],
+        )
+
+    assert h.dropped and not h._records_ordered and h._seen_ordered
+    fresh = History()
+    fresh.load(h.view()[np.argsort(h.view()["version"], kind="stable")], h.agents, h.seen())
+    assert fresh._records_ordered
+    for hist in (h, fresh):
+        for after, upto in ((0, 40), (10, 20), (39, 40), (40, 40), (5, 3)):
+            page = hist.since(after, upto)
+            rec, seen = brute(hist, after, upto)
+            assert np.array_equal(page.records, rec) and np.array_equal(page.seen, seen)
