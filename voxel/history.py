@@ -459,13 +459,17 @@ class History:
         scans that changed nothing, made before the version was taken), then the page's are
         appended in its order. The bounds hold as for new scans. Returns entries taken."""
         codes = np.array([self.agent_code(a) for a in page.agents], dtype=np.uint16)
-        kept = self.view()["version"] <= after
-        if not kept.all():
+        held = self.view()["version"]
+        if self._records_ordered:  # the usual case: cut the tail, read nothing else
+            self.size = bisect.bisect_right(held, after)
+        elif not (kept := held <= after).all():
             rec = self.view()[kept]
             self._buf[: rec.size] = rec
             self.size = rec.size
-        kept = self._seen_column("version") <= after
-        if not kept.all():
+        held = self._seen_column("version")
+        if self._seen_ordered:
+            self.seen_size = int(np.searchsorted(held, np.array(after, held.dtype), "right"))
+        elif not (kept := held <= after).all():
             left = int(np.count_nonzero(kept))
             for col in self._seen.values():
                 col[:left] = col[: self.seen_size][kept]

@@ -262,3 +262,26 @@ def test_since_takes_the_same_entries_in_version_order_or_not() -> None:
             page = hist.since(after, upto)
             rec, seen = brute(hist, after, upto)
             assert np.array_equal(page.records, rec) and np.array_equal(page.seen, seen)
+
+
+def test_replay_replaces_held_versions_in_or_out_of_version_order() -> None:
+    """Entries of the replayed versions held already go whether the versions are in order (the
+    tail is cut) or not (after a compaction: every entry is read)."""
+    page_src = History()
+    agent = page_src.agent_code("a")
+    page_src.append(np.array([40, 50, 51]), time=9.0, version=np.array([4, 5, 5]), agent=agent)
+    page_src._log_seen(np.array([140, 150]), np.array([9.0, 9.0]), np.array([4, 5]))
+    page = page_src.since(3, 5)
+    for order in ([1, 2, 3, 4], [3, 1, 4, 2]):
+        versions = np.array(order, dtype=np.uint32)
+        records = np.zeros(4, RECORD_DTYPE)
+        records["key"], records["version"] = versions * 10, versions
+        seen = np.zeros(4, SEEN_DTYPE)
+        seen["key"], seen["version"] = versions * 10 + 100, versions
+        h = History()
+        h.load(records, ["a"], seen)
+        assert h._records_ordered == (order == [1, 2, 3, 4])
+        assert h.replay(page, 3) == 5
+        kept = [k for k in order if k <= 3]
+        assert list(h.view()["key"]) == [10 * k for k in kept] + [40, 50, 51]
+        assert list(h.seen()["key"]) == [10 * k + 100 for k in kept] + [140, 150]
