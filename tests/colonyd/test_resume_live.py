@@ -206,12 +206,14 @@ def _history(state_dir: Path, agent: str) -> Any:
         shutil.rmtree(copy)
 
 
-def test_a_sigkill_loses_no_history(make_colony):
+@pytest.mark.parametrize("sync", ["false", "true"], ids=["write-then-sync", "sync-before-publish"])
+def test_a_sigkill_loses_no_history(make_colony, sync):
     """SIGKILLed mid-recording with no snapshot since the start (`snapshot_s` an hour): the
     recovered history holds the uninterrupted run's records and seen entries, up to the
-    recovered version, exactly; and so does the history after the restart runs to the end."""
+    recovered version, exactly; and so does the history after the restart runs to the end.
+    Both ways of logging (`sync_before_publish`)."""
     colony = make_colony("history-sigkill")
-    env = {**EXACT, "COLONYD_SNAPSHOT_S": "3600"}
+    env = {**EXACT, "COLONYD_SNAPSHOT_S": "3600", "COLONYD_SYNC_BEFORE_PUBLISH": sync}
     ref = _reference(colony, env)
     d = _start(colony, "a", SPEC, env)
     _until(colony, "a", lambda r: r["sources"][0].get("position", 0) >= KILL_AT)
