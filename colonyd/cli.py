@@ -455,6 +455,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="our grid keeps the sub-voxel surface, as daemons do (VoxelGrid surface=True)",
     )
+    b = bsub.add_parser("wal", help="write-ahead log bytes per record, with its history")
+    _bench_io(b, shared_data=True)
     b = bsub.add_parser("wire", help="wire-format benchmark")
     _bench_io(b, shared_data=True)
     b.add_argument(
@@ -929,6 +931,10 @@ def _bench(args: argparse.Namespace) -> int:
             command=" ".join(["colonyd", *sys.argv[1:]]),
         )
         result = {"summary": paper["summary"], "json": str(args.json)}
+    elif args.bench == "wal":
+        from colonyd.bench.walbytes import run_wal_bench
+
+        result = run_wal_bench(args.json, args.shared_data)
     elif args.bench == "wire":
         from colonyd.bench.wire import run_wire_bench
 

@@ -1116,7 +1116,10 @@ class Daemon:
 
     def _forget_due(self) -> None:
         """Every `forget_s`, forget what decayed or aged out of the own layer (a new version:
-        the next delta carries it to peers as unknown)."""
+        the next delta carries it to peers as unknown). Called with the layer's lock held, by
+        the delta's extraction: no scan comes between the forget and the delta, so every voxel
+        forgotten is unknown in it, and a recovery that applies it drops their history as the
+        forget did (StateStore.recover)."""
         cfg = self.config
         if cfg.half_life_s is None and cfg.forget_after_s is None:
             return
@@ -1125,16 +1128,14 @@ class Daemon:
         self._last_forget = time.monotonic()
         self.bias = 0.0  # b: this agent's bias against aligned peers (colonyd/provenance.py)
         self._bias_at = time.monotonic()
-        own = self.layers.own
-        with own.lock:
-            freed = own.grid.forget(after=cfg.forget_after_s)  # at the latest observation time
+        freed = self.layers.own.grid.forget(after=cfg.forget_after_s)  # at the latest time
         if freed:
             self.metrics.add("blocks_forgotten", freed)
 
     def _publish_once(self, final: bool = False) -> None:
         own = self.layers.own
-        self._forget_due()
         with own.lock:
+            self._forget_due()
             version = int(own.grid.version)
             delta = (
                 own.grid.delta_since(self._published_local)
@@ -1142,6 +1143,12 @@ class Daemon:
                 else None
             )
             positions = self.positions.record()  # of exactly this version's frames
+            # the history of the delta's versions, logged with it (a SIGKILL loses none)
+            history = (
+                own.grid.history.since(self._published_local, version)
+                if delta is not None and len(delta)
+                else None
+            )
         wrote = unsynced = False
         if delta is not None and len(delta):
             created = time.time()
@@ -1157,11 +1164,12 @@ class Daemon:
                     delta,
                     meanwhile=lambda: self.gossip.encode_own(prev, seq, delta, created),
                     sources=positions,
+                    history=history,
                 )
             else:
                 # written (safe from a crash of this process), published, then flushed below:
                 # a reboot that loses it starts a new epoch (StateStore)
-                self.store.write(seq, delta, positions)
+                self.store.write(seq, delta, positions, history)
                 encoded, unsynced = None, True
             wrote = True
             stamp(marks, "logged")

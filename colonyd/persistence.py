@@ -22,6 +22,8 @@ import numpy as np
 from colonyd.errors import PersistenceError
 from colonyd.grid import VoxelGrid, load_grid, new_grid
 from voxel.delta import Delta, channel_spec
+from voxel.history import HistoryPage
+from voxel.record import RECORD_DTYPE, SEEN_DTYPE
 
 log = logging.getLogger(__name__)
 
@@ -186,7 +188,10 @@ class StateStore:
             if rec["seq"] != seq + 1:
                 lost = lost or f"{WAL} skips from seq {seq} to seq {rec['seq']}"
                 break  # later records cannot apply in order
+            before = grid.version
             grid.apply(rec["delta"])
+            if rec.get("hist") is not None:  # absent in an older colonyd's records
+                grid.history.replay(rec["hist"], before)
             sources = rec.get("src")  # the positions stored with this grid version
             seq = rec["seq"]
             published = max(published, int(rec["delta"].to_version))
@@ -354,12 +359,14 @@ class StateStore:
         self._wal = open(self.dir / WAL, "ab", buffering=0)  # noqa: SIM115 - kept open for appends
         self.wal_bytes = self._wal.seek(0, os.SEEK_END)
 
-    def write(self, seq: int, delta: Delta, sources: Any = None) -> None:
+    def write(
+        self, seq: int, delta: Delta, sources: Any = None, history: HistoryPage | None = None
+    ) -> None:
         """Write an own delta's record without waiting for the disk: once this returns it may
         be published (a killed process loses nothing written); `sync` makes it durable.
 
-        All or nothing, as `append` (`sources` as there). Needs `early_publish`: the first
-        write of a run marks this boot in `meta.json` (see the class)."""
+        All or nothing, as `append` (`sources` and `history` as there). Needs `early_publish`:
+        the first write of a run marks this boot in `meta.json` (see the class)."""
         if not self.early_publish:
             msg = "publishing before the log is flushed needs a boot id, and this system has none"
             raise PersistenceError(msg)
@@ -371,7 +378,7 @@ class StateStore:
             except OSError as exc:
                 msg = f"cannot mark {META} in {self.dir} before logging seq {seq}: {exc.strerror}"
                 raise PersistenceError(msg) from None
-        record = _delta_record(seq, delta, sources)
+        record = _delta_record(seq, delta, sources, history)
         try:
             if self._wal is None:
                 self._open_wal()
@@ -413,10 +420,13 @@ class StateStore:
         delta: Delta,
         meanwhile: Callable[[], T] | None = None,
         sources: Any = None,
+        history: HistoryPage | None = None,
     ) -> T | None:
         """Log an own delta (grid versions) durably before it is published, with `sources`
         (plain values: the sources' positions at the delta's last version, `colonyd.resume`),
-        which recovery hands back with the grid it rebuilds up to this record.
+        which recovery hands back with the grid it rebuilds up to this record, and `history`
+        (the grid's history records and seen entries of the delta's versions, `History.since`),
+        which recovery takes back into the grid's history after the delta (`History.replay`).
 
         `meanwhile()` (encoding the frames, say) runs while the disk flushes, and its result is
         returned once the record is durable: the flush and the work overlap, nothing is sent
@@ -430,7 +440,7 @@ class StateStore:
         """
         if self.broken:
             raise PersistenceError(self.broken)
-        record = _delta_record(seq, delta, sources)
+        record = _delta_record(seq, delta, sources, history)
         try:
             if self._wal is None:  # closed by a snapshot that failed half-way
                 self._open_wal()
@@ -568,12 +578,37 @@ def _record(fields: dict[str, Any]) -> bytes:
     return _HEAD.pack(len(body), zlib.crc32(body)) + body
 
 
-def _delta_record(seq: int, delta: Delta, sources: Any) -> bytes:
-    """The log record of an own delta, with the sources' positions when given."""
+def _delta_record(seq: int, delta: Delta, sources: Any, history: HistoryPage | None) -> bytes:
+    """The log record of an own delta, with the sources' positions and the history of its
+    versions when given."""
     fields: dict[str, Any] = {"seq": int(seq), "delta": _pack_wal_delta(delta)}
     if sources is not None:
         fields["src"] = sources
+    if history is not None:
+        fields["hist"] = _pack_wal_history(history)
     return _record(fields)
+
+
+def _pack_wal_history(page: HistoryPage) -> dict[str, Any]:
+    """History records and seen entries as a log record: byte for byte (RECORD_DTYPE and
+    SEEN_DTYPE are little-endian), with the agent table their codes index."""
+    return {
+        "a": list(page.agents),
+        "n": int(page.records.size),
+        "r": np.ascontiguousarray(page.records, dtype=RECORD_DTYPE).tobytes(),
+        "ns": int(page.seen.size),
+        "s": np.ascontiguousarray(page.seen, dtype=SEEN_DTYPE).tobytes(),
+    }
+
+
+def _unpack_wal_history(h: dict[str, Any]) -> HistoryPage:
+    agents = h["a"]
+    if not isinstance(agents, list) or not all(isinstance(a, str) for a in agents):
+        msg = f"log record field hist.a: expected a list of agent names, found {agents!r:.80}"
+        raise PersistenceError(msg)
+    records = _wal_array(h["r"], RECORD_DTYPE, (int(h["n"]),), "hist.r")
+    seen = _wal_array(h["s"], SEEN_DTYPE, (int(h["ns"]),), "hist.s")
+    return HistoryPage(records, list(agents), seen)
 
 
 def _wal_header(base: int, epoch: int) -> bytes:
@@ -592,6 +627,8 @@ def _decode_wal_record(body: bytes, path: Path, offset: int) -> dict[str, Any]:
                 return {"base": int(rec["base"]), "epoch": int(rec["epoch"])}
         rec["seq"] = int(rec["seq"])
         rec["delta"] = _unpack_wal_delta(rec["delta"])
+        if rec.get("hist") is not None:
+            rec["hist"] = _unpack_wal_history(rec["hist"])
         return cast("dict[str, Any]", rec)  # indexed by name above: a map
     except Exception as exc:  # noqa: BLE001 - a record that fails to decode in any way
         msg = (

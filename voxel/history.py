@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -119,6 +120,12 @@ class History:
         #: them ~10x faster than the fields of a 20-byte record.
         self._seen = _columns(0)
         self.seen_size = 0
+        #: True while the records' (the seen log's) versions never decrease in the order held:
+        #: new scans' entries come in version order; a compaction, which orders records by
+        #: time, may break it. `since` then finds a delta's versions by bisection at the tail
+        #: instead of reading every record (~80 ms under the layer's lock at 2 M records).
+        self._records_ordered = True
+        self._seen_ordered = True
 
     def agent_code(self, agent: str) -> int:
         code = self._agent_index.get(agent)
@@ -138,6 +145,9 @@ class History:
         block["object_id"] = -1
         for name, value in columns.items():
             block[name] = value
+        self._records_ordered = self._records_ordered and _follows(
+            self._buf["version"][: self.size], block["version"]
+        )
         self.size += n
 
     def _room(self, n: int) -> np.ndarray:
@@ -186,6 +196,8 @@ class History:
             if n == 0:
                 continue
             block = self._room(n)
+            if self.size and self._buf["version"][self.size - 1] > observer.version:
+                self._records_ordered = False
             if compiled is not None:
                 tags = (
                     (no_tags, no_tags.view(np.float32))
@@ -217,7 +229,10 @@ class History:
             block["version"] = observer.version
             self.size += n
 
-    def _log_seen(self, keys: np.ndarray, time: float, version: int) -> None:
+    def _log_seen(
+        self, keys: np.ndarray, time: float | np.ndarray, version: int | np.ndarray
+    ) -> None:
+        """Append seen entries: one time and version for all, or one each."""
         n = int(keys.size)
         if n == 0:
             return
@@ -248,6 +263,9 @@ class History:
         cols["key"][size : size + n] = keys
         cols["time"][size : size + n] = time
         cols["version"][size : size + n] = version
+        self._seen_ordered = self._seen_ordered and _follows(
+            cols["version"][:size], cols["version"][size : size + n]
+        )
         self.seen_size = size + n
 
     def seen(self) -> np.ndarray:
@@ -282,6 +300,7 @@ class History:
             self._buf = np.zeros(max(self.capacity, rec.size + incoming), dtype=RECORD_DTYPE)
         self._buf[: rec.size] = rec
         self.size = rec.size
+        self._records_ordered = _follows(rec["version"][:0], rec["version"])
 
     def view(self) -> np.ndarray:
         """All records currently held (a view; oldest appended first)."""
@@ -410,6 +429,73 @@ class History:
         seen = seen[np.argsort(seen["version"], kind="stable")]
         return HistoryPage(rec, list(self.agents), seen), to, to < hi
 
+    def since(self, after: int, upto: int) -> HistoryPage:
+        """Every record and seen entry of versions in (`after`, `upto`], in the order held, with
+        the whole agent table: what one own delta's versions added (its write-ahead log record,
+        `replay`). Unbounded, unlike `page`."""
+        rec = self.view()
+        v = rec["version"]
+        if self._records_ordered:  # a strided view: bisection reads ~40 of its entries
+            lo = bisect.bisect_right(v, after)
+            rec = rec[lo : bisect.bisect_right(v, upto, lo)].copy()
+        else:
+            rec = rec[(v > after) & (v <= upto)]
+        v = self._seen_column("version")
+        if self._seen_ordered:
+            bounds = np.array([after, upto], dtype=v.dtype)  # of its type: no cast of the column
+            take: slice | np.ndarray = slice(*np.searchsorted(v, bounds, side="right"))
+        else:
+            take = (v > after) & (v <= upto)
+        part = {k: c[: self.seen_size][take] for k, c in self._seen.items()}
+        seen = np.empty(part["key"].size, dtype=SEEN_DTYPE)
+        for k, c in part.items():
+            seen[k] = c
+        return HistoryPage(rec, list(self.agents), seen)
+
+    def replay(self, page: HistoryPage, after: int) -> int:
+        """Take back, at recovery, the entries of versions above `after` of a page `since` made
+        of this history: its agent table is registered in order first (the codes stay those of
+        the history that wrote it), entries held of those versions are replaced (records of
+        scans that changed nothing, made before the version was taken), then the page's are
+        appended in its order. The bounds hold as for new scans. Returns entries taken."""
+        codes = np.array([self.agent_code(a) for a in page.agents], dtype=np.uint16)
+        held = self.view()["version"]
+        if self._records_ordered:  # the usual case: cut the tail, read nothing else
+            self.size = bisect.bisect_right(held, after)
+        elif not (kept := held <= after).all():
+            rec = self.view()[kept]
+            self._buf[: rec.size] = rec
+            self.size = rec.size
+        held = self._seen_column("version")
+        if self._seen_ordered:
+            self.seen_size = int(np.searchsorted(held, np.array(after, held.dtype), "right"))
+        elif not (kept := held <= after).all():
+            left = int(np.count_nonzero(kept))
+            for col in self._seen.values():
+                col[:left] = col[: self.seen_size][kept]
+            self.seen_size = left
+        rec = page.records[page.records["version"] > after]
+        if rec.size:
+            if int(rec["agent"].max()) >= codes.size:
+                msg = (
+                    f"history page: expected agent codes below {codes.size} (its table), "
+                    f"found {int(rec['agent'].max())}"
+                )
+                raise InputError(msg)
+            if rec.size > self.capacity:  # more than the bound: its newest only
+                self.dropped += rec.size - self.capacity
+                rec = rec[rec.size - self.capacity :]
+            cols = {n: rec[n] for n in RECORD_COLUMNS if n != "key"}
+            cols["agent"] = codes[rec["agent"]]
+            self.append(rec["key"], **cols)
+        seen = page.seen[page.seen["version"] > after]
+        if seen.size > self.capacity:
+            self.dropped += seen.size - self.capacity
+            seen = seen[seen.size - self.capacity :]
+        if seen.size:
+            self._log_seen(seen["key"], seen["time"], seen["version"])
+        return int(rec.size + seen.size)
+
     def admit(self, page: HistoryPage) -> None:
         """Raise InputError unless `merge` can take `page`: the agents its new records name
         would keep the agent table within `MAX_AGENTS`. Changes nothing."""
@@ -465,6 +551,17 @@ class History:
         self.size = records.size
         self.agents = list(agents)
         self._agent_index = {a: i for i, a in enumerate(self.agents)}
+        self._records_ordered = _follows(records["version"][:0], records["version"])
+        self._seen_ordered = _follows(seen["version"][:0], seen["version"])
+
+
+def _follows(held: np.ndarray, new: np.ndarray) -> bool:
+    """True when versions `new` never decrease and none is below the last of `held`."""
+    if new.size == 0:
+        return True
+    if held.size and held[-1] > new.min():
+        return False
+    return bool(np.all(new[1:] >= new[:-1]))
 
 
 def _member(values: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:

@@ -186,3 +186,102 @@ def test_lowering_the_capacity_returns_memory_at_the_next_merge() -> None:
     assert replica.size <= 12_000 and replica.seen_size <= 12_000
     assert replica.allocated_bytes() <= 12_000 * (RECORD_DTYPE.itemsize + SEEN_DTYPE.itemsize)
     assert replica.allocated_bytes() < big / 2
+
+
+def test_replay_takes_back_what_since_gave_in_order_with_the_same_agent_codes() -> None:
+    """A history rebuilt from a snapshot's and the pages of its later versions (the write-ahead
+    log's, `since`) equals the one that wrote them: records in order, agent codes, seen log;
+    entries held of a replayed version (a scan that changed nothing) are replaced, not doubled."""
+    grid = VoxelGrid(RES)
+    for t in range(3):
+        grid.integrate(
+            WALL + np.array([[0.0, 0.1 * t, 0.0]]), ORIGIN, time=float(t), agent=f"r-{t % 2}"
+        )
+    snap = History()
+    snap.load(grid.history.view().copy(), list(grid.history.agents), grid.history.seen())
+    cut = grid.version
+    pages = []
+    for t in range(3, 7):
+        before = grid.version
+        grid.integrate(
+            WALL + np.array([[0.0, 0.1 * t, 0.0]]), ORIGIN, time=float(t), agent=f"r-{t % 3}"
+        )
+        pages.append((before, grid.history.since(before, grid.version)))
+    src = grid.history
+    assert src.agents == ["r-0", "r-1", "r-2"]
+    # the snapshot also held the first replayed version's records already (replaced)
+    held = src.view()[src.view()["version"] == cut + 1][:2]
+    snap.append(held["key"], **{n: held[n] for n in held.dtype.names if n != "key"})
+    for before, page in pages:
+        assert snap.replay(page, before) == page.records.size + page.seen.size
+    assert np.array_equal(snap.view(), src.view())
+    assert np.array_equal(snap.seen(), src.seen())
+    assert snap.agents == src.agents
+    assert snap.replay(pages[-1][1], grid.version) == 0  # versions held: nothing taken
+
+
+def test_replaying_past_the_capacity_keeps_the_newest() -> None:
+    origin = History()
+    agent = origin.agent_code("a")
+    keys = np.arange(30_000, dtype=np.int64)
+    for v in range(3):
+        part = keys[v * 10_000 : (v + 1) * 10_000]
+        origin.append(part, time=float(v), version=v + 1, agent=agent)
+        origin._log_seen(part + 100_000, float(v), v + 1)
+    small = History(capacity=12_000)
+    assert small.replay(origin.since(0, 3), 0) == 24_000
+    assert small.size <= 12_000 and small.seen_size <= 12_000
+    assert small.newest_version() == 3 and set(small.view()["version"]) <= {2, 3}
+
+
+def test_since_takes_the_same_entries_in_version_order_or_not() -> None:
+    """`since` bisects while versions come in order, and reads every entry once a compaction
+    (which orders records by time) left them out of order: the same entries either way."""
+    h = History(capacity=4000, per_voxel=2)
+    agent = h.agent_code("a")
+    rng = np.random.default_rng(3)
+    for v in range(1, 41):
+        keys = rng.integers(0, 300, 150)
+        t = float(rng.uniform(0, 100))  # times not in version order
+        h.append(keys, time=t, version=v, agent=agent)
+        h._log_seen(keys + 1000, t, v)
+
+    def brute(hist: History, after: int, upto: int) -> tuple[np.ndarray, np.ndarray]:
+        rec, seen = hist.view(), hist.seen()
+        return (
+            rec[(rec["version"] > after) & (rec["version"] <= upto)],
+            seen[(seen["version"] > after) & (seen["version"] <= upto)],
+        )
+
+    assert h.dropped and not h._records_ordered and h._seen_ordered
+    fresh = History()
+    fresh.load(h.view()[np.argsort(h.view()["version"], kind="stable")], h.agents, h.seen())
+    assert fresh._records_ordered
+    for hist in (h, fresh):
+        for after, upto in ((0, 40), (10, 20), (39, 40), (40, 40), (5, 3)):
+            page = hist.since(after, upto)
+            rec, seen = brute(hist, after, upto)
+            assert np.array_equal(page.records, rec) and np.array_equal(page.seen, seen)
+
+
+def test_replay_replaces_held_versions_in_or_out_of_version_order() -> None:
+    """Entries of the replayed versions held already go whether the versions are in order (the
+    tail is cut) or not (after a compaction: every entry is read)."""
+    page_src = History()
+    agent = page_src.agent_code("a")
+    page_src.append(np.array([40, 50, 51]), time=9.0, version=np.array([4, 5, 5]), agent=agent)
+    page_src._log_seen(np.array([140, 150]), np.array([9.0, 9.0]), np.array([4, 5]))
+    page = page_src.since(3, 5)
+    for order in ([1, 2, 3, 4], [3, 1, 4, 2]):
+        versions = np.array(order, dtype=np.uint32)
+        records = np.zeros(4, RECORD_DTYPE)
+        records["key"], records["version"] = versions * 10, versions
+        seen = np.zeros(4, SEEN_DTYPE)
+        seen["key"], seen["version"] = versions * 10 + 100, versions
+        h = History()
+        h.load(records, ["a"], seen)
+        assert h._records_ordered == (order == [1, 2, 3, 4])
+        assert h.replay(page, 3) == 5
+        kept = [k for k in order if k <= 3]
+        assert list(h.view()["key"]) == [10 * k for k in kept] + [40, 50, 51]
+        assert list(h.seen()["key"]) == [10 * k + 100 for k in kept] + [140, 150]

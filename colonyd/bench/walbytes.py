@@ -1,0 +1,68 @@
+"""Write-ahead log bytes per own-delta record, with and without the history of its versions."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+from colonyd.bench.files import shared_data_dir, write_results
+from colonyd.mapping import integrate_observation
+from colonyd.persistence import _delta_record
+from voxel.grid import VoxelGrid
+
+#: Scans per logged delta: one each (a slow sensor, or a fast publish rate) and one per five (a
+#: 2D LiDAR at ~10 Hz published at 2 Hz, the default).
+CADENCES = (1, 5)
+
+
+def _records(spec: str, resolution: float, shape: str, every: int) -> dict[str, Any]:
+    """Map `spec` as a daemon's own layer (surface on) and log a delta every `every` scans:
+    the bytes of each record as written, without and with its history."""
+    from plugins.source import open_source
+
+    grid = VoxelGrid(resolution, block_shape=shape)
+    grid.surface = True  # as daemons keep it (Config.surface)
+    source = open_source(spec, resolution=resolution)
+    plain = with_history = records = entries = 0
+    published, seq = 0, 0
+    for i, obs in enumerate(source, 1):
+        integrate_observation(grid, obs, sensor=source.adapter.sensor_model, reliability=1.0)
+        if i % every or grid.version == published:
+            continue
+        seq += 1
+        delta = grid.delta_since(published)
+        page = grid.history.since(published, grid.version)
+        plain += len(_delta_record(seq, delta, None, None))
+        with_history += len(_delta_record(seq, delta, None, page))
+        entries += page.records.size + page.seen.size
+        records += 1
+        published = grid.version
+    return {
+        "scans_per_delta": every,
+        "records": records,
+        "bytes_per_record_before": plain / records,
+        "bytes_per_record_after": with_history / records,
+        "history_entries_per_record": entries / records,
+        "ratio": with_history / plain,
+    }
+
+
+def run_wal_bench(out_json: Path, shared_data: Path | None) -> list[dict[str, Any]]:
+    """Each scenario at each cadence: write-ahead log bytes per record, before and after."""
+    data = shared_data_dir(shared_data)
+    scenarios = [("sim-depth-room", "sim:world=room,agent=depth-1,frames=20", 0.1, "cube")]
+    if data is not None:
+        log = data / "carmen" / "freiburg-079-corrected.log.gz"
+        if log.is_file():
+            scenarios.append(("carmen-079-100", f"replay:{log},stop=100", 0.05, "planar"))
+    results = []
+    for name, spec, resolution, shape in scenarios:
+        for every in CADENCES:
+            began = time.perf_counter()
+            result = {"scenario": name, "source": spec, "resolution": resolution}
+            result |= _records(spec, resolution, shape, every)
+            result["seconds"] = time.perf_counter() - began
+            results.append(result)
+    write_results(out_json, results)
+    return results
