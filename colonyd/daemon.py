@@ -285,6 +285,7 @@ class Daemon:
         )
         own = self.layers.own
         own.grid, own.epoch, own.seq = rec.grid, rec.epoch, rec.seq
+        own.logged = int(rec.grid.version)  # all of it from the state directory, at rec.seq
         own.grid.surface = cfg.surface  # whatever the snapshot was written with
         own.set_half_life(cfg.half_life_s)
         self.layers.forgotten = load_tombstones(cfg.state_dir)
@@ -505,6 +506,7 @@ class Daemon:
     def _shutdown(self) -> None:
         lap = _Laps(self.stopping)
         self.stop.set()
+        self.layers.own.nudge.set()  # the publisher's wait ends now
         self.aligner.close()  # an attempt under way ends now: the align thread can return
         for t in self._threads:
             t.join(timeout=3.0)
@@ -1100,8 +1102,10 @@ class Daemon:
 
     # -- publishing (own deltas, write-ahead logged, coalesced) ---------------------------
     def _publish_loop(self) -> None:
+        nudge = self.layers.own.nudge  # a snapshot of the own layer waits for what is logged
         while not self.stop.is_set():
-            self.stop.wait(1.0 / self.config.publish_hz)
+            nudge.wait(1.0 / self.config.publish_hz)
+            nudge.clear()
             if self.stop.is_set():
                 break
             try:
@@ -1142,6 +1146,7 @@ class Daemon:
                 else None
             )
             positions = self.positions.record()  # of exactly this version's frames
+            captured = own.capture()  # the grid as logged, for a snapshot waiting for it
         wrote = unsynced = False
         if delta is not None and len(delta):
             created = time.time()
@@ -1172,6 +1177,7 @@ class Daemon:
             self._published_local = version
             with own.lock:
                 own.grid.settle(version)  # forgotten voxels are in a logged, published delta
+            own.mark_logged(version, captured)  # at own.seq: snapshots may hold it now
         if unsynced:
             with self.metrics.activity.timed("sync"):
                 self.store.sync()
