@@ -41,6 +41,7 @@ from colonyd.layers import (
     fused,
     fused_surface,
     layer_weights,
+    relabel,
 )
 from colonyd.logs import setup_logging
 from colonyd.mapping import integrate_observation
@@ -286,6 +287,8 @@ class Daemon:
         own = self.layers.own
         own.grid, own.epoch, own.seq = rec.grid, rec.epoch, rec.seq
         own.logged = int(rec.grid.version)  # all of it from the state directory, at rec.seq
+        for seq, delta, created in rec.records[-cfg.ring_size :]:  # as published: for ranges
+            own.remember(seq - 1, seq, relabel(delta, seq - 1, seq, time=created))
         own.grid.surface = cfg.surface  # whatever the snapshot was written with
         own.set_half_life(cfg.half_life_s)
         self.layers.forgotten = load_tombstones(cfg.state_dir)
@@ -1162,11 +1165,12 @@ class Daemon:
                     delta,
                     meanwhile=lambda: self.gossip.encode_own(prev, seq, delta, created),
                     sources=positions,
+                    created=created,
                 )
             else:
                 # written (safe from a crash of this process), published, then flushed below:
                 # a reboot that loses it starts a new epoch (StateStore)
-                self.store.write(seq, delta, positions)
+                self.store.write(seq, delta, positions, created)
                 encoded, unsynced = None, True
             wrote = True
             stamp(marks, "logged")
