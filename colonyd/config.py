@@ -357,6 +357,20 @@ class Config(BaseSettings):
                 raise ValueError(msg)
         return value
 
+    @field_validator("sources")
+    @classmethod
+    def _recordings_once(cls, value: list[str]) -> list[str]:
+        from colonyd.resume import resumes  # (plugins: not needed for the other checks)
+
+        twice = sorted({s for s in value if value.count(s) > 1 and resumes(s)})
+        if twice:
+            msg = (
+                f"expected each recording once (its position after a restart is kept by its "
+                f"spec, so two readings of it could not be told apart), found {twice[0]!r} twice"
+            )
+            raise ValueError(msg)
+        return value
+
     @field_validator("listen", "connect")
     @classmethod
     def _endpoints(cls, value: list[str]) -> list[str]:

@@ -41,6 +41,7 @@ from colonyd.layers import (
     fused,
     fused_surface,
     layer_weights,
+    relabel,
 )
 from colonyd.logs import setup_logging
 from colonyd.mapping import integrate_observation
@@ -285,6 +286,9 @@ class Daemon:
         )
         own = self.layers.own
         own.grid, own.epoch, own.seq = rec.grid, rec.epoch, rec.seq
+        own.logged = int(rec.grid.version)  # all of it from the state directory, at rec.seq
+        for seq, delta, created in rec.records[-cfg.ring_size :]:  # as published: for ranges
+            own.remember(seq - 1, seq, relabel(delta, seq - 1, seq, time=created))
         own.grid.surface = cfg.surface  # whatever the snapshot was written with
         own.set_half_life(cfg.half_life_s)
         self.layers.forgotten = load_tombstones(cfg.state_dir)
@@ -505,6 +509,7 @@ class Daemon:
     def _shutdown(self) -> None:
         lap = _Laps(self.stopping)
         self.stop.set()
+        self.layers.own.nudge.set()  # the publisher's wait ends now
         self.aligner.close()  # an attempt under way ends now: the align thread can return
         for t in self._threads:
             t.join(timeout=3.0)
@@ -1100,8 +1105,10 @@ class Daemon:
 
     # -- publishing (own deltas, write-ahead logged, coalesced) ---------------------------
     def _publish_loop(self) -> None:
+        nudge = self.layers.own.nudge  # a snapshot of the own layer waits for what is logged
         while not self.stop.is_set():
-            self.stop.wait(1.0 / self.config.publish_hz)
+            nudge.wait(1.0 / self.config.publish_hz)
+            nudge.clear()
             if self.stop.is_set():
                 break
             try:
@@ -1149,6 +1156,7 @@ class Daemon:
                 if delta is not None and len(delta)
                 else None
             )
+            captured = own.capture()  # the grid as logged, for a snapshot waiting for it
         wrote = unsynced = False
         if delta is not None and len(delta):
             created = time.time()
@@ -1165,11 +1173,12 @@ class Daemon:
                     meanwhile=lambda: self.gossip.encode_own(prev, seq, delta, created),
                     sources=positions,
                     history=history,
+                    created=created,
                 )
             else:
                 # written (safe from a crash of this process), published, then flushed below:
                 # a reboot that loses it starts a new epoch (StateStore)
-                self.store.write(seq, delta, positions, history)
+                self.store.write(seq, delta, positions, history, created)
                 encoded, unsynced = None, True
             wrote = True
             stamp(marks, "logged")
@@ -1180,6 +1189,7 @@ class Daemon:
             self._published_local = version
             with own.lock:
                 own.grid.settle(version)  # forgotten voxels are in a logged, published delta
+            own.mark_logged(version, captured)  # at own.seq: snapshots may hold it now
         if unsynced:
             with self.metrics.activity.timed("sync"):
                 self.store.sync()

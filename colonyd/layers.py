@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import math
 import threading
 import time
 from collections import deque
@@ -20,6 +21,9 @@ from voxel.blocks import BLOCK_SHAPES, CORE_CHANNELS, block_shifts, count_blocks
 from voxel.delta import Delta
 
 _T = TypeVar("_T")
+
+#: Longest a snapshot of the own layer waits for the publisher to log the grid (`Layer.snapshot`).
+UNLOGGED_WAIT_S = 5.0
 
 
 def relabel(delta: Delta, from_version: int, to_version: int, time: float | None = None) -> Delta:
@@ -104,6 +108,16 @@ class Layer:
         self.pending_size = pending_size
         self.updated = 0.0
         self.half_life: float | None = None  # the origin's decay (its heartbeats say)
+        #: The own layer's grid version whose content is logged at `seq` (set by the daemon's
+        #: publisher; None for a replica, whose content is all in its origin's log). A snapshot
+        #: of the own layer holds logged content only (`snapshot`).
+        self.logged: int | None = None
+        #: Set while a snapshot waits for the publisher to log the grid (it publishes at once).
+        self.nudge = threading.Event()
+        self._waiting = 0  # snapshots waiting: the publisher's next delta captures the grid
+        self._captured: tuple[int, int, Delta] | None = None  # (epoch, seq, whole grid) logged
+        self._captures = 0
+        self._logged_cond = threading.Condition(self.lock)
 
     def set_half_life(self, half_life: float | None) -> None:
         """Decay this layer as its origin does (so queries give the origin's occupancy)."""
@@ -234,15 +248,23 @@ class Layer:
 
     # -- serving side ---------------------------------------------------------------------
     def snapshot(
-        self, chunk_voxels: int, marks: dict[str, float] | None = None
+        self,
+        chunk_voxels: int,
+        marks: dict[str, float] | None = None,
+        deadline: float = math.inf,
     ) -> tuple[int, int, list[Delta]]:
         """(epoch, seq, chunks) of the whole layer, wire-labelled (0, seq]; `marks` gets
-        "locked" (time.monotonic() when the layer's lock was taken)."""
+        "locked" (time.monotonic() when the layer's lock was taken).
+
+        The own layer's snapshot holds only what its log holds at `seq`: a grid that integrated
+        more since its last logged delta waits for the publisher to log it (and capture the grid
+        as logged), until `deadline` (time.monotonic(); at most `UNLOGGED_WAIT_S` from now):
+        TimeoutError then. A peer holding scans never logged at that seq would keep them for
+        good once the origin, killed, recovered the seq without them in the same epoch."""
         with self.lock:
             if marks is not None:
                 marks["locked"] = time.monotonic()
-            full = self.grid.delta_since(0)
-            epoch, seq = self.epoch, self.seq
+            epoch, seq, full = self._logged_full(min(deadline, time.monotonic() + UNLOGGED_WAIT_S))
         n = len(full)
         if n == 0:
             return epoch, seq, [relabel(full, 0, seq)]
@@ -251,6 +273,41 @@ class Layer:
             for i in range(0, n, chunk_voxels)
         ]
         return epoch, seq, chunks
+
+    def _logged_full(self, deadline: float) -> tuple[int, int, Delta]:
+        """(epoch, seq, whole grid) as logged (the layer's lock held; see `snapshot`)."""
+        seen = self._captures
+        self._waiting += 1
+        try:
+            while self.logged is not None and int(self.grid.version) != self.logged:
+                if self._captures != seen and self._captured is not None:
+                    return self._captured
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    msg = "the own layer's content was not logged in time for its snapshot"
+                    raise TimeoutError(msg)
+                self.nudge.set()
+                self._logged_cond.wait(left)
+            return self.epoch, self.seq, self.grid.delta_since(0)
+        finally:
+            self._waiting -= 1
+            if not self._waiting:
+                self._captured = None  # (memory: the grid's size)
+
+    def capture(self) -> Delta | None:
+        """The own grid whole while a snapshot waits for logged content, else None (the
+        publisher calls it with the layer's lock held, where it reads the version it logs)."""
+        return self.grid.delta_since(0) if self._waiting else None
+
+    def mark_logged(self, version: int, captured: Delta | None = None) -> None:
+        """The own grid's content at `version` is logged at `seq` (set before); `captured`: the
+        grid at that version (`capture`), handed to the snapshots waiting for it."""
+        with self.lock:
+            self.logged = int(version)
+            if captured is not None and self._waiting:
+                self._captured = (self.epoch, self.seq, captured)
+                self._captures += 1
+            self._logged_cond.notify_all()
 
     def range(self, have: int, want: int) -> list[Delta] | None:
         """Recent deltas (labelled (prev, seq]) taking a replica from `have` to >= min(`want`,

@@ -255,7 +255,10 @@ class LayerServer:
         cpu0, process0 = time.thread_time(), time.process_time()
         marks = {"arrived": arrived, "query": time.monotonic()}
         try:
-            epoch, _seq, chunks = layer.snapshot(self.chunk_voxels, marks)
+            try:  # (the own layer's waits for its grid to be logged)
+                epoch, _seq, chunks = layer.snapshot(self.chunk_voxels, marks, deadline)
+            except TimeoutError as exc:
+                raise Abandoned(str(exc)) from None
             marks["snapshot"] = time.monotonic()
             _check(deadline, "snapshot made")
             if layer.origin == self.own:

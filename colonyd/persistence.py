@@ -12,7 +12,7 @@ import time
 import zlib
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar, cast
 
@@ -61,6 +61,10 @@ class Recovered:
     #: The sources' positions stored with the recovered grid version (`colonyd.resume`'s record,
     #: not yet validated); None when none was stored (a fresh directory, an older colonyd).
     sources: Any = None
+    #: The log's records replayed, (seq, delta in grid versions, its publication time), for the
+    #: own layer's ring (so a peer that missed the last deltas before a crash repairs with a
+    #: range, not a snapshot); none when recovery took a new epoch.
+    records: list[tuple[int, Delta, float]] = field(default_factory=list)
 
 
 def atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
@@ -181,7 +185,7 @@ class StateStore:
             sources = snap.get("sources")
         header, records = self._read_wal()
         lost = self._lost(header, seq, epoch) or self._rebooted(meta)
-        applied = 0
+        applied: list[tuple[int, Delta, float]] = []
         for rec in records:
             if rec["seq"] <= seq:
                 continue
@@ -195,7 +199,7 @@ class StateStore:
             sources = rec.get("src")  # the positions stored with this grid version
             seq = rec["seq"]
             published = max(published, int(rec["delta"].to_version))
-            applied += 1
+            applied.append((seq, rec["delta"], float(rec.get("tc", rec["delta"].time))))
         frames_path = self.dir / FRAMES
         frames = self._read_json(frames_path) if frames_path.exists() else {}
         frame_seq = int(frames.get("next", 0))
@@ -219,7 +223,17 @@ class StateStore:
         self._open_wal()
         if lost:
             self.snapshot(grid, seq, published, sources)
-        return Recovered(epoch, seq, grid, applied, fresh, published, frame_seq, sources)
+        return Recovered(
+            epoch,
+            seq,
+            grid,
+            len(applied),
+            fresh,
+            published,
+            frame_seq,
+            sources,
+            [] if lost else applied,
+        )
 
     def _check_meta(self, meta: dict[str, Any]) -> int:
         """The epoch of a state directory's meta.json, after checking it is ours."""
@@ -360,13 +374,18 @@ class StateStore:
         self.wal_bytes = self._wal.seek(0, os.SEEK_END)
 
     def write(
-        self, seq: int, delta: Delta, sources: Any = None, history: HistoryPage | None = None
+        self,
+        seq: int,
+        delta: Delta,
+        sources: Any = None,
+        history: HistoryPage | None = None,
+        created: float | None = None,
     ) -> None:
         """Write an own delta's record without waiting for the disk: once this returns it may
         be published (a killed process loses nothing written); `sync` makes it durable.
 
-        All or nothing, as `append` (`sources` and `history` as there). Needs `early_publish`:
-        the first write of a run marks this boot in `meta.json` (see the class)."""
+        All or nothing, as `append` (`sources`, `history` and `created` as there). Needs
+        `early_publish`: the first write of a run marks this boot in `meta.json` (see the class)."""
         if not self.early_publish:
             msg = "publishing before the log is flushed needs a boot id, and this system has none"
             raise PersistenceError(msg)
@@ -378,7 +397,7 @@ class StateStore:
             except OSError as exc:
                 msg = f"cannot mark {META} in {self.dir} before logging seq {seq}: {exc.strerror}"
                 raise PersistenceError(msg) from None
-        record = _delta_record(seq, delta, sources, history)
+        record = _delta_record(seq, delta, sources, history, created)
         try:
             if self._wal is None:
                 self._open_wal()
@@ -421,12 +440,15 @@ class StateStore:
         meanwhile: Callable[[], T] | None = None,
         sources: Any = None,
         history: HistoryPage | None = None,
+        created: float | None = None,
     ) -> T | None:
         """Log an own delta (grid versions) durably before it is published, with `sources`
         (plain values: the sources' positions at the delta's last version, `colonyd.resume`),
-        which recovery hands back with the grid it rebuilds up to this record, and `history`
+        which recovery hands back with the grid it rebuilds up to this record, `history`
         (the grid's history records and seen entries of the delta's versions, `History.since`),
-        which recovery takes back into the grid's history after the delta (`History.replay`).
+        which recovery takes back into the grid's history after the delta (`History.replay`),
+        and `created`, the time its frames say it was published (a range served after a restart
+        says it again).
 
         `meanwhile()` (encoding the frames, say) runs while the disk flushes, and its result is
         returned once the record is durable: the flush and the work overlap, nothing is sent
@@ -440,7 +462,7 @@ class StateStore:
         """
         if self.broken:
             raise PersistenceError(self.broken)
-        record = _delta_record(seq, delta, sources, history)
+        record = _delta_record(seq, delta, sources, history, created)
         try:
             if self._wal is None:  # closed by a snapshot that failed half-way
                 self._open_wal()
@@ -578,14 +600,22 @@ def _record(fields: dict[str, Any]) -> bytes:
     return _HEAD.pack(len(body), zlib.crc32(body)) + body
 
 
-def _delta_record(seq: int, delta: Delta, sources: Any, history: HistoryPage | None) -> bytes:
-    """The log record of an own delta, with the sources' positions and the history of its
-    versions when given."""
+def _delta_record(
+    seq: int,
+    delta: Delta,
+    sources: Any,
+    history: HistoryPage | None = None,
+    created: float | None = None,
+) -> bytes:
+    """The log record of an own delta, with the sources' positions, the history of its versions
+    and its publication time when given."""
     fields: dict[str, Any] = {"seq": int(seq), "delta": _pack_wal_delta(delta)}
     if sources is not None:
         fields["src"] = sources
     if history is not None:
         fields["hist"] = _pack_wal_history(history)
+    if created is not None:
+        fields["tc"] = float(created)
     return _record(fields)
 
 

@@ -229,6 +229,8 @@ class VoxelGrid:
             else scan.channels
         )
         time = quantise_time(scan.time)
+        if self.surface and self.sparse_surface:
+            self._surface_versions()
         version = self.version + 1
         observer = Observer(
             time,
@@ -591,6 +593,15 @@ class VoxelGrid:
             else np.r_[delta.surface_mask, np.ones(n, dtype=bool)],
         )
 
+    def _surface_versions(self) -> None:
+        """Make the `surface_version` channel (sparse codes) where it is missing, each voxel's
+        taken as the version its codes last changed at: codes held without it (replayed from the
+        log into a grid without the surface, a dense origin's snapshot) are then carried by
+        every delta since before that version and every snapshot; 0 left them out of both."""
+        st = self.store
+        if SURFACE_VERSION not in st.channels:
+            st.channel(SURFACE_VERSION)[...] = st.channels["version"]
+
     def apply(self, delta: Delta) -> int:
         """Apply a delta: each voxel takes the delta's values unless it already holds a newer
         version.
@@ -601,7 +612,7 @@ class VoxelGrid:
             msg = f"delta resolution {delta.resolution} does not match the grid's {self.resolution}"
             raise DeltaError(msg)
         if self.surface and self.sparse_surface:  # its own codes' versions, for its deltas
-            self.store.channel(SURFACE_VERSION)
+            self._surface_versions()
         taken = merge_delta(self.store, self.times, delta)
         self.version = max(self.version, delta.to_version)
         if taken.size:

@@ -70,6 +70,10 @@ def test_toml_colonyd_table_and_env_config_path(tmp_path, monkeypatch):
         ),
         ({"ros2_frame": "colony/frame"}, r"ros2_frame: .*expected a ROS 2 name"),
         ({"ros2_domain": 300}, r"ros2_domain: Input should be less than or equal to 232"),
+        (  # a recording's position is kept by its spec: the second reading resumed the first's
+            {"sources": ["replay:/data/run.log", "synthetic:scans=3", "replay:/data/run.log"]},
+            r"sources: .*expected each recording once .*found 'replay:/data/run.log' twice",
+        ),
     ],
 )
 def test_invalid_config_says_what_was_expected(flags, match):

@@ -445,3 +445,40 @@ def test_the_publisher_sends_an_own_delta_while_a_scan_holds_the_grid_lock():
     finally:
         release.set()
         session.close()
+
+
+def test_an_own_snapshot_holds_what_is_logged_and_waits_for_the_publisher():
+    """The own layer's snapshot is of its grid as logged at its seq: with scans integrated
+    since, it waits for the publisher's next delta and takes the grid captured with it."""
+    import threading
+
+    own = Layer("me", 0.1)
+    rng = np.random.default_rng(3)
+    own.grid.integrate(rng.uniform(-1, 1, (100, 3)), np.zeros(3), time=1.0)
+    own.seq, own.logged = 1, int(own.grid.version)
+    logged = own.grid.delta_since(0)
+    _, _, chunks = own.snapshot(10**6)  # nothing integrated since: at once
+    assert len(chunks[0]) == len(logged)
+    own.grid.integrate(rng.uniform(-1, 1, (100, 3)), np.zeros(3), time=2.0)  # not logged
+    with pytest.raises(TimeoutError, match="not logged in time"):
+        own.snapshot(10**6, deadline=time.monotonic() + 0.05)
+    assert own.capture() is None and own._captured is None  # nobody waits: nothing kept
+    got: list = []
+    waiting = threading.Thread(target=lambda: got.append(own.snapshot(10**6)))
+    waiting.start()
+    assert own.nudge.wait(5.0)  # the publisher is asked to log at once
+    with own.lock:  # the publisher's turn: the version it logs and the grid with it
+        version, captured = int(own.grid.version), own.capture()
+    own.grid.integrate(rng.uniform(-1, 1, (100, 3)), np.zeros(3), time=3.0)  # after: not in it
+    own.seq = 2  # logged and numbered
+    own.mark_logged(version, captured)
+    waiting.join(5.0)
+    _epoch, seq, chunks = got[0]
+    assert seq == 2 and captured is not None and len(chunks[0]) == len(captured)
+    replica = new_grid(0.1)
+    replica.apply(chunks[0])
+    expected = new_grid(0.1)
+    expected.apply(captured)
+    assert replica.content_equal(expected) and not replica.content_equal(own.grid)
+    # a replica's layer (its content all in its origin's log) is served as held
+    assert Layer("o", 0.1).logged is None

@@ -342,3 +342,32 @@ def test_a_budget_never_cuts_a_voxel_whose_codes_the_delta_carries():
     assert len(exact) < n  # cut (free space summarised or left out)
     kept = {tuple(k) for k in exact.keys.tolist()}
     assert {tuple(k) for k in keys[mask].tolist()} <= kept
+
+
+def test_an_origin_recovered_from_its_log_serves_every_code_it_holds(tmp_path):
+    """Recovery replays the log into a grid without the surface (the daemon turns it on after),
+    so with sparse codes the replayed codes kept no `surface_version`: once the restarted origin
+    mapped again (the channel made then, 0 for them), a newcomer's snapshot (codes changed after
+    version 0) left them out and the newcomer held 0 where the origin held codes."""
+    from colonyd.persistence import StateStore
+
+    store = StateStore(tmp_path, "a", RES)
+    store.recover()
+    grid = VoxelGrid(RES, surface=True)
+    grid.sparse_surface = True
+    published = 0
+    for seq, (pts, o) in enumerate(scans(5, 4), 1):
+        grid.integrate(pts, o, time=float(seq))
+        store.append(seq, grid.delta_since(published))
+        published = grid.version
+    store.close()
+    store = StateStore(tmp_path, "a", RES)
+    own = store.recover().grid
+    store.close()
+    own.surface, own.sparse_surface = True, True  # as the daemon's configuration says
+    assert own.content_equal(grid)
+    pts, o = scans(6, 1)[0]
+    own.integrate(pts[::3] + np.array([1.0, 0.0, 0.0]), o, time=10.0)  # maps on, elsewhere
+    replica = VoxelGrid(RES)
+    replica.apply(wire(own.delta_since(0)))  # a newcomer's snapshot
+    assert replica.content_equal(own)
