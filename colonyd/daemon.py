@@ -1184,7 +1184,7 @@ class Daemon:
             stamp(marks, "logged")
             self.gossip.publish_own(prev, seq, delta, created, encoded, marks)
             self.metrics.stage("out", self.config.agent_id, seq, marks)
-            self.gossip.push_history()  # with history push on: the records of what was sent
+            self.gossip.push_history(version)  # history push on: the records of what was sent
         if delta is not None:
             self._published_local = version
             with own.lock:

@@ -149,9 +149,10 @@ class Gossip:
         """Publish an own delta (already logged); returns the bytes sent."""
         return self.publisher.publish_own(prev, seq, delta, created, encoded, marks)
 
-    def push_history(self) -> int:
-        """With history push on, publish the own history records not pushed yet."""
-        return self.publisher.push_history() if self.history_push else 0
+    def push_history(self, upto: int) -> int:
+        """With history push on, publish the own history records not pushed yet, of versions
+        up to `upto` (what the log holds)."""
+        return self.publisher.push_history(upto) if self.history_push else 0
 
     def _admit_history(self, msg: HistoryReply) -> None:
         """WireError unless `_take_history` can take a peer's pushed history (inbox thread,

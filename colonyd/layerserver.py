@@ -327,8 +327,12 @@ class LayerServer:
         if layer is not None and layer.seq > 0:
             with layer.lock:
                 epoch = self._layer_epoch(layer)
+                # the own layer's history only as far as its log holds it: versions not yet
+                # logged are lost by a SIGKILL and then reused for other scans
                 page, to, more = layer.grid.history.page(
-                    request.from_version, min(request.max_records, MAX_HISTORY_RECORDS)
+                    request.from_version,
+                    min(request.max_records, MAX_HISTORY_RECORDS),
+                    upto=layer.logged,
                 )
         common = {
             **self._header(request, epoch, framed=False),

@@ -113,13 +113,14 @@ class Publisher:
         self.metrics.add("bytes_published", sent)
         return sent
 
-    def push_history(self) -> int:
-        """Put the own layer's history records of versions not pushed yet on `<own>/history`
+    def push_history(self, upto: int) -> int:
+        """Put the own layer's history records of versions not pushed yet, up to version `upto`
+        (logged: a SIGKILL loses versions after it, and they are reused), on `<own>/history`
         (a HistoryReply with request id 0, one part; history push, opt-in). A frame too large
         is not sent: replicas page those versions with HistoryRequest. Returns records sent."""
         own = self.layers.own
         with own.lock:
-            page, to, more = own.grid.history.page(self.history_pushed, MAX_PUSH_RECORDS)
+            page, to, more = own.grid.history.page(self.history_pushed, MAX_PUSH_RECORDS, upto=upto)
         after = self.history_pushed
         if to == after:
             return 0

@@ -405,13 +405,17 @@ class History:
         ]
         return max(versions, default=0)
 
-    def page(self, after: int, max_records: int) -> tuple[HistoryPage, int, bool]:
-        """Records and seen entries of versions above `after`, oldest version first, in whole
-        versions: as many as fit `max_records` together (at least one version). Returns the
-        page, the highest version it covers (`after` when empty) and whether later versions
-        remain."""
+    def page(
+        self, after: int, max_records: int, upto: int | None = None
+    ) -> tuple[HistoryPage, int, bool]:
+        """Records and seen entries of versions above `after` (and not above `upto`, when
+        given), oldest version first, in whole versions: as many as fit `max_records` together
+        (at least one version). Returns the page, the highest version it covers (`after` when
+        empty) and whether later versions remain."""
         rec, seen = self.view(), self.seen()
         rec, seen = rec[rec["version"] > after], seen[seen["version"] > after]
+        if upto is not None:
+            rec, seen = rec[rec["version"] <= upto], seen[seen["version"] <= upto]
         if rec.size + seen.size == 0:
             return HistoryPage(rec.copy(), list(self.agents), seen.copy()), after, False
         # entries per version (versions are small consecutive integers): O(n), no sort

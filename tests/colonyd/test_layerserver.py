@@ -87,3 +87,40 @@ def test_replies_too_large_for_a_part_are_cut_until_every_part_fits() -> None:
         stop.set()
         server.close()
         session.close()
+
+
+def test_the_own_layers_history_is_served_only_as_far_as_its_log_holds_it() -> None:
+    """Versions not yet logged are lost by a SIGKILL and then reused for other scans: a peer
+    that took their history would keep records the origin no longer has (and miss the new
+    ones of the same versions). The own layer answers up to its logged version only."""
+    layers = Layers("a", 0.1)
+    layer = layers.get("a")
+    origin = np.array([0.05, 0.05, 0.05])
+    for t in range(10):
+        wall = np.column_stack([np.full(20, 1.05 + 0.1 * t), np.arange(20) * 0.1, np.zeros(20)])
+        layer.grid.integrate(wall, origin, time=float(t))
+        if t == 4:
+            logged = int(layer.grid.version)
+    layer.seq, layer.logged = 1, logged
+    session = open_session(zenoh_config(listen=["tcp/127.0.0.1:0"]))
+    stop = threading.Event()
+    server = LayerServer(
+        session, NS, layers, Sender("a", 3), get_receiver(None, 64.0, "a"), Metrics(), epoch=3,
+        stop=stop,
+    )  # fmt: skip
+    server.start()
+    try:
+        header = Sender("asker", 1).header()
+        ask = {"layer": "a", "request_id": 7, "from_version": 0}
+        replies = [m for _, m in _ask(session, "history", HistoryRequest(**header, **ask))]
+        assert all(isinstance(m, HistoryReply) for m in replies)
+        page = join_pages(replies)
+        assert page is not None and page.records.size > 0
+        assert int(page.records["version"].max()) <= logged < int(layer.grid.version)
+        assert all(m.to_version <= logged and not m.more for m in replies)
+        held = layer.grid.history.view()
+        assert page.records.size == int((held["version"] <= logged).sum())
+    finally:
+        stop.set()
+        server.close()
+        session.close()
