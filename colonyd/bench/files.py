@@ -18,6 +18,22 @@ def shared_data_dir(given: Path | None) -> Path | None:
     return candidate if candidate.is_dir() else None
 
 
+def room_and_carmen(
+    shared_data: Path | None, sim_frames: int, carmen: tuple[str, str]
+) -> list[tuple[str, str, float, str]]:
+    """The history benches' scenarios (name, source spec, resolution, block shape): the sim
+    room's depth camera for `sim_frames` frames, and the Freiburg 079 log as `carmen` (its
+    scenario name, the replay options) when the shared data holds it."""
+    scenarios = [
+        ("sim-depth-room", f"sim:world=room,agent=depth-1,frames={sim_frames}", 0.1, "cube")
+    ]
+    data = shared_data_dir(shared_data)
+    log = None if data is None else data / "carmen" / "freiburg-079-corrected.log.gz"
+    if log is not None and log.is_file():
+        scenarios.append((carmen[0], f"replay:{log},{carmen[1]}", 0.05, "planar"))
+    return scenarios
+
+
 def print_and_append(out: dict[str, Any], path: Path | None) -> None:
     """Print one result as a JSON line, and append it to `path` (when given): a harness's runs,
     one line each."""

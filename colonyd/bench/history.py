@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from colonyd.bench.files import shared_data_dir, write_results
+from colonyd.bench.files import room_and_carmen, write_results
 from colonyd.mapping import integrate_observation
 from protocol.codec import decode, encode
 from protocol.limits import Limits
@@ -116,14 +116,10 @@ def _forgetting(origin: VoxelGrid) -> dict[str, Any]:
 def run_history_bench(out_json: Path, shared_data: Path | None) -> list[dict[str, Any]]:
     """Each scenario: map a source, replicate content and history through frames, compare
     temporal queries, then forget and measure allocated bytes."""
-    data = shared_data_dir(shared_data)
-    scenarios = [("sim-depth-room", "sim:world=room,agent=depth-1,frames=8", 0.1, "cube")]
-    if data is not None:
-        log = data / "carmen" / "freiburg-079-corrected.log.gz"
-        if log.is_file():
-            scenarios.append(("carmen-079-step20", f"replay:{log},step=20", 0.05, "planar"))
     results = []
-    for name, spec, resolution, shape in scenarios:
+    for name, spec, resolution, shape in room_and_carmen(
+        shared_data, 8, ("carmen-079-step20", "step=20")
+    ):
         began = time.perf_counter()
         origin = _origin(spec, resolution, shape)
         replica, frames, nbytes, records = _replicate(origin)

@@ -6,7 +6,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from colonyd.bench.files import shared_data_dir, write_results
+from colonyd.bench.files import room_and_carmen, write_results
 from colonyd.mapping import integrate_observation
 from colonyd.persistence import _delta_record
 from voxel.grid import VoxelGrid
@@ -50,14 +50,10 @@ def _records(spec: str, resolution: float, shape: str, every: int) -> dict[str, 
 
 def run_wal_bench(out_json: Path, shared_data: Path | None) -> list[dict[str, Any]]:
     """Each scenario at each cadence: write-ahead log bytes per record, before and after."""
-    data = shared_data_dir(shared_data)
-    scenarios = [("sim-depth-room", "sim:world=room,agent=depth-1,frames=20", 0.1, "cube")]
-    if data is not None:
-        log = data / "carmen" / "freiburg-079-corrected.log.gz"
-        if log.is_file():
-            scenarios.append(("carmen-079-100", f"replay:{log},stop=100", 0.05, "planar"))
     results = []
-    for name, spec, resolution, shape in scenarios:
+    for name, spec, resolution, shape in room_and_carmen(
+        shared_data, 20, ("carmen-079-100", "stop=100")
+    ):
         for every in CADENCES:
             began = time.perf_counter()
             result = {"scenario": name, "source": spec, "resolution": resolution}
