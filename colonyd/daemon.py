@@ -1165,21 +1165,25 @@ class Daemon:
             prev, seq = own.seq, own.seq + 1
             # Logged before anyone sees it; if the log cannot take it (disk full), nothing is
             # published and the same changes are tried again next time.
-            if self.config.sync_before_publish or not self.store.early_publish:
-                # durable first (the frames are encoded while the disk flushes)
-                encoded = self.store.append(
-                    seq,
-                    delta,
-                    meanwhile=lambda: self.gossip.encode_own(prev, seq, delta, created),
-                    sources=positions,
-                    history=history,
-                    created=created,
-                )
-            else:
-                # written (safe from a crash of this process), published, then flushed below:
-                # a reboot that loses it starts a new epoch (StateStore)
-                self.store.write(seq, delta, positions, history, created)
-                encoded, unsynced = None, True
+            try:
+                if self.config.sync_before_publish or not self.store.early_publish:
+                    # durable first (the frames are encoded while the disk flushes)
+                    encoded = self.store.append(
+                        seq,
+                        delta,
+                        meanwhile=lambda: self.gossip.encode_own(prev, seq, delta, created),
+                        sources=positions,
+                        history=history,
+                        created=created,
+                    )
+                else:
+                    # written (safe from a crash of this process), published, then flushed
+                    # below: a reboot that loses it starts a new epoch (StateStore)
+                    self.store.write(seq, delta, positions, history, created)
+                    encoded, unsynced = None, True
+            except PersistenceError as exc:
+                own.log_failed(str(exc))  # a snapshot waiting for this delta gives up now
+                raise
             wrote = True
             stamp(marks, "logged")
             self.gossip.publish_own(prev, seq, delta, created, encoded, marks)
