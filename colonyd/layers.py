@@ -263,8 +263,9 @@ class Layer:
         The own layer's snapshot holds only what its log holds at `seq`: a grid that integrated
         more since its last logged delta waits for the publisher to log it (and capture the grid
         as logged), until `deadline` (time.monotonic(); at most `UNLOGGED_WAIT_S` from now):
-        TimeoutError then. A peer holding scans never logged at that seq would keep them for
-        good once the origin, killed, recovered the seq without them in the same epoch."""
+        TimeoutError then, or as soon as the publisher fails to log after it asked
+        (`log_failed`). A peer holding scans never logged at that seq would keep them for good
+        once the origin, killed, recovered the seq without them in the same epoch."""
         with self.lock:
             if marks is not None:
                 marks["locked"] = time.monotonic()
