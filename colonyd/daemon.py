@@ -71,6 +71,8 @@ from voxel.localisation.sightings import frame_from_sightings
 if TYPE_CHECKING:
     import zenoh
 
+    from voxel.delta import Delta
+
 log = logging.getLogger(__name__)
 
 #: The own object list is published again every this many refreshes, changed or not.
@@ -1171,7 +1173,7 @@ class Daemon:
                     encoded = self.store.append(
                         seq,
                         delta,
-                        meanwhile=lambda: self.gossip.encode_own(prev, seq, delta, created),
+                        meanwhile=lambda: self._encode_own(prev, seq, delta, created),
                         sources=positions,
                         history=history,
                         created=created,
@@ -1208,6 +1210,18 @@ class Daemon:
         if wrote and self.state_error:
             log.warning("state directory %s is writable again", self.config.state_dir)
             self.state_error = ""
+
+    def _encode_own(self, prev: int, seq: int, delta: Delta, created: float) -> Any:
+        """An own delta's frames, made while its record flushes; None if that fails: the record
+        is logged all the same, so its seq is taken, and `publish_own` numbers the layer with it
+        before it encodes again (the error propagated from the log's append, and the next delta
+        was logged under the same seq: recovery kept the first record of it, and lost what only
+        the second held)."""
+        try:
+            return self.gossip.encode_own(prev, seq, delta, created)
+        except Exception:
+            log.exception("encoding own delta seq %d failed; encoding it again to publish it", seq)
+            return None
 
     def _state_failed(self, exc: PersistenceError) -> None:
         """A state-directory write failed: count it, say so (every 10 s at most), keep running."""
