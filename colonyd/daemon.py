@@ -168,6 +168,7 @@ class Daemon:
         self.started = time.time()
         self._published_local = 0
         self._last_snapshot = time.monotonic()
+        self._publishing = threading.Lock()  # one publish step at a time (`_publish_once`)
         self._sources_done = threading.Event()
         #: Start-up is over: kernels loaded, first-use imports done (`_warm_up`).
         self.warm = threading.Event()
@@ -1142,6 +1143,13 @@ class Daemon:
             self.metrics.add("blocks_forgotten", freed)
 
     def _publish_once(self, final: bool = False) -> None:
+        """One publish step, one at a time: the final one at shutdown waits for one under way
+        on the publisher thread (waited for 3 s only: a slow flush outlasts it), or both took
+        the same seq and the log held two records of it (recovery keeps the first)."""
+        with self._publishing:
+            self._publish_step(final)
+
+    def _publish_step(self, final: bool) -> None:
         own = self.layers.own
         with own.lock:
             self._forget_due()

@@ -121,3 +121,32 @@ def test_a_delta_logged_while_its_encoding_failed_keeps_its_seq(daemon, monkeypa
     expected = new_grid(daemon.config.resolution)
     expected.apply(live)
     assert again.grid.content_equal(expected)
+
+
+def test_the_final_publish_waits_for_a_publish_under_way(daemon, monkeypatch):
+    """At shutdown the publisher thread is waited for 3 s, then the final publish runs: a
+    publish still under way (a slow flush) and the final one took the same seq, and the log held
+    two records of it (recovery keeps the first, and loses what only the second held)."""
+    flush = os.fsync
+    entered, release = threading.Event(), threading.Event()
+
+    def slow(fd: int) -> None:
+        if not entered.is_set():
+            entered.set()
+            release.wait(10.0)
+        flush(fd)
+
+    monkeypatch.setattr(os, "fsync", slow)
+    _scan(daemon, 1.0, 1)
+    first = threading.Thread(target=daemon._publish_once, daemon=True)
+    first.start()
+    assert entered.wait(10.0)  # its record written, its flush under way
+    _scan(daemon, 2.0, 2)
+    final = threading.Thread(target=lambda: daemon._publish_once(final=True), daemon=True)
+    final.start()
+    final.join(1.0)  # (room for a final publish that does not wait to go wrong)
+    release.set()
+    first.join(10.0)
+    final.join(10.0)
+    assert not first.is_alive() and not final.is_alive()
+    assert [seq for seq, _delta in daemon.store.logged()] == [1, 2]
