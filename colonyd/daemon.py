@@ -71,6 +71,8 @@ from voxel.localisation.sightings import frame_from_sightings
 if TYPE_CHECKING:
     import zenoh
 
+    from voxel.delta import Delta
+
 log = logging.getLogger(__name__)
 
 #: The own object list is published again every this many refreshes, changed or not.
@@ -166,6 +168,7 @@ class Daemon:
         self.started = time.time()
         self._published_local = 0
         self._last_snapshot = time.monotonic()
+        self._publishing = threading.Lock()  # one publish step at a time (`_publish_once`)
         self._sources_done = threading.Event()
         #: Start-up is over: kernels loaded, first-use imports done (`_warm_up`).
         self.warm = threading.Event()
@@ -1140,6 +1143,13 @@ class Daemon:
             self.metrics.add("blocks_forgotten", freed)
 
     def _publish_once(self, final: bool = False) -> None:
+        """One publish step, one at a time: the final one at shutdown waits for one under way
+        on the publisher thread (waited for 3 s only: a slow flush outlasts it), or both took
+        the same seq and the log held two records of it (recovery keeps the first)."""
+        with self._publishing:
+            self._publish_step(final)
+
+    def _publish_step(self, final: bool) -> None:
         own = self.layers.own
         with own.lock:
             self._forget_due()
@@ -1165,21 +1175,25 @@ class Daemon:
             prev, seq = own.seq, own.seq + 1
             # Logged before anyone sees it; if the log cannot take it (disk full), nothing is
             # published and the same changes are tried again next time.
-            if self.config.sync_before_publish or not self.store.early_publish:
-                # durable first (the frames are encoded while the disk flushes)
-                encoded = self.store.append(
-                    seq,
-                    delta,
-                    meanwhile=lambda: self.gossip.encode_own(prev, seq, delta, created),
-                    sources=positions,
-                    history=history,
-                    created=created,
-                )
-            else:
-                # written (safe from a crash of this process), published, then flushed below:
-                # a reboot that loses it starts a new epoch (StateStore)
-                self.store.write(seq, delta, positions, history, created)
-                encoded, unsynced = None, True
+            try:
+                if self.config.sync_before_publish or not self.store.early_publish:
+                    # durable first (the frames are encoded while the disk flushes)
+                    encoded = self.store.append(
+                        seq,
+                        delta,
+                        meanwhile=lambda: self._encode_own(prev, seq, delta, created),
+                        sources=positions,
+                        history=history,
+                        created=created,
+                    )
+                else:
+                    # written (safe from a crash of this process), published, then flushed
+                    # below: a reboot that loses it starts a new epoch (StateStore)
+                    self.store.write(seq, delta, positions, history, created)
+                    encoded, unsynced = None, True
+            except PersistenceError as exc:
+                own.log_failed(str(exc))  # a snapshot waiting for this delta gives up now
+                raise
             wrote = True
             stamp(marks, "logged")
             self.gossip.publish_own(prev, seq, delta, created, encoded, marks)
@@ -1204,6 +1218,18 @@ class Daemon:
         if wrote and self.state_error:
             log.warning("state directory %s is writable again", self.config.state_dir)
             self.state_error = ""
+
+    def _encode_own(self, prev: int, seq: int, delta: Delta, created: float) -> Any:
+        """An own delta's frames, made while its record flushes; None if that fails: the record
+        is logged all the same, so its seq is taken, and `publish_own` numbers the layer with it
+        before it encodes again (the error propagated from the log's append, and the next delta
+        was logged under the same seq: recovery kept the first record of it, and lost what only
+        the second held)."""
+        try:
+            return self.gossip.encode_own(prev, seq, delta, created)
+        except Exception:
+            log.exception("encoding own delta seq %d failed; encoding it again to publish it", seq)
+            return None
 
     def _state_failed(self, exc: PersistenceError) -> None:
         """A state-directory write failed: count it, say so (every 10 s at most), keep running."""

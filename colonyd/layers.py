@@ -117,6 +117,10 @@ class Layer:
         self._waiting = 0  # snapshots waiting: the publisher's next delta captures the grid
         self._captured: tuple[int, int, Delta] | None = None  # (epoch, seq, whole grid) logged
         self._captures = 0
+        #: Failed attempts of the publisher to log (`log_failed`) and the last one's reason: a
+        #: snapshot waiting for logged content gives up at the first failure after it asked.
+        self._failures = 0
+        self._failure = ""
         self._logged_cond = threading.Condition(self.lock)
 
     def set_half_life(self, half_life: float | None) -> None:
@@ -259,8 +263,9 @@ class Layer:
         The own layer's snapshot holds only what its log holds at `seq`: a grid that integrated
         more since its last logged delta waits for the publisher to log it (and capture the grid
         as logged), until `deadline` (time.monotonic(); at most `UNLOGGED_WAIT_S` from now):
-        TimeoutError then. A peer holding scans never logged at that seq would keep them for
-        good once the origin, killed, recovered the seq without them in the same epoch."""
+        TimeoutError then, or as soon as the publisher fails to log after it asked
+        (`log_failed`). A peer holding scans never logged at that seq would keep them for good
+        once the origin, killed, recovered the seq without them in the same epoch."""
         with self.lock:
             if marks is not None:
                 marks["locked"] = time.monotonic()
@@ -276,12 +281,18 @@ class Layer:
 
     def _logged_full(self, deadline: float) -> tuple[int, int, Delta]:
         """(epoch, seq, whole grid) as logged (the layer's lock held; see `snapshot`)."""
-        seen = self._captures
+        seen, failures = self._captures, self._failures
         self._waiting += 1
         try:
             while self.logged is not None and int(self.grid.version) != self.logged:
                 if self._captures != seen and self._captured is not None:
                     return self._captured
+                if self._failures != failures:  # the publisher tried since, and could not log
+                    msg = (
+                        "the own layer's content could not be logged for its snapshot: "
+                        f"{self._failure}"
+                    )
+                    raise TimeoutError(msg)
                 left = deadline - time.monotonic()
                 if left <= 0:
                     msg = "the own layer's content was not logged in time for its snapshot"
@@ -298,6 +309,15 @@ class Layer:
         """The own grid whole while a snapshot waits for logged content, else None (the
         publisher calls it with the layer's lock held, where it reads the version it logs)."""
         return self.grid.delta_since(0) if self._waiting else None
+
+    def log_failed(self, why: str) -> None:
+        """The publisher could not log the own grid (the state directory refuses writes):
+        snapshots waiting for it give up now instead of at their deadline (each held the layer
+        server's single worker `UNLOGGED_WAIT_S` while the directory refused writes)."""
+        with self.lock:
+            self._failures += 1
+            self._failure = why
+            self._logged_cond.notify_all()
 
     def mark_logged(self, version: int, captured: Delta | None = None) -> None:
         """The own grid's content at `version` is logged at `seq` (set before); `captured`: the

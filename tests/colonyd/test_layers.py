@@ -482,3 +482,47 @@ def test_an_own_snapshot_holds_what_is_logged_and_waits_for_the_publisher():
     assert replica.content_equal(expected) and not replica.content_equal(own.grid)
     # a replica's layer (its content all in its origin's log) is served as held
     assert Layer("o", 0.1).logged is None
+
+
+def test_an_own_snapshot_gives_up_when_the_publisher_cannot_log(monkeypatch):
+    """A snapshot of unlogged content waits for one attempt of the publisher, not its full
+    wait: while the state directory refuses writes, each one held the layer server's single
+    worker for `UNLOGGED_WAIT_S` (range and history queries of every layer queued behind it).
+    The wait here is unbounded: a snapshot that ignored the failure would never return."""
+    import threading
+
+    from colonyd import layers as layers_mod
+
+    monkeypatch.setattr(layers_mod, "UNLOGGED_WAIT_S", 1e6)  # (a lock takes no inf)
+    own = Layer("me", 0.1)
+    rng = np.random.default_rng(4)
+    own.grid.integrate(rng.uniform(-1, 1, (100, 3)), np.zeros(3), time=1.0)
+    own.seq, own.logged = 1, int(own.grid.version)
+    own.grid.integrate(rng.uniform(-1, 1, (100, 3)), np.zeros(3), time=2.0)  # not logged
+    errors: list[BaseException] = []
+
+    def ask() -> None:
+        try:
+            own.snapshot(10**6)
+        except TimeoutError as exc:
+            errors.append(exc)
+
+    waiting = threading.Thread(target=ask, daemon=True)
+    waiting.start()
+    assert own.nudge.wait(5.0)  # the publisher is asked to log: its attempt fails
+    own.log_failed("cannot append seq 2: No space left on device")
+    waiting.join(10.0)
+    assert not waiting.is_alive() and len(errors) == 1
+    assert "No space left on device" in str(errors[0])
+    # the publisher logs again: a snapshot then waits for it and holds it
+    own.nudge.clear()
+    got: list = []
+    waiting = threading.Thread(target=lambda: got.append(own.snapshot(10**6)), daemon=True)
+    waiting.start()
+    assert own.nudge.wait(5.0)
+    with own.lock:
+        version, captured = int(own.grid.version), own.capture()
+    own.seq = 2
+    own.mark_logged(version, captured)
+    waiting.join(10.0)
+    assert not waiting.is_alive() and got and got[0][1] == 2
