@@ -10,6 +10,7 @@ import pytest
 from colonyd.errors import WireError
 from colonyd.grid import new_grid
 from colonyd.layers import SURFACE_REACH, FusedMap, Layer, Layers, fused, layer_weights
+from tests.shared import ask_snapshot
 from voxel import keys as vk
 from voxel.delta import Delta
 
@@ -499,16 +500,7 @@ def test_an_own_snapshot_gives_up_when_the_publisher_cannot_log(monkeypatch):
     own.grid.integrate(rng.uniform(-1, 1, (100, 3)), np.zeros(3), time=1.0)
     own.seq, own.logged = 1, int(own.grid.version)
     own.grid.integrate(rng.uniform(-1, 1, (100, 3)), np.zeros(3), time=2.0)  # not logged
-    errors: list[BaseException] = []
-
-    def ask() -> None:
-        try:
-            own.snapshot(10**6)
-        except TimeoutError as exc:
-            errors.append(exc)
-
-    waiting = threading.Thread(target=ask, daemon=True)
-    waiting.start()
+    waiting, errors = ask_snapshot(own)
     assert own.nudge.wait(5.0)  # the publisher is asked to log: its attempt fails
     own.log_failed("cannot append seq 2: No space left on device")
     waiting.join(10.0)

@@ -16,6 +16,7 @@ from colonyd.daemon import Daemon, get_store
 from colonyd.errors import PersistenceError
 from colonyd.persistence import StateStore
 from colonyd.runtime import get_session
+from tests.shared import ask_snapshot
 
 
 @pytest.fixture
@@ -63,16 +64,7 @@ def test_a_failed_log_write_ends_a_waiting_own_snapshot_at_once(daemon, monkeypa
     daemon._publish_once()
     assert own.seq == 1
     _scan(daemon, 2.0, 2)  # not logged
-    errors: list[BaseException] = []
-
-    def ask() -> None:
-        try:
-            own.snapshot(10**6)
-        except TimeoutError as exc:
-            errors.append(exc)
-
-    waiting = threading.Thread(target=ask, daemon=True)
-    waiting.start()
+    waiting, errors = ask_snapshot(own)
     assert own.nudge.wait(5.0)
 
     def full(fd: int) -> None:
