@@ -238,6 +238,15 @@ def test_a_folder_fingerprint_covers_every_file_below_it(tmp_path):
     assert fingerprint(spec) == first
     inside.rename(root / "frames" / "frame-000009.depth.png")  # the same bytes, another frame
     assert fingerprint(spec) != first
+    inside = root / "frames" / "frame-000009.depth.png"
+    inside.rename(root / "frames" / "frame-000001.depth.png")
+    assert fingerprint(spec) == first
+    # frames linked from elsewhere (as the reader finds them): their bytes count
+    (root / "frames").rename(tmp_path / "elsewhere")
+    (root / "frames").symlink_to(tmp_path / "elsewhere", target_is_directory=True)
+    assert fingerprint(spec) == first
+    (tmp_path / "elsewhere" / "frame-000002.depth.png").write_bytes(b"y" * 10)
+    assert fingerprint(spec) != first
 
 
 def test_a_position_stored_by_size_and_time_is_matched_by_them(tmp_path, caplog):
