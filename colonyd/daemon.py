@@ -27,7 +27,13 @@ from colonyd.alignment import ColonyFrame, Edge, align_layers, edge_of
 from colonyd.colonymap import ColonyMaps
 from colonyd.config import Config, load_config
 from colonyd.errors import ColonydError, DuplicateAgentError, PersistenceError, StoppedError
-from colonyd.estimator import Estimator, PoseError, ScanEstimator, get_estimator
+from colonyd.estimator import (
+    Estimator,
+    PoseError,
+    ScanEstimator,
+    get_estimator,
+    scan_estimator,
+)
 from colonyd.export import MapReply, encode_map, export_time, write_maps
 from colonyd.fixes import fix_covariance, fix_in_own_frame, sightings_covariance, through
 from colonyd.frames import Sender, colony_key, frame_of, get_receiver
@@ -177,8 +183,6 @@ class Daemon:
         # registration in a worker process, started on first use
         self.aligner = Aligner(None if config.align_session_nice < 0 else config.align_session_nice)
         self._estimators: dict[str, Estimator] = {}  # per source spec
-        #: Stored estimator states a resumed source's next estimator continues from, per spec.
-        self._restore: dict[str, EstimatorState] = {}
         self._own_edges: dict[str, Edge] = {}  # peer -> the alignment we last offered
         self.fused_map = FusedMap()  # the live fused view, kept layer by layer
         self._colony_maps: dict[str, ColonyMaps] = {}  # per source spec with a scan estimator
@@ -638,7 +642,7 @@ class Daemon:
                 self._estimators.pop(source.spec, None)
             stored = self.positions.restored(source.spec)
             if stored is not None:
-                self._continue_estimate(source.spec, stored)
+                self._continue_estimate(source, stored)
             position = self.positions.resumed.get(source.spec, 0)
             for obs in frames:
                 if self.stop.is_set():
@@ -686,9 +690,6 @@ class Daemon:
             estimator = self._estimators.get(source.spec)
             if estimator is None:
                 estimator = self._estimators[source.spec] = get_estimator(source.adapter, obs)
-                restored = self._restore.pop(source.spec, None)
-                if restored is not None and isinstance(estimator, ScanEstimator):
-                    estimator.restore(restored)
             started = time.perf_counter()
             obs = replace(obs, pose=estimator(obs))
             spent = time.perf_counter() - started
@@ -738,10 +739,12 @@ class Daemon:
         except ValueError as exc:  # as when the frame was integrated
             log.debug("source %s: passed-over frame refused by the estimator: %s", source.spec, exc)
 
-    def _continue_estimate(self, spec: str, stored: EstimatorState) -> None:
+    def _continue_estimate(self, source: Source, stored: EstimatorState) -> None:
         """After a resumed recording's passed-over frames: keep the estimator they rebuilt if
         it reached the stored pose (it read only the recording: the same estimate), else
-        continue from the stored pose (what the layer was built with), keyframes anew."""
+        continue from the stored pose (what the layer was built with) with a new estimator,
+        keyframes anew."""
+        spec = source.spec
         estimator = self._estimators.get(spec)
         now = estimator.state() if isinstance(estimator, ScanEstimator) else None
         if now is not None and agrees(now, stored):
@@ -752,7 +755,9 @@ class Daemon:
             )
             return
         self._estimators.pop(spec, None)
-        self._restore[spec] = stored
+        if self.config.localise:  # else no estimator is used
+            restored = self._estimators[spec] = scan_estimator(source.adapter)
+            restored.restore(stored)
         log.info(
             "source %s: its estimator continues from the stored pose (x %.3f, y %.3f, yaw "
             "%.4f)%s; its keyframe map starts anew from there",

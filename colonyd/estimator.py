@@ -172,12 +172,18 @@ class VisualEstimator:
 def get_estimator(adapter: SensorAdapter, first: Observation) -> Estimator:
     """The estimator for a source: scan matching for range sensors and for any agent with
     odometry (depth points serve as a scan), visual odometry for a camera without it."""
-    mount = getattr(adapter, "mount", np.eye(4))
     if adapter.kind in ("lidar2d", "lidar3d") or first.odometry is not None:
-        model = getattr(adapter, "sensor_model", None)
-        sensor_range = 30.0 if model is None else min(float(model.max_range), 30.0)
-        return ScanEstimator(adapter.kind == "lidar2d", mount, sensor_range)
+        return scan_estimator(adapter)
     return VisualEstimator()
+
+
+def scan_estimator(adapter: SensorAdapter) -> ScanEstimator:
+    """The scan-matching estimator for a source read by `adapter` (its mount, its range)."""
+    model = getattr(adapter, "sensor_model", None)
+    sensor_range = 30.0 if model is None else min(float(model.max_range), 30.0)
+    return ScanEstimator(
+        adapter.kind == "lidar2d", getattr(adapter, "mount", np.eye(4)), sensor_range
+    )
 
 
 class PoseError:

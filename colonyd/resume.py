@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 import os
@@ -71,9 +72,60 @@ def resumes(spec: str) -> bool:
         return False
 
 
+#: The `fingerprint` key holding the hash of the recording's content. A stored fingerprint
+#: without it was written by an older colonyd, by size and modification time (`stat_fingerprint`).
+CONTENT = "sha256"
+
+
 def fingerprint(spec: str) -> dict[str, int]:
-    """What identifies the recording a `replay:` spec reads: its size and modification time
-    (a folder's: its entries', summed and latest); {} when it cannot be read."""
+    """What identifies the recording a `replay:` spec reads, by content: its size and the first
+    64 bits of the SHA-256 of its bytes (a folder's: its files' count and total size, and the
+    SHA-256 over every file below it in the order of their relative names, of each name, size
+    and bytes' SHA-256); {} when it cannot be read. Times are left out: a recording touched, or
+    copied without keeping them, is the same recording."""
+    path = parse_spec(spec).path
+    if path is None:
+        return {}
+    p = Path(path).expanduser()
+    try:
+        if not p.is_dir():
+            size, digest = _hash_file(p)
+            return {"size": size, CONTENT: _as_int(digest)}
+        files = sorted(
+            (Path(root, name).relative_to(p).as_posix().encode(), Path(root, name))
+            for root, _dirs, names in os.walk(p, followlinks=True)
+            for name in names
+        )
+        folder = hashlib.sha256()
+        total = 0
+        for name, f in files:
+            size, digest = _hash_file(f)
+            folder.update(b"%d:%s:%d:%s" % (len(name), name, size, digest))
+            total += size
+    except OSError:
+        return {}
+    return {"files": len(files), "size": total, CONTENT: _as_int(folder.digest())}
+
+
+def _hash_file(path: Path) -> tuple[int, bytes]:
+    """A file's size (the bytes read) and their SHA-256."""
+    digest = hashlib.sha256()
+    size = 0
+    with path.open("rb") as f:
+        while chunk := f.read(1 << 20):
+            digest.update(chunk)
+            size += len(chunk)
+    return size, digest.digest()
+
+
+def _as_int(digest: bytes) -> int:
+    return int.from_bytes(digest[:8], "big")
+
+
+def stat_fingerprint(spec: str) -> dict[str, int]:
+    """The fingerprint an older colonyd stored, by size and modification time (a folder's: its
+    top-level entries' count, summed size and latest time); {} when it cannot be read. Only
+    compared with a stored fingerprint that has no `CONTENT`."""
     path = parse_spec(spec).path
     if path is None:
         return {}
@@ -210,9 +262,10 @@ def decide(
     stored: Mapping[str, SourcePosition],
     refused: Mapping[str, str],
 ) -> Decision:
-    """How the source `spec` (reading `recording`, its `fingerprint` now) starts, given the
-    positions recovered with the layer (`stored`) and the entries refused (`refused`, by spec;
-    "*": the whole record)."""
+    """How the source `spec` (reading `recording`, its `fingerprint` now, or its
+    `stat_fingerprint` when the stored one has no `CONTENT`) starts, given the positions
+    recovered with the layer (`stored`) and the entries refused (`refused`, by spec; "*": the
+    whole record)."""
     why = refused.get(spec) or refused.get("*")
     if why:
         return Decision(
@@ -238,12 +291,18 @@ def decide(
             )
         return Decision(0, False, None, f"source {spec}: starts from its first frame", "info")
     if mine.recording != recording:
+        older = (
+            ""
+            if CONTENT in mine.recording
+            else " (a position stored by an older colonyd, which knew a recording by its size "
+            "and modification time)"
+        )
         return Decision(
             0,
             False,
             None,
             f"source {spec}: the recording changed since its position was stored (expected "
-            f"{mine.recording}, found {recording}); it starts afresh from its first frame",
+            f"{mine.recording}, found {recording}){older}; it starts afresh from its first frame",
             "warning",
         )
     if mine.done:
@@ -313,9 +372,15 @@ class Positions:
         recording = self._recording[spec] = fingerprint(spec)
         # another configured source's position is its own, not an older spec of this one
         candidates = {s: p for s, p in self.stored.items() if s == spec or s not in self._specs}
-        decision = decide(spec, recording, candidates, self.refused)
+        mine = candidates.get(spec)
+        old = mine is not None and CONTENT not in mine.recording  # stored by an older colonyd
+        decision = decide(
+            spec, stat_fingerprint(spec) if old else recording, candidates, self.refused
+        )
         getattr(log, decision.level)("%s", decision.message)
         stored = self.stored.get(spec)
+        if stored is not None:  # kept from now on with the recording's fingerprint by content
+            stored = replace(stored, recording=recording)
         if decision.done and stored is not None:
             self.resumed[spec] = stored.frames
             with self._lock:
@@ -354,6 +419,8 @@ class Positions:
         if decision.estimator is not None:
             self._restore[spec] = decision.estimator
         self.resumed[spec] = passed
+        with self._lock:
+            self._now[spec] = stored
         return frames
 
     def restored(self, spec: str) -> EstimatorState | None:

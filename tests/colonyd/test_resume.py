@@ -4,7 +4,10 @@ state directory keeping them with each grid version, and the estimator continuin
 from __future__ import annotations
 
 import json
+import logging
 import math
+import os
+import shutil
 import threading
 from pathlib import Path
 
@@ -15,6 +18,7 @@ import pytest
 from colonyd.estimator import ScanEstimator
 from colonyd.persistence import StateStore
 from colonyd.resume import (
+    CONTENT,
     RECORD_VERSION,
     EstimatorState,
     Positions,
@@ -25,6 +29,7 @@ from colonyd.resume import (
     encode,
     fingerprint,
     resumes,
+    stat_fingerprint,
 )
 from plugins.source import open_source
 from voxel.localisation import se2
@@ -177,11 +182,17 @@ def test_decision():
     assert (new.frames, new.level) == (0, "info")
 
 
+def _touch(path: Path, hours: int = 1) -> None:
+    """Move `path`'s modification time `hours` later, its bytes left as they are."""
+    st = path.stat()
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + hours * 3_600 * 10**9))
+
+
 def test_fingerprint_of_a_file_a_folder_and_nothing(tmp_path):
     f = tmp_path / "run.log"
     f.write_text("FLASER\n")
     first = fingerprint(f"replay:{f},stop=3")
-    assert first["size"] == 7
+    assert first["size"] == 7 and set(first) == {"size", CONTENT}
     f.write_text("FLASER 1\n")
     assert fingerprint(f"replay:{f}") != first
     folder = tmp_path / "scene"
@@ -191,6 +202,98 @@ def test_fingerprint_of_a_file_a_folder_and_nothing(tmp_path):
     assert fingerprint(f"replay:{folder}")["files"] == 2
     assert fingerprint(f"replay:{folder}")["size"] == 5
     assert fingerprint(f"replay:{tmp_path / 'missing'}") == {}
+
+
+def test_fingerprint_is_the_content_not_the_times(tmp_path):
+    f = tmp_path / "run.log"
+    f.write_bytes(b"FLASER 1 2 3\n")
+    spec = f"replay:{f}"
+    first = fingerprint(spec)
+    _touch(f)  # touched, or copied without keeping times: the same recording
+    assert fingerprint(spec) == first
+    copy = tmp_path / "copy.log"
+    shutil.copyfile(f, copy)
+    assert fingerprint(f"replay:{copy}") == first
+    f.write_bytes(b"FLASER 1 2 4\n")  # the same size, another byte
+    assert fingerprint(spec)["size"] == first["size"] and fingerprint(spec) != first
+
+
+def test_a_folder_fingerprint_covers_every_file_below_it(tmp_path):
+    root = tmp_path / "scene"
+    (root / "frames").mkdir(parents=True)
+    (root / "camera-intrinsics.txt").write_text("585 0 320\n")
+    for i in range(3):
+        (root / "frames" / f"frame-{i:06d}.depth.png").write_bytes(bytes([i]) * 10)
+    spec = f"replay:{root}"
+    first = fingerprint(spec)
+    assert (first["files"], first["size"]) == (4, 40)
+    for q in root.rglob("*"):
+        _touch(q)
+    assert fingerprint(spec) == first
+    inside = root / "frames" / "frame-000001.depth.png"
+    inside.write_bytes(b"x" * 10)  # a frame's bytes, in the folder's folder
+    changed = fingerprint(spec)
+    assert (changed["files"], changed["size"]) == (4, 40) and changed != first
+    inside.write_bytes(bytes([1]) * 10)
+    assert fingerprint(spec) == first
+    inside.rename(root / "frames" / "frame-000009.depth.png")  # the same bytes, another frame
+    assert fingerprint(spec) != first
+    inside = root / "frames" / "frame-000009.depth.png"
+    inside.rename(root / "frames" / "frame-000001.depth.png")
+    assert fingerprint(spec) == first
+    # frames linked from elsewhere (as the reader finds them): their bytes count
+    (root / "frames").rename(tmp_path / "elsewhere")
+    (root / "frames").symlink_to(tmp_path / "elsewhere", target_is_directory=True)
+    assert fingerprint(spec) == first
+    (tmp_path / "elsewhere" / "frame-000002.depth.png").write_bytes(b"y" * 10)
+    assert fingerprint(spec) != first
+
+
+def test_a_position_stored_by_size_and_time_is_matched_by_them(tmp_path, caplog):
+    """An older colonyd stored {size, mtime_ns}: the same size and time resume (as that colonyd
+    would have), another time starts afresh with the warning; the position stored from then on
+    is by content."""
+    path = _carmen(tmp_path)
+    spec = f"replay:{path}"
+    frames = [o.frame for o in open_source(spec)]
+    old = SourcePosition(spec, stat_fingerprint(spec), 3, frames[2], False, None)
+    assert set(old.recording) == {"size", "mtime_ns"}
+    positions = Positions(encode({spec: old}), [spec])
+    rest = positions.start(open_source(spec), threading.Event())
+    assert rest is not None and [o.frame for o in rest] == frames[3:]
+    assert positions.resumed[spec] == 3
+    assert positions.position(spec) is not None
+    assert positions.record()["sources"][spec]["recording"] == fingerprint(spec)
+    _touch(path)
+    positions = Positions(encode({spec: old}), [spec])
+    with caplog.at_level(logging.WARNING, logger="colonyd.resume"):
+        rest = positions.start(open_source(spec), threading.Event())
+    assert rest is not None and [o.frame for o in rest] == frames
+    assert spec not in positions.resumed
+    assert "the recording changed since its position was stored" in caplog.text
+    assert "a position stored by an older colonyd" in caplog.text
+
+
+def test_a_recording_touched_resumes_and_one_changed_starts_afresh(tmp_path, caplog):
+    path = _carmen(tmp_path)
+    spec = f"replay:{path}"
+    frames = [o.frame for o in open_source(spec)]
+    stored = SourcePosition(spec, fingerprint(spec), 3, frames[2], False, None)
+    _touch(path)
+    positions = Positions(encode({spec: stored}), [spec])
+    rest = positions.start(open_source(spec), threading.Event())
+    assert rest is not None and [o.frame for o in rest] == frames[3:]
+    text = path.read_text()
+    lines = text.splitlines(keepends=True)
+    lines[2] = lines[2].replace("8.000", "7.999", 1)
+    path.write_text("".join(lines))
+    assert path.stat().st_size == len(text)  # the same size, one reading changed
+    positions = Positions(encode({spec: stored}), [spec])
+    with caplog.at_level(logging.WARNING, logger="colonyd.resume"):
+        rest = positions.start(open_source(spec), threading.Event())
+    assert rest is not None and [o.frame for o in rest] == frames
+    assert "the recording changed since its position was stored" in caplog.text
+    assert "older colonyd" not in caplog.text
 
 
 def test_agrees():

@@ -4,6 +4,7 @@ processes replaying a CARMEN log, SIGKILLed or stopped mid-way and restarted on 
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import signal
 import time
@@ -119,6 +120,38 @@ def test_a_restart_mid_recording_resumes_where_the_layer_ends(make_colony, sig):
     # counted twice left 0.4 % of the occupied voxels different in a run of 160: measured.)
     assert np.array_equal(keys_ref, keys_a)
     assert np.allclose(lo_ref, lo_a, atol=1e-5), float(np.abs(lo_ref - lo_a).max())
+
+
+def test_a_recording_touched_between_runs_resumes_its_content_unchanged(make_colony, tmp_path):
+    """The recording's modification time changes and its bytes do not (touched, copied without
+    keeping times, restored from a backup) while the daemon is down: it is the same recording,
+    so it resumes, and the layer is the uninterrupted run's (read afresh, its first frames
+    would be counted twice)."""
+    colony = make_colony("resume-touched")
+    copy = tmp_path / LOG.name
+    shutil.copyfile(LOG, copy)
+    spec = f"replay:{copy},stop={FRAMES}"
+    ref = _reference(colony, ALONE)
+    d = _start(colony, "a", spec, ALONE)
+    _until(colony, "a", lambda r: r["sources"][0].get("position", 0) >= KILL_AT)
+    d.stop()
+    stat = copy.stat()
+    os.utime(copy, ns=(stat.st_atime_ns, stat.st_mtime_ns + 3_600 * 10**9))  # an hour later
+    d.start()
+    report = _until(colony, "a", _finished)
+    _until(colony, "ref", _finished)
+    ref.stop()
+    d.stop()
+    keys_ref, lo_ref = _layer(ref)
+    keys_a, lo_a = _layer(d)
+    assert np.array_equal(keys_ref, keys_a) and np.allclose(lo_ref, lo_a, atol=1e-5), (
+        f"{len(keys_a)} voxels (uninterrupted: {len(keys_ref)}), log-odds differ by up to "
+        f"{float(np.abs(lo_ref - lo_a).max()) if len(keys_a) == len(keys_ref) else 'n/a'}; "
+        f"{report['metrics']['counts'].get('frames', 0)} frames integrated after the restart"
+    )
+    after = _resumed_after(d)
+    assert 0 < after < FRAMES
+    assert report["metrics"]["counts"].get("frames", 0) == FRAMES - after
 
 
 def test_changed_spec_starts_afresh_and_a_finished_recording_is_not_read_again(make_colony):
