@@ -247,7 +247,7 @@ class PeerObjects:
         self._lists: dict[str, tuple[float, list[WireObject]]] = {}
         #: origin -> (objects it may still send, clock then): `allow` and `charge`
         self._allowance: dict[str, tuple[float, float]] = {}
-        #: origin -> clock of its last list charged (its frame decoded: authenticated)
+        #: origin -> clock of its last list charged, or tried (`allow`) once it was charged
         self._sent: dict[str, float] = {}
         #: objects a second a peer sending lists earns back: `per_s` over the peers sending
         #: theirs (`SENDING_S`; idle ones not full at 1/`IDLE_WEIGHT`), at most `peer_per_s`
@@ -322,10 +322,9 @@ class PeerObjects:
                 for o in full or list(self._allowance)[: MAX_ALLOWANCES // 2]:
                     del self._allowance[o]
                     self._sent.pop(o, None)
-            self._share(now)  # the others brought to now at their old rates
             self._allowance[origin] = (left, now)
             self._sent[origin] = now
-            self._share(now)
+            self._share(now)  # the others brought to now at their old rates first
 
     def admit(self, origin: str, member: Callable[[str], bool] = lambda _: True) -> None:
         """Raise WireError unless a list of `origin` may be kept (replacing its previous one):
