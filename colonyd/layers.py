@@ -582,16 +582,22 @@ class Layers:
 
     def forget_agent(self, origin: str) -> bool:
         """Drop `origin`'s layer and keep it dropped (a tombstone that repair and every
-        admission respect); never the own layer. True if it was new."""
-        if origin == self.own_id or origin in self.forgotten:
+        admission respect); never the own layer. True if it was new.
+
+        Checked, taken and persisted (`on_forget`) under `apply_lock`: the inbox (tombstones in
+        heartbeats) and the forget server forget on their own threads, and threads that checked
+        before waiting for the lock each took the same agent as new, past the bound together."""
+        if origin == self.own_id:
             return False
-        if len(self.forgotten) >= self.max_layers:
-            return False  # bounded: a hostile flood of names cannot grow it without end
         with self.apply_lock:  # not between a delta's admission and its application
+            if origin in self.forgotten:
+                return False
+            if len(self.forgotten) >= self.max_layers:
+                return False  # bounded: a hostile flood of names cannot grow it without end
             self.forgotten.add(origin)
             self.drop(origin)
-        if self.on_forget is not None:
-            self.on_forget(origin)
+            if self.on_forget is not None:
+                self.on_forget(origin)  # one writer of the set and its file at a time
         return True
 
     def drop(self, origin: str) -> None:

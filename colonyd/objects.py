@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 import weakref
@@ -173,13 +174,14 @@ MAX_PEER_OBJECTS = 65_536
 #: Objects the lists of all peers together may bring per second, and one peer's at once (one
 #: full list): decoding a list costs ~22 us an object on the inbox's one thread (0.4 s for
 #: 16,384), so a peer sending full lists back to back held the inbox (deltas, heartbeats) to
-#: itself. The rate is shared by the peers spending their allowance (those back at a full one,
-#: which send lists seldom, take none of it), each peer's share at most `PEER_OBJECTS_PER_S`:
-#: alone, a peer may send 8192 objects a second (~0.18 s of the inbox's second; the peers
-#: together ~0.36 s at most); beside three others sending as much, 4096 (2000 objects at every
-#: `objects_s` = 0.5 s refresh pass). Past its allowance a peer's lists are refused before their
-#: body is parsed (`too-often`) until it has earned it back. A list is a peer's whole current
-#: list, so a refused one is made good by the next (the daemon repeats an unchanged list).
+#: itself. The rate is shared by the peers sending lists now (`SENDING_S`; those back at a full
+#: allowance take none of it, those idle with one not full take 1/`IDLE_WEIGHT` of a share), each
+#: peer's share at most `PEER_OBJECTS_PER_S`: alone, a peer may send 8192 objects a second
+#: (~0.18 s of the inbox's second; the peers together ~0.36 s at most); beside three others
+#: sending as much, 4096 (2000 objects at every `objects_s` = 0.5 s refresh pass). Past its
+#: allowance a peer's lists are refused before their body is parsed (`too-often`) until it has
+#: earned it back. A list is a peer's whole current list, so a refused one is made good by the
+#: next (the daemon repeats an unchanged list).
 OBJECTS_PER_S = 16_384.0
 #: The most of `OBJECTS_PER_S` one peer's share may be: a full list at every refresh of the
 #: default `objects_s` (2 s), 2000 objects every 0.5 s twice over; a peer flooding alone takes
@@ -188,6 +190,23 @@ PEER_OBJECTS_PER_S = 8192.0
 OBJECTS_BURST = 16_384
 #: Most peers whose allowance is remembered (those back at a full allowance are forgotten first).
 MAX_ALLOWANCES = 4096
+#: A peer counts as sending lists (a full share of `OBJECTS_PER_S`) for this long after its last
+#: list was charged or refused (`PeerObjects.allow`): the default `objects_s` refresh (2 s) with
+#: room. Counting every peer whose allowance was not full again, a flood's peers (deep in debt,
+#: earning a tenth of the rate each) kept their shares ~20 s after their last list: 13 of a busy
+#: member's next 20 lists were refused. Now, `SENDING_S` after a flood's last list, plus a busy
+#: member's debt (at most one of its lists) at `PEER_OBJECTS_PER_S` (0.25 s for 2000 objects),
+#: its lists pass as before the flood.
+SENDING_S = 3.0
+#: An idle peer whose allowance is not full (no list charged or tried within `SENDING_S`) earns
+#: 1/IDLE_WEIGHT of a sending peer's share and counts as much in sharing the rate, so the peers
+#: together never earn more than `OBJECTS_PER_S` (an idle peer earning a full share uncounted,
+#: peers taking turns could each come back full) and a peer in debt that stopped trying still
+#: earns its way out. Up to 16 idle peers leave a peer sending alone its whole
+#: `PEER_OBJECTS_PER_S`.
+IDLE_WEIGHT = 16
+#: Least time between two sharings of the rate that `PeerObjects.allow` makes.
+RESHARE_S = 0.05
 
 
 def fair_level(counts: list[int], total: int) -> int | None:
@@ -228,27 +247,60 @@ class PeerObjects:
         self._lists: dict[str, tuple[float, list[WireObject]]] = {}
         #: origin -> (objects it may still send, clock then): `allow` and `charge`
         self._allowance: dict[str, tuple[float, float]] = {}
-        #: objects a second each peer earns back: `per_s` over the peers spending theirs, at
-        #: most `peer_per_s`
+        #: origin -> clock of its last list charged, or tried (`allow`) once it was charged
+        self._sent: dict[str, float] = {}
+        #: objects a second a peer sending lists earns back: `per_s` over the peers sending
+        #: theirs (`SENDING_S`; idle ones not full at 1/`IDLE_WEIGHT`), at most `peer_per_s`
         self._rate = min(per_s, peer_per_s)
+        #: origin -> objects a second it earns back until the next `_share` (absent: `_rate`)
+        self._rates: dict[str, float] = {}
+        self._recheck = math.inf  # clock when a sending peer turns idle: shared anew then
+        self._shared = -math.inf  # clock of the last `_share`
         self._lock = threading.Lock()
 
     def _earned(self, origin: str, now: float) -> float:
         left, then = self._allowance.get(origin, (float(self.burst), now))
-        return min(float(self.burst), left + (now - then) * self._rate)
+        rate = self._rates.get(origin, self._rate)
+        return min(float(self.burst), left + (now - then) * rate)
+
+    def _share(self, now: float) -> None:
+        """Bring every allowance to `now` at the rate it earned, then share `per_s` anew: a full
+        share (at most `peer_per_s`) to each peer not back at a full allowance that sent within
+        `SENDING_S`, 1/`IDLE_WEIGHT` of one to each other peer not back at it (the rates sum to
+        at most `per_s` until the next sharing, whoever turns idle or fills up meanwhile)."""
+        self._allowance = {o: (self._earned(o, now), now) for o in self._allowance}
+        short = [o for o, (left, _) in self._allowance.items() if left < self.burst]
+        sending = [o for o in short if now - self._sent.get(o, -math.inf) < SENDING_S]
+        weight = len(sending) + (len(short) - len(sending)) / IDLE_WEIGHT
+        self._rate = min(self.peer_per_s, self.per_s / max(1.0, weight))
+        self._rates = {o: self._rate / IDLE_WEIGHT for o in short}
+        self._rates.update((o, self._rate) for o in sending)
+        self._recheck = min((self._sent[o] + SENDING_S for o in sending), default=math.inf)
+        self._shared = now
 
     def rate(self) -> float:
-        """Objects a second each peer earns back now."""
+        """Objects a second each peer sending lists earns back now."""
         with self._lock:
             return self._rate
 
     def allow(self, origin: str) -> None:
         """WireError (`too-often`) unless `origin` may send a list now: it has not spent more
         than its allowance (its share of `per_s` objects a second, at most `peer_per_s`, `burst`
-        at once). Changes nothing."""
+        at once). Changes no allowance. A peer charged before counts as sending (`SENDING_S`)
+        while it tries, refused or not (a peer in debt earns its full share while it waits);
+        the claim is not authenticated yet, but at worst it keeps a peer not back at a full
+        allowance counted, as every such peer was. The rate is shared anew then, and once a
+        sending peer turned idle, at most every `RESHARE_S` (a stranger's claims cost little)."""
         with self._lock:
-            left = self._earned(origin, self._clock())
-            rate = self._rate
+            now = self._clock()
+            if origin in self._allowance:
+                if now - self._sent.get(origin, -math.inf) >= SENDING_S:  # idle, trying again
+                    self._recheck = min(self._recheck, self._shared + RESHARE_S)
+                self._sent[origin] = now
+            if now >= self._recheck:
+                self._share(now)
+            left = self._earned(origin, now)
+            rate = self._rates.get(origin, self._rate)
         if left <= 0:
             text = (
                 f"expected at most {rate:g} listed objects a second from {origin!r} "
@@ -260,8 +312,8 @@ class PeerObjects:
 
     def charge(self, origin: str, count: int) -> None:
         """`origin` (authenticated: its frame was decoded) sent a list of `count` objects: they
-        are taken from its allowance, kept or not (decoding them cost the same); the rate is
-        shared anew among the peers now spending theirs."""
+        are taken from its allowance, kept or not (decoding them cost the same); it counts as
+        sending for `SENDING_S` and the rate is shared anew (`_share`)."""
         with self._lock:
             now = self._clock()
             left = self._earned(origin, now) - count
@@ -269,11 +321,10 @@ class PeerObjects:
                 full = [o for o in self._allowance if self._earned(o, now) >= self.burst]
                 for o in full or list(self._allowance)[: MAX_ALLOWANCES // 2]:
                     del self._allowance[o]
-            # each peer's allowance brought to now at the old rate, then the new rate shared
-            self._allowance = {o: (self._earned(o, now), now) for o in self._allowance}
+                    self._sent.pop(o, None)
             self._allowance[origin] = (left, now)
-            spending = sum(1 for v, _ in self._allowance.values() if v < self.burst)
-            self._rate = min(self.peer_per_s, self.per_s / max(1, spending))
+            self._sent[origin] = now
+            self._share(now)  # the others brought to now at their old rates first
 
     def admit(self, origin: str, member: Callable[[str], bool] = lambda _: True) -> None:
         """Raise WireError unless a list of `origin` may be kept (replacing its previous one):

@@ -71,9 +71,13 @@ class Publisher:
         self._pose = publisher("pose")
         self._fix = publisher("fix")
         self._history = publisher("history")
-        #: The highest own history version pushed (`push_history`); what the layer held at start
-        #: (restored from the state directory) is for replicas to page.
-        self.history_pushed = layers.own.grid.history.newest_version()
+        #: The highest own history version pushed (`push_history`); what the layer held logged
+        #: at start (restored from the state directory) is for replicas to page. Versions above
+        #: the logged one (integrated before the publisher was built) are pushed once logged: it
+        #: started at the history's newest, and their records were never pushed.
+        own = layers.own
+        newest = own.grid.history.newest_version()
+        self.history_pushed = newest if own.logged is None else min(newest, own.logged)
 
     def publish_own(
         self,

@@ -1566,6 +1566,82 @@ def test_a_peer_flooding_object_lists_alone_gets_no_more_than_a_peers_rate() -> 
             now[0] += 0.5
 
 
+def test_a_busy_member_gets_its_allowance_back_soon_after_a_flood_stops() -> None:
+    """Nine peers (made-up identities of a key holder, or members gone wrong) flood full object
+    lists every 0.1 s for 10 s beside a member whose 2000 objects change at every 0.5 s refresh.
+    While the flood lasts the member keeps its share (a tenth of `OBJECTS_PER_S`). The share
+    counted every peer whose allowance was not full again: the flooders, deep in debt, counted
+    for ~20 s after their last list, and 13 of the member's next 20 lists were refused. It now
+    counts the peers sending (a list charged within `SENDING_S`; the idle ones at
+    1/`IDLE_WEIGHT`): `SENDING_S` after the flood's last list, plus the member's debt (at most
+    one of its lists) at `PEER_OBJECTS_PER_S`, every list of the member passes again."""
+    from colonyd.objects import PEER_OBJECTS_PER_S, SENDING_S
+
+    now = [0.0]
+    objects = PeerObjects(clock=lambda: now[0])
+
+    def send(origin: str, count: int) -> bool:
+        try:
+            objects.allow(origin)
+        except WireError:
+            return False
+        objects.charge(origin, count)
+        return True
+
+    passed = 0
+    for step in range(100):  # the flood: 10 s
+        for k in range(9):
+            send(f"f{k}", objects.burst)
+        if step % 5 == 0 and send("busy", 2000):
+            passed += 2000
+        now[0] += 0.1
+    assert objects.rate() == objects.per_s / 10
+    assert passed >= objects.rate() * now[0], passed  # its share while the flood lasts
+    stopped = now[0]
+    settled = stopped + SENDING_S + 2000 / PEER_OBJECTS_PER_S
+    refused = after = 0
+    while now[0] < stopped + 20.0:  # the member goes on, every 0.5 s
+        ok = send("busy", 2000)
+        if now[0] >= settled:
+            after += 1
+            refused += not ok
+        now[0] += 0.5
+    assert after >= 20 and refused == 0, (refused, after)
+    assert objects.rate() == PEER_OBJECTS_PER_S  # its full share: nine idle peers at 1/16 each
+
+
+def test_a_member_refused_beside_a_flood_keeps_its_share() -> None:
+    """Nine peers flood full object lists every 0.1 s; a member tries its full list every 2 s
+    (its share, a tenth of `OBJECTS_PER_S`, earns one every 10 s). Its refused tries count as
+    sending (`SENDING_S`): it keeps a full share and passes one list every ~10 s, where an idle
+    peer would earn 1/`IDLE_WEIGHT` of one. One that stopped in debt comes back the same way."""
+    now = [0.0]
+    objects = PeerObjects(clock=lambda: now[0])
+
+    def send(origin: str) -> bool:
+        try:
+            objects.allow(origin)
+        except WireError:
+            return False
+        objects.charge(origin, objects.burst)
+        return True
+
+    passed = {"big": 0, "back": 0}
+    send("back")  # its allowance spent, then silent for a minute
+    for step in range(1200):  # 120 s
+        for k in range(9):
+            send(f"f{k}")
+        if step % 20 == 0:
+            passed["big"] += send("big")
+            if step >= 600:
+                passed["back"] += send("back")
+        now[0] += 0.1
+    share = objects.per_s / 11
+    assert passed["big"] >= int(share * now[0] / objects.burst) - 1, passed
+    assert passed["back"] >= int(share * 60.0 / objects.burst) - 1, passed
+    assert objects.rate() == share
+
+
 def test_object_lists_of_agents_no_longer_members_keep_no_member_out() -> None:
     """Peers' object lists were kept for `max_members` origins and never dropped: once that
     many agents had sent one (made-up identities, each introduced by one heartbeat, or robots

@@ -448,6 +448,35 @@ def test_the_publisher_sends_an_own_delta_while_a_scan_holds_the_grid_lock():
         session.close()
 
 
+def test_the_publisher_pushes_the_history_of_versions_not_logged_when_it_was_built():
+    """History push: the own history held when the publisher is built is for replicas to page
+    up to the version logged (`Layer.logged`); versions integrated after it (a source that mapped
+    before the publisher was built) are in no pushed frame yet. The publisher started above
+    them (at the history's newest version) and never pushed their records."""
+    from colonyd.frames import Sender
+    from colonyd.metrics import Metrics
+    from colonyd.publisher import Publisher
+    from colonyd.runtime import open_session, zenoh_config
+
+    layers = Layers("me", 0.1)
+    own = layers.own
+    rng = np.random.default_rng(5)
+    for t in range(3):
+        own.grid.integrate(rng.uniform(-1, 1, (100, 3)), np.zeros(3), time=float(t + 1))
+    own.epoch, own.seq, own.logged = 3, 1, 1  # version 1 logged at seq 1; 2 and 3 not yet
+    history = own.grid.history
+    unlogged, _, _ = history.page(1, 10**6, upto=3)
+    want = int(unlogged.records.size + unlogged.seen.size)
+    session = open_session(zenoh_config(mode="peer", listen=["tcp/127.0.0.1:0"]))
+    try:
+        pub = Publisher(session, "t", layers, Sender("me", 3), Metrics(), epoch=3)
+        sent = pub.push_history(3)  # the publisher logged versions 2 and 3 at seq 2
+        assert sent == want > 0, (sent, want)
+        assert pub.history_pushed == 3 and pub.push_history(3) == 0
+    finally:
+        session.close()
+
+
 def test_an_own_snapshot_holds_what_is_logged_and_waits_for_the_publisher():
     """The own layer's snapshot is of its grid as logged at its seq: with scans integrated
     since, it waits for the publisher's next delta and takes the grid captured with it."""

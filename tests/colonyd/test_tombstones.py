@@ -35,6 +35,39 @@ def test_a_forgotten_layer_is_dropped_and_refused_from_then_on(tmp_path) -> None
     assert load_tombstones(tmp_path) == set() == load_tombstones(tmp_path / "nowhere")
 
 
+def test_concurrent_forgets_take_one_tombstone_each_and_stay_bounded(tmp_path) -> None:
+    """The inbox (tombstones in heartbeats) and the forget server forget agents on their own
+    threads. The checks (forgotten already, at most `max_layers` tombstones) ran before
+    `apply_lock` was taken: threads waiting for it (a delta being applied holds it) had all
+    passed them, so each said the same agent was new (each saved it, logged it) and together
+    they took the tombstones past their bound."""
+    import threading
+
+    layers = Layers("me", 0.1, max_layers=4)
+    saved: list[str] = []
+    layers.on_forget = lambda origin: (
+        saved.append(origin),
+        save_tombstones(tmp_path, layers.forgotten),  # as the daemon persists them
+    )
+    names = ["same"] * 8 + [f"x{i}" for i in range(8)]
+    new: list[tuple[str, bool]] = []
+    threads = [
+        threading.Thread(target=lambda n=n: new.append((n, layers.forget_agent(n)))) for n in names
+    ]
+    with layers.apply_lock:  # a delta between its admission and its application
+        for t in threads:
+            t.start()
+        time.sleep(0.3)  # every thread at the lock (a slow start only hides the race)
+    for t in threads:
+        t.join(10.0)
+    assert not any(t.is_alive() for t in threads)
+    assert len(new) == len(names)
+    taken = [n for n, ok in new if ok]
+    assert len(taken) == len(set(taken)) == len(layers.forgotten) <= layers.max_layers, taken
+    assert sorted(saved) == sorted(taken) and set(taken) == layers.forgotten
+    assert load_tombstones(tmp_path) == layers.forgotten
+
+
 def test_forget_requests_are_checked_against_the_colony_key() -> None:
     assert forget_params({"agent": "r1"}, None, 0.0) == "r1"
     with pytest.raises(ValueError, match="expected agent=NAME"):
