@@ -455,7 +455,9 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="our grid keeps the sub-voxel surface, as daemons do (VoxelGrid surface=True)",
     )
-    b = bsub.add_parser("wal", help="write-ahead log bytes per record, with its history")
+    b = bsub.add_parser(
+        "wal", help="write-ahead log bytes per record: with its history, plain and compressed"
+    )
     _bench_io(b, shared_data=True)
     b = bsub.add_parser("wire", help="wire-format benchmark")
     _bench_io(b, shared_data=True)

@@ -1,4 +1,4 @@
-"""Write-ahead log bytes per own-delta record, with and without the history of its versions."""
+"""Write-ahead log bytes per own-delta record: with and without its history, plain, compressed."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from typing import Any
 
 from colonyd.bench.files import room_and_carmen, write_results
 from colonyd.mapping import integrate_observation
-from colonyd.persistence import _delta_record
+from colonyd.persistence import _HEAD, _delta_record, _record_body
 from voxel.grid import VoxelGrid
 
 #: Scans per logged delta: one each (a slow sensor, or a fast publish rate) and one per five (a
@@ -18,13 +18,15 @@ CADENCES = (1, 5)
 
 def _records(spec: str, resolution: float, shape: str, every: int) -> dict[str, Any]:
     """Map `spec` as a daemon's own layer (surface on) and log a delta every `every` scans:
-    the bytes of each record as written, without and with its history."""
+    each record's bytes as written (compressed, with its history), and its plain msgpack bytes
+    without and with the history (the records of older colonyds), with the CPU of writing it."""
     from plugins.source import open_source
 
     grid = VoxelGrid(resolution, block_shape=shape)
     grid.surface = True  # as daemons keep it (Config.surface)
     source = open_source(spec, resolution=resolution)
-    plain = with_history = records = entries = 0
+    plain = with_history = written = records = entries = 0
+    cpu = 0.0
     published, seq = 0, 0
     for i, obs in enumerate(source, 1):
         integrate_observation(grid, obs, sensor=source.adapter.sensor_model, reliability=1.0)
@@ -33,8 +35,12 @@ def _records(spec: str, resolution: float, shape: str, every: int) -> dict[str, 
         seq += 1
         delta = grid.delta_since(published)
         page = grid.history.since(published, grid.version)
-        plain += len(_delta_record(seq, delta, None, None))
-        with_history += len(_delta_record(seq, delta, None, page))
+        plain += len(_record_body(_delta_record(seq, delta, None, None)[_HEAD.size :]))
+        began = time.process_time()
+        record = _delta_record(seq, delta, None, page)
+        cpu += time.process_time() - began
+        written += len(record) - _HEAD.size
+        with_history += len(_record_body(record[_HEAD.size :]))
         entries += page.records.size + page.seen.size
         records += 1
         published = grid.version
@@ -43,8 +49,11 @@ def _records(spec: str, resolution: float, shape: str, every: int) -> dict[str, 
         "records": records,
         "bytes_per_record_before": plain / records,
         "bytes_per_record_after": with_history / records,
+        "bytes_per_record_written": written / records,
         "history_entries_per_record": entries / records,
         "ratio": with_history / plain,
+        "written_ratio": written / plain,
+        "record_cpu_ms": 1000 * cpu / records,
     }
 
 
