@@ -456,7 +456,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="our grid keeps the sub-voxel surface, as daemons do (VoxelGrid surface=True)",
     )
     b = bsub.add_parser(
-        "wal", help="write-ahead log bytes per record: with its history, plain and compressed"
+        "wal", help="write-ahead log bytes per record, with its history (and compressed, measured)"
     )
     _bench_io(b, shared_data=True)
     b = bsub.add_parser("wire", help="wire-format benchmark")

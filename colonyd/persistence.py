@@ -18,7 +18,6 @@ from typing import Any, TypeVar, cast
 
 import msgpack
 import numpy as np
-import zstandard
 
 from colonyd.errors import PersistenceError
 from colonyd.grid import VoxelGrid, load_grid, new_grid
@@ -31,14 +30,6 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 _HEAD = struct.Struct("<II")  # length, crc32
-#: zstd level of a delta record's body (the snapshots' level): 8-17x smaller than the raw
-#: arrays at 0.3-5 ms of CPU a record (BENCHMARKS.md, "History in the write-ahead log").
-WAL_LEVEL = 3
-#: A zstd frame's first bytes: a compressed record body (a msgpack map never starts so).
-_ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
-#: Most bytes a compressed record may declare: a damaged frame header that passed its CRC
-#: (a bug, another program's bytes) must not ask for unbounded memory.
-MAX_RECORD_BYTES = 1 << 30
 META = "meta.json"
 SNAPSHOT = "snapshot.json"
 WAL = "wal.log"
@@ -603,28 +594,10 @@ def _new_epoch(previous: int) -> int:
     return max(time.time_ns() // 1000, previous + 1)
 
 
-def _record(fields: dict[str, Any], compress: bool = False) -> bytes:
-    """One framed log record: length, CRC32, msgpack body (`compress`: in one zstd frame that
-    declares its size; the CRC is of the bytes written)."""
+def _record(fields: dict[str, Any]) -> bytes:
+    """One framed log record: length, CRC32, msgpack body."""
     body: bytes = msgpack.packb(fields, use_bin_type=True)
-    if compress:
-        body = zstandard.ZstdCompressor(level=WAL_LEVEL, write_content_size=True).compress(body)
     return _HEAD.pack(len(body), zlib.crc32(body)) + body
-
-
-def _record_body(body: bytes) -> bytes:
-    """A CRC-checked record body as msgpack: decompressed when it is a zstd frame (a record of
-    this colonyd), as it is otherwise (a header, an older colonyd's record)."""
-    if body[:4] != _ZSTD_MAGIC:
-        return body
-    size = zstandard.get_frame_parameters(body).content_size
-    if not 0 <= size <= MAX_RECORD_BYTES:
-        msg = (
-            f"expected a compressed record declaring its size, at most {MAX_RECORD_BYTES} "
-            f"bytes, found {'none' if size >= zstandard.CONTENTSIZE_ERROR else size}"
-        )
-        raise ValueError(msg)
-    return zstandard.ZstdDecompressor().decompress(body, max_output_size=size)
 
 
 def _delta_record(
@@ -643,7 +616,7 @@ def _delta_record(
         fields["hist"] = _pack_wal_history(history)
     if created is not None:
         fields["tc"] = float(created)
-    return _record(fields, compress=True)
+    return _record(fields)
 
 
 def _pack_wal_history(page: HistoryPage) -> dict[str, Any]:
@@ -677,7 +650,7 @@ def _decode_wal_record(body: bytes, path: Path, offset: int) -> dict[str, Any]:
     """A log record (header or delta) of a CRC-checked body, or PersistenceError."""
     seq: Any = "unknown"
     try:
-        rec = msgpack.unpackb(_record_body(body), raw=False)
+        rec = msgpack.unpackb(body, raw=False)
         if isinstance(rec, dict):
             seq = rec.get("seq", seq)
             if "base" in rec:

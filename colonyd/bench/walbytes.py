@@ -1,4 +1,4 @@
-"""Write-ahead log bytes per own-delta record: with and without its history, plain, compressed."""
+"""Write-ahead log bytes per own-delta record, with or without history; what zstd makes of it."""
 
 from __future__ import annotations
 
@@ -6,10 +6,15 @@ import time
 from pathlib import Path
 from typing import Any
 
+import zstandard
+
 from colonyd.bench.files import room_and_carmen, write_results
 from colonyd.mapping import integrate_observation
-from colonyd.persistence import _HEAD, _delta_record, _record_body
+from colonyd.persistence import _HEAD, _delta_record
 from voxel.grid import VoxelGrid
+
+#: zstd level of the compression measured (not used by the log: see `_records`), the snapshots'.
+ZSTD_LEVEL = 3
 
 #: Scans per logged delta: one each (a slow sensor, or a fast publish rate) and one per five (a
 #: 2D LiDAR at ~10 Hz published at 2 Hz, the default).
@@ -18,15 +23,18 @@ CADENCES = (1, 5)
 
 def _records(spec: str, resolution: float, shape: str, every: int) -> dict[str, Any]:
     """Map `spec` as a daemon's own layer (surface on) and log a delta every `every` scans:
-    each record's bytes as written (compressed, with its history), and its plain msgpack bytes
-    without and with the history (the records of older colonyds), with the CPU of writing it."""
+    each record's bytes as written, without and with its history, and what compressing the
+    record (one zstd frame at `ZSTD_LEVEL`) would make of it and cost in CPU. The log does not
+    compress: a record is written before its delta is published, so that CPU would be added to
+    every delta's propagation (BENCHMARKS.md)."""
     from plugins.source import open_source
 
     grid = VoxelGrid(resolution, block_shape=shape)
     grid.surface = True  # as daemons keep it (Config.surface)
     source = open_source(spec, resolution=resolution)
-    plain = with_history = written = records = entries = 0
+    plain = with_history = compressed = records = entries = 0
     cpu = 0.0
+    zstd = zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_content_size=True)
     published, seq = 0, 0
     for i, obs in enumerate(source, 1):
         integrate_observation(grid, obs, sensor=source.adapter.sensor_model, reliability=1.0)
@@ -35,12 +43,12 @@ def _records(spec: str, resolution: float, shape: str, every: int) -> dict[str, 
         seq += 1
         delta = grid.delta_since(published)
         page = grid.history.since(published, grid.version)
-        plain += len(_record_body(_delta_record(seq, delta, None, None)[_HEAD.size :]))
-        began = time.process_time()
+        plain += len(_delta_record(seq, delta, None, None))
         record = _delta_record(seq, delta, None, page)
+        with_history += len(record)
+        began = time.process_time()
+        compressed += _HEAD.size + len(zstd.compress(record[_HEAD.size :]))
         cpu += time.process_time() - began
-        written += len(record) - _HEAD.size
-        with_history += len(_record_body(record[_HEAD.size :]))
         entries += page.records.size + page.seen.size
         records += 1
         published = grid.version
@@ -49,11 +57,11 @@ def _records(spec: str, resolution: float, shape: str, every: int) -> dict[str, 
         "records": records,
         "bytes_per_record_before": plain / records,
         "bytes_per_record_after": with_history / records,
-        "bytes_per_record_written": written / records,
         "history_entries_per_record": entries / records,
         "ratio": with_history / plain,
-        "written_ratio": written / plain,
-        "record_cpu_ms": 1000 * cpu / records,
+        f"bytes_per_record_zstd{ZSTD_LEVEL}": compressed / records,
+        f"zstd{ZSTD_LEVEL}_ratio": compressed / with_history,
+        f"zstd{ZSTD_LEVEL}_cpu_ms": 1000 * cpu / records,
     }
 
 

@@ -454,76 +454,29 @@ def test_a_record_without_history_recovers_as_before(tmp_path):
     assert np.array_equal(rec.grid.history.seen(), held.seen)
 
 
-def test_records_are_compressed_and_an_older_colonyds_plain_records_recover_alike(tmp_path):
-    """Delta records are written as one zstd frame each (the header stays plain); a log whose
-    records are plain msgpack, as an older colonyd wrote them, mixed with compressed ones,
-    recovers to the same grid and history."""
-    import zlib
-
-    from colonyd.persistence import _HEAD, _record_body
-
+def test_work_beside_an_append_hands_back_its_result_or_its_error_after_the_record(tmp_path):
+    """`meanwhile` (the daemon encodes the delta's frames with it) runs while the record is
+    flushed: its result comes back once the record is durable; its error propagates, and the
+    record is logged all the same (its seq taken)."""
     store = StateStore(tmp_path, "a", 0.1)
     grid = store.recover().grid
-    published = 0
-    for seq in range(1, 5):
-        scan(grid, seq)
-        store.append(
-            seq, grid.delta_since(published), history=grid.history.since(published, grid.version)
-        )
-        published = grid.version
+    log = store.append
+    scan(grid, 1)
+    assert log(1, grid.delta_since(0), meanwhile=lambda: "frames") == "frames"
+    v = grid.version
+    scan(grid, 2)
+
+    def fails() -> None:
+        raise RuntimeError("encoding failed")
+
+    with pytest.raises(RuntimeError, match="encoding failed"):
+        log(2, grid.delta_since(v), meanwhile=fails)
+    assert log(3, grid.delta_since(grid.version), meanwhile=None) is None
     store.close()
-    wal = tmp_path / WAL
-    data = wal.read_bytes()
-    offsets = _offsets(data)
-    bodies = [
-        data[o + _HEAD.size : e] for o, e in zip(offsets, [*offsets[1:], len(data)], strict=True)
-    ]
-    assert bodies[0][:4] != b"\x28\xb5\x2f\xfd"  # the header
-    assert all(b[:4] == b"\x28\xb5\x2f\xfd" for b in bodies[1:])
-    plain = sum(len(_record_body(b)) for b in bodies[1:])
-    assert plain > 3 * sum(len(b) for b in bodies[1:])  # random points: the least it saves
-
-    def recovered():
-        store = StateStore(tmp_path, "a", 0.1)
-        try:
-            return store.recover()
-        finally:
-            store.close()
-
-    want = recovered()
-    mixed = [bodies[0]] + [_record_body(b) if i % 2 else b for i, b in enumerate(bodies[1:])]
-    wal.write_bytes(b"".join(_HEAD.pack(len(b), zlib.crc32(b)) + b for b in mixed))
-    got = recovered()
-    assert got.seq == want.seq == 4 and got.grid.content_equal(want.grid)
-    assert got.grid.content_equal(grid)
-    assert np.array_equal(got.grid.history.view(), want.grid.history.view())
-    assert np.array_equal(got.grid.history.seen(), want.grid.history.seen())
-
-
-def test_a_compressed_record_that_declares_no_size_stops_recovery(tmp_path):
-    """A zstd frame without its content size (not one this colonyd writes) after a valid CRC
-    is damage: recovery stops naming the record and leaves the log as it was, never
-    decompressing without a bound."""
-    import zlib
-
-    import msgpack
-    import zstandard
-
-    from colonyd.persistence import _HEAD
-
-    _logged(tmp_path, 1)
-    stream = zstandard.ZstdCompressor().compressobj()  # a streamed frame: no size declared
-    body = stream.compress(msgpack.packb({"seq": 2}, use_bin_type=True)) + stream.flush()
-    with open(tmp_path / WAL, "ab") as fh:
-        fh.write(_HEAD.pack(len(body), zlib.crc32(body)) + body)
-    size = (tmp_path / WAL).stat().st_size
     store = StateStore(tmp_path, "a", 0.1)
-    try:
-        with pytest.raises(PersistenceError, match=r"cannot be decoded.*declaring its size.*none"):
-            store.recover()
-    finally:
-        store.close()
-    assert (tmp_path / WAL).stat().st_size == size
+    rec = store.recover()
+    store.close()
+    assert rec.seq == 3 and rec.grid.content_equal(grid)
 
 
 def test_a_record_with_a_damaged_history_stops_recovery(tmp_path):
@@ -533,13 +486,13 @@ def test_a_record_with_a_damaged_history_stops_recovery(tmp_path):
 
     import msgpack
 
-    from colonyd.persistence import _HEAD, _delta_record, _record_body
+    from colonyd.persistence import _HEAD, _delta_record
 
     store = StateStore(tmp_path, "a", 0.1)
     grid = store.recover().grid
     scan(grid, 1)
     record = _delta_record(1, grid.delta_since(0), None, grid.history.since(0, grid.version))
-    body = msgpack.unpackb(_record_body(record[_HEAD.size :]), raw=False)
+    body = msgpack.unpackb(record[_HEAD.size :], raw=False)
     body["hist"]["r"] = body["hist"]["r"][:-1]
     store.close()
     bad = msgpack.packb(body, use_bin_type=True)

@@ -1,5 +1,5 @@
-"""The write-ahead log bytes bench: what a record's history adds and what compression takes off,
-on a short simulated run."""
+"""The write-ahead log bytes bench: what a record's history adds and what compression would take
+off, on a short simulated run."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ def test_the_history_adds_its_entries_bytes_to_each_record() -> None:
         entries = r["history_entries_per_record"]
         # each entry raw (a record 53 bytes, a seen entry 20), plus the field names and table
         assert SEEN_DTYPE.itemsize * entries < added < RECORD_DTYPE.itemsize * entries + 100
-        # written compressed: smaller than the plain record even without its history
-        assert 0 < r["bytes_per_record_written"] < r["bytes_per_record_before"]
-        assert r["written_ratio"] == r["bytes_per_record_written"] / r["bytes_per_record_before"]
+        # compressed (measured, not written so): smaller than the record without its history
+        assert 0 < r["bytes_per_record_zstd3"] < r["bytes_per_record_before"]
+        assert r["zstd3_ratio"] == r["bytes_per_record_zstd3"] / r["bytes_per_record_after"]
+        assert r["zstd3_cpu_ms"] > 0
