@@ -8,17 +8,18 @@ import os
 import shutil
 import signal
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
-from colonyd.bench.launcher import LocalColony, LocalDaemon
+from colonyd.bench.launcher import LocalColony, LocalDaemon, stop_all
 from colonyd.grid import load_grid
 
 LOG = Path("/work/shared/data/carmen/freiburg-079-corrected.log.gz")
-FRAMES = 100  # scans replayed: 2-3 s of mapping (the estimator takes ~20 ms of CPU a scan)
+FRAMES = 60  # scans replayed: ~2 s of mapping (the estimator takes ~20-30 ms of CPU a scan)
 SPEC = f"replay:{LOG},stop={FRAMES}"
 KILL_AT = 25  # scans in the layer when the daemon is stopped: far from either end
 #: The estimator on (the default), nothing else: the daemon maps the recording alone.
@@ -86,9 +87,46 @@ def _interrupted(
     return d
 
 
-def _reference(colony: LocalColony, env: dict[str, str]) -> LocalDaemon:
-    """The uninterrupted run, started now (it maps meanwhile; `_until(..., _finished)`)."""
-    return _start(colony, "ref", SPEC, env)
+@dataclass(frozen=True)
+class Reference:
+    """The uninterrupted run of SPEC, finished and stopped: its last status report, its state
+    directory and its own layer (`_layer`)."""
+
+    report: dict[str, Any]
+    state_dir: Path
+    keys: np.ndarray
+    logodds: np.ndarray
+
+
+def _reference(base: Path, env: dict[str, str]) -> Reference:
+    """Run SPEC uninterrupted in a colony of its own, to its end, and stop the daemon. Each
+    kind of reference is run once for the module (a fixture): the tests compare their
+    interrupted runs with it and never change it."""
+    colony = LocalColony(base, colony="resume-ref")
+    try:
+        d = _start(colony, "ref", SPEC, env)
+        try:
+            report = _until(colony, "ref", _finished)
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}\n{colony.logs()}") from exc
+        assert d.stop() == 0, colony.logs()
+    finally:
+        stop_all(list(colony.daemons.values()))
+        colony.close()
+    keys, logodds = _layer(d)
+    return Reference(report, d.state_dir, keys, logodds)
+
+
+@pytest.fixture(scope="module")
+def alone_ref(tmp_path_factory: pytest.TempPathFactory) -> Reference:
+    """The uninterrupted run with the estimator on (ALONE)."""
+    return _reference(tmp_path_factory.mktemp("ref-alone"), ALONE)
+
+
+@pytest.fixture(scope="module")
+def exact_ref(tmp_path_factory: pytest.TempPathFactory) -> Reference:
+    """The uninterrupted run of the reference poses (EXACT), no snapshot before its stop."""
+    return _reference(tmp_path_factory.mktemp("ref-exact"), {**EXACT, "COLONYD_SNAPSHOT_S": "3600"})
 
 
 def _resumed_after(d: LocalDaemon) -> int:
@@ -99,11 +137,12 @@ def _resumed_after(d: LocalDaemon) -> int:
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
-def test_a_restart_mid_recording_resumes_where_the_layer_ends(make_colony, sig, tmp_path):
+def test_a_restart_mid_recording_resumes_where_the_layer_ends(
+    make_colony, sig, tmp_path, alone_ref
+):
     colony = make_colony(f"resume-{sig.name.lower()}")
     copy = tmp_path / LOG.name  # a copy: its modification time is moved while the daemon is down
     shutil.copyfile(LOG, copy)
-    ref = _reference(colony, ALONE)
     d = _interrupted(colony, "a", sig, ALONE, f"replay:{copy},stop={FRAMES}")
     after = _resumed_after(d)
     # the restarted run integrated only the frames its recovered layer did not hold
@@ -117,12 +156,11 @@ def test_a_restart_mid_recording_resumes_where_the_layer_ends(make_colony, sig, 
     assert "reached the stored pose: it continues with its keyframe map" in d.log_path.read_text()
     assert f"done: {FRAMES} frames in" in d.log_path.read_text()
     assert f"({after} of them passed over: already in the layer)" in d.log_path.read_text()
-    ref_report = _until(colony, "ref", _finished)
-    history, ref_history = report["layers"]["a"]["history"], ref_report["layers"]["ref"]["history"]
+    history = report["layers"]["a"]["history"]
+    ref_history = alone_ref.report["layers"]["ref"]["history"]
     assert history == ref_history  # in the snapshot or the log: none lost, not one twice
-    ref.stop()
     d.stop()
-    keys_ref, lo_ref = _layer(ref)
+    keys_ref, lo_ref = alone_ref.keys, alone_ref.logodds
     keys_a, lo_a = _layer(d)
     # The uninterrupted run's layer: the same voxels with the same log-odds (float32 sums in
     # the same order), no frame twice, none missing. (Read afresh instead, the first scans
@@ -173,12 +211,13 @@ def test_corrupt_stored_position_is_logged_and_the_source_starts_afresh(make_col
     assert report["layers"]["a"]["voxels"] >= voxels  # the stored layer kept
 
 
-def test_a_stored_pose_the_frames_do_not_reach_again_is_where_the_estimate_continues(make_colony):
+def test_a_stored_pose_the_frames_do_not_reach_again_is_where_the_estimate_continues(
+    make_colony, alone_ref
+):
     """As when colony matches or fixes had corrected the estimate: the passed-over frames alone
     give another pose than the one stored with the layer, and the estimate goes on from the
     stored one (the frame the layer was built in), its keyframe map anew from there."""
     colony = make_colony("resume-pose")
-    _reference(colony, ALONE)
     d = _start(colony, "a", SPEC, ALONE)
     _until(colony, "a", lambda r: r["sources"][0].get("position", 0) >= KILL_AT)
     d.stop()
@@ -192,7 +231,7 @@ def test_a_stored_pose_the_frames_do_not_reach_again_is_where_the_estimate_conti
     text = d.log_path.read_text()
     assert f"its estimator continues from the stored pose (x {stored['pose'][0]:.3f}" in text
     assert "its keyframe map starts anew from there" in text
-    want = np.array(_until(colony, "ref", _finished)["pose_matrix"])
+    want = np.array(alone_ref.report["pose_matrix"])
     got = np.array(report["pose_matrix"])
     shift = got[:2, 3] - want[:2, 3]
     # the rest of the path from the stored pose: shifted as it was (scan matching against the
@@ -217,14 +256,14 @@ def _history(state_dir: Path, agent: str) -> Any:
 
 
 @pytest.mark.parametrize("sync", ["false", "true"], ids=["write-then-sync", "sync-before-publish"])
-def test_a_sigkill_loses_no_history(make_colony, sync):
+def test_a_sigkill_loses_no_history(make_colony, sync, exact_ref):
     """SIGKILLed mid-recording with no snapshot since the start (`snapshot_s` an hour): the
     recovered history holds the uninterrupted run's records and seen entries, up to the
     recovered version, exactly; and so does the history after the restart runs to the end.
-    Both ways of logging (`sync_before_publish`)."""
+    Both ways of logging (`sync_before_publish`), each against the one uninterrupted run (the
+    default way: how a record is logged must not change the history)."""
     colony = make_colony("history-sigkill")
     env = {**EXACT, "COLONYD_SNAPSHOT_S": "3600", "COLONYD_SYNC_BEFORE_PUBLISH": sync}
-    ref = _reference(colony, env)
     d = _start(colony, "a", SPEC, env)
     _until(colony, "a", lambda r: r["sources"][0].get("position", 0) >= KILL_AT)
     d.signal(signal.SIGKILL)
@@ -233,11 +272,9 @@ def test_a_sigkill_loses_no_history(make_colony, sync):
     recovered = _history(d.state_dir, "a")
     d.start()
     _until(colony, "a", _finished)
-    _until(colony, "ref", _finished)
-    ref.stop()
     d.stop()
-    pointer = json.loads((ref.state_dir / "snapshot.json").read_text())
-    want = load_grid(ref.state_dir / pointer["file"]).history
+    pointer = json.loads((exact_ref.state_dir / "snapshot.json").read_text())
+    want = load_grid(exact_ref.state_dir / pointer["file"]).history
     version = recovered.version
     assert version > 0
     got = recovered.history
