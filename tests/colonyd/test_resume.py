@@ -249,6 +249,63 @@ def test_a_folder_fingerprint_covers_every_file_below_it(tmp_path):
     assert fingerprint(spec) != first
 
 
+def _scene(root: Path) -> str:
+    """A small 7-Scenes-like folder (`frames/` below it); its `replay:` spec."""
+    (root / "frames").mkdir(parents=True)
+    (root / "camera-intrinsics.txt").write_text("585 0 320\n")
+    for i in range(3):
+        (root / "frames" / f"frame-{i:06d}.depth.png").write_bytes(bytes([i]) * 10)
+    return f"replay:{root}"
+
+
+def test_a_folder_fingerprint_walks_a_link_back_up_once(tmp_path):
+    """A link to a folder holding it (`latest -> .`, `up -> ..`) is not walked again: followed,
+    one such link made the walk go 40 levels deep until the system refused the path (ELOOP), so
+    the fingerprint was {} (a recording that cannot be read: it started afresh at every restart,
+    its evidence counted again); two made it 2^40 paths long, and the source never started."""
+    root = tmp_path / "scene"
+    spec = _scene(root)
+    first = fingerprint(spec)
+    (root / "latest").symlink_to(".", target_is_directory=True)
+    assert fingerprint(spec) == first
+    (root / "frames" / "up").symlink_to("..", target_is_directory=True)
+    assert fingerprint(spec) == first
+    (root / "frames" / "frame-000001.depth.png").write_bytes(b"x" * 10)
+    assert fingerprint(spec) not in (first, {})
+
+
+def test_a_folder_fingerprint_leaves_out_what_is_not_a_file(tmp_path):
+    """A dangling link, a named pipe or a device below a recording holds no bytes the reader
+    reads: it is no part of the fingerprint. A dangling link made it {} (the recording never
+    resumed, its evidence counted again at every restart; sizes and times read it as a
+    recording); a pipe was opened and read: the source waited for a writer for good."""
+    root = tmp_path / "scene"
+    spec = _scene(root)
+    first = fingerprint(spec)
+    (root / "frames" / "gone").symlink_to(tmp_path / "nowhere")
+    assert fingerprint(spec) == first
+    (root / "loop").symlink_to(root / "loop")  # a link to itself: ELOOP, as dangling
+    assert fingerprint(spec) == first
+    (root / "null").symlink_to(os.devnull)  # a device: never a recording's bytes
+    assert fingerprint(spec) == first
+    os.mkfifo(root / "frames" / "pipe")
+    assert fingerprint(spec) == first
+
+
+def test_a_folder_fingerprint_takes_any_file_name(tmp_path):
+    """A file name that is not UTF-8 (bytes as the system keeps them) raised UnicodeEncodeError,
+    a ValueError out of `Positions.start`: the source failed and was never read."""
+    root = tmp_path / "scene"
+    spec = _scene(root)
+    first = fingerprint(spec)
+    odd = os.fsdecode(bytes(root / "frames") + b"/note-\xff.txt")
+    Path(odd).write_bytes(b"1")
+    second = fingerprint(spec)
+    assert second not in (first, {}) and (second["files"], second["size"]) == (5, 41)
+    Path(odd).write_bytes(b"2")
+    assert fingerprint(spec) not in (second, {})
+
+
 def test_a_position_stored_by_size_and_time_is_matched_by_them(tmp_path, caplog):
     """An older colonyd stored {size, mtime_ns}: the same size and time resume (as that colonyd
     would have), another time starts afresh with the warning; the position stored from then on
