@@ -83,8 +83,9 @@ def fingerprint(spec: str) -> dict[str, int]:
     """What identifies the recording a `replay:` spec reads, by content: its size and the first
     64 bits of the SHA-256 of its bytes (a folder's: its files' count and total size, and the
     SHA-256 over every file below it in the order of their relative names, of each name, size
-    and bytes' SHA-256); {} when it cannot be read. Times are left out: a recording touched, or
-    copied without keeping them, is the same recording."""
+    and bytes' SHA-256; a file it may not read is left out, see `_files_below` for the rest);
+    {} when it cannot be read. Times are left out: a recording touched, or copied without
+    keeping them, is the same recording."""
     path = parse_spec(spec).path
     if path is None:
         return {}
@@ -98,8 +99,8 @@ def fingerprint(spec: str) -> dict[str, int]:
         for name, f in sorted(_files_below(p)):
             try:
                 size, digest = _hash_file(f)
-            except FileNotFoundError:  # removed since it was listed: not part of it now
-                continue
+            except (FileNotFoundError, PermissionError):  # removed since it was listed, or
+                continue  # not ours to read (nor the reader's): not part of what is replayed
             folder.update(b"%d:%s:%d:%s" % (len(name), name, size, digest))
             count, total = count + 1, total + size
     except OSError:

@@ -8,6 +8,7 @@ import logging
 import math
 import os
 import shutil
+import tempfile
 import threading
 from pathlib import Path
 
@@ -290,6 +291,35 @@ def test_a_folder_fingerprint_leaves_out_what_is_not_a_file(tmp_path):
     assert fingerprint(spec) == first
     os.mkfifo(root / "frames" / "pipe")
     assert fingerprint(spec) == first
+
+
+def test_a_folder_fingerprint_leaves_out_a_file_it_may_not_read(tmp_path):
+    """A file below a recording that this daemon may not read (the service runs as its own
+    user; a file left by another, mode 0600) is no part of what it replays: left out. It made
+    the fingerprint {} (a recording that cannot be read): stored so, the position was taken at
+    the restart for one of an older colonyd, compared by size and time, and the recording was
+    read afresh at every restart, its evidence already in the layer counted again."""
+    root = Path(tempfile.mkdtemp(prefix="colony-fingerprint-"))  # where another user may look
+    try:
+        root.chmod(0o755)
+        spec = _scene(root)
+        first = fingerprint(spec)
+        secret = root / "frames" / "secret.txt"
+        secret.write_text("not yours")
+        secret.chmod(0o600)
+        if os.geteuid() == 0:  # root reads anything: look as another user
+            os.seteuid(65534)
+            try:
+                theirs = fingerprint(spec)
+            finally:
+                os.seteuid(0)
+            assert fingerprint(spec) not in (first, {})  # read, it is part of the recording
+        else:
+            secret.chmod(0)
+            theirs = fingerprint(spec)
+        assert theirs == first
+    finally:
+        shutil.rmtree(root)
 
 
 def test_a_folder_fingerprint_takes_any_file_name(tmp_path):
