@@ -586,8 +586,13 @@ class Layers:
 
         Checked, taken and persisted (`on_forget`) under `apply_lock`: the inbox (tombstones in
         heartbeats) and the forget server forget on their own threads, and threads that checked
-        before waiting for the lock each took the same agent as new, past the bound together."""
-        if origin == self.own_id:
+        before waiting for the lock each took the same agent as new, past the bound together.
+        Nothing new (a tombstone known already, or the bound reached: the set only grows) is
+        answered without the lock: every heartbeat carries the tombstones, and its thread would
+        wait for a range or a snapshot being applied."""
+        if origin == self.own_id or origin in self.forgotten:
+            return False
+        if len(self.forgotten) >= self.max_layers:
             return False
         with self.apply_lock:  # not between a delta's admission and its application
             if origin in self.forgotten:

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import logging
 import math
 import os
+import stat
 import threading
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, replace
@@ -81,8 +83,9 @@ def fingerprint(spec: str) -> dict[str, int]:
     """What identifies the recording a `replay:` spec reads, by content: its size and the first
     64 bits of the SHA-256 of its bytes (a folder's: its files' count and total size, and the
     SHA-256 over every file below it in the order of their relative names, of each name, size
-    and bytes' SHA-256); {} when it cannot be read. Times are left out: a recording touched, or
-    copied without keeping them, is the same recording."""
+    and bytes' SHA-256; a file it may not read is left out, see `_files_below` for the rest);
+    {} when it cannot be read. Times are left out: a recording touched, or copied without
+    keeping them, is the same recording."""
     path = parse_spec(spec).path
     if path is None:
         return {}
@@ -91,27 +94,61 @@ def fingerprint(spec: str) -> dict[str, int]:
         if not p.is_dir():
             size, digest = _hash_file(p)
             return {"size": size, CONTENT: _as_int(digest)}
-        files = sorted(
-            (Path(root, name).relative_to(p).as_posix().encode(), Path(root, name))
-            for root, _dirs, names in os.walk(p, followlinks=True)
-            for name in names
-        )
         folder = hashlib.sha256()
-        total = 0
-        for name, f in files:
-            size, digest = _hash_file(f)
+        count = total = 0
+        for name, f in sorted(_files_below(p)):
+            try:
+                size, digest = _hash_file(f)
+            except (FileNotFoundError, PermissionError):  # removed since it was listed, or
+                continue  # not ours to read (nor the reader's): not part of what is replayed
             folder.update(b"%d:%s:%d:%s" % (len(name), name, size, digest))
-            total += size
+            count, total = count + 1, total + size
     except OSError:
         return {}
-    return {"files": len(files), "size": total, CONTENT: _as_int(folder.digest())}
+    return {"files": count, "size": total, CONTENT: _as_int(folder.digest())}
 
 
-def _hash_file(path: Path) -> tuple[int, bytes]:
+def _files_below(root: Path) -> list[tuple[bytes, str]]:
+    """Every regular file below the folder `root` (symbolic links followed), by its relative
+    name as the system keeps it (bytes: any name, UTF-8 or not). A link to a folder that holds
+    it (`latest -> .`) is not walked again: followed, it made the walk endless. What is not a
+    regular file (a dangling link, a named pipe, a device) holds no bytes of the recording and
+    is left out: a pipe's reading waits for a writer for good. A folder that cannot be listed
+    below `root` is left out, as `os.walk` left it; OSError when `root` cannot be listed."""
+    top = os.stat(root)
+    found: list[tuple[bytes, str]] = []
+    stack = [(os.fspath(root), b"", frozenset({(top.st_dev, top.st_ino)}))]
+    while stack:
+        folder, prefix, above = stack.pop()
+        try:
+            with os.scandir(folder) as listing:
+                entries = list(listing)
+        except OSError:
+            if folder == os.fspath(root):
+                raise
+            continue
+        for entry in entries:
+            try:
+                st = entry.stat()  # through links
+            except OSError as exc:
+                if exc.errno in (errno.ENOENT, errno.ELOOP):  # dangling, or removed meanwhile
+                    continue
+                raise
+            name = prefix + os.fsencode(entry.name)
+            if stat.S_ISDIR(st.st_mode):
+                key = (st.st_dev, st.st_ino)
+                if key not in above:  # else a link back up: walked already
+                    stack.append((entry.path, name + b"/", above | {key}))
+            elif stat.S_ISREG(st.st_mode):
+                found.append((name, entry.path))
+    return found
+
+
+def _hash_file(path: str | Path) -> tuple[int, bytes]:
     """A file's size (the bytes read) and their SHA-256."""
     digest = hashlib.sha256()
     size = 0
-    with path.open("rb") as f:
+    with open(path, "rb") as f:
         while chunk := f.read(1 << 20):
             digest.update(chunk)
             size += len(chunk)

@@ -8,6 +8,7 @@ import logging
 import math
 import os
 import shutil
+import tempfile
 import threading
 from pathlib import Path
 
@@ -247,6 +248,92 @@ def test_a_folder_fingerprint_covers_every_file_below_it(tmp_path):
     assert fingerprint(spec) == first
     (tmp_path / "elsewhere" / "frame-000002.depth.png").write_bytes(b"y" * 10)
     assert fingerprint(spec) != first
+
+
+def _scene(root: Path) -> str:
+    """A small 7-Scenes-like folder (`frames/` below it); its `replay:` spec."""
+    (root / "frames").mkdir(parents=True)
+    (root / "camera-intrinsics.txt").write_text("585 0 320\n")
+    for i in range(3):
+        (root / "frames" / f"frame-{i:06d}.depth.png").write_bytes(bytes([i]) * 10)
+    return f"replay:{root}"
+
+
+def test_a_folder_fingerprint_walks_a_link_back_up_once(tmp_path):
+    """A link to a folder holding it (`latest -> .`, `up -> ..`) is not walked again: followed,
+    one such link made the walk go 40 levels deep until the system refused the path (ELOOP), so
+    the fingerprint was {} (a recording that cannot be read: it started afresh at every restart,
+    its evidence counted again); two made it 2^40 paths long, and the source never started."""
+    root = tmp_path / "scene"
+    spec = _scene(root)
+    first = fingerprint(spec)
+    (root / "latest").symlink_to(".", target_is_directory=True)
+    assert fingerprint(spec) == first
+    (root / "frames" / "up").symlink_to("..", target_is_directory=True)
+    assert fingerprint(spec) == first
+    (root / "frames" / "frame-000001.depth.png").write_bytes(b"x" * 10)
+    assert fingerprint(spec) not in (first, {})
+
+
+def test_a_folder_fingerprint_leaves_out_what_is_not_a_file(tmp_path):
+    """A dangling link, a named pipe or a device below a recording holds no bytes the reader
+    reads: it is no part of the fingerprint. A dangling link made it {} (the recording never
+    resumed, its evidence counted again at every restart; sizes and times read it as a
+    recording); a pipe was opened and read: the source waited for a writer for good."""
+    root = tmp_path / "scene"
+    spec = _scene(root)
+    first = fingerprint(spec)
+    (root / "frames" / "gone").symlink_to(tmp_path / "nowhere")
+    assert fingerprint(spec) == first
+    (root / "loop").symlink_to(root / "loop")  # a link to itself: ELOOP, as dangling
+    assert fingerprint(spec) == first
+    (root / "null").symlink_to(os.devnull)  # a device: never a recording's bytes
+    assert fingerprint(spec) == first
+    os.mkfifo(root / "frames" / "pipe")
+    assert fingerprint(spec) == first
+
+
+def test_a_folder_fingerprint_leaves_out_a_file_it_may_not_read(tmp_path):
+    """A file below a recording that this daemon may not read (the service runs as its own
+    user; a file left by another, mode 0600) is no part of what it replays: left out. It made
+    the fingerprint {} (a recording that cannot be read): stored so, the position was taken at
+    the restart for one of an older colonyd, compared by size and time, and the recording was
+    read afresh at every restart, its evidence already in the layer counted again."""
+    root = Path(tempfile.mkdtemp(prefix="colony-fingerprint-"))  # where another user may look
+    try:
+        root.chmod(0o755)
+        spec = _scene(root)
+        first = fingerprint(spec)
+        secret = root / "frames" / "secret.txt"
+        secret.write_text("not yours")
+        secret.chmod(0o600)
+        if os.geteuid() == 0:  # root reads anything: look as another user
+            os.seteuid(65534)
+            try:
+                theirs = fingerprint(spec)
+            finally:
+                os.seteuid(0)
+            assert fingerprint(spec) not in (first, {})  # read, it is part of the recording
+        else:
+            secret.chmod(0)
+            theirs = fingerprint(spec)
+        assert theirs == first
+    finally:
+        shutil.rmtree(root)
+
+
+def test_a_folder_fingerprint_takes_any_file_name(tmp_path):
+    """A file name that is not UTF-8 (bytes as the system keeps them) raised UnicodeEncodeError,
+    a ValueError out of `Positions.start`: the source failed and was never read."""
+    root = tmp_path / "scene"
+    spec = _scene(root)
+    first = fingerprint(spec)
+    odd = os.fsdecode(bytes(root / "frames") + b"/note-\xff.txt")
+    Path(odd).write_bytes(b"1")
+    second = fingerprint(spec)
+    assert second not in (first, {}) and (second["files"], second["size"]) == (5, 41)
+    Path(odd).write_bytes(b"2")
+    assert fingerprint(spec) not in (second, {})
 
 
 def test_a_position_stored_by_size_and_time_is_matched_by_them(tmp_path, caplog):

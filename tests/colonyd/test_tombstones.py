@@ -68,6 +68,40 @@ def test_concurrent_forgets_take_one_tombstone_each_and_stay_bounded(tmp_path) -
     assert load_tombstones(tmp_path) == layers.forgotten
 
 
+def test_a_tombstone_known_already_waits_for_no_delta() -> None:
+    """Every member's heartbeat carries the colony's tombstones, and the inbox forgets each on
+    its one thread: one known already (or past the bound) is nothing new, and is answered
+    without `apply_lock`. Taking the lock first, every heartbeat waited for a range or a
+    snapshot being applied on the catch-up thread (seconds for a big layer) behind it."""
+    import threading
+
+    layers = Layers("me", 0.1, max_layers=1)
+    assert layers.forget_agent("gone")
+    answers: list[bool] = []
+    heartbeat = threading.Thread(
+        target=lambda: answers.extend(layers.forget_agent(o) for o in ("gone", "another"))
+    )
+    holder_in, release = threading.Event(), threading.Event()
+
+    def catch_up() -> None:
+        with layers.apply_lock:  # a range being applied
+            holder_in.set()
+            release.wait(30.0)
+
+    holder = threading.Thread(target=catch_up)
+    holder.start()
+    holder_in.wait(10.0)
+    try:
+        heartbeat.start()
+        heartbeat.join(10.0)  # a bound far past any run's, not a speed: on the lock, it waits
+        assert not heartbeat.is_alive() and answers == [False, False]
+    finally:
+        release.set()
+        holder.join(10.0)
+        heartbeat.join(10.0)
+    assert layers.forgotten == {"gone"}
+
+
 def test_forget_requests_are_checked_against_the_colony_key() -> None:
     assert forget_params({"agent": "r1"}, None, 0.0) == "r1"
     with pytest.raises(ValueError, match="expected agent=NAME"):
