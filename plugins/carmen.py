@@ -105,14 +105,26 @@ def parse_flaser(text: str, path: str | Path, line: int) -> FlaserRecord:
     )
 
 
+#: The longest line a CARMEN log may have (a FLASER line of 1081 beams is ~10 KB): a file without
+#: line breaks is refused at this length, not read whole into memory.
+MAX_LINE = 1 << 20
+
+
 def read_lines(path: Path) -> Iterator[tuple[int, str]]:
     """(line number, text) of a plain or gzipped text file; a truncated gzip raises SourceError at
-    the end."""
+    the end, a line longer than `MAX_LINE` characters where it is found."""
     opener = gzip.open if path.suffix == ".gz" else open
     lineno = 0
     try:
         with opener(path, "rt", encoding="ascii", errors="replace") as f:
-            for lineno, text in enumerate(f, start=1):
+            while text := f.readline(MAX_LINE + 1):
+                lineno += 1
+                if len(text) > MAX_LINE:
+                    msg = (
+                        f"{path}: line {lineno}: expected a line of at most {MAX_LINE} "
+                        "characters (a CARMEN record), found a longer one: not a CARMEN log?"
+                    )
+                    raise SourceError(msg)
                 yield lineno, text
     except (EOFError, zlib.error, gzip.BadGzipFile) as exc:
         msg = (

@@ -9,7 +9,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from plugins.carmen import CarmenOptions, CarmenSource
+from plugins.carmen import MAX_LINE, CarmenOptions, CarmenSource
 from plugins.errors import SourceError
 from plugins.rosbag import RosbagOptions, RosbagSource
 from plugins.sevenscenes import RgbdOptions, RgbdSource
@@ -52,12 +52,15 @@ def detect_format(path: Path) -> str:
     opener = gzip.open if path.suffix == ".gz" else open
     try:
         with opener(path, "rt", encoding="ascii", errors="replace") as f:
-            head = [f.readline() for _ in range(2000)]
+            for _ in range(2000):  # its first lines, each at most MAX_LINE characters
+                line = f.readline(MAX_LINE + 1)
+                if not line or len(line) > MAX_LINE:
+                    break
+                if line.startswith(("FLASER", "ROBOTLASER1", "ODOM", "PARAM")):
+                    return "carmen"
     except (OSError, EOFError) as exc:
         msg = f"{path}: cannot read the start of the file: {exc}"
         raise SourceError(msg) from None
-    if any(line.startswith(("FLASER", "ROBOTLASER1", "ODOM", "PARAM")) for line in head):
-        return "carmen"
     msg = (
         f"{path}: expected a CARMEN log (FLASER lines) or a ROS bag (.bag, .db3, .mcap), "
         "found neither"

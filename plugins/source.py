@@ -69,7 +69,9 @@ SOURCE_KINDS: dict[str, SourceKind] = {
             "replay:PATH[,key=value...]",
             "a real recording at PATH: a CARMEN laser log (.log, .log.gz), a 7-Scenes or TUM "
             "RGB-D folder, or a ROS 1/2 bag (.bag, .db3, .mcap, or a folder with metadata.yaml; "
-            "needs the [ros] extra); bad frames are skipped and counted unless strict",
+            "needs the [ros] extra); bad frames are skipped and counted unless strict; a "
+            "CARMEN log's lines are read at most 1 MiB each (a file without line breaks is "
+            "refused at that length, never read whole into memory)",
             (
                 ("", "plugins.replay:ReplayOptions"),
                 ("carmen", "plugins.carmen:CarmenOptions"),

@@ -54,3 +54,39 @@ def test_a_folder_holding_a_log_names_the_file_to_give(tmp_path: Path) -> None:
         detect_format(tmp_path)
     with pytest.raises(SourceError, match=rf"\(replay:{tmp_path / 'run.log.gz'}\)$"):
         detect_format(tmp_path)
+
+
+@pytest.mark.parametrize("name", ["flat.log", "flat.log.gz"])
+def test_a_file_without_line_breaks_is_refused_without_reading_it_whole(
+    tmp_path: Path, name: str
+) -> None:
+    """64 MiB without a line break (a sparse or binary file given as a log): detection reads at
+    most one bounded line of it and says what it expected; the CARMEN reader stops at the first
+    line longer than `MAX_LINE`. Read whole, the line took the file's size in memory (a 40 GB
+    file filled the machine's memory)."""
+    import gzip
+    import tracemalloc
+
+    from plugins.carmen import MAX_LINE, read_lines
+
+    path = tmp_path / name
+    size = 64 << 20
+    if name.endswith(".gz"):
+        with gzip.open(path, "wb", compresslevel=1) as f:
+            f.write(b"PARAM " + b"0" * size)
+    else:
+        with open(path, "wb") as f:
+            f.write(b"PARAM ")
+            f.truncate(size)  # sparse: zero bytes, no line break
+    tracemalloc.start()
+    try:
+        with pytest.raises(SourceError, match=r"expected a CARMEN log \(FLASER lines\)"):
+            detect_format(path)
+        with pytest.raises(
+            SourceError, match=rf"line 1: expected a line of at most {MAX_LINE} characters"
+        ):
+            list(read_lines(path))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 * MAX_LINE < size // 4, peak
