@@ -159,6 +159,12 @@ def _as_int(digest: bytes) -> int:
     return int.from_bytes(digest[:8], "big")
 
 
+def stored_by_older(recording: Mapping[str, int]) -> bool:
+    """A stored fingerprint written by an older colonyd (by size and time, no `CONTENT`); {}
+    is not one: the recording could not be read when it was stored."""
+    return bool(recording) and CONTENT not in recording
+
+
 def stat_fingerprint(spec: str) -> dict[str, int]:
     """The fingerprint an older colonyd stored, by size and modification time (a folder's: its
     top-level entries' count, summed size and latest time); {} when it cannot be read. Only
@@ -329,10 +335,12 @@ def decide(
         return Decision(0, False, None, f"source {spec}: starts from its first frame", "info")
     if mine.recording != recording:
         older = (
-            ""
-            if CONTENT in mine.recording
-            else " (a position stored by an older colonyd, which knew a recording by its size "
+            " (a position stored by an older colonyd, which knew a recording by its size "
             "and modification time)"
+            if stored_by_older(mine.recording)
+            else " (it could not be read when the position was stored)"
+            if not mine.recording
+            else ""
         )
         return Decision(
             0,
@@ -410,7 +418,7 @@ class Positions:
         # another configured source's position is its own, not an older spec of this one
         candidates = {s: p for s, p in self.stored.items() if s == spec or s not in self._specs}
         mine = candidates.get(spec)
-        old = mine is not None and CONTENT not in mine.recording  # stored by an older colonyd
+        old = mine is not None and stored_by_older(mine.recording)
         decision = decide(
             spec, stat_fingerprint(spec) if old else recording, candidates, self.refused
         )

@@ -515,3 +515,18 @@ def test_a_restored_estimator_continues_from_the_stored_pose_not_the_odometry(tm
         d = se2.from_matrix(resumed(o)) - want - np.array([0.0, 0.3, 0.0])
         assert abs(d[0]) < 0.05 and abs(d[1]) < 0.05 and abs(d[2]) < 0.02, d
     assert ScanEstimator(True, np.eye(4)).state() is None
+
+
+def test_a_position_stored_when_the_recording_was_unreadable_is_not_called_older(tmp_path, caplog):
+    """A position stored with an empty fingerprint (the recording could not be read then) is not
+    an older colonyd's: the recording, readable now, starts afresh and the warning says why."""
+    path = _carmen(tmp_path)
+    spec = f"replay:{path}"
+    frames = [o.frame for o in open_source(spec)]
+    stored = SourcePosition(spec, {}, 3, frames[2], False, None)
+    positions = Positions(encode({spec: stored}), [spec])
+    with caplog.at_level(logging.WARNING, logger="colonyd.resume"):
+        rest = positions.start(open_source(spec), threading.Event())
+    assert rest is not None and [o.frame for o in rest] == frames
+    assert "it could not be read when the position was stored" in caplog.text
+    assert "older colonyd" not in caplog.text
