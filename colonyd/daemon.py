@@ -124,11 +124,8 @@ LONELY_HEARTBEATS = 10
 #: sources imports none of them (~0.6 CPU-s). Registration's own modules (scipy.ndimage,
 #: scipy.fft) load in the aligner's worker process, never here.
 WARM_IMPORTS = (
-    # only where objects are clustered (`objects_s`, sources that label): the clusters are the
-    # components of a graph (`voxel.objects.dbscan_labels`); scikit-learn (~1.5 CPU-s, ~90 MB)
-    # is imported by the clustering itself, only where a tie at exactly `link` decides them
-    "scipy.sparse.csgraph",
-    "scipy.spatial",  # cKDTree: scan matching (`ScanLocaliser`), colony maps, object clustering
+    "sklearn.cluster",  # only where objects are clustered: `objects_s`, sources that label
+    "scipy.spatial",  # cKDTree: scan matching (`ScanLocaliser`) and colony maps
 )
 #: The interpreter's thread switch interval in a daemon (Python's default is 5 ms).
 SWITCH_INTERVAL_S = 0.001
@@ -429,8 +426,8 @@ class Daemon:
         kernels.warm_codec()
         clusters = self.config.objects_s > 0 and any(map(may_label, self._sources))
         for name in WARM_IMPORTS:
-            if name == "scipy.sparse.csgraph" and not clusters:
-                continue  # what a daemon that clusters nothing never needs
+            if name.startswith("sklearn") and not clusters:
+                continue  # ~90 MB of modules (RSS) a daemon that clusters nothing never needs
             try:
                 importlib.import_module(name)
             except Exception as exc:  # noqa: BLE001 - the job that needs it says so when it runs

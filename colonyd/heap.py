@@ -22,8 +22,7 @@ def freeze() -> None:
 class Freezer:
     """Freezes the heap (`freeze`) when modules were imported, or the compiled kernels loaded,
     since it last did: a daemon's modules (zenoh, pydantic, numpy at start-up; numba and
-    llvmlite with the kernels; scipy with the warm-up; scikit-learn and pandas where a tie
-    decides an object clustering)
+    llvmlite with the kernels; sklearn, pandas and scipy when objects are first clustered)
     leave ~230k long-lived objects, and a full collection walks all of them with the
     interpreter lock held: 100-400 ms per pass on a shared 2-core machine, several times a
     minute, during which no thread of the daemon (Zenoh callbacks, the inbox) runs Python. Those

@@ -98,11 +98,14 @@ def dbscan_labels(pts: np.ndarray, eps: float) -> np.ndarray:
     pairs = cKDTree(pts).query_pairs(eps * (1 + TIE_MARGIN), output_type="ndarray")
     d2 = ((pts[pairs[:, 0]] - pts[pairs[:, 1]]) ** 2).sum(axis=1)
     clear = d2 < eps * eps * (1 - TIE_MARGIN)
-    edges = pairs[clear]
-    graph = coo_matrix((np.ones(len(edges), dtype=np.int8), (edges[:, 0], edges[:, 1])), (n, n))
-    count, labels = connected_components(graph, directed=False)
-    tied = pairs[~clear]
-    if np.any(labels[tied[:, 0]] != labels[tied[:, 1]]):  # a tie would join two clusters
+
+    def components(edges: np.ndarray) -> tuple[int, np.ndarray]:
+        graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+        count, labels = connected_components(graph, directed=False)
+        return int(count), labels
+
+    count, labels = components(pairs[clear])
+    if not clear.all() and components(pairs)[0] != count:  # a tie joins two clusters
         from sklearn.cluster import DBSCAN
 
         return np.asarray(DBSCAN(eps=eps, min_samples=1).fit_predict(pts), dtype=np.int64)

@@ -77,7 +77,7 @@ def test_start_up_ends_when_a_warm_import_fails_in_any_way(monkeypatch) -> None:
     from colonyd import daemon as dm
 
     def fail(name: str) -> None:
-        raise (ImportError if name == "scipy.sparse.csgraph" else RuntimeError)(f"cannot {name}")
+        raise (ImportError if name.startswith("sklearn") else RuntimeError)(f"cannot {name}")
 
     monkeypatch.setattr(dm.importlib, "import_module", fail)
     monkeypatch.setattr(dm.kernels, "warm", lambda: True)

@@ -58,7 +58,7 @@ def test_a_bad_spec_fails_before_anything_runs():
 
 
 def test_only_sources_that_may_label_have_the_daemon_import_the_clustering():
-    """A daemon imports the clustering's modules at start-up only for sources whose adapter may
+    """A daemon imports scikit-learn (~1 s of CPU) at start-up only for sources whose adapter may
     label points: LiDARs and synthetic points say they do not, and do not; a depth camera and a
     CCTV do; an adapter that says nothing may."""
     from colonyd.daemon import may_label
