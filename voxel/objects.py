@@ -76,47 +76,6 @@ def labelled_voxels(
     return LabelledVoxels(vk.keys_to_centers(keys, res), cls, p, times, res)
 
 
-#: Relative margin on a squared distance within which it is a tie with eps² (float rounding,
-#: ~1e-16 relative, decides a tie; a margin this wide decides nothing else).
-TIE_MARGIN = 1e-9
-
-
-def dbscan_labels(pts: np.ndarray, eps: float) -> np.ndarray:
-    """The labels `DBSCAN(eps=eps, min_samples=1).fit_predict(pts)` gives, without importing
-    scikit-learn (~1.5 s of CPU a process) unless a tie decides them. With min_samples=1 every
-    point is a core point: the clusters are the connected components of the graph of points
-    within `eps` of each other, labelled in the order of their first point. A pair exactly
-    `eps` apart (common on a voxel lattice) is a tie that scikit-learn's own rounding decides:
-    when joining the tied pairs changes the components, scikit-learn labels them, as before."""
-    n = pts.shape[0]
-    if n < 2:
-        return np.zeros(n, dtype=np.int64)
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    pairs = cKDTree(pts).query_pairs(eps * (1 + TIE_MARGIN), output_type="ndarray")
-    d2 = ((pts[pairs[:, 0]] - pts[pairs[:, 1]]) ** 2).sum(axis=1)
-    clear = d2 < eps * eps * (1 - TIE_MARGIN)
-
-    def components(edges: np.ndarray) -> tuple[int, np.ndarray]:
-        graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-        count, labels = connected_components(graph, directed=False)
-        return int(count), labels
-
-    count, labels = components(pairs[clear])
-    if not clear.all() and components(pairs)[0] != count:  # a tie joins two clusters
-        from sklearn.cluster import DBSCAN
-
-        return np.asarray(DBSCAN(eps=eps, min_samples=1).fit_predict(pts), dtype=np.int64)
-    # renumber in the order of each component's first point (DBSCAN's order)
-    _, first = np.unique(labels, return_index=True)
-    rank = np.empty(count, dtype=np.int64)
-    rank[np.argsort(first)] = np.arange(count)
-    ordered: np.ndarray = rank[labels]
-    return ordered
-
-
 def cluster_objects(
     voxels: LabelledVoxels | None,
     *,
@@ -129,18 +88,20 @@ def cluster_objects(
     than `min_voxels` are outliers. The centroid covariance is the voxel scatter over the count,
     plus the voxel quantisation. `object_id` is the class and the centroid's `id_cell` cell
     (`ObjectTracker` keeps ids stable as centroids move). scikit-learn is imported only when
-    there is something to cluster, and only where a tie decides (`dbscan_labels`)."""
+    there is something to cluster (its first import costs ~1 s of CPU)."""
     if min_voxels < 1:
         raise InputError(f"need min_voxels >= 1, found {min_voxels!r}")
     if voxels is None or voxels.classes.size == 0:
         return []
+    from sklearn.cluster import DBSCAN
+
     res = voxels.resolution
     cls, p, times, centres = voxels.classes, voxels.probabilities, voxels.times, voxels.centres
     out: list[ObjectCentroid] = []
     for c in np.unique(cls):  # one pass per class present, vectorised inside
         m = cls == c
         pts = centres[m]
-        labels = dbscan_labels(pts, link * res)
+        labels = DBSCAN(eps=link * res, min_samples=1).fit_predict(pts)
         counts = np.bincount(labels)
         for lab in np.flatnonzero(counts >= min_voxels):
             sel = labels == lab

@@ -62,25 +62,3 @@ def test_no_classes_no_objects_and_bad_arguments():
     assert extract_objects(grid) == []
     with pytest.raises(InputError, match="min_voxels >= 1"):
         extract_objects(grid, min_voxels=0)
-
-
-def test_dbscan_labels_equal_scikit_learns_on_lattices_with_ties():
-    """The components replace DBSCAN(min_samples=1) label for label, ties at exactly eps (voxel
-    centres 3 voxels apart at link 3.0) included: where a tie joins two clusters, scikit-learn
-    decides, so the labels never differ."""
-    from sklearn.cluster import DBSCAN
-
-    from voxel.objects import dbscan_labels
-
-    rng = np.random.default_rng(7)
-    tied = 0
-    for _ in range(300):
-        res = float(rng.choice([0.02, 0.05, 0.1]))
-        link = float(rng.choice([1.8, 3.0, 2.0]))
-        keys = np.unique(rng.integers(-6, 6, size=(int(rng.integers(1, 40)), 3)), axis=0)
-        pts = (keys + 0.5) * res + float(rng.choice([0.0, -5.3, 12.7]))
-        want = DBSCAN(eps=link * res, min_samples=1).fit_predict(pts)
-        assert np.array_equal(dbscan_labels(pts, link * res), want), (res, link, keys)
-        d = np.sqrt(((keys[:, None] - keys[None]) ** 2).sum(-1))
-        tied += int(np.isclose(d, link).any())
-    assert tied > 50  # the sets had ties to decide
