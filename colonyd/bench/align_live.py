@@ -81,10 +81,12 @@ def run_live(
     realtime: bool = False,
     timeout: float = 120.0,
     names: tuple[str, ...] | None = None,
+    localise: bool = True,
 ) -> dict[str, Any]:
     """Start one daemon per (world, agent), wait for maps to converge and the colony frame to
     settle, and evaluate. Agents of other worlds than the first agent's are the negatives: they
-    must stay out of the colony frame."""
+    must stay out of the colony frame. `localise` False: the daemons map from the sim's
+    odometry, no estimator (exact with `noise` 0: its scan matching was most of their CPU)."""
     world = agents[0][0]
     names = names or tuple(f"{w[0]}{i}-{a}" for i, (w, a) in enumerate(agents))
     out: dict[str, Any] = {
@@ -94,6 +96,7 @@ def run_live(
         "resolution": resolution,
         "align_s": align_s,
         "realtime": realtime,
+        "localise": localise,
     }
     positives = [n for n, (w, _) in zip(names, agents, strict=True) if w == world]
     colony = LocalColony(base, colony="alignlive")
@@ -105,6 +108,8 @@ def run_live(
                 spec += ",realtime=true"
             d = colony.add(name, [spec], start=False, extra=["--resolution", str(resolution)])
             d.env = {"COLONYD_ALIGN_S": str(align_s), "COLONYD_OBJECTS_S": "0.5"}
+            if not localise:
+                d.env["COLONYD_LOCALISE"] = "false"
             d.start()
             joined[name] = time.monotonic()
         t0 = time.monotonic()
