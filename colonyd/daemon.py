@@ -213,7 +213,7 @@ class Daemon:
         if cfg.export_dir is not None:  # found unwritable now, not at shutdown
             output_dir(cfg.export_dir, "export_dir")
         self.store = get_store(cfg)
-        kernels.load_in_background()  # no scan or delta waits for a compilation (~11 s uncached)
+        kernels.load_in_background()  # no scan or delta waits for a compilation (~36 CPU-s)
         try:
             # bad specs fail before the network is touched
             self._sources = get_sources(cfg, self.stop, lambda: self.session)

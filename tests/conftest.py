@@ -9,7 +9,7 @@ import pytest
 def pytest_sessionstart(session: pytest.Session) -> None:
     """Compile and cache the numba kernels (voxel/kernels.py) in the controlling process, before
     xdist starts its workers. On a fresh clone nothing is cached: every daemon a test starts
-    would compile them itself (~11 CPU-s each, 20-30 s on a loaded machine), on the numpy path
+    would compile them itself (~44 CPU-s each with the codec's, measured), on the numpy path
     meanwhile: the first live tests ran slowly and timed out. Warm, each process loads the
     cached code in ~0.5 s."""
     if hasattr(session.config, "workerinput"):  # an xdist worker: the controller did it

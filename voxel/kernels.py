@@ -7,9 +7,9 @@ numba is absent, fails, or `COLONY_JIT=0` (read at import); the callers then run
 path, which gives bit-identical results (the kernels repeat its floating-point operations one for
 one). Importing numba and loading the cached machine code take ~0.5 s of CPU, so nothing here
 happens at import: `warm()` does it, off the hot path (a daemon calls it in a background thread
-once ready), and the first call otherwise. Compiling them (nothing cached yet) takes ~11 s of CPU:
-after `load_in_background()` (a daemon) a call never waits for that, it starts the loading in a
-thread and answers None (the numpy path) until it is done.
+once ready), and the first call otherwise. Compiling them (nothing cached yet) takes ~36 s of CPU
+(measured, docs/DAEMON.md): after `load_in_background()` (a daemon) a call never waits for that,
+it starts the loading in a thread and answers None (the numpy path) until it is done.
 """
 
 from __future__ import annotations
