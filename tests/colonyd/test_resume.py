@@ -189,6 +189,18 @@ def _touch(path: Path, hours: int = 1) -> None:
     os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + hours * 3_600 * 10**9))
 
 
+def _starts_afresh(
+    spec: str, stored: SourcePosition, frames: list[str], caplog: pytest.LogCaptureFixture
+) -> Positions:
+    """Positions recovered with `stored` for `spec`, started: every frame of the recording is
+    read again (the warnings are in `caplog`)."""
+    positions = Positions(encode({spec: stored}), [spec])
+    with caplog.at_level(logging.WARNING, logger="colonyd.resume"):
+        rest = positions.start(open_source(spec), threading.Event())
+    assert rest is not None and [o.frame for o in rest] == frames
+    return positions
+
+
 def test_fingerprint_of_a_file_a_folder_and_nothing(tmp_path):
     f = tmp_path / "run.log"
     f.write_text("FLASER\n")
@@ -352,10 +364,7 @@ def test_a_position_stored_by_size_and_time_is_matched_by_them(tmp_path, caplog)
     assert positions.position(spec) is not None
     assert positions.record()["sources"][spec]["recording"] == fingerprint(spec)
     _touch(path)
-    positions = Positions(encode({spec: old}), [spec])
-    with caplog.at_level(logging.WARNING, logger="colonyd.resume"):
-        rest = positions.start(open_source(spec), threading.Event())
-    assert rest is not None and [o.frame for o in rest] == frames
+    positions = _starts_afresh(spec, old, frames, caplog)
     assert spec not in positions.resumed
     assert "the recording changed since its position was stored" in caplog.text
     assert "a position stored by an older colonyd" in caplog.text
@@ -375,10 +384,7 @@ def test_a_recording_touched_resumes_and_one_changed_starts_afresh(tmp_path, cap
     lines[2] = lines[2].replace("8.000", "7.999", 1)
     path.write_text("".join(lines))
     assert path.stat().st_size == len(text)  # the same size, one reading changed
-    positions = Positions(encode({spec: stored}), [spec])
-    with caplog.at_level(logging.WARNING, logger="colonyd.resume"):
-        rest = positions.start(open_source(spec), threading.Event())
-    assert rest is not None and [o.frame for o in rest] == frames
+    _starts_afresh(spec, stored, frames, caplog)
     assert "the recording changed since its position was stored" in caplog.text
     assert "older colonyd" not in caplog.text
 
@@ -524,9 +530,6 @@ def test_a_position_stored_when_the_recording_was_unreadable_is_not_called_older
     spec = f"replay:{path}"
     frames = [o.frame for o in open_source(spec)]
     stored = SourcePosition(spec, {}, 3, frames[2], False, None)
-    positions = Positions(encode({spec: stored}), [spec])
-    with caplog.at_level(logging.WARNING, logger="colonyd.resume"):
-        rest = positions.start(open_source(spec), threading.Event())
-    assert rest is not None and [o.frame for o in rest] == frames
+    _starts_afresh(spec, stored, frames, caplog)
     assert "it could not be read when the position was stored" in caplog.text
     assert "older colonyd" not in caplog.text
