@@ -3,6 +3,8 @@ failure."""
 
 from __future__ import annotations
 
+import signal
+import time
 from collections.abc import Callable, Generator, Iterator
 from pathlib import Path
 from typing import Any
@@ -13,6 +15,10 @@ from colonyd.bench.launcher import LocalColony, stop_all
 
 #: Attribute of a test item holding the colonies its `make_colony` made.
 _COLONIES = "_colonies_made"
+#: Seconds given to running daemons to write their thread stacks after a failure, and how much
+#: of each log's end is then attached (the stacks of ~20 threads come after its last lines).
+STACKS_S = 1.0
+STACKS_TAIL = 20_000
 
 
 @pytest.fixture
@@ -41,10 +47,18 @@ def make_colony(
 def pytest_runtest_makereport(
     item: pytest.Item, call: pytest.CallInfo[None]
 ) -> Generator[None, Any, None]:
-    """Attach the daemon logs of the colonies a failed test made to its report."""
+    """Attach the daemon logs of the colonies a failed test made to its report, with the thread
+    stacks of every daemon still running (SIGUSR1: faulthandler writes them into its log), so a
+    daemon that went quiet shows where it stood."""
     outcome = yield
     report = outcome.get_result()
     colonies: list[LocalColony] = getattr(item, _COLONIES, [])
     if report.failed and report.when == "call" and colonies:
+        running = [d for colony in colonies for d in colony.daemons.values() if d.alive()]
+        for d in running:
+            d.signal(signal.SIGUSR1)
+        if running:
+            time.sleep(STACKS_S)
         for colony in colonies:
-            report.sections.append((f"daemon logs of colony {colony.colony!r}", colony.logs()))
+            logs = colony.logs(tail=STACKS_TAIL if running else 3000)
+            report.sections.append((f"daemon logs of colony {colony.colony!r}", logs))
