@@ -149,16 +149,23 @@ def test_dropping_keys_returns_the_buffers_memory_down_to_what_is_held() -> None
     assert h.size == 5_003
 
 
-def test_merging_past_the_capacity_keeps_the_newest() -> None:
-    """A replica whose history budget is below the origin's keeps the newest records and seen
-    entries, however large the page (the daemon's peer history budget relies on it)."""
+def _versions_of_10k(versions: int) -> History:
+    """A history of `versions` versions, each 10,000 records of agent "a" (keys 10,000 v ...)
+    and 10,000 seen entries (those keys + 100,000), version v + 1 at time v."""
     origin = History()
-    keys = np.arange(30_000, dtype=np.int64)
     agent = origin.agent_code("a")
-    for v in range(3):
+    keys = np.arange(versions * 10_000, dtype=np.int64)
+    for v in range(versions):
         part = keys[v * 10_000 : (v + 1) * 10_000]
         origin.append(part, time=float(v), version=v + 1, agent=agent)
         origin._log_seen(part + 100_000, float(v), v + 1)
+    return origin
+
+
+def test_merging_past_the_capacity_keeps_the_newest() -> None:
+    """A replica whose history budget is below the origin's keeps the newest records and seen
+    entries, however large the page (the daemon's peer history budget relies on it)."""
+    origin = _versions_of_10k(3)
     page, to, more = origin.page(0, 1_000_000)
     assert to == 3 and not more
     replica = History(capacity=12_000)
@@ -171,13 +178,7 @@ def test_merging_past_the_capacity_keeps_the_newest() -> None:
 def test_lowering_the_capacity_returns_memory_at_the_next_merge() -> None:
     """More peer layers share the daemon's history budget: a layer whose share shrinks gives
     the excess back when it next takes records."""
-    origin, replica = History(), History()
-    agent = origin.agent_code("a")
-    keys = np.arange(40_000, dtype=np.int64)
-    for v in range(4):
-        part = keys[v * 10_000 : (v + 1) * 10_000]
-        origin.append(part, time=float(v), version=v + 1, agent=agent)
-        origin._log_seen(part + 100_000, float(v), v + 1)
+    origin, replica = _versions_of_10k(4), History()
     page, to, _ = origin.page(0, 60_000)  # versions 1-3 (20,000 entries each)
     replica.merge(page)
     big = replica.allocated_bytes()
@@ -221,13 +222,7 @@ def test_replay_takes_back_what_since_gave_in_order_with_the_same_agent_codes() 
 
 
 def test_replaying_past_the_capacity_keeps_the_newest() -> None:
-    origin = History()
-    agent = origin.agent_code("a")
-    keys = np.arange(30_000, dtype=np.int64)
-    for v in range(3):
-        part = keys[v * 10_000 : (v + 1) * 10_000]
-        origin.append(part, time=float(v), version=v + 1, agent=agent)
-        origin._log_seen(part + 100_000, float(v), v + 1)
+    origin = _versions_of_10k(3)
     small = History(capacity=12_000)
     assert small.replay(origin.since(0, 3), 0) == 24_000
     assert small.size <= 12_000 and small.seen_size <= 12_000
